@@ -1,0 +1,1 @@
+"""DC core: contracts and machinery shared by every server. It imports no concrete plugin."""

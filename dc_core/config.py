@@ -1,0 +1,74 @@
+"""Loading a DC parameter file (ROS 2 parameter YAML: ``<server>: ros__parameters: ...``)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from dc_core.errors import ConfigError
+
+SERVERS = ("measurement_server", "group_server", "destination_server")
+
+
+def nest_dotted_keys(mapping: Mapping[str, Any], path: str = "") -> dict[str, Any]:
+    """ROS parameter files may write ``flb.flush: 1`` or ``flb: {flush: 1}``; make both nested."""
+    out: dict[str, Any] = {}
+    for raw_key, value in mapping.items():
+        key = str(raw_key)
+        parts = key.split(".")
+        node = out
+        for i, part in enumerate(parts[:-1]):
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise ConfigError(f"{path}.{'.'.join(parts[: i + 1])}".lstrip("."), "is both a value and a section")
+            node = child
+        leaf = parts[-1]
+        if isinstance(value, Mapping):
+            nested = nest_dotted_keys(value, f"{path}.{key}".lstrip("."))
+            existing = node.get(leaf)
+            if isinstance(existing, dict):
+                existing.update(nested)
+            else:
+                node[leaf] = nested
+        else:
+            node[leaf] = value
+    return out
+
+
+def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Server name -> its ``ros__parameters`` mapping (dotted keys nested)."""
+    file = Path(path)
+    try:
+        text = file.read_text()
+    except OSError as exc:
+        raise ConfigError("", f"cannot read parameter file {str(file)!r}: {exc.strerror}") from exc
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError("", f"{file}: invalid YAML{where}: {problem}") from exc
+    if document is None:
+        raise ConfigError("", f"{file}: the file is empty")
+    if not isinstance(document, Mapping):
+        raise ConfigError("", f"{file}: expected a mapping of server names at the top level")
+    servers: dict[str, dict[str, Any]] = {}
+    for name, body in document.items():
+        if name not in SERVERS:
+            # Other nodes' sections may share a ROS parameter file; they are not DC's business.
+            continue
+        if not isinstance(body, Mapping) or "ros__parameters" not in body:
+            raise ConfigError(str(name), "expected a 'ros__parameters' mapping")
+        params = body["ros__parameters"]
+        if params is None:
+            params = {}
+        if not isinstance(params, Mapping):
+            raise ConfigError(f"{name}.ros__parameters", "expected a mapping")
+        servers[str(name)] = nest_dotted_keys(params, str(name))
+    if not servers:
+        raise ConfigError("", f"{file}: no DC server section (expected one of {', '.join(SERVERS)})")
+    return servers

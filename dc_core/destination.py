@@ -1,0 +1,86 @@
+"""The destination plugin contract: ``send(batch)`` with typed outcomes.
+
+Buffering, batching, retries with backoff, dead letters and counters live once, in the
+destination server; a destination only delivers. ``send`` returns ``None`` when every record of the
+batch was confirmed, a :class:`SendOutcome` for per-record results, or raises
+:class:`RetryableError` (the whole batch is retried later) or :class:`RejectedError` (the whole
+batch is dead-lettered). Any other exception counts as retryable. ``send`` runs in the
+destination's own worker thread, never on the ROS executor, so it may block on I/O.
+"""
+
+from __future__ import annotations
+
+import abc
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol
+
+from dc_core.errors import DcError
+from dc_core.logs import Logger
+from dc_core.params import NoParams
+
+
+class RetryableError(DcError):
+    """Delivery failed for a reason that may pass (network down, server busy, 5xx)."""
+
+
+class RejectedError(DcError):
+    """The destination refused the records for good (malformed, 4xx): do not retry."""
+
+
+@dataclass
+class SendOutcome:
+    """Per-record result of a batch: indexes into the batch with the reason. Others succeeded."""
+
+    retry: dict[int, str] = field(default_factory=dict)
+    reject: dict[int, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class OutgoingRecord:
+    """A record routed to one destination: ``tags`` removed, time key and ``record_id`` added."""
+
+    record_id: str
+    topic: str
+    stamp_ns: int
+    data: dict[str, Any]
+
+    def to_json(self) -> str:
+        return json.dumps(self.data, ensure_ascii=False, separators=(",", ":"))
+
+
+class DestinationContext(Protocol):
+    @property
+    def name(self) -> str: ...
+    @property
+    def logger(self) -> Logger: ...
+    @property
+    def node(self) -> Any:
+        """The rclpy node (``Rcl`` logs through it); ``None`` without ROS."""
+
+
+class Destination(abc.ABC):
+    """Base class of destination plugins."""
+
+    Params: ClassVar[type] = NoParams
+
+    def __init__(self, context: DestinationContext, params: Any) -> None:
+        self.context = context
+        self.params = params
+
+    def on_configure(self) -> None:
+        """Check what can be checked without connecting; raise PluginError to fail configure."""
+
+    def on_activate(self) -> None:
+        """Open connections. Failing to connect here is not fatal: send() will be retried."""
+
+    def on_deactivate(self) -> None:
+        """Flush and close what send() keeps open."""
+
+    def on_cleanup(self) -> None:
+        """Release everything."""
+
+    @abc.abstractmethod
+    def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        """Deliver ``batch``; see the module documentation for the outcomes."""

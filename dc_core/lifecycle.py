@@ -1,0 +1,167 @@
+"""Lifecycle server base: transitions that log and undo on failure, a heartbeat, and a main loop.
+
+Every DC server is an rclpy ``LifecycleNode``. Subclasses implement ``configure_server`` (parse and
+build; raise to fail), ``activate_server`` (timers, connections), ``deactivate_server`` (stop intake,
+flush) and ``cleanup_server`` (release). A failing transition is logged with its reason and reported
+as FAILURE; the process keeps running and can be configured again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Sequence
+from typing import Any
+
+import rclpy
+from dc_interfaces.msg import Heartbeat
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+
+from dc_core.errors import DcError
+
+HEARTBEAT_TOPIC = "/dc/heartbeat"
+HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class ManagedServer(LifecycleNode):
+    """A DC server process' node."""
+
+    def __init__(self, node_name: str, params_file: str, heartbeat_period: float = 1.0) -> None:
+        super().__init__(node_name)
+        self.params_file = params_file
+        self._heartbeat_seq = 0
+        self._heartbeat_pub = self.create_publisher(Heartbeat, HEARTBEAT_TOPIC, HEARTBEAT_QOS)
+        # The heartbeat runs in every state: it tells the manager the process is alive.
+        self._heartbeat_timer = self.create_timer(heartbeat_period, self._send_heartbeat)
+
+    # -- heartbeat ---------------------------------------------------------------------------
+    def _send_heartbeat(self) -> None:
+        msg = Heartbeat()
+        msg.stamp = self.get_clock().now().to_msg()
+        msg.node_name = self.get_name()
+        self._heartbeat_seq += 1
+        msg.sequence = self._heartbeat_seq
+        msg.state = self._state_machine.current_state[0]
+        self._heartbeat_pub.publish(msg)
+
+    def set_heartbeat_period(self, period: float) -> None:
+        self._heartbeat_timer.cancel()
+        self.destroy_timer(self._heartbeat_timer)
+        self._heartbeat_timer = self.create_timer(period, self._send_heartbeat)
+
+    @property
+    def lifecycle_state(self) -> str:
+        label: str = self._state_machine.current_state[1]
+        return label
+
+    # -- transitions -------------------------------------------------------------------------
+    def configure_server(self) -> None:
+        raise NotImplementedError
+
+    def activate_server(self) -> None:
+        raise NotImplementedError
+
+    def deactivate_server(self) -> None:
+        raise NotImplementedError
+
+    def cleanup_server(self) -> None:
+        raise NotImplementedError
+
+    def _guard(self, what: str, step: Any, undo: Any = None) -> TransitionCallbackReturn:
+        started = time.monotonic()
+        try:
+            step()
+        except DcError as exc:
+            self.get_logger().error(f"{what} failed: {exc}")
+        except Exception as exc:  # a plugin bug must fail the transition, not the process
+            self.get_logger().error(f"{what} failed: {exc!r}\n{traceback.format_exc()}")
+        else:
+            self.get_logger().debug(f"{what} done in {time.monotonic() - started:.3f} s")
+            return TransitionCallbackReturn.SUCCESS
+        if undo is not None:
+            try:
+                undo()
+            except Exception as exc:
+                self.get_logger().error(f"undoing {what} failed too: {exc!r}")
+        return TransitionCallbackReturn.FAILURE
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._guard("configure", self.configure_server, self.cleanup_server)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        result = self._guard("activate", self.activate_server, self.deactivate_server)
+        if result == TransitionCallbackReturn.SUCCESS:
+            return super().on_activate(state)
+        return result
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        result = self._guard("deactivate", self.deactivate_server)
+        super().on_deactivate(state)
+        return result
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._guard("cleanup", self.cleanup_server)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if state.label == "active":
+            self._guard("deactivate", self.deactivate_server)
+        if state.label in ("active", "inactive"):
+            self._guard("cleanup", self.cleanup_server)
+        return TransitionCallbackReturn.SUCCESS
+
+
+def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = None) -> int:
+    """Process entry point of a server: ``python -m <module> PARAMS [--autostart]``."""
+    parser = argparse.ArgumentParser(prog=node_class.__name__)
+    parser.add_argument("params_file")
+    parser.add_argument("--log-level", default=os.environ.get("DC_LOG_LEVEL", "info"))
+    parser.add_argument("--autostart", action="store_true", help="configure and activate without a manager")
+    args = parser.parse_args(argv)
+
+    rclpy.init(
+        args=["--ros-args", "--log-level", args.log_level],
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+    node = node_class(args.params_file)  # type: ignore[call-arg]
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    code = 0
+    try:
+        if args.autostart:
+            if node.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+                return 1
+            if node.trigger_activate() != TransitionCallbackReturn.SUCCESS:
+                return 1
+        while not stop.is_set():
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except (KeyboardInterrupt, ExternalShutdownException):
+                break
+            except Exception as exc:  # keep serving: one bad callback must not stop collection
+                node.get_logger().error(f"callback failed: {exc!r}\n{traceback.format_exc()}")
+        state = node.lifecycle_state
+        if state in ("active", "inactive", "unconfigured"):
+            node.trigger_shutdown()
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+        sys.stdout.flush()
+    return code

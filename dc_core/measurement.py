@@ -1,0 +1,95 @@
+"""The measurement plugin contract.
+
+A measurement is one small class: its parameters (a frozen dataclass in ``Params``), its JSON
+schema (``schema_file`` in ``<schema_package>/schemas/``) and ``collect()``. Everything common —
+timer, gating, validation, metadata, publishing — is done by the measurement server.
+
+Timer-driven measurements return a record from :meth:`Measurement.collect` (or ``None`` when they
+have nothing). Event-driven ones set ``timer_driven`` to false and call ``context.emit(record)``
+from their subscription callbacks.
+"""
+
+from __future__ import annotations
+
+import abc
+import json
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any, ClassVar, Protocol
+
+from dc_core.errors import PluginError
+from dc_core.logs import Logger
+from dc_core.params import NoParams
+
+
+@dataclass(frozen=True)
+class BasePaths:
+    """Expanded base paths of the measurement server, for plugins that save files."""
+
+    save_local_base_path: str = ""
+    all_base_path: str = ""
+    remote_prefixes: dict[str, str] = field(default_factory=dict)
+
+
+class MeasurementContext(Protocol):
+    """What the server gives a measurement plugin."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def logger(self) -> Logger: ...
+    @property
+    def node(self) -> Any:
+        """The rclpy node, to create subscriptions in ``on_configure`` (``None`` without ROS)."""
+    @property
+    def paths(self) -> BasePaths: ...
+    def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
+        """Offer a record from an event (gated, validated and published like a collected one)."""
+
+
+class Measurement(abc.ABC):
+    """Base class of measurement plugins."""
+
+    Params: ClassVar[type] = NoParams
+    schema_file: ClassVar[str | None] = None
+    schema_package: ClassVar[str] = "dc_measurements"
+
+    def __init__(self, context: MeasurementContext, params: Any) -> None:
+        self.context = context
+        self.params = params
+
+    @property
+    def timer_driven(self) -> bool:
+        """False for measurements that publish from events through ``context.emit``."""
+        return True
+
+    def on_configure(self) -> None:
+        """Open what the plugin needs (files, subscriptions). Raise PluginError to fail configure."""
+
+    def on_activate(self) -> None:
+        """Called when the server activates, before the first collect."""
+
+    def on_deactivate(self) -> None:
+        """Called when the server deactivates; no collect follows until the next activate."""
+
+    def on_cleanup(self) -> None:
+        """Release what on_configure opened."""
+
+    @abc.abstractmethod
+    def collect(self) -> dict[str, Any] | None:
+        """One sample as a JSON-able object, or None when there is nothing to report."""
+
+    def on_failed_validation(self, record: dict[str, Any], error: str) -> None:
+        """Hook called when a record does not match the schema (after it was logged)."""
+
+    @classmethod
+    def load_schema(cls) -> dict[str, Any] | None:
+        """The plugin's built-in JSON schema, or None if it has none."""
+        if cls.schema_file is None:
+            return None
+        try:
+            text = resources.files(cls.schema_package).joinpath("schemas", cls.schema_file).read_text()
+        except (OSError, ModuleNotFoundError) as exc:
+            raise PluginError(f"schema {cls.schema_file!r} of {cls.__name__} not found: {exc}") from exc
+        schema: dict[str, Any] = json.loads(text)
+        return schema

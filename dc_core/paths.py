@@ -1,0 +1,45 @@
+"""Expansion of configured paths: ``$ENV``/``${ENV}``, ``=param`` and strftime tokens."""
+
+from __future__ import annotations
+
+import os
+import re
+import time
+from collections.abc import Callable, Mapping
+
+from dc_core.errors import ConfigError
+
+_ENV = re.compile(r"\$\{([A-Za-z_]\w*)\}|\$([A-Za-z_]\w*)")
+_VALUE = re.compile(r"=\{([A-Za-z_]\w*)\}|=([A-Za-z_]\w*)")
+
+
+def expand_env(text: str, path: str = "", environ: Mapping[str, str] | None = None) -> str:
+    """Replace ``$NAME`` and ``${NAME}``; an unset variable is a configuration error."""
+    env = os.environ if environ is None else environ
+
+    def repl(match: re.Match[str]) -> str:
+        name = match.group(1) or match.group(2)
+        if name not in env:
+            raise ConfigError(path, f"environment variable ${name} is not set (in {text!r})")
+        return env[name]
+
+    return _ENV.sub(repl, text)
+
+
+def expand_values(text: str, lookup: Callable[[str], str | None], path: str = "") -> str:
+    """Replace ``=name`` by the string value ``lookup(name)``; an unknown name is an error."""
+
+    def repl(match: re.Match[str]) -> str:
+        name = match.group(1) or match.group(2)
+        value = lookup(name)
+        if value is None:
+            raise ConfigError(path, f"'={name}' names no string parameter")
+        return value
+
+    return _VALUE.sub(repl, text)
+
+
+def expand_time(text: str, when: float | None = None, utc: bool = False) -> str:
+    """strftime expansion (local time unless ``utc``)."""
+    moment = time.time() if when is None else when
+    return time.strftime(text, time.gmtime(moment) if utc else time.localtime(moment))

@@ -1,0 +1,1 @@
+"""Measurement server and the built-in measurement plugins."""
