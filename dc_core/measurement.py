@@ -79,6 +79,14 @@ class Measurement(abc.ABC):
     def collect(self) -> dict[str, Any] | None:
         """One sample as a JSON-able object, or None when there is nothing to report."""
 
+    def collect_stamped(self) -> tuple[dict[str, Any] | None, int | None, str | None]:
+        """``collect()`` with the sample's own stamp (ns) and group key when it has them.
+
+        Plugins that forward records from elsewhere override this to keep the source's stamp;
+        ``None`` means "now" and "the configured group_key".
+        """
+        return self.collect(), None, None
+
     def on_failed_validation(self, record: dict[str, Any], error: str) -> None:
         """Hook called when a record does not match the schema (after it was logged)."""
 

@@ -195,7 +195,10 @@ def parse_params(cls: type[T], mapping: Any, path: str, *, ignore: Iterable[str]
         value = _coerce(tp, mapping[present[0]], key_path)
         _check_range(f, value, key_path, tp)
         values[f.name] = value
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ConfigError as exc:  # cross-field checks in __post_init__ name keys relative to the section
+        raise ConfigError(_join(path, exc.path), exc.message) from exc
 
 
 def describe_params(cls: type) -> list[ParamInfo]:

@@ -1,0 +1,82 @@
+"""Conditions at run time: safe evaluation, the optional `topic` input, state publication."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from dc_core.condition import Condition
+from dc_core.logs import Logger
+
+
+class ConditionRuntime:
+    """One configured condition, shared by every measurement that lists it."""
+
+    def __init__(self, name: str, condition: Condition, topic: str, logger: Logger,
+                 publish_state: Callable[[bool], None]) -> None:
+        self.name = name
+        self.condition = condition
+        self.topic = topic
+        self._logger = logger
+        self._publish_state = publish_state
+        self._latest: Mapping[str, Any] | None = None
+        self._state: bool | None = None
+        self._last_reason = ""
+
+    @property
+    def needs_sample(self) -> bool:
+        """True when the condition judges the measurement's own sample (collect must run first)."""
+        return self.condition.needs_sample and not self.topic
+
+    @property
+    def state(self) -> bool:
+        return bool(self._state)
+
+    def on_topic_record(self, data: str) -> None:
+        """Latest record of the condition's own `topic`."""
+        try:
+            parsed = json.loads(data)
+        except json.JSONDecodeError as exc:
+            self._logger.debug(f"condition {self.name}: record on {self.topic} is not JSON ({exc}); ignored")
+            return
+        if isinstance(parsed, dict):
+            self._latest = parsed
+        else:
+            self._logger.debug(f"condition {self.name}: record on {self.topic} is not a JSON object; ignored")
+
+    def evaluate(self, sample: Mapping[str, Any] | None) -> bool:
+        """Active now? Never raises: missing or malformed data means inactive, said at debug level."""
+        if self.topic:
+            judged = self._latest
+            if judged is None:
+                return self._set(False, f"no record received on {self.topic} yet")
+        elif self.condition.needs_sample:
+            judged = sample
+        else:
+            judged = None
+        try:
+            active = bool(self.condition.evaluate(judged))
+        except Exception as exc:  # a condition never crashes the server
+            return self._set(False, f"{type(exc).__name__}: {exc}")
+        return self._set(active, "")
+
+    def _set(self, active: bool, reason: str) -> bool:
+        if reason and reason != self._last_reason:
+            self._logger.debug(f"condition {self.name} inactive: {reason}")
+        self._last_reason = reason
+        if active != self._state:
+            self._state = active
+            self._publish_state(active)
+        return active
+
+
+def conditions_met(
+    all_of: list[str], any_of: list[str], none_of: list[str], states: Mapping[str, bool]
+) -> bool:
+    """if_all: every one active; if_any: at least one (when listed); if_none: none active."""
+    if not all(states[c] for c in all_of):
+        return False
+    if any_of and not any(states[c] for c in any_of):
+        return False
+    return not any(states[c] for c in none_of)

@@ -1,0 +1,92 @@
+"""StringStamped measurement: records that other ROS 2 nodes publish, forwarded through DC."""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from dc_core.errors import PluginError
+from dc_core.measurement import Measurement
+from dc_core.params import param
+
+_LOGGED_TEXT = 2000
+
+
+@dataclass(frozen=True, kw_only=True)
+class StringStampedParams:
+    topic: str = param(doc="Input topic (dc_interfaces/msg/StringStamped) where your nodes publish")
+    timer_based: bool = param(
+        True, doc="true: publish the latest record at every polling interval; false: every record as it arrives"
+    )
+    qos_depth: int = param(100, minimum=1, doc="Subscription queue depth")
+
+
+class StringStampedInput(Measurement):
+    """Forwards JSON records that your own nodes publish as dc_interfaces/StringStamped."""
+
+    Params = StringStampedParams
+
+    def __init__(self, context: Any, params: Any) -> None:
+        super().__init__(context, params)
+        self._lock = threading.Lock()
+        self._latest: tuple[dict[str, Any], int, str] | None = None
+        self._subscription: Any = None
+        self.malformed = 0
+
+    @property
+    def timer_driven(self) -> bool:
+        return bool(self.params.timer_based)
+
+    def on_configure(self) -> None:
+        node = self.context.node
+        if node is None:
+            raise PluginError("StringStamped needs a ROS node")
+        from dc_interfaces.msg import StringStamped
+
+        self._subscription = node.create_subscription(
+            StringStamped, self.params.topic, self._on_message, self.params.qos_depth
+        )
+
+    def on_cleanup(self) -> None:
+        if self._subscription is not None:
+            self.context.node.destroy_subscription(self._subscription)
+            self._subscription = None
+
+    def _on_message(self, msg: Any) -> None:
+        try:
+            record = json.loads(msg.data)
+        except json.JSONDecodeError as exc:
+            self.malformed += 1
+            self.context.logger.error(
+                f"measurement {self.context.name}: record on {self.params.topic} is not JSON ({exc}); "
+                f"record: {msg.data[:_LOGGED_TEXT]!r}"
+            )
+            return
+        if not isinstance(record, dict):
+            self.malformed += 1
+            self.context.logger.error(
+                f"measurement {self.context.name}: record on {self.params.topic} is not a JSON object; "
+                f"record: {msg.data[:_LOGGED_TEXT]!r}"
+            )
+            return
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        group_key = msg.group_key or None
+        if not self.timer_driven:
+            self.context.emit(record, stamp_ns=stamp_ns or None, group_key=group_key)
+            return
+        with self._lock:
+            self._latest = (record, stamp_ns, msg.group_key)
+
+    def collect_stamped(self) -> tuple[dict[str, Any] | None, int | None, str | None]:
+        # Each received record is published once: the original re-published the last one at every tick.
+        with self._lock:
+            latest, self._latest = self._latest, None
+        if latest is None:
+            return None, None, None
+        record, stamp_ns, group_key = latest
+        return record, stamp_ns or None, group_key or None
+
+    def collect(self) -> dict[str, Any] | None:
+        return self.collect_stamped()[0]

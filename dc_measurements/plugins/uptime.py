@@ -1,0 +1,19 @@
+"""Uptime measurement."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from dc_core.measurement import Measurement
+
+PROC_UPTIME = "/proc/uptime"
+
+
+class Uptime(Measurement):
+    """Seconds since the system booted (integer, from /proc/uptime)."""
+
+    schema_file = "uptime.json"
+
+    def collect(self) -> dict[str, Any] | None:
+        with open(PROC_UPTIME) as f:
+            return {"time": int(float(f.read().split()[0]))}

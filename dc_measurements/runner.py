@@ -1,0 +1,183 @@
+"""One measurement at run time: gating, validation, record building, publication.
+
+Kept free of ROS so it can be tested directly; the server wires ``publish`` to a lifecycle
+publisher and calls :meth:`MeasurementRunner.tick` from the measurement's timer.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from dc_core.gating import Gate
+from dc_core.jsonpath import flatten as flatten_record
+from dc_core.logs import Logger
+from dc_core.measurement import Measurement
+from dc_measurements.condition_runtime import ConditionRuntime, conditions_met
+from dc_measurements.config import MeasurementConfig
+from dc_measurements.metadata import apply_metadata
+from dc_measurements.validation import RecordValidator
+
+PublishFn = Callable[[str, str, int | None], None]
+"""publish(json_text, group_key, stamp_ns or None for now)."""
+
+
+@dataclass
+class RunnerStats:
+    collected: int = 0
+    published: int = 0
+    empty: int = 0
+    invalid: int = 0
+    gated: int = 0
+    errors: int = 0
+
+
+class MeasurementRunner:
+    def __init__(
+        self,
+        config: MeasurementConfig,
+        plugin: Measurement,
+        conditions: dict[str, ConditionRuntime],
+        validator: RecordValidator | None,
+        run_id: str | None,
+        custom: list[tuple[str, str, bool]],
+        publish: PublishFn,
+        logger: Logger,
+    ) -> None:
+        self.config = config
+        self.plugin = plugin
+        self.validator = validator
+        self._conditions = conditions
+        self._run_id = run_id
+        self._custom = custom
+        self._publish = publish
+        self._logger = logger
+        common = config.common
+        self.gate = Gate(common.init_max_measurements, common.condition_max_measurements, bool(config.conditions))
+        self.stats = RunnerStats()
+        self._empty_warned = False
+
+    @property
+    def finished(self) -> bool:
+        return self.gate.finished
+
+    def _used_conditions(self) -> list[ConditionRuntime]:
+        return [self._conditions[c] for c in dict.fromkeys(self.config.conditions)]
+
+    def _evaluate(self, sample: dict[str, Any] | None) -> bool:
+        # Each condition is evaluated exactly once per sample, even when listed twice.
+        states = {rt.name: rt.evaluate(sample) for rt in self._used_conditions()}
+        c = self.config.common
+        return conditions_met(c.if_all_conditions, c.if_any_conditions, c.if_none_conditions, states)
+
+    def tick(self) -> None:
+        """One polling period of a timer-driven measurement."""
+        if self.gate.finished:
+            return
+        if self.gate.needs_conditions and not any(rt.needs_sample for rt in self._used_conditions()):
+            met = self._evaluate(None)
+            if not self.gate.would_admit(met):
+                # Conditions are judged without the sample: do not even collect (#213 upstream).
+                self.gate.observe_conditions(met)
+                self.stats.gated += 1
+                return
+            sample, stamp_ns, group_key = self._collect()
+            if sample is not None:
+                self._offer(sample, met, stamp_ns, group_key)
+            return
+        sample, stamp_ns, group_key = self._collect()
+        if sample is None:
+            return
+        met = self._evaluate(sample) if self.gate.needs_conditions else True
+        self._offer(sample, met, stamp_ns, group_key)
+
+    def emit(self, sample: dict[str, Any], stamp_ns: int | None = None, group_key: str | None = None) -> None:
+        """A record from an event-driven measurement."""
+        if self.gate.finished:
+            return
+        if not self._check_sample(sample):
+            return
+        self.stats.collected += 1
+        met = self._evaluate(sample) if self.gate.needs_conditions else True
+        self._offer(sample, met, stamp_ns, group_key)
+
+    def _collect(self) -> tuple[dict[str, Any] | None, int | None, str | None]:
+        try:
+            sample, stamp_ns, group_key = self.plugin.collect_stamped()
+        except Exception as exc:  # one failing collect must not stop the measurement
+            self.stats.errors += 1
+            self._logger.error(f"measurement {self.config.name}: collect failed: {exc!r}")
+            return None, None, None
+        if not self._check_sample(sample):
+            return None, None, None
+        self.stats.collected += 1
+        return sample, stamp_ns, group_key
+
+    def _check_sample(self, sample: Any) -> bool:
+        if sample is None or sample == {}:
+            self.stats.empty += 1
+            if not self._empty_warned:
+                # Said once: subscribe-and-clear plugins are empty on every tick without input.
+                self._logger.info(f"measurement {self.config.name}: nothing to report (said once)")
+                self._empty_warned = True
+            return False
+        if not isinstance(sample, dict):
+            self.stats.errors += 1
+            self._logger.error(
+                f"measurement {self.config.name}: collect returned {type(sample).__name__}, expected a JSON object"
+            )
+            return False
+        self._empty_warned = False
+        return True
+
+    def _offer(self, sample: dict[str, Any], met: bool, stamp_ns: int | None, group_key: str | None) -> None:
+        if not self.gate.admit(met):
+            self.stats.gated += 1
+            return
+        record = self.build_record(sample)
+        if record is None:
+            return
+        try:
+            text = json.dumps(record, ensure_ascii=False, separators=(",", ":"), allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            self.stats.errors += 1
+            self._logger.error(f"measurement {self.config.name}: record is not JSON-serialisable: {exc}")
+            return
+        self._publish(text, self.config.common.group_key if group_key is None else group_key, stamp_ns)
+        self.stats.published += 1
+
+    def build_record(self, sample: dict[str, Any]) -> dict[str, Any] | None:
+        """Validate, nest, flatten and add metadata; None when the record is dropped."""
+        c = self.config.common
+        if self.validator is not None:
+            error = self.validator.error(sample)
+            if error is not None:
+                self.stats.invalid += 1
+                action = "dropped" if c.drop_invalid else "published anyway"
+                self._logger.error(f"measurement {self.config.name}: validation failed ({action}): {error}")
+                try:
+                    self.plugin.on_failed_validation(sample, error)
+                except Exception as exc:
+                    self._logger.error(f"measurement {self.config.name}: on_failed_validation raised {exc!r}")
+                if c.drop_invalid:
+                    return None
+        record: dict[str, Any] = dict(sample)
+        if c.nested:
+            record = {self.config.name: record}
+        if c.flatten:
+            record = flatten_record(record)
+        if c.nested:
+            record["nested"] = True
+        if c.flatten:
+            record["flattened"] = True
+        return apply_metadata(
+            record,
+            run_id=self._run_id,
+            tags=c.tags,
+            name=self.config.name if c.include_measurement_name else None,
+            plugin=c.plugin if c.include_measurement_plugin else None,
+            custom=self._custom,
+        )
+

@@ -1,0 +1,245 @@
+"""measurement_server: loads measurement and condition plugins and publishes their records."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from dc_interfaces.msg import Condition as ConditionMsg
+from dc_interfaces.msg import StringStamped
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from dc_core.config import load_params_file
+from dc_core.errors import ConfigError, PluginError
+from dc_core.lifecycle import ManagedServer, run_server
+from dc_core.logs import Logger
+from dc_core.measurement import BasePaths, Measurement
+from dc_core.paths import expand_env, expand_values
+from dc_measurements.condition_runtime import ConditionRuntime
+from dc_measurements.config import MeasurementServerConfig, parse_measurement_server
+from dc_measurements.metadata import next_run_id, resolve_custom_params
+from dc_measurements.runner import MeasurementRunner
+from dc_measurements.validation import RecordValidator
+
+NODE_NAME = "measurement_server"
+# Late subscribers (a dashboard, a test) get the current state of a condition at once.
+CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@dataclass
+class _PluginContext:
+    """What a plugin sees of the server (dc_core.measurement.MeasurementContext)."""
+
+    name: str
+    logger: Logger
+    node: Any
+    paths: BasePaths
+    server: MeasurementServer
+
+    def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
+        self.server.emit_from_event(self.name, record, stamp_ns, group_key)
+
+
+class MeasurementServer(ManagedServer):
+    def __init__(self, params_file: str) -> None:
+        super().__init__(NODE_NAME, params_file)
+        self.config: MeasurementServerConfig | None = None
+        self.runners: dict[str, MeasurementRunner] = {}
+        self.conditions: dict[str, ConditionRuntime] = {}
+        self._publishers: dict[str, Any] = {}
+        self._condition_publishers: list[Any] = []
+        self._condition_subscriptions: list[Any] = []
+        self._timers: dict[str, Any] = {}
+        self._active = False
+
+    # -- configure ---------------------------------------------------------------------------
+    def configure_server(self) -> None:
+        servers = load_params_file(self.params_file)
+        if NODE_NAME not in servers:
+            raise ConfigError(NODE_NAME, f"no {NODE_NAME} section in {self.params_file}")
+        section = servers[NODE_NAME]
+        config = parse_measurement_server(section)
+        self.config = config
+        log = self.get_logger()
+        for warning in config.warnings:
+            log.warning(warning)
+        self.set_heartbeat_period(config.node.heartbeat_period)
+
+        run_id = next_run_id(config.node.run_id)
+        custom = resolve_custom_params(config.custom_str_params)
+        paths = self._base_paths(section, config, custom)
+        log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
+
+        for name, ccfg in config.conditions.items():
+            publisher = self.create_publisher(ConditionMsg, f"/dc/condition/{name}", CONDITION_QOS)
+            self._condition_publishers.append(publisher)
+            context = _PluginContext(name, self.get_logger().get_child(name), self, paths, self)
+            plugin = ccfg.plugin_class(context, ccfg.plugin_params)
+            runtime = ConditionRuntime(name, plugin, ccfg.common.topic, log, self._state_publisher(publisher))
+            plugin.on_configure()
+            self.conditions[name] = runtime
+
+        for mcfg in config.measurements:
+            c = mcfg.common
+            context = _PluginContext(mcfg.name, self.get_logger().get_child(mcfg.name), self, paths, self)
+            plugin: Measurement = mcfg.plugin_class(context, mcfg.plugin_params)
+            validator = self._validator(mcfg.name, plugin, c.enable_validator, c.json_schema_path)
+            publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, RECORD_QOS)
+            self._publishers[mcfg.name] = publisher
+            runner = MeasurementRunner(
+                mcfg, plugin, self.conditions, validator, run_id, custom, self._publish_fn(publisher), log
+            )
+            plugin.on_configure()
+            self.runners[mcfg.name] = runner
+            log.info(
+                f"measurement {mcfg.name} ({c.plugin}) -> {mcfg.output_topic}"
+                + (f" every {c.polling_interval} ms" if plugin.timer_driven else " on events")
+            )
+
+    def _base_paths(self, section: dict[str, Any], config: MeasurementServerConfig,
+                    custom: list[tuple[str, str, bool]]) -> BasePaths:
+        node = config.node
+
+        def top_level_string(name: str) -> str | None:
+            value = section.get(name)
+            return value if isinstance(value, str) else None
+
+        custom_values = {cid: value for cid, (_, value, _) in zip(config.custom_str_params, custom, strict=True)}
+        save = expand_values(
+            expand_env(node.save_local_base_path, f"{NODE_NAME}.save_local_base_path"),
+            top_level_string, f"{NODE_NAME}.save_local_base_path",
+        )
+        all_base = expand_values(
+            expand_env(node.all_base_path, f"{NODE_NAME}.all_base_path"),
+            custom_values.get, f"{NODE_NAME}.all_base_path",
+        )
+        return BasePaths(save_local_base_path=save, all_base_path=all_base)
+
+    def _validator(self, name: str, plugin: Measurement, enabled: bool, schema_path: str) -> RecordValidator | None:
+        if not enabled:
+            return None
+        if schema_path:
+            return RecordValidator.from_file(expand_env(schema_path, f"{NODE_NAME}.{name}.json_schema_path"))
+        schema = plugin.load_schema()
+        if schema is None:
+            self.get_logger().warning(
+                f"measurement {name}: enable_validator is true but the plugin has no schema and no json_schema_path "
+                "is set: records are not validated"
+            )
+            return None
+        return RecordValidator(schema, f"of {type(plugin).__name__}")
+
+    def _state_publisher(self, publisher: Any) -> Any:
+        def publish(active: bool) -> None:
+            msg = ConditionMsg()
+            msg.data = active
+            publisher.publish(msg)
+
+        return publish
+
+    def _publish_fn(self, publisher: Any) -> Any:
+        def publish(text: str, group_key: str, stamp_ns: int | None) -> None:
+            msg = StringStamped()
+            if stamp_ns is None:
+                msg.header.stamp = self.get_clock().now().to_msg()
+            else:
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+            msg.data = text
+            msg.group_key = group_key
+            publisher.publish(msg)
+
+        return publish
+
+    # -- activate / deactivate -----------------------------------------------------------------
+    def activate_server(self) -> None:
+        for runtime in self.conditions.values():
+            runtime.condition.on_activate()
+            if runtime.topic:
+                self._condition_subscriptions.append(
+                    self.create_subscription(
+                        StringStamped, runtime.topic, lambda msg, rt=runtime: rt.on_topic_record(msg.data), 10
+                    )
+                )
+        self._active = True
+        for name, runner in self.runners.items():
+            self._publishers[name].on_activate(None)
+            runner.plugin.on_activate()
+            if not runner.plugin.timer_driven:
+                continue
+            period = runner.config.common.polling_interval / 1000.0
+            self._timers[name] = self.create_timer(period, lambda n=name: self._tick(n))
+            if runner.config.common.init_collect:
+                self._tick(name)
+
+    def _tick(self, name: str) -> None:
+        runner = self.runners[name]
+        started = time.monotonic()
+        runner.tick()
+        elapsed = time.monotonic() - started
+        if elapsed > runner.config.common.polling_interval / 1000.0:
+            self.get_logger().warning(f"measurement {name}: collect took {elapsed:.3f} s, longer than its interval")
+        if runner.finished and name in self._timers:
+            timer = self._timers.pop(name)
+            timer.cancel()
+            self.destroy_timer(timer)
+            self.get_logger().info(f"measurement {name}: done, no further sample can be published; timer stopped")
+
+    def emit_from_event(self, name: str, record: dict[str, Any], stamp_ns: int | None, group_key: str | None) -> None:
+        if not self._active:
+            return
+        self.runners[name].emit(record, stamp_ns, group_key)
+
+    def deactivate_server(self) -> None:
+        self._active = False
+        for timer in self._timers.values():
+            timer.cancel()
+            self.destroy_timer(timer)
+        self._timers.clear()
+        for sub in self._condition_subscriptions:
+            self.destroy_subscription(sub)
+        self._condition_subscriptions.clear()
+        errors = []
+        for name, runner in self.runners.items():
+            self._publishers[name].on_deactivate(None)
+            try:
+                runner.plugin.on_deactivate()
+            except Exception as exc:
+                errors.append(f"{name}: {exc!r}")
+        for runtime in self.conditions.values():
+            try:
+                runtime.condition.on_deactivate()
+            except Exception as exc:
+                errors.append(f"{runtime.name}: {exc!r}")
+        if errors:
+            raise PluginError("; ".join(errors))
+
+    def cleanup_server(self) -> None:
+        self._active = False
+        for name, runner in self.runners.items():
+            try:
+                runner.plugin.on_cleanup()
+            except Exception as exc:
+                self.get_logger().error(f"measurement {name}: cleanup failed: {exc!r}")
+            self.destroy_lifecycle_publisher(self._publishers[name])
+        for runtime in self.conditions.values():
+            try:
+                runtime.condition.on_cleanup()
+            except Exception as exc:
+                self.get_logger().error(f"condition {runtime.name}: cleanup failed: {exc!r}")
+        for publisher in self._condition_publishers:
+            self.destroy_publisher(publisher)
+        self.runners.clear()
+        self.conditions.clear()
+        self._publishers.clear()
+        self._condition_publishers.clear()
+
+
+def main() -> int:
+    return run_server(MeasurementServer)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
