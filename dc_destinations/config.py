@@ -1,0 +1,184 @@
+"""Parameters of the destination server: node level (with the ``flb`` delivery section) and per destination.
+
+Parsing is pure: it loads plugin classes through their entry points and checks every value, but
+opens no file and connects to nothing. ``dc validate`` and ``dc-bringup`` call it before anything runs.
+A destination section is checked against three parameter classes at once — the common ones below,
+the delivery ones of :mod:`dc_destinations.settings` and the plugin's own ``Params`` — so an unknown
+key is reported once, with a suggestion taken from all of them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import typing
+from dataclasses import dataclass, field
+from typing import Any
+
+from dc_core.errors import ConfigError, PluginError
+from dc_core.params import did_you_mean, field_names, param, parse_params
+from dc_core.plugins import load_plugin
+from dc_core.timefmt import TIME_FORMATS
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+
+# Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
+_OBSOLETE_NODE_KEYS = ("ros2_plugin_path", "ros2_plugin_spin_time_ms")
+# Spellings of `flb` keys found in the seed's examples, with the key DC reads instead.
+_FLB_RENAMED = {"flb_grace": "grace", "metrics": "http_server"}
+
+
+@dataclass(frozen=True, kw_only=True)
+class DestinationServerParams:
+    destination_plugins: list[str] = param([], doc="Names of the destinations to load, each with its section")
+    heartbeat_period: float = param(1.0, minimum=0.05, doc="Seconds between heartbeats to the manager")
+    flb: DeliveryParams = param(default_factory=DeliveryParams, doc="Delivery settings (Fluent Bit's names)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DestinationCommonParams:
+    plugin: str = param(doc="Plugin type, e.g. dc_destinations/Stdout")
+    inputs: list[str] = param(doc="Topics this destination takes records from (StringStamped)")
+    debug: bool = param(False, doc="Log every record routed to this destination")
+    time_format: str = param(
+        "double", choices=TIME_FORMATS, aliases=("json_date_format",), doc="Format of the time key"
+    )
+    time_key: str = param(
+        "date", aliases=("json_date_key",), doc="Key receiving the record's header stamp (empty: no time key)"
+    )
+
+
+@dataclass(frozen=True)
+class DestinationConfig:
+    name: str
+    common: DestinationCommonParams
+    delivery: DestinationDeliveryParams
+    plugin_class: type
+    plugin_params: Any
+
+
+@dataclass(frozen=True)
+class DestinationServerConfig:
+    node: DestinationServerParams
+    destinations: list[DestinationConfig]
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def names(self) -> list[str]:
+        return [d.name for d in self.destinations]
+
+    @property
+    def inputs(self) -> set[str]:
+        return {topic for d in self.destinations for topic in d.common.inputs}
+
+
+def _numeric_strings_to_numbers(values: dict[str, Any], cls: type) -> dict[str, Any]:
+    """The seed documents the `flb` numbers as strings ("1", "2000"); read them as the numbers they are."""
+    hints = typing.get_type_hints(cls)
+    out = dict(values)
+    for key, value in values.items():
+        if not isinstance(value, str) or hints.get(key) not in (int, float):
+            continue
+        # A non-number is left as is: parse_params reports it with the expected type.
+        with contextlib.suppress(ValueError):
+            out[key] = int(value) if hints[key] is int else float(value)
+    return out
+
+
+def _flb_section(section: dict[str, Any], path: str, warnings: list[str]) -> dict[str, Any]:
+    raw = section.get("flb", {})
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}.flb", f"expected a mapping, got {raw!r}")
+    flb = dict(raw)
+    for old, new in _FLB_RENAMED.items():
+        if old not in flb:
+            continue
+        value = flb.pop(old)
+        if new in flb:
+            warnings.append(f"{path}.flb.{old}: ignored, {path}.flb.{new} is set too")
+            continue
+        warnings.append(f"{path}.flb.{old} is a deprecated spelling of {path}.flb.{new}")
+        flb[new] = value
+    # The seed's demos put `flb_grace` next to `flb` when the YAML indentation is read literally.
+    if "flb_grace" in section:
+        if "grace" in flb:
+            warnings.append(f"{path}.flb_grace: ignored, {path}.flb.grace is set too")
+        else:
+            warnings.append(f"{path}.flb_grace is a deprecated spelling of {path}.flb.grace")
+            flb["grace"] = section["flb_grace"]
+    return _numeric_strings_to_numbers(flb, DeliveryParams)
+
+
+def _load(type_name: str, path: str) -> type:
+    try:
+        return load_plugin("destinations", type_name)
+    except PluginError as exc:
+        raise ConfigError(f"{path}.plugin", str(exc)) from exc
+
+
+def _parse_destination(name: str, body: Any, path: str) -> DestinationConfig:
+    if body is None:
+        raise ConfigError(path, "section missing (listed in destination_plugins but not configured)")
+    if not isinstance(body, dict):
+        raise ConfigError(path, f"expected a mapping, got {body!r}")
+    common_keys = field_names(DestinationCommonParams)
+    common = parse_params(DestinationCommonParams, body, path, ignore=set(body) - common_keys)
+    plugin_class = _load(common.plugin, path)
+    params_class: type = plugin_class.Params  # type: ignore[attr-defined]
+    known = common_keys | field_names(DestinationDeliveryParams) | field_names(params_class)
+    for key in body:
+        if key not in known:
+            suggestion = did_you_mean(str(key), known)
+            raise ConfigError(f"{path}.{key}", f"unknown parameter of {common.plugin}{suggestion}")
+    delivery_keys = field_names(DestinationDeliveryParams)
+    delivery = parse_params(DestinationDeliveryParams, body, path, ignore=known - delivery_keys)
+    plugin_params: Any = parse_params(params_class, body, path, ignore=known - field_names(params_class))
+    if not common.inputs:
+        raise ConfigError(f"{path}.inputs", "expected at least one topic")
+    for i, topic in enumerate(common.inputs):
+        if not topic:
+            raise ConfigError(f"{path}.inputs[{i}]", "expected a topic name, got an empty string")
+    return DestinationConfig(name, common, delivery, plugin_class, plugin_params)
+
+
+def parse_destination_server(
+    section: dict[str, Any], path: str = "destination_server"
+) -> DestinationServerConfig:
+    warnings: list[str] = []
+    node_keys = field_names(DestinationServerParams)
+    node_values = {key: section[key] for key in node_keys if key in section}
+    node_values["flb"] = _flb_section(section, path, warnings)
+    node = parse_params(DestinationServerParams, node_values, path)
+
+    seen: set[str] = set()
+    for name in node.destination_plugins:
+        if name in seen:
+            raise ConfigError(f"{path}.destination_plugins", f"{name!r} is listed twice")
+        seen.add(name)
+        if name in node_keys or name == "flb_grace" or name in _OBSOLETE_NODE_KEYS:
+            raise ConfigError(f"{path}.destination_plugins", f"{name!r} is a server parameter, not a name")
+    if not node.destination_plugins:
+        warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
+
+    destinations = [
+        _parse_destination(name, section.get(name), f"{path}.{name}") for name in node.destination_plugins
+    ]
+
+    for key in section:
+        if key in node_keys or key in seen or key == "flb_grace":
+            continue
+        if key in _OBSOLETE_NODE_KEYS:
+            warnings.append(f"{path}.{key} has no effect in DC (it set up the original's Fluent Bit input)")
+            continue
+        body = section[key]
+        if isinstance(body, dict) and "plugin" in body:
+            # The seed's reference configuration keeps sections of disabled destinations around.
+            warnings.append(f"{path}.{key}: destination section not listed in destination_plugins, ignored")
+            continue
+        options = node_keys | set(node.destination_plugins)
+        raise ConfigError(
+            f"{path}.{key}",
+            "unknown parameter (a destination section must be listed in destination_plugins)"
+            + did_you_mean(str(key), options),
+        )
+    return DestinationServerConfig(node, destinations, warnings)

@@ -1,0 +1,14 @@
+"""Null destination: accepts and discards every record."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from dc_core.destination import Destination, OutgoingRecord
+
+
+class Null(Destination):
+    """Discard every record (confirmed at once): for tests and for measuring the pipeline alone."""
+
+    def send(self, batch: Sequence[OutgoingRecord]) -> None:
+        return None
