@@ -26,7 +26,11 @@ from dc_measurements.validation import RecordValidator
 NODE_NAME = "measurement_server"
 # Late subscribers (a dashboard, a test) get the current state of a condition at once.
 CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+# Transient-local history lets a destination_server that starts, or restarts, after a record was
+# published still receive it (see docs/delivery.md, "The hop between servers").
+RECORD_QOS = QoSProfile(
+    depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)
 
 
 @dataclass
@@ -49,10 +53,10 @@ class MeasurementServer(ManagedServer):
         self.config: MeasurementServerConfig | None = None
         self.runners: dict[str, MeasurementRunner] = {}
         self.conditions: dict[str, ConditionRuntime] = {}
-        self._publishers: dict[str, Any] = {}
+        self._record_publishers: dict[str, Any] = {}
         self._condition_publishers: list[Any] = []
         self._condition_subscriptions: list[Any] = []
-        self._timers: dict[str, Any] = {}
+        self._collect_timers: dict[str, Any] = {}
         self._active = False
 
     # -- configure ---------------------------------------------------------------------------
@@ -88,7 +92,7 @@ class MeasurementServer(ManagedServer):
             plugin: Measurement = mcfg.plugin_class(context, mcfg.plugin_params)
             validator = self._validator(mcfg.name, plugin, c.enable_validator, c.json_schema_path)
             publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, RECORD_QOS)
-            self._publishers[mcfg.name] = publisher
+            self._record_publishers[mcfg.name] = publisher
             runner = MeasurementRunner(
                 mcfg, plugin, self.conditions, validator, run_id, custom, self._publish_fn(publisher), log
             )
@@ -165,12 +169,12 @@ class MeasurementServer(ManagedServer):
                 )
         self._active = True
         for name, runner in self.runners.items():
-            self._publishers[name].on_activate(None)
+            self._record_publishers[name].on_activate(None)
             runner.plugin.on_activate()
             if not runner.plugin.timer_driven:
                 continue
             period = runner.config.common.polling_interval / 1000.0
-            self._timers[name] = self.create_timer(period, lambda n=name: self._tick(n))
+            self._collect_timers[name] = self.create_timer(period, lambda n=name: self._tick(n))
             if runner.config.common.init_collect:
                 self._tick(name)
 
@@ -181,8 +185,8 @@ class MeasurementServer(ManagedServer):
         elapsed = time.monotonic() - started
         if elapsed > runner.config.common.polling_interval / 1000.0:
             self.get_logger().warning(f"measurement {name}: collect took {elapsed:.3f} s, longer than its interval")
-        if runner.finished and name in self._timers:
-            timer = self._timers.pop(name)
+        if runner.finished and name in self._collect_timers:
+            timer = self._collect_timers.pop(name)
             timer.cancel()
             self.destroy_timer(timer)
             self.get_logger().info(f"measurement {name}: done, no further sample can be published; timer stopped")
@@ -194,16 +198,16 @@ class MeasurementServer(ManagedServer):
 
     def deactivate_server(self) -> None:
         self._active = False
-        for timer in self._timers.values():
+        for timer in self._collect_timers.values():
             timer.cancel()
             self.destroy_timer(timer)
-        self._timers.clear()
+        self._collect_timers.clear()
         for sub in self._condition_subscriptions:
             self.destroy_subscription(sub)
         self._condition_subscriptions.clear()
         errors = []
         for name, runner in self.runners.items():
-            self._publishers[name].on_deactivate(None)
+            self._record_publishers[name].on_deactivate(None)
             try:
                 runner.plugin.on_deactivate()
             except Exception as exc:
@@ -223,7 +227,7 @@ class MeasurementServer(ManagedServer):
                 runner.plugin.on_cleanup()
             except Exception as exc:
                 self.get_logger().error(f"measurement {name}: cleanup failed: {exc!r}")
-            self.destroy_lifecycle_publisher(self._publishers[name])
+            self.destroy_lifecycle_publisher(self._record_publishers[name])
         for runtime in self.conditions.values():
             try:
                 runtime.condition.on_cleanup()
@@ -233,7 +237,7 @@ class MeasurementServer(ManagedServer):
             self.destroy_publisher(publisher)
         self.runners.clear()
         self.conditions.clear()
-        self._publishers.clear()
+        self._record_publishers.clear()
         self._condition_publishers.clear()
 
 

@@ -1,0 +1,1 @@
+"""dc-bringup (launcher and lifecycle manager) and the dc command-line tool."""

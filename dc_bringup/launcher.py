@@ -1,0 +1,85 @@
+"""dc-bringup PARAMS: validate, start every configured server, manage them, stop them in order."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from dc_bringup.validate import SERVER_MODULES, check
+
+LOG_LEVELS = ("debug", "info", "warn", "error", "fatal")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dc-bringup", description="Start DC's servers for a parameter file and keep them running."
+    )
+    parser.add_argument("params_file", help="ROS 2 parameter YAML (measurement_server, group_server, destination_server)")
+    parser.add_argument("--log-level", default="info", choices=LOG_LEVELS, help="log level of every server")
+    parser.add_argument("--bond-timeout", type=float, default=10.0,
+                        help="seconds without heartbeat before a server is restarted (default 10)")
+    parser.add_argument("--stop-timeout", type=float, default=15.0,
+                        help="seconds each server gets to stop before it is killed (default 15)")
+    parser.add_argument("--validate-only", action="store_true", help="check the configuration and exit")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    params_file = str(Path(args.params_file).resolve())
+    report, error = check(params_file)
+    if report is None:
+        print(f"dc-bringup: invalid configuration: {error}", file=sys.stderr)
+        return 2
+    for warning in report.warnings:
+        print(f"dc-bringup: warning: {warning}", file=sys.stderr)
+    if args.validate_only:
+        return 0
+    os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+    # Imported late: validating a configuration must not need a ROS context.
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from dc_bringup.manager import LifecycleManager
+    from dc_bringup.processes import ServerProcess
+
+    rclpy.init(args=["--ros-args", "--log-level", args.log_level], signal_handler_options=SignalHandlerOptions.NO)
+    servers = [
+        ServerProcess(name, SERVER_MODULES[name], params_file, args.log_level)
+        for name in SERVER_MODULES
+        if name in report.servers
+    ]
+    manager = LifecycleManager(servers, bond_timeout=args.bond_timeout)
+    code = 0
+    try:
+        if not manager.start_all():
+            code = 1
+        else:
+            manager.get_logger().info("DC is up: " + ", ".join(s.name for s in servers))
+            while not stop.is_set():
+                manager.spin_for(0.2)
+                manager.check_bonds()
+    finally:
+        manager.shut_down(args.stop_timeout)
+        manager.destroy_node()
+        rclpy.shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

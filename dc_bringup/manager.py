@@ -1,0 +1,132 @@
+"""The lifecycle manager: ordered configure/activate, heartbeats, restart of what died."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from dc_interfaces.msg import Heartbeat
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+from dc_bringup.processes import ServerProcess
+from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC
+
+NODE_NAME = "lifecycle_manager_dc"
+
+
+class LifecycleManager(Node):
+    def __init__(self, servers: list[ServerProcess], bond_timeout: float, service_timeout: float = 30.0) -> None:
+        super().__init__(NODE_NAME)
+        self.servers = servers
+        self.bond_timeout = bond_timeout
+        self.service_timeout = service_timeout
+        self.executor_ = SingleThreadedExecutor()
+        self.executor_.add_node(self)
+        self._last_heartbeat: dict[str, float] = {}
+        self._watch_since: dict[str, float] = {}
+        self._lifecycle_clients: dict[str, tuple[Any, Any]] = {}
+        self.restarts: dict[str, int] = {s.name: 0 for s in servers}
+        self.create_subscription(Heartbeat, HEARTBEAT_TOPIC, self._on_heartbeat, HEARTBEAT_QOS)
+
+    def _on_heartbeat(self, msg: Any) -> None:
+        self._last_heartbeat[msg.node_name] = time.monotonic()
+
+    def _client(self, server: str) -> tuple[Any, Any]:
+        if server not in self._lifecycle_clients:
+            self._lifecycle_clients[server] = (
+                self.create_client(ChangeState, f"/{server}/change_state"),
+                self.create_client(GetState, f"/{server}/get_state"),
+            )
+        return self._lifecycle_clients[server]
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            self.executor_.spin_once(timeout_sec=min(left, 0.1))
+
+    def _call(self, client: Any, request: Any, timeout: float) -> Any:
+        future = client.call_async(request)
+        self.executor_.spin_until_future_complete(future, timeout_sec=timeout)
+        if not future.done():
+            client.remove_pending_request(future)
+            return None
+        return future.result()
+
+    def _wait_ready(self, proc: ServerProcess) -> bool:
+        change, get = self._client(proc.name)
+        deadline = time.monotonic() + self.service_timeout
+        while time.monotonic() < deadline:
+            if not proc.running():
+                return False
+            if change.service_is_ready() and get.service_is_ready():
+                return True
+            self.spin_for(0.05)
+        return False
+
+    def transition(self, server: str, label: str) -> bool:
+        """Send a transition by label (an id sent to a wrong state kills rclpy's service; see notes)."""
+        change, _ = self._client(server)
+        request = ChangeState.Request()
+        request.transition = Transition(label=label)
+        response = self._call(change, request, self.service_timeout)
+        return bool(response is not None and response.success)
+
+    def state(self, server: str) -> str | None:
+        _, get = self._client(server)
+        response = self._call(get, GetState.Request(), 5.0)
+        return None if response is None else str(response.current_state.label)
+
+    def bring_up(self, proc: ServerProcess) -> bool:
+        log = self.get_logger()
+        if not self._wait_ready(proc):
+            log.error(f"{proc.name} did not come up (exit code {proc.exit_code()})")
+            return False
+        for label in ("configure", "activate"):
+            if not self.transition(proc.name, label):
+                log.error(f"{proc.name}: {label} failed (see its log above)")
+                return False
+        self._watch_since[proc.name] = time.monotonic()
+        log.info(f"{proc.name} active (pid {proc.pid})")
+        return True
+
+    def start_all(self) -> bool:
+        for proc in self.servers:
+            proc.start()
+            if not self.bring_up(proc):
+                return False
+        return True
+
+    def check_bonds(self) -> None:
+        """Restart a server whose process died or whose heartbeat stopped for bond_timeout."""
+        now = time.monotonic()
+        for proc in self.servers:
+            reason = None
+            if not proc.running():
+                reason = f"exited with code {proc.exit_code()}"
+            else:
+                last = max(self._last_heartbeat.get(proc.name, 0.0), self._watch_since.get(proc.name, now))
+                if now - last > self.bond_timeout:
+                    reason = f"no heartbeat for {now - last:.1f} s (bond_timeout {self.bond_timeout} s)"
+            if reason is None:
+                continue
+            self.get_logger().fatal(f"{proc.name} {reason}: restarting it")
+            proc.kill()
+            self._last_heartbeat.pop(proc.name, None)
+            self.restarts[proc.name] += 1
+            proc.start()
+            if not self.bring_up(proc):
+                self.get_logger().error(f"{proc.name} could not be restarted; will try again")
+                self._watch_since[proc.name] = time.monotonic()
+
+    def shut_down(self, timeout: float) -> None:
+        """Reverse order: measurements stop first, destinations flush last."""
+        for proc in reversed(self.servers):
+            if proc.running():
+                code = proc.stop(timeout)
+                self.get_logger().info(f"{proc.name} stopped (exit code {code})")

@@ -1,0 +1,63 @@
+"""Server processes started by dc-bringup: one per server, dying with the launcher."""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    # If dc-bringup is killed with -9, its servers must not live on as orphans.
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+class ServerProcess:
+    def __init__(self, name: str, module: str, params_file: str, log_level: str) -> None:
+        self.name = name
+        self.module = module
+        self.params_file = params_file
+        self.log_level = log_level
+        self.process: subprocess.Popen[bytes] | None = None
+        self.starts = 0
+
+    def start(self) -> None:
+        cmd = [sys.executable, "-m", self.module, self.params_file, "--log-level", self.log_level]
+        # Own process group: a terminal's Ctrl-C reaches dc-bringup only, which stops servers in order.
+        self.process = subprocess.Popen(cmd, preexec_fn=_die_with_parent, process_group=0, env=os.environ.copy())
+        self.starts += 1
+
+    @property
+    def pid(self) -> int | None:
+        return self.process.pid if self.process is not None else None
+
+    def running(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def exit_code(self) -> int | None:
+        return None if self.process is None else self.process.poll()
+
+    def stop(self, timeout: float) -> int | None:
+        """SIGTERM, then SIGKILL after ``timeout`` seconds."""
+        if self.process is None:
+            return None
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        return self.process.returncode
+
+    def kill(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()

@@ -1,0 +1,101 @@
+"""Whole-configuration checks shared by ``dc validate`` and ``dc-bringup`` (no I/O but the file read)."""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dc_core.config import load_params_file
+from dc_core.errors import ConfigError
+from dc_core.params import did_you_mean
+
+# Servers in start order: destinations first so nothing published at start is lost.
+SERVER_MODULES = {
+    "destination_server": "dc_destinations.server",
+    "group_server": "dc_group.server",
+    "measurement_server": "dc_measurements.server",
+}
+_PARSERS = {
+    "destination_server": ("dc_destinations.config", "parse_destination_server"),
+    "group_server": ("dc_group.config", "parse_group_server"),
+    "measurement_server": ("dc_measurements.config", "parse_measurement_server"),
+}
+
+
+@dataclass
+class ValidationReport:
+    servers: list[str] = field(default_factory=list)
+    configs: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
+def _parse(server: str, section: dict[str, Any]) -> Any:
+    module_name, function = _PARSERS[server]
+    module = importlib.import_module(module_name)
+    return getattr(module, function)(section, server)
+
+
+def validate_params_file(path: str | Path) -> ValidationReport:
+    """Parse every server section; raise ConfigError on the first error, return warnings."""
+    sections = load_params_file(path)
+    report = ValidationReport()
+    for server in SERVER_MODULES:
+        if server in sections:
+            config = _parse(server, sections[server])
+            report.servers.append(server)
+            report.configs[server] = config
+            report.warnings.extend(getattr(config, "warnings", []))
+    report.warnings.extend(_cross_checks(report.configs))
+    return report
+
+
+def _cross_checks(configs: dict[str, Any]) -> list[str]:
+    warnings: list[str] = []
+    measurements = configs.get("measurement_server")
+    groups = configs.get("group_server")
+    destinations = configs.get("destination_server")
+
+    published: dict[str, str] = {}
+    tagged: list[tuple[str, list[str]]] = []
+    if measurements is not None:
+        for m in measurements.measurements:
+            published[m.output_topic] = f"measurement_server.{m.name}"
+            tagged.append((f"measurement_server.{m.name}.tags", list(m.common.tags)))
+    if groups is not None:
+        for topic in groups.outputs:
+            published[topic] = "group_server"
+        for topic, tags in groups.tags.items():
+            tagged.append((f"group_server (output {topic}) tags", list(tags)))
+        for topic in sorted(groups.inputs):
+            if topic not in published:
+                warnings.append(
+                    f"group_server: input {topic} is published by nothing in this configuration"
+                    + did_you_mean(topic, published)
+                )
+
+    if destinations is not None:
+        names = set(destinations.names)
+        for dest in destinations.destinations:
+            for topic in dest.common.inputs:
+                if topic not in published:
+                    warnings.append(
+                        f"destination_server.{dest.name}.inputs: {topic} is published by nothing in this "
+                        "configuration (fine if another node publishes it)" + did_you_mean(topic, published)
+                    )
+        for where, tags in tagged:
+            for tag in tags:
+                if tag and tag not in names:
+                    warnings.append(f"{where}: {tag!r} names no destination" + did_you_mean(tag, names))
+    elif tagged and any(tags for _, tags in tagged):
+        warnings.append("records are tagged but there is no destination_server section: they go nowhere")
+    return warnings
+
+
+def check(path: str | Path) -> tuple[ValidationReport | None, str | None]:
+    """(report, None) when valid, (None, error text) when not."""
+    try:
+        return validate_params_file(path), None
+    except ConfigError as exc:
+        return None, str(exc)

@@ -1,0 +1,144 @@
+"""Run `dc-bringup` in a subprocess and read what a user would see: records on stdout, logs on stderr."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).parent
+
+_used_domains: set[int] = set()
+
+
+def fresh_domain_id() -> int:
+    """A ROS domain per dc-bringup run, so leftovers of one test never reach another."""
+    while True:
+        candidate = random.randint(101, 200)
+        if candidate not in _used_domains:
+            _used_domains.add(candidate)
+            return candidate
+
+
+class Bringup:
+    def __init__(self, params: Path | str, *, args: Sequence[str] = (), env: dict[str, str] | None = None,
+                 cwd: Path | None = None) -> None:
+        self.params = Path(params)
+        self.args = list(args)
+        self.domain_id = fresh_domain_id()
+        self.env = dict(os.environ)
+        self.env["ROS_DOMAIN_ID"] = str(self.domain_id)
+        self.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        self.env["PYTHONUNBUFFERED"] = "1"
+        self.env.update(env or {})
+        self.cwd = cwd
+        self.stdout: list[str] = []
+        self.stderr: list[str] = []
+        self._stdout_times: list[float] = []
+        self._changed = threading.Condition()
+        self.process: subprocess.Popen[str] | None = None
+        self.returncode: int | None = None
+
+    # -- process -----------------------------------------------------------------------------
+    def __enter__(self) -> Bringup:
+        self.process = subprocess.Popen(
+            [str(BIN / "dc-bringup"), str(self.params), *self.args],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=self.env, cwd=self.cwd,
+        )
+        for stream, sink, times in ((self.process.stdout, self.stdout, self._stdout_times),
+                                    (self.process.stderr, self.stderr, None)):
+            threading.Thread(target=self._read, args=(stream, sink, times), daemon=True).start()
+        return self
+
+    def _read(self, stream: Any, sink: list[str], times: list[float] | None) -> None:
+        for line in stream:
+            with self._changed:
+                sink.append(line.rstrip("\n"))
+                if times is not None:
+                    times.append(time.monotonic())
+                self._changed.notify_all()
+        with self._changed:
+            self._changed.notify_all()
+
+    def stop(self, timeout: float = 30.0) -> int:
+        assert self.process is not None
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.returncode = self.process.returncode
+        return self.returncode
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+    def wait_exit(self, timeout: float) -> int:
+        assert self.process is not None
+        self.returncode = self.process.wait(timeout)
+        return self.returncode
+
+    # -- reading -----------------------------------------------------------------------------
+    def wait_until(self, check: Callable[[], bool], timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while not check():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(
+                        f"timed out after {timeout} s waiting for {what}\n--- stdout ---\n"
+                        + "\n".join(self.stdout[-50:]) + "\n--- stderr ---\n" + "\n".join(self.stderr[-80:])
+                    )
+                self._changed.wait(min(left, 0.2))
+
+    def wait_stderr(self, needle: str, timeout: float = 30.0) -> str:
+        found: list[str] = []
+
+        def check() -> bool:
+            found[:] = [line for line in self.stderr if needle in line]
+            return bool(found)
+
+        self.wait_until(check, timeout, f"{needle!r} on stderr")
+        return found[0]
+
+    def records(self, predicate: Callable[[dict[str, Any]], bool] | None = None) -> list[dict[str, Any]]:
+        out = []
+        for line in list(self.stdout):
+            try:
+                value = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(value, dict) and (predicate is None or predicate(value)):
+                out.append(value)
+        return out
+
+    def record_times(self) -> list[float]:
+        """Arrival time (monotonic) of each stdout line that is a JSON record."""
+        return [t for line, t in zip(list(self.stdout), list(self._stdout_times), strict=False)
+                if line.startswith("{")]
+
+    def wait_records(self, n: int, timeout: float = 30.0,
+                     predicate: Callable[[dict[str, Any]], bool] | None = None) -> list[dict[str, Any]]:
+        self.wait_until(lambda: len(self.records(predicate)) >= n, timeout, f"{n} records on stdout")
+        return self.records(predicate)
+
+    def wait_ready(self, timeout: float = 60.0) -> None:
+        self.wait_stderr("DC is up", timeout)
+
+
+def dc(*args: str, env: dict[str, str] | None = None, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    """Run the `dc` command-line tool."""
+    return subprocess.run([str(BIN / "dc"), *args], capture_output=True, text=True, env=env, timeout=timeout)
