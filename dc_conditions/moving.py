@@ -12,9 +12,16 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from nav_msgs.msg import Odometry
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
 from dc_core.condition import Condition, ConditionContext
 from dc_core.errors import PluginError
 from dc_core.params import param
+
+# Best effort matches both reliable and best-effort odometry publishers (drivers and simulators
+# differ); a lost message only delays the decision by one count.
+ODOMETRY_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -81,20 +88,13 @@ class Moving(Condition):
             raise PluginError(f"{self.context.name}.count_hysteresis: {exc}") from None
 
     def on_configure(self) -> None:
-        # Imported here so that the pure part above stays importable and testable without ROS.
-        from nav_msgs.msg import Odometry
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-
         node = self.context.node
         if node is None:
             raise PluginError(f"{self.context.name}: Moving needs a ROS node to subscribe to odometry")
         with self._lock:
             self._hysteresis = self._new_hysteresis()
-        # Best effort matches both reliable and best-effort odometry publishers (drivers and
-        # simulators differ); a lost message only delays the decision by one count.
-        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
         topic = self.params.odom_topic
-        self._subscription = node.create_subscription(Odometry, topic, self._on_odometry, qos)
+        self._subscription = node.create_subscription(Odometry, topic, self._on_odometry, ODOMETRY_QOS)
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:
