@@ -116,6 +116,7 @@ class File(Destination):
         if fmt == "out_file":
             return f"{self.context.name}: [{stamp_text(record.stamp_ns)}, {record.to_json()}]\n"
         if fmt == "template":
+
             def field(match: re.Match[str]) -> str:
                 key = match.group(1)
                 if key == "time" and "time" not in record.data:
