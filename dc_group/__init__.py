@@ -1,0 +1,1 @@
+"""DC's group server: merges records of several topics that belong together in time."""

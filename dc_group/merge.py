@@ -1,0 +1,163 @@
+"""Building a group's output record from the records of one synchronised set.
+
+Layout of the output (keys in this order)::
+
+    {<key of input 1>: {...record without "tags"...}, <key of input 2>: {...}, ...,
+     "missing_inputs": [<topics>]   # only in an incomplete set published with emit_partial
+     "tags": [...],                 # when the group has tags
+     "name": "<group id>"}          # when include_group_name
+
+The key of an input's record is the ``group_key`` of its message, or the last segment of its topic
+when that is empty. Two records wanting the same key, or a key the group itself writes, never
+overwrite each other: in the order of the group's ``inputs``, the first keeps the key and the next
+get ``<key>_2``, ``<key>_3``... (first free suffix).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from fnmatch import fnmatchcase
+from typing import Any
+
+from dc_core.errors import DcError
+from dc_group.config import GroupConfig
+
+MISSING_INPUTS_KEY = "missing_inputs"
+TAGS_KEY = "tags"
+NAME_KEY = "name"
+
+
+class MalformedRecord(DcError):
+    """An input message whose data is not a JSON object."""
+
+
+@dataclass(frozen=True)
+class InputRecord:
+    """One input message, parsed: where it came from, under which key it goes, its record."""
+
+    topic: str
+    key: str
+    record: dict[str, Any]
+
+
+@dataclass
+class MergedRecord:
+    record: dict[str, Any]
+    # (wanted key, key given) for every record moved aside by a collision.
+    renamed: list[tuple[str, str]] = field(default_factory=list)
+
+
+def record_key(group_key: str, topic: str) -> str:
+    """Key of an input's record in the group: its group_key, else the topic's last segment."""
+    if group_key:
+        return group_key
+    return topic.rstrip("/").rsplit("/", 1)[-1] or topic
+
+
+def parse_input(topic: str, group_key: str, data: str) -> InputRecord:
+    """Parse a StringStamped's data; raises :class:`MalformedRecord` unless it is a JSON object."""
+    try:
+        record = json.loads(data)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        preview = data if len(data) <= 80 else data[:77] + "..."
+        raise MalformedRecord(f"data of a message on {topic} is not JSON ({exc}): {preview!r}") from None
+    if not isinstance(record, dict):
+        kind = type(record).__name__
+        raise MalformedRecord(f"data of a message on {topic} is a JSON {kind}, not an object")
+    return InputRecord(topic=topic, key=record_key(group_key, topic), record=record)
+
+
+def reserved_keys(group: GroupConfig) -> set[str]:
+    """Top-level keys the group writes itself (static per configuration, so keys stay stable)."""
+    keys = {MISSING_INPUTS_KEY}
+    if group.tags:
+        keys.add(TAGS_KEY)
+    if group.include_group_name:
+        keys.add(NAME_KEY)
+    return keys
+
+
+def merge(group: GroupConfig, members: Sequence[InputRecord | None]) -> MergedRecord:
+    """The output record of one set; ``members`` follows ``group.inputs``, None where missing."""
+    taken = reserved_keys(group)
+    merged: dict[str, Any] = {}
+    renamed: list[tuple[str, str]] = []
+    for member in members:
+        if member is None:
+            continue
+        key = member.key
+        if key in taken:
+            key = _free_key(member.key, taken)
+            renamed.append((member.key, key))
+        taken.add(key)
+        merged[key] = {k: v for k, v in member.record.items() if k != TAGS_KEY}
+    document: dict[str, Any] = exclude(merged, group.exclude_keys) if group.exclude_keys else merged
+    if not group.nested_data:
+        document = flatten_dotted(document)
+    missing = [topic for topic, member in zip(group.inputs, members, strict=True) if member is None]
+    if missing:
+        document[MISSING_INPUTS_KEY] = missing
+    if group.tags:
+        document[TAGS_KEY] = list(group.tags)
+    if group.include_group_name:
+        document[NAME_KEY] = group.name
+    return MergedRecord(document, renamed)
+
+
+def _free_key(key: str, taken: set[str]) -> str:
+    n = 2
+    while f"{key}_{n}" in taken:
+        n += 1
+    return f"{key}_{n}"
+
+
+def exclude(document: dict[str, Any], patterns: Sequence[str]) -> dict[str, Any]:
+    """Copy of ``document`` without the paths matching ``patterns`` (and what lies below them).
+
+    A pattern is a '.'-separated key path; each part is matched against one key (or array index)
+    with shell wildcards, so ``*.run_id`` removes ``run_id`` from every input's record and
+    ``memory.used`` removes exactly that key — not ``memory.used_percent``.
+    """
+    split = [tuple(p.split(".")) for p in patterns]
+    pruned = _prune(document, split)
+    assert isinstance(pruned, dict)
+    return pruned
+
+
+def _prune(node: Any, patterns: list[tuple[str, ...]]) -> Any:
+    if isinstance(node, dict):
+        items = list(node.items())
+    elif isinstance(node, list):
+        items = [(str(i), v) for i, v in enumerate(node)]
+    else:
+        return node
+    kept: list[tuple[str, Any]] = []
+    for key, value in items:
+        below = [p[1:] for p in patterns if fnmatchcase(str(key), p[0])]
+        if any(not rest for rest in below):
+            continue
+        kept.append((key, _prune(value, below) if below else value))
+    if isinstance(node, dict):
+        return dict(kept)
+    return [value for _, value in kept]
+
+
+def flatten_dotted(document: dict[str, Any]) -> dict[str, Any]:
+    """``{"a": {"b": 1, "l": [2]}}`` -> ``{"a.b": 1, "a.l.0": 2}``; empty objects and arrays stay."""
+    out: dict[str, Any] = {}
+
+    def walk(node: Any, prefix: str) -> None:
+        if isinstance(node, dict) and node:
+            for key, value in node.items():
+                walk(value, f"{prefix}.{key}" if prefix else str(key))
+        elif isinstance(node, list) and node:
+            for index, value in enumerate(node):
+                walk(value, f"{prefix}.{index}")
+        else:
+            out[prefix] = node
+
+    for key, value in document.items():
+        walk(value, str(key))
+    return out

@@ -1,0 +1,157 @@
+"""The group server node: subscribes to each group's inputs and publishes merged records.
+
+configure parses the parameter file and creates the publishers, activate subscribes and starts the
+timer that expires incomplete sets, deactivate unsubscribes and settles what is still pending,
+cleanup releases the publishers. ``python -m dc_group.server PARAMS [--autostart]``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from dc_core.config import load_params_file
+from dc_core.errors import ConfigError
+from dc_core.lifecycle import ManagedServer, run_server
+from dc_group.config import GroupServerConfig, parse_group_server
+from dc_group.merge import MalformedRecord, parse_input
+from dc_group.pipeline import GroupOutput, GroupPipeline
+from dc_interfaces.msg import StringStamped
+
+NODE_NAME = "group_server"
+# Same profile as the measurement server's records: reliable, deep enough for bursts.
+RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+# Repeated malformed messages on one topic are logged at most this often (all are counted).
+MALFORMED_LOG_PERIOD_S = 10.0
+
+
+class GroupServer(ManagedServer):
+    def __init__(self, params_file: str) -> None:
+        super().__init__(NODE_NAME, params_file)
+        self.config: GroupServerConfig | None = None
+        self.pipelines: dict[str, GroupPipeline] = {}
+        self.malformed: dict[str, int] = {}
+        self._routes: dict[str, list[GroupPipeline]] = {}
+        self._group_publishers: dict[str, Any] = {}
+        self._input_subscriptions: list[Any] = []
+        self._expiry_timer: Any = None
+        self._malformed_logged_at: dict[str, float] = {}
+        self._zero_stamp_warned: set[str] = set()
+
+    # -- transitions ---------------------------------------------------------------------------
+    def configure_server(self) -> None:
+        sections = load_params_file(self.params_file)
+        if NODE_NAME not in sections:
+            raise ConfigError(NODE_NAME, f"no {NODE_NAME} section in {self.params_file}")
+        config = parse_group_server(sections[NODE_NAME], NODE_NAME)
+        for warning in config.warnings:
+            self.get_logger().warning(warning)
+        self.set_heartbeat_period(config.heartbeat_period)
+        for group in config.groups:
+            pipeline = GroupPipeline(group, self.get_logger())
+            self.pipelines[group.name] = pipeline
+            self._group_publishers[group.name] = self.create_publisher(
+                StringStamped, group.output, RECORD_QOS
+            )
+            for topic in group.inputs:
+                self._routes.setdefault(topic, []).append(pipeline)
+            self.get_logger().info(
+                f"group {group.name}: {', '.join(group.inputs)} -> {group.output} "
+                f"(sync_delay {group.sync_delay:g} s, sync_timeout {group.sync_timeout:g} s, "
+                f"on_sync_timeout {'emit_partial' if group.emit_partial else 'drop'})"
+            )
+        self.config = config
+
+    def activate_server(self) -> None:
+        for topic in self._routes:
+            self._input_subscriptions.append(
+                self.create_subscription(StringStamped, topic, self._callback_for(topic), RECORD_QOS)
+            )
+        timeouts = [p.group.sync_timeout for p in self.pipelines.values()]
+        # A set times out at most a quarter of its timeout late, and never more than 0.5 s late.
+        period = min(0.5, max(0.02, min(timeouts) / 4)) if timeouts else 0.5
+        self._expiry_timer = self.create_timer(period, self._expire)
+
+    def deactivate_server(self) -> None:
+        for subscription in self._input_subscriptions:
+            self.destroy_subscription(subscription)
+        self._input_subscriptions.clear()
+        if self._expiry_timer is not None:
+            self._expiry_timer.cancel()
+            self.destroy_timer(self._expiry_timer)
+            self._expiry_timer = None
+        # No message can complete what is pending any more: settle it as on a timeout.
+        for name, pipeline in self.pipelines.items():
+            self._publish(name, pipeline.flush())
+            self.get_logger().info(f"group {name}: {pipeline.stats()}")
+
+    def cleanup_server(self) -> None:
+        for publisher in self._group_publishers.values():
+            self.destroy_publisher(publisher)
+        self._group_publishers.clear()
+        self.pipelines.clear()
+        self._routes.clear()
+        self.config = None
+
+    # -- work ----------------------------------------------------------------------------------
+    def _callback_for(self, topic: str) -> Callable[[Any], None]:
+        def on_message(msg: Any) -> None:
+            self._on_message(topic, msg)
+
+        return on_message
+
+    def _on_message(self, topic: str, msg: Any) -> None:
+        now = time.monotonic()
+        try:
+            record = parse_input(topic, msg.group_key, msg.data)
+        except MalformedRecord as exc:
+            self._count_malformed(topic, exc, now)
+            return
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if stamp_ns == 0:
+            # Publishers that leave the header empty (`ros2 topic pub`) would never match real stamps.
+            stamp_ns = self.get_clock().now().nanoseconds
+            if topic not in self._zero_stamp_warned:
+                self._zero_stamp_warned.add(topic)
+                self.get_logger().warning(f"{topic}: messages without header.stamp are stamped on receipt")
+        for pipeline in self._routes.get(topic, []):
+            self._publish(pipeline.group.name, pipeline.offer(record, stamp_ns, now))
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        for name, pipeline in self.pipelines.items():
+            self._publish(name, pipeline.expire(now))
+
+    def _publish(self, group_name: str, outputs: list[GroupOutput]) -> None:
+        publisher = self._group_publishers.get(group_name)
+        if publisher is None:
+            return
+        for output in outputs:
+            msg = StringStamped()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(output.stamp_ns, 1_000_000_000)
+            msg.data = output.data
+            msg.group_key = output.group_key
+            publisher.publish(msg)
+
+    def _count_malformed(self, topic: str, exc: MalformedRecord, now: float) -> None:
+        count = self.malformed.get(topic, 0) + 1
+        self.malformed[topic] = count
+        last = self._malformed_logged_at.get(topic)
+        if last is None or now - last >= MALFORMED_LOG_PERIOD_S:
+            self._malformed_logged_at[topic] = now
+            self.get_logger().error(f"{exc}; message ignored ({count} malformed on {topic} so far)")
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        return {name: pipeline.stats() for name, pipeline in self.pipelines.items()}
+
+
+def main() -> int:
+    return run_server(GroupServer)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
