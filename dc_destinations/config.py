@@ -18,7 +18,7 @@ from dc_core.errors import ConfigError, PluginError
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.plugins import load_plugin
 from dc_core.timefmt import TIME_FORMATS
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
 _OBSOLETE_NODE_KEYS = ("ros2_plugin_path", "ros2_plugin_spin_time_ms")
@@ -132,6 +132,7 @@ def _parse_destination(name: str, body: Any, path: str) -> DestinationConfig:
             raise ConfigError(f"{path}.{key}", f"unknown parameter of {common.plugin}{suggestion}")
     delivery_keys = field_names(DestinationDeliveryParams)
     delivery = parse_params(DestinationDeliveryParams, body, path, ignore=known - delivery_keys)
+    check_destination_params(delivery, path)
     plugin_params: Any = parse_params(params_class, body, path, ignore=known - field_names(params_class))
     if not common.inputs:
         raise ConfigError(f"{path}.inputs", "expected at least one topic")
