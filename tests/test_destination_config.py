@@ -126,7 +126,8 @@ def test_fluent_bit_json_date_names_set_the_time_key() -> None:
         (
             stdout_section(plugin="dc_destinations/FlbStdot"),
             "destination_server.flb_stdout.plugin",
-            'unknown destination plugin \'dc_destinations/FlbStdot\' (did you mean "dc_destinations/FlbStdout"?)',
+            "unknown destination plugin 'dc_destinations/FlbStdot'"
+            ' (did you mean "dc_destinations/FlbStdout"?)',
         ),
         (
             {"destination_plugins": ["d"], "d": {"plugin": "dc_destinations/Null"}},
