@@ -1,0 +1,193 @@
+"""The `dc` command: list plugins, publish a record, validate a configuration, inspect delivery."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Sequence
+from typing import Any
+
+from dc_core.errors import DcError
+from dc_core.params import describe_params
+from dc_core.plugins import GROUPS, describe, list_plugins, load_plugin
+
+
+def cmd_list_plugins(args: argparse.Namespace) -> int:
+    kinds = [args.kind] if args.kind else list(GROUPS)
+    for kind in kinds:
+        print(f"{kind}:")
+        for info in list_plugins(kind):
+            try:
+                cls = load_plugin(kind, info.name)
+                text = describe(cls)
+            except DcError as exc:
+                cls, text = None, f"(cannot load: {exc})"
+            origin = "" if info.distribution == "ros2-dc" else f"  [{info.distribution}]"
+            print(f"  {info.name:<36} {text}{origin}")
+            if args.params and cls is not None:
+                for p in describe_params(getattr(cls, "Params")):
+                    default = "required" if p.required else f"default {json.dumps(p.default)}"
+                    print(f"      {p.name} ({p.type_name}, {default}): {p.doc}")
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from dc_bringup.validate import check
+
+    report, error = check(args.params_file)
+    if report is None:
+        print(f"invalid: {error}", file=sys.stderr)
+        return 2
+    for warning in report.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    print(f"valid: {', '.join(report.servers)}")
+    return 0
+
+
+def cmd_pub(args: argparse.Namespace) -> int:
+    try:
+        parsed = json.loads(args.json)
+    except json.JSONDecodeError as exc:
+        print(f"dc pub: the record is not JSON: {exc}", file=sys.stderr)
+        return 2
+    if not isinstance(parsed, dict):
+        print("dc pub: the record must be a JSON object", file=sys.stderr)
+        return 2
+    import rclpy
+    from dc_interfaces.msg import StringStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    rclpy.init()
+    node = rclpy.create_node("dc_pub")
+    qos = QoSProfile(depth=max(args.count, 10), reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = node.create_publisher(StringStamped, args.topic, qos)
+    try:
+        deadline = time.monotonic() + args.wait_matched
+        while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        if publisher.get_subscription_count() == 0 and args.wait_matched > 0:
+            print(f"dc pub: no subscriber on {args.topic} after {args.wait_matched} s; publishing anyway",
+                  file=sys.stderr)
+        sent = 0
+        while args.count == 0 or sent < args.count:
+            msg = StringStamped()
+            msg.header.stamp = node.get_clock().now().to_msg()
+            msg.data = args.json
+            msg.group_key = args.group_key
+            publisher.publish(msg)
+            sent += 1
+            if args.count and sent >= args.count:
+                break
+            rclpy.spin_once(node, timeout_sec=1.0 / args.rate if args.rate > 0 else 0)
+        # Give reliable delivery a moment to finish before the publisher goes away.
+        end = time.monotonic() + args.linger
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+    print(f"published {sent} record(s) on {args.topic}")
+    return 0
+
+
+def _get_json(url: str) -> Any:
+    with urllib.request.urlopen(url, timeout=5) as response:
+        return json.loads(response.read())
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    url = f"http://{args.host}:{args.port}/api/v1/metrics"
+    try:
+        metrics = _get_json(url)
+    except (urllib.error.URLError, OSError) as exc:
+        print(f"dc status: cannot reach {url}: {exc} (is flb.http_server true?)", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(metrics, indent=2))
+        return 0
+    destinations = metrics.get("destinations", metrics)
+    columns = ["received", "buffered", "sent", "retried", "failed", "dropped", "dead_lettered",
+               "oldest_pending_age_s"]
+    print(f"{'destination':<20}" + "".join(f"{c:>14}" for c in columns) + "  last_error")
+    for name, row in sorted(destinations.items()):
+        if not isinstance(row, dict):
+            continue
+        cells = "".join(f"{_cell(row.get(c)):>14}" for c in columns)
+        print(f"{name:<20}{cells}  {row.get('last_error') or ''}")
+    return 0
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.1f}"
+    return str(value)
+
+
+def cmd_buffer(args: argparse.Namespace) -> int:
+    from dc_destinations import buffer_admin
+
+    run: Any = getattr(buffer_admin, "run_cli", None)
+    if run is None:
+        print("dc buffer: not available in this version", file=sys.stderr)
+        return 1
+    code: int = run(args)
+    return code
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dc", description="DC robot data collection: tools")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("list-plugins", help="installed plugins, built-in and third-party")
+    p.add_argument("kind", nargs="?", choices=list(GROUPS))
+    p.add_argument("--params", action="store_true", help="also list each plugin's parameters")
+    p.set_defaults(func=cmd_list_plugins)
+
+    p = sub.add_parser("validate", help="check a parameter file without running it")
+    p.add_argument("params_file")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
+    p.add_argument("topic")
+    p.add_argument("json", help="the record, a JSON object")
+    p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
+    p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
+    p.add_argument("--group-key", default="")
+    p.add_argument("--wait-matched", type=float, default=5.0, help="seconds to wait for a subscriber")
+    p.add_argument("--linger", type=float, default=0.5, help="seconds to stay after the last record")
+    p.set_defaults(func=cmd_pub)
+
+    p = sub.add_parser("status", help="delivery metrics of a running destination_server")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=2020)
+    p.add_argument("--json", action="store_true", help="print the raw JSON")
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("buffer", help="inspect the durable buffer: dead letters, replay, purge")
+    p.add_argument("action", choices=["list", "show", "replay", "purge", "stats"])
+    p.add_argument("ids", nargs="*", help="dead-letter ids (show, replay)")
+    p.add_argument("--storage-path", default="", help="buffer folder (flb.storage_path)")
+    p.add_argument("--params", default="", help="read the storage path from this parameter file")
+    p.add_argument("--destination", default="", help="only this destination")
+    p.add_argument("--all", action="store_true", help="replay or purge every dead letter")
+    p.set_defaults(func=cmd_buffer)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    code: int = args.func(args)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

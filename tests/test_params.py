@@ -1,0 +1,101 @@
+"""Typed parameters: defaults, types, ranges, unknown keys, paths in messages (dc_core/params.py)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pytest
+
+from dc_core.config import load_params_file, nest_dotted_keys
+from dc_core.errors import ConfigError
+from dc_core.params import describe_params, param, parse_params, redact
+
+
+@dataclass(frozen=True, kw_only=True)
+class Inner:
+    enabled: bool = param(True, doc="on")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Example:
+    name: str = param(doc="required name")
+    interval: int = param(1000, minimum=100, doc="ms")
+    ratio: float = param(0.5, doc="a number")
+    mode: str = param("a", choices=("a", "b"), doc="mode")
+    tags: list[str] = param([], doc="tags")
+    password: str = param("", secret=True, doc="secret")
+    inner: Inner = param(default_factory=Inner, doc="nested")
+    grace: float = param(1.0, aliases=("old_grace",), doc="aliased")
+
+
+def test_defaults_and_values() -> None:
+    p = parse_params(Example, {"name": "x", "ratio": 2, "tags": ["a"]}, "server.plugin")
+    assert p.name == "x" and p.interval == 1000 and p.ratio == 2.0 and isinstance(p.ratio, float)
+    assert p.tags == ["a"] and p.inner.enabled is True
+
+
+def test_list_defaults_are_not_shared() -> None:
+    a = parse_params(Example, {"name": "x"}, "s")
+    b = parse_params(Example, {"name": "y"}, "s")
+    assert a.tags is not b.tags
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"name": "x", "interval": "fast"}, 'server.plugin.interval: expected an integer, got "fast"'),
+        ({"name": "x", "interval": 10}, "server.plugin.interval: expected an integer >= 100, got 10"),
+        ({"name": "x", "interval": True}, "server.plugin.interval: expected an integer, got True"),
+        ({"name": "x", "mode": "c"}, 'server.plugin.mode: expected one of "a", "b", got "c"'),
+        ({"name": "x", "tags": "a"}, 'server.plugin.tags: expected a list of string, got "a"'),
+        ({"name": "x", "tags": [1, {"a": 1}]}, "server.plugin.tags[1]: expected a string"),
+        ({}, "server.plugin.name: required parameter missing (expected string)"),
+        ({"name": "x", "intervall": 100}, 'server.plugin.intervall: unknown parameter (did you mean "interval"?)'),
+        ({"name": "x", "inner": {"enabled": "maybe"}}, 'server.plugin.inner.enabled: expected a boolean, got "maybe"'),
+    ],
+)
+def test_errors_name_the_yaml_path(values: dict[str, object], message: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_params(Example, values, "server.plugin")
+    assert str(info.value).startswith(message)
+
+
+def test_bool_words_and_aliases() -> None:
+    p = parse_params(Example, {"name": "x", "inner": {"enabled": "off"}, "old_grace": 3}, "s")
+    assert p.inner.enabled is False and p.grace == 3.0
+
+
+def test_ignore_lets_other_owners_keep_their_keys() -> None:
+    p = parse_params(Example, {"name": "x", "plugin": "y"}, "s", ignore={"plugin"})
+    assert p.name == "x"
+
+
+def test_describe_and_redact() -> None:
+    described = {p.name: p for p in describe_params(Example)}
+    assert described["name"].required and described["interval"].default == 1000
+    assert described["inner.enabled"].type_name == "boolean"
+    assert redact(Example, {"password": "hunter2", "name": "x"}) == {"password": "***", "name": "x"}
+
+
+def test_dotted_keys_equal_nested_sections() -> None:
+    assert nest_dotted_keys({"flb.flush": 1, "flb": {"grace": 2}, "a": 3}) == {"flb": {"flush": 1, "grace": 2}, "a": 3}
+
+
+def test_load_params_file_errors(tmp_path: object) -> None:
+    from pathlib import Path
+
+    folder = Path(str(tmp_path))
+    bad = folder / "bad.yaml"
+    bad.write_text("measurement_server:\n  ros__parameters:\n    a: [1, 2\n")
+    with pytest.raises(ConfigError, match="invalid YAML at line"):
+        load_params_file(bad)
+    with pytest.raises(ConfigError, match="cannot read parameter file"):
+        load_params_file(folder / "missing.yaml")
+    other = folder / "other.yaml"
+    other.write_text("some_node:\n  ros__parameters:\n    a: 1\n")
+    with pytest.raises(ConfigError, match="no DC server section"):
+        load_params_file(other)
+    no_ros = folder / "noros.yaml"
+    no_ros.write_text("measurement_server:\n  a: 1\n")
+    with pytest.raises(ConfigError, match="measurement_server: expected a 'ros__parameters' mapping"):
+        load_params_file(no_ros)
