@@ -1,0 +1,579 @@
+"""The durable delivery buffer: one SQLite database (WAL), one queue table per destination.
+
+A record is a row of its destination's queue until the destination confirms it (then the row is
+deleted) or refuses it for good (then it moves to ``dead_letters`` with the error text). The
+``queues`` table keeps, in the same transactions as the rows, each queue's row count and bytes (so
+the size limit and start-up never scan the queue) and lifetime totals for ``dc status``.
+
+All access goes through one connection guarded by a lock: the writer thread's group commits and
+the senders' reads and deletes are short, and ``send()`` itself runs outside the lock. Other
+processes (``dc buffer``) open their own connection; WAL lets them work while the server runs.
+
+A database that SQLite reports as corrupt or not a database is moved aside (renamed with a
+``.corrupt-<UTC time>`` suffix) and replaced by an empty one, at start-up or whenever an operation
+meets the corruption: collection goes on and the file is kept for inspection.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dc_core.errors import DcError
+
+FILE_NAME = "delivery.sqlite3"
+SCHEMA_VERSION = 1
+
+_SQLITE_CORRUPT = 11
+_SQLITE_NOTADB = 26
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS queues (
+    name TEXT PRIMARY KEY,
+    qid INTEGER NOT NULL UNIQUE,
+    rows INTEGER NOT NULL DEFAULT 0,
+    bytes INTEGER NOT NULL DEFAULT 0,
+    received INTEGER NOT NULL DEFAULT 0,
+    sent INTEGER NOT NULL DEFAULT 0,
+    dropped INTEGER NOT NULL DEFAULT 0,
+    dead_lettered INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS dead_letters (
+    id INTEGER PRIMARY KEY,
+    destination TEXT NOT NULL,
+    record_id TEXT NOT NULL,
+    topic TEXT NOT NULL,
+    stamp_ns INTEGER NOT NULL,
+    enqueued_ns INTEGER NOT NULL,
+    failed_ns INTEGER NOT NULL,
+    attempts INTEGER NOT NULL,
+    error TEXT NOT NULL,
+    size INTEGER NOT NULL,
+    payload TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS dead_letters_by_destination ON dead_letters (destination, id);
+"""
+
+_QUEUE_COLUMNS = "id, record_id, topic, stamp_ns, enqueued_ns, attempts, size, payload"
+_DEAD_COLUMNS = (
+    "id, destination, record_id, topic, stamp_ns, enqueued_ns, failed_ns, attempts, error, size, payload"
+)
+
+
+class DeliveryBufferError(DcError):
+    """Base of the buffer's own errors."""
+
+
+class BufferCorrupted(DeliveryBufferError):
+    """The database was corrupt: it has been moved aside and replaced; the operation was not done."""
+
+
+class BufferClosed(DeliveryBufferError):
+    """The buffer was closed (the pipeline stopped) while an operation was pending."""
+
+
+@dataclass(frozen=True)
+class PendingRecord:
+    """A record on its way into a queue: serialised once, by the writer thread."""
+
+    record_id: str
+    topic: str
+    stamp_ns: int
+    payload: str
+
+    @property
+    def size(self) -> int:
+        return len(self.payload.encode("utf-8"))
+
+
+@dataclass(frozen=True)
+class BufferedRow:
+    row_id: int
+    record_id: str
+    topic: str
+    stamp_ns: int
+    enqueued_ns: int
+    attempts: int
+    size: int
+    payload: str
+
+
+@dataclass(frozen=True)
+class DeadLetter:
+    id: int
+    destination: str
+    record_id: str
+    topic: str
+    stamp_ns: int
+    enqueued_ns: int
+    failed_ns: int
+    attempts: int
+    error: str
+    size: int
+    payload: str
+
+
+@dataclass(frozen=True)
+class QueueLimit:
+    max_bytes: int | None
+    drop_oldest: bool
+
+
+@dataclass
+class AppendResult:
+    """Per destination: rows written, and records dropped by the size limit."""
+
+    appended: dict[str, int] = field(default_factory=dict)
+    dropped_newest: dict[str, int] = field(default_factory=dict)
+    dropped_oldest: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class QueueStats:
+    destination: str
+    rows: int
+    bytes: int
+    oldest_enqueued_ns: int | None
+    dead_letters: int
+    received_total: int
+    sent_total: int
+    dropped_total: int
+    dead_lettered_total: int
+
+
+@dataclass(frozen=True)
+class Quarantine:
+    """A database file set aside because SQLite found it corrupt."""
+
+    moved_to: Path
+    reason: str
+
+
+def default_storage_dir() -> Path:
+    base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
+    return Path(base) / "dc" / "buffer"
+
+
+def is_corruption(exc: BaseException) -> bool:
+    code = getattr(exc, "sqlite_errorcode", None)
+    return (
+        isinstance(exc, sqlite3.DatabaseError)
+        and code is not None
+        and code & 0xFF in (_SQLITE_CORRUPT, _SQLITE_NOTADB)
+    )
+
+
+def _now_ns() -> int:
+    return time.time_ns()
+
+
+class SqliteBuffer:
+    """Thread-safe access to the buffer database; see the module documentation."""
+
+    def __init__(
+        self,
+        path: Path,
+        *,
+        synchronous: str = "normal",
+        on_quarantine: Callable[[Quarantine], None] | None = None,
+    ) -> None:
+        """Open (creating it if needed) the database at ``path``; a corrupt one is moved aside."""
+        self.path = Path(path)
+        self.synchronous = synchronous.upper()
+        self._on_quarantine = on_quarantine
+        self._lock = threading.RLock()
+        self._qids: dict[str, int] = {}
+        self.quarantines: list[Quarantine] = []
+        self._conn: sqlite3.Connection | None = None
+        try:
+            self._conn = self._connect()
+        except sqlite3.DatabaseError as exc:
+            if not is_corruption(exc):
+                raise
+            self._quarantine(str(exc))
+            self._conn = self._connect()
+
+    # -- connection ---------------------------------------------------------------------------
+
+    def _connect(self) -> sqlite3.Connection:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=10.0)
+        try:
+            conn.execute("PRAGMA journal_mode=WAL").fetchone()
+            conn.execute(f"PRAGMA synchronous={self.synchronous}")
+            conn.executescript(_SCHEMA)
+            row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+            if row is None:
+                conn.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+            # Touch every queue's head so that a damaged file is found now rather than mid-delivery.
+            qids = dict(conn.execute("SELECT name, qid FROM queues").fetchall())
+            for qid in qids.values():
+                conn.execute(f"CREATE TABLE IF NOT EXISTS q_{qid} ({_QUEUE_DDL})")
+                conn.execute(f"SELECT {_QUEUE_COLUMNS} FROM q_{qid} ORDER BY id LIMIT 1").fetchall()
+        except BaseException:
+            conn.close()
+            raise
+        self._qids = qids
+        return conn
+
+    def _quarantine(self, reason: str) -> Quarantine:
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        target = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
+        n = 1
+        while target.exists():
+            n += 1
+            target = self.path.with_name(f"{self.path.name}.corrupt-{stamp}-{n}")
+        for suffix in ("", "-wal", "-shm"):
+            source = Path(f"{self.path}{suffix}")
+            if source.exists():
+                os.replace(source, Path(f"{target}{suffix}"))
+        quarantine = Quarantine(moved_to=target, reason=reason)
+        self.quarantines.append(quarantine)
+        if self._on_quarantine is not None:
+            self._on_quarantine(quarantine)
+        return quarantine
+
+    @contextmanager
+    def _locked(self) -> Iterator[sqlite3.Connection]:
+        """The connection, under the lock; corruption found here resets the database."""
+        with self._lock:
+            if self._conn is None:
+                raise BufferClosed(f"buffer {self.path} is closed")
+            try:
+                yield self._conn
+            except sqlite3.DatabaseError as exc:
+                if not is_corruption(exc):
+                    raise
+                self._reset_after_corruption(str(exc))
+                raise BufferCorrupted(f"buffer {self.path} was corrupt ({exc}); moved aside") from exc
+
+    def _reset_after_corruption(self, reason: str) -> None:
+        assert self._conn is not None
+        with suppress(sqlite3.Error):
+            self._conn.close()
+        self._conn = None
+        self._quarantine(reason)
+        self._conn = self._connect()
+
+    @contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        with self._locked() as conn:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield conn
+            except BaseException:
+                if conn.in_transaction:
+                    conn.execute("ROLLBACK")
+                raise
+            conn.execute("COMMIT")
+
+    def close(self) -> None:
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+
+    @property
+    def closed(self) -> bool:
+        return self._conn is None
+
+    # -- queues -------------------------------------------------------------------------------
+
+    def _qid(self, conn: sqlite3.Connection, destination: str) -> int:
+        qid = self._qids.get(destination)
+        if qid is not None:
+            return qid
+        row = conn.execute("SELECT qid FROM queues WHERE name=?", (destination,)).fetchone()
+        if row is None:
+            qid = conn.execute("SELECT coalesce(max(qid), 0) + 1 FROM queues").fetchone()[0]
+            conn.execute("INSERT INTO queues (name, qid) VALUES (?, ?)", (destination, qid))
+        else:
+            qid = row[0]
+        conn.execute(f"CREATE TABLE IF NOT EXISTS q_{qid} ({_QUEUE_DDL})")
+        self._qids[destination] = int(qid)
+        return int(qid)
+
+    def ensure_queues(self, destinations: Sequence[str]) -> None:
+        with self._transaction() as conn:
+            for destination in destinations:
+                self._qid(conn, destination)
+
+    def destinations(self) -> list[str]:
+        with self._locked() as conn:
+            return [row[0] for row in conn.execute("SELECT name FROM queues ORDER BY name")]
+
+    def append(
+        self,
+        records: Mapping[str, Sequence[PendingRecord]],
+        limits: Mapping[str, QueueLimit] | None = None,
+        *,
+        now_ns: int | None = None,
+    ) -> AppendResult:
+        """Write the records of several destinations in one transaction (a group commit)."""
+        enqueued = _now_ns() if now_ns is None else now_ns
+        result = AppendResult()
+        with self._transaction() as conn:
+            for destination, batch in records.items():
+                if not batch:
+                    continue
+                qid = self._qid(conn, destination)
+                limit = (limits or {}).get(destination, QueueLimit(None, True))
+                rows = [(r.record_id, r.topic, r.stamp_ns, enqueued, r.size, r.payload) for r in batch]
+                dropped_newest = dropped_oldest = 0
+                if limit.max_bytes is not None:
+                    rows, dropped_newest, dropped_oldest = self._apply_limit(conn, qid, rows, limit)
+                conn.executemany(
+                    f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload) "
+                    "VALUES (?, ?, ?, ?, ?, ?)",
+                    rows,
+                )
+                added_bytes = sum(row[4] for row in rows)
+                conn.execute(
+                    "UPDATE queues SET rows = rows + ?, bytes = bytes + ?, received = received + ?, "
+                    "dropped = dropped + ? WHERE qid = ?",
+                    (len(rows), added_bytes, len(batch), dropped_newest + dropped_oldest, qid),
+                )
+                result.appended[destination] = len(rows)
+                if dropped_newest:
+                    result.dropped_newest[destination] = dropped_newest
+                if dropped_oldest:
+                    result.dropped_oldest[destination] = dropped_oldest
+        return result
+
+    def _apply_limit(
+        self,
+        conn: sqlite3.Connection,
+        qid: int,
+        rows: list[tuple[str, str, int, int, int, str]],
+        limit: QueueLimit,
+    ) -> tuple[list[tuple[str, str, int, int, int, str]], int, int]:
+        """Rows that fit, records dropped from the batch, rows deleted from the queue head."""
+        assert limit.max_bytes is not None
+        max_bytes = limit.max_bytes
+        # A record bigger than the whole limit can never fit: it is dropped whatever the policy.
+        fitting = [row for row in rows if row[4] <= max_bytes]
+        dropped_newest = len(rows) - len(fitting)
+        used = conn.execute("SELECT bytes FROM queues WHERE qid=?", (qid,)).fetchone()[0]
+        if not limit.drop_oldest:
+            kept: list[tuple[str, str, int, int, int, str]] = []
+            for row in fitting:
+                if used + row[4] <= max_bytes:
+                    kept.append(row)
+                    used += row[4]
+                else:
+                    dropped_newest += 1
+            return kept, dropped_newest, 0
+        incoming = sum(row[4] for row in fitting)
+        # Within one batch, newer records win over older ones of the same batch too.
+        while fitting and incoming > max_bytes:
+            incoming -= fitting.pop(0)[4]
+            dropped_newest += 1
+        need = used + incoming - max_bytes
+        dropped_oldest = 0
+        if need > 0:
+            freed = 0
+            last_id = None
+            after = -1
+            while freed < need:
+                head = conn.execute(
+                    f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)
+                ).fetchall()
+                if not head:
+                    break
+                for row_id, size in head:
+                    freed += size
+                    dropped_oldest += 1
+                    last_id = row_id
+                    if freed >= need:
+                        break
+                after = head[-1][0]
+            if last_id is not None:
+                conn.execute(f"DELETE FROM q_{qid} WHERE id <= ?", (last_id,))
+                conn.execute(
+                    "UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?",
+                    (dropped_oldest, freed, qid),
+                )
+        return fitting, dropped_newest, dropped_oldest
+
+    def read_batch(self, destination: str, limit: int) -> list[BufferedRow]:
+        """The oldest ``limit`` rows of a queue (memory bounded by ``limit``, whatever the backlog)."""
+        with self._locked() as conn:
+            qid = self._qids.get(destination)
+            if qid is None:
+                return []
+            rows = conn.execute(
+                f"SELECT {_QUEUE_COLUMNS} FROM q_{qid} ORDER BY id LIMIT ?", (limit,)
+            ).fetchall()
+        return [BufferedRow(*row) for row in rows]
+
+    def delete(self, destination: str, row_ids: Sequence[int]) -> int:
+        """Delete confirmed rows; returns how many were still there (the size limit may have dropped some)."""
+        if not row_ids:
+            return 0
+        with self._transaction() as conn:
+            qid = self._qid(conn, destination)
+            sizes = conn.execute(
+                f"DELETE FROM q_{qid} WHERE id IN (SELECT value FROM json_each(?)) RETURNING size",
+                (json.dumps(list(row_ids)),),
+            ).fetchall()
+            total = sum(size for (size,) in sizes)
+            conn.execute(
+                "UPDATE queues SET rows = rows - ?, bytes = bytes - ?, sent = sent + ? WHERE qid = ?",
+                (len(sizes), total, len(sizes), qid),
+            )
+        return len(sizes)
+
+    def record_failure(self, destination: str, row_ids: Sequence[int]) -> dict[int, int]:
+        """Count one more failed attempt for each row; returns the rows' attempt counts."""
+        if not row_ids:
+            return {}
+        with self._transaction() as conn:
+            qid = self._qid(conn, destination)
+            rows = conn.execute(
+                f"UPDATE q_{qid} SET attempts = attempts + 1 WHERE id IN (SELECT value FROM json_each(?)) "
+                "RETURNING id, attempts",
+                (json.dumps(list(row_ids)),),
+            ).fetchall()
+        return {int(row_id): int(attempts) for row_id, attempts in rows}
+
+    def dead_letter(
+        self, destination: str, failures: Sequence[tuple[BufferedRow, str]], *, now_ns: int | None = None
+    ) -> int:
+        """Move rows to the dead-letter table with their error text; returns how many moved."""
+        if not failures:
+            return 0
+        failed = _now_ns() if now_ns is None else now_ns
+        moved = 0
+        with self._transaction() as conn:
+            qid = self._qid(conn, destination)
+            for row, error in failures:
+                gone = conn.execute(
+                    f"DELETE FROM q_{qid} WHERE id = ? RETURNING attempts", (row.row_id,)
+                ).fetchone()
+                if gone is None:
+                    continue  # dropped by the size limit meanwhile
+                conn.execute(
+                    f"INSERT INTO dead_letters ({_DEAD_COLUMNS.removeprefix('id, ')}) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        destination,
+                        row.record_id,
+                        row.topic,
+                        row.stamp_ns,
+                        row.enqueued_ns,
+                        failed,
+                        gone[0],
+                        error,
+                        row.size,
+                        row.payload,
+                    ),
+                )
+                conn.execute(
+                    "UPDATE queues SET rows = rows - 1, bytes = bytes - ?, dead_lettered = dead_lettered + 1 "
+                    "WHERE qid = ?",
+                    (row.size, qid),
+                )
+                moved += 1
+        return moved
+
+    def stats(self, destination: str) -> QueueStats:
+        with self._locked() as conn:
+            row = conn.execute(
+                "SELECT qid, rows, bytes, received, sent, dropped, dead_lettered FROM queues WHERE name=?",
+                (destination,),
+            ).fetchone()
+            dead = conn.execute(
+                "SELECT count(*) FROM dead_letters WHERE destination=?", (destination,)
+            ).fetchone()[0]
+            if row is None:
+                return QueueStats(destination, 0, 0, None, dead, 0, 0, 0, 0)
+            qid, rows, size, received, sent, dropped, dead_lettered = row
+            head = conn.execute(f"SELECT enqueued_ns FROM q_{qid} ORDER BY id LIMIT 1").fetchone()
+        return QueueStats(
+            destination, rows, size, head[0] if head else None, dead, received, sent, dropped, dead_lettered
+        )
+
+    # -- dead letters ---------------------------------------------------------------------------
+
+    def list_dead_letters(
+        self, destination: str | None = None, *, limit: int = 100, after_id: int = 0
+    ) -> list[DeadLetter]:
+        with self._locked() as conn:
+            if destination is None:
+                rows = conn.execute(
+                    f"SELECT {_DEAD_COLUMNS} FROM dead_letters WHERE id > ? ORDER BY id LIMIT ?",
+                    (after_id, limit),
+                ).fetchall()
+            else:
+                rows = conn.execute(
+                    f"SELECT {_DEAD_COLUMNS} FROM dead_letters "
+                    "WHERE destination = ? AND id > ? ORDER BY id LIMIT ?",
+                    (destination, after_id, limit),
+                ).fetchall()
+        return [DeadLetter(*row) for row in rows]
+
+    def get_dead_letter(self, dead_letter_id: int) -> DeadLetter | None:
+        with self._locked() as conn:
+            row = conn.execute(
+                f"SELECT {_DEAD_COLUMNS} FROM dead_letters WHERE id = ?", (dead_letter_id,)
+            ).fetchone()
+        return DeadLetter(*row) if row else None
+
+    def _select_dead(
+        self, destination: str | None, ids: Sequence[int] | None
+    ) -> tuple[str, tuple[object, ...]]:
+        clauses: list[str] = []
+        args: list[object] = []
+        if destination is not None:
+            clauses.append("destination = ?")
+            args.append(destination)
+        if ids is not None:
+            clauses.append("id IN (SELECT value FROM json_each(?))")
+            args.append(json.dumps(list(ids)))
+        return (" WHERE " + " AND ".join(clauses) if clauses else ""), tuple(args)
+
+    def replay_dead_letters(
+        self, destination: str | None = None, ids: Sequence[int] | None = None, *, now_ns: int | None = None
+    ) -> int:
+        """Move dead letters back to the end of their queues, attempts reset; returns how many."""
+        enqueued = _now_ns() if now_ns is None else now_ns
+        where, args = self._select_dead(destination, ids)
+        moved = 0
+        with self._transaction() as conn:
+            rows = conn.execute(
+                f"SELECT {_DEAD_COLUMNS} FROM dead_letters{where} ORDER BY id", args
+            ).fetchall()
+            for row in rows:
+                letter = DeadLetter(*row)
+                qid = self._qid(conn, letter.destination)
+                conn.execute(
+                    f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload) "
+                    "VALUES (?, ?, ?, ?, ?, ?)",
+                    (letter.record_id, letter.topic, letter.stamp_ns, enqueued, letter.size, letter.payload),
+                )
+                conn.execute(
+                    "UPDATE queues SET rows = rows + 1, bytes = bytes + ? WHERE qid = ?", (letter.size, qid)
+                )
+                conn.execute("DELETE FROM dead_letters WHERE id = ?", (letter.id,))
+                moved += 1
+        return moved
+
+    def purge_dead_letters(self, destination: str | None = None, ids: Sequence[int] | None = None) -> int:
+        where, args = self._select_dead(destination, ids)
+        with self._transaction() as conn:
+            return int(conn.execute(f"DELETE FROM dead_letters{where}", args).rowcount)
+
+
+_QUEUE_DDL = (
+    "id INTEGER PRIMARY KEY, record_id TEXT NOT NULL, topic TEXT NOT NULL, stamp_ns INTEGER NOT NULL, "
+    "enqueued_ns INTEGER NOT NULL, attempts INTEGER NOT NULL DEFAULT 0, size INTEGER NOT NULL, "
+    "payload TEXT NOT NULL"
+)

@@ -1,0 +1,573 @@
+"""Durable delivery: group-committed intake into the SQLite buffer, one sender thread per destination.
+
+``submit`` runs on the ROS executor thread: it only puts the record on an in-memory hand-off queue.
+A writer thread takes everything waiting there (up to ``commit_batch_size``) and writes it in one
+transaction — a group commit — so the cost of a commit is shared by all the records that arrived
+meanwhile. A record is durable once its group commit is done (see :meth:`DeliveryPipeline.flush_intake`
+and docs/delivery.md for the loss window of each ``storage_sync``).
+
+Each destination has its own queue and sender thread, so a slow or dead destination never delays
+another: the sender reads the oldest rows of its queue in batches, calls ``send``, deletes what was
+confirmed, dead-letters what was refused and backs off exponentially (full jitter) when something
+must be retried.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import secrets
+import threading
+import time
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.logs import Logger
+from dc_core.paths import expand_env
+from dc_destinations.backoff import Backoff
+from dc_destinations.buffer import (
+    FILE_NAME,
+    BufferClosed,
+    BufferCorrupted,
+    BufferedRow,
+    PendingRecord,
+    Quarantine,
+    QueueLimit,
+    SqliteBuffer,
+    default_storage_dir,
+)
+from dc_destinations.http_status import StatusServer
+from dc_destinations.metrics import BurstLog, DestinationMetrics, prometheus_text
+from dc_destinations.settings import (
+    DeliveryParams,
+    DestinationDeliveryParams,
+    check_destination_params,
+    parse_size,
+)
+
+__all__ = ["DeliveryPipeline", "new_record_id", "uuid7"]
+
+
+class _Uuid7Source:
+    """RFC 9562 UUIDv7: 48-bit Unix milliseconds, then a 12-bit counter that keeps ids from one
+    process increasing within a millisecond, then 62 random bits."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last_ms = -1
+        self._counter = 0
+
+    def next(self) -> uuid.UUID:
+        with self._lock:
+            ms = time.time_ns() // 1_000_000
+            if ms > self._last_ms:
+                self._last_ms = ms
+                self._counter = secrets.randbits(11)  # top bit clear leaves room to count up
+            else:
+                self._counter += 1
+                if self._counter > 0xFFF:  # 4,096 ids in one millisecond: borrow the next one
+                    self._last_ms += 1
+                    self._counter = 0
+            ms, counter = self._last_ms, self._counter
+        value = (ms & 0xFFFF_FFFF_FFFF) << 80 | 0x7 << 76 | counter << 64 | 0b10 << 62 | secrets.randbits(62)
+        return uuid.UUID(int=value)
+
+
+_UUID7 = _Uuid7Source()
+
+
+def uuid7() -> uuid.UUID:
+    return _UUID7.next()
+
+
+def new_record_id() -> str:
+    """A fresh ``record_id``: a UUIDv7 string, time-ordered, for sinks to deduplicate on."""
+    return str(_UUID7.next())
+
+
+_STOP = object()
+
+
+@dataclass
+class _Route:
+    name: str
+    destination: Destination
+    params: DestinationDeliveryParams
+    limit: QueueLimit
+    metrics: DestinationMetrics
+    drop_log: BurstLog
+    failure_log: BurstLog
+    wakeup: threading.Event = field(default_factory=threading.Event)
+    pending_hint: int = 0
+    thread: threading.Thread | None = None
+
+
+class DeliveryPipeline:
+    """The delivery layer of ``destination_server``; see the module documentation.
+
+    ``clock``, ``wait`` (called with each backoff delay; returns True to give up because the
+    pipeline is stopping) and ``uniform`` (the jitter draw) exist for tests.
+    """
+
+    def __init__(
+        self,
+        settings: DeliveryParams,
+        destinations: Mapping[str, tuple[Destination, DestinationDeliveryParams]],
+        logger: Logger,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        wait: Callable[[float], bool] | None = None,
+        uniform: Callable[[float, float], float] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.logger = logger
+        self._clock = clock
+        self._wait = wait
+        self._uniform = uniform
+        self._routes: dict[str, _Route] = {}
+        for name, (destination, params) in destinations.items():
+            check_destination_params(params, f"destination_server.{name}")
+            max_bytes = parse_size(params.storage_total_limit_size)
+            self._routes[name] = _Route(
+                name=name,
+                destination=destination,
+                params=params,
+                limit=QueueLimit(max_bytes=max_bytes, drop_oldest=params.when_full == "drop_oldest"),
+                metrics=DestinationMetrics(),
+                drop_log=BurstLog(logger.warning, f"destination {name}: records dropped"),
+                failure_log=BurstLog(logger.warning, f"destination {name}: delivery failed, will retry"),
+            )
+        self._intake_drop_log = BurstLog(logger.error, "delivery intake: records dropped")
+        self._commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
+        self._intake: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._accepting = False
+        self._buffer: SqliteBuffer | None = None
+        self._writer: threading.Thread | None = None
+        self._closing = threading.Event()
+        self._deadline = float("inf")
+        self._quarantined = 0
+        self._commit_listeners: list[Callable[[Sequence[tuple[str, str]]], None]] = []
+        self._status: StatusServer | None = None
+        self.storage_file: Path | None = None
+
+    # -- lifecycle ----------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Open (or recover) the buffer, start the writer and one sender per destination."""
+        if self._writer is not None:
+            return
+        directory = self._storage_dir()
+        self.storage_file = directory / FILE_NAME
+        self._buffer = SqliteBuffer(
+            self.storage_file, synchronous=self.settings.storage_sync, on_quarantine=self._on_quarantine
+        )
+        self._buffer.ensure_queues(list(self._routes))
+        backlog = {name: self._buffer.stats(name).rows for name in self._routes}
+        self.logger.info(
+            f"delivery buffer {self.storage_file} (storage_sync={self.settings.storage_sync}: "
+            + _SYNC_PROMISE[self.settings.storage_sync]
+            + "); backlog: "
+            + (", ".join(f"{name} {rows}" for name, rows in backlog.items()) or "none")
+        )
+        self._closing.clear()
+        self._deadline = float("inf")
+        self._intake = queue.SimpleQueue()
+        self._accepting = True
+        self._writer = threading.Thread(target=self._write_loop, name="dc-delivery-writer", daemon=True)
+        self._writer.start()
+        for route in self._routes.values():
+            route.wakeup.clear()
+            route.thread = threading.Thread(
+                target=self._send_loop, args=(route,), name=f"dc-sender-{route.name}", daemon=True
+            )
+            route.thread.start()
+        if self.settings.http_server:
+            self._start_status_server()
+
+    def stop(self, grace: float) -> None:
+        """Stop intake, commit what was submitted, deliver for up to ``grace`` s, leave the rest on disk."""
+        if self._writer is None:
+            return
+        self._accepting = False
+        self._intake.put(_STOP)
+        self._writer.join()
+        self._writer = None
+        self._deadline = self._clock() + grace
+        self._closing.set()
+        for route in self._routes.values():
+            route.wakeup.set()
+        for route in self._routes.values():
+            if route.thread is not None:
+                route.thread.join(timeout=max(self._deadline - self._clock(), 0.0) + 1.0)
+                if route.thread.is_alive():
+                    self.logger.warning(
+                        f"destination {route.name}: send() still running after the {grace:g} s grace; "
+                        "its batch stays in the buffer and will be sent again"
+                    )
+                route.thread = None
+        if self._status is not None:
+            self._status.stop()
+            self._status = None
+        left = {}
+        if self._buffer is not None:
+            for name in self._routes:
+                with contextlib.suppress(BufferClosed, BufferCorrupted):
+                    left[name] = self._buffer.stats(name).rows
+            self._buffer.close()
+        for route in self._routes.values():
+            route.drop_log.tick()
+            route.failure_log.tick()
+        pending = {name: rows for name, rows in left.items() if rows}
+        if pending:
+            self.logger.info(
+                "delivery stopped; left in the buffer for the next start: "
+                + ", ".join(f"{name} {rows}" for name, rows in pending.items())
+            )
+
+    # -- intake ---------------------------------------------------------------------------------
+
+    def submit(self, destination: str, record: OutgoingRecord) -> None:
+        """Hand a record over for ``destination``; never blocks. Durable after its group commit."""
+        route = self._routes[destination]
+        if not self._accepting:
+            route.metrics.add("received")
+            route.metrics.add("dropped")
+            self._intake_drop_log.event(1, "the delivery pipeline is not running")
+            return
+        if self._intake.qsize() >= self.settings.intake_queue_limit:
+            route.metrics.add("received")
+            route.metrics.add("dropped")
+            self._intake_drop_log.event(
+                1,
+                f"{self.settings.intake_queue_limit} records already wait for the disk (intake_queue_limit)",
+            )
+            return
+        self._intake.put((route, record))
+
+    def flush_intake(self, timeout: float | None = None) -> bool:
+        """Wait until every record submitted before this call is committed; False on timeout."""
+        if self._writer is None:
+            return False
+        done = threading.Event()
+        self._intake.put(done)
+        return done.wait(timeout)
+
+    def add_commit_listener(self, listener: Callable[[Sequence[tuple[str, str]]], None]) -> None:
+        """Call ``listener`` on the writer thread with ``(destination, record_id)`` of each group commit."""
+        self._commit_listeners.append(listener)
+
+    def _write_loop(self) -> None:
+        limit = self.settings.commit_batch_size
+        while True:
+            try:
+                first = self._intake.get(timeout=0.5)
+            except queue.Empty:
+                self._tick_logs()
+                continue
+            items = [first]
+            while len(items) < limit:
+                try:
+                    items.append(self._intake.get_nowait())
+                except queue.Empty:
+                    break
+            stop = False
+            records: list[tuple[_Route, OutgoingRecord]] = []
+            markers: list[threading.Event] = []
+            for item in items:
+                if item is _STOP:
+                    stop = True
+                elif isinstance(item, threading.Event):
+                    markers.append(item)
+                else:
+                    records.append(item)
+            if records:
+                self._commit(records)
+            for marker in markers:
+                marker.set()
+            if stop:
+                # Whatever was submitted before the stop is committed before the writer ends.
+                self._drain_after_stop()
+                return
+
+    def _drain_after_stop(self) -> None:
+        while True:
+            try:
+                item = self._intake.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(item, threading.Event):
+                item.set()
+            elif item is not _STOP:
+                self._commit([item])
+
+    def _commit(self, records: list[tuple[_Route, OutgoingRecord]]) -> None:
+        by_destination: dict[str, list[PendingRecord]] = {}
+        for route, record in records:
+            by_destination.setdefault(route.name, []).append(
+                PendingRecord(record.record_id, record.topic, record.stamp_ns, record.to_json())
+            )
+        limits = {name: self._routes[name].limit for name in by_destination}
+        assert self._buffer is not None
+        while True:
+            try:
+                result = self._buffer.append(by_destination, limits)
+                break
+            except BufferCorrupted:
+                continue  # the buffer was replaced by an empty one: write the batch there
+            except Exception as exc:  # disk full, I/O error: keep the batch and try again
+                self._commit_log.event(len(records), f"{type(exc).__name__}: {exc}")
+                if self._closing.wait(1.0) or not self._accepting:
+                    for name, batch in by_destination.items():
+                        self._routes[name].metrics.add("received", len(batch))
+                        self._routes[name].metrics.add("dropped", len(batch))
+                    self.logger.error(f"delivery buffer: {len(records)} records lost at shutdown: {exc}")
+                    return
+        for name, batch in by_destination.items():
+            route = self._routes[name]
+            route.metrics.add("received", len(batch))
+            dropped_newest = result.dropped_newest.get(name, 0)
+            dropped_oldest = result.dropped_oldest.get(name, 0)
+            if dropped_newest or dropped_oldest:
+                route.metrics.add("dropped", dropped_newest + dropped_oldest)
+                route.drop_log.event(
+                    dropped_newest + dropped_oldest,
+                    f"storage_total_limit_size {route.params.storage_total_limit_size} reached, "
+                    f"when_full {route.params.when_full}",
+                )
+            route.pending_hint += result.appended.get(name, 0)
+            if route.pending_hint >= route.params.batch_size:
+                route.wakeup.set()
+        if self._commit_listeners:
+            committed = [(route.name, record.record_id) for route, record in records]
+            for listener in self._commit_listeners:
+                try:
+                    listener(committed)
+                except Exception as exc:
+                    self.logger.error(f"delivery commit listener failed: {exc}")
+
+    # -- senders --------------------------------------------------------------------------------
+
+    def _send_loop(self, route: _Route) -> None:
+        backoff = Backoff(self.settings.scheduler_base, self.settings.scheduler_cap, self._uniform)
+        assert self._buffer is not None
+        buffer = self._buffer
+        batch_size = route.params.batch_size
+        while True:
+            closing = self._closing.is_set()
+            if closing and self._clock() >= self._deadline:
+                return
+            try:
+                rows = buffer.read_batch(route.name, batch_size)
+            except BufferCorrupted:
+                continue
+            except BufferClosed:
+                return
+            if not rows:
+                if closing:
+                    return
+                route.pending_hint = 0
+                route.wakeup.wait(self.settings.flush)
+                route.wakeup.clear()
+                route.drop_log.tick()
+                route.failure_log.tick()
+                continue
+            try:
+                must_retry = self._deliver(route, buffer, rows)
+            except BufferClosed:
+                return
+            except BufferCorrupted:
+                continue
+            if must_retry:
+                delay = backoff.next_delay()
+                if self._wait_backoff(delay):
+                    return
+            else:
+                backoff.reset()
+                if len(rows) < batch_size and not closing:
+                    route.pending_hint = 0
+                    route.wakeup.wait(self.settings.flush)
+                    route.wakeup.clear()
+
+    def _wait_backoff(self, delay: float) -> bool:
+        if self._wait is not None:
+            return self._wait(delay) or self._closing.is_set()
+        return self._closing.wait(delay)
+
+    def _deliver(self, route: _Route, buffer: SqliteBuffer, rows: list[BufferedRow]) -> bool:
+        """One send() of ``rows``; returns True when some of them must be retried."""
+        records: list[OutgoingRecord] = []
+        sent_rows: list[BufferedRow] = []
+        unreadable: list[tuple[BufferedRow, str]] = []
+        for row in rows:
+            try:
+                data = json.loads(row.payload)
+            except ValueError as exc:
+                unreadable.append((row, f"unreadable payload in the buffer: {exc}"))
+                continue
+            records.append(OutgoingRecord(row.record_id, row.topic, row.stamp_ns, data))
+            sent_rows.append(row)
+        if unreadable:
+            route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))
+        if not records:
+            return False
+        retry: dict[int, str] = {}
+        reject: dict[int, str] = {}
+        try:
+            outcome = route.destination.send(records)
+        except RejectedError as exc:
+            reject = dict.fromkeys(range(len(records)), f"rejected: {exc}")
+        except RetryableError as exc:
+            retry = dict.fromkeys(range(len(records)), str(exc))
+        except Exception as exc:
+            retry = dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}")
+        else:
+            if isinstance(outcome, SendOutcome):
+                retry = {i: reason for i, reason in outcome.retry.items() if 0 <= i < len(records)}
+                reject = {
+                    i: f"rejected: {reason}"
+                    for i, reason in outcome.reject.items()
+                    if 0 <= i < len(records) and i not in retry
+                }
+        confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
+        if confirmed:
+            buffer.delete(route.name, confirmed)
+            route.metrics.add("sent", len(confirmed))
+        if not retry and not reject:
+            return False
+        route.metrics.add("failed")
+        first_error = next(iter({**reject, **retry}.values()))
+        route.metrics.set_error(first_error)
+        dead: list[tuple[BufferedRow, str]] = [(sent_rows[i], reason) for i, reason in reject.items()]
+        if retry:
+            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in retry])
+            limit = route.params.retry_limit
+            for i, reason in retry.items():
+                row = sent_rows[i]
+                if limit >= 0 and attempts.get(row.row_id, 0) > limit:
+                    dead.append((row, f"retry_limit {limit} exhausted: {reason}"))
+            retried = len(retry) - sum(1 for _row, reason in dead if reason.startswith("retry_limit"))
+            route.metrics.add("retried", retried)
+            if retried:
+                route.failure_log.event(retried, first_error)
+        if dead:
+            moved = buffer.dead_letter(route.name, dead)
+            route.metrics.add("dead_lettered", moved)
+            self.logger.error(
+                f"destination {route.name}: {moved} record(s) moved to the dead letters ({dead[0][1]}); "
+                "see `dc buffer list`"
+            )
+        return len(dead) < len(retry) + len(reject)
+
+    # -- storage ------------------------------------------------------------------------------------
+
+    def _storage_dir(self) -> Path:
+        configured = self.settings.storage_path.strip()
+        if not configured:
+            directory = default_storage_dir()
+            directory.mkdir(parents=True, exist_ok=True)
+            return directory
+        directory = Path(os.path.expanduser(expand_env(configured, "destination_server.flb.storage_path")))
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            if not os.access(directory, os.W_OK | os.X_OK):
+                raise PermissionError(f"{directory} is not writable")
+        except OSError as exc:
+            fallback = default_storage_dir()
+            self.logger.error(
+                f"flb.storage_path {directory} cannot be used ({exc}); buffering in {fallback} instead"
+            )
+            fallback.mkdir(parents=True, exist_ok=True)
+            return fallback
+        return directory
+
+    def _on_quarantine(self, quarantine: Quarantine) -> None:
+        self._quarantined += 1
+        self.logger.error(
+            f"delivery buffer was unreadable ({quarantine.reason}); moved aside to {quarantine.moved_to} "
+            "and replaced by an empty one — records in it were not delivered"
+        )
+
+    def _tick_logs(self) -> None:
+        self._intake_drop_log.tick()
+        self._commit_log.tick()
+
+    # -- observability ------------------------------------------------------------------------------
+
+    def metrics(self) -> dict[str, dict[str, Any]]:
+        """Per destination: counters since start, what waits in the buffer, the last error."""
+        out: dict[str, dict[str, Any]] = {}
+        now_ns = time.time_ns()
+        for name, route in self._routes.items():
+            values = route.metrics.snapshot()
+            values.update(buffered=None, buffered_bytes=None, dead_letters=None, oldest_pending_age_s=None)
+            if self._buffer is not None and not self._buffer.closed:
+                try:
+                    stats = self._buffer.stats(name)
+                except (BufferClosed, BufferCorrupted):
+                    pass
+                else:
+                    values.update(
+                        buffered=stats.rows,
+                        buffered_bytes=stats.bytes,
+                        dead_letters=stats.dead_letters,
+                        oldest_pending_age_s=(
+                            max(now_ns - stats.oldest_enqueued_ns, 0) / 1e9
+                            if stats.oldest_enqueued_ns is not None
+                            else 0.0
+                        ),
+                    )
+            out[name] = values
+        return out
+
+    def buffer_metrics(self) -> dict[str, Any]:
+        """The buffer as a whole: file, sync mode, corrupt files set aside, records awaiting commit."""
+        return {
+            "path": str(self.storage_file) if self.storage_file else None,
+            "storage_sync": self.settings.storage_sync,
+            "quarantined": self._quarantined,
+            "intake_pending": self._intake.qsize(),
+            "running": self._writer is not None and self._writer.is_alive(),
+        }
+
+    def healthy(self) -> bool:
+        if self._writer is None or not self._writer.is_alive():
+            return False
+        return all(route.thread is not None and route.thread.is_alive() for route in self._routes.values())
+
+    def prometheus(self) -> str:
+        return prometheus_text(self.metrics(), self.buffer_metrics())
+
+    @property
+    def http_address(self) -> tuple[str, int] | None:
+        return self._status.address if self._status is not None else None
+
+    def _start_status_server(self) -> None:
+        try:
+            self._status = StatusServer(
+                self.settings.http_listen,
+                self.settings.http_port,
+                health=self.healthy,
+                metrics=lambda: {"destinations": self.metrics(), "buffer": self.buffer_metrics()},
+                prometheus=self.prometheus,
+            )
+        except OSError as exc:
+            self.logger.error(
+                f"metrics HTTP server on {self.settings.http_listen}:{self.settings.http_port} "
+                f"not started: {exc}"
+            )
+            return
+        self.logger.info(
+            f"metrics HTTP server on http://{self._status.address[0]}:{self._status.address[1]}/api/v1/"
+        )
+
+
+_SYNC_PROMISE = {
+    "normal": "committed records survive a crash of the process, a power cut may lose the last ones",
+    "full": "committed records survive a crash of the process and a power cut",
+}

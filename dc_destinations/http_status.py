@@ -1,0 +1,89 @@
+"""Health and metrics over HTTP, the paths Fluent Bit users know (``/api/v1/...``).
+
+Standard library only; one daemon thread serving requests one at a time, which is plenty for a
+scraper and an operator. Bound to loopback unless ``http_listen`` says otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Callable
+from http.server import BaseHTTPRequestHandler, HTTPServer
+from typing import Any
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+
+    def do_GET(self) -> None:
+        path = self.path.split("?", 1)[0].rstrip("/")
+        try:
+            if path == "/api/v1/health":
+                ok = self.server.health()
+                self._reply(
+                    200 if ok else 503, "application/json", json.dumps({"status": "ok" if ok else "error"})
+                )
+            elif path == "/api/v1/metrics":
+                self._reply(200, "application/json", json.dumps(self.server.metrics(), indent=2))
+            elif path == "/api/v1/metrics/prometheus":
+                self._reply(200, "text/plain; version=0.0.4; charset=utf-8", self.server.prometheus())
+            else:
+                self._reply(404, "application/json", json.dumps({"error": f"no such path: {path}"}))
+        except Exception as exc:  # a broken metric must not take the server down
+            self._reply(500, "application/json", json.dumps({"error": str(exc)}))
+
+    def _reply(self, status: int, content_type: str, body: str) -> None:
+        data = body.encode("utf-8")
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def log_message(self, format: str, *args: Any) -> None:
+        """Requests are not logged: a scraper every few seconds would flood the log."""
+
+
+class _Server(HTTPServer):
+    def __init__(
+        self,
+        address: tuple[str, int],
+        health: Callable[[], bool],
+        metrics: Callable[[], dict[str, Any]],
+        prometheus: Callable[[], str],
+    ) -> None:
+        self.health = health
+        self.metrics = metrics
+        self.prometheus = prometheus
+        super().__init__(address, _Handler)
+
+
+class StatusServer:
+    """Serves ``/api/v1/health``, ``/api/v1/metrics`` and ``/api/v1/metrics/prometheus``."""
+
+    def __init__(
+        self,
+        listen: str,
+        port: int,
+        *,
+        health: Callable[[], bool],
+        metrics: Callable[[], dict[str, Any]],
+        prometheus: Callable[[], str],
+    ) -> None:
+        """Binds at once (raises OSError if the port is taken); port 0 picks a free one."""
+        self._server = _Server((listen, port), health, metrics, prometheus)
+        host, bound_port = self._server.server_address[:2]
+        self.address: tuple[str, int] = (str(host), int(bound_port))
+        self._thread = threading.Thread(
+            target=self._server.serve_forever,
+            kwargs={"poll_interval": 0.2},
+            name="dc-status-http",
+            daemon=True,
+        )
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+        self._thread.join(timeout=2.0)

@@ -1,0 +1,89 @@
+"""Delivery settings: the ``flb`` section of ``destination_server`` and per-destination options.
+
+The key names are those of the original's Fluent Bit section so its configurations keep working;
+DC's own buffer gives them their meaning (see docs/delivery.md).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from dc_core.errors import ConfigError
+from dc_core.params import param
+
+WHEN_FULL_POLICIES = ("drop_oldest", "drop_newest")
+
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)\s*$", re.IGNORECASE)
+_UNITS = {"": 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4}
+
+
+@dataclass(frozen=True, kw_only=True)
+class DeliveryParams:
+    flush: float = param(
+        1.0, minimum=0.01, doc="Seconds between two delivery rounds of a destination's queue"
+    )
+    grace: float = param(
+        1.0, minimum=0.0, doc="Seconds to keep delivering at shutdown before leaving the rest on disk"
+    )
+    log_level: str = param("info", doc="Accepted for compatibility; use dc-bringup --log-level")
+    storage_path: str = param(
+        "", doc="Buffer folder (default: $XDG_DATA_HOME/dc/buffer or ~/.local/share/dc/buffer)"
+    )
+    storage_sync: str = param(
+        "normal",
+        choices=("normal", "full"),
+        doc="normal: committed records survive a process crash; full: they also survive a power cut",
+    )
+    storage_checksum: str = param("off", doc="Accepted for compatibility; SQLite checks its own pages")
+    storage_backlog_mem_limit: str = param(
+        "5M", doc="Accepted for compatibility; the backlog is streamed from disk"
+    )
+    scheduler_cap: float = param(2000.0, minimum=0.0, doc="Longest wait between two retries, seconds")
+    scheduler_base: float = param(5.0, minimum=0.0, doc="Base of the exponential retry backoff, seconds")
+    http_server: bool = param(False, doc="Serve health and metrics over HTTP")
+    http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server")
+    http_port: int = param(2020, minimum=0, maximum=65535, doc="Port of the metrics HTTP server")
+    in_storage_type: str = param("filesystem", doc="Accepted for compatibility; DC always buffers on disk")
+    in_storage_pause_on_chunks_overlimit: str = param("off", doc="Accepted for compatibility")
+    intake_queue_limit: int = param(
+        20000,
+        minimum=1,
+        doc="Records waiting in memory for the next group commit; beyond it new ones are dropped and counted",
+    )
+    commit_batch_size: int = param(2000, minimum=1, doc="Most records written by one group commit")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DestinationDeliveryParams:
+    batch_size: int = param(500, minimum=1, doc="Most records handed to one send()")
+    retry_limit: int = param(
+        -1,
+        minimum=-1,
+        doc="Failed attempts retried before a record is dead-lettered (-1 = unlimited, 0 = no retry)",
+    )
+    storage_total_limit_size: str = param(
+        "1G",
+        doc='Most bytes of records buffered for this destination ("500M", "2G", bytes; "0" or "" = no limit)',
+    )
+    when_full: str = param(
+        "drop_oldest",
+        choices=WHEN_FULL_POLICIES,
+        doc="When full: drop_oldest deletes the oldest buffered records; drop_newest refuses new ones",
+    )
+
+
+def parse_size(text: str, path: str = "") -> int | None:
+    """Bytes of a size such as ``"500M"``, ``"2GiB"`` or ``"1048576"``; ``None`` means no limit."""
+    if text.strip() in ("", "0"):
+        return None
+    match = _SIZE.match(text)
+    if match is None:
+        raise ConfigError(path, f'expected a size such as "500M", "2G" or a number of bytes, got "{text}"')
+    number, unit, _suffix = match.groups()
+    return int(float(number) * _UNITS[unit.lower()])
+
+
+def check_destination_params(params: DestinationDeliveryParams, path: str) -> None:
+    """Checks :func:`parse_params` cannot express; ``path`` is the destination's YAML path."""
+    parse_size(params.storage_total_limit_size, f"{path}.storage_total_limit_size")

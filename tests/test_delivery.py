@@ -1,0 +1,396 @@
+"""The delivery pipeline with in-test destinations: no ROS, no sleeps as synchronisation."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+import urllib.request
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_destinations.buffer import FILE_NAME, SqliteBuffer
+from dc_destinations.delivery import DeliveryPipeline, new_record_id, uuid7
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+
+class ListLogger:
+    """Keeps what is logged, so tests can assert on it (and satisfies dc_core.logs.Logger)."""
+
+    def __init__(self) -> None:
+        self.lines: list[tuple[str, str]] = []
+        self._log = logging.getLogger("test_delivery")
+
+    def _add(self, level: str, message: str) -> None:
+        self.lines.append((level, message))
+        self._log.log(logging.getLevelName(level.upper()), message)
+
+    def debug(self, message: str, **kwargs: Any) -> None:
+        self._add("debug", message)
+
+    def info(self, message: str, **kwargs: Any) -> None:
+        self._add("info", message)
+
+    def warning(self, message: str, **kwargs: Any) -> None:
+        self._add("warning", message)
+
+    def error(self, message: str, **kwargs: Any) -> None:
+        self._add("error", message)
+
+
+LOG = ListLogger()
+
+
+class _Context:
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.logger = LOG
+        self.node = None
+
+
+class Recorder(Destination):
+    """Accepts everything, keeps what it got; ``behaviour`` decides the outcome of each call."""
+
+    def __init__(
+        self, name: str = "sink", behaviour: Callable[[int, Sequence[OutgoingRecord]], Any] | None = None
+    ):
+        super().__init__(_Context(name), None)
+        self.behaviour = behaviour
+        self.calls = 0
+        self.delivered: list[OutgoingRecord] = []
+        self.lock = threading.Lock()
+        self.changed = threading.Condition(self.lock)
+
+    def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        with self.lock:
+            self.calls += 1
+            call = self.calls
+        outcome = self.behaviour(call, batch) if self.behaviour else None
+        with self.lock:
+            if isinstance(outcome, SendOutcome):
+                failed = set(outcome.retry) | set(outcome.reject)
+                self.delivered.extend(r for i, r in enumerate(batch) if i not in failed)
+            else:
+                self.delivered.extend(batch)
+            self.changed.notify_all()
+        return outcome
+
+    def wait_for(self, count: int, timeout: float = 10.0) -> list[OutgoingRecord]:
+        deadline = time.monotonic() + timeout
+        with self.lock:
+            while len(self.delivered) < count:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(
+                        f"{self.context.name}: {len(self.delivered)} of {count} records delivered"
+                    )
+                self.changed.wait(left)
+            return list(self.delivered)
+
+
+def record(n: int, topic: str = "/dc/measurement/test") -> OutgoingRecord:
+    rid = new_record_id()
+    return OutgoingRecord(rid, topic, n, {"n": n, "record_id": rid})
+
+
+def settings(tmp_path: Path, **overrides: Any) -> DeliveryParams:
+    values: dict[str, Any] = {
+        "storage_path": str(tmp_path),
+        "flush": 0.05,
+        "scheduler_base": 1.0,
+        "scheduler_cap": 8.0,
+    }
+    values.update(overrides)
+    return DeliveryParams(**values)
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+class RecordedWaits:
+    """Backoff waits recorded instead of slept."""
+
+    def __init__(self) -> None:
+        self.delays: list[float] = []
+
+    def __call__(self, delay: float) -> bool:
+        self.delays.append(delay)
+        return False
+
+
+def test_record_ids_are_uuid7_and_increase() -> None:
+    ids = [new_record_id() for _ in range(5000)]
+    assert len(set(ids)) == len(ids)
+    assert ids == sorted(ids)
+    parsed = uuid.UUID(ids[0])
+    assert parsed.version == 7
+    assert parsed.variant == uuid.RFC_4122
+    assert abs((uuid7().int >> 80) - time.time() * 1000) < 5000
+
+
+def test_records_are_delivered_in_order_and_removed_from_the_buffer(tmp_path: Path) -> None:
+    sink = Recorder()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(batch_size=7))}, LOG
+    )
+    pipeline.start()
+    try:
+        sent = [record(i) for i in range(100)]
+        for r in sent:
+            pipeline.submit("sink", r)
+        got = sink.wait_for(100)
+        assert [r.data for r in got] == [r.data for r in sent]
+        assert [r.record_id for r in got] == [r.data["record_id"] for r in sent]
+        assert max(sink.calls, 0) >= 100 // 7
+        wait_until(lambda: pipeline.metrics()["sink"]["buffered"] == 0, what="empty buffer")
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["received"] == 100 and metrics["sent"] == 100
+        assert metrics["dropped"] == metrics["failed"] == metrics["dead_lettered"] == 0
+    finally:
+        pipeline.stop(grace=1.0)
+
+
+def test_retryable_failures_back_off_exponentially_then_deliver(tmp_path: Path) -> None:
+    def fail_three_times(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        if call <= 3:
+            raise RetryableError("503 Service Unavailable")
+
+    sink = Recorder(behaviour=fail_three_times)
+    waits = RecordedWaits()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, scheduler_base=2.0, scheduler_cap=5.0),
+        {"sink": (sink, DestinationDeliveryParams())},
+        LOG,
+        wait=waits,
+        uniform=lambda low, high: high,  # the top of the jitter range, to see the exponential
+    )
+    pipeline.start()
+    try:
+        for i in range(10):
+            pipeline.submit("sink", record(i))
+        pipeline.flush_intake(5)
+        sink.wait_for(10)
+        wait_until(lambda: pipeline.metrics()["sink"]["sent"] == 10)
+        assert waits.delays[:3] == [2.0, 4.0, 5.0]  # base, 2 * base, capped
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["failed"] >= 3
+        assert metrics["retried"] >= 3
+        assert metrics["dead_lettered"] == 0
+        assert "503" in metrics["last_error"]
+    finally:
+        pipeline.stop(grace=1.0)
+
+
+def test_jitter_is_full(tmp_path: Path) -> None:
+    draws: list[tuple[float, float]] = []
+
+    def uniform(low: float, high: float) -> float:
+        draws.append((low, high))
+        return 0.0
+
+    def always_fail(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        if call <= 5:
+            raise ConnectionError("refused")
+
+    sink = Recorder(behaviour=always_fail)
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, scheduler_base=1.0, scheduler_cap=100.0),
+        {"sink": (sink, DestinationDeliveryParams())},
+        LOG,
+        wait=RecordedWaits(),
+        uniform=uniform,
+    )
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(1))
+        sink.wait_for(1)
+        assert draws[:5] == [(0.0, 1.0), (0.0, 2.0), (0.0, 4.0), (0.0, 8.0), (0.0, 16.0)]
+    finally:
+        pipeline.stop(grace=1.0)
+
+
+def test_permanent_rejection_goes_to_dead_letters_with_the_error(tmp_path: Path) -> None:
+    def reject(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        raise RejectedError("400 Bad Request: field 'x' unknown")
+
+    sink = Recorder(behaviour=reject)
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
+    pipeline.start()
+    try:
+        for i in range(3):
+            pipeline.submit("sink", record(i))
+        wait_until(lambda: pipeline.metrics()["sink"]["dead_lettered"] == 3, what="dead letters")
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["sent"] == 0 and metrics["buffered"] == 0 and metrics["dead_letters"] == 3
+    finally:
+        pipeline.stop(grace=0.5)
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        letters = buffer.list_dead_letters("sink")
+        assert [json.loads(d.payload)["n"] for d in letters] == [0, 1, 2]
+        assert all("400 Bad Request" in d.error for d in letters)
+    finally:
+        buffer.close()
+
+
+def test_partial_outcome_is_per_record(tmp_path: Path) -> None:
+    def partial(call: int, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        if call == 1:
+            # In a batch of 0..4: 1 must be retried, 3 is refused, the others are confirmed.
+            return SendOutcome(retry={1: "timeout"}, reject={3: "schema mismatch"})
+        return None
+
+    sink = Recorder(behaviour=partial)
+    pipeline = DeliveryPipeline(
+        settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG, wait=RecordedWaits()
+    )
+    pipeline.start()
+    try:
+        for i in range(5):
+            pipeline.submit("sink", record(i))
+        pipeline.flush_intake(5)
+        wait_until(lambda: pipeline.metrics()["sink"]["sent"] == 4, what="4 records confirmed")
+        delivered = sorted(r.data["n"] for r in sink.delivered)
+        assert delivered == [0, 1, 2, 4]
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["dead_lettered"] == 1 and metrics["retried"] == 1 and metrics["buffered"] == 0
+    finally:
+        pipeline.stop(grace=0.5)
+
+
+def test_retry_limit_dead_letters_after_the_last_retry(tmp_path: Path) -> None:
+    def always_fail(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        raise RetryableError("connection refused")
+
+    sink = Recorder(behaviour=always_fail)
+    waits = RecordedWaits()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(retry_limit=2))}, LOG, wait=waits
+    )
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(1))
+        wait_until(lambda: pipeline.metrics()["sink"]["dead_lettered"] == 1, what="dead letter")
+        assert sink.calls == 3  # the first attempt and two retries
+        assert pipeline.metrics()["sink"]["retried"] == 2
+    finally:
+        pipeline.stop(grace=0.5)
+
+
+def test_a_dead_destination_does_not_delay_another(tmp_path: Path) -> None:
+    blocked = threading.Event()
+
+    def hang(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        blocked.wait(10)
+        raise RetryableError("timed out")
+
+    dead = Recorder("dead", behaviour=hang)
+    alive = Recorder("alive")
+    pipeline = DeliveryPipeline(
+        settings(tmp_path),
+        {"dead": (dead, DestinationDeliveryParams()), "alive": (alive, DestinationDeliveryParams())},
+        LOG,
+    )
+    pipeline.start()
+    try:
+        for i in range(200):
+            r = record(i)
+            pipeline.submit("dead", r)
+            pipeline.submit("alive", r)
+        assert len(alive.wait_for(200, timeout=5)) == 200
+        assert pipeline.metrics()["dead"]["sent"] == 0
+    finally:
+        blocked.set()
+        pipeline.stop(grace=0.5)
+
+
+def test_stop_leaves_undelivered_records_for_the_next_pipeline(tmp_path: Path) -> None:
+    def down(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        raise RetryableError("network unreachable")
+
+    first = DeliveryPipeline(
+        settings(tmp_path), {"sink": (Recorder(behaviour=down), DestinationDeliveryParams())}, LOG
+    )
+    first.start()
+    sent = [record(i) for i in range(50)]
+    for r in sent:
+        first.submit("sink", r)
+    first.stop(grace=0.2)
+
+    sink = Recorder()
+    second = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
+    second.start()
+    try:
+        got = sink.wait_for(50)
+        assert [r.record_id for r in got] == [r.record_id for r in sent]
+    finally:
+        second.stop(grace=0.5)
+
+
+def test_metrics_over_http(tmp_path: Path) -> None:
+    sink = Recorder()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, http_server=True, http_port=0), {"sink": (sink, DestinationDeliveryParams())}, LOG
+    )
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(1))
+        sink.wait_for(1)
+        wait_until(lambda: pipeline.metrics()["sink"]["sent"] == 1)
+        address = pipeline.http_address
+        assert address is not None and address[0] == "127.0.0.1"
+        base = f"http://{address[0]}:{address[1]}/api/v1"
+        with urllib.request.urlopen(f"{base}/health", timeout=5) as reply:
+            assert json.load(reply) == {"status": "ok"}
+        with urllib.request.urlopen(f"{base}/metrics", timeout=5) as reply:
+            body = json.load(reply)
+        assert body["destinations"]["sink"]["sent"] == 1
+        assert body["buffer"]["storage_sync"] == "normal"
+        with urllib.request.urlopen(f"{base}/metrics/prometheus", timeout=5) as reply:
+            text = reply.read().decode()
+        assert 'dc_delivery_sent_total{destination="sink"} 1' in text
+    finally:
+        pipeline.stop(grace=0.5)
+    assert pipeline.http_address is None
+
+
+def test_records_submitted_after_stop_are_counted_as_dropped(tmp_path: Path) -> None:
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(), DestinationDeliveryParams())}, LOG)
+    pipeline.start()
+    pipeline.stop(grace=0.1)
+    pipeline.submit("sink", record(1))
+    assert pipeline.metrics()["sink"]["dropped"] == 1
+
+
+@pytest.mark.parametrize("storage_sync", ["normal", "full"])
+def test_flush_intake_means_committed(tmp_path: Path, storage_sync: str) -> None:
+    def down(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        raise RetryableError("down")
+
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, storage_sync=storage_sync),
+        {"sink": (Recorder(behaviour=down), DestinationDeliveryParams())},
+        LOG,
+    )
+    pipeline.start()
+    try:
+        for i in range(1000):
+            pipeline.submit("sink", record(i))
+        assert pipeline.flush_intake(10)
+        other = SqliteBuffer(tmp_path / FILE_NAME)  # another connection sees the commit
+        try:
+            assert other.stats("sink").rows == 1000
+        finally:
+            other.close()
+    finally:
+        pipeline.stop(grace=0.1)
