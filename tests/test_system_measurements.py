@@ -57,7 +57,7 @@ class FakeContext:
 
 
 def configured(cls: type[Measurement], measurement_id: str = "m", /, **values: Any) -> Any:
-    params = parse_params(cls.Params, values, f"measurement_server.{measurement_id}")
+    params: Any = parse_params(cls.Params, values, f"measurement_server.{measurement_id}")
     plugin = cls(FakeContext(measurement_id), params)
     plugin.on_configure()
     plugin.on_activate()
@@ -88,7 +88,7 @@ def meminfo() -> dict[str, int]:
 
 # --- registration, schemas, parameters -------------------------------------------------------
 
-PLUGINS = {
+PLUGINS: dict[str, type[Measurement]] = {
     "dc_measurements/Cpu": Cpu,
     "dc_measurements/Memory": Memory,
     "dc_measurements/OS": OperatingSystem,
