@@ -1,0 +1,215 @@
+"""destination_server: subscribes to its destinations' inputs, routes records by tag, hands them to delivery.
+
+The subscription callback only parses, routes and submits (the delivery pipeline's ``submit`` puts the
+record on an in-memory queue); writing to the buffer and sending run in the pipeline's threads.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from dc_core.config import load_params_file
+from dc_core.destination import Destination
+from dc_core.errors import ConfigError, PluginError
+from dc_core.lifecycle import ManagedServer, run_server
+from dc_core.logs import Logger
+from dc_destinations.config import DestinationServerConfig, parse_destination_server
+from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.routing import RoutingTable
+from dc_interfaces.msg import StringStamped
+
+NODE_NAME = "destination_server"
+RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+PREVIEW_CHARS = 200
+
+
+@dataclass
+class _DestinationContext:
+    """What a destination plugin sees of the server (dc_core.destination.DestinationContext)."""
+
+    name: str
+    logger: Logger
+    node: Any
+
+
+@dataclass
+class IntakeStats:
+    """Counters of what arrived on the input topics, before delivery counts anything."""
+
+    received: int = 0
+    malformed: int = 0
+    routed: int = 0
+    unrouted: Counter[tuple[str, str]] = field(default_factory=Counter)
+
+    def as_dict(self) -> dict[str, Any]:
+        unrouted: dict[str, dict[str, int]] = {}
+        for (topic, reason), count in sorted(self.unrouted.items()):
+            unrouted.setdefault(topic, {})[reason] = count
+        return {
+            "received": self.received,
+            "malformed": self.malformed,
+            "routed": self.routed,
+            "unrouted": unrouted,
+        }
+
+
+class DestinationServer(ManagedServer):
+    def __init__(self, params_file: str) -> None:
+        super().__init__(NODE_NAME, params_file)
+        self.config: DestinationServerConfig | None = None
+        self.plugins: dict[str, Destination] = {}
+        self.pipeline: DeliveryPipeline | None = None
+        self.routing: RoutingTable | None = None
+        self.stats = IntakeStats()
+        self._debug: set[str] = set()
+        self._subscriptions: list[Any] = []
+
+    # -- configure / cleanup -----------------------------------------------------------------------
+    def configure_server(self) -> None:
+        servers = load_params_file(self.params_file)
+        if NODE_NAME not in servers:
+            raise ConfigError(NODE_NAME, f"no {NODE_NAME} section in {self.params_file}")
+        config = parse_destination_server(servers[NODE_NAME])
+        self.config = config
+        log = self.get_logger()
+        for warning in config.warnings:
+            log.warning(warning)
+        self.set_heartbeat_period(config.node.heartbeat_period)
+
+        for d in config.destinations:
+            context = _DestinationContext(d.name, self.get_logger().get_child(d.name), self)
+            plugin: Destination = d.plugin_class(context, d.plugin_params)
+            try:
+                plugin.on_configure()
+            except ConfigError:
+                raise
+            except Exception as exc:
+                raise PluginError(f"destination {d.name} ({d.common.plugin}): {exc}") from exc
+            self.plugins[d.name] = plugin
+            c = d.common
+            time_key = f"{c.time_key!r} ({c.time_format})" if c.time_key else "none"
+            log.info(f"destination {d.name} ({c.plugin}) <- {', '.join(c.inputs)}; time key {time_key}")
+            if c.debug:
+                self._debug.add(d.name)
+        self.routing = RoutingTable.from_destinations(config.destinations)
+        self.pipeline = DeliveryPipeline(
+            config.node.flb,
+            {d.name: (self.plugins[d.name], d.delivery) for d in config.destinations},
+            self.get_logger(),
+        )
+
+    def cleanup_server(self) -> None:
+        self._destroy_subscriptions()
+        if self.pipeline is not None and self.config is not None:
+            self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
+        for name, plugin in self.plugins.items():
+            try:
+                plugin.on_cleanup()
+            except Exception as exc:
+                self.get_logger().error(f"destination {name}: cleanup failed: {exc!r}")
+        self.plugins.clear()
+        self._debug.clear()
+        self.pipeline = None
+        self.routing = None
+        self.config = None
+
+    # -- activate / deactivate ---------------------------------------------------------------------
+    def activate_server(self) -> None:
+        assert self.pipeline is not None and self.routing is not None
+        for plugin in self.plugins.values():
+            plugin.on_activate()
+        self.pipeline.start()
+        for topic in self.routing.topics:
+            self._subscriptions.append(
+                self.create_subscription(StringStamped, topic, self._callback(topic), RECORD_QOS)
+            )
+        self.get_logger().info(f"listening on {', '.join(self.routing.topics) or 'no topic'}")
+
+    def deactivate_server(self) -> None:
+        # Intake stops first, so everything received is committed before the senders stop.
+        self._destroy_subscriptions()
+        if self.pipeline is not None and self.config is not None:
+            self.pipeline.stop(self.config.node.flb.grace)
+        errors = []
+        for name, plugin in self.plugins.items():
+            try:
+                plugin.on_deactivate()
+            except Exception as exc:
+                errors.append(f"{name}: {exc!r}")
+        if errors:
+            raise PluginError("deactivating destinations failed: " + "; ".join(errors))
+
+    def _destroy_subscriptions(self) -> None:
+        for subscription in self._subscriptions:
+            self.destroy_subscription(subscription)
+        self._subscriptions.clear()
+
+    # -- intake (ROS executor thread) --------------------------------------------------------------
+    def _callback(self, topic: str) -> Callable[[Any], None]:
+        return lambda msg: self._on_message(topic, msg)
+
+    def _on_message(self, topic: str, msg: Any) -> None:
+        self.stats.received += 1
+        text: str = msg.data
+        try:
+            record = json.loads(text)
+        except ValueError as exc:
+            self._malformed(topic, text, f"invalid JSON ({exc})")
+            return
+        if not isinstance(record, dict):
+            self._malformed(topic, text, f"expected a JSON object, got a JSON {type(record).__name__}")
+            return
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if stamp_ns == 0:
+            # An unstamped message (a bare `ros2 topic pub`) would otherwise be dated 1970.
+            stamp_ns = self.get_clock().now().nanoseconds
+        assert self.routing is not None and self.pipeline is not None
+        routed = self.routing.route(topic, record, stamp_ns, new_record_id)
+        if routed.unrouted_reason is not None:
+            self._unrouted(topic, routed.unrouted_reason, record)
+            return
+        self.stats.routed += 1
+        for name, outgoing in routed.deliveries:
+            if name in self._debug:
+                self.get_logger().info(f"{name} <- {outgoing.to_json()}")
+            self.pipeline.submit(name, outgoing)
+
+    def _malformed(self, topic: str, text: str, reason: str) -> None:
+        self.stats.malformed += 1
+        log = self.get_logger()
+        log.error(f"record on {topic} not delivered: {reason}; {len(text)} chars: {text[:PREVIEW_CHARS]!r}")
+        if len(text) > PREVIEW_CHARS:
+            # The buffer has no place for a record that is not a JSON object: this line is its only copy.
+            log.error(f"whole record on {topic} not delivered: {text!r}")
+
+    def _unrouted(self, topic: str, reason: str, record: dict[str, Any]) -> None:
+        key = (topic, reason)
+        first = key not in self.stats.unrouted
+        self.stats.unrouted[key] += 1
+        listeners = self.routing.listeners(topic) if self.routing is not None else []
+        message = (
+            f"record on {topic} reaches no destination: {reason} "
+            f"(tags {record.get('tags')!r}; destinations listening here: {', '.join(listeners) or 'none'})"
+        )
+        if first:
+            self.get_logger().info(message + "; further ones are counted and logged at debug level")
+        else:
+            self.get_logger().debug(message)
+
+    def intake_metrics(self) -> dict[str, Any]:
+        return self.stats.as_dict()
+
+
+def main() -> int:
+    return run_server(DestinationServer)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
