@@ -85,7 +85,13 @@ def test_explicit_values() -> None:
             "include_group_name": False,
         }
     )
-    assert (g.output, g.sync_delay, g.sync_timeout, g.emit_partial, g.queue_size) == ("/out", 1.0, 3.5, True, 4)
+    assert (g.output, g.sync_delay, g.sync_timeout, g.emit_partial, g.queue_size) == (
+        "/out",
+        1.0,
+        3.5,
+        True,
+        4,
+    )
     assert (g.group_key, g.exclude_keys, g.tags) == ("k", ("*.run_id",), ("flb_stdout",))
     assert (g.nested_data, g.include_group_name) == (False, False)
 
@@ -115,19 +121,19 @@ def test_inputs_outputs_and_tags_of_the_server() -> None:
         ({"groups": ["g"], "g": {"inputs": ["/a", "/a"]}}, "group_server.g.inputs[1]", "listed twice"),
         ({"groups": ["g"], "g": {"inputs": ["/a"], "sync_delay": -1}}, "group_server.g.sync_delay", ">= 0"),
         ({"groups": ["g"], "g": {"inputs": ["/a"], "sync_timeout": 0}}, "group_server.g.sync_timeout", "> 0"),
-        ({"groups": ["g"], "g": {"inputs": ["/a"], "on_sync_timeout": "wait"}}, "group_server.g.on_sync_timeout",
-         '"drop", "emit_partial"'),
+        ({"groups": ["g"], "g": {"inputs": ["/a"], "on_sync_timeout": "wait"}},
+         "group_server.g.on_sync_timeout", '"drop", "emit_partial"'),
         ({"groups": ["g"], "g": {"inputs": ["/a"], "queue_size": 0}}, "group_server.g.queue_size", ">= 1"),
         ({"groups": ["g"], "g": {"inputs": ["/a"], "sync_dalay": 1}}, "group_server.g.sync_dalay",
          'did you mean "sync_delay"'),
         ({"groups": ["g"], "g": {"inputs": ["/a"]}, "h": {"inputs": ["/b"]}}, "group_server.h",
          "not a group listed"),
         ({"groups": ["g", "g"], "g": {"inputs": ["/a"]}}, "group_server.groups[1]", "listed twice"),
-        ({"groups": ["g"], "g": {"inputs": ["/a"], "exclude_keys": ["a..b"]}}, "group_server.g.exclude_keys[0]",
-         "paths"),
+        ({"groups": ["g"], "g": {"inputs": ["/a"], "exclude_keys": ["a..b"]}},
+         "group_server.g.exclude_keys[0]", "paths"),
         ({"groups": ["g"], "g": {"inputs": ["/dc/group/g"]}}, "group_server.g.inputs", "loop: g -> g"),
-        ({"groups": ["a", "b"], "a": {"inputs": ["/x"], "output": "/o"}, "b": {"inputs": ["/y"], "output": "/o"}},
-         "group_server.b.output", "already the output of group a"),
+        ({"groups": ["a", "b"], "a": {"inputs": ["/x"], "output": "/o"},
+          "b": {"inputs": ["/y"], "output": "/o"}}, "group_server.b.output", "already the output of group a"),
     ],
 )  # fmt: skip
 def test_configuration_errors_name_the_yaml_path(section: dict[str, Any], path: str, message: str) -> None:
@@ -150,7 +156,9 @@ def test_groups_feeding_each_other_in_a_loop_are_refused() -> None:
 
 
 def test_a_timeout_shorter_than_the_slop_is_a_warning() -> None:
-    config = parse_group_server({"groups": ["g"], "g": {"inputs": ["/a"], "sync_delay": 5, "sync_timeout": 2}})
+    config = parse_group_server(
+        {"groups": ["g"], "g": {"inputs": ["/a"], "sync_delay": 5, "sync_timeout": 2}}
+    )
     assert len(config.warnings) == 1
     assert "group_server.g" in config.warnings[0]
 
@@ -180,8 +188,15 @@ def test_parse_input() -> None:
     assert parsed == InputRecord("/dc/measurement/cpu", "cpu", {"usage": 3, "tags": ["x"]})
 
 
-@pytest.mark.parametrize(("data", "message"), [("{not json", "is not JSON"), ("[1, 2]", "JSON list, not an object"),
-                                               ("", "is not JSON"), ("null", "NoneType")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ("{not json", "is not JSON"),
+        ("[1, 2]", "JSON list, not an object"),
+        ("", "is not JSON"),
+        ("null", "NoneType"),
+    ],
+)
 def test_malformed_input_is_a_clear_error(data: str, message: str) -> None:
     with pytest.raises(MalformedRecord, match="/dc/measurement/cpu") as info:
         parse_input("/dc/measurement/cpu", "", data)
@@ -255,13 +270,23 @@ def test_flat_output() -> None:
     g = group({"inputs": ["/dc/measurement/a", "/dc/measurement/b"], "nested_data": False, "tags": ["t"],
                "exclude_keys": ["b.skip"]})  # fmt: skip
     merged = merge(g, [rec("a", {"x": {"y": 1}, "l": [1, {"z": 2}], "e": {}}), rec("b", {"skip": 1, "k": 2})])
-    assert merged.record == {"a.x.y": 1, "a.l.0": 1, "a.l.1.z": 2, "a.e": {}, "b.k": 2, "tags": ["t"], "name": "g"}
+    assert merged.record == {
+        "a.x.y": 1,
+        "a.l.0": 1,
+        "a.l.1.z": 2,
+        "a.e": {},
+        "b.k": 2,
+        "tags": ["t"],
+        "name": "g",
+    }
     assert flatten_dotted({}) == {}
 
 
 def test_group_output_nests_under_the_downstream_group() -> None:
     # The output of one group is an input of another: nested under the first group's group_key.
-    inner = group({"inputs": ["/dc/measurement/memory", "/dc/measurement/uptime"], "tags": ["t"]}, "memory_uptime")
+    inner = group(
+        {"inputs": ["/dc/measurement/memory", "/dc/measurement/uptime"], "tags": ["t"]}, "memory_uptime"
+    )
     first = merge(inner, [rec("memory", {"used": 1}), rec("uptime", {"time": 2})]).record
     outer = group({"inputs": ["/dc/group/memory_uptime", "/dc/measurement/cpu"], "tags": ["out"]}, "system")
     second = merge(outer, [parse_input("/dc/group/memory_uptime", inner.group_key, json.dumps(first)),
@@ -313,7 +338,12 @@ def test_pipeline_emits_partial_sets_with_the_missing_inputs() -> None:
     # The next message's arrival also settles what is due, before it is offered.
     (out,) = pipeline.offer(rec("a", {"v": 2}), 7 * S, now=2.0)
     assert not out.complete and out.stamp_ns == 5 * S
-    assert json.loads(out.data) == {"a": {"v": 1}, "missing_inputs": ["/dc/measurement/b"], "tags": ["t"], "name": "g"}
+    assert json.loads(out.data) == {
+        "a": {"v": 1},
+        "missing_inputs": ["/dc/measurement/b"],
+        "tags": ["t"],
+        "name": "g",
+    }
     assert "published without them" in logger.at("warning")[0]
     (last,) = pipeline.flush()
     assert json.loads(last.data)["a"] == {"v": 2}

@@ -21,7 +21,9 @@ def label(synced: SyncedSet[str]) -> tuple[str | None, ...]:
     return tuple(m.payload if m is not None else None for m in synced.members)
 
 
-def make(inputs: int = 2, slop: float = 0.1, timeout: float = 100.0, queue_size: int = 10) -> ApproximateTimeSync[str]:
+def make(
+    inputs: int = 2, slop: float = 0.1, timeout: float = 100.0, queue_size: int = 10
+) -> ApproximateTimeSync[str]:
     return ApproximateTimeSync(inputs, slop_ns=ns(slop), timeout=timeout, queue_size=queue_size)
 
 
@@ -220,9 +222,13 @@ def test_synchronised_stamp_is_the_latest_of_the_set() -> None:
 
 @pytest.mark.parametrize(
     ("kwargs", "inputs"),
-    [({"slop_ns": -1, "timeout": 1.0, "queue_size": 1}, 2), ({"slop_ns": 0, "timeout": 0.0, "queue_size": 1}, 2),
-     ({"slop_ns": 0, "timeout": 1.0, "queue_size": 0}, 2), ({"slop_ns": 0, "timeout": 1.0, "queue_size": 1}, 0)],
-)  # fmt: skip
+    [
+        ({"slop_ns": -1, "timeout": 1.0, "queue_size": 1}, 2),
+        ({"slop_ns": 0, "timeout": 0.0, "queue_size": 1}, 2),
+        ({"slop_ns": 0, "timeout": 1.0, "queue_size": 0}, 2),
+        ({"slop_ns": 0, "timeout": 1.0, "queue_size": 1}, 0),
+    ],
+)
 def test_invalid_arguments_are_refused(kwargs: dict[str, float], inputs: int) -> None:
     with pytest.raises(ValueError):
         ApproximateTimeSync(inputs, **kwargs)  # type: ignore[arg-type]
