@@ -8,9 +8,11 @@ The process list and load include other sessions' processes, so no test asserts 
 from __future__ import annotations
 
 import grp
+import json
 import logging
 import os
 import pwd
+import re
 import socket
 import stat
 import subprocess
@@ -23,11 +25,13 @@ from typing import Any
 
 import jsonschema
 import pytest
+import yaml
 
 from dc_core.errors import ConfigError, PluginError
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.params import parse_params
 from dc_core.plugins import describe, load_plugin
+from dc_measurements.config import parse_measurement_server
 from dc_measurements.plugins import network as network_module
 from dc_measurements.plugins.cpu import Cpu
 from dc_measurements.plugins.memory import Memory
@@ -515,3 +519,33 @@ def test_two_cpu_measurements_do_not_share_their_window(busy_child: subprocess.P
     assert first.collect()["average"] > 0
     # A collect of one instance does not reset the other's averaging window.
     assert second.collect()["average"] > 0
+
+
+# --- documentation ---------------------------------------------------------------------------
+
+DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "measurements"
+DOC_PAGES = {
+    "cpu": Cpu,
+    "memory": Memory,
+    "os": OperatingSystem,
+    "storage": Storage,
+    "network": Network,
+    "permissions": Permissions,
+    "tcp_health": TcpHealth,
+}
+
+
+@pytest.mark.parametrize("page", sorted(DOC_PAGES))
+def test_doc_page_examples_are_valid(page: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    text = (DOCS / f"{page}.md").read_text()
+    monkeypatch.setenv("HOME", "/home/robot")
+    configs = re.findall(r"```yaml\n(.*?)```", text, re.S)
+    assert configs
+    for block in configs:
+        section = yaml.safe_load(block)["measurement_server"]["ros__parameters"]
+        parsed = parse_measurement_server(section)
+        assert [m.plugin_class for m in parsed.measurements] == [DOC_PAGES[page]]
+    outputs = re.findall(r"```json\n(.*?)```", text, re.S)
+    assert outputs
+    for block in outputs:
+        assert_valid(DOC_PAGES[page], json.loads(block))
