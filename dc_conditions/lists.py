@@ -101,4 +101,3 @@ class ListStringEqual(_ListEqual):
     @staticmethod
     def read_item(item: Any) -> Any:
         return as_string(item)
-

@@ -43,8 +43,9 @@ class MovingHysteresis:
 
     def __init__(self, speed_threshold: float, count_limit: int, count_hysteresis: int) -> None:
         if not 1 <= count_hysteresis <= count_limit:
-            raise ValueError(f"count_hysteresis must be between 1 and count_limit ({count_limit}), "
-                             f"got {count_hysteresis}")
+            raise ValueError(
+                f"count_hysteresis must be between 1 and count_limit ({count_limit}), got {count_hysteresis}"
+            )
         self.speed_threshold = speed_threshold
         self.count_limit = count_limit
         self.count_hysteresis = count_hysteresis

@@ -32,8 +32,9 @@ class StringMatch(Condition):
         try:
             self._pattern = re.compile(self.params.regex)
         except re.error as exc:
-            raise PluginError(f"{self.context.name}.regex: invalid regular expression "
-                              f"{self.params.regex!r}: {exc}") from None
+            raise PluginError(
+                f"{self.context.name}.regex: invalid regular expression {self.params.regex!r}: {exc}"
+            ) from None
 
     def on_cleanup(self) -> None:
         self._pattern = None

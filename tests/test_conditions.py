@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,9 +26,11 @@ from dc_conditions.numeric import (
 from dc_conditions.same_as_previous import SameAsPrevious
 from dc_conditions.string_match import StringMatch
 from dc_core.condition import Condition
+from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, PluginError
-from dc_core.params import field_names, parse_params
+from dc_core.params import describe_params, field_names, parse_params
 from dc_core.plugins import describe, load_plugin, plugin_names
+from dc_measurements.config import parse_measurement_server
 
 PATH = "measurement_server.c"
 
@@ -739,3 +742,53 @@ def test_moving_hysteresis_above_limit_fails_configure() -> None:
     )
     with pytest.raises(PluginError, match=r"^c\.count_hysteresis"):
         condition.on_configure()
+
+
+# The documentation: every example configuration parses, every parameter is documented.
+
+DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "conditions"
+PAGES = {
+    Exist: "exist.md",
+    BoolEqual: "bool_equal.md",
+    DoubleEqual: "numeric.md",
+    DoubleInferior: "numeric.md",
+    DoubleSuperior: "numeric.md",
+    IntegerEqual: "numeric.md",
+    IntegerInferior: "numeric.md",
+    IntegerSuperior: "numeric.md",
+    ListBoolEqual: "lists.md",
+    ListDoubleEqual: "lists.md",
+    ListIntegerEqual: "lists.md",
+    ListStringEqual: "lists.md",
+    StringMatch: "string_match.md",
+    SameAsPrevious: "same_as_previous.md",
+    Moving: "moving.md",
+}
+
+
+def yaml_blocks(page: str) -> list[str]:
+    return re.findall(r"```yaml\n(.*?)```", (DOCS / page).read_text(), flags=re.DOTALL)
+
+
+@pytest.mark.parametrize(("cls", "page"), list(PAGES.items()), ids=[c.__name__ for c in PAGES])
+def test_doc_page_documents_every_parameter_and_shows_the_plugin(cls: type[Condition], page: str) -> None:
+    text = (DOCS / page).read_text()
+    for info in describe_params(cls.Params):
+        assert f"| `{info.name}` |" in text, f"{page} lacks a row for {info.name}"
+    assert f'plugin: "dc_conditions/{cls.__name__}"' in text, f"{page} has no example for {cls.__name__}"
+    assert "## Differences from the original" in text
+
+
+@pytest.mark.parametrize("page", sorted(set(PAGES.values())))
+def test_doc_examples_are_valid_configurations(page: str, tmp_path: Path) -> None:
+    blocks = yaml_blocks(page)
+    assert blocks, f"{page} has no example configuration"
+    for index, block in enumerate(blocks):
+        params_file = tmp_path / f"example_{index}.yaml"
+        params_file.write_text(block)
+        config = parse_measurement_server(load_params_file(params_file)["measurement_server"])
+        assert config.conditions, f"{page} example {index} configures no condition"
+        for condition in config.conditions.values():
+            instance = condition.plugin_class(FakeContext(name=condition.name), condition.plugin_params)
+            if not isinstance(instance, Moving):  # Moving needs a ROS node: tested in test_moving_ros.py
+                instance.on_configure()
