@@ -1,0 +1,189 @@
+"""destination_server as a real lifecycle node: records from an independent publisher reach a file.
+
+The server runs in this process under its own executor; the publisher lives in a second rclpy
+context (its own DDS participant), as another process' node would.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from dc_destinations.server import DestinationServer
+from dc_interfaces.msg import StringStamped
+
+DEADLINE_S = 15.0
+STAMP = (1_700_000_000, 5_000_000)  # 2023-11-14T22:13:20.005Z
+
+
+@dataclass
+class Running:
+    server: DestinationServer
+    executor: SingleThreadedExecutor
+    publisher: Any
+    topic: str
+    out_file: Path
+
+    def spin_until(self, done: Callable[[], bool]) -> bool:
+        deadline = time.monotonic() + DEADLINE_S
+        while time.monotonic() < deadline:
+            if done():
+                return True
+            self.executor.spin_once(timeout_sec=0.02)
+        return done()
+
+    def wait_for_subscription(self) -> None:
+        assert self.spin_until(lambda: self.publisher.get_subscription_count() >= 1), (
+            "server never subscribed"
+        )
+
+    def publish(self, data: str, stamp: tuple[int, int] = STAMP) -> None:
+        msg = StringStamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = stamp
+        msg.data = data
+        self.publisher.publish(msg)
+
+    def lines(self) -> list[dict[str, Any]]:
+        if not self.out_file.exists():
+            return []
+        return [json.loads(line) for line in self.out_file.read_text().splitlines()]
+
+
+def write_params(tmp_path: Path, topic: str, extra: str = "") -> Path:
+    params = tmp_path / "params.yaml"
+    params.write_text(
+        f"""
+destination_server:
+  ros__parameters:
+    flb:
+      flush: 0.05
+      grace: 2.0
+      storage_path: "{tmp_path / "buffer"}"
+    destination_plugins: ["disk", "flb_pgsql"]
+    disk:
+      plugin: "dc_destinations/FlbFile"
+      inputs: ["{topic}"]
+      path: "{tmp_path / "out"}"
+      file: "records.jsonl"
+      time_format: "iso8601"
+    flb_pgsql:
+      plugin: "dc_destinations/Null"
+      inputs: ["{topic}"]
+{extra}
+"""
+    )
+    return params
+
+
+@pytest.fixture
+def running(tmp_path: Path) -> Iterator[Running]:
+    topic = f"/dc_test/records_{uuid.uuid4().hex[:8]}"
+    rclpy.init()  # the server's node uses the default context, a fresh one per init
+    publisher_context = Context()
+    rclpy.init(context=publisher_context)
+    try:
+        server = DestinationServer(str(write_params(tmp_path, topic)))
+        executor = SingleThreadedExecutor()
+        executor.add_node(server)
+        publisher_node = rclpy.create_node(
+            f"dc_test_publisher_{uuid.uuid4().hex[:8]}", context=publisher_context
+        )
+        publisher = publisher_node.create_publisher(
+            StringStamped, topic, QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        )
+        try:
+            yield Running(server, executor, publisher, topic, tmp_path / "out" / "records.jsonl")
+        finally:
+            if server.lifecycle_state in ("active", "inactive"):
+                server.trigger_shutdown()
+            executor.shutdown()
+            server.destroy_node()
+            publisher_node.destroy_node()
+    finally:
+        rclpy.shutdown(context=publisher_context)
+        rclpy.shutdown()
+
+
+def test_published_records_reach_the_file_destination(running: Running) -> None:
+    server = running.server
+    assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    running.wait_for_subscription()
+
+    for i in range(5):
+        running.publish(json.dumps({"name": "uptime", "time": i, "tags": ["disk"]}))
+    running.publish(json.dumps({"time": 99, "tags": ["dis"]}))  # a substring of "disk": goes nowhere
+    running.publish(json.dumps({"time": 98, "tags": ["flb_pg"]}))  # a substring of "flb_pgsql": goes nowhere
+    running.publish("this is not JSON")
+    running.publish("[1, 2]")
+
+    assert running.spin_until(lambda: len(running.lines()) >= 5), f"file has {running.lines()}"
+    assert running.spin_until(lambda: server.stats.received >= 9)
+    assert running.lines() == [
+        {"date": "2023-11-14T22:13:20.005000Z", "name": "uptime", "time": i} for i in range(5)
+    ]
+    assert server.stats.malformed == 2
+    assert sum(server.stats.unrouted.values()) == 2
+    assert server.intake_metrics()["routed"] == 5
+
+    assert server.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    assert running.lines()[-1]["time"] == 4  # nothing duplicated or lost by the stop
+    assert len(running.lines()) == 5
+
+
+def test_reactivation_resumes_delivery(running: Running) -> None:
+    server = running.server
+    assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    running.wait_for_subscription()
+    running.publish(json.dumps({"run": 1, "tags": ["disk"]}))
+    assert running.spin_until(lambda: len(running.lines()) == 1)
+
+    assert server.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    assert running.spin_until(lambda: running.publisher.get_subscription_count() == 0), "intake not stopped"
+
+    assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    running.wait_for_subscription()
+    running.publish(json.dumps({"run": 2, "tags": ["disk"]}))
+    assert running.spin_until(lambda: len(running.lines()) == 2)
+    assert [line["run"] for line in running.lines()] == [1, 2]
+
+    assert server.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    assert server.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+    assert server.plugins == {}
+
+
+def test_unstamped_message_gets_the_reception_time(running: Running) -> None:
+    server = running.server
+    assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    running.wait_for_subscription()
+    before = time.time()
+    running.publish(json.dumps({"tags": ["disk"]}), stamp=(0, 0))
+    assert running.spin_until(lambda: len(running.lines()) == 1)
+    date = running.lines()[0]["date"]
+    assert date[:4] != "1970"
+    assert date >= time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(int(before)))
+
+
+def test_invalid_configuration_fails_configure_and_can_be_retried(running: Running, tmp_path: Path) -> None:
+    server = running.server
+    write_params(tmp_path, running.topic, extra="    disk_typo: 1\n")
+    assert server.trigger_configure() == TransitionCallbackReturn.FAILURE
+    assert server.lifecycle_state == "unconfigured"
+    write_params(tmp_path, running.topic)
+    assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert server.config is not None
+    assert server.config.names == ["disk", "flb_pgsql"]
