@@ -524,7 +524,7 @@ def test_two_cpu_measurements_do_not_share_their_window(busy_child: subprocess.P
 # --- documentation ---------------------------------------------------------------------------
 
 DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "measurements"
-DOC_PAGES = {
+DOC_PAGES: dict[str, type[Measurement]] = {
     "cpu": Cpu,
     "memory": Memory,
     "os": OperatingSystem,
