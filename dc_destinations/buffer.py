@@ -184,9 +184,15 @@ class SqliteBuffer:
         *,
         synchronous: str = "normal",
         on_quarantine: Callable[[Quarantine], None] | None = None,
+        repair: bool = True,
     ) -> None:
-        """Open (creating it if needed) the database at ``path``; a corrupt one is moved aside."""
+        """Open (creating it if needed) the database at ``path``.
+
+        With ``repair`` (the server), a corrupt database is moved aside and replaced; without it
+        (operator tools), corruption raises :class:`BufferCorrupted` and the file is left alone.
+        """
         self.path = Path(path)
+        self.repair = repair
         self.synchronous = synchronous.upper()
         self._on_quarantine = on_quarantine
         self._lock = threading.RLock()
@@ -198,6 +204,8 @@ class SqliteBuffer:
         except sqlite3.DatabaseError as exc:
             if not is_corruption(exc):
                 raise
+            if not repair:
+                raise BufferCorrupted(f"buffer {self.path} is corrupt ({exc})") from exc
             self._quarantine(str(exc))
             self._conn = self._connect()
 
@@ -252,6 +260,8 @@ class SqliteBuffer:
             except sqlite3.DatabaseError as exc:
                 if not is_corruption(exc):
                     raise
+                if not self.repair:
+                    raise BufferCorrupted(f"buffer {self.path} is corrupt ({exc})") from exc
                 self._reset_after_corruption(str(exc))
                 raise BufferCorrupted(f"buffer {self.path} was corrupt ({exc}); moved aside") from exc
 

@@ -103,9 +103,15 @@ class _Route:
     metrics: DestinationMetrics
     drop_log: BurstLog
     failure_log: BurstLog
+    dead_letter_log: BurstLog
     wakeup: threading.Event = field(default_factory=threading.Event)
     pending_hint: int = 0
     thread: threading.Thread | None = None
+
+    def tick_logs(self) -> None:
+        self.drop_log.tick()
+        self.failure_log.tick()
+        self.dead_letter_log.tick()
 
 
 class DeliveryPipeline:
@@ -142,6 +148,7 @@ class DeliveryPipeline:
                 metrics=DestinationMetrics(),
                 drop_log=BurstLog(logger.warning, f"destination {name}: records dropped"),
                 failure_log=BurstLog(logger.warning, f"destination {name}: delivery failed, will retry"),
+                dead_letter_log=BurstLog(logger.error, f"destination {name}: records dead-lettered"),
             )
         self._intake_drop_log = BurstLog(logger.error, "delivery intake: records dropped")
         self._commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
@@ -152,6 +159,7 @@ class DeliveryPipeline:
         self._closing = threading.Event()
         self._deadline = float("inf")
         self._quarantined = 0
+        self._last_log_tick = 0.0
         self._commit_listeners: list[Callable[[Sequence[tuple[str, str]]], None]] = []
         self._status: StatusServer | None = None
         self.storage_file: Path | None = None
@@ -221,8 +229,7 @@ class DeliveryPipeline:
                     left[name] = self._buffer.stats(name).rows
             self._buffer.close()
         for route in self._routes.values():
-            route.drop_log.tick()
-            route.failure_log.tick()
+            route.tick_logs()
         pending = {name: rows for name, rows in left.items() if rows}
         if pending:
             self.logger.info(
@@ -288,6 +295,7 @@ class DeliveryPipeline:
                     records.append(item)
             if records:
                 self._commit(records)
+            self._tick_logs()
             for marker in markers:
                 marker.set()
             if stop:
@@ -374,8 +382,7 @@ class DeliveryPipeline:
                 route.pending_hint = 0
                 route.wakeup.wait(self.settings.flush)
                 route.wakeup.clear()
-                route.drop_log.tick()
-                route.failure_log.tick()
+                route.tick_logs()
                 continue
             try:
                 must_retry = self._deliver(route, buffer, rows)
@@ -444,6 +451,7 @@ class DeliveryPipeline:
         first_error = next(iter({**reject, **retry}.values()))
         route.metrics.set_error(first_error)
         dead: list[tuple[BufferedRow, str]] = [(sent_rows[i], reason) for i, reason in reject.items()]
+        retried = 0
         if retry:
             attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in retry])
             limit = route.params.retry_limit
@@ -451,18 +459,16 @@ class DeliveryPipeline:
                 row = sent_rows[i]
                 if limit >= 0 and attempts.get(row.row_id, 0) > limit:
                     dead.append((row, f"retry_limit {limit} exhausted: {reason}"))
-            retried = len(retry) - sum(1 for _row, reason in dead if reason.startswith("retry_limit"))
+                else:
+                    retried += 1
             route.metrics.add("retried", retried)
             if retried:
                 route.failure_log.event(retried, first_error)
         if dead:
             moved = buffer.dead_letter(route.name, dead)
             route.metrics.add("dead_lettered", moved)
-            self.logger.error(
-                f"destination {route.name}: {moved} record(s) moved to the dead letters ({dead[0][1]}); "
-                "see `dc buffer list`"
-            )
-        return len(dead) < len(retry) + len(reject)
+            route.dead_letter_log.event(moved, f"{dead[0][1]}; see `dc buffer list`")
+        return retried > 0
 
     # -- storage ------------------------------------------------------------------------------------
 
@@ -494,8 +500,15 @@ class DeliveryPipeline:
         )
 
     def _tick_logs(self) -> None:
+        """Let bursts of log-worthy events end with their summary line (the writer calls this)."""
+        now = self._clock()
+        if now - self._last_log_tick < 0.5:
+            return
+        self._last_log_tick = now
         self._intake_drop_log.tick()
         self._commit_log.tick()
+        for route in self._routes.values():
+            route.tick_logs()
 
     # -- observability ------------------------------------------------------------------------------
 

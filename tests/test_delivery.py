@@ -19,6 +19,7 @@ from dc_destinations.buffer import FILE_NAME, SqliteBuffer
 from dc_destinations.delivery import DeliveryPipeline, new_record_id, uuid7
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
+
 class ListLogger:
     """Keeps what is logged, so tests can assert on it (and satisfies dc_core.logs.Logger)."""
 

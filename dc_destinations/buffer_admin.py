@@ -1,0 +1,184 @@
+"""Operator tools on the buffer file (``dc buffer list|show|replay|purge|stats``).
+
+They open the SQLite file directly with their own connection, which WAL allows while
+``destination_server`` runs: a replayed dead letter goes back to the end of its destination's
+queue and the running server's sender picks it up at its next round (after its current backoff,
+if the destination is failing). These tools never move or repair a damaged file; the server does
+that at its next start.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, TextIO
+
+import yaml
+
+from dc_core.errors import DcError
+from dc_core.paths import expand_env
+from dc_destinations.buffer import FILE_NAME, DeadLetter, QueueStats, SqliteBuffer, default_storage_dir
+
+
+class BufferAdminError(DcError):
+    """The buffer cannot be found or opened, or the request is incomplete."""
+
+
+def storage_file(storage_path: str = "", params_file: str = "") -> Path:
+    """The buffer file: ``storage_path``, else a parameter file's ``flb.storage_path``, else the default."""
+    if not storage_path and params_file:
+        storage_path = _storage_path_from_params(Path(params_file))
+    directory = Path(expand_env(storage_path)).expanduser() if storage_path else default_storage_dir()
+    return directory / FILE_NAME if directory.suffix != ".sqlite3" else directory
+
+
+def _storage_path_from_params(params_file: Path) -> str:
+    with params_file.open(encoding="utf-8") as handle:
+        document = yaml.safe_load(handle) or {}
+    server = document.get("destination_server", {}) if isinstance(document, dict) else {}
+    parameters = server.get("ros__parameters", {}) if isinstance(server, dict) else {}
+    flb = parameters.get("flb", {}) if isinstance(parameters, dict) else {}
+    value = flb.get("storage_path", "") if isinstance(flb, dict) else ""
+    return str(value or "")
+
+
+def open_buffer(path: Path) -> SqliteBuffer:
+    if not path.exists():
+        raise BufferAdminError(f"no buffer at {path} (set --storage-path or --params)")
+    return SqliteBuffer(path, repair=False)
+
+
+def queue_stats(path: Path) -> list[QueueStats]:
+    buffer = open_buffer(path)
+    try:
+        return [buffer.stats(name) for name in buffer.destinations()]
+    finally:
+        buffer.close()
+
+
+def list_dead_letters(path: Path, destination: str | None = None, limit: int = 1000) -> list[DeadLetter]:
+    buffer = open_buffer(path)
+    try:
+        return buffer.list_dead_letters(destination, limit=limit)
+    finally:
+        buffer.close()
+
+
+def show_dead_letter(path: Path, dead_letter_id: int) -> DeadLetter | None:
+    buffer = open_buffer(path)
+    try:
+        return buffer.get_dead_letter(dead_letter_id)
+    finally:
+        buffer.close()
+
+
+def replay(path: Path, ids: Sequence[int] | None = None, destination: str | None = None) -> int:
+    """Move dead letters back to their queues (all of them when neither ``ids`` nor ``destination``)."""
+    buffer = open_buffer(path)
+    try:
+        return buffer.replay_dead_letters(destination, ids)
+    finally:
+        buffer.close()
+
+
+def purge(path: Path, ids: Sequence[int] | None = None, destination: str | None = None) -> int:
+    """Delete dead letters for good (all of them when neither ``ids`` nor ``destination``)."""
+    buffer = open_buffer(path)
+    try:
+        return buffer.purge_dead_letters(destination, ids)
+    finally:
+        buffer.close()
+
+
+def _utc(ns: int) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(ns / 1e9))
+
+
+def _short(text: str, width: int) -> str:
+    text = " ".join(text.split())
+    return text if len(text) <= width else text[: width - 1] + "…"
+
+
+def run_cli(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
+    """``dc buffer``: ``args`` has action, ids, storage_path, params, destination and all."""
+    try:
+        path = storage_file(args.storage_path, args.params)
+        destination = args.destination or None
+        ids = [int(i) for i in args.ids] if args.ids else None
+        if args.action == "stats":
+            _print_stats(path, queue_stats(path), out)
+        elif args.action == "list":
+            _print_list(list_dead_letters(path, destination), out)
+        elif args.action == "show":
+            if not ids:
+                raise BufferAdminError(
+                    "dc buffer show: give one or more dead-letter ids (see dc buffer list)"
+                )
+            for dead_letter_id in ids:
+                letter = show_dead_letter(path, dead_letter_id)
+                if letter is None:
+                    raise BufferAdminError(f"no dead letter {dead_letter_id}")
+                print(json.dumps(_as_json(letter), indent=2, ensure_ascii=False), file=out)
+        elif args.action in ("replay", "purge"):
+            if ids is None and destination is None and not args.all:
+                raise BufferAdminError(f"dc buffer {args.action}: give ids, --destination or --all")
+            if args.action == "replay":
+                print(f"replayed {replay(path, ids, destination)} dead letter(s) into their queues", file=out)
+            else:
+                print(f"purged {purge(path, ids, destination)} dead letter(s)", file=out)
+        else:
+            raise BufferAdminError(f"unknown action {args.action}")
+    except ValueError as exc:
+        print(f"dc buffer: ids are numbers ({exc})", file=sys.stderr)
+        return 2
+    except (DcError, OSError) as exc:
+        print(f"dc buffer: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _as_json(letter: DeadLetter) -> dict[str, Any]:
+    values = asdict(letter)
+    with contextlib.suppress(ValueError):
+        values["payload"] = json.loads(letter.payload)
+    values["failed_at"] = _utc(letter.failed_ns)
+    values["enqueued_at"] = _utc(letter.enqueued_ns)
+    return values
+
+
+def _print_list(letters: list[DeadLetter], out: TextIO) -> None:
+    if not letters:
+        print("no dead letters", file=out)
+        return
+    print(
+        f"{'id':>8}  {'destination':<16} {'failed at (UTC)':<21} {'tries':>5}  {'record_id':<36}  error",
+        file=out,
+    )
+    for d in letters:
+        print(
+            f"{d.id:>8}  {_short(d.destination, 16):<16} {_utc(d.failed_ns):<21} {d.attempts:>5}  "
+            f"{d.record_id:<36}  {_short(d.error, 60)}",
+            file=out,
+        )
+
+
+def _print_stats(path: Path, stats: list[QueueStats], out: TextIO) -> None:
+    print(f"buffer {path}", file=out)
+    print(
+        f"{'destination':<20}{'buffered':>10}{'bytes':>12}{'oldest (UTC)':>22}{'dead':>7}"
+        f"{'received':>11}{'sent':>11}{'dropped':>9}",
+        file=out,
+    )
+    for s in stats:
+        oldest = _utc(s.oldest_enqueued_ns) if s.oldest_enqueued_ns is not None else "-"
+        print(
+            f"{_short(s.destination, 19):<20}{s.rows:>10}{s.bytes:>12}{oldest:>22}{s.dead_letters:>7}"
+            f"{s.received_total:>11}{s.sent_total:>11}{s.dropped_total:>9}",
+            file=out,
+        )

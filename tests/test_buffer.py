@@ -1,0 +1,238 @@
+"""The SQLite delivery buffer on its own: queues, limits, dead letters, corruption, restart."""
+
+from __future__ import annotations
+
+import gc
+import os
+import sqlite3
+import time
+import tracemalloc
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from dc_destinations.buffer import (
+    FILE_NAME,
+    BufferCorrupted,
+    PendingRecord,
+    Quarantine,
+    QueueLimit,
+    SqliteBuffer,
+)
+
+
+def pending(n: int, width: int = 0) -> PendingRecord:
+    payload = f'{{"n":"{n:08d}","pad":"{"x" * width}"}}'
+    return PendingRecord(record_id=f"id-{n:08d}", topic="/dc/measurement/t", stamp_ns=n, payload=payload)
+
+
+@pytest.fixture
+def buffer(tmp_path: Path) -> Iterator[SqliteBuffer]:
+    b = SqliteBuffer(tmp_path / FILE_NAME)
+    yield b
+    b.close()
+
+
+def test_append_read_delete(buffer: SqliteBuffer) -> None:
+    result = buffer.append({"a": [pending(i) for i in range(10)], "b": [pending(100)]})
+    assert result.appended == {"a": 10, "b": 1}
+    rows = buffer.read_batch("a", 4)
+    assert [r.record_id for r in rows] == [f"id-{i:08d}" for i in range(4)]
+    assert buffer.delete("a", [r.row_id for r in rows]) == 4
+    assert [r.record_id for r in buffer.read_batch("a", 100)] == [f"id-{i:08d}" for i in range(4, 10)]
+    stats = buffer.stats("a")
+    assert stats.rows == 6
+    assert stats.bytes == sum(pending(i).size for i in range(4, 10))
+    assert stats.received_total == 10 and stats.sent_total == 4
+    assert buffer.stats("b").rows == 1  # queues are independent
+
+
+def test_deleting_twice_counts_once(buffer: SqliteBuffer) -> None:
+    buffer.append({"a": [pending(1)]})
+    (row,) = buffer.read_batch("a", 10)
+    assert buffer.delete("a", [row.row_id]) == 1
+    assert buffer.delete("a", [row.row_id]) == 0
+    assert buffer.stats("a").sent_total == 1
+
+
+def test_failures_are_counted_per_row(buffer: SqliteBuffer) -> None:
+    buffer.append({"a": [pending(1), pending(2)]})
+    first, second = buffer.read_batch("a", 10)
+    assert buffer.record_failure("a", [first.row_id]) == {first.row_id: 1}
+    assert buffer.record_failure("a", [first.row_id, second.row_id]) == {first.row_id: 2, second.row_id: 1}
+    assert [r.attempts for r in buffer.read_batch("a", 10)] == [2, 1]
+
+
+def test_dead_letters_keep_the_error_and_can_be_replayed_or_purged(buffer: SqliteBuffer) -> None:
+    buffer.append({"a": [pending(i) for i in range(3)]})
+    rows = buffer.read_batch("a", 10)
+    assert (
+        buffer.dead_letter("a", [(rows[0], "rejected: 400 bad field"), (rows[2], "rejected: too big")]) == 2
+    )
+    assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000001"]
+    letters = buffer.list_dead_letters("a")
+    assert [(d.record_id, d.error) for d in letters] == [
+        ("id-00000000", "rejected: 400 bad field"),
+        ("id-00000002", "rejected: too big"),
+    ]
+    shown = buffer.get_dead_letter(letters[0].id)
+    assert shown is not None and shown.payload == pending(0).payload
+    assert buffer.stats("a").dead_letters == 2 and buffer.stats("a").dead_lettered_total == 2
+
+    assert buffer.replay_dead_letters(ids=[letters[0].id]) == 1
+    assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000001", "id-00000000"]
+    assert buffer.read_batch("a", 10)[1].attempts == 0
+    assert buffer.stats("a").rows == 2
+
+    assert buffer.purge_dead_letters("a") == 1
+    assert buffer.list_dead_letters() == []
+
+
+def test_size_limit_drop_newest_keeps_the_oldest(buffer: SqliteBuffer) -> None:
+    size = pending(0).size
+    limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=False)}
+    result = buffer.append({"a": [pending(i) for i in range(7)]}, limit)
+    assert result.appended == {"a": 7} and not result.dropped_newest
+    result = buffer.append({"a": [pending(i) for i in range(7, 14)]}, limit)
+    assert result.appended == {"a": 3} and result.dropped_newest == {"a": 4}
+    kept = [r.record_id for r in buffer.read_batch("a", 100)]
+    assert kept == [f"id-{i:08d}" for i in range(10)]
+    stats = buffer.stats("a")
+    assert stats.bytes == 10 * size and stats.dropped_total == 4 and stats.received_total == 14
+
+
+def test_size_limit_drop_oldest_keeps_the_newest(buffer: SqliteBuffer) -> None:
+    size = pending(0).size
+    limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=True)}
+    buffer.append({"a": [pending(i) for i in range(7)]}, limit)
+    result = buffer.append({"a": [pending(i) for i in range(7, 14)]}, limit)
+    assert result.appended == {"a": 7} and result.dropped_oldest == {"a": 4}
+    kept = [r.record_id for r in buffer.read_batch("a", 100)]
+    assert kept == [f"id-{i:08d}" for i in range(4, 14)]
+    # A batch bigger than the whole limit keeps its newest records.
+    result = buffer.append({"a": [pending(i) for i in range(100, 125)]}, limit)
+    assert [r.record_id for r in buffer.read_batch("a", 100)] == [f"id-{i:08d}" for i in range(115, 125)]
+    assert buffer.stats("a").bytes == 10 * size
+    assert buffer.stats("a").dropped_total == 4 + 10 + 15
+
+
+@pytest.mark.parametrize("drop_oldest", [True, False])
+def test_a_record_bigger_than_the_limit_is_dropped_alone(buffer: SqliteBuffer, drop_oldest: bool) -> None:
+    limit = {"a": QueueLimit(max_bytes=200, drop_oldest=drop_oldest)}
+    buffer.append({"a": [pending(1)]}, limit)
+    result = buffer.append({"a": [pending(2, width=500)]}, limit)
+    assert result.appended == {"a": 0}
+    assert result.dropped_newest == {"a": 1}
+    assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000001"]
+
+
+def test_counts_survive_a_restart(tmp_path: Path) -> None:
+    first = SqliteBuffer(tmp_path / FILE_NAME)
+    first.append({"a": [pending(i) for i in range(5)]})
+    first.close()
+    second = SqliteBuffer(tmp_path / FILE_NAME, synchronous="full")
+    try:
+        stats = second.stats("a")
+        assert (stats.rows, stats.received_total) == (5, 5)
+        assert stats.bytes == sum(pending(i).size for i in range(5))
+        assert len(second.read_batch("a", 10)) == 5
+    finally:
+        second.close()
+
+
+def test_a_file_that_is_not_a_database_is_moved_aside(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    path.write_bytes(b"this is not SQLite" * 1000)
+    seen: list[Quarantine] = []
+    buffer = SqliteBuffer(path, on_quarantine=seen.append)
+    try:
+        assert len(seen) == 1
+        assert seen[0].moved_to.exists() and seen[0].moved_to.name.startswith(f"{FILE_NAME}.corrupt-")
+        assert seen[0].moved_to.read_bytes().startswith(b"this is not SQLite")
+        buffer.append({"a": [pending(1)]})
+        assert len(buffer.read_batch("a", 10)) == 1
+    finally:
+        buffer.close()
+
+
+def _fill(path: Path, count: int, width: int = 150) -> None:
+    buffer = SqliteBuffer(path)
+    for start in range(0, count, 2000):
+        buffer.append({"a": [pending(i, width) for i in range(start, min(start + 2000, count))]})
+    buffer.close()
+
+
+def test_damaged_pages_are_found_and_the_buffer_replaced(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    _fill(path, 5000)
+    page_size = 4096
+    size = path.stat().st_size
+    with path.open("r+b") as handle:  # scribble over every page but the first (the schema's root)
+        for offset in range(page_size, size, page_size):
+            handle.seek(offset)
+            handle.write(os.urandom(64))
+    seen: list[Quarantine] = []
+    buffer = SqliteBuffer(path, on_quarantine=seen.append)
+    try:
+        try:
+            buffer.read_batch("a", 500)
+            buffer.stats("a")
+        except BufferCorrupted:
+            pass
+        assert len(seen) == 1, "the damage must be found at start or at the first read"
+        buffer.append({"a": [pending(1)]})
+        assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000001"]
+    finally:
+        buffer.close()
+
+
+def test_restart_streams_a_large_backlog_in_bounded_memory(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    count = 100_000
+    _fill(path, count)  # ~20 MB of records
+    gc.collect()
+    tracemalloc.start()
+    try:
+        started = time.monotonic()
+        buffer = SqliteBuffer(path)
+        opened_in = time.monotonic() - started
+        seen = 0
+        while rows := buffer.read_batch("a", 500):
+            seen += len(rows)
+            buffer.delete("a", [r.row_id for r in rows])
+        _current, peak = tracemalloc.get_traced_memory()
+        buffer.close()
+    finally:
+        tracemalloc.stop()
+    assert seen == count
+    assert opened_in < 1.0
+    assert peak < 4 * 1024 * 1024, f"peak Python memory {peak / 1e6:.1f} MB while streaming 20 MB"
+
+
+def test_another_connection_can_work_while_the_buffer_is_open(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    server = SqliteBuffer(path)
+    try:
+        server.append({"a": [pending(1)]})
+        (row,) = server.read_batch("a", 1)
+        server.dead_letter("a", [(row, "rejected")])
+        admin = SqliteBuffer(path)
+        try:
+            assert admin.replay_dead_letters("a") == 1
+        finally:
+            admin.close()
+        assert [r.record_id for r in server.read_batch("a", 10)] == ["id-00000001"]
+        assert server.stats("a").rows == 1
+    finally:
+        server.close()
+
+
+def test_wal_mode_and_sync_setting(tmp_path: Path) -> None:
+    buffer = SqliteBuffer(tmp_path / FILE_NAME, synchronous="full")
+    buffer.close()
+    conn = sqlite3.connect(tmp_path / FILE_NAME)
+    try:
+        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    finally:
+        conn.close()
