@@ -194,9 +194,10 @@ class DestinationServer(ManagedServer):
         first = key not in self.stats.unrouted
         self.stats.unrouted[key] += 1
         listeners = self.routing.listeners(topic) if self.routing is not None else []
+        tags_text = f"tags {record['tags']!r}" if "tags" in record else "no tags key"
         message = (
             f"record on {topic} reaches no destination: {reason} "
-            f"(tags {record.get('tags')!r}; destinations listening here: {', '.join(listeners) or 'none'})"
+            f"({tags_text}; destinations listening here: {', '.join(listeners) or 'none'})"
         )
         if first:
             self.get_logger().info(message + "; further ones are counted and logged at debug level")
