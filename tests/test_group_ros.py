@@ -1,0 +1,258 @@
+"""The group server node in-process with real rclpy: StringStamped in, merged StringStamped out.
+
+``ManagedServer`` creates its node in the default context, so each test initialises the default
+context and shuts it down afterwards (rclpy then starts the next test with a new one).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+import rclpy
+import yaml
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from dc_group.server import GroupServer
+from dc_interfaces.msg import StringStamped
+
+DEADLINE_S = 10.0
+QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+S = 1_000_000_000
+
+
+@dataclass
+class Received:
+    data: dict[str, Any]
+    stamp_ns: int
+    group_key: str
+
+
+@dataclass
+class Harness:
+    server: GroupServer
+    helper: Node
+    executor: SingleThreadedExecutor
+    prefix: str
+    publishers: dict[str, Any] = field(default_factory=dict)
+    received: dict[str, list[Received]] = field(default_factory=dict)
+
+    def topic(self, name: str) -> str:
+        return f"{self.prefix}/{name}"
+
+    def spin_until(self, done: Callable[[], bool], timeout: float = DEADLINE_S) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if done():
+                return True
+            self.executor.spin_once(timeout_sec=0.02)
+        return done()
+
+    def listen(self, name: str) -> list[Received]:
+        sink: list[Received] = self.received.setdefault(name, [])
+
+        def on_message(msg: Any) -> None:
+            stamp = msg.header.stamp.sec * S + msg.header.stamp.nanosec
+            sink.append(Received(json.loads(msg.data), stamp, msg.group_key))
+
+        self.helper.create_subscription(StringStamped, self.topic(name), on_message, QOS)
+        return sink
+
+    def publish(self, name: str, record: dict[str, Any] | str, stamp_ns: int, group_key: str = "") -> None:
+        publisher = self.publishers.get(name)
+        if publisher is None:
+            publisher = self.helper.create_publisher(StringStamped, self.topic(name), QOS)
+            self.publishers[name] = publisher
+            assert self.spin_until(lambda: publisher.get_subscription_count() > 0), f"no subscriber on {name}"
+        msg = StringStamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, S)
+        msg.data = record if isinstance(record, str) else json.dumps(record)
+        msg.group_key = group_key
+        publisher.publish(msg)
+
+    def wait_for_output(self, name: str, count: int = 1) -> list[Received]:
+        sink = self.received[name]
+        assert self.spin_until(lambda: len(sink) >= count), f"{len(sink)} of {count} records on {name}"
+        return sink
+
+    def wait_matched(self, name: str) -> None:
+        publisher = self.publishers[name]
+        assert self.spin_until(lambda: publisher.get_subscription_count() > 0), f"no subscriber on {name}"
+
+
+def write_params(tmp_path: Path, prefix: str, groups: dict[str, dict[str, Any]]) -> Path:
+    section: dict[str, Any] = {"groups": list(groups)}
+    for name, body in groups.items():
+        body = dict(body)
+        body["inputs"] = [f"{prefix}/{t}" for t in body["inputs"]]
+        body["output"] = f"{prefix}/{body.get('output', name)}"
+        section[name] = body
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump({"group_server": {"ros__parameters": section}}))
+    return path
+
+
+@pytest.fixture
+def start(tmp_path: Path) -> Iterator[Callable[[dict[str, dict[str, Any]]], Harness]]:
+    rclpy.init()
+    harnesses: list[Harness] = []
+
+    def make(groups: dict[str, dict[str, Any]]) -> Harness:
+        prefix = f"/test_group_{uuid.uuid4().hex[:8]}"
+        server = GroupServer(str(write_params(tmp_path, prefix, groups)))
+        helper = rclpy.create_node(f"group_test_{uuid.uuid4().hex[:8]}")
+        executor = SingleThreadedExecutor()
+        executor.add_node(server)
+        executor.add_node(helper)
+        harness = Harness(server, helper, executor, prefix)
+        harnesses.append(harness)
+        return harness
+
+    try:
+        yield make
+    finally:
+        for harness in harnesses:
+            harness.executor.shutdown()
+            harness.helper.destroy_node()
+            harness.server.destroy_node()
+        rclpy.shutdown()
+
+
+def activate(harness: Harness) -> None:
+    assert harness.server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert harness.server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+
+
+def test_merges_two_inputs_into_one_record_stamped_with_the_latest_input(start: Any) -> None:
+    h = start({"memory_uptime": {"inputs": ["memory", "uptime"], "tags": ["flb_stdout"], "sync_delay": 1.0}})
+    activate(h)
+    out = h.listen("memory_uptime")
+    h.publish("memory", {"used": 71.6, "tags": ["flb_stdout"]}, 100 * S, group_key="memory")
+    h.publish("uptime", {"time": 96894, "tags": ["flb_stdout"]}, 100 * S + S // 4, group_key="uptime")
+    (record,) = h.wait_for_output("memory_uptime")
+    assert record.data == {
+        "memory": {"used": 71.6},
+        "uptime": {"time": 96894},
+        "tags": ["flb_stdout"],
+        "name": "memory_uptime",
+    }
+    assert record.stamp_ns == 100 * S + S // 4
+    assert record.group_key == "memory_uptime"
+    assert out == [record]
+
+
+def test_malformed_json_is_counted_and_does_not_stop_the_group(start: Any) -> None:
+    h = start({"g": {"inputs": ["a", "b"], "sync_delay": 0.5}})
+    activate(h)
+    h.listen("g")
+    h.publish("a", "{this is not json", 5 * S)
+    h.publish("a", "[1, 2, 3]", 5 * S)
+    assert h.spin_until(lambda: h.server.malformed.get(h.topic("a")) == 2)
+    h.publish("a", {"v": 1}, 6 * S)
+    h.publish("b", {"w": 2}, 6 * S)
+    (record,) = h.wait_for_output("g")
+    assert record.data == {"a": {"v": 1}, "b": {"w": 2}, "name": "g"}
+    assert h.server.lifecycle_state == "active"
+
+
+def test_a_silent_input_gives_partial_records_after_the_timeout(start: Any) -> None:
+    h = start(
+        {
+            "g": {
+                "inputs": ["a", "b"],
+                "sync_delay": 0.1,
+                "sync_timeout": 0.3,
+                "on_sync_timeout": "emit_partial",
+            }
+        }
+    )
+    activate(h)
+    h.listen("g")
+    h.publish("a", {"v": 1}, 7 * S)
+    (record,) = h.wait_for_output("g")
+    assert record.data == {"a": {"v": 1}, "missing_inputs": [h.topic("b")], "name": "g"}
+    assert record.stamp_ns == 7 * S
+    assert h.server.stats()["g"]["published_partial"] == 1
+
+
+def test_a_silent_input_drops_sets_by_default_and_counts_them(start: Any) -> None:
+    h = start({"g": {"inputs": ["a", "b"], "sync_delay": 0.1, "sync_timeout": 0.2}})
+    activate(h)
+    out = h.listen("g")
+    h.publish("a", {"v": 1}, 7 * S)
+    assert h.spin_until(lambda: h.server.stats()["g"]["dropped_incomplete"] == 1)
+    assert out == []
+
+
+def test_a_group_feeds_another_group(start: Any) -> None:
+    h = start(
+        {
+            "memory_uptime": {"inputs": ["memory", "uptime"], "sync_delay": 0.5},
+            "system": {"inputs": ["memory_uptime", "cpu"], "sync_delay": 0.5, "tags": ["db"]},
+        }
+    )
+    activate(h)
+    h.listen("system")
+    h.publish("cpu", {"usage": 12.5}, 50 * S)
+    h.publish("memory", {"used": 1}, 50 * S, group_key="memory")
+    h.publish("uptime", {"time": 2}, 50 * S + S // 10, group_key="uptime")
+    (record,) = h.wait_for_output("system")
+    assert record.data == {
+        "memory_uptime": {"memory": {"used": 1}, "uptime": {"time": 2}, "name": "memory_uptime"},
+        "cpu": {"usage": 12.5},
+        "tags": ["db"],
+        "name": "system",
+    }
+    assert record.stamp_ns == 50 * S + S // 10
+    assert record.group_key == "system"
+
+
+def test_deactivate_stops_intake_and_settles_pending_sets(start: Any) -> None:
+    h = start(
+        {
+            "g": {
+                "inputs": ["a", "b"],
+                "sync_delay": 0.1,
+                "sync_timeout": 60.0,
+                "on_sync_timeout": "emit_partial",
+            }
+        }
+    )
+    activate(h)
+    h.listen("g")
+    h.publish("a", {"v": 1}, 3 * S)
+    assert h.spin_until(lambda: h.server.stats()["g"]["pending"] == 1)
+    assert h.server.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    (record,) = h.wait_for_output("g")
+    assert record.data["missing_inputs"] == [h.topic("b")]
+    assert h.spin_until(lambda: h.server.count_subscribers(h.topic("a")) == 0)
+    # Active again: the group works as before.
+    assert h.server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    h.wait_matched("a")
+    h.publish("a", {"v": 2}, 4 * S)
+    h.publish("b", {"w": 2}, 4 * S)
+    records = h.wait_for_output("g", 2)
+    assert records[1].data == {"a": {"v": 2}, "b": {"w": 2}, "name": "g"}
+
+
+def test_a_bad_configuration_fails_configure_and_keeps_the_node_alive(start: Any) -> None:
+    h = start({"g": {"inputs": ["a"]}})
+    params = Path(h.server.params_file)
+    params.write_text(
+        yaml.safe_dump({"group_server": {"ros__parameters": {"groups": ["g"], "g": {"input": ["/a"]}}}})
+    )
+    assert h.server.trigger_configure() == TransitionCallbackReturn.FAILURE
+    assert h.server.lifecycle_state == "unconfigured"
+    params.write_text(
+        yaml.safe_dump({"group_server": {"ros__parameters": {"groups": ["g"], "g": {"inputs": ["/a"]}}}})
+    )
+    assert h.server.trigger_configure() == TransitionCallbackReturn.SUCCESS
