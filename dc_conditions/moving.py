@@ -92,6 +92,7 @@ class Moving(Condition):
         node = self.context.node
         if node is None:
             raise PluginError(f"{self.context.name}: Moving needs a ROS node to subscribe to odometry")
+        self.on_cleanup()  # a second configure replaces the subscription rather than adding one
         with self._lock:
             self._hysteresis = self._new_hysteresis()
         topic = self.params.odom_topic

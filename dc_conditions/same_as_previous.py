@@ -54,6 +54,21 @@ def _ancestors(path: str) -> list[str]:
     return ["/".join(parts[: i + 1]) for i in range(len(parts))]
 
 
+def _canonical_path(document: Any, key: str) -> str:
+    """``key`` as ``flatten`` spells it: no outer slashes, negative array indices resolved."""
+    parts = []
+    node = document
+    for part in (p for p in key.split("/") if p):
+        if isinstance(node, list):
+            index = int(part) % len(node)
+            parts.append(str(index))
+            node = node[index]
+        else:
+            parts.append(part)
+            node = node[part]
+    return "/".join(parts)
+
+
 def _typed(value: Any) -> tuple[str, Any]:
     """A leaf with its JSON kind, so that ``true`` never equals ``1`` (Python says it does)."""
     if isinstance(value, bool):
@@ -97,8 +112,10 @@ class SameAsPrevious(Condition):
         """What is compared: the kept leaves by key path, and the file digests by key."""
         if sample is None:
             raise LookupError("no sample to judge")
-        file_keys = [key.strip("/") for key in self.params.keys]
-        digests = {key: file_digest(as_string(value_at(sample, key))) for key in file_keys}
+        digests: dict[str, str] = {}
+        for key in self.params.keys:
+            file_path = as_string(value_at(sample, key))  # first: says precisely what is missing
+            digests[_canonical_path(sample, key)] = file_digest(file_path)
         leaves: dict[str, tuple[str, Any]] = {}
         for slashed, value in flatten({k: v for k, v in sample.items() if k != "tags"}).items():
             path = slashed[1:]

@@ -635,6 +635,14 @@ def test_same_as_previous_compares_file_contents_not_names(tmp_path: Path) -> No
     assert condition.evaluate(sample(renamed)) is True
 
 
+def test_same_as_previous_file_key_through_an_array_with_negative_index(tmp_path: Path) -> None:
+    condition = configured(SameAsPrevious, {"keys": ["/frames/-1/path/"]})
+    same = "image bytes"
+    assert condition.evaluate({"frames": [{"path": write(tmp_path / "1.jpg", same)}]}) is False
+    assert condition.evaluate({"frames": [{"path": write(tmp_path / "2.jpg", same)}]}) is True
+    assert condition.evaluate({"frames": [{"path": write(tmp_path / "3.jpg", "other bytes")}]}) is False
+
+
 def test_same_as_previous_large_file_is_hashed_whole(tmp_path: Path) -> None:
     condition = configured(SameAsPrevious, {"keys": ["file"]})
     big = os.urandom(3 * (1 << 20) + 7)

@@ -126,6 +126,8 @@ def test_cleanup_destroys_the_subscription_and_reconfigure_starts_inactive(ros: 
 
         moving.on_configure()
         assert moving.evaluate(None) is False, "a new configuration starts inactive"
+        moving.on_configure()
+        assert len(list(ros.node.subscriptions)) == 1, "configure twice must not subscribe twice"
         assert ros.spin_until(lambda: moving.evaluate(None), lambda: publisher.publish(odometry(1.0)))
     finally:
         moving.on_cleanup()
