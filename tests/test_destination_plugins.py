@@ -6,6 +6,7 @@ import csv
 import json
 import logging
 import os
+import re
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,9 +14,11 @@ from typing import Any
 
 import pytest
 
+from dc_core.config import load_params_file
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError, DcError
-from dc_core.params import parse_params
+from dc_core.params import describe_params, parse_params
+from dc_destinations.config import DestinationCommonParams, parse_destination_server
 from dc_destinations.plugins.file import File, FileParams
 from dc_destinations.plugins.null import Null
 from dc_destinations.plugins.rcl import Rcl
@@ -309,3 +312,41 @@ def test_every_plugin_has_a_one_line_description() -> None:
 def test_params_defaults() -> None:
     p = parse_params(FileParams, {}, "x")
     assert (p.path, p.file, p.format, p.mkdir) == ("$HOME/data", "", "json", True)
+
+
+# -- documentation: every parameter has a row, every example configuration is valid ------------------
+
+DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "destinations"
+PAGES = {Stdout: "stdout.md", File: "file.md", Null: "null.md", Rcl: "rcl.md"}
+
+
+@pytest.mark.parametrize(("cls", "page"), list(PAGES.items()), ids=[c.__name__ for c in PAGES])
+def test_doc_page_documents_every_parameter(cls: type[Destination], page: str) -> None:
+    text = (DOCS / page).read_text()
+    for info in describe_params(cls.Params):
+        assert f"| `{info.name}` |" in text, f"{page} lacks a row for {info.name}"
+    assert f"dc_destinations/{cls.__name__}" in text
+    assert "## Example output" in text
+    assert "## Differences from the original" in text
+
+
+@pytest.mark.parametrize("page", sorted(PAGES.values()))
+def test_doc_examples_are_valid_configurations(
+    page: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("HOME", str(tmp_path))
+    blocks = re.findall(r"```yaml\n(.*?)```", (DOCS / page).read_text(), flags=re.DOTALL)
+    assert blocks, f"{page} has no example configuration"
+    for index, block in enumerate(blocks):
+        params_file = tmp_path / f"example_{index}.yaml"
+        params_file.write_text(block)
+        config = parse_destination_server(load_params_file(params_file)["destination_server"])
+        assert config.destinations and config.warnings == []
+        for d in config.destinations:
+            d.plugin_class(Context(d.name), d.plugin_params).on_configure()
+
+
+def test_stdout_doc_common_parameter_table_matches_the_code() -> None:
+    text = (DOCS / "stdout.md").read_text()
+    for info in describe_params(DestinationCommonParams):
+        assert f"| `{info.name}` |" in text, f"stdout.md lacks a row for common parameter {info.name}"
