@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
 import gc
+import io
+import json
 import os
 import sqlite3
 import time
@@ -12,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from dc_destinations import buffer_admin
 from dc_destinations.buffer import (
     FILE_NAME,
     BufferCorrupted,
@@ -236,3 +240,70 @@ def test_wal_mode_and_sync_setting(tmp_path: Path) -> None:
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     finally:
         conn.close()
+
+
+# -- dc buffer (buffer_admin) ------------------------------------------------------------------
+
+
+def _cli(
+    tmp_path: Path, action: str, *ids: str, destination: str = "", all_: bool = False
+) -> tuple[int, str]:
+    args = argparse.Namespace(
+        action=action, ids=list(ids), storage_path=str(tmp_path), params="", destination=destination, all=all_
+    )
+    out = io.StringIO()
+    code = buffer_admin.run_cli(args, out)
+    return code, out.getvalue()
+
+
+def _with_dead_letters(tmp_path: Path) -> list[int]:
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        buffer.append({"a": [pending(i) for i in range(3)], "b": [pending(9)]})
+        buffer.dead_letter(
+            "a", [(row, f"rejected: 422 row {i}") for i, row in enumerate(buffer.read_batch("a", 10))]
+        )
+        buffer.dead_letter("b", [(row, "rejected: 400") for row in buffer.read_batch("b", 10)])
+        return [d.id for d in buffer.list_dead_letters()]
+    finally:
+        buffer.close()
+
+
+def test_dc_buffer_list_show_replay_purge(tmp_path: Path) -> None:
+    ids = _with_dead_letters(tmp_path)
+    code, text = _cli(tmp_path, "list")
+    assert code == 0
+    assert "rejected: 422 row 1" in text and "id-00000009" in text
+    code, text = _cli(tmp_path, "show", str(ids[0]))
+    shown = json.loads(text)
+    assert shown["payload"] == {"n": "00000000", "pad": ""} and shown["error"] == "rejected: 422 row 0"
+    assert _cli(tmp_path, "replay")[0] == 1  # nothing said what to replay
+    code, text = _cli(tmp_path, "replay", destination="a")
+    assert (code, text.strip()) == (0, "replayed 3 dead letter(s) into their queues")
+    code, text = _cli(tmp_path, "stats")
+    assert code == 0 and "a" in text
+    assert [s.rows for s in buffer_admin.queue_stats(tmp_path / FILE_NAME)] == [3, 0]
+    code, text = _cli(tmp_path, "purge", all_=True)
+    assert (code, text.strip()) == (0, "purged 1 dead letter(s)")
+    assert buffer_admin.list_dead_letters(tmp_path / FILE_NAME) == []
+
+
+def test_dc_buffer_without_a_buffer_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert _cli(tmp_path / "nowhere", "list")[0] == 1
+    assert "no buffer at" in capsys.readouterr().err
+    assert not (tmp_path / "nowhere").exists()
+
+
+def test_dc_buffer_finds_the_storage_path_in_a_parameter_file(tmp_path: Path) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text(
+        f'destination_server:\n  ros__parameters:\n    flb:\n      storage_path: "{tmp_path}/buf"\n'
+    )
+    assert buffer_admin.storage_file(params_file=str(params)) == tmp_path / "buf" / FILE_NAME
+
+
+def test_dc_buffer_leaves_a_corrupt_file_alone(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / FILE_NAME).write_bytes(b"garbage" * 1000)
+    assert _cli(tmp_path, "list")[0] == 1
+    assert "corrupt" in capsys.readouterr().err
+    assert (tmp_path / FILE_NAME).read_bytes().startswith(b"garbage")

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
+import subprocess
+import sys
 import threading
 import time
 import urllib.request
@@ -395,3 +398,167 @@ def test_flush_intake_means_committed(tmp_path: Path, storage_sync: str) -> None
             other.close()
     finally:
         pipeline.stop(grace=0.1)
+
+
+def test_size_limit_drops_the_oldest_counts_and_logs_once(tmp_path: Path) -> None:
+    logger = ListLogger()
+
+    def down(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        raise RetryableError("down")
+
+    size = len(record(99).to_json().encode())  # the records 80..99 have the same size
+    params = DestinationDeliveryParams(storage_total_limit_size=str(20 * size + 10), when_full="drop_oldest")
+    pipeline = DeliveryPipeline(
+        settings(tmp_path), {"sink": (Recorder(behaviour=down), params)}, logger, wait=RecordedWaits()
+    )
+    pipeline.start()
+    try:
+        for i in range(100):
+            pipeline.submit("sink", record(i))
+            if i % 10 == 9:
+                pipeline.flush_intake(5)  # several group commits, so several drops in the burst
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["buffered"] == 20 and metrics["dropped"] == 80 and metrics["received"] == 100
+    finally:
+        pipeline.stop(grace=0.1)
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        assert [json.loads(r.payload)["n"] for r in buffer.read_batch("sink", 100)] == list(range(80, 100))
+    finally:
+        buffer.close()
+    drops = [line for level, line in logger.lines if "records dropped" in line]
+    assert 1 <= len(drops) <= 2, drops  # the burst's first line, and its summary at stop
+    assert "storage_total_limit_size" in drops[0]
+
+
+def test_a_corrupt_buffer_at_start_is_set_aside_and_new_records_flow(tmp_path: Path) -> None:
+    (tmp_path / FILE_NAME).write_bytes(b"\x00garbage" * 4096)
+    logger = ListLogger()
+    sink = Recorder()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, logger)
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(1))
+        assert sink.wait_for(1)[0].data["n"] == 1
+        assert pipeline.buffer_metrics()["quarantined"] == 1
+        assert any(level == "error" and "moved aside" in line for level, line in logger.lines)
+        assert len(list(tmp_path.glob(f"{FILE_NAME}.corrupt-*"))) == 1
+    finally:
+        pipeline.stop(grace=0.5)
+
+
+def test_an_unwritable_storage_path_falls_back_to_the_default(tmp_path: Path, monkeypatch: Any) -> None:
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file where a folder should be")
+    logger = ListLogger()
+    sink = Recorder()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, storage_path=str(blocked / "buffer")),
+        {"sink": (sink, DestinationDeliveryParams())},
+        logger,
+    )
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(1))
+        sink.wait_for(1)
+        assert pipeline.storage_file == tmp_path / "data" / "dc" / "buffer" / FILE_NAME
+        assert any(level == "error" and "cannot be used" in line for level, line in logger.lines)
+    finally:
+        pipeline.stop(grace=0.5)
+
+
+def test_stop_within_grace_delivers_what_it_can(tmp_path: Path) -> None:
+    sink = Recorder()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, flush=30.0), {"sink": (sink, DestinationDeliveryParams(batch_size=1000))}, LOG
+    )
+    pipeline.start()
+    for i in range(10):
+        pipeline.submit("sink", record(i))
+    pipeline.stop(grace=5.0)  # the flush timer is far away: stop itself must deliver
+    assert len(sink.delivered) == 10
+
+
+# -- kill -9 with real processes ---------------------------------------------------------------
+
+_CHILD = r"""
+import json, os, sys, time
+from dc_core.destination import Destination, OutgoingRecord
+from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+
+class Log:
+    def debug(self, m, **k): pass
+    info = warning = error = debug
+
+class AppendToFile(Destination):
+    def send(self, batch):
+        with open(sys.argv[2], "a") as out:
+            for r in batch:
+                out.write(r.to_json() + "\n")
+        time.sleep(0.002)  # a slow destination keeps records in flight
+
+count = int(sys.argv[3])
+pipeline = DeliveryPipeline(
+    DeliveryParams(storage_path=sys.argv[1], storage_sync=sys.argv[4], flush=0.01),
+    {"file": (AppendToFile(None, None), DestinationDeliveryParams(batch_size=100))},
+    Log(),
+)
+pipeline.start()
+for n in range(count):
+    rid = new_record_id()
+    pipeline.submit("file", OutgoingRecord(rid, "/t", n, {"n": n, "record_id": rid}))
+    if n % 250 == 249:
+        pipeline.flush_intake()
+        print(f"committed {n}", flush=True)
+if count:
+    pipeline.flush_intake()
+    print(f"committed {count - 1}", flush=True)
+while pipeline.metrics()["file"]["buffered"]:
+    time.sleep(0.01)
+print("drained", flush=True)
+pipeline.stop(1.0)
+"""
+
+
+@pytest.mark.parametrize("storage_sync", ["normal", "full"])
+def test_kill_9_loses_nothing_that_was_committed(tmp_path: Path, storage_sync: str) -> None:
+    out = tmp_path / "out.jsonl"
+    storage = tmp_path / "buffer"
+    total = 10_000
+    child = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, str(storage), str(out), str(total), storage_sync],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    committed = -1
+    try:
+        assert child.stdout is not None
+        for line in child.stdout:
+            committed = int(line.split()[1])
+            if committed >= total // 2:
+                child.send_signal(signal.SIGKILL)
+                break
+    finally:
+        child.kill()
+        child.wait()
+    assert committed >= total // 2
+    delivered_before = out.read_text().count("\n") if out.exists() else 0
+    assert delivered_before < committed + 1, "the kill should catch records in flight"
+
+    restart = subprocess.run(
+        [sys.executable, "-c", _CHILD, str(storage), str(out), "0", storage_sync],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert "drained" in restart.stdout, restart.stderr
+    numbers = [json.loads(line)["n"] for line in out.read_text().splitlines()]
+    missing = set(range(committed + 1)) - set(numbers)
+    assert not missing, f"{len(missing)} committed records lost, e.g. {sorted(missing)[:5]}"
+    duplicates = len(numbers) - len(set(numbers))
+    print(
+        f"storage_sync={storage_sync}: {committed + 1} committed before kill -9, "
+        f"{len(set(numbers))} delivered, {duplicates} duplicates"
+    )

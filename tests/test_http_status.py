@@ -1,0 +1,132 @@
+"""The status HTTP server on its own: paths, status codes, loopback binding."""
+
+from __future__ import annotations
+
+import json
+import socket
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from dc_destinations.http_status import StatusServer
+from dc_destinations.metrics import BurstLog, prometheus_text
+
+
+class State:
+    healthy = True
+    broken = False
+
+    def metrics(self) -> dict[str, Any]:
+        if self.broken:
+            raise RuntimeError("metrics unavailable")
+        return {"destinations": {"sink": {"sent": 3}}}
+
+
+@pytest.fixture
+def served() -> Iterator[tuple[State, str]]:
+    state = State()
+    server = StatusServer(
+        "127.0.0.1", 0, health=lambda: state.healthy, metrics=state.metrics, prometheus=lambda: "dc_x 1\n"
+    )
+    try:
+        yield state, f"http://127.0.0.1:{server.address[1]}"
+    finally:
+        server.stop()
+
+
+def get(url: str) -> tuple[int, str, str]:
+    try:
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            return reply.status, reply.headers["Content-Type"], reply.read().decode()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.headers["Content-Type"], exc.read().decode()
+
+
+def test_health_follows_the_pipeline(served: tuple[State, str]) -> None:
+    state, base = served
+    assert get(f"{base}/api/v1/health")[0] == 200
+    state.healthy = False
+    status, _type, body = get(f"{base}/api/v1/health")
+    assert status == 503 and json.loads(body) == {"status": "error"}
+
+
+def test_metrics_json_and_prometheus(served: tuple[State, str]) -> None:
+    _state, base = served
+    status, content_type, body = get(f"{base}/api/v1/metrics")
+    assert status == 200 and content_type == "application/json"
+    assert json.loads(body)["destinations"]["sink"]["sent"] == 3
+    status, content_type, body = get(f"{base}/api/v1/metrics/prometheus/")
+    assert status == 200 and content_type.startswith("text/plain; version=0.0.4")
+    assert body == "dc_x 1\n"
+
+
+def test_unknown_path_and_failing_metrics(served: tuple[State, str]) -> None:
+    state, base = served
+    assert get(f"{base}/api/v1/nothing")[0] == 404
+    state.broken = True
+    status, _type, body = get(f"{base}/api/v1/metrics")
+    assert status == 500 and "metrics unavailable" in body
+    state.broken = False
+    assert get(f"{base}/api/v1/metrics")[0] == 200  # the server survived
+
+
+def test_a_taken_port_raises_oserror() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(OSError):
+            StatusServer("127.0.0.1", port, health=lambda: True, metrics=dict, prometheus=str)
+
+
+def test_prometheus_text_format() -> None:
+    row = {
+        "received": 5,
+        "sent": 4,
+        "retried": 1,
+        "failed": 1,
+        "dropped": 0,
+        "dead_lettered": 0,
+        "buffered": 1,
+        "buffered_bytes": 120,
+        "dead_letters": 0,
+        "oldest_pending_age_s": 2.5,
+        "last_error": "x",
+    }
+    text = prometheus_text({'we"ird': row, "b": row}, {"quarantined": 1, "intake_pending": 0})
+    assert "# TYPE dc_delivery_sent_total counter" in text
+    assert 'dc_delivery_sent_total{destination="b"} 4' in text
+    assert 'dc_delivery_received_total{destination="we\\"ird"} 5' in text
+    assert 'dc_delivery_oldest_pending_age_seconds{destination="b"} 2.5' in text
+    assert "dc_delivery_buffer_quarantined_total 1" in text
+    assert text.endswith("\n")
+
+
+def test_burst_log_is_one_line_then_a_summary() -> None:
+    now = [0.0]
+    lines: list[str] = []
+    log = BurstLog(lines.append, "sink: records dropped", quiet=5.0, interval=60.0, clock=lambda: now[0])
+    for _ in range(1000):
+        log.event(1, "limit reached")
+        now[0] += 0.001
+    assert lines == ["sink: records dropped: 1 (limit reached)"]
+    now[0] += 5.0
+    log.tick()
+    assert len(lines) == 2 and "999 more" in lines[1]
+    log.tick()
+    assert len(lines) == 2
+    log.event(2, "again")  # a new burst starts with a line of its own
+    assert lines[2] == "sink: records dropped: 2 (again)"
+
+
+def test_burst_log_reports_a_burst_that_never_ends() -> None:
+    now = [0.0]
+    lines: list[str] = []
+    log = BurstLog(lines.append, "drops", quiet=5.0, interval=60.0, clock=lambda: now[0])
+    for _ in range(130):
+        log.event(1, "x")
+        now[0] += 1.0
+    assert len(lines) == 3  # the first event, then a summary each minute
