@@ -9,7 +9,7 @@ import time
 import urllib.error
 import urllib.request
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 from dc_core.errors import DcError
 from dc_core.params import describe_params
@@ -29,7 +29,7 @@ def cmd_list_plugins(args: argparse.Namespace) -> int:
             origin = "" if info.distribution == "ros2-dc" else f"  [{info.distribution}]"
             print(f"  {info.name:<36} {text}{origin}")
             if args.params and cls is not None:
-                for p in describe_params(getattr(cls, "Params")):
+                for p in describe_params(cast(Any, cls).Params):
                     default = "required" if p.required else f"default {json.dumps(p.default)}"
                     print(f"      {p.name} ({p.type_name}, {default}): {p.doc}")
     return 0
@@ -58,21 +58,34 @@ def cmd_pub(args: argparse.Namespace) -> int:
         print("dc pub: the record must be a JSON object", file=sys.stderr)
         return 2
     import rclpy
-    from dc_interfaces.msg import StringStamped
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+    from dc_interfaces.msg import StringStamped
+
+    from dc_core.topics import ros_topic, topic_problem
+
+    problem = topic_problem(args.topic)
+    if problem is not None:
+        print(f"dc pub: {args.topic!r}: {problem}", file=sys.stderr)
+        return 2
+    topic = ros_topic(args.topic)
+    if topic != args.topic:
+        print(f"dc pub: {args.topic!r} is not a valid ROS 2 topic name; publishing on {topic!r}", file=sys.stderr)
+    args.topic = topic
     rclpy.init()
     node = rclpy.create_node("dc_pub")
-    qos = QoSProfile(depth=max(args.count, 10), reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    qos = QoSProfile(
+        depth=max(args.count, 10), reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+    )
     publisher = node.create_publisher(StringStamped, args.topic, qos)
     try:
         deadline = time.monotonic() + args.wait_matched
         while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
         if publisher.get_subscription_count() == 0 and args.wait_matched > 0:
-            print(f"dc pub: no subscriber on {args.topic} after {args.wait_matched} s; publishing anyway",
-                  file=sys.stderr)
+            print(
+                f"dc pub: no subscriber on {args.topic} after {args.wait_matched} s; publishing anyway", file=sys.stderr
+            )
         sent = 0
         while args.count == 0 or sent < args.count:
             msg = StringStamped()
@@ -113,8 +126,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         print(json.dumps(metrics, indent=2))
         return 0
     destinations = metrics.get("destinations", metrics)
-    columns = ["received", "buffered", "sent", "retried", "failed", "dropped", "dead_lettered",
-               "oldest_pending_age_s"]
+    columns = ["received", "buffered", "sent", "retried", "failed", "dropped", "dead_lettered", "oldest_pending_age_s"]
     print(f"{'destination':<20}" + "".join(f"{c:>14}" for c in columns) + "  last_error")
     for name, row in sorted(destinations.items()):
         if not isinstance(row, dict):

@@ -20,12 +20,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dc-bringup", description="Start DC's servers for a parameter file and keep them running."
     )
-    parser.add_argument("params_file", help="ROS 2 parameter YAML (measurement_server, group_server, destination_server)")
+    parser.add_argument(
+        "params_file", help="ROS 2 parameter YAML (measurement_server, group_server, destination_server)"
+    )
     parser.add_argument("--log-level", default="info", choices=LOG_LEVELS, help="log level of every server")
-    parser.add_argument("--bond-timeout", type=float, default=10.0,
-                        help="seconds without heartbeat before a server is restarted (default 10)")
-    parser.add_argument("--stop-timeout", type=float, default=15.0,
-                        help="seconds each server gets to stop before it is killed (default 15)")
+    parser.add_argument(
+        "--bond-timeout",
+        type=float,
+        default=10.0,
+        help="seconds without heartbeat before a server is restarted (default 10)",
+    )
+    parser.add_argument(
+        "--stop-timeout",
+        type=float,
+        default=15.0,
+        help="seconds each server gets to stop before it is killed (default 15)",
+    )
     parser.add_argument("--validate-only", action="store_true", help="check the configuration and exit")
     return parser
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from dc_interfaces.msg import Heartbeat
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.executors import SingleThreadedExecutor
@@ -13,6 +12,7 @@ from rclpy.node import Node
 
 from dc_bringup.processes import ServerProcess
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC
+from dc_interfaces.msg import Heartbeat
 
 NODE_NAME = "lifecycle_manager_dc"
 

@@ -10,6 +10,7 @@ from typing import Any
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError
 from dc_core.params import did_you_mean
+from dc_core.topics import ros_topic
 
 # Servers in start order: destinations first so nothing published at start is lost.
 SERVER_MODULES = {
@@ -61,6 +62,12 @@ def _cross_checks(configs: dict[str, Any]) -> list[str]:
     tagged: list[tuple[str, list[str]]] = []
     if measurements is not None:
         for m in measurements.measurements:
+            source = getattr(m.plugin_params, "topic", None)
+            if isinstance(source, str) and ros_topic(source) != source:
+                warnings.append(
+                    f"measurement_server.{m.name}.topic: {source!r} is not a valid ROS 2 topic name; "
+                    f"DC listens on {ros_topic(source)!r}"
+                )
             published[m.output_topic] = f"measurement_server.{m.name}"
             tagged.append((f"measurement_server.{m.name}.tags", list(m.common.tags)))
     if groups is not None:

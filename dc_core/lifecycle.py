@@ -19,13 +19,14 @@ from collections.abc import Sequence
 from typing import Any
 
 import rclpy
-from dc_interfaces.msg import Heartbeat
+import rclpy.utilities
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 from dc_core.errors import DcError
+from dc_interfaces.msg import Heartbeat
 
 HEARTBEAT_TOPIC = "/dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -161,7 +162,7 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
-        if rclpy.ok():
+        if rclpy.utilities.ok():
             rclpy.shutdown()
         sys.stdout.flush()
     return code

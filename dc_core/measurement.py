@@ -41,6 +41,7 @@ class MeasurementContext(Protocol):
     @property
     def node(self) -> Any:
         """The rclpy node, to create subscriptions in ``on_configure`` (``None`` without ROS)."""
+
     @property
     def paths(self) -> BasePaths: ...
     def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:

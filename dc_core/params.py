@@ -35,8 +35,13 @@ def param(
     choices: Iterable[Any] | None = None,
     secret: bool = False,
     aliases: Iterable[str] = (),
+    check: Callable[[Any], str | None] | None = None,
 ) -> Any:
-    """Declare one parameter. No default means the key is required."""
+    """Declare one parameter. No default means the key is required.
+
+    ``check`` is a pure function returning None when the value is acceptable, or what was
+    expected ("an IPv4 address"): reported with the parameter's YAML path.
+    """
     metadata = {
         "doc": doc,
         "minimum": minimum,
@@ -44,6 +49,7 @@ def param(
         "choices": tuple(choices) if choices is not None else None,
         "secret": secret,
         "aliases": tuple(aliases),
+        "check": check,
     }
     if default_factory is not _MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=metadata)
@@ -149,6 +155,11 @@ def _check_range(field: dataclasses.Field[Any], value: Any, path: str, tp: Any) 
     if choices is not None and value not in choices:
         options = ", ".join(_fmt(c) for c in choices)
         raise ConfigError(path, f"expected one of {options}, got {_fmt(value)}")
+    check = meta.get("check")
+    if check is not None:
+        expected = check(value)
+        if expected is not None:
+            raise ConfigError(path, f"expected {expected}, got {_fmt(value)}")
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         kind = "an integer" if tp is int else "a number"
         if minimum is not None and value < minimum:
@@ -213,7 +224,7 @@ def describe_params(cls: type) -> list[ParamInfo]:
             continue
         required = f.default is _MISSING and f.default_factory is _MISSING
         if f.default_factory is not _MISSING:
-            default = f.default_factory()
+            default = f.default_factory()  # type: ignore[operator]
         else:
             default = None if required else f.default
         out.append(

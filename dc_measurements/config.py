@@ -7,7 +7,7 @@ opens no file and starts nothing. ``dc validate`` and ``dc-bringup`` call it bef
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from dc_core.errors import ConfigError, PluginError
 from dc_core.params import did_you_mean, field_names, param, parse_params
@@ -125,7 +125,9 @@ def _load(kind: str, type_name: str, path: str) -> type:
 
 
 def parse_measurement_server(section: dict[str, Any], path: str = "measurement_server") -> MeasurementServerConfig:
-    node_params = parse_params(MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams))
+    node_params = parse_params(
+        MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
+    )
     if node_params.run_id.enabled and node_params.run_id.counter and node_params.run_id.uuid:
         raise ConfigError(f"{path}.run_id", "choose one source for the run id: counter or uuid, not both")
 
@@ -151,11 +153,12 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         cpath = f"{path}.{cid}"
         body = _plugin_section(section, cid, path)
         dynamic.add(cid)
-        common = parse_params(ConditionCommonParams, body, cpath, ignore=set(body) - field_names(ConditionCommonParams))
-        cls = _load("conditions", common.plugin, cpath)
-        params_cls: type = getattr(cls, "Params")
-        plugin_params = parse_params(params_cls, body, cpath, ignore=field_names(ConditionCommonParams))
-        conditions[cid] = ConditionConfig(cid, common, cls, plugin_params)
+        ccommon = parse_params(
+            ConditionCommonParams, body, cpath, ignore=set(body) - field_names(ConditionCommonParams)
+        )
+        ccls = _load("conditions", ccommon.plugin, cpath)
+        cparams: Any = parse_params(cast(Any, ccls).Params, body, cpath, ignore=field_names(ConditionCommonParams))
+        conditions[cid] = ConditionConfig(cid, ccommon, ccls, cparams)
 
     measurements: list[MeasurementConfig] = []
     outputs: dict[str, str] = {}
@@ -167,8 +170,9 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
             MeasurementCommonParams, body, mpath, ignore=set(body) - field_names(MeasurementCommonParams)
         )
         cls = _load("measurements", common.plugin, mpath)
-        params_cls = getattr(cls, "Params")
-        plugin_params = parse_params(params_cls, body, mpath, ignore=field_names(MeasurementCommonParams))
+        plugin_params: Any = parse_params(
+            cast(Any, cls).Params, body, mpath, ignore=field_names(MeasurementCommonParams)
+        )
         for key in ("if_all_conditions", "if_any_conditions", "if_none_conditions"):
             for cid in getattr(common, key):
                 if cid not in conditions:
@@ -181,7 +185,8 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         config = MeasurementConfig(mid, common, cls, plugin_params)
         if config.output_topic in outputs:
             raise ConfigError(
-                f"{mpath}.topic_output", f"{config.output_topic} is already the output of {outputs[config.output_topic]!r}"
+                f"{mpath}.topic_output",
+                f"{config.output_topic} is already the output of {outputs[config.output_topic]!r}",
             )
         outputs[config.output_topic] = mid
         measurements.append(config)

@@ -7,8 +7,6 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from dc_interfaces.msg import Condition as ConditionMsg
-from dc_interfaces.msg import StringStamped
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.config import load_params_file
@@ -17,6 +15,8 @@ from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import Logger
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
+from dc_interfaces.msg import Condition as ConditionMsg
+from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
 from dc_measurements.config import MeasurementServerConfig, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
@@ -28,9 +28,7 @@ NODE_NAME = "measurement_server"
 CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # Transient-local history lets a destination_server that starts, or restarts, after a record was
 # published still receive it (see docs/delivery.md, "The hop between servers").
-RECORD_QOS = QoSProfile(
-    depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
-)
+RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 @dataclass
@@ -81,9 +79,9 @@ class MeasurementServer(ManagedServer):
             publisher = self.create_publisher(ConditionMsg, f"/dc/condition/{name}", CONDITION_QOS)
             self._condition_publishers.append(publisher)
             context = _PluginContext(name, self.get_logger().get_child(name), self, paths, self)
-            plugin = ccfg.plugin_class(context, ccfg.plugin_params)
-            runtime = ConditionRuntime(name, plugin, ccfg.common.topic, log, self._state_publisher(publisher))
-            plugin.on_configure()
+            condition = ccfg.plugin_class(context, ccfg.plugin_params)
+            runtime = ConditionRuntime(name, condition, ccfg.common.topic, log, self._state_publisher(publisher))
+            condition.on_configure()
             self.conditions[name] = runtime
 
         for mcfg in config.measurements:
@@ -103,8 +101,9 @@ class MeasurementServer(ManagedServer):
                 + (f" every {c.polling_interval} ms" if plugin.timer_driven else " on events")
             )
 
-    def _base_paths(self, section: dict[str, Any], config: MeasurementServerConfig,
-                    custom: list[tuple[str, str, bool]]) -> BasePaths:
+    def _base_paths(
+        self, section: dict[str, Any], config: MeasurementServerConfig, custom: list[tuple[str, str, bool]]
+    ) -> BasePaths:
         node = config.node
 
         def top_level_string(name: str) -> str | None:
@@ -114,11 +113,13 @@ class MeasurementServer(ManagedServer):
         custom_values = {cid: value for cid, (_, value, _) in zip(config.custom_str_params, custom, strict=True)}
         save = expand_values(
             expand_env(node.save_local_base_path, f"{NODE_NAME}.save_local_base_path"),
-            top_level_string, f"{NODE_NAME}.save_local_base_path",
+            top_level_string,
+            f"{NODE_NAME}.save_local_base_path",
         )
         all_base = expand_values(
             expand_env(node.all_base_path, f"{NODE_NAME}.all_base_path"),
-            custom_values.get, f"{NODE_NAME}.all_base_path",
+            custom_values.get,
+            f"{NODE_NAME}.all_base_path",
         )
         return BasePaths(save_local_base_path=save, all_base_path=all_base)
 
@@ -163,9 +164,7 @@ class MeasurementServer(ManagedServer):
             runtime.condition.on_activate()
             if runtime.topic:
                 self._condition_subscriptions.append(
-                    self.create_subscription(
-                        StringStamped, runtime.topic, lambda msg, rt=runtime: rt.on_topic_record(msg.data), 10
-                    )
+                    self.create_subscription(StringStamped, runtime.topic, self._topic_record_callback(runtime), 10)
                 )
         self._active = True
         for name, runner in self.runners.items():
@@ -177,6 +176,13 @@ class MeasurementServer(ManagedServer):
             self._collect_timers[name] = self.create_timer(period, lambda n=name: self._tick(n))
             if runner.config.common.init_collect:
                 self._tick(name)
+
+    @staticmethod
+    def _topic_record_callback(runtime: ConditionRuntime) -> Any:
+        def callback(msg: Any) -> None:
+            runtime.on_topic_record(msg.data)
+
+        return callback
 
     def _tick(self, name: str) -> None:
         runner = self.runners[name]

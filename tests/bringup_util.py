@@ -31,8 +31,9 @@ def fresh_domain_id() -> int:
 
 
 class Bringup:
-    def __init__(self, params: Path | str, *, args: Sequence[str] = (), env: dict[str, str] | None = None,
-                 cwd: Path | None = None) -> None:
+    def __init__(
+        self, params: Path | str, home: Path, *, args: Sequence[str] = (), env: dict[str, str] | None = None
+    ) -> None:
         self.params = Path(params)
         self.args = list(args)
         self.domain_id = fresh_domain_id()
@@ -40,8 +41,12 @@ class Bringup:
         self.env["ROS_DOMAIN_ID"] = str(self.domain_id)
         self.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         self.env["PYTHONUNBUFFERED"] = "1"
+        # Run id counters, buffers and data under $HOME and $XDG_DATA_HOME stay inside the test.
+        self.home = home
+        home.mkdir(parents=True, exist_ok=True)
+        self.env["HOME"] = str(home)
+        self.env["XDG_DATA_HOME"] = str(home / ".local" / "share")
         self.env.update(env or {})
-        self.cwd = cwd
         self.stdout: list[str] = []
         self.stderr: list[str] = []
         self._stdout_times: list[float] = []
@@ -53,10 +58,16 @@ class Bringup:
     def __enter__(self) -> Bringup:
         self.process = subprocess.Popen(
             [str(BIN / "dc-bringup"), str(self.params), *self.args],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=self.env, cwd=self.cwd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=self.env,
+            cwd=self.home,
         )
-        for stream, sink, times in ((self.process.stdout, self.stdout, self._stdout_times),
-                                    (self.process.stderr, self.stderr, None)):
+        for stream, sink, times in (
+            (self.process.stdout, self.stdout, self._stdout_times),
+            (self.process.stderr, self.stderr, None),
+        ):
             threading.Thread(target=self._read, args=(stream, sink, times), daemon=True).start()
         return self
 
@@ -82,8 +93,9 @@ class Bringup:
         self.returncode = self.process.returncode
         return self.returncode
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()
 
     def wait_exit(self, timeout: float) -> int:
@@ -100,7 +112,9 @@ class Bringup:
                 if left <= 0:
                     raise AssertionError(
                         f"timed out after {timeout} s waiting for {what}\n--- stdout ---\n"
-                        + "\n".join(self.stdout[-50:]) + "\n--- stderr ---\n" + "\n".join(self.stderr[-80:])
+                        + "\n".join(self.stdout[-50:])
+                        + "\n--- stderr ---\n"
+                        + "\n".join(self.stderr[-80:])
                     )
                 self._changed.wait(min(left, 0.2))
 
@@ -127,11 +141,11 @@ class Bringup:
 
     def record_times(self) -> list[float]:
         """Arrival time (monotonic) of each stdout line that is a JSON record."""
-        return [t for line, t in zip(list(self.stdout), list(self._stdout_times), strict=False)
-                if line.startswith("{")]
+        return [t for line, t in zip(list(self.stdout), list(self._stdout_times), strict=False) if line.startswith("{")]
 
-    def wait_records(self, n: int, timeout: float = 30.0,
-                     predicate: Callable[[dict[str, Any]], bool] | None = None) -> list[dict[str, Any]]:
+    def wait_records(
+        self, n: int, timeout: float = 30.0, predicate: Callable[[dict[str, Any]], bool] | None = None
+    ) -> list[dict[str, Any]]:
         self.wait_until(lambda: len(self.records(predicate)) >= n, timeout, f"{n} records on stdout")
         return self.records(predicate)
 

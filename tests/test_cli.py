@@ -20,9 +20,21 @@ def third_party_env(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     target = tmp_path_factory.mktemp("site")
     build = tmp_path_factory.mktemp("build")
     subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-         "--target", str(target), str(PLUGIN_SRC)],
-        check=True, capture_output=True, cwd=build,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "--target",
+            str(target),
+            str(PLUGIN_SRC),
+        ],
+        check=True,
+        capture_output=True,
+        cwd=build,
     )
     env = dict(os.environ)
     env["PYTHONPATH"] = str(target)
@@ -63,12 +75,19 @@ def test_third_party_plugin_is_listed_and_loaded(third_party_env: dict[str, str]
     ("text", "expected"),
     [
         ("measurement_server:\n  ros__parameters:\n    measurement_plugins: [u\n", "invalid YAML at line"),
-        ("measurement_server:\n  ros__parameters:\n    measurement_plugins: [u]\n    u:\n      plugin: dc_measurements/Nope\n",
-         "measurement_server.u.plugin: unknown measurement plugin"),
-        ("measurement_server:\n  ros__parameters:\n    measurement_plugins: [u]\n    u:\n      plugin: dc_measurements/Uptime\n"
-         "      polling_interval: fast\n", 'measurement_server.u.polling_interval: expected an integer, got "fast"'),
-        ("destination_server:\n  ros__parameters:\n    destination_plugins: [o]\n    o:\n      plugin: dc_destinations/Stdout\n",
-         "destination_server.o.inputs: required parameter missing"),
+        (
+            "measurement_server:\n  ros__parameters:\n    measurement_plugins: [u]\n    u:\n      plugin: dc_measurements/Nope\n",
+            "measurement_server.u.plugin: unknown measurement plugin",
+        ),
+        (
+            "measurement_server:\n  ros__parameters:\n    measurement_plugins: [u]\n    u:\n      plugin: dc_measurements/Uptime\n"
+            "      polling_interval: fast\n",
+            'measurement_server.u.polling_interval: expected an integer, got "fast"',
+        ),
+        (
+            "destination_server:\n  ros__parameters:\n    destination_plugins: [o]\n    o:\n      plugin: dc_destinations/Stdout\n",
+            "destination_server.o.inputs: required parameter missing",
+        ),
     ],
     ids=["invalid-yaml", "unknown-plugin", "wrong-type", "missing-inputs"],
 )
@@ -86,10 +105,14 @@ def test_validate_warns_about_dangling_inputs_and_unknown_tags(tmp_path: Path) -
     assert "/dc/measurement/string_stamped is published by nothing" in result.stderr
     assert 'did you mean "/dc/measurement/my_string_stamped"' in result.stderr
     params = tmp_path / "p.yaml"
-    params.write_text((REPO / "params/examples/example_1.yaml").read_text().replace('tags: ["flb_stdout"]',
-                                                                                     'tags: ["flb_stdot"]'))
+    params.write_text(
+        (REPO / "params/examples/example_1.yaml").read_text().replace('tags: ["flb_stdout"]', 'tags: ["flb_stdot"]')
+    )
     result = dc("validate", str(params))
-    assert "measurement_server.uptime.tags: 'flb_stdot' names no destination (did you mean \"flb_stdout\"?)" in result.stderr
+    assert (
+        "measurement_server.uptime.tags: 'flb_stdot' names no destination (did you mean \"flb_stdout\"?)"
+        in result.stderr
+    )
 
 
 @pytest.mark.parametrize("example", sorted(p.name for p in (REPO / "params").rglob("*.yaml")))

@@ -49,8 +49,9 @@ def test_init_phase_ignores_conditions_then_conditions_decide() -> None:
     ],
     ids=["one-per-episode", "two-per-episode", "unlimited"],
 )
-def test_condition_max_counts_per_episode_and_rearms(condition_max: int, conditions: list[bool],
-                                                     expected: list[bool]) -> None:
+def test_condition_max_counts_per_episode_and_rearms(
+    condition_max: int, conditions: list[bool], expected: list[bool]
+) -> None:
     gate = Gate(init_max=-1, condition_max=condition_max, has_conditions=True)
     assert run(gate, conditions) == expected
 

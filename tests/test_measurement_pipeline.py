@@ -30,8 +30,9 @@ class FakeContext:
         raise AssertionError("not event driven")
 
 
-def server(measurements: dict[str, dict[str, Any]], conditions: dict[str, dict[str, Any]] | None = None,
-           **node: Any) -> dict[str, Any]:
+def server(
+    measurements: dict[str, dict[str, Any]], conditions: dict[str, dict[str, Any]] | None = None, **node: Any
+) -> dict[str, Any]:
     section: dict[str, Any] = {"measurement_plugins": list(measurements), **node}
     section.update(measurements)
     if conditions:
@@ -40,9 +41,13 @@ def server(measurements: dict[str, dict[str, Any]], conditions: dict[str, dict[s
     return section
 
 
-def make_runner(body: dict[str, Any], conditions: dict[str, dict[str, Any]] | None = None,
-                run_id: str | None = "7", custom: list[tuple[str, str, bool]] | None = None,
-                samples: list[dict[str, Any] | None] | None = None) -> tuple[MeasurementRunner, list[tuple[str, str, int | None]]]:
+def make_runner(
+    body: dict[str, Any],
+    conditions: dict[str, dict[str, Any]] | None = None,
+    run_id: str | None = "7",
+    custom: list[tuple[str, str, bool]] | None = None,
+    samples: list[dict[str, Any] | None] | None = None,
+) -> tuple[MeasurementRunner, list[tuple[str, str, int | None]]]:
     cfg = parse_measurement_server(server({"m": body}, conditions))
     mcfg = cfg.measurements[0]
     plugin = mcfg.plugin_class(FakeContext(), mcfg.plugin_params)
@@ -51,14 +56,24 @@ def make_runner(body: dict[str, Any], conditions: dict[str, dict[str, Any]] | No
         queue = list(samples)
         plugin.collect = lambda: queue.pop(0)  # type: ignore[method-assign]
     runtimes = {
-        name: ConditionRuntime(name, c.plugin_class(FakeContext(), c.plugin_params), c.common.topic, LOG, lambda s: None)
+        name: ConditionRuntime(
+            name, c.plugin_class(FakeContext(), c.plugin_params), c.common.topic, LOG, lambda s: None
+        )
         for name, c in cfg.conditions.items()
     }
     schema = plugin.load_schema()
     validator = RecordValidator(schema, "test") if schema and mcfg.common.enable_validator else None
     published: list[tuple[str, str, int | None]] = []
-    runner = MeasurementRunner(mcfg, plugin, runtimes, validator, run_id, custom or [],
-                               lambda text, key, stamp: published.append((text, key, stamp)), LOG)
+    runner = MeasurementRunner(
+        mcfg,
+        plugin,
+        runtimes,
+        validator,
+        run_id,
+        custom or [],
+        lambda text, key, stamp: published.append((text, key, stamp)),
+        LOG,
+    )
     return runner, published
 
 
@@ -77,19 +92,35 @@ def test_uptime_record_has_metadata_and_no_flags() -> None:
 
 def test_nested_flatten_plugin_and_custom_params() -> None:
     runner, published = make_runner(
-        {"plugin": "dc_measurements/Dummy", "record": '{"a": {"b": 1}, "robot": "x"}', "nested": True,
-         "flatten": True, "include_measurement_plugin": True, "include_measurement_name": False},
+        {
+            "plugin": "dc_measurements/Dummy",
+            "record": '{"a": {"b": 1}, "robot": "x"}',
+            "nested": True,
+            "flatten": True,
+            "include_measurement_plugin": True,
+            "include_measurement_name": False,
+        },
         custom=[("robot", "C3PO", False), ("site", "lyon", False), ("name", "forced", True)],
     )
     runner.tick()
     (record,) = records(published)
-    assert record == {"/m/a/b": 1, "/m/robot": "x", "nested": True, "flattened": True, "run_id": "7",
-                      "plugin": "dc_measurements/Dummy", "robot": "C3PO", "site": "lyon", "name": "forced"}
+    assert record == {
+        "/m/a/b": 1,
+        "/m/robot": "x",
+        "nested": True,
+        "flattened": True,
+        "run_id": "7",
+        "plugin": "dc_measurements/Dummy",
+        "robot": "C3PO",
+        "site": "lyon",
+        "name": "forced",
+    }
 
 
 def test_custom_param_does_not_override_without_force() -> None:
-    runner, published = make_runner({"plugin": "dc_measurements/Dummy", "record": '{"robot": "R2"}'},
-                                    custom=[("robot", "C3PO", False)])
+    runner, published = make_runner(
+        {"plugin": "dc_measurements/Dummy", "record": '{"robot": "R2"}'}, custom=[("robot", "C3PO", False)]
+    )
     runner.tick()
     assert records(published)[0]["robot"] == "R2"
 
@@ -97,8 +128,9 @@ def test_custom_param_does_not_override_without_force() -> None:
 def test_invalid_record_is_published_and_hook_called_unless_drop_invalid() -> None:
     calls: list[str] = []
     for drop in (False, True):
-        runner, published = make_runner({"plugin": "dc_measurements/Uptime", "drop_invalid": drop},
-                                        samples=[{"time": "late"}])
+        runner, published = make_runner(
+            {"plugin": "dc_measurements/Uptime", "drop_invalid": drop}, samples=[{"time": "late"}]
+        )
         runner.plugin.on_failed_validation = lambda record, error: calls.append(error)  # type: ignore[method-assign]
         runner.tick()
         assert len(published) == (0 if drop else 1)
@@ -107,8 +139,10 @@ def test_invalid_record_is_published_and_hook_called_unless_drop_invalid() -> No
 
 
 def test_empty_samples_are_not_published_and_do_not_count() -> None:
-    runner, published = make_runner({"plugin": "dc_measurements/Uptime", "init_max_measurements": 2},
-                                    samples=[None, {}, {"time": 1}, None, {"time": 2}, {"time": 3}])
+    runner, published = make_runner(
+        {"plugin": "dc_measurements/Uptime", "init_max_measurements": 2},
+        samples=[None, {}, {"time": 1}, None, {"time": 2}, {"time": 3}],
+    )
     for _ in range(6):
         runner.tick()
     assert [r["time"] for r in records(published)] == [1, 2]
@@ -129,8 +163,10 @@ def test_collect_exception_is_logged_and_counted() -> None:
 def test_conditions_gate_on_the_raw_sample_and_are_evaluated_once() -> None:
     runner, published = make_runner(
         {"plugin": "dc_measurements/Dummy", "if_all_conditions": ["has_a", "has_a"], "if_none_conditions": ["has_b"]},
-        conditions={"has_a": {"plugin": "dc_conditions/Exist", "key": "a"},
-                    "has_b": {"plugin": "dc_conditions/Exist", "key": "b"}},
+        conditions={
+            "has_a": {"plugin": "dc_conditions/Exist", "key": "a"},
+            "has_b": {"plugin": "dc_conditions/Exist", "key": "b"},
+        },
         samples=[{"a": 1}, {"c": 1}, {"a": 1, "b": 1}, {"a": 2}],
     )
     evaluations: list[str] = []
@@ -159,7 +195,9 @@ def test_conditions_met_truth_table() -> None:
 
 
 def test_condition_runtime_never_raises_and_publishes_changes_only() -> None:
-    cfg = parse_measurement_server(server({}, {"c": {"plugin": "dc_conditions/IntegerSuperior", "key": "v", "value": 3}}))
+    cfg = parse_measurement_server(
+        server({}, {"c": {"plugin": "dc_conditions/IntegerSuperior", "key": "v", "value": 3}})
+    )
     c = cfg.conditions["c"]
     states: list[bool] = []
     rt = ConditionRuntime("c", c.plugin_class(FakeContext(), c.plugin_params), "", LOG, states.append)
@@ -171,8 +209,19 @@ def test_condition_runtime_never_raises_and_publishes_changes_only() -> None:
 
 
 def test_condition_with_topic_judges_the_other_topic() -> None:
-    cfg = parse_measurement_server(server({}, {"c": {"plugin": "dc_conditions/DoubleSuperior", "key": "percent",
-                                                     "value": 20.0, "topic": "/dc/measurement/battery"}}))
+    cfg = parse_measurement_server(
+        server(
+            {},
+            {
+                "c": {
+                    "plugin": "dc_conditions/DoubleSuperior",
+                    "key": "percent",
+                    "value": 20.0,
+                    "topic": "/dc/measurement/battery",
+                }
+            },
+        )
+    )
     c = cfg.conditions["c"]
     rt = ConditionRuntime("c", c.plugin_class(FakeContext(), c.plugin_params), c.common.topic, LOG, lambda s: None)
     assert not rt.needs_sample
@@ -188,24 +237,44 @@ def test_condition_with_topic_judges_the_other_topic() -> None:
 @pytest.mark.parametrize(
     ("section", "message"),
     [
-        (server({"u": {"plugin": "dc_measurements/Uptim"}}),
-         'measurement_server.u.plugin: unknown measurement plugin \'dc_measurements/Uptim\' (did you mean "dc_measurements/Uptime"?)'),
-        (server({"u": {"plugin": "dc_measurements/Uptime", "polling_interval": "fast"}}),
-         'measurement_server.u.polling_interval: expected an integer, got "fast"'),
-        (server({"u": {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["moving"]}}),
-         "measurement_server.u.if_all_conditions: condition 'moving' is not in condition_plugins"),
+        (
+            server({"u": {"plugin": "dc_measurements/Uptim"}}),
+            "measurement_server.u.plugin: unknown measurement plugin 'dc_measurements/Uptim' (did you mean \"dc_measurements/Uptime\"?)",
+        ),
+        (
+            server({"u": {"plugin": "dc_measurements/Uptime", "polling_interval": "fast"}}),
+            'measurement_server.u.polling_interval: expected an integer, got "fast"',
+        ),
+        (
+            server({"u": {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["moving"]}}),
+            "measurement_server.u.if_all_conditions: condition 'moving' is not in condition_plugins",
+        ),
         ({"measurement_plugins": ["u"]}, "measurement_server.u: section missing"),
-        ({**server({"u": {"plugin": "dc_measurements/Uptime"}}), "uptim": {}},
-         "measurement_server.uptim: unknown parameter"),
-        (server({"u": {"plugin": "dc_measurements/Uptime"}}, run_id={"counter": True, "uuid": True}),
-         "measurement_server.run_id: choose one source"),
-        (server({"d": {"plugin": "dc_measurements/Dummy", "record": "[1]"}}),
-         "measurement_server.d.record: expected a JSON object"),
-        (server({"a": {"plugin": "dc_measurements/Uptime"}, "b": {"plugin": "dc_measurements/Uptime",
-                                                                 "topic_output": "/dc/measurement/a"}}),
-         "measurement_server.b.topic_output: /dc/measurement/a is already the output of 'a'"),
-        (server({}, custom_str_params_list=["robot"], custom_str_params={"robot": {"name": "robot"}}),
-         "measurement_server.custom_str_params.robot: needs 'value' or 'value_from_file'"),
+        (
+            {**server({"u": {"plugin": "dc_measurements/Uptime"}}), "uptim": {}},
+            "measurement_server.uptim: unknown parameter",
+        ),
+        (
+            server({"u": {"plugin": "dc_measurements/Uptime"}}, run_id={"counter": True, "uuid": True}),
+            "measurement_server.run_id: choose one source",
+        ),
+        (
+            server({"d": {"plugin": "dc_measurements/Dummy", "record": "[1]"}}),
+            "measurement_server.d.record: expected a JSON object",
+        ),
+        (
+            server(
+                {
+                    "a": {"plugin": "dc_measurements/Uptime"},
+                    "b": {"plugin": "dc_measurements/Uptime", "topic_output": "/dc/measurement/a"},
+                }
+            ),
+            "measurement_server.b.topic_output: /dc/measurement/a is already the output of 'a'",
+        ),
+        (
+            server({}, custom_str_params_list=["robot"], custom_str_params={"robot": {"name": "robot"}}),
+            "measurement_server.custom_str_params.robot: needs 'value' or 'value_from_file'",
+        ),
     ],
 )
 def test_configuration_errors(section: dict[str, Any], message: str) -> None:
@@ -231,11 +300,16 @@ def test_run_id_counter_increments_and_uuid(tmp_path: Path) -> None:
 def test_custom_params_from_value_and_file(tmp_path: Path) -> None:
     machine = tmp_path / "machine-id"
     machine.write_text("abc123\n")
-    cfg = parse_measurement_server(server(
-        {}, custom_str_params_list=["robot_name", "id"],
-        custom_str_params={"robot_name": {"name": "robot_name", "value": "C3PO"},
-                           "id": {"name": "id", "value_from_file": str(machine), "force_override": True}},
-    ))
+    cfg = parse_measurement_server(
+        server(
+            {},
+            custom_str_params_list=["robot_name", "id"],
+            custom_str_params={
+                "robot_name": {"name": "robot_name", "value": "C3PO"},
+                "id": {"name": "id", "value_from_file": str(machine), "force_override": True},
+            },
+        )
+    )
     assert resolve_custom_params(cfg.custom_str_params) == [("robot_name", "C3PO", False), ("id", "abc123", True)]
     machine.unlink()
     with pytest.raises(ConfigError, match=r"custom_str_params\.id\.value_from_file: cannot read"):

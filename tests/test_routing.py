@@ -83,7 +83,6 @@ def test_delivered_record_drops_tags_and_starts_with_the_time_key() -> None:
     assert out.to_json() == '{"date":1677668906.5,"time":92395,"robot_name":"C3PO"}'
 
 
-@pytest.mark.xfail(reason="dc_core.timefmt divides a float by 1e9; float(f'{sec}.{nsec:09d}') would not")
 def test_double_time_prints_as_the_stamp_s_decimal() -> None:
     # The seed's output shows "date":1677668906.745817; stamp_ns / 1e9 prints 1677668906.7458172.
     assert repr(format_stamp(1_677_668_906_745_817_000, "double")) == "1677668906.745817"

@@ -10,13 +10,17 @@ from typing import Any
 from dc_core.errors import PluginError
 from dc_core.measurement import Measurement
 from dc_core.params import param
+from dc_core.topics import ros_topic, topic_problem
 
 _LOGGED_TEXT = 2000
 
 
 @dataclass(frozen=True, kw_only=True)
 class StringStampedParams:
-    topic: str = param(doc="Input topic (dc_interfaces/msg/StringStamped) where your nodes publish")
+    topic: str = param(
+        doc="Input topic (dc_interfaces/msg/StringStamped) where your nodes publish ('-' is read as '_')",
+        check=lambda name: topic_problem(name) and "a ROS 2 topic name",
+    )
     timer_based: bool = param(
         True, doc="true: publish the latest record at every polling interval; false: every record as it arrives"
     )
@@ -45,9 +49,10 @@ class StringStampedInput(Measurement):
             raise PluginError("StringStamped needs a ROS node")
         from dc_interfaces.msg import StringStamped
 
-        self._subscription = node.create_subscription(
-            StringStamped, self.params.topic, self._on_message, self.params.qos_depth
-        )
+        topic = ros_topic(self.params.topic)
+        if topic != self.params.topic:
+            self.context.logger.warning(f"topic {self.params.topic!r} is not a valid ROS 2 name: listening on {topic!r}")
+        self._subscription = node.create_subscription(StringStamped, topic, self._on_message, self.params.qos_depth)
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:

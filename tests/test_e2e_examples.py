@@ -1,0 +1,198 @@
+"""The seed's configuration examples through `dc-bringup`, read as a user reads them: on stdout.
+
+Each test starts the real launcher, which starts each server as its own process and drives them
+through their lifecycle; records arrive on stdout from the Stdout destination.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.bringup_util import REPO, Bringup, dc
+
+EXAMPLES = REPO / "params" / "examples"
+pytestmark = pytest.mark.e2e
+
+
+def uptime_now() -> float:
+    return float(Path("/proc/uptime").read_text().split()[0])
+
+
+def test_example_1_uptime_every_second(tmp_path: Path) -> None:
+    with Bringup(EXAMPLES / "example_1.yaml", tmp_path) as run:
+        records = run.wait_records(4, timeout=60)
+    first = records[0]
+    assert {"date", "time", "run_id", "name"} <= set(first)
+    assert "tags" not in first, "routing tags are removed before delivery"
+    assert first["name"] == "uptime" and first["run_id"] == "1"
+    assert abs(first["time"] - uptime_now()) < 60
+    dates = [r["date"] for r in records[:4]]
+    gaps = [b - a for a, b in itertools.pairwise(dates)]
+    assert all(0.8 < g < 1.2 for g in gaps), gaps
+    assert run.returncode == 0
+
+
+def test_example_2_flush_every_three_seconds_delivers_in_batches(tmp_path: Path) -> None:
+    with Bringup(EXAMPLES / "example_2.yaml", tmp_path) as run:
+        records = run.wait_records(6, timeout=60)
+        arrivals = run.record_times()
+    dates = [r["date"] for r in records[:6]]
+    assert all(0.8 < b - a < 1.2 for a, b in itertools.pairwise(dates)), dates
+    # Collected every second, delivered every 3 s: several records arrive within a few ms.
+    bursts = sum(1 for a, b in itertools.pairwise(arrivals) if b - a < 0.1)
+    assert bursts >= 2, arrivals
+
+
+def test_example_3_only_three_records(tmp_path: Path) -> None:
+    with Bringup(EXAMPLES / "example_3.yaml", tmp_path) as run:
+        run.wait_records(3, timeout=60)
+        run.wait_stderr("uptime: done", timeout=10)
+        # The timer is stopped: nothing else can come. Give a late record its chance to show.
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline and len(run.records()) == 3:
+            time.sleep(0.2)
+    assert len(run.records()) == 3
+
+
+def test_run_id_increments_between_starts(tmp_path: Path) -> None:
+    for expected in ("1", "2"):
+        with Bringup(EXAMPLES / "example_3.yaml", tmp_path) as run:
+            records = run.wait_records(1, timeout=60)
+        assert records[0]["run_id"] == expected
+
+
+@pytest.mark.parametrize("example", ["example_6_fixed.yaml", "example_7_fixed.yaml"])
+def test_examples_6_and_7_deliver_what_dc_pub_publishes(tmp_path: Path, example: str) -> None:
+    with Bringup(EXAMPLES / example, tmp_path) as run:
+        run.wait_ready()
+        published = dc("pub", "/hello-world", '{"hello": "world"}', "--count", "3", "--rate", "2", env=run.env)
+        assert published.returncode == 0, published.stderr
+        records = run.wait_records(1 if "6" in example else 3, timeout=30)
+    assert records[0]["hello"] == "world" and records[0]["name"] == "my_string_stamped"
+    if "7" in example:
+        assert len(records) == 3, "every published record is forwarded once, no duplicate"
+
+
+def test_example_6_as_printed_warns_and_delivers_nothing(tmp_path: Path) -> None:
+    with Bringup(EXAMPLES / "example_6.yaml", tmp_path) as run:
+        run.wait_ready()
+        assert any("is published by nothing" in line for line in run.stderr)
+        dc("pub", "/hello-world", '{"hello": "world"}', "--count", "2", "--rate", "5", env=run.env)
+    assert run.records() == []
+
+
+INDEPENDENT_PUBLISHER = """
+import json, sys, time
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from dc_interfaces.msg import StringStamped
+rclpy.init()
+node = rclpy.create_node("robot_app")
+qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+pub = node.create_publisher(StringStamped, "/robot/events", qos)
+deadline = time.monotonic() + 30
+while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+    rclpy.spin_once(node, timeout_sec=0.05)
+for i in range(20):
+    msg = StringStamped()
+    msg.header.stamp.sec = 1700000000 + i
+    msg.data = json.dumps({"seq": i, "event": "dock"})
+    msg.group_key = "events"
+    pub.publish(msg)
+deadline = time.monotonic() + 2
+while time.monotonic() < deadline:
+    rclpy.spin_once(node, timeout_sec=0.05)
+"""
+
+
+def test_independent_rclpy_node_reaches_a_file_destination(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    params = tmp_path / "params.yaml"
+    params.write_text(f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["events"]
+    events:
+      plugin: "dc_measurements/StringStamped"
+      topic: "/robot/events"
+      timer_based: false
+      tags: ["file"]
+destination_server:
+  ros__parameters:
+    destination_plugins: ["file"]
+    file:
+      plugin: "dc_destinations/File"
+      path: "{out}"
+      file: "events.jsonl"
+      time_format: "iso8601"
+      inputs: ["/dc/measurement/events"]
+""")
+    with Bringup(params, tmp_path / "home") as run:
+        run.wait_ready()
+        subprocess.run([sys.executable, "-c", INDEPENDENT_PUBLISHER], env=run.env, check=True, timeout=60)
+        target = out / "events.jsonl"
+        run.wait_until(lambda: target.exists() and len(target.read_text().splitlines()) >= 20, 30, "20 lines")
+    lines = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
+    assert [r["seq"] for r in lines] == list(range(20))
+    # The source's stamp is kept: record i was stamped 1700000000 + i.
+    assert lines[3]["date"] == "2023-11-14T22:13:23.000000Z"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("measurement_server:\n  ros__parameters:\n    measurement_plugins: [u\n", "invalid YAML"),
+        (
+            "measurement_server:\n  ros__parameters:\n    measurement_plugins: [u]\n    u:\n      plugin: dc_measurements/Nope\n",
+            "measurement_server.u.plugin: unknown measurement plugin",
+        ),
+        (
+            "measurement_server:\n  ros__parameters:\n    measurement_plugins: [u]\n    u:\n"
+            "      plugin: dc_measurements/Uptime\n      polling_interval: fast\n",
+            'measurement_server.u.polling_interval: expected an integer, got "fast"',
+        ),
+    ],
+    ids=["invalid-yaml", "unknown-plugin", "wrong-type"],
+)
+def test_invalid_configuration_stops_before_anything_starts(tmp_path: Path, text: str, message: str) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text(text)
+    with Bringup(params, tmp_path / "home") as run:
+        code = run.wait_exit(30)
+    assert code == 2
+    assert any(message in line for line in run.stderr), run.stderr
+    assert not any("active (pid" in line for line in run.stderr)
+
+
+def test_killed_server_is_restarted_and_collection_resumes(tmp_path: Path) -> None:
+    with Bringup(EXAMPLES / "example_1.yaml", tmp_path, args=["--bond-timeout", "3"]) as run:
+        run.wait_records(2, timeout=60)
+        line = next(s for s in run.stderr if "measurement_server active (pid" in s)
+        pid = int(line.rsplit("pid ", 1)[1].rstrip(")"))
+        os.kill(pid, signal.SIGKILL)
+        run.wait_stderr("measurement_server exited with code -9: restarting it", timeout=30)
+        before = len(run.records())
+        run.wait_records(before + 2, timeout=60)
+    run_ids = {r["run_id"] for r in run.records()}
+    assert run_ids == {"1", "2"}, "the restarted server is a new run"
+
+
+def test_hung_server_is_detected_by_missing_heartbeat(tmp_path: Path) -> None:
+    with Bringup(EXAMPLES / "example_1.yaml", tmp_path, args=["--bond-timeout", "2"]) as run:
+        run.wait_records(1, timeout=60)
+        line = next(s for s in run.stderr if "measurement_server active (pid" in s)
+        pid = int(line.rsplit("pid ", 1)[1].rstrip(")"))
+        os.kill(pid, signal.SIGSTOP)  # alive but silent: only the heartbeat can tell
+        run.wait_stderr("measurement_server no heartbeat for", timeout=30)
+        run.wait_stderr("measurement_server active (pid", timeout=60)
+        before = len(run.records())
+        run.wait_records(before + 1, timeout=30)
