@@ -1,0 +1,166 @@
+"""The group server through `dc-bringup`, read as a user reads it: merged records on stdout."""
+
+from __future__ import annotations
+
+from itertools import pairwise
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from tests.bringup_util import REPO, Bringup
+
+pytestmark = pytest.mark.e2e
+
+
+def dummy(value: str, polling_interval: int, **extra: Any) -> dict[str, Any]:
+    return {
+        "plugin": "dc_measurements/Dummy",
+        "record": f'{{"value": "{value}"}}',
+        "polling_interval": polling_interval,
+        **extra,
+    }
+
+
+def write_config(
+    tmp_path: Path, measurements: dict[str, dict[str, Any]], groups: dict[str, dict[str, Any]], listen: str
+) -> Path:
+    config = {
+        "measurement_server": {
+            "ros__parameters": {"measurement_plugins": list(measurements), "run_id": {"enabled": False}, **measurements}
+        },
+        "group_server": {"ros__parameters": {"groups": list(groups), **groups}},
+        "destination_server": {
+            "ros__parameters": {
+                "destination_plugins": ["stdout"],
+                "stdout": {"plugin": "dc_destinations/Stdout", "inputs": [listen]},
+            }
+        },
+    }
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
+def body(record: dict[str, Any]) -> dict[str, Any]:
+    """A delivered record without what the destination adds (its time key, a record id)."""
+    return {k: v for k, v in record.items() if k not in ("date", "record_id")}
+
+
+def gaps(records: list[dict[str, Any]]) -> list[float]:
+    dates = [r["date"] for r in records]
+    return [b - a for a, b in pairwise(dates)]
+
+
+def test_example_5_cpu_and_memory_as_a_group(tmp_path: Path) -> None:
+    with Bringup(REPO / "params" / "examples" / "example_5_fixed.yaml", tmp_path / "home") as run:
+        records = run.wait_records(2, timeout=60)
+    for record in records[:2]:
+        # No group_key on the measurements: each record is nested under its topic's last segment.
+        assert set(body(record)) == {"cpu", "memory", "name"}, record
+        assert record["name"] == "cpu_memory"
+        assert "tags" not in record["cpu"] and "tags" not in record["memory"]
+        assert record["cpu"]["name"] == "cpu" and record["memory"]["name"] == "memory"
+        assert 0 <= record["memory"]["used"] <= 100
+    assert 4.5 < gaps(records[:2])[0] < 5.5
+
+
+def test_group_demo_memory_and_uptime(tmp_path: Path) -> None:
+    with Bringup(REPO / "params" / "demos" / "group_memory_uptime_stdout.yaml", tmp_path / "home") as run:
+        records = run.wait_records(3, timeout=60)
+    for record in records[:3]:
+        assert set(body(record)) == {"memory", "uptime"}, record  # include_group_name: false
+        assert set(record["uptime"]) >= {"time"} and set(record["memory"]) >= {"used"}
+    # One record per uptime sample (every 3 s), dated by the set's stamps, not by publication.
+    assert all(2.7 < g < 3.3 for g in gaps(records[:3])), gaps(records[:3])
+    uptimes = [r["uptime"]["time"] for r in records[:3]]
+    assert all(2 <= b - a <= 4 for a, b in pairwise(uptimes)), uptimes
+
+
+def test_three_inputs_at_different_rates(tmp_path: Path) -> None:
+    params = write_config(
+        tmp_path,
+        {
+            "fast": dummy("fast", 500, group_key="f"),
+            "medium": dummy("medium", 1000),
+            "slow": dummy("slow", 2000),
+        },
+        {
+            "trio": {
+                "inputs": ["/dc/measurement/fast", "/dc/measurement/medium", "/dc/measurement/slow"],
+                "sync_delay": 0.3,
+                "tags": ["stdout"],
+                "exclude_keys": ["*.name"],
+            }
+        },
+        "/dc/group/trio",
+    )
+    with Bringup(params, tmp_path / "home") as run:
+        records = run.wait_records(3, timeout=60)
+    for record in records[:3]:
+        assert body(record) == {
+            "f": {"value": "fast"},
+            "medium": {"value": "medium"},
+            "slow": {"value": "slow"},
+            "name": "trio",
+        }
+    # One set per message of the slowest input.
+    assert all(1.7 < g < 2.3 for g in gaps(records[:3])), gaps(records[:3])
+
+
+def test_partial_records_when_one_input_stops(tmp_path: Path) -> None:
+    params = write_config(
+        tmp_path,
+        {"steady": dummy("steady", 1000), "stops": dummy("stops", 1000, init_max_measurements=2)},
+        {
+            "pair": {
+                "inputs": ["/dc/measurement/steady", "/dc/measurement/stops"],
+                "sync_delay": 0.5,
+                "sync_timeout": 1.5,
+                "on_sync_timeout": "emit_partial",
+                "tags": ["stdout"],
+            }
+        },
+        "/dc/group/pair",
+    )
+    with Bringup(params, tmp_path / "home") as run:
+        run.wait_records(3, timeout=60, predicate=lambda r: "missing_inputs" in r)
+        records = run.records()
+    complete = [r for r in records if "missing_inputs" not in r]
+    partial = [r for r in records if "missing_inputs" in r]
+    assert len(complete) == 2
+    assert all(set(r) >= {"steady", "stops"} for r in complete)
+    for record in partial:
+        assert record["missing_inputs"] == ["/dc/measurement/stops"]
+        assert "stops" not in record and record["steady"]["value"] == "steady"
+    # Partial records keep the pace of the input that still publishes, dated by its stamps.
+    assert all(0.8 < g < 1.2 for g in gaps(partial[:3])), gaps(partial[:3])
+
+
+def test_a_group_is_the_input_of_another(tmp_path: Path) -> None:
+    params = write_config(
+        tmp_path,
+        {
+            "memory": {"plugin": "dc_measurements/Memory", "group_key": "memory", "polling_interval": 1000},
+            "uptime": {"plugin": "dc_measurements/Uptime", "group_key": "uptime", "polling_interval": 1000},
+            "extra": dummy("extra", 1000, group_key="extra"),
+        },
+        {
+            "memory_uptime": {"inputs": ["/dc/measurement/memory", "/dc/measurement/uptime"], "sync_delay": 0.5},
+            "system": {
+                "inputs": ["/dc/group/memory_uptime", "/dc/measurement/extra"],
+                "sync_delay": 0.5,
+                "tags": ["stdout"],
+                "exclude_keys": ["*.name", "memory_uptime.*.name"],
+            },
+        },
+        "/dc/group/system",
+    )
+    with Bringup(params, tmp_path / "home") as run:
+        records = run.wait_records(2, timeout=60)
+    for record in records[:2]:
+        assert set(body(record)) == {"memory_uptime", "extra", "name"}, record
+        assert set(record["memory_uptime"]) == {"memory", "uptime"}
+        assert record["extra"] == {"value": "extra"} and record["name"] == "system"
+    assert all(0.8 < g < 1.2 for g in gaps(records[:2])), gaps(records[:2])
