@@ -34,6 +34,14 @@ class LifecycleManager(Node):
     def _on_heartbeat(self, msg: Any) -> None:
         self._last_heartbeat[msg.node_name] = time.monotonic()
 
+    def _forget_clients(self, server: str) -> None:
+        # A client matched with a dead process' service may send its request there only: a restarted
+        # server gets fresh clients.
+        clients = self._lifecycle_clients.pop(server, None)
+        if clients is not None:
+            for client in clients:
+                self.destroy_client(client)
+
     def _client(self, server: str) -> tuple[Any, Any]:
         if server not in self._lifecycle_clients:
             self._lifecycle_clients[server] = (
@@ -58,9 +66,15 @@ class LifecycleManager(Node):
             return None
         return future.result()
 
-    def _wait_ready(self, proc: ServerProcess) -> bool:
-        change, get = self._client(proc.name)
+    def _wait_ready(self, proc: ServerProcess, started: float) -> bool:
+        """The new process sent a heartbeat and its lifecycle services are discovered."""
         deadline = time.monotonic() + self.service_timeout
+        while self._last_heartbeat.get(proc.name, 0.0) < started:
+            if not proc.running() or time.monotonic() > deadline:
+                return False
+            self.spin_for(0.05)
+        self._forget_clients(proc.name)
+        change, get = self._client(proc.name)
         while time.monotonic() < deadline:
             if not proc.running():
                 return False
@@ -69,26 +83,36 @@ class LifecycleManager(Node):
             self.spin_for(0.05)
         return False
 
-    def transition(self, server: str, label: str) -> bool:
-        """Send a transition by label (an id sent to a wrong state kills rclpy's service; see notes)."""
-        change, _ = self._client(server)
-        request = ChangeState.Request()
-        request.transition = Transition(label=label)
-        response = self._call(change, request, self.service_timeout)
-        return bool(response is not None and response.success)
+    def transition(self, server: str, label: str, target: str, attempts: int = 3) -> bool:
+        """Send a transition by label (an id sent to a wrong state kills rclpy's service; see notes).
+
+        A request lost in transit is retried; the state is checked first so a transition that did
+        happen is never sent twice.
+        """
+        for _ in range(attempts):
+            change, _ = self._client(server)
+            request = ChangeState.Request()
+            request.transition = Transition(label=label)
+            response = self._call(change, request, self.service_timeout / attempts)
+            if response is not None:
+                return bool(response.success)
+            if self.state(server) == target:
+                return True
+            self.get_logger().warning(f"{server}: no answer to {label}; asking again")
+        return False
 
     def state(self, server: str) -> str | None:
         _, get = self._client(server)
         response = self._call(get, GetState.Request(), 5.0)
         return None if response is None else str(response.current_state.label)
 
-    def bring_up(self, proc: ServerProcess) -> bool:
+    def bring_up(self, proc: ServerProcess, started: float) -> bool:
         log = self.get_logger()
-        if not self._wait_ready(proc):
+        if not self._wait_ready(proc, started):
             log.error(f"{proc.name} did not come up (exit code {proc.exit_code()})")
             return False
-        for label in ("configure", "activate"):
-            if not self.transition(proc.name, label):
+        for label, target in (("configure", "inactive"), ("activate", "active")):
+            if not self.transition(proc.name, label, target):
                 log.error(f"{proc.name}: {label} failed (see its log above)")
                 return False
         self._watch_since[proc.name] = time.monotonic()
@@ -97,8 +121,9 @@ class LifecycleManager(Node):
 
     def start_all(self) -> bool:
         for proc in self.servers:
+            started = time.monotonic()
             proc.start()
-            if not self.bring_up(proc):
+            if not self.bring_up(proc, started):
                 return False
         return True
 
@@ -119,8 +144,9 @@ class LifecycleManager(Node):
             proc.kill()
             self._last_heartbeat.pop(proc.name, None)
             self.restarts[proc.name] += 1
+            started = time.monotonic()
             proc.start()
-            if not self.bring_up(proc):
+            if not self.bring_up(proc, started):
                 self.get_logger().error(f"{proc.name} could not be restarted; will try again")
                 self._watch_since[proc.name] = time.monotonic()
 

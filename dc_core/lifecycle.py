@@ -35,7 +35,7 @@ HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 class ManagedServer(LifecycleNode):
     """A DC server process' node."""
 
-    def __init__(self, node_name: str, params_file: str, heartbeat_period: float = 1.0) -> None:
+    def __init__(self, node_name: str, params_file: str, heartbeat_period: float = 0.5) -> None:
         super().__init__(node_name)
         self.params_file = params_file
         self._heartbeat_seq = 0

@@ -40,7 +40,7 @@ class MeasurementServerParams:
     all_base_path: str = param("", doc="Prefix for local and remote paths ($ENV, =custom_param)")
     custom_str_params_list: list[str] = param([], doc="Ids of custom string parameters added to records")
     run_id: RunIdParams = param(default_factory=RunIdParams, doc="Run identifier")
-    heartbeat_period: float = param(1.0, minimum=0.05, doc="Seconds between heartbeats to the manager")
+    heartbeat_period: float = param(0.5, minimum=0.05, doc="Seconds between heartbeats to the manager")
 
 
 @dataclass(frozen=True, kw_only=True)
