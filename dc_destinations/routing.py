@@ -18,6 +18,7 @@ from dc_core.destination import OutgoingRecord
 from dc_core.timefmt import format_stamp
 from dc_destinations.config import DestinationConfig
 
+RECORD_ID_KEY = "record_id"
 TAGS_KEY = "tags"
 
 # Reasons a record reaches no destination (also the keys of the server's unrouted counters).
@@ -105,6 +106,10 @@ class RoutingTable:
         if not targets:
             return Routed(unrouted_reason=NO_LISTENER)
         body = {k: v for k, v in record.items() if k != TAGS_KEY}
+        # One id per received record, shared by its destinations and kept in the delivered JSON so
+        # that sinks can deduplicate what at-least-once delivery may send twice.
+        record_id = new_record_id()
+        body[RECORD_ID_KEY] = record_id
         deliveries = []
         for target in targets:
             data = dict(body)
@@ -112,5 +117,5 @@ class RoutingTable:
                 data.pop(target.time_key, None)
                 # First, as the original's output showed it: {"date": ..., <record>}.
                 data = {target.time_key: format_stamp(stamp_ns, target.time_format), **data}
-            deliveries.append((target.name, OutgoingRecord(new_record_id(), topic, stamp_ns, data)))
+            deliveries.append((target.name, OutgoingRecord(record_id, topic, stamp_ns, data)))
         return Routed(deliveries)

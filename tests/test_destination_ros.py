@@ -131,7 +131,9 @@ def test_published_records_reach_the_file_destination(running: Running) -> None:
 
     assert running.spin_until(lambda: len(running.lines()) >= 5), f"file has {running.lines()}"
     assert running.spin_until(lambda: server.stats.received >= 9)
-    assert running.lines() == [
+    lines = running.lines()
+    assert len({line.pop("record_id") for line in lines}) == 5, "each record carries its own record_id"
+    assert lines == [
         {"date": "2023-11-14T22:13:20.005000Z", "name": "uptime", "time": i} for i in range(5)
     ]
     assert server.stats.malformed == 2

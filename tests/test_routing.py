@@ -79,8 +79,8 @@ def test_delivered_record_drops_tags_and_starts_with_the_time_key() -> None:
     assert name == "a"
     assert out.topic == "/up"
     assert out.stamp_ns == stamp_ns
-    assert list(out.data) == ["date", "time", "robot_name"]
-    assert out.to_json() == '{"date":1677668906.5,"time":92395,"robot_name":"C3PO"}'
+    assert list(out.data) == ["date", "time", "robot_name", "record_id"]
+    assert out.to_json() == f'{{"date":1677668906.5,"time":92395,"robot_name":"C3PO","record_id":"{out.record_id}"}}'
 
 
 def test_double_time_prints_as_the_stamp_s_decimal() -> None:
@@ -105,7 +105,7 @@ def test_time_formats(time_format: str, expected: float | str) -> None:
 def test_iso8601_with_a_tiny_fraction_is_zero_padded() -> None:
     t = RoutingTable({"/up": [RouteTarget("a", "ts", "iso8601")]})
     ((_, out),) = t.route("/up", {"tags": ["a"]}, 1_700_000_000_000_001_000).deliveries
-    assert out.data == {"ts": "2023-11-14T22:13:20.000001Z"}
+    assert out.data == {"ts": "2023-11-14T22:13:20.000001Z", "record_id": out.record_id}
 
 
 def test_each_destination_gets_its_own_time_key_format_and_copy() -> None:
@@ -113,28 +113,30 @@ def test_each_destination_gets_its_own_time_key_format_and_copy() -> None:
     routed = t.route("/up", {"tags": ["a", "b"], "time": 1}, STAMP_NS)
     (a_name, a), (b_name, b) = routed.deliveries
     assert (a_name, b_name) == ("a", "b")
-    assert a.data == {"date": STAMP_S, "time": 1}
-    assert b.data == {"@timestamp": "2023-03-01T11:08:26.045817Z", "time": 1}
+    assert a.data == {"date": STAMP_S, "time": 1, "record_id": a.record_id}
+    assert b.data == {"@timestamp": "2023-03-01T11:08:26.045817Z", "time": 1, "record_id": b.record_id}
     assert a.data is not b.data
 
 
 def test_empty_time_key_adds_no_time() -> None:
     t = RoutingTable({"/up": [RouteTarget("a", "", "double")]})
     ((_, out),) = t.route("/up", {"tags": ["a"], "time": 1}, STAMP_NS).deliveries
-    assert out.data == {"time": 1}
+    assert out.data == {"time": 1, "record_id": out.record_id}
 
 
 def test_time_key_replaces_a_record_value_of_the_same_name() -> None:
     ((_, out),) = table(a=["/up"]).route("/up", {"tags": ["a"], "date": "yesterday"}, STAMP_NS).deliveries
-    assert out.data == {"date": STAMP_S}
+    assert out.data == {"date": STAMP_S, "record_id": out.record_id}
 
 
-def test_every_delivery_gets_a_fresh_record_id_from_the_given_source() -> None:
+def test_a_record_gets_one_id_shared_by_its_destinations_and_kept_in_its_json() -> None:
     counter = itertools.count(1)
-    routed = table(a=["/up"], b=["/up"]).route(
-        "/up", {"tags": ["a", "b"]}, STAMP_NS, new_record_id=lambda: f"id-{next(counter)}"
-    )
-    assert [r.record_id for _, r in routed.deliveries] == ["id-1", "id-2"]
+    t = table(a=["/up"], b=["/up"])
+    routed = t.route("/up", {"tags": ["a", "b"]}, STAMP_NS, new_record_id=lambda: f"id-{next(counter)}")
+    assert [r.record_id for _, r in routed.deliveries] == ["id-1", "id-1"]
+    assert [r.data["record_id"] for _, r in routed.deliveries] == ["id-1", "id-1"]
+    again = t.route("/up", {"tags": ["a"]}, STAMP_NS, new_record_id=lambda: f"id-{next(counter)}")
+    assert again.deliveries[0][1].record_id == "id-2"
 
 
 def test_default_record_ids_are_unique() -> None:
