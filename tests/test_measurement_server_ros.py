@@ -1,0 +1,373 @@
+"""measurement_server as a real lifecycle node, driven transition by transition in this process.
+
+The server runs in rclpy's default context (fresh per test); the test's own node, which listens
+to the server's records and publishes its inputs, lives in a second context: its own DDS
+participant, as another process' node would be.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from dc_interfaces.msg import StringStamped
+from dc_measurements.server import MeasurementServer
+
+DEADLINE_S = 15.0
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+SUCCESS = TransitionCallbackReturn.SUCCESS
+FAILURE = TransitionCallbackReturn.FAILURE
+DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "measurements"
+
+
+@dataclass
+class Harness:
+    tmp_path: Path
+    peer: Node
+    peer_executor: SingleThreadedExecutor
+    server_executor: SingleThreadedExecutor
+    server: MeasurementServer | None = None
+    received: dict[str, list[Any]] = field(default_factory=dict)
+
+    def start_server(self, measurement_server_yaml: str) -> MeasurementServer:
+        params = self.tmp_path / "params.yaml"
+        params.write_text(measurement_server_yaml)
+        self.server = MeasurementServer(str(params))
+        self.server_executor.add_node(self.server)
+        return self.server
+
+    def spin_once(self) -> None:
+        self.server_executor.spin_once(timeout_sec=0.01)
+        self.peer_executor.spin_once(timeout_sec=0.01)
+
+    def spin_until(self, done: Callable[[], bool], what: str, timeout: float = DEADLINE_S) -> None:
+        deadline = time.monotonic() + timeout
+        while not done():
+            assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
+            self.spin_once()
+
+    def spin_for(self, seconds: float) -> None:
+        """Keep both nodes running for a while: to show that something does *not* happen."""
+        until = time.monotonic() + seconds
+        while time.monotonic() < until:
+            self.spin_once()
+
+    def listen(self, topic: str) -> list[Any]:
+        """Every StringStamped received on ``topic`` (the list fills while spinning)."""
+        messages = self.received.setdefault(topic, [])
+        self.peer.create_subscription(StringStamped, topic, messages.append, RELIABLE)
+        return messages
+
+    def wait_publisher(self, topic: str) -> None:
+        subscription = next(s for s in self.peer.subscriptions if s.topic_name == topic)
+        self.spin_until(lambda: subscription.get_publisher_count() >= 1, f"the server's publisher on {topic}")
+
+    def input_publisher(self, topic: str) -> Any:
+        """A publisher on ``topic``, returned once the server's subscription has matched it."""
+        publisher = self.peer.create_publisher(StringStamped, topic, RELIABLE)
+        self.spin_until(lambda: publisher.get_subscription_count() >= 1, f"the server to subscribe to {topic}")
+        return publisher
+
+
+@pytest.fixture
+def harness(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Harness]:
+    monkeypatch.setenv("HOME", str(tmp_path))  # the run id counter file stays in the test
+    rclpy.init()  # the server's node uses the default context
+    peer_context = Context()
+    rclpy.init(context=peer_context)
+    try:
+        peer = rclpy.create_node(f"dc_test_peer_{uuid.uuid4().hex[:8]}", context=peer_context)
+        peer_executor = SingleThreadedExecutor(context=peer_context)
+        peer_executor.add_node(peer)
+        h = Harness(tmp_path, peer, peer_executor, SingleThreadedExecutor())
+        try:
+            yield h
+        finally:
+            if h.server is not None:
+                if h.server.lifecycle_state in ("active", "inactive"):
+                    h.server.trigger_shutdown()
+                h.server_executor.shutdown()
+                h.server.destroy_node()
+            peer_executor.shutdown()
+            peer.destroy_node()
+    finally:
+        rclpy.shutdown(context=peer_context)
+        rclpy.shutdown()
+
+
+def unique(prefix: str) -> str:
+    return f"{prefix}_{uuid.uuid4().hex[:8]}"
+
+
+def records(messages: list[Any]) -> list[dict[str, Any]]:
+    return [json.loads(m.data) for m in messages]
+
+
+def more_than(messages: list[Any], count: int) -> Callable[[], bool]:
+    return lambda: len(messages) > count
+
+
+def uptime_params(name: str, polling_interval: int, init_collect: bool) -> str:
+    return f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["{name}"]
+    {name}:
+      plugin: "dc_measurements/Uptime"
+      polling_interval: {polling_interval}
+      init_collect: {str(init_collect).lower()}
+"""
+
+
+# --- lifecycle -----------------------------------------------------------------------------------
+
+
+def test_timers_start_on_activate_stop_on_deactivate_and_start_again_on_reactivate(harness: Harness) -> None:
+    name = unique("uptime")
+    server = harness.start_server(uptime_params(name, 100, init_collect=False))
+    received = harness.listen(f"/dc/measurement/{name}")
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{name}")
+    runner = server.runners[name]
+
+    harness.spin_for(0.5)
+    assert runner.stats.collected == 0, "configured but inactive: no timer runs yet"
+    assert received == []
+
+    assert server.trigger_activate() == SUCCESS
+    harness.spin_until(lambda: len(received) >= 3, "records after activate")
+
+    assert server.trigger_deactivate() == SUCCESS
+    harness.spin_for(0.3)  # what was already on its way arrives
+    collected, delivered = runner.stats.collected, len(received)
+    harness.spin_for(1.0)  # ten polling intervals
+    assert runner.stats.collected == collected, "collect() must not run while inactive"
+    assert len(received) == delivered, "no record while inactive"
+
+    # The original never published again after a pause: here the timers start again.
+    assert server.trigger_activate() == SUCCESS
+    harness.spin_until(lambda: len(received) >= delivered + 3, "records after re-activate")
+    assert runner.stats.collected > collected
+
+
+def test_cleanup_and_configure_again_restarts_collection(harness: Harness) -> None:
+    name = unique("uptime")
+    server = harness.start_server(uptime_params(name, 100, init_collect=True))
+    received = harness.listen(f"/dc/measurement/{name}")
+    for cycle in (1, 2):
+        assert server.trigger_configure() == SUCCESS
+        assert server.trigger_activate() == SUCCESS
+        harness.spin_until(more_than(received, len(received) + 1), f"records in cycle {cycle}")
+        assert server.trigger_deactivate() == SUCCESS
+        assert server.trigger_cleanup() == SUCCESS
+    # Each configure is a new run: the counter file was incremented twice.
+    run_ids = [r["run_id"] for r in records(received)]
+    assert run_ids[0] == "1" and run_ids[-1] == "2"
+
+
+@pytest.mark.parametrize("init_collect", [True, False])
+def test_init_collect_publishes_at_once(harness: Harness, init_collect: bool) -> None:
+    name = unique("uptime")
+    server = harness.start_server(uptime_params(name, 10_000, init_collect=init_collect))
+    received = harness.listen(f"/dc/measurement/{name}")
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{name}")
+    activated = time.monotonic()
+    assert server.trigger_activate() == SUCCESS
+    if init_collect:
+        # The first polling interval ends after 10 s: this record is the one collected at activation.
+        harness.spin_until(lambda: len(received) == 1, "the record collected at activation", timeout=3.0)
+        assert time.monotonic() - activated < 3.0
+        assert isinstance(records(received)[0]["time"], int)
+    else:
+        harness.spin_for(1.5)
+        assert received == [] and server.runners[name].stats.collected == 0
+
+
+# --- a failing configure -------------------------------------------------------------------------
+
+
+def test_unreadable_value_from_file_fails_configure_clearly_then_configure_succeeds(
+    harness: Harness, capfd: pytest.CaptureFixture[str]
+) -> None:
+    name = unique("uptime")
+    robot_file = harness.tmp_path / "robot_name"
+    server = harness.start_server(
+        uptime_params(name, 100, init_collect=True)
+        + f"""
+    custom_str_params_list: ["robot_name"]
+    custom_str_params:
+      robot_name:
+        name: "robot_name"
+        value_from_file: "{robot_file}"
+"""
+    )
+    received = harness.listen(f"/dc/measurement/{name}")
+    assert server.trigger_configure() == FAILURE
+    assert server.lifecycle_state == "unconfigured"
+    log = capfd.readouterr().err
+    assert re.search(
+        rf"configure failed: measurement_server\.custom_str_params\.robot_name\.value_from_file: "
+        rf"cannot read {re.escape(str(robot_file))}: No such file or directory",
+        log,
+    ), log
+
+    robot_file.write_text("C3PO\n")
+    assert server.trigger_configure() == SUCCESS
+    assert server.trigger_activate() == SUCCESS
+    harness.spin_until(lambda: len(received) >= 1, "a record after the second configure")
+    assert records(received)[0]["robot_name"] == "C3PO"
+
+
+def test_configure_failing_after_a_publisher_was_made_undoes_it(
+    harness: Harness, capfd: pytest.CaptureFixture[str]
+) -> None:
+    first, second = unique("first"), unique("second")
+    schema = harness.tmp_path / "schema.json"
+    server = harness.start_server(f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["{first}", "{second}"]
+    {first}:
+      plugin: "dc_measurements/Uptime"
+      polling_interval: 100
+    {second}:
+      plugin: "dc_measurements/Dummy"
+      polling_interval: 100
+      json_schema_path: "{schema}"
+""")
+    received = harness.listen(f"/dc/measurement/{first}")
+    assert server.trigger_configure() == FAILURE
+    assert f"cannot read JSON schema '{schema}'" in capfd.readouterr().err
+    assert server.runners == {} and server.conditions == {}
+
+    schema.write_text('{"type": "object", "required": ["message"]}')
+    assert server.trigger_configure() == SUCCESS
+    subscription = next(s for s in harness.peer.subscriptions if s.topic_name == f"/dc/measurement/{first}")
+    harness.spin_until(lambda: subscription.get_publisher_count() >= 1, "the publisher")
+    harness.spin_for(0.3)
+    assert subscription.get_publisher_count() == 1, "the publisher of the failed configure was destroyed"
+    assert server.trigger_activate() == SUCCESS
+    harness.spin_until(lambda: len(received) >= 2, "records")
+
+
+# --- event-driven StringStamped ------------------------------------------------------------------
+
+
+def string_stamped_params(name: str, topic: str, timer_based: bool) -> str:
+    return f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["{name}"]
+    {name}:
+      plugin: "dc_measurements/StringStamped"
+      topic: "{topic}"
+      timer_based: {str(timer_based).lower()}
+      polling_interval: 100
+      group_key: "configured_key"
+"""
+
+
+def stamped(data: str, sec: int = 0, nanosec: int = 0, group_key: str = "") -> StringStamped:
+    msg = StringStamped()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    msg.data = data
+    msg.group_key = group_key
+    return msg
+
+
+def test_event_driven_string_stamped_publishes_each_record_once_with_its_stamp_and_group_key(
+    harness: Harness,
+) -> None:
+    name, topic = unique("events"), f"/{unique('robot_events')}"
+    server = harness.start_server(string_stamped_params(name, topic, timer_based=False))
+    received = harness.listen(f"/dc/measurement/{name}")
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{name}")
+    assert server.trigger_activate() == SUCCESS
+    publisher = harness.input_publisher(topic)
+
+    for seq in range(5):
+        # The last one has no group key of its own: the configured one applies.
+        publisher.publish(
+            stamped(json.dumps({"seq": seq}), 1_700_000_000 + seq, 1_000 * seq, "source_key" if seq < 4 else "")
+        )
+    harness.spin_until(lambda: len(received) >= 5, "the five records")
+    # Ten polling intervals more: the original re-published the latest record at each of them.
+    harness.spin_for(1.0)
+    assert [r["seq"] for r in records(received)] == [0, 1, 2, 3, 4]
+    assert [(m.header.stamp.sec, m.header.stamp.nanosec) for m in received] == [
+        (1_700_000_000 + seq, 1_000 * seq) for seq in range(5)
+    ]
+    assert [m.group_key for m in received] == ["source_key"] * 4 + ["configured_key"]
+    assert all(r["name"] == name for r in records(received))
+
+
+@pytest.mark.parametrize("timer_based", [False, True], ids=["event-driven", "timer-based"])
+def test_malformed_input_is_logged_and_counted_and_the_next_record_passes(
+    harness: Harness, capfd: pytest.CaptureFixture[str], timer_based: bool
+) -> None:
+    name, topic = unique("events"), f"/{unique('robot_events')}"
+    server = harness.start_server(string_stamped_params(name, topic, timer_based=timer_based))
+    received = harness.listen(f"/dc/measurement/{name}")
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{name}")
+    assert server.trigger_activate() == SUCCESS
+    publisher = harness.input_publisher(topic)
+    plugin: Any = server.runners[name].plugin
+
+    publisher.publish(stamped('{"seq": 1,'))
+    harness.spin_until(lambda: plugin.malformed == 1, "the first malformed record")
+    publisher.publish(stamped("[1, 2]"))
+    harness.spin_until(lambda: plugin.malformed == 2, "the second malformed record")
+    publisher.publish(stamped('{"seq": 2}', 1_700_000_000))
+    harness.spin_until(lambda: len(received) >= 1, "the valid record")
+    assert [r["seq"] for r in records(received)] == [2]
+    log = capfd.readouterr().err
+    assert f"record on {topic} is not JSON" in log and "'{\"seq\": 1,'" in log, log
+    assert f"record on {topic} is not a JSON object" in log, log
+
+
+# --- the doc pages' examples run -----------------------------------------------------------------
+
+
+def doc_example(page: str) -> tuple[str, dict[str, Any]]:
+    text = (DOCS / f"{page}.md").read_text()
+    config = re.findall(r"```yaml\n(.*?)```", text, re.S)[0]
+    output = json.loads(re.findall(r"```json\n(.*?)```", text, re.S)[0])
+    return config, output
+
+
+@pytest.mark.parametrize("page", ["uptime", "dummy", "string_stamped"])
+def test_doc_page_example_gives_the_documented_record(harness: Harness, page: str) -> None:
+    config, documented = doc_example(page)
+    server = harness.start_server(config)
+    assert server.trigger_configure() == SUCCESS, config
+    (name,) = server.runners
+    topic = server.runners[name].config.output_topic
+    received = harness.listen(topic)
+    harness.wait_publisher(topic)
+    assert server.trigger_activate() == SUCCESS
+    if page == "string_stamped":
+        plugin: Any = server.runners[name].plugin
+        source = harness.input_publisher(plugin.params.topic.replace("-", "_"))
+        payload = {k: v for k, v in documented.items() if k not in ("name", "run_id")}
+        source.publish(stamped(json.dumps(payload), 1_700_000_000))
+    harness.spin_until(lambda: len(received) >= 1, f"the record of {page}.md")
+    record = records(received)[0]
+    assert set(record) == set(documented), record
+    assert record["name"] == documented["name"]
