@@ -60,9 +60,8 @@ def cmd_pub(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-    from dc_interfaces.msg import StringStamped
-
     from dc_core.topics import ros_topic, topic_problem
+    from dc_interfaces.msg import StringStamped
 
     problem = topic_problem(args.topic)
     if problem is not None:

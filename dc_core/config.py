@@ -72,3 +72,19 @@ def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     if not servers:
         raise ConfigError("", f"{file}: no DC server section (expected one of {', '.join(SERVERS)})")
     return servers
+
+
+def internal_topics(servers: dict[str, dict[str, Any]]) -> set[str]:
+    """Topics that DC's measurement and group servers publish in this configuration."""
+    topics: set[str] = set()
+    measurements = servers.get("measurement_server", {})
+    for name in measurements.get("measurement_plugins", []) or []:
+        section = measurements.get(name)
+        output = section.get("topic_output") if isinstance(section, Mapping) else None
+        topics.add(output if isinstance(output, str) and output else f"/dc/measurement/{name}")
+    groups = servers.get("group_server", {})
+    for name in groups.get("groups", []) or []:
+        section = groups.get(name)
+        output = section.get("output") if isinstance(section, Mapping) else None
+        topics.add(output if isinstance(output, str) and output else f"/dc/group/{name}")
+    return topics

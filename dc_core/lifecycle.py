@@ -35,8 +35,9 @@ HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 class ManagedServer(LifecycleNode):
     """A DC server process' node."""
 
-    def __init__(self, node_name: str, params_file: str, heartbeat_period: float = 0.5) -> None:
-        super().__init__(node_name)
+    def __init__(self, node_name: str, params_file: str, heartbeat_period: float = 0.5, **node_kwargs: Any) -> None:
+        # node_kwargs reach rclpy's LifecycleNode (e.g. context= for tests with a fresh context).
+        super().__init__(node_name, **node_kwargs)
         self.params_file = params_file
         self._heartbeat_seq = 0
         self._heartbeat_pub = self.create_publisher(Heartbeat, HEARTBEAT_TOPIC, HEARTBEAT_QOS)

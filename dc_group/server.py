@@ -12,11 +12,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError
 from dc_core.lifecycle import ManagedServer, run_server
+from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
 from dc_group.config import GroupServerConfig, parse_group_server
 from dc_group.merge import MalformedRecord, parse_input
 from dc_group.pipeline import GroupOutput, GroupPipeline
@@ -24,7 +23,6 @@ from dc_interfaces.msg import StringStamped
 
 NODE_NAME = "group_server"
 # Same profile as the measurement server's records: reliable, deep enough for bursts.
-RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 # Repeated malformed messages on one topic are logged at most this often (all are counted).
 MALFORMED_LOG_PERIOD_S = 10.0
 
@@ -69,7 +67,9 @@ class GroupServer(ManagedServer):
     def activate_server(self) -> None:
         for topic in self._routes:
             self._input_subscriptions.append(
-                self.create_subscription(StringStamped, topic, self._callback_for(topic), RECORD_QOS)
+                # Volatile: plain ROS 2 nodes can feed a group, and a restarted group server does not
+                # regroup old records into duplicate groups (docs/group_server.md).
+                self.create_subscription(StringStamped, topic, self._callback_for(topic), VOLATILE_RECORD_QOS)
             )
         timeouts = [p.group.sync_timeout for p in self.pipelines.values()]
         # A set times out at most a quarter of its timeout late, and never more than 0.5 s late.

@@ -15,6 +15,7 @@ from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import Logger
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
+from dc_core.qos import RECORD_QOS
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
@@ -24,11 +25,9 @@ from dc_measurements.runner import MeasurementRunner
 from dc_measurements.validation import RecordValidator
 
 NODE_NAME = "measurement_server"
+INIT_MATCH_WAIT_S = 2.0
 # Late subscribers (a dashboard, a test) get the current state of a condition at once.
 CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-# Transient-local history lets a destination_server that starts, or restarts, after a record was
-# published still receive it (see docs/delivery.md, "The hop between servers").
-RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 @dataclass
@@ -56,6 +55,8 @@ class MeasurementServer(ManagedServer):
         self._condition_subscriptions: list[Any] = []
         self._collect_timers: dict[str, Any] = {}
         self._active = False
+        self._init_pending: dict[str, float] = {}
+        self._init_timer: Any = None
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -175,7 +176,9 @@ class MeasurementServer(ManagedServer):
             period = runner.config.common.polling_interval / 1000.0
             self._collect_timers[name] = self.create_timer(period, lambda n=name: self._tick(n))
             if runner.config.common.init_collect:
-                self._tick(name)
+                self._init_pending[name] = time.monotonic() + INIT_MATCH_WAIT_S
+        if self._init_pending:
+            self._init_timer = self.create_timer(0.02, self._init_collect)
 
     @staticmethod
     def _topic_record_callback(runtime: ConditionRuntime) -> Any:
@@ -183,6 +186,25 @@ class MeasurementServer(ManagedServer):
             runtime.on_topic_record(msg.data)
 
         return callback
+
+    def _init_collect(self) -> None:
+        """The first sample waits until its topic is matched (or INIT_MATCH_WAIT_S passed).
+
+        Discovery between processes takes ~0.35 s; a record published before the destination's
+        subscription is matched would reach nobody.
+        """
+        now = time.monotonic()
+        for name, deadline in list(self._init_pending.items()):
+            ticked_already = self.runners[name].stats.collected + self.runners[name].stats.empty > 0
+            if ticked_already:
+                del self._init_pending[name]
+            elif self._record_publishers[name].get_subscription_count() > 0 or now >= deadline:
+                del self._init_pending[name]
+                self._tick(name)
+        if not self._init_pending and self._init_timer is not None:
+            self._init_timer.cancel()
+            self.destroy_timer(self._init_timer)
+            self._init_timer = None
 
     def _tick(self, name: str) -> None:
         runner = self.runners[name]
@@ -204,6 +226,11 @@ class MeasurementServer(ManagedServer):
 
     def deactivate_server(self) -> None:
         self._active = False
+        self._init_pending.clear()
+        if self._init_timer is not None:
+            self._init_timer.cancel()
+            self.destroy_timer(self._init_timer)
+            self._init_timer = None
         for timer in self._collect_timers.values():
             timer.cancel()
             self.destroy_timer(timer)

@@ -51,7 +51,9 @@ class StringStampedInput(Measurement):
 
         topic = ros_topic(self.params.topic)
         if topic != self.params.topic:
-            self.context.logger.warning(f"topic {self.params.topic!r} is not a valid ROS 2 name: listening on {topic!r}")
+            self.context.logger.warning(
+                f"topic {self.params.topic!r} is not a valid ROS 2 name: listening on {topic!r}"
+            )
         self._subscription = node.create_subscription(StringStamped, topic, self._on_message, self.params.qos_depth)
 
     def on_cleanup(self) -> None:

@@ -1,0 +1,35 @@
+"""Quality of service of record topics between DC's servers.
+
+Reliable, with a transient-local history of ``RECORD_HISTORY_DEPTH`` records per topic: a server
+that starts, or restarts, after a record was published still receives it from the publisher's
+history (docs/delivery.md, "The hop between servers"). A subscriber that asks for a volatile
+topic (any plain ROS 2 node) is compatible and simply gets no history.
+"""
+
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+RECORD_HISTORY_DEPTH = 1000
+
+RECORD_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=RECORD_HISTORY_DEPTH,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+# A transient-local subscription does not match a volatile publisher (any plain ROS 2 node, or
+# `ros2 topic pub`), so subscriptions are volatile unless the topic is known to be published by a
+# DC server of the same configuration (dc_core.config.internal_topics).
+VOLATILE_RECORD_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=RECORD_HISTORY_DEPTH,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+
+def subscription_qos(topic: str, internal_topics: set[str]) -> QoSProfile:
+    """Transient-local for topics DC's own servers publish (history after a restart), else volatile."""
+    return RECORD_QOS if topic in internal_topics else VOLATILE_RECORD_QOS
