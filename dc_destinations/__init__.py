@@ -1,0 +1,1 @@
+"""Destination server, durable delivery and the built-in destination plugins."""
