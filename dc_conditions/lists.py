@@ -24,28 +24,28 @@ _ORDER_DOC = "Compare item by item (true) or as multisets, in any order (false)"
 @dataclass(frozen=True, kw_only=True)
 class ListBoolEqualParams:
     key: str = param(doc=_KEY_DOC)
-    value: list[bool] = param(doc="Expected bools")  # noqa: RUF009 (param copies list defaults)
+    value: list[bool] = param(doc="Expected bools")
     order_matters: bool = param(True, doc=_ORDER_DOC)
 
 
 @dataclass(frozen=True, kw_only=True)
 class ListDoubleEqualParams:
     key: str = param(doc=_KEY_DOC)
-    value: list[float] = param(doc="Expected numbers (exact comparison)")  # noqa: RUF009 (param copies list defaults)
+    value: list[float] = param(doc="Expected numbers (exact comparison)")
     order_matters: bool = param(True, doc=_ORDER_DOC)
 
 
 @dataclass(frozen=True, kw_only=True)
 class ListIntegerEqualParams:
     key: str = param(doc=_KEY_DOC)
-    value: list[int] = param(doc="Expected integers")  # noqa: RUF009 (param copies list defaults)
+    value: list[int] = param(doc="Expected integers")
     order_matters: bool = param(True, doc=_ORDER_DOC)
 
 
 @dataclass(frozen=True, kw_only=True)
 class ListStringEqualParams:
     key: str = param(doc=_KEY_DOC)
-    value: list[str] = param(doc="Expected strings")  # noqa: RUF009 (param copies list defaults)
+    value: list[str] = param(doc="Expected strings")
     order_matters: bool = param(True, doc=_ORDER_DOC)
 
 

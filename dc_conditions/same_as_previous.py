@@ -28,10 +28,10 @@ Fingerprint = tuple[dict[str, tuple[str, Any]], dict[str, str]]
 @dataclass(frozen=True, kw_only=True)
 class SameAsPreviousParams:
     # param() copies list defaults, which ruff cannot see (RUF009)
-    keys: list[str] = param(  # noqa: RUF009
+    keys: list[str] = param(
         [], doc="Key paths whose values are file paths: the files' contents are compared, not the paths"
     )
-    exclude: list[str] = param(  # noqa: RUF009
+    exclude: list[str] = param(
         [], doc="Regular expressions over `/`-joined key paths (`cameras/0/stamp`) left out of the comparison"
     )
 

@@ -13,8 +13,9 @@ from dc_core.logs import Logger
 class ConditionRuntime:
     """One configured condition, shared by every measurement that lists it."""
 
-    def __init__(self, name: str, condition: Condition, topic: str, logger: Logger,
-                 publish_state: Callable[[bool], None]) -> None:
+    def __init__(
+        self, name: str, condition: Condition, topic: str, logger: Logger, publish_state: Callable[[bool], None]
+    ) -> None:
         self.name = name
         self.condition = condition
         self.topic = topic
@@ -71,9 +72,7 @@ class ConditionRuntime:
         return active
 
 
-def conditions_met(
-    all_of: list[str], any_of: list[str], none_of: list[str], states: Mapping[str, bool]
-) -> bool:
+def conditions_met(all_of: list[str], any_of: list[str], none_of: list[str], states: Mapping[str, bool]) -> bool:
     """if_all: every one active; if_any: at least one (when listed); if_none: none active."""
     if not all(states[c] for c in all_of):
         return False

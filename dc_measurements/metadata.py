@@ -38,7 +38,9 @@ def next_run_id(params: RunIdParams, path: str = "measurement_server.run_id") ->
     return str(current)
 
 
-def resolve_custom_params(custom: dict[str, CustomStrParam], path: str = "measurement_server") -> list[tuple[str, str, bool]]:
+def resolve_custom_params(
+    custom: dict[str, CustomStrParam], path: str = "measurement_server"
+) -> list[tuple[str, str, bool]]:
     """(key, value, force_override) per custom parameter; files are read once, here."""
     out = []
     for cid, spec in custom.items():

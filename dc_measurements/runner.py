@@ -180,4 +180,3 @@ class MeasurementRunner:
             plugin=c.plugin if c.include_measurement_plugin else None,
             custom=self._custom,
         )
-
