@@ -18,6 +18,7 @@ from typing import Any
 
 import pytest
 import rclpy
+import yaml
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
@@ -25,6 +26,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from dc_interfaces.msg import StringStamped
+from dc_measurements.config import parse_measurement_server
 from dc_measurements.server import MeasurementServer
 
 DEADLINE_S = 15.0
@@ -365,9 +367,18 @@ def test_doc_page_example_gives_the_documented_record(harness: Harness, page: st
     if page == "string_stamped":
         plugin: Any = server.runners[name].plugin
         source = harness.input_publisher(plugin.params.topic.replace("-", "_"))
-        payload = {k: v for k, v in documented.items() if k not in ("name", "run_id")}
+        payload = {k: v for k, v in documented.items() if k not in ("name", "run_id", "tags")}
         source.publish(stamped(json.dumps(payload), 1_700_000_000))
     harness.spin_until(lambda: len(received) >= 1, f"the record of {page}.md")
     record = records(received)[0]
     assert set(record) == set(documented), record
     assert record["name"] == documented["name"]
+
+
+def test_index_page_examples_are_valid_configurations(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HOME", "/home/robot")
+    text = (DOCS / "index.md").read_text()
+    blocks = re.findall(r"```yaml\n(.*?)```", text, re.S)
+    assert blocks
+    for block in blocks:
+        parse_measurement_server(yaml.safe_load(block)["measurement_server"]["ros__parameters"])
