@@ -162,6 +162,7 @@ class DeliveryPipeline:
         self._last_log_tick = 0.0
         self._commit_listeners: list[Callable[[Sequence[tuple[str, str]]], None]] = []
         self._status: StatusServer | None = None
+        self._sections: dict[str, Callable[[], Any]] = {}
         self.storage_file: Path | None = None
 
     # -- lifecycle ----------------------------------------------------------------------------------
@@ -548,6 +549,17 @@ class DeliveryPipeline:
             "running": self._writer is not None and self._writer.is_alive(),
         }
 
+    def add_metrics_section(self, name: str, supplier: Callable[[], Any]) -> None:
+        """Add ``name: supplier()`` to the JSON of ``/api/v1/metrics`` (e.g. the server's intake counters)."""
+        self._sections[name] = supplier
+
+    def status_document(self) -> dict[str, Any]:
+        """What ``/api/v1/metrics`` serves."""
+        document: dict[str, Any] = {"destinations": self.metrics(), "buffer": self.buffer_metrics()}
+        for name, supplier in self._sections.items():
+            document[name] = supplier()
+        return document
+
     def healthy(self) -> bool:
         if self._writer is None or not self._writer.is_alive():
             return False
@@ -566,7 +578,7 @@ class DeliveryPipeline:
                 self.settings.http_listen,
                 self.settings.http_port,
                 health=self.healthy,
-                metrics=lambda: {"destinations": self.metrics(), "buffer": self.buffer_metrics()},
+                metrics=self.status_document,
                 prometheus=self.prometheus,
             )
         except OSError as exc:
