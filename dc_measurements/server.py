@@ -71,9 +71,10 @@ class MeasurementServer(ManagedServer):
             log.warning(warning)
         self.set_heartbeat_period(config.node.heartbeat_period)
 
-        run_id = next_run_id(config.node.run_id)
         custom = resolve_custom_params(config.custom_str_params)
         paths = self._base_paths(section, config, custom)
+        # Last of the checks that can fail: a failed configure does not use up a run id.
+        run_id = next_run_id(config.node.run_id)
         log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
 
         for name, ccfg in config.conditions.items():
