@@ -45,14 +45,23 @@ class _Quiet:
     info = warning = error = debug
 
 
+class _NoContext:
+    name = "bench"
+    logger = _Quiet()
+    node = None
+
+
 class _Down(Destination):
+    def __init__(self) -> None:
+        super().__init__(_NoContext(), None)
+
     def send(self, batch: Sequence[OutgoingRecord]) -> None:
         raise RetryableError("down")
 
 
 class _JsonLines(Destination):
     def __init__(self, path: Path) -> None:
-        super().__init__(None, None)  # type: ignore[arg-type]
+        super().__init__(_NoContext(), None)
         self.path = path
         self.count = 0
 
@@ -75,17 +84,13 @@ def _cpu() -> float:
 def _settings(path: str, sync: str) -> DeliveryParams:
     # A tight submit() loop outruns any disk: let the hand-off queue hold the whole flood, so the
     # figures are commit throughput rather than intake_queue_limit drops.
-    return DeliveryParams(
-        storage_path=path, storage_sync=sync, flush=0.05, scheduler_base=60.0, intake_queue_limit=10_000_000
-    )
+    return DeliveryParams(storage_path=path, storage_sync=sync, scheduler_base=60.0, intake_queue_limit=10_000_000)
 
 
 def intake(sync: str, count: int) -> tuple[float, float]:
     records = [_record(i) for i in range(count)]
     with tempfile.TemporaryDirectory() as folder:
-        pipeline = DeliveryPipeline(
-            _settings(folder, sync), {"down": (_Down(None, None), DestinationDeliveryParams())}, _Quiet()
-        )
+        pipeline = DeliveryPipeline(_settings(folder, sync), {"down": (_Down(), DestinationDeliveryParams())}, _Quiet())
         pipeline.start()
         cpu, start = _cpu(), time.perf_counter()
         for r in records:
@@ -98,9 +103,7 @@ def intake(sync: str, count: int) -> tuple[float, float]:
 
 def drain(sync: str, count: int) -> float:
     with tempfile.TemporaryDirectory() as folder:
-        first = DeliveryPipeline(
-            _settings(folder, sync), {"out": (_Down(None, None), DestinationDeliveryParams())}, _Quiet()
-        )
+        first = DeliveryPipeline(_settings(folder, sync), {"out": (_Down(), DestinationDeliveryParams())}, _Quiet())
         first.start()
         for i in range(count):
             first.submit("out", _record(i))
@@ -115,6 +118,17 @@ def drain(sync: str, count: int) -> float:
         elapsed = time.perf_counter() - start
         second.stop(0.0)
     return count / elapsed
+
+
+def pacing_only(seconds: float, rate: float = 1000.0) -> float:
+    """CPU µs per record of the pacing loop itself, subtracted from :func:`paced`."""
+    total = int(seconds * rate)
+    cpu, start = _cpu(), time.perf_counter()
+    for i in range(total):
+        delay = start + i / rate - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+    return (_cpu() - cpu) / total * 1e6
 
 
 def paced(sync: str, seconds: float, rate: float = 1000.0) -> float:
@@ -147,6 +161,8 @@ def main() -> None:
         f"{os.cpu_count()} CPUs, {args.records} records of ~{len(_record(0).to_json())} bytes, "
         f"medians of {args.runs} runs"
     )
+    baseline = statistics.median(pacing_only(args.paced_seconds) for _ in range(args.runs))
+    print(f"pacing loop alone: {baseline:.0f} ms CPU/1000 (subtracted from the paced figures)")
     for sync in ("normal", "full"):
         rates, costs = zip(*(intake(sync, args.records) for _ in range(args.runs)), strict=True)
         drains = [drain(sync, args.records) for _ in range(args.runs)]

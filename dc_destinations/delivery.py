@@ -279,11 +279,12 @@ class DeliveryPipeline:
                 self._tick_logs()
                 continue
             items = [first]
-            while len(items) < limit:
-                try:
-                    items.append(self._intake.get_nowait())
-                except queue.Empty:
-                    break
+            self._take_waiting(items, limit)
+            if len(items) < limit and self.settings.commit_interval > 0 and first is not _STOP:
+                # Let a trickle of records gather into one commit: at robot rates this turns a
+                # commit (and, with storage_sync full, an fsync) per record into a few per second.
+                time.sleep(self.settings.commit_interval)
+                self._take_waiting(items, limit)
             stop = False
             records: list[tuple[_Route, OutgoingRecord]] = []
             markers: list[threading.Event] = []
@@ -302,6 +303,13 @@ class DeliveryPipeline:
             if stop:
                 # Whatever was submitted before the stop is committed before the writer ends.
                 self._drain_after_stop()
+                return
+
+    def _take_waiting(self, items: list[Any], limit: int) -> None:
+        while len(items) < limit:
+            try:
+                items.append(self._intake.get_nowait())
+            except queue.Empty:
                 return
 
     def _drain_after_stop(self) -> None:

@@ -52,6 +52,12 @@ class DeliveryParams:
         doc="Records waiting in memory for the next group commit; beyond it new ones are dropped and counted",
     )
     commit_batch_size: int = param(2000, minimum=1, doc="Most records written by one group commit")
+    commit_interval: float = param(
+        0.05,
+        minimum=0.0,
+        maximum=1.0,
+        doc="Seconds a record may wait in memory so that records arriving together share one commit",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

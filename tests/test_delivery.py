@@ -60,9 +60,7 @@ class _Context:
 class Recorder(Destination):
     """Accepts everything, keeps what it got; ``behaviour`` decides the outcome of each call."""
 
-    def __init__(
-        self, name: str = "sink", behaviour: Callable[[int, Sequence[OutgoingRecord]], Any] | None = None
-    ):
+    def __init__(self, name: str = "sink", behaviour: Callable[[int, Sequence[OutgoingRecord]], Any] | None = None):
         super().__init__(_Context(name), None)
         self.behaviour = behaviour
         self.calls = 0
@@ -90,9 +88,7 @@ class Recorder(Destination):
             while len(self.delivered) < count:
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    raise AssertionError(
-                        f"{self.context.name}: {len(self.delivered)} of {count} records delivered"
-                    )
+                    raise AssertionError(f"{self.context.name}: {len(self.delivered)} of {count} records delivered")
                 self.changed.wait(left)
             return list(self.delivered)
 
@@ -144,9 +140,7 @@ def test_record_ids_are_uuid7_and_increase() -> None:
 
 def test_records_are_delivered_in_order_and_removed_from_the_buffer(tmp_path: Path) -> None:
     sink = Recorder()
-    pipeline = DeliveryPipeline(
-        settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(batch_size=7))}, LOG
-    )
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(batch_size=7))}, LOG)
     pipeline.start()
     try:
         sent = [record(i) for i in range(100)]
@@ -322,9 +316,7 @@ def test_stop_leaves_undelivered_records_for_the_next_pipeline(tmp_path: Path) -
     def down(call: int, batch: Sequence[OutgoingRecord]) -> None:
         raise RetryableError("network unreachable")
 
-    first = DeliveryPipeline(
-        settings(tmp_path), {"sink": (Recorder(behaviour=down), DestinationDeliveryParams())}, LOG
-    )
+    first = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(behaviour=down), DestinationDeliveryParams())}, LOG)
     first.start()
     sent = [record(i) for i in range(50)]
     for r in sent:
@@ -562,3 +554,59 @@ def test_kill_9_loses_nothing_that_was_committed(tmp_path: Path, storage_sync: s
         f"storage_sync={storage_sync}: {committed + 1} committed before kill -9, "
         f"{len(set(numbers))} delivered, {duplicates} duplicates"
     )
+
+
+def test_the_same_pipeline_can_start_again_after_stop(tmp_path: Path) -> None:
+    sink = Recorder()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
+    pipeline.start()
+    pipeline.submit("sink", record(1))
+    sink.wait_for(1)
+    pipeline.stop(grace=0.5)
+    pipeline.start()  # deactivate, then activate again
+    try:
+        pipeline.submit("sink", record(2))
+        assert [r.data["n"] for r in sink.wait_for(2)] == [1, 2]
+        assert pipeline.metrics()["sink"]["received"] == 2
+    finally:
+        pipeline.stop(grace=0.5)
+
+
+def test_commit_listeners_hear_every_committed_record(tmp_path: Path) -> None:
+    heard: list[tuple[str, str]] = []
+    pipeline = DeliveryPipeline(
+        settings(tmp_path),
+        {"a": (Recorder("a"), DestinationDeliveryParams()), "b": (Recorder("b"), DestinationDeliveryParams())},
+        LOG,
+    )
+    pipeline.add_commit_listener(heard.extend)
+    pipeline.start()
+    try:
+        sent = [record(i) for i in range(20)]
+        for r in sent:
+            pipeline.submit("a", r)
+            pipeline.submit("b", r)
+        assert pipeline.flush_intake(5)
+        assert sorted(heard) == sorted([("a", r.record_id) for r in sent] + [("b", r.record_id) for r in sent])
+    finally:
+        pipeline.stop(grace=0.5)
+
+
+def test_a_full_intake_queue_drops_and_counts(tmp_path: Path) -> None:
+    logger = ListLogger()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, intake_queue_limit=5, commit_interval=0.5),
+        {"sink": (Recorder(), DestinationDeliveryParams())},
+        logger,
+    )
+    pipeline.start()
+    try:
+        for i in range(50):
+            pipeline.submit("sink", record(i))
+        assert pipeline.flush_intake(5)
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["received"] == 50
+        assert metrics["dropped"] >= 40
+        assert sum("intake_queue_limit" in line for _level, line in logger.lines) == 1
+    finally:
+        pipeline.stop(grace=0.5)
