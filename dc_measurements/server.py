@@ -201,6 +201,9 @@ class MeasurementServer(ManagedServer):
                 del self._init_pending[name]
             elif self._record_publishers[name].get_subscription_count() > 0 or now >= deadline:
                 del self._init_pending[name]
+                # The polling period counts from this first sample, so the cadence stays regular.
+                if name in self._collect_timers:
+                    self._collect_timers[name].reset()
                 self._tick(name)
         if not self._init_pending and self._init_timer is not None:
             self._init_timer.cancel()
