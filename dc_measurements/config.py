@@ -49,7 +49,7 @@ class MeasurementCommonParams:
     group_key: str = param("", doc="Copied into StringStamped.group_key; the group server nests under it")
     topic_output: str = param("", doc="Output topic (default /dc/measurement/<id>)")
     polling_interval: int = param(1000, minimum=100, doc="Milliseconds between two collections")
-    debug: bool = param(False, doc="More verbose logs for this measurement")
+    debug: bool = param(False, doc="Log every published record at info level")
     enable_validator: bool = param(True, doc="Validate every record against the JSON schema")
     json_schema_path: str = param("", doc="Use this schema file instead of the plugin's")
     drop_invalid: bool = param(False, doc="Drop records that fail validation instead of publishing them")

@@ -146,6 +146,8 @@ class MeasurementRunner:
             self._logger.error(f"measurement {self.config.name}: record is not JSON-serialisable: {exc}")
             return
         self._publish(text, self.config.common.group_key if group_key is None else group_key, stamp_ns)
+        if self.config.common.debug:
+            self._logger.info(f"measurement {self.config.name} published: {text}")
         self.stats.published += 1
 
     def build_record(self, sample: dict[str, Any]) -> dict[str, Any] | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass
@@ -88,7 +89,10 @@ class MeasurementServer(ManagedServer):
 
         for mcfg in config.measurements:
             c = mcfg.common
-            context = _PluginContext(mcfg.name, self.get_logger().get_child(mcfg.name), self, paths, self)
+            measurement_paths = dataclasses.replace(
+                paths, remote_prefixes=dict(zip(c.remote_keys, c.remote_prefixes, strict=False))
+            )
+            context = _PluginContext(mcfg.name, self.get_logger().get_child(mcfg.name), self, measurement_paths, self)
             plugin: Measurement = mcfg.plugin_class(context, mcfg.plugin_params)
             validator = self._validator(mcfg.name, plugin, c.enable_validator, c.json_schema_path)
             publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, RECORD_QOS)
