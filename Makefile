@@ -89,9 +89,10 @@ test-deps:
 		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $$missing; \
 	fi
 
+# Quiet recipe: stdout carries only the records (dc-bringup logs to stderr).
 run: install
-	mkdir -p $(ROS_LOG_DIR)
-	ROS_AUTOMATIC_DISCOVERY_RANGE=$(RUN_DISCOVERY_RANGE) ROS_LOG_DIR=$(ROS_LOG_DIR) \
+	@mkdir -p $(ROS_LOG_DIR)
+	@ROS_AUTOMATIC_DISCOVERY_RANGE=$(RUN_DISCOVERY_RANGE) ROS_LOG_DIR=$(ROS_LOG_DIR) \
 		$(VENV)/bin/dc-bringup $(PARAMS)
 
 test: install test-deps
