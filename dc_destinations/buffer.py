@@ -9,6 +9,10 @@ All access goes through one connection guarded by a lock: the writer thread's gr
 the senders' reads and deletes are short, and ``send()`` itself runs outside the lock. Other
 processes (``dc buffer``) open their own connection; WAL lets them work while the server runs.
 
+``hop_seen`` keeps the keys (topic, source timestamp, sequence number) of the newest records that
+arrived over DDS, written in the same transaction as the records: a record replayed from a
+publisher's history after a restart is recognised as already buffered (dc_destinations.hop).
+
 A database that SQLite reports as corrupt or not a database is moved aside (renamed with a
 ``.corrupt-<UTC time>`` suffix) and replaced by an empty one, at start-up or whenever an operation
 meets the corruption: collection goes on and the file is kept for inspection.
@@ -21,6 +25,7 @@ import os
 import sqlite3
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
@@ -60,6 +65,13 @@ CREATE TABLE IF NOT EXISTS dead_letters (
     payload TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS dead_letters_by_destination ON dead_letters (destination, id);
+CREATE TABLE IF NOT EXISTS hop_seen (
+    id INTEGER PRIMARY KEY,
+    topic TEXT NOT NULL,
+    source_ns INTEGER NOT NULL,
+    seq INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS hop_seen_by_topic ON hop_seen (topic, id);
 """
 
 _QUEUE_COLUMNS = "id, record_id, topic, stamp_ns, enqueued_ns, attempts, size, payload"
@@ -197,6 +209,7 @@ class SqliteBuffer:
         self._on_quarantine = on_quarantine
         self._lock = threading.RLock()
         self._qids: dict[str, int] = {}
+        self._seen_since_prune: Counter[str] = Counter()
         self.quarantines: list[Quarantine] = []
         self._conn: sqlite3.Connection | None = None
         try:
@@ -326,11 +339,20 @@ class SqliteBuffer:
         limits: Mapping[str, QueueLimit] | None = None,
         *,
         now_ns: int | None = None,
+        seen: Sequence[tuple[str, int, int]] = (),
+        seen_window: int | None = None,
     ) -> AppendResult:
-        """Write the records of several destinations in one transaction (a group commit)."""
+        """Write the records of several destinations in one transaction (a group commit).
+
+        ``seen`` are the hop keys (topic, source_ns, seq) of the records handled by this commit,
+        kept with them so that a record is never known as seen without being buffered; each topic
+        keeps about its newest ``seen_window`` keys (all of them with ``None``).
+        """
         enqueued = _now_ns() if now_ns is None else now_ns
         result = AppendResult()
         with self._transaction() as conn:
+            if seen:
+                self._remember_seen(conn, seen, seen_window)
             for destination, batch in records.items():
                 if not batch:
                     continue
@@ -357,6 +379,30 @@ class SqliteBuffer:
                 if dropped_oldest:
                     result.dropped_oldest[destination] = dropped_oldest
         return result
+
+    def _remember_seen(
+        self, conn: sqlite3.Connection, keys: Sequence[tuple[str, int, int]], window: int | None
+    ) -> None:
+        conn.executemany("INSERT INTO hop_seen (topic, source_ns, seq) VALUES (?, ?, ?)", keys)
+        if window is None:
+            return
+        # Pruning scans `window` index entries: do it once per quarter window of new keys, so a
+        # topic holds between `window` and 1.25 x `window` keys.
+        for topic, count in Counter(key[0] for key in keys).items():
+            self._seen_since_prune[topic] += count
+            if self._seen_since_prune[topic] >= max(window // 4, 1):
+                self._seen_since_prune[topic] = 0
+                conn.execute(
+                    "DELETE FROM hop_seen WHERE topic = ? AND id <= "
+                    "(SELECT id FROM hop_seen WHERE topic = ? ORDER BY id DESC LIMIT 1 OFFSET ?)",
+                    (topic, topic, window),
+                )
+
+    def seen_keys(self) -> list[tuple[str, int, int]]:
+        """The hop keys kept in the buffer, oldest first."""
+        with self._locked() as conn:
+            rows = conn.execute("SELECT topic, source_ns, seq FROM hop_seen ORDER BY id").fetchall()
+        return [(str(topic), int(source_ns), int(seq)) for topic, source_ns, seq in rows]
 
     def _apply_limit(
         self,

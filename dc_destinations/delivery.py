@@ -94,6 +94,14 @@ def new_record_id() -> str:
 _STOP = object()
 
 
+@dataclass(frozen=True)
+class _Handoff:
+    """One received record: its copies for each destination and its hop key, committed together."""
+
+    records: list[tuple[_Route, OutgoingRecord]]
+    seen: tuple[str, int, int] | None
+
+
 @dataclass
 class _Route:
     name: str
@@ -117,6 +125,7 @@ class _Route:
 class DeliveryPipeline:
     """The delivery layer of ``destination_server``; see the module documentation.
 
+    ``seen_window``: how many hop keys (see :meth:`submit_record`) the buffer keeps per topic.
     ``clock``, ``wait`` (called with each backoff delay; returns True to give up because the
     pipeline is stopping) and ``uniform`` (the jitter draw) exist for tests.
     """
@@ -127,12 +136,14 @@ class DeliveryPipeline:
         destinations: Mapping[str, tuple[Destination, DestinationDeliveryParams]],
         logger: Logger,
         *,
+        seen_window: int | None = None,
         clock: Callable[[], float] = time.monotonic,
         wait: Callable[[float], bool] | None = None,
         uniform: Callable[[float, float], float] | None = None,
     ) -> None:
         self.settings = settings
         self.logger = logger
+        self._seen_window = seen_window
         self._clock = clock
         self._wait = wait
         self._uniform = uniform
@@ -258,6 +269,40 @@ class DeliveryPipeline:
             return
         self._intake.put((route, record))
 
+    def submit_record(
+        self, deliveries: Sequence[tuple[str, OutgoingRecord]], seen: tuple[str, int, int] | None = None
+    ) -> bool:
+        """Hand over the copies of one record, and its hop key, to be committed in one transaction.
+
+        Never blocks. Returns False when the record was dropped (counted for each destination):
+        its key is then not written either, so a replay of the record is delivered. With no
+        deliveries, only the key is written (a record that reaches no destination was handled too).
+        """
+        routes = [(self._routes[name], record) for name, record in deliveries]
+        reason = None
+        if not self._accepting:
+            reason = "the delivery pipeline is not running"
+        elif self._intake.qsize() >= self.settings.intake_queue_limit:
+            reason = f"{self.settings.intake_queue_limit} records already wait for the disk (intake_queue_limit)"
+        if reason is not None:
+            for route, _ in routes:
+                route.metrics.add("received")
+                route.metrics.add("dropped")
+            if routes:
+                self._intake_drop_log.event(len(routes), reason)
+            return False
+        self._intake.put(_Handoff(routes, seen))
+        return True
+
+    def hop_keys(self) -> list[tuple[str, int, int]]:
+        """The hop keys kept in the buffer, oldest first (empty before :meth:`start`)."""
+        if self._buffer is None or self._buffer.closed:
+            return []
+        try:
+            return self._buffer.seen_keys()
+        except (BufferClosed, BufferCorrupted):
+            return []
+
     def flush_intake(self, timeout: float | None = None) -> bool:
         """Wait until every record submitted before this call is committed; False on timeout."""
         if self._writer is None:
@@ -286,7 +331,7 @@ class DeliveryPipeline:
                 time.sleep(self.settings.commit_interval)
                 self._take_waiting(items, limit)
             stop = False
-            records: list[tuple[_Route, OutgoingRecord]] = []
+            records: list[Any] = []
             markers: list[threading.Event] = []
             for item in items:
                 if item is _STOP:
@@ -323,7 +368,17 @@ class DeliveryPipeline:
             elif item is not _STOP:
                 self._commit([item])
 
-    def _commit(self, records: list[tuple[_Route, OutgoingRecord]]) -> None:
+    def _commit(self, items: list[Any]) -> None:
+        """One group commit of intake items: ``(route, record)`` pairs and :class:`_Handoff` s."""
+        records: list[tuple[_Route, OutgoingRecord]] = []
+        seen: list[tuple[str, int, int]] = []
+        for item in items:
+            if isinstance(item, _Handoff):
+                records.extend(item.records)
+                if item.seen is not None:
+                    seen.append(item.seen)
+            else:
+                records.append(item)
         by_destination: dict[str, list[PendingRecord]] = {}
         for route, record in records:
             by_destination.setdefault(route.name, []).append(
@@ -333,7 +388,7 @@ class DeliveryPipeline:
         assert self._buffer is not None
         while True:
             try:
-                result = self._buffer.append(by_destination, limits)
+                result = self._buffer.append(by_destination, limits, seen=seen, seen_window=self._seen_window)
                 break
             except BufferCorrupted:
                 continue  # the buffer was replaced by an empty one: write the batch there

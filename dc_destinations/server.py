@@ -1,7 +1,11 @@
 """destination_server: subscribes to its destinations' inputs, routes records by tag, hands them to delivery.
 
-The subscription callback only parses, routes and submits (the delivery pipeline's ``submit`` puts the
-record on an in-memory queue); writing to the buffer and sending run in the pipeline's threads.
+The subscription callback only parses, routes and submits (the delivery pipeline's ``submit_record`` puts
+the record on an in-memory queue); writing to the buffer and sending run in the pipeline's threads.
+
+Topics published by DC's own servers are subscribed transient-local: after a (re)start the server
+receives the publishers' history again, and the hop (dc_destinations.hop) drops what the buffer
+already holds and counts what was lost (docs/delivery.md, "The hop between servers").
 """
 
 from __future__ import annotations
@@ -13,21 +17,24 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-from dc_core.config import load_params_file
+from dc_core.config import internal_topics, load_params_file
 from dc_core.destination import Destination
 from dc_core.errors import ConfigError, PluginError
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import Logger
+from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.hop import HopIntake, HopKey, hop_key
+from dc_destinations.metrics import BurstLog
 from dc_destinations.routing import RoutingTable
 from dc_interfaces.msg import StringStamped
 
 NODE_NAME = "destination_server"
-RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 PREVIEW_CHARS = 200
+# Keys kept per topic to recognise replays: a replay is at most one history per publisher, so this
+# covers four publishers of one topic (each of DC's own topics has one).
+HOP_WINDOW = 4 * RECORD_HISTORY_DEPTH
 
 
 @dataclass
@@ -70,6 +77,10 @@ class DestinationServer(ManagedServer):
         self.stats = IntakeStats()
         self._debug: set[str] = set()
         self._subscriptions: list[Any] = []
+        self._internal_topics: set[str] = set()
+        self.hop: HopIntake | None = None
+        self._hop_loss_log: BurstLog | None = None
+        self._hop_log_timer: Any = None
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -78,6 +89,7 @@ class DestinationServer(ManagedServer):
             raise ConfigError(NODE_NAME, f"no {NODE_NAME} section in {self.params_file}")
         config = parse_destination_server(servers[NODE_NAME])
         self.config = config
+        self._internal_topics = internal_topics(servers)
         log = self.get_logger()
         for warning in config.warnings:
             log.warning(warning)
@@ -103,7 +115,10 @@ class DestinationServer(ManagedServer):
             config.node.flb,
             {d.name: (self.plugins[d.name], d.delivery) for d in config.destinations},
             self.get_logger(),
+            seen_window=HOP_WINDOW,
         )
+        self.pipeline.add_metrics_section("intake", self.intake_metrics)
+        self.pipeline.add_metrics_section("hop", self.hop_metrics)
 
     def cleanup_server(self) -> None:
         self._destroy_subscriptions()
@@ -126,11 +141,22 @@ class DestinationServer(ManagedServer):
         for plugin in self.plugins.values():
             plugin.on_activate()
         self.pipeline.start()
+        # Before the first subscription: the history a publisher replays is checked against these keys.
+        hop = HopIntake(HOP_WINDOW)
+        hop.load(HopKey(*key) for key in self.pipeline.hop_keys())
+        self.hop = hop
+        self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")
+        self._hop_log_timer = self.create_timer(1.0, self._hop_loss_log.tick)
+        with_history = []
         for topic in self.routing.topics:
-            self._subscriptions.append(
-                self.create_subscription(StringStamped, topic, self._callback(topic), RECORD_QOS)
-            )
-        self.get_logger().info(f"listening on {', '.join(self.routing.topics) or 'no topic'}")
+            qos = subscription_qos(topic, self._internal_topics)
+            self._subscriptions.append(self.create_subscription(StringStamped, topic, self._callback(topic), qos))
+            if topic in self._internal_topics:
+                with_history.append(topic)
+        self.get_logger().info(
+            f"listening on {', '.join(self.routing.topics) or 'no topic'}"
+            + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
+        )
 
     def deactivate_server(self) -> None:
         # Intake stops first, so everything received is committed before the senders stop.
@@ -150,36 +176,72 @@ class DestinationServer(ManagedServer):
         for subscription in self._subscriptions:
             self.destroy_subscription(subscription)
         self._subscriptions.clear()
+        if self._hop_log_timer is not None:
+            self.destroy_timer(self._hop_log_timer)
+            self._hop_log_timer = None
+        if self._hop_loss_log is not None:
+            self._hop_loss_log.tick()
 
     # -- intake (ROS executor thread) --------------------------------------------------------------
-    def _callback(self, topic: str) -> Callable[[Any], None]:
-        return lambda msg: self._on_message(topic, msg)
+    def _callback(self, topic: str) -> Any:
+        # Two parameters: rclpy passes the MessageInfo (source timestamp, sequence number) as well
+        # (its type hints allow only one, hence Any).
+        callback: Callable[[Any, Any], None] = lambda msg, info: self._on_message(topic, msg, info)  # noqa: E731
+        return callback
 
-    def _on_message(self, topic: str, msg: Any) -> None:
+    def _on_message(self, topic: str, msg: Any, info: Any = None) -> None:
+        assert self.hop is not None and self.pipeline is not None
+        key = hop_key(topic, info)
+        verdict = self.hop.check(topic, key)
+        if verdict.duplicate:
+            return
+        if verdict.skipped:
+            assert self._hop_loss_log is not None
+            last = verdict.first_skipped + verdict.skipped - 1
+            self._hop_loss_log.event(
+                verdict.skipped,
+                f"{topic}: publication sequence numbers {verdict.first_skipped}..{last} never arrived",
+            )
         self.stats.received += 1
         text: str = msg.data
         try:
             record = json.loads(text)
         except ValueError as exc:
             self._malformed(topic, text, f"invalid JSON ({exc})")
+            self._hand_over([], key)
             return
         if not isinstance(record, dict):
             self._malformed(topic, text, f"expected a JSON object, got a JSON {type(record).__name__}")
+            self._hand_over([], key)
             return
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if stamp_ns == 0:
             # An unstamped message (a bare `ros2 topic pub`) would otherwise be dated 1970.
             stamp_ns = self.get_clock().now().nanoseconds
-        assert self.routing is not None and self.pipeline is not None
+        assert self.routing is not None
         routed = self.routing.route(topic, record, stamp_ns, new_record_id)
         if routed.unrouted_reason is not None:
             self._unrouted(topic, routed.unrouted_reason, record)
+            self._hand_over([], key)
             return
         self.stats.routed += 1
         for name, outgoing in routed.deliveries:
             if name in self._debug:
                 self.get_logger().info(f"{name} <- {outgoing.to_json()}")
-            self.pipeline.submit(name, outgoing)
+        self._hand_over(routed.deliveries, key)
+
+    def _hand_over(self, deliveries: list[tuple[str, Any]], key: HopKey | None) -> None:
+        """Submit the copies of one record with its key, which is remembered once the pipeline took them.
+
+        All copies and the key go into one commit: a crash cannot leave a destination without its
+        copy of a record that is known as seen. A record that reaches no destination is handled
+        too: its key alone is written, so a replay of it is not reported again.
+        """
+        assert self.pipeline is not None and self.hop is not None
+        if not deliveries and key is None:
+            return
+        if self.pipeline.submit_record(deliveries, key):
+            self.hop.handled(key)
 
     def _malformed(self, topic: str, text: str, reason: str) -> None:
         self.stats.malformed += 1
@@ -206,6 +268,10 @@ class DestinationServer(ManagedServer):
 
     def intake_metrics(self) -> dict[str, Any]:
         return self.stats.as_dict()
+
+    def hop_metrics(self) -> dict[str, Any]:
+        """Per input topic: received, duplicates dropped, records known lost (missing) and more."""
+        return self.hop.stats() if self.hop is not None else {}
 
 
 def main() -> int:

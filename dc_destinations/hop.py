@@ -1,0 +1,200 @@
+"""The DDS hop into destination_server: recognise replayed records, count records lost on the way.
+
+DC's own servers publish records with a transient-local history (dc_core.qos), so a
+destination_server that (re)starts receives each publisher's last records again. A record is
+known by its :class:`HopKey` — topic, the publisher's source timestamp and its DDS publication
+sequence number, which a replay repeats unchanged — and the keys of records already handled are
+kept in the delivery buffer, committed with the records themselves. A replayed record whose key
+is there is a duplicate and is dropped before routing.
+
+Sequence numbers also show what never arrived: each DDS writer numbers its samples 1, 2, 3, ...,
+so a jump from 5,000 to 7,001 means 2,000 records were lost between the publisher and this server
+(dropped by DDS under a flood, or published while the server was down, beyond the history).
+rclpy gives no publisher id, so the writers of a topic are told apart by their numbers
+(:class:`TopicWriters`). Pure: no ROS, no I/O.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+MAX_WRITERS_PER_TOPIC = 8
+
+
+class HopKey(NamedTuple):
+    """What identifies one published record: a replay of it carries the same three values.
+
+    A plain tuple, so the buffer stores it without knowing this module.
+    """
+
+    topic: str
+    source_ns: int
+    seq: int
+
+
+def hop_key(topic: str, info: Mapping[str, Any] | None) -> HopKey | None:
+    """The key of a received record from rclpy's MessageInfo; ``None`` when the middleware gave none.
+
+    Without a source timestamp or a sequence number two different records could share a key, and
+    dropping one of them as a duplicate would lose it: such records are not deduplicated at all.
+    """
+    if not info:
+        return None
+    source_ns = info.get("source_timestamp")
+    seq = info.get("publication_sequence_number")
+    if not isinstance(source_ns, int) or not isinstance(seq, int) or source_ns <= 0 or seq <= 0:
+        return None
+    return HopKey(topic, source_ns, seq)
+
+
+@dataclass
+class _Writer:
+    last_seq: int
+    last_used: int
+
+
+class TopicWriters:
+    """The publishers of one topic, recognised by their sequence numbers; counts the numbers skipped.
+
+    A record continues the writer whose last number is the highest one below its own (ties go to
+    the writer heard from last); a record below every known writer's last number starts a new
+    writer — a publisher that restarted numbers from 1 again. With one publisher per topic (each
+    of DC's topics has one) this is exact. With several, whose numbers interleave, a lost record of
+    one can be counted against another; the total stays right as long as their numbers do not
+    cross while records are being lost.
+    """
+
+    def __init__(self, max_writers: int = MAX_WRITERS_PER_TOPIC) -> None:
+        self._max_writers = max_writers
+        self._writers: list[_Writer] = []
+        self._clock = 0
+
+    def observe(self, seq: int) -> int | None:
+        """Numbers skipped before ``seq`` by its writer (0 in order), or ``None`` for a new writer."""
+        self._clock += 1
+        best: _Writer | None = None
+        for writer in self._writers:
+            if writer.last_seq < seq and (
+                best is None or (writer.last_seq, writer.last_used) > (best.last_seq, best.last_used)
+            ):
+                best = writer
+        if best is None:
+            if len(self._writers) >= self._max_writers:
+                self._writers.remove(min(self._writers, key=lambda w: w.last_used))
+            self._writers.append(_Writer(seq, self._clock))
+            return None
+        skipped = seq - best.last_seq - 1
+        best.last_seq = seq
+        best.last_used = self._clock
+        return skipped
+
+    @property
+    def count(self) -> int:
+        return len(self._writers)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the hop says of one arriving record."""
+
+    duplicate: bool = False
+    skipped: int = 0  # records of the same writer that never arrived just before this one
+    first_skipped: int = 0  # sequence number of the first of them
+    new_writer: bool = False
+
+
+@dataclass
+class TopicHopStats:
+    received: int = 0
+    duplicates: int = 0
+    missing: int = 0  # records known lost: sequence numbers skipped
+    gaps: int = 0  # how many jumps those were
+    writers: int = 0  # writers recognised since start (a restarted publisher is a new one)
+    unkeyed: int = 0  # records without a source timestamp or sequence number: not deduplicated
+
+
+@dataclass
+class _TopicState:
+    writers: TopicWriters
+    seen: set[HopKey] = field(default_factory=set)
+    order: deque[HopKey] = field(default_factory=deque)
+    stats: TopicHopStats = field(default_factory=TopicHopStats)
+
+
+class HopIntake:
+    """Per topic: the keys of handled records (the newest ``window`` of them) and the writers' positions.
+
+    The server calls :meth:`check` for each arriving record and :meth:`handled` once the record is on
+    its way into the buffer (its key is committed in the same transaction as the record); a record
+    that was dropped before that is not marked, so a replay of it is delivered.
+    """
+
+    def __init__(self, window: int, max_writers: int = MAX_WRITERS_PER_TOPIC) -> None:
+        if window < 1:
+            raise ValueError("the deduplication window must hold at least one key")
+        self.window = window
+        self._max_writers = max_writers
+        self._topics: dict[str, _TopicState] = {}
+
+    def _topic(self, topic: str) -> _TopicState:
+        state = self._topics.get(topic)
+        if state is None:
+            state = self._topics[topic] = _TopicState(TopicWriters(self._max_writers))
+        return state
+
+    def load(self, keys: Iterable[HopKey]) -> None:
+        """Take the keys kept in the buffer, oldest first: known duplicates and the writers' positions.
+
+        Gaps among them were counted by the run that received them, so they are not counted again.
+        """
+        for key in keys:
+            state = self._topic(key.topic)
+            if key not in state.seen:
+                state.writers.observe(key.seq)
+                self._remember(state, key)
+
+    def check(self, topic: str, key: HopKey | None) -> Verdict:
+        state = self._topic(topic)
+        stats = state.stats
+        stats.received += 1
+        if key is None:
+            stats.unkeyed += 1
+            return Verdict()
+        if key in state.seen:
+            stats.duplicates += 1
+            return Verdict(duplicate=True)
+        skipped = state.writers.observe(key.seq)
+        if skipped is None:
+            stats.writers += 1
+            return Verdict(new_writer=True)
+        if skipped:
+            stats.missing += skipped
+            stats.gaps += 1
+        return Verdict(skipped=skipped, first_skipped=key.seq - skipped)
+
+    def handled(self, key: HopKey | None) -> None:
+        """Remember ``key``: a later copy of the record is a duplicate."""
+        if key is not None:
+            state = self._topic(key.topic)
+            if key not in state.seen:
+                self._remember(state, key)
+
+    def _remember(self, state: _TopicState, key: HopKey) -> None:
+        state.seen.add(key)
+        state.order.append(key)
+        while len(state.order) > self.window:
+            state.seen.discard(state.order.popleft())
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        """Per topic counters since the server started (the ``hop`` section of the metrics)."""
+        return {topic: vars(state.stats).copy() for topic, state in sorted(self._topics.items())}
+
+    def totals(self) -> TopicHopStats:
+        total = TopicHopStats()
+        for state in self._topics.values():
+            for name, value in vars(state.stats).items():
+                setattr(total, name, getattr(total, name) + value)
+        return total
