@@ -1,0 +1,262 @@
+"""HTTP destination: one POST of JSON per batch to a web endpoint, over a kept-alive connection."""
+
+from __future__ import annotations
+
+import base64
+import http.client
+import re
+import ssl
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError
+from dc_core.errors import ConfigError
+from dc_core.params import param
+
+FORMATS = ("json", "json_lines", "json_stream")
+# Statuses a server uses to say "not now": the same request may succeed later.
+RETRYABLE_STATUSES = frozenset({408, 429})
+_HEADER_TOKEN = r"[!#$%&'*+.^_`|~0-9A-Za-z-]+"
+_HEADER_COLON = re.compile(rf"^({_HEADER_TOKEN}):[ \t]*(.*)$")
+_HEADER_SPACE = re.compile(rf"^({_HEADER_TOKEN})[ \t]+(.*)$")  # Fluent Bit's `Header Name value`
+_EXCERPT_CHARS = 200
+# Bytes of a response body read to keep the connection reusable; a longer body closes it instead.
+_BODY_READ_LIMIT = 64 * 1024
+
+
+def _port_problem(port: int) -> str | None:
+    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
+
+
+def _uri_problem(uri: str) -> str | None:
+    return None if uri.startswith("/") and not any(c.isspace() for c in uri) else "a path starting with '/'"
+
+
+def parse_header(text: str) -> tuple[str, str] | None:
+    """``"Name: value"`` (or Fluent Bit's ``"Name value"``) as a pair; None when it is neither."""
+    match = _HEADER_COLON.match(text.strip()) or _HEADER_SPACE.match(text.strip())
+    if match is None or any(c in match.group(2) for c in "\r\n"):
+        return None
+    return match.group(1), match.group(2).strip()
+
+
+@dataclass(frozen=True, kw_only=True, repr=False)
+class HttpParams:
+    host: str = param("127.0.0.1", doc="Host name or IP address of the HTTP server")
+    port: int = param(80, check=_port_problem, doc="TCP port of the HTTP server (443 is usual with `tls`)")
+    uri: str = param("/", check=_uri_problem, doc="Path (and query) the batches are POSTed to")
+    format: str = param(
+        "json",
+        choices=FORMATS,
+        doc="json: the batch as one JSON array; json_lines: one object per line; json_stream: objects back to back",
+    )
+    header: list[str] | str = param(
+        [], doc='Extra request headers, "Name: value" each (Fluent Bit\'s "Name value" is accepted too)'
+    )
+    header_tag: str = param("", doc="Header that carries the destination's name (Fluent Bit's tag); empty: none")
+    allow_duplicated_headers: bool = param(
+        True, doc="Send every `header` entry; when false, the last entry of a name replaces the earlier ones"
+    )
+    http_user: str = param("", doc="User name of HTTP basic authentication; empty: no authentication")
+    http_passwd: str = param("", secret=True, doc="Password of HTTP basic authentication (never logged)")
+    tls: bool = param(False, doc="Use HTTPS")
+    tls_verify: bool = param(True, doc="Check the server's certificate and host name (with `tls`)")
+    tls_ca_file: str = param("", doc="CA certificates (PEM) to trust instead of the system's (with `tls`)")
+    timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read or write")
+    log_response_payload: bool = param(
+        True, doc="Quote the start of the server's answer in failure messages and dead letters"
+    )
+
+    def __post_init__(self) -> None:
+        for i, entry in enumerate(self.headers_list):
+            if parse_header(entry) is None:
+                raise ConfigError(f"header[{i}]", f'expected "Name: value", got "{entry}"')
+        if self.http_passwd and not self.http_user:
+            raise ConfigError("http_passwd", "set http_user too (basic authentication needs both)")
+        if ":" in self.http_user:
+            raise ConfigError("http_user", "a user name without ':' (basic authentication separates with it)")
+        if self.header_tag and not re.fullmatch(_HEADER_TOKEN, self.header_tag):
+            raise ConfigError("header_tag", f'expected a header name, got "{self.header_tag}"')
+        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
+            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
+
+    @property
+    def headers_list(self) -> list[str]:
+        return [self.header] if isinstance(self.header, str) else list(self.header)
+
+    def __repr__(self) -> str:
+        # A frozen dataclass' repr would print the password wherever the parameters are logged.
+        shown = ", ".join(
+            f"{f.name}={'***' if f.metadata.get('secret') and getattr(self, f.name) else repr(getattr(self, f.name))}"
+            for f in fields(self)
+        )
+        return f"HttpParams({shown})"
+
+
+class Http(Destination):
+    """POST each batch as JSON to an HTTP(S) endpoint; 5xx, 408, 429 and network errors are retried."""
+
+    Params = HttpParams
+    params: HttpParams
+
+    def __init__(self, context: Any, params: HttpParams) -> None:
+        super().__init__(context, params)
+        self._headers: list[tuple[str, str]] = []
+        self._secrets: list[str] = []
+        self._connection: http.client.HTTPConnection | None = None
+        self._tls: ssl.SSLContext | None = None
+        self._lock = threading.Lock()
+        self.url = ""
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def on_configure(self) -> None:
+        p = self.params
+        scheme = "https" if p.tls else "http"
+        host = f"[{p.host}]" if ":" in p.host else p.host
+        # Without the query: it may hold an API key, and this URL goes into logs and dead letters.
+        self.url = f"{scheme}://{host}:{p.port}{p.uri.split('?', 1)[0]}"
+        content_type = "application/x-ndjson" if p.format == "json_lines" else "application/json"
+        headers = [("Content-Type", content_type), ("User-Agent", "dc-destinations")]
+        if p.http_user:
+            token = base64.b64encode(f"{p.http_user}:{p.http_passwd}".encode()).decode("ascii")
+            headers.append(("Authorization", f"Basic {token}"))
+            self._secrets = [s for s in (p.http_passwd, token) if s]
+        if p.header_tag:
+            headers.append((p.header_tag, self.context.name))
+        for entry in p.headers_list:
+            pair = parse_header(entry)
+            assert pair is not None  # checked by HttpParams
+            headers.append(pair)
+        self._headers = _merge_headers(headers, keep_duplicates=p.allow_duplicated_headers)
+        self._tls = self._tls_context() if p.tls else None
+
+    def on_activate(self) -> None:
+        # The connection opens with the first batch, in the sender's thread: a server that is down
+        # or slow to answer must not hold up activation.
+        self.context.logger.info(f"posting {self.params.format} batches to {self.url}")
+
+    def on_deactivate(self) -> None:
+        with self._lock:
+            self._close()
+
+    def on_cleanup(self) -> None:
+        self.on_deactivate()
+
+    # -- sending -----------------------------------------------------------------------------------
+    def send(self, batch: Sequence[OutgoingRecord]) -> None:
+        body = self._body(batch)
+        with self._lock:
+            reused = self._connection is not None
+            try:
+                status, reason, excerpt = self._post(body)
+            except (OSError, http.client.HTTPException) as first:
+                self._close()
+                if not (reused and _is_stale_connection(first)):
+                    raise RetryableError(self._network_error(first)) from None
+                # A kept-alive connection the server closed while idle fails at the first use; this
+                # is not a failure of the destination, so try once more on a fresh connection.
+                try:
+                    status, reason, excerpt = self._post(body)
+                except (OSError, http.client.HTTPException) as second:
+                    self._close()
+                    raise RetryableError(self._network_error(second)) from None
+        if 200 <= status < 300:
+            return None
+        message = f"HTTP {status} {reason} from {self.url}"
+        if excerpt:
+            message += f": {excerpt}"
+        if status in RETRYABLE_STATUSES or status >= 500:
+            raise RetryableError(message)
+        raise RejectedError(message)
+
+    def _body(self, batch: Sequence[OutgoingRecord]) -> bytes:
+        objects = [record.to_json() for record in batch]
+        fmt = self.params.format
+        if fmt == "json_lines":
+            text = "".join(o + "\n" for o in objects)
+        elif fmt == "json_stream":
+            text = "".join(objects)
+        else:
+            text = "[" + ",".join(objects) + "]"
+        return text.encode("utf-8")
+
+    def _post(self, body: bytes) -> tuple[int, str, str]:
+        connection = self._open()
+        connection.putrequest("POST", self.params.uri, skip_accept_encoding=True)
+        for name, value in self._headers:
+            connection.putheader(name, value)
+        connection.putheader("Content-Length", str(len(body)))
+        connection.endheaders(body)
+        response = connection.getresponse()
+        data = response.read(_BODY_READ_LIMIT)
+        if not response.isclosed():
+            self._close()  # an endless answer: drop the connection rather than read it all
+        elif response.will_close:
+            self._close()
+        excerpt = self._excerpt(data) if self.params.log_response_payload else ""
+        return response.status, response.reason, excerpt
+
+    def _open(self) -> http.client.HTTPConnection:
+        if self._connection is None:
+            p = self.params
+            if p.tls:
+                self._connection = http.client.HTTPSConnection(p.host, p.port, timeout=p.timeout, context=self._tls)
+            else:
+                self._connection = http.client.HTTPConnection(p.host, p.port, timeout=p.timeout)
+        return self._connection
+
+    def _tls_context(self) -> ssl.SSLContext:
+        p = self.params
+        try:
+            context = ssl.create_default_context(cafile=p.tls_ca_file or None)
+        except (OSError, ssl.SSLError) as exc:
+            path = f"destination_server.{self.context.name}.tls_ca_file"
+            raise ConfigError(path, f"cannot load {p.tls_ca_file}: {exc}") from exc
+        if not p.tls_verify:
+            context.check_hostname = False
+            context.verify_mode = ssl.CERT_NONE
+        return context
+
+    def _close(self) -> None:
+        if self._connection is not None:
+            connection, self._connection = self._connection, None
+            connection.close()
+
+    # -- messages ----------------------------------------------------------------------------------
+    def _network_error(self, exc: BaseException) -> str:
+        detail = str(exc) or type(exc).__name__
+        if isinstance(exc, TimeoutError):
+            detail = f"no answer within {self.params.timeout:g} s"
+        return self._scrub(f"cannot POST to {self.url}: {detail}")
+
+    def _excerpt(self, data: bytes) -> str:
+        text = " ".join(data.decode("utf-8", errors="replace").split())
+        if len(text) > _EXCERPT_CHARS:
+            text = text[: _EXCERPT_CHARS - 1] + "…"
+        return self._scrub(text)
+
+    def _scrub(self, text: str) -> str:
+        """The credentials masked, should a server echo the request back."""
+        for secret in self._secrets:
+            text = text.replace(secret, "***")
+        return text
+
+
+def _merge_headers(headers: list[tuple[str, str]], *, keep_duplicates: bool) -> list[tuple[str, str]]:
+    """The two defaults first (Content-Type, User-Agent), replaced by configured headers of their name."""
+    defaults, configured = headers[:2], headers[2:]
+    names = {name.lower() for name, _ in configured}
+    merged = [(n, v) for n, v in defaults if n.lower() not in names] + configured
+    if keep_duplicates:
+        return merged
+    last: dict[str, tuple[str, str]] = {}
+    for name, value in merged:
+        last.pop(name.lower(), None)
+        last[name.lower()] = (name, value)
+    return list(last.values())
+
+
+def _is_stale_connection(exc: BaseException) -> bool:
+    return isinstance(exc, (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError))
