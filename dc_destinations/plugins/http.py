@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError
+from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
 
@@ -145,7 +145,7 @@ class Http(Destination):
         self.on_deactivate()
 
     # -- sending -----------------------------------------------------------------------------------
-    def send(self, batch: Sequence[OutgoingRecord]) -> None:
+    def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         body = self._body(batch)
         with self._lock:
             reused = self._connection is not None

@@ -1,0 +1,598 @@
+"""HTTP destination against a real HTTP server in the test: what it sends, how each answer is classified."""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import json
+import logging
+import re
+import shutil
+import socket
+import ssl
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import pytest
+
+from dc_core.config import load_params_file
+from dc_core.destination import OutgoingRecord, RejectedError, RetryableError
+from dc_core.errors import ConfigError
+from dc_core.params import describe_params, parse_params
+from dc_destinations.buffer import FILE_NAME, SqliteBuffer
+from dc_destinations.config import parse_destination_server
+from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.plugins.http import Http, HttpParams
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+
+# -- a receiver: a real HTTP/1.1 server on 127.0.0.1, in threads of the test process ----------------
+
+
+@dataclass
+class Request:
+    time: float  # time.monotonic() at arrival
+    path: str
+    headers: list[tuple[str, str]]
+    body: bytes
+    client: tuple[str, int]
+    status: int | None = None  # None: the connection was dropped without an answer
+
+    def header(self, name: str) -> str | None:
+        values = self.header_values(name)
+        return values[-1] if values else None
+
+    def header_values(self, name: str) -> list[str]:
+        return [v for n, v in self.headers if n.lower() == name.lower()]
+
+
+class _QuietServer(ThreadingHTTPServer):
+    daemon_threads = True
+    block_on_close = False
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A client that hangs up while the answer is written (the huge-answer test) is expected."""
+
+
+# What the receiver answers to a request: (status, body), or None to drop the connection unanswered.
+Responder = Callable[[Request], "tuple[int, bytes] | None"]
+
+
+class Receiver:
+    """An HTTP endpoint whose answers the test sets (``status`` or ``respond``), keeping every request."""
+
+    def __init__(
+        self,
+        respond: Responder | None = None,
+        *,
+        idle_timeout: float | None = None,
+        tls: ssl.SSLContext | None = None,
+        port: int = 0,
+    ) -> None:
+        self.status = 200
+        self.respond = respond
+        self.requests: list[Request] = []
+        self.closed_connections = 0
+        self.open_connections: set[socket.socket] = set()
+        self.release = threading.Event()  # set at exit: lets a handler that hangs on purpose return
+        self.changed = threading.Condition()
+        receiver = self
+
+        class Handler(BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"  # keep-alive, like a real endpoint
+            timeout = idle_timeout  # closes a connection left idle this long
+
+            def do_POST(self) -> None:
+                length = int(self.headers.get("Content-Length", "0"))
+                request = Request(
+                    time.monotonic(),
+                    self.path,
+                    list(self.headers.items()),
+                    self.rfile.read(length),
+                    (str(self.client_address[0]), int(self.client_address[1])),
+                )
+                answer = receiver.answer(request)
+                request.status = None if answer is None else answer[0]
+                # Kept before answering: when the client has its answer, the test sees the request.
+                with receiver.changed:
+                    receiver.requests.append(request)
+                    receiver.changed.notify_all()
+                if answer is None:
+                    self.close_connection = True
+                    return
+                self.send_response(answer[0])
+                self.send_header("Content-Type", "text/plain")
+                self.send_header("Content-Length", str(len(answer[1])))
+                self.end_headers()
+                self.wfile.write(answer[1])
+
+            def setup(self) -> None:
+                super().setup()
+                with receiver.changed:
+                    receiver.open_connections.add(self.connection)
+
+            def finish(self) -> None:
+                super().finish()
+                with receiver.changed:
+                    receiver.open_connections.discard(self.connection)
+                    receiver.closed_connections += 1
+                    receiver.changed.notify_all()
+
+            def log_message(self, format: str, *args: Any) -> None:
+                pass
+
+        self.server = _QuietServer(("127.0.0.1", port), Handler)
+        if tls is not None:
+            self.server.socket = tls.wrap_socket(self.server.socket, server_side=True)
+        self.port = int(self.server.server_address[1])
+        self._thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+
+    def answer(self, request: Request) -> tuple[int, bytes] | None:
+        if self.respond is not None:
+            return self.respond(request)
+        return self.status, b"ok" if self.status < 300 else f"status {self.status} set by the test".encode()
+
+    def __enter__(self) -> Receiver:
+        self._thread.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.release.set()
+        self.server.shutdown()
+        self.server.server_close()
+        # A stopped server closes its kept-alive connections too (server_close alone leaves them open).
+        with self.changed:
+            for connection in list(self.open_connections):
+                with contextlib.suppress(OSError):
+                    connection.shutdown(socket.SHUT_RDWR)
+
+    def wait_until(self, check: Callable[[], bool], timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        with self.changed:
+            while not check():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(
+                        f"timed out after {timeout} s waiting for {what}; {len(self.requests)} requests"
+                    )
+                self.changed.wait(min(left, 0.2))
+
+    def accepted(self) -> list[Request]:
+        with self.changed:
+            return [r for r in self.requests if r.status is not None and 200 <= r.status < 300]
+
+    def records(self) -> list[dict[str, Any]]:
+        """Records of the accepted requests, in order (bodies of format json: JSON arrays)."""
+        return [item for r in self.accepted() for item in json.loads(r.body)]
+
+
+# -- the destination under test -------------------------------------------------------------------------
+
+
+@dataclass
+class Context:
+    name: str
+    logger: Any = field(default_factory=lambda: logging.getLogger("test_http_destination"))
+    node: Any = None
+
+
+def http_destination(name: str = "web", **params: Any) -> Http:
+    plugin = Http(Context(name), parse_params(HttpParams, params, f"destination_server.{name}"))
+    plugin.on_configure()
+    plugin.on_activate()
+    return plugin
+
+
+@pytest.fixture
+def receiver() -> Iterator[Receiver]:
+    with Receiver() as r:
+        yield r
+
+
+def record(n: int, **extra: Any) -> OutgoingRecord:
+    rid = new_record_id()
+    return OutgoingRecord(
+        rid, "/dc/measurement/test", 1_700_000_000_000_000_000 + n, {"seq": n, "record_id": rid, **extra}
+    )
+
+
+BATCH = [record(0, robot="C3PO"), record(1, robot="R2D2", note="üñí")]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+# -- what is sent -------------------------------------------------------------------------------------------
+
+
+def test_json_posts_the_batch_as_one_array(receiver: Receiver) -> None:
+    dest = http_destination(port=receiver.port, uri="/ingest/dc?robot=c3po")
+    assert dest.send(BATCH) is None
+    (request,) = receiver.requests
+    assert request.path == "/ingest/dc?robot=c3po"
+    assert json.loads(request.body) == [r.data for r in BATCH]
+    assert request.header("Content-Type") == "application/json"
+    assert request.header("Content-Length") == str(len(request.body))
+    assert "üñí" in request.body.decode("utf-8"), "UTF-8, not \\u escapes"
+    assert request.header("Authorization") is None
+
+
+def test_json_lines_is_one_object_per_line(receiver: Receiver) -> None:
+    http_destination(port=receiver.port, format="json_lines").send(BATCH)
+    (request,) = receiver.requests
+    assert request.body.decode().splitlines() == [r.to_json() for r in BATCH]
+    assert request.body.endswith(b"\n")
+    assert request.header("Content-Type") == "application/x-ndjson"
+
+
+def test_json_stream_is_objects_back_to_back(receiver: Receiver) -> None:
+    http_destination(port=receiver.port, format="json_stream").send(BATCH)
+    text = receiver.requests[0].body.decode()
+    decoder, objects, at = json.JSONDecoder(), [], 0
+    while at < len(text):
+        value, at = decoder.raw_decode(text, at)
+        objects.append(value)
+    assert objects == [r.data for r in BATCH]
+    assert "\n" not in text
+
+
+def test_basic_auth_and_custom_headers(receiver: Receiver) -> None:
+    dest = http_destination(
+        port=receiver.port,
+        http_user="robot",
+        http_passwd="s3cr3t-pa55",
+        header=["X-Api-Key: abc123", "X-Fleet  warehouse 7", "Content-Type: application/vnd.dc+json"],
+        header_tag="X-Tag",
+    )
+    dest.send(BATCH)
+    (request,) = receiver.requests
+    scheme, token = (request.header("Authorization") or "").split(" ")
+    assert scheme == "Basic" and base64.b64decode(token).decode() == "robot:s3cr3t-pa55"
+    assert request.header("X-Api-Key") == "abc123"
+    assert request.header("X-Fleet") == "warehouse 7", "Fluent Bit's 'Name value' form"
+    assert request.header("X-Tag") == "web", "header_tag carries the destination's name"
+    assert request.header_values("Content-Type") == ["application/vnd.dc+json"], (
+        "a configured header replaces the default"
+    )
+
+
+def test_duplicated_headers_are_sent_unless_disallowed(receiver: Receiver) -> None:
+    headers = ["X-Env: staging", "X-Env: production"]
+    http_destination(port=receiver.port, header=headers).send(BATCH)
+    http_destination(port=receiver.port, header=headers, allow_duplicated_headers=False).send(BATCH)
+    first, second = receiver.requests
+    assert first.header_values("X-Env") == ["staging", "production"]
+    assert second.header_values("X-Env") == ["production"], "the last one wins"
+
+
+def test_a_single_header_string_is_accepted(receiver: Receiver) -> None:
+    http_destination(port=receiver.port, header="X-Single: yes").send(BATCH)
+    assert receiver.requests[0].header("X-Single") == "yes"
+
+
+# -- what each answer means -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("status", [200, 201, 202, 204])
+def test_2xx_confirms_the_batch(receiver: Receiver, status: int) -> None:
+    receiver.respond = lambda request: (status, b"")
+    assert http_destination(port=receiver.port).send(BATCH) is None
+
+
+@pytest.mark.parametrize("status", [408, 429, 500, 502, 503, 504])
+def test_busy_and_server_errors_are_retryable(receiver: Receiver, status: int) -> None:
+    receiver.respond = lambda request: (status, b'{"error": "ingest queue full, try later"}')
+    with pytest.raises(RetryableError) as caught:
+        http_destination(port=receiver.port).send(BATCH)
+    message = str(caught.value)
+    assert f"HTTP {status} " in message
+    assert f"http://127.0.0.1:{receiver.port}/" in message
+    assert "ingest queue full, try later" in message, "the start of the answer says why"
+
+
+@pytest.mark.parametrize("status", [400, 401, 403, 404, 413, 422, 301])
+def test_other_client_errors_reject_the_batch(receiver: Receiver, status: int) -> None:
+    receiver.respond = lambda request: (status, b"schema mismatch: field 'seq' unknown")
+    with pytest.raises(RejectedError) as caught:
+        http_destination(port=receiver.port).send(BATCH)
+    assert f"HTTP {status} " in str(caught.value)
+    assert "schema mismatch" in str(caught.value)
+
+
+def test_answer_excerpt_is_short_and_can_be_left_out(receiver: Receiver) -> None:
+    receiver.respond = lambda request: (500, b"<html>\n  " + b"x" * 5000 + b"\n</html>")
+    with pytest.raises(RetryableError) as caught:
+        http_destination(port=receiver.port).send(BATCH)
+    assert len(str(caught.value)) < 300 and "<html> xxx" in str(caught.value)
+    with pytest.raises(RetryableError) as caught:
+        http_destination(port=receiver.port, log_response_payload=False).send(BATCH)
+    assert str(caught.value).endswith(f"HTTP 500 Internal Server Error from http://127.0.0.1:{receiver.port}/")
+
+
+def test_a_huge_answer_is_not_read_whole_and_the_next_batch_still_goes(receiver: Receiver) -> None:
+    receiver.respond = lambda request: (200, b"y" * 1_000_000)
+    dest = http_destination(port=receiver.port)
+    assert dest.send(BATCH) is None
+    assert dest.send(BATCH) is None
+    assert len(receiver.accepted()) == 2
+
+
+def test_connection_refused_is_retryable() -> None:
+    port = free_port()
+    with pytest.raises(RetryableError) as caught:
+        http_destination(port=port, timeout=2).send(BATCH)
+    assert f"cannot POST to http://127.0.0.1:{port}/" in str(caught.value)
+    assert "refused" in str(caught.value).lower()
+
+
+def test_no_answer_within_timeout_is_retryable(receiver: Receiver) -> None:
+    def hang(request: Request) -> tuple[int, bytes]:
+        receiver.release.wait(10)
+        return 200, b""
+
+    receiver.respond = hang
+    started = time.monotonic()
+    with pytest.raises(RetryableError, match=r"no answer within 0.3 s"):
+        http_destination(port=receiver.port, timeout=0.3).send(BATCH)
+    assert time.monotonic() - started < 5
+
+
+# -- the connection -------------------------------------------------------------------------------------------
+
+
+def test_one_connection_serves_every_batch(receiver: Receiver) -> None:
+    dest = http_destination(port=receiver.port)
+    for _ in range(5):
+        dest.send(BATCH)
+    assert len({r.client for r in receiver.requests}) == 1, "kept alive, not one connection per batch"
+    assert receiver.closed_connections == 0
+
+
+def test_a_connection_the_server_closed_while_idle_is_reopened_without_failing() -> None:
+    with Receiver(idle_timeout=0.2) as receiver:
+        dest = http_destination(port=receiver.port)
+        dest.send(BATCH)
+        receiver.wait_until(lambda: receiver.closed_connections == 1, 5, "the server to close the idle connection")
+        assert dest.send(BATCH) is None, "a stale kept-alive connection is not a failure of the destination"
+    assert len(receiver.accepted()) == 2
+    assert receiver.requests[0].client != receiver.requests[1].client
+
+
+def test_after_a_dropped_connection_the_next_batch_reconnects(receiver: Receiver) -> None:
+    receiver.respond = lambda request: None
+    dest = http_destination(port=receiver.port)
+    with pytest.raises(RetryableError, match="cannot POST"):
+        dest.send(BATCH)
+    receiver.respond = None
+    assert dest.send(BATCH) is None
+    assert len(receiver.accepted()) == 1
+
+
+def test_the_same_destination_delivers_again_once_the_server_is_back() -> None:
+    with Receiver() as first:
+        port = first.port
+        dest = http_destination(port=port)
+        dest.send(BATCH)
+    with pytest.raises(RetryableError):
+        dest.send(BATCH)
+    with Receiver(port=port) as back:  # the server restarted on its port
+        assert dest.send(BATCH) is None
+    assert len(back.accepted()) == 1
+
+
+# -- secrets -------------------------------------------------------------------------------------------------
+
+PASSWORD = "hunter2-Very-Secret"
+
+
+def echo_authorization(status: int) -> Responder:
+    """A careless server that quotes the request's credentials in its error page."""
+
+    def respond(request: Request) -> tuple[int, bytes]:
+        return status, f"bad request, you sent Authorization: {request.header('Authorization')}".encode()
+
+    return respond
+
+
+def test_password_never_reaches_logs_errors_metrics_or_dead_letters(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.DEBUG)
+    # Any: mypy does not see logging.Logger as a dc_core.logs.Logger (keyword arguments differ), though it is one.
+    logger: Any = logging.getLogger("test_http_destination.secret")
+    token = base64.b64encode(f"robot:{PASSWORD}".encode()).decode()
+    with Receiver(echo_authorization(503)) as receiver:
+        params = parse_params(
+            HttpParams,
+            {"port": receiver.port, "http_user": "robot", "http_passwd": PASSWORD},
+            "destination_server.web",
+        )
+        dest = Http(Context("web", logger), params)
+        dest.on_configure()
+        settings = DeliveryParams(storage_path=str(tmp_path), flush=0.05, scheduler_base=0.05, scheduler_cap=0.1)
+        pipeline = DeliveryPipeline(settings, {"web": (dest, DestinationDeliveryParams(retry_limit=2))}, logger)
+        dest.on_activate()
+        pipeline.start()
+        try:
+            pipeline.submit("web", record(1))
+            receiver.wait_until(lambda: len(receiver.requests) >= 3, 10, "three attempts")
+            receiver.respond = echo_authorization(400)
+            pipeline.submit("web", record(2))
+
+            def both_dead() -> bool:
+                return int(pipeline.metrics()["web"]["dead_lettered"]) == 2
+
+            deadline = time.monotonic() + 10
+            while not both_dead() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert both_dead()
+            metrics_text = json.dumps(pipeline.status_document())
+        finally:
+            pipeline.stop(0.5)
+            dest.on_deactivate()
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        letters = buffer.list_dead_letters(None)
+    finally:
+        buffer.close()
+    assert len(letters) == 2 and all("***" in d.error for d in letters), [d.error for d in letters]
+    texts = [r.getMessage() for r in caplog.records] + [metrics_text] + [d.error for d in letters]
+    texts += [repr(params), str(params)]
+    assert any("HTTP 503" in t for t in texts) and any("HTTP 400" in t for t in texts)
+    for text in texts:
+        assert PASSWORD not in text and token not in text, text
+    assert "http_passwd=***" in repr(params)
+
+
+def test_secret_parameter_is_marked_secret() -> None:
+    secrets = {p.name for p in describe_params(HttpParams) if p.secret}
+    assert secrets == {"http_passwd"}
+
+
+# -- configuration -------------------------------------------------------------------------------------------
+
+
+def configure(body: dict[str, Any]) -> None:
+    section = {"destination_plugins": ["web"], "web": {"plugin": "dc_destinations/HTTP", "inputs": ["/dc/x"], **body}}
+    config = parse_destination_server(section)
+    (d,) = config.destinations
+    d.plugin_class(Context(d.name), d.plugin_params).on_configure()
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ({"port": 0}, "destination_server.web.port: expected a TCP port from 1 to 65535, got 0"),
+        ({"port": "eighty"}, "destination_server.web.port: expected an integer"),
+        ({"uri": "ingest"}, "destination_server.web.uri: expected a path starting with '/'"),
+        ({"format": "msgpack"}, "destination_server.web.format: expected one of"),
+        ({"header": ["no-value"]}, 'destination_server.web.header[0]: expected "Name: value", got "no-value"'),
+        ({"header": ["X-Ok: 1", ": no name"]}, "destination_server.web.header[1]"),
+        ({"http_passwd": "x"}, "destination_server.web.http_passwd: set http_user too"),
+        ({"http_user": "a:b"}, "destination_server.web.http_user"),
+        ({"header_tag": "X Tag"}, "destination_server.web.header_tag"),
+        ({"host": "http://example.com"}, "destination_server.web.host: expected a host name or IP address"),
+        ({"timeout": 0}, "destination_server.web.timeout: expected a number >= 0.1"),
+        (
+            {"http_password": "x"},
+            'destination_server.web.http_password: unknown parameter of dc_destinations/HTTP (did you mean "http_passwd"?)',
+        ),
+        (
+            {"tls": True, "tls_ca_file": "/nonexistent/ca.pem"},
+            "destination_server.web.tls_ca_file: cannot load /nonexistent/ca.pem",
+        ),
+    ],
+)
+def test_configuration_errors_name_the_yaml_path(body: dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError) as caught:
+        configure(body)
+    assert message in str(caught.value)
+
+
+def test_configuration_error_does_not_quote_the_password() -> None:
+    with pytest.raises(ConfigError) as caught:
+        configure({"http_passwd": PASSWORD})
+    assert PASSWORD not in str(caught.value)
+
+
+def test_fluent_bit_keys_of_the_original_are_accepted() -> None:
+    configure(
+        {
+            "plugin": "dc_destinations/FlbHTTP",
+            "host": "127.0.0.1",
+            "port": 80,
+            "uri": "/",
+            "format": "json",
+            "json_date_key": "date",
+            "json_date_format": "iso8601",
+            "log_response_payload": True,
+            "allow_duplicated_headers": True,
+        }
+    )
+
+
+def test_defaults_are_the_originals() -> None:
+    p = parse_params(HttpParams, {}, "x")
+    assert (p.host, p.port, p.uri, p.format, p.tls, p.timeout) == ("127.0.0.1", 80, "/", "json", False, 10.0)
+
+
+def test_activation_does_not_connect() -> None:
+    dest = http_destination(port=free_port())  # nothing listens: activation must still succeed at once
+    assert dest.url.startswith("http://127.0.0.1:")
+
+
+# -- TLS -----------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def certificate(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl not installed")
+    folder = tmp_path_factory.mktemp("tls")
+    cert, key = folder / "cert.pem", folder / "key.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=localhost",
+         "-addext", "subjectAltName=IP:127.0.0.1,DNS:localhost", "-keyout", str(key), "-out", str(cert)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    return cert, key
+
+
+def tls_receiver(certificate: tuple[Path, Path]) -> Receiver:
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(str(certificate[0]), str(certificate[1]))
+    return Receiver(tls=context)
+
+
+def test_tls_with_the_servers_ca_file(certificate: tuple[Path, Path]) -> None:
+    with tls_receiver(certificate) as receiver:
+        dest = http_destination(port=receiver.port, tls=True, tls_ca_file=str(certificate[0]))
+        assert dest.url.startswith("https://")
+        assert dest.send(BATCH) is None
+        assert dest.send(BATCH) is None
+    assert len(receiver.records()) == 4
+
+
+def test_tls_refuses_an_unknown_certificate_unless_told_not_to_verify(certificate: tuple[Path, Path]) -> None:
+    with tls_receiver(certificate) as receiver:
+        with pytest.raises(RetryableError, match=re.compile("certificate", re.IGNORECASE)):
+            http_destination(port=receiver.port, tls=True).send(BATCH)
+        assert http_destination(port=receiver.port, tls=True, tls_verify=False).send(BATCH) is None
+    assert len(receiver.records()) == 2
+
+
+# -- documentation -----------------------------------------------------------------------------------------
+
+DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "destinations"
+
+
+def test_doc_page_documents_every_parameter() -> None:
+    text = (DOCS / "http.md").read_text()
+    for info in describe_params(HttpParams):
+        assert f"| `{info.name}` |" in text, f"http.md lacks a row for {info.name}"
+    for heading in ("## Example configuration", "## Example output", "## Differences from the original"):
+        assert heading in text
+    assert "[http.md](http.md)" in (DOCS / "index.md").read_text()
+
+
+def test_doc_examples_are_valid_configurations(tmp_path: Path) -> None:
+    blocks = re.findall(r"```yaml\n(.*?)```", (DOCS / "http.md").read_text(), flags=re.DOTALL)
+    assert blocks
+    for index, block in enumerate(blocks):
+        params_file = tmp_path / f"example_{index}.yaml"
+        params_file.write_text(block)
+        config = parse_destination_server(load_params_file(params_file)["destination_server"])
+        assert config.destinations and config.warnings == []
+        for d in config.destinations:
+            d.plugin_class(Context(d.name), d.plugin_params).on_configure()
