@@ -1,0 +1,278 @@
+"""Delivery when the destination fails, through `dc-bringup` with real processes and a real HTTP receiver.
+
+Numbered records go from a publisher process through measurement_server (StringStamped) to
+destination_server, whose HTTP destination posts them to a receiver in the test. What a user relies on
+(docs/delivery.md): a receiver that fails for a while gets every record once it is back, with retries
+spaced by a growing backoff; refused records wait in the dead letters until `dc buffer replay`; the
+size limit drops the oldest and counts them; a corrupt buffer file is set aside without stopping the
+server. `dc status` and `dc buffer` are read as a user reads them.
+
+The backoff settings are small (flb.scheduler_base 0.2 s, scheduler_cap 2 s) so the tests are short.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import re
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.bringup_util import Bringup, dc
+from tests.test_http_destination import Receiver, Request, free_port
+
+pytestmark = pytest.mark.e2e
+
+SCHEDULER_BASE = 0.2
+SCHEDULER_CAP = 2.0
+# Issue 5 asks for a receiver failing for 30 s, at the default backoff (5 s, then 10, 20 s: three
+# attempts). With a 0.2 s base and a 2 s cap the ceiling reaches the cap after 5 failures (~1.5 s),
+# so 12 s of failure shows the whole ramp and then ~8 attempts at the cap, in a test 18 s shorter.
+OUTAGE_S = 12.0
+# Time between two attempts beyond the backoff itself: reading the batch, the POST, a busy CPU.
+SLACK_S = 0.3
+
+# argv: count, rate, padding; publishes {"seq": i, "pad": "..."} for i in 0..count-1.
+PUBLISHER = """
+import json, sys, time
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from dc_interfaces.msg import StringStamped
+count, rate, padding = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3])
+rclpy.init()
+node = rclpy.create_node("numbered_records")
+pub = node.create_publisher(StringStamped, "/robot/seq", QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+deadline = time.monotonic() + 30
+while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+    rclpy.spin_once(node, timeout_sec=0.05)
+start = time.monotonic()
+for i in range(count):
+    due = start + i / rate
+    if due > time.monotonic():
+        time.sleep(due - time.monotonic())
+    msg = StringStamped()
+    msg.header.stamp = node.get_clock().now().to_msg()
+    msg.data = json.dumps({"seq": i, "pad": "x" * padding})
+    pub.publish(msg)
+deadline = time.monotonic() + 1.0  # let reliable delivery finish before the publisher goes away
+while time.monotonic() < deadline:
+    rclpy.spin_once(node, timeout_sec=0.05)
+"""
+
+
+def write_params(tmp_path: Path, port: int, *, destination: str = "") -> Path:
+    params = tmp_path / "params.yaml"
+    params.write_text(f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["seq"]
+    seq:
+      plugin: "dc_measurements/StringStamped"
+      topic: "/robot/seq"
+      timer_based: false
+      qos_depth: 1000
+      enable_validator: false
+      tags: ["web"]
+destination_server:
+  ros__parameters:
+    flb:
+      storage_path: "{tmp_path / "buffer"}"
+      flush: 0.2
+      scheduler_base: {SCHEDULER_BASE}
+      scheduler_cap: {SCHEDULER_CAP}
+      http_server: true
+      http_port: 0
+    destination_plugins: ["web"]
+    web:
+      plugin: "dc_destinations/HTTP"
+      inputs: ["/dc/measurement/seq"]
+      port: {port}
+      uri: "/ingest"
+      timeout: 2.0
+{destination}""")
+    return params
+
+
+def publish(run: Bringup, count: int, rate: float, padding: int = 0) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-c", PUBLISHER, str(count), str(rate), str(padding)],
+        env=run.env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def finish(publisher: subprocess.Popen[str], timeout: float = 60) -> None:
+    output, _ = publisher.communicate(timeout=timeout)
+    assert publisher.returncode == 0, output
+
+
+def status(run: Bringup) -> dict[str, Any]:
+    """`dc status --json` of this run's destination_server (its metrics port is in the log)."""
+    line = run.wait_stderr("metrics HTTP server on http://")
+    match = re.search(r"http://[^:/]+:(\d+)/", line)
+    assert match, line
+    result = dc("status", "--json", "--port", match.group(1), env=run.env)
+    assert result.returncode == 0, result.stderr
+    document: dict[str, Any] = json.loads(result.stdout)
+    return document
+
+
+def web_metrics(run: Bringup) -> dict[str, Any]:
+    return dict(status(run)["destinations"]["web"])
+
+
+def seqs(receiver: Receiver) -> Counter[int]:
+    return Counter(int(r["seq"]) for r in receiver.records())
+
+
+def wait_metric(run: Bringup, check: Any, timeout: float, what: str) -> dict[str, Any]:
+    """Poll `dc status` until ``check(web metrics)`` holds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        metrics = web_metrics(run)
+        if check(metrics):
+            return metrics
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}; web metrics: {metrics}")
+        time.sleep(0.2)
+
+
+def buffer_cli(*args: str, run: Bringup) -> str:
+    result = dc("buffer", *args, "--params", str(run.params), env=run.env)
+    assert result.returncode == 0, result.stderr
+    return result.stdout
+
+
+# -- (a) a receiver that fails for a while ------------------------------------------------------------
+
+
+def test_receiver_failing_for_a_while_gets_every_record_once_with_growing_backoff(tmp_path: Path) -> None:
+    outage_started: list[float] = []
+
+    def fail_then_accept(request: Request) -> tuple[int, bytes]:
+        if not outage_started:
+            outage_started.append(request.time)
+        if request.time < outage_started[0] + OUTAGE_S:
+            return 503, b"maintenance in progress"
+        return 200, b"ok"
+
+    total = 100
+    with (
+        Receiver(fail_then_accept) as receiver,
+        Bringup(write_params(tmp_path, receiver.port), tmp_path / "home") as run,
+    ):
+        run.wait_ready()
+        publisher = publish(run, total, rate=10)  # 10 s of records, most of them during the outage
+        receiver.wait_until(lambda: bool(receiver.requests), 30, "the first attempt")
+        during = wait_metric(run, lambda m: m["retried"] > 0, 20, "retries to show in dc status")
+        assert during["last_error"].startswith(f"HTTP 503 Service Unavailable from http://127.0.0.1:{receiver.port}/")
+        assert "maintenance in progress" in during["last_error"]
+        finish(publisher)
+        run.wait_until(lambda: len(seqs(receiver)) == total, OUTAGE_S + 30, f"all {total} records at the receiver")
+        after = wait_metric(run, lambda m: m["buffered"] == 0, 10, "an empty queue")
+    received = seqs(receiver)
+    assert sorted(received) == list(range(total)), "nothing lost"
+    assert set(received.values()) == {1}, "nothing delivered twice"
+    assert after["sent"] == total and after["dead_lettered"] == 0 and after["dropped"] == 0
+    assert after["retried"] >= after["failed"] > 0
+
+    # The backoff, from the receiver's side: the n-th wait is drawn in [0, min(cap, base * 2^(n-1))].
+    attempts = [r.time for r in receiver.requests if r.status == 503]
+    gaps = [b - a for a, b in itertools.pairwise(attempts)]
+    assert len(gaps) >= 6, gaps
+    for n, gap in enumerate(gaps[:3], start=1):
+        assert gap <= SCHEDULER_BASE * 2 ** (n - 1) + SLACK_S, f"wait {n} above its ceiling: {gaps}"
+    assert max(gaps) > 4 * SCHEDULER_BASE + SLACK_S, f"the waits did not grow: {gaps}"
+    assert max(gaps) <= SCHEDULER_CAP + SLACK_S, f"a wait above scheduler_cap: {gaps}"
+    print(f"\n{len(attempts)} attempts during a {OUTAGE_S:g} s outage; waits (s): {[round(g, 2) for g in gaps]}")
+
+
+# -- (b) a receiver that refuses the records -------------------------------------------------------------
+
+
+def test_refused_records_wait_in_dead_letters_and_replay_delivers_them_once(tmp_path: Path) -> None:
+    total = 5
+    with Receiver() as receiver, Bringup(write_params(tmp_path, receiver.port), tmp_path / "home") as run:
+        receiver.respond = lambda request: (400, b'{"error": "unknown field seq"}')
+        run.wait_ready()
+        finish(publish(run, total, rate=20))
+        metrics = wait_metric(run, lambda m: m["dead_lettered"] == total, 30, "every record dead-lettered")
+        assert metrics["buffered"] == 0 and metrics["retried"] == 0, "a refusal is not retried"
+        assert metrics["last_error"].startswith("rejected: HTTP 400 Bad Request")
+
+        listing = buffer_cli("list", run=run).splitlines()
+        rows = [line for line in listing[1:] if " web " in line]
+        assert len(rows) == total, listing
+        assert all("rejected: HTTP 400 Bad Request from http://127.0.0.1" in line for line in rows), listing
+        first_id = rows[0].split()[0]
+        shown = json.loads(buffer_cli("show", first_id, run=run))
+        assert '"error": "unknown field seq"' in shown["error"], "the receiver's reason is kept whole"
+        assert shown["payload"]["seq"] in range(total)
+        refused = len(receiver.requests)
+
+        receiver.respond = None  # the receiver is fixed: it accepts everything now
+        replayed = buffer_cli("replay", "--all", run=run)
+        assert f"replayed {total} dead letter(s)" in replayed
+        run.wait_until(lambda: len(seqs(receiver)) == total, 30, "the replayed records at the receiver")
+        after = wait_metric(run, lambda m: m["sent"] == total, 10, "the replayed records counted as sent")
+        assert "no dead letters" in buffer_cli("list", run=run)
+    assert sorted(seqs(receiver).elements()) == list(range(total)), "each replayed record delivered once"
+    assert all(r.status == 400 for r in receiver.requests[:refused])
+    assert after["buffered"] == 0
+
+
+# -- (c) the size limit while the receiver is down ----------------------------------------------------
+
+
+def test_size_limit_while_the_receiver_is_down_drops_the_oldest_and_counts_them(tmp_path: Path) -> None:
+    port = free_port()  # nothing listens there until the receiver starts below
+    total, padding = 100, 400
+    limit = "10K"  # ~500-byte records: room for about 20 of the 100
+    destination = f'      storage_total_limit_size: "{limit}"\n      when_full: "drop_oldest"\n'
+    with Bringup(write_params(tmp_path, port, destination=destination), tmp_path / "home") as run:
+        run.wait_ready()
+        finish(publish(run, total, rate=50, padding=padding))
+        down = wait_metric(run, lambda m: m["received"] == total, 30, f"all {total} records received")
+        assert "cannot POST to http://127.0.0.1" in down["last_error"]
+        assert down["dropped"] > 0 and down["sent"] == 0
+        assert down["dropped"] + down["buffered"] == total, "every record is either kept or counted as dropped"
+        assert down["buffered_bytes"] <= 10 * 1024
+        drop_lines = [line for line in run.stderr if "destination web: records dropped" in line]
+        assert 1 <= len(drop_lines) <= 3, f"logged once per burst, not per record: {drop_lines}"
+
+        with Receiver(port=port) as receiver:
+            run.wait_until(lambda: len(seqs(receiver)) == down["buffered"], 30, "the kept records at the receiver")
+            after = wait_metric(run, lambda m: m["buffered"] == 0, 10, "an empty queue")
+    kept = sorted(seqs(receiver))
+    assert kept == list(range(total - len(kept), total)), f"the newest are kept, the oldest dropped: {kept}"
+    assert after["dropped"] == total - len(kept)
+
+
+# -- (d) a corrupt buffer file at start --------------------------------------------------------------------
+
+
+def test_corrupt_buffer_file_is_set_aside_and_new_records_are_delivered(tmp_path: Path) -> None:
+    storage = tmp_path / "buffer"
+    storage.mkdir()
+    (storage / "delivery.sqlite3").write_bytes(b"this is not a SQLite database\n" * 200)
+    total = 10
+    with Receiver() as receiver, Bringup(write_params(tmp_path, receiver.port), tmp_path / "home") as run:
+        run.wait_ready()
+        error = run.wait_stderr("delivery.sqlite3.corrupt-")
+        finish(publish(run, total, rate=20))
+        run.wait_until(lambda: len(seqs(receiver)) == total, 30, "new records at the receiver")
+        document = status(run)
+    assert "ERROR" in error or "error" in error.lower(), error
+    moved = [p for p in storage.iterdir() if p.name.startswith("delivery.sqlite3.corrupt-")]
+    assert len(moved) == 1 and moved[0].name in error, (error, moved)
+    assert moved[0].read_bytes().startswith(b"this is not a SQLite database"), "kept for inspection, unchanged"
+    assert document["buffer"]["quarantined"] == 1
+    assert sorted(seqs(receiver)) == list(range(total))
