@@ -62,9 +62,9 @@ class TopicWriters:
     A record continues the writer whose last number is the highest one below its own (ties go to
     the writer heard from last); a record below every known writer's last number starts a new
     writer — a publisher that restarted numbers from 1 again. With one publisher per topic (each
-    of DC's topics has one) this is exact. With several, whose numbers interleave, a lost record of
-    one can be counted against another; the total stays right as long as their numbers do not
-    cross while records are being lost.
+    of DC's topics has one) this is exact. With several, told apart while their numbers stay
+    apart; once two of them reach the same number, a record can be taken for the other's, which
+    shows as a gap that was none (or hides one): the counts are then approximate.
     """
 
     def __init__(self, max_writers: int = MAX_WRITERS_PER_TOPIC) -> None:
