@@ -164,9 +164,8 @@ class Http(Destination):
                     raise RetryableError(self._network_error(second)) from None
         if 200 <= status < 300:
             return None
-        message = f"HTTP {status} {reason} from {self.url}"
-        if excerpt:
-            message += f": {excerpt}"
+        # The server's reason first: `dc buffer list` shows the start of the message.
+        message = f"HTTP {status} {reason}" + (f": {excerpt}" if excerpt else "") + f" ({self.url})"
         if status in RETRYABLE_STATUSES or status >= 500:
             raise RetryableError(message)
         raise RejectedError(message)
