@@ -476,6 +476,8 @@ def configure(body: dict[str, Any]) -> None:
         ({"port": 0}, "destination_server.web.port: expected a TCP port from 1 to 65535, got 0"),
         ({"port": "eighty"}, "destination_server.web.port: expected an integer"),
         ({"uri": "ingest"}, "destination_server.web.uri: expected a path starting with '/'"),
+        ({"uri": "/données"}, "destination_server.web.uri: expected a path starting with '/', ASCII"),
+        ({"header": ["X-Robot: 机器人"]}, "destination_server.web.header[0]"),
         ({"format": "msgpack"}, "destination_server.web.format: expected one of"),
         ({"header": ["no-value"]}, 'destination_server.web.header[0]: expected "Name: value", got "no-value"'),
         ({"header": ["X-Ok: 1", ": no name"]}, "destination_server.web.header[1]"),

@@ -31,15 +31,25 @@ def _port_problem(port: int) -> str | None:
 
 
 def _uri_problem(uri: str) -> str | None:
-    return None if uri.startswith("/") and not any(c.isspace() for c in uri) else "a path starting with '/'"
+    ok = uri.startswith("/") and uri.isascii() and not any(c.isspace() for c in uri)
+    return None if ok else "a path starting with '/', ASCII without spaces (percent-encode the rest)"
 
 
 def parse_header(text: str) -> tuple[str, str] | None:
     """``"Name: value"`` (or Fluent Bit's ``"Name value"``) as a pair; None when it is neither."""
     match = _HEADER_COLON.match(text.strip()) or _HEADER_SPACE.match(text.strip())
-    if match is None or any(c in match.group(2) for c in "\r\n"):
+    if match is None or any(c in match.group(2) for c in "\r\n") or not _latin1(match.group(2)):
         return None
     return match.group(1), match.group(2).strip()
+
+
+def _latin1(text: str) -> bool:
+    """HTTP/1.1 header values are bytes; http.client writes them as Latin-1."""
+    try:
+        text.encode("latin-1")
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
@@ -166,6 +176,7 @@ class Http(Destination):
             return None
         # The server's reason first: `dc buffer list` shows the start of the message.
         message = f"HTTP {status} {reason}" + (f": {excerpt}" if excerpt else "") + f" ({self.url})"
+        message = self._scrub(message)
         if status in RETRYABLE_STATUSES or status >= 500:
             raise RetryableError(message)
         raise RejectedError(message)
