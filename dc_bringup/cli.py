@@ -114,8 +114,42 @@ def _get_json(url: str) -> Any:
         return json.loads(response.read())
 
 
+def _status_address(args: argparse.Namespace) -> tuple[str, int]:
+    """--host/--port, or the flb.http_listen/http_port of --params."""
+    host, port = args.host, args.port
+    if args.params:
+        from dc_core.config import load_params_file
+
+        flb = load_params_file(args.params).get("destination_server", {}).get("flb", {})
+        if not flb.get("http_server", False):
+            print(f"dc status: flb.http_server is not true in {args.params}", file=sys.stderr)
+        listen = str(flb.get("http_listen", "127.0.0.1"))
+        host = "127.0.0.1" if listen in ("0.0.0.0", "") else listen
+        port = int(flb.get("http_port", 2020))
+    return host, port
+
+
+STATUS_COLUMNS = [
+    ("received", "received"),
+    ("buffered", "buffered"),
+    ("buffered_bytes", "bytes"),
+    ("sent", "sent"),
+    ("retried", "retried"),
+    ("failed", "failed"),
+    ("dropped", "dropped"),
+    ("dead_lettered", "dead-lettered"),
+    ("dead_letters", "dead now"),
+    ("oldest_pending_age_s", "oldest s"),
+]
+
+
 def cmd_status(args: argparse.Namespace) -> int:
-    url = f"http://{args.host}:{args.port}/api/v1/metrics"
+    try:
+        host, port = _status_address(args)
+    except DcError as exc:
+        print(f"dc status: {exc}", file=sys.stderr)
+        return 2
+    url = f"http://{host}:{port}/api/v1/metrics"
     try:
         metrics = _get_json(url)
     except (urllib.error.URLError, OSError) as exc:
@@ -124,14 +158,27 @@ def cmd_status(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(metrics, indent=2))
         return 0
-    destinations = metrics.get("destinations", metrics)
-    columns = ["received", "buffered", "sent", "retried", "failed", "dropped", "dead_lettered", "oldest_pending_age_s"]
-    print(f"{'destination':<20}" + "".join(f"{c:>14}" for c in columns) + "  last_error")
+    destinations = metrics.get("destinations", {})
+    widths = [max(len(title), 8) + 2 for _, title in STATUS_COLUMNS]
+    print(
+        f"{'destination':<20}"
+        + "".join(f"{t:>{w}}" for (_, t), w in zip(STATUS_COLUMNS, widths, strict=True))
+        + "  last error"
+    )
     for name, row in sorted(destinations.items()):
         if not isinstance(row, dict):
             continue
-        cells = "".join(f"{_cell(row.get(c)):>14}" for c in columns)
+        cells = "".join(f"{_cell(row.get(k)):>{w}}" for (k, _), w in zip(STATUS_COLUMNS, widths, strict=True))
         print(f"{name:<20}{cells}  {row.get('last_error') or ''}")
+    buffer = metrics.get("buffer")
+    if isinstance(buffer, dict):
+        print(
+            f"buffer: {buffer.get('path')} (storage_sync {buffer.get('storage_sync')}), "
+            f"awaiting commit {buffer.get('intake_pending')}, corrupt files set aside {buffer.get('quarantined')}"
+        )
+    for section, values in sorted(metrics.items()):
+        if section not in ("destinations", "buffer") and isinstance(values, dict):
+            print(f"{section}: " + ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict)))
     return 0
 
 
@@ -180,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("status", help="delivery metrics of a running destination_server")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=2020)
+    p.add_argument("--params", default="", help="read flb.http_listen and http_port from this parameter file")
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.set_defaults(func=cmd_status)
 
@@ -190,6 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", default="", help="read the storage path from this parameter file")
     p.add_argument("--destination", default="", help="only this destination")
     p.add_argument("--all", action="store_true", help="replay or purge every dead letter")
+    p.add_argument("--json", action="store_true", help="list: one JSON object per dead letter, error in full")
     p.set_defaults(func=cmd_buffer)
     return parser
 

@@ -114,7 +114,12 @@ def run_cli(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         if args.action == "stats":
             _print_stats(path, queue_stats(path), out)
         elif args.action == "list":
-            _print_list(list_dead_letters(path, destination), out)
+            letters = list_dead_letters(path, destination)
+            if getattr(args, "json", False):
+                for listed in letters:
+                    print(json.dumps(_as_json(listed), ensure_ascii=False), file=out)
+            else:
+                _print_list(letters, out)
         elif args.action == "show":
             if not ids:
                 raise BufferAdminError(

@@ -125,3 +125,53 @@ def test_every_shipped_configuration_is_valid(example: str) -> None:
 def test_pub_rejects_non_json() -> None:
     result = dc("pub", "/x", "{not json")
     assert result.returncode == 2 and "not JSON" in result.stderr
+
+
+def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None:
+    import http.server
+    import json as _json
+    import threading
+
+    document = {
+        "destinations": {
+            "pg": {"received": 10, "buffered": 3, "buffered_bytes": 600, "sent": 7, "retried": 2, "failed": 2,
+                   "dropped": 0, "dead_lettered": 1, "dead_letters": 1, "oldest_pending_age_s": 12.5,
+                   "last_error": "HTTP 503 Service Unavailable"},
+        },
+        "buffer": {"path": "/b/delivery.sqlite3", "storage_sync": "full", "quarantined": 1, "intake_pending": 0},
+        "intake": {"received": 10, "malformed": 2},
+    }
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            body = _json.dumps(document).encode()
+            self.send_response(200 if self.path == "/api/v1/metrics" else 404)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        params = tmp_path / "p.yaml"
+        params.write_text(
+            "destination_server:\n  ros__parameters:\n    flb:\n      http_server: true\n"
+            f"      http_port: {server.server_address[1]}\n    destination_plugins: []\n"
+        )
+        result = dc("status", "--params", str(params))
+    finally:
+        server.shutdown()
+    assert result.returncode == 0, result.stderr
+    header, row, *rest = result.stdout.splitlines()
+    titles = header.split()
+    assert titles[:3] == ["destination", "received", "buffered"] and "dead-lettered" in titles
+    cells = row.split()
+    assert cells[:4] == ["pg", "10", "3", "600"] and "12.5" in cells
+    assert row.endswith("HTTP 503 Service Unavailable")
+    assert any("corrupt files set aside 1" in line for line in rest)
+    assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
+    unreachable = dc("status", "--port", "1")
+    assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr
