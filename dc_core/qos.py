@@ -8,16 +8,26 @@ topic (any plain ROS 2 node) is compatible and simply gets no history.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 RECORD_HISTORY_DEPTH = 1000
 
-RECORD_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=RECORD_HISTORY_DEPTH,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
+
+
+def record_qos(depth: int = RECORD_HISTORY_DEPTH) -> QoSProfile:
+    """Publishers of records: reliable, transient-local history of ``depth`` records."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+
+
+RECORD_QOS = record_qos()
+
 
 # A transient-local subscription does not match a volatile publisher (any plain ROS 2 node, or
 # `ros2 topic pub`), so subscriptions are volatile unless the topic is known to be published by a
@@ -30,6 +40,7 @@ VOLATILE_RECORD_QOS = QoSProfile(
 )
 
 
-def subscription_qos(topic: str, internal_topics: set[str]) -> QoSProfile:
+def subscription_qos(topic: str, internal_topics: Mapping[str, int]) -> QoSProfile:
     """Transient-local for topics DC's own servers publish (history after a restart), else volatile."""
-    return RECORD_QOS if topic in internal_topics else VOLATILE_RECORD_QOS
+    depth = internal_topics.get(topic)
+    return VOLATILE_RECORD_QOS if depth is None else record_qos(depth)

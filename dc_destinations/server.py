@@ -34,9 +34,9 @@ from dc_interfaces.msg import StringStamped
 
 NODE_NAME = "destination_server"
 PREVIEW_CHARS = 200
-# Keys kept per topic to recognise replays: a replay is at most one history per publisher, so this
-# covers four publishers of one topic (each of DC's own topics has one).
-HOP_WINDOW = 4 * RECORD_HISTORY_DEPTH
+# Keys kept per topic to recognise replays, in histories: a replay is at most one history per
+# publisher, so this covers four publishers of one topic (each of DC's own topics has one).
+HOP_WINDOW_HISTORIES = 4
 
 
 @dataclass
@@ -79,7 +79,8 @@ class DestinationServer(ManagedServer):
         self.stats = IntakeStats()
         self._debug: set[str] = set()
         self._subscriptions: list[Any] = []
-        self._internal_topics: set[str] = set()
+        self._internal_topics: dict[str, int] = {}
+        self._hop_window = HOP_WINDOW_HISTORIES * RECORD_HISTORY_DEPTH
         self.hop: HopIntake | None = None
         self._hop_loss_log: BurstLog | None = None
         self._hop_log_timer: Any = None
@@ -92,6 +93,7 @@ class DestinationServer(ManagedServer):
         config = parse_destination_server(servers[NODE_NAME])
         self.config = config
         self._internal_topics = internal_topics(servers)
+        self._hop_window = HOP_WINDOW_HISTORIES * max([RECORD_HISTORY_DEPTH, *self._internal_topics.values()])
         log = self.get_logger()
         for warning in config.warnings:
             log.warning(warning)
@@ -117,7 +119,7 @@ class DestinationServer(ManagedServer):
             config.node.flb,
             {d.name: (self.plugins[d.name], d.delivery) for d in config.destinations},
             self.get_logger(),
-            seen_window=HOP_WINDOW,
+            seen_window=self._hop_window,
         )
         self.pipeline.add_metrics_section("intake", self.intake_metrics)
         self.pipeline.add_metrics_section("hop", self.hop_metrics)
@@ -144,7 +146,7 @@ class DestinationServer(ManagedServer):
             plugin.on_activate()
         self.pipeline.start()
         # Before the first subscription: the history a publisher replays is checked against these keys.
-        hop = HopIntake(HOP_WINDOW)
+        hop = HopIntake(self._hop_window)
         hop.load(HopKey(*key) for key in self.pipeline.hop_keys())
         self.hop = hop
         self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")

@@ -59,6 +59,9 @@ class MeasurementCommonParams:
     condition_max_measurements: int = param(0, minimum=-1, doc="Samples per condition episode")
     include_measurement_name: bool = param(True, doc='Add "name": <id>')
     include_measurement_plugin: bool = param(False, doc='Add "plugin": <plugin type>')
+    history_depth: int = param(
+        1000, minimum=1, doc="Records the output topic keeps for a destination_server that (re)starts late"
+    )
     remote_keys: list[str] = param([], doc="Names of remote storages (file-saving plugins)")
     remote_prefixes: list[str] = param([], doc="Prefix per remote key, same order")
     nested: bool = param(False, doc="Wrap the record as {<id>: record}")

@@ -16,7 +16,7 @@ from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import Logger
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
-from dc_core.qos import RECORD_QOS
+from dc_core.qos import record_qos
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
@@ -95,7 +95,7 @@ class MeasurementServer(ManagedServer):
             context = _PluginContext(mcfg.name, self.get_logger().get_child(mcfg.name), self, measurement_paths, self)
             plugin: Measurement = mcfg.plugin_class(context, mcfg.plugin_params)
             validator = self._validator(mcfg.name, plugin, c.enable_validator, c.json_schema_path)
-            publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, RECORD_QOS)
+            publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, record_qos(c.history_depth))
             self._record_publishers[mcfg.name] = publisher
             runner = MeasurementRunner(
                 mcfg, plugin, self.conditions, validator, run_id, custom, self._publish_fn(publisher), log

@@ -31,10 +31,10 @@ pytestmark = pytest.mark.e2e
 
 TOTAL = 10_000
 FLOOD_RATE = 2_000.0
-# kill -9 to active again took 2.0-3.8 s here (process start, configure, activate, discovery); a
-# rate that fills the history in 5 s is one the history covers.
+# kill -9 to active again took 2.0-3.8 s here (process start, configure, activate, discovery): a
+# history of 5 s of records covers the restart.
 RESTART_ALLOWANCE_S = 5.0
-COVERED_RATE = min(FLOOD_RATE, RECORD_HISTORY_DEPTH / RESTART_ALLOWANCE_S)
+COVERING_DEPTH = int(FLOOD_RATE * RESTART_ALLOWANCE_S)
 
 # argv: first number, count, rate; with "--await-forwarded" it exits only once measurement_server
 # has republished its last record (so that record is in measurement_server's history).
@@ -84,7 +84,7 @@ sys.exit(0 if not await_forwarded or last in forwarded else 3)
 """
 
 
-def write_params(tmp_path: Path) -> tuple[Path, Path]:
+def write_params(tmp_path: Path, history_depth: int = RECORD_HISTORY_DEPTH) -> tuple[Path, Path]:
     out = tmp_path / "out"
     params = tmp_path / "params.yaml"
     params.write_text(f"""
@@ -96,6 +96,7 @@ measurement_server:
       topic: "/robot/numbers"
       timer_based: false
       qos_depth: 1000
+      history_depth: {history_depth}
       enable_validator: false
       tags: ["file"]
 destination_server:
@@ -173,14 +174,15 @@ def kill_destination_server_during(run: Bringup, output: Path, rate: float) -> t
 
 
 def test_kill_9_while_10000_records_are_in_flight_loses_none_within_the_history(tmp_path: Path) -> None:
-    params, output = write_params(tmp_path)
+    # history_depth sized for the rate: the publisher keeps the last 5 s of records.
+    params, output = write_params(tmp_path, history_depth=COVERING_DEPTH)
     with Bringup(params, tmp_path / "home", args=["--bond-timeout", "5"]) as run:
-        counts, down_s, published = kill_destination_server_during(run, output, COVERED_RATE)
+        counts, down_s, published = kill_destination_server_during(run, output, FLOOD_RATE)
         hop = hop_metrics(run.stderr)
     missing = [n for n in range(TOTAL) if n not in counts]
     duplicates = sum(c - 1 for c in counts.values())
     print(
-        f"\nkill -9 at {COVERED_RATE:.0f} records/s (history {RECORD_HISTORY_DEPTH}): destination_server down "
+        f"\nkill -9 at {FLOOD_RATE:.0f} records/s (history {COVERING_DEPTH}): destination_server down "
         f"{down_s:.2f} s; {len(counts)} of {TOTAL} delivered, {len(missing)} missing, {duplicates} duplicates "
         f"in the file; replays dropped by the hop: {hop['duplicates']}; publisher: {published}"
     )
