@@ -51,12 +51,14 @@ def param(
         "aliases": tuple(aliases),
         "check": check,
     }
+    # A secret stays out of the dataclass repr, so logging a parameter object never shows it.
+    shown = not secret
     if default_factory is not _MISSING:
-        return dataclasses.field(default_factory=default_factory, metadata=metadata)
+        return dataclasses.field(default_factory=default_factory, metadata=metadata, repr=shown)
     if isinstance(default, list):
         frozen = list(default)
-        return dataclasses.field(default_factory=lambda: list(frozen), metadata=metadata)
-    return dataclasses.field(default=default, metadata=metadata)
+        return dataclasses.field(default_factory=lambda: list(frozen), metadata=metadata, repr=shown)
+    return dataclasses.field(default=default, metadata=metadata, repr=shown)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -238,12 +240,6 @@ def describe_params(cls: type) -> list[ParamInfo]:
             )
         )
     return out
-
-
-def redact(cls: type, values: Mapping[str, Any]) -> dict[str, Any]:
-    """Copy of a YAML mapping with the secret parameters of ``cls`` masked, for logs."""
-    secrets = {f.name for f in dataclasses.fields(cls) if f.metadata.get("secret")}
-    return {k: ("***" if k in secrets and v else v) for k, v in values.items()}
 
 
 def _join(path: str, key: str) -> str:

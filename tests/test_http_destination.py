@@ -452,7 +452,7 @@ def test_password_never_reaches_logs_errors_metrics_or_dead_letters(
     assert any("HTTP 503" in t for t in texts) and any("HTTP 400" in t for t in texts)
     for text in texts:
         assert PASSWORD not in text and token not in text, text
-    assert "http_passwd=***" in repr(params)
+    assert "http_passwd" not in repr(params), "secret parameters stay out of the repr"
 
 
 def test_secret_parameter_is_marked_secret() -> None:

@@ -8,7 +8,7 @@ import re
 import ssl
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
@@ -96,13 +96,6 @@ class HttpParams:
     def headers_list(self) -> list[str]:
         return [self.header] if isinstance(self.header, str) else list(self.header)
 
-    def __repr__(self) -> str:
-        # A frozen dataclass' repr would print the password wherever the parameters are logged.
-        shown = ", ".join(
-            f"{f.name}={'***' if f.metadata.get('secret') and getattr(self, f.name) else repr(getattr(self, f.name))}"
-            for f in fields(self)
-        )
-        return f"HttpParams({shown})"
 
 
 class Http(Destination):
