@@ -82,6 +82,7 @@ class SameAsPrevious(Condition):
     """Sample equals the previous one, ignoring `tags` and `exclude`, comparing the files at `keys`."""
 
     Params = SameAsPreviousParams
+    remembers_samples = True
 
     def __init__(self, context: ConditionContext, params: SameAsPreviousParams) -> None:
         super().__init__(context, params)

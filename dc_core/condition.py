@@ -36,6 +36,9 @@ class Condition(abc.ABC):
 
     Params: ClassVar[type] = NoParams
     needs_sample: ClassVar[bool] = True
+    # True when the answer depends on earlier samples: such a condition should judge the samples of
+    # one measurement only (configuration checks warn when several list it).
+    remembers_samples: ClassVar[bool] = False
 
     def __init__(self, context: ConditionContext, params: Any) -> None:
         self.context = context

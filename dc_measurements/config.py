@@ -204,6 +204,18 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         )
 
     warnings: list[str] = []
+    users: dict[str, list[str]] = {}
+    for m in measurements:
+        for cid in dict.fromkeys(m.conditions):
+            users.setdefault(cid, []).append(m.name)
+    for cid, names in users.items():
+        ccfg = conditions[cid]
+        if len(names) > 1 and getattr(ccfg.plugin_class, "remembers_samples", False) and not ccfg.common.topic:
+            warnings.append(
+                f"{path}.{cid}: {ccfg.common.plugin} compares each sample with the previous one, and "
+                f"{', '.join(names)} all use it: it will compare their samples with each other "
+                "(configure one condition per measurement)"
+            )
     for m in measurements:
         c = m.common
         if not m.conditions and c.init_max_measurements == -1:

@@ -325,3 +325,19 @@ def test_path_expansion() -> None:
     with pytest.raises(ConfigError, match="'=missing' names no string parameter"):
         expand_values("=missing", {}.get)
     assert expand_time("%Y-%m-%dT%H", when=0, utc=True) == "1970-01-01T00"
+
+
+def test_a_condition_that_remembers_samples_shared_by_two_measurements_is_warned_about() -> None:
+    same = {"plugin": "dc_conditions/SameAsPrevious"}
+    shared = parse_measurement_server(
+        server(
+            {"a": {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["same"]},
+             "b": {"plugin": "dc_measurements/Uptime", "if_none_conditions": ["same"]}},
+            {"same": same},
+        )
+    )
+    assert any("measurement_server.same:" in w and "a, b all use it" in w for w in shared.warnings)
+    alone = parse_measurement_server(
+        server({"a": {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["same"]}}, {"same": same})
+    )
+    assert alone.warnings == []
