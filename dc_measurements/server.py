@@ -56,7 +56,8 @@ class MeasurementServer(ManagedServer):
         self._condition_subscriptions: list[Any] = []
         self._collect_timers: dict[str, Any] = {}
         self._active = False
-        self._init_pending: dict[str, float] = {}
+        self._init_pending: list[str] = []
+        self._start_deadline = 0.0
         self._init_timer: Any = None
 
     # -- configure ---------------------------------------------------------------------------
@@ -176,14 +177,11 @@ class MeasurementServer(ManagedServer):
         for name, runner in self.runners.items():
             self._record_publishers[name].on_activate(None)
             runner.plugin.on_activate()
-            if not runner.plugin.timer_driven:
-                continue
-            period = runner.config.common.polling_interval / 1000.0
-            self._collect_timers[name] = self.create_timer(period, lambda n=name: self._tick(n))
-            if runner.config.common.init_collect:
-                self._init_pending[name] = time.monotonic() + INIT_MATCH_WAIT_S
+            if runner.plugin.timer_driven:
+                self._init_pending.append(name)
         if self._init_pending:
-            self._init_timer = self.create_timer(0.02, self._init_collect)
+            self._start_deadline = time.monotonic() + INIT_MATCH_WAIT_S
+            self._init_timer = self.create_timer(0.02, self._start_collection)
 
     @staticmethod
     def _topic_record_callback(runtime: ConditionRuntime) -> Any:
@@ -192,27 +190,28 @@ class MeasurementServer(ManagedServer):
 
         return callback
 
-    def _init_collect(self) -> None:
-        """The first sample waits until its topic is matched (or INIT_MATCH_WAIT_S passed).
+    def _start_collection(self) -> None:
+        """Start the timers once every output topic is matched (or INIT_MATCH_WAIT_S passed).
 
-        Discovery between processes takes ~0.35 s; a record published before the destination's
-        subscription is matched would reach nobody.
+        Discovery between processes takes ~0.35 s: a first record published before the
+        destination's (or group's) subscription is matched would reach nobody. All timers start
+        together, so measurements polled at related intervals stay in phase (a group can match
+        their records), and each period counts from the first sample.
         """
-        now = time.monotonic()
-        for name, deadline in list(self._init_pending.items()):
-            ticked_already = self.runners[name].stats.collected + self.runners[name].stats.empty > 0
-            if ticked_already:
-                del self._init_pending[name]
-            elif self._record_publishers[name].get_subscription_count() > 0 or now >= deadline:
-                del self._init_pending[name]
-                # The polling period counts from this first sample, so the cadence stays regular.
-                if name in self._collect_timers:
-                    self._collect_timers[name].reset()
-                self._tick(name)
-        if not self._init_pending and self._init_timer is not None:
+        matched = all(self._record_publishers[n].get_subscription_count() > 0 for n in self._init_pending)
+        if not matched and time.monotonic() < self._start_deadline:
+            return
+        if self._init_timer is not None:
             self._init_timer.cancel()
             self.destroy_timer(self._init_timer)
             self._init_timer = None
+        names, self._init_pending = self._init_pending, []
+        for name in names:
+            period = self.runners[name].config.common.polling_interval / 1000.0
+            self._collect_timers[name] = self.create_timer(period, lambda n=name: self._tick(n))
+        for name in names:
+            if self.runners[name].config.common.init_collect:
+                self._tick(name)
 
     def _tick(self, name: str) -> None:
         runner = self.runners[name]
