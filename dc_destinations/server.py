@@ -12,14 +12,11 @@ from __future__ import annotations
 
 import json
 import sys
-import threading
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-import rclpy
 from rclpy.exceptions import InvalidHandle
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 
 from dc_core.config import internal_topics, load_params_file
@@ -36,7 +33,6 @@ from dc_destinations.routing import RoutingTable
 from dc_interfaces.msg import StringStamped
 
 NODE_NAME = "destination_server"
-INTAKE_NODE_NAME = "destination_server_intake"
 PREVIEW_CHARS = 200
 DRAIN_MAX = 256
 # Keys kept per topic to recognise replays, in histories: a replay is at most one history per
@@ -85,7 +81,6 @@ class DestinationServer(ManagedServer):
         self._debug: set[str] = set()
         # Not `_subscriptions`: rclpy's Node keeps its own list under that name.
         self._subscription_of: dict[str, Any] = {}
-        self._intake: _IntakeThread | None = None
         self._internal_topics: dict[str, int] = {}
         self._hop_window = HOP_WINDOW_HISTORIES * RECORD_HISTORY_DEPTH
         self.hop: HopIntake | None = None
@@ -159,16 +154,11 @@ class DestinationServer(ManagedServer):
         self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")
         self._hop_log_timer = self.create_timer(1.0, self._hop_loss_log.tick)
         with_history = []
-        intake = _IntakeThread(self.context, self.get_logger())
         for topic in self.routing.topics:
             qos = _with_room_for_a_replay(subscription_qos(topic, self._internal_topics))
-            self._subscription_of[topic] = intake.node.create_subscription(
-                StringStamped, topic, self._callback(topic), qos
-            )
+            self._subscription_of[topic] = self.create_subscription(StringStamped, topic, self._callback(topic), qos)
             if topic in self._internal_topics:
                 with_history.append(topic)
-        self._intake = intake
-        intake.start()
         self.get_logger().info(
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
@@ -189,17 +179,17 @@ class DestinationServer(ManagedServer):
             raise PluginError("deactivating destinations failed: " + "; ".join(errors))
 
     def _destroy_subscriptions(self) -> None:
-        if self._intake is not None:
-            self._intake.stop()  # destroys the subscriptions with its node, after its last callback
-            self._intake = None
+        subscriptions = list(self._subscription_of.values())
         self._subscription_of.clear()
+        for subscription in subscriptions:
+            self.destroy_subscription(subscription)
         if self._hop_log_timer is not None:
             self.destroy_timer(self._hop_log_timer)
             self._hop_log_timer = None
         if self._hop_loss_log is not None:
             self._hop_loss_log.tick()
 
-    # -- intake (the intake thread: _IntakeThread) -------------------------------------------------
+    # -- intake (ROS executor thread) --------------------------------------------------------------
     def _callback(self, topic: str) -> Any:
         # Two parameters: rclpy passes the MessageInfo (source timestamp, sequence number) as well
         # (its type hints allow only one, hence Any).
@@ -310,42 +300,6 @@ class DestinationServer(ManagedServer):
     def hop_metrics(self) -> dict[str, Any]:
         """Per input topic: received, duplicates dropped, records known lost (missing) and more."""
         return self.hop.stats() if self.hop is not None else {}
-
-
-class _IntakeThread:
-    """The input subscriptions, on a node of their own spun by its own thread.
-
-    rclpy's default executor rebuilds its wait set over every entity of its nodes at each wake-up,
-    once per message at robot rates: the lifecycle node's services and timers would make every
-    record pay for them (docs/performance.md). This node has only the subscriptions.
-    """
-
-    def __init__(self, context: Any, logger: Any) -> None:
-        self.node = rclpy.create_node(INTAKE_NODE_NAME, context=context, start_parameter_services=False)
-        self._executor = SingleThreadedExecutor(context=context)
-        self._executor.add_node(self.node)
-        self._logger = logger
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, name="dc-intake", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self._executor.spin_once(timeout_sec=0.1)
-            except ExternalShutdownException:
-                return
-            except Exception as exc:  # one bad record must not stop the intake
-                self._logger.error(f"intake callback failed: {exc!r}")
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        self._executor.remove_node(self.node)
-        self._executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
 
 
 def _with_room_for_a_replay(qos: QoSProfile) -> QoSProfile:
