@@ -23,25 +23,9 @@ from dc_destinations.plugins.file import File, FileParams
 from dc_destinations.plugins.null import Null
 from dc_destinations.plugins.rcl import Rcl
 from dc_destinations.plugins.stdout import Stdout, StdoutParams
+from tests.fakes import RecordingLogger
 
 STAMP_NS = 1_677_668_906_045_817_000
-
-
-@dataclass
-class RecordingLogger:
-    lines: list[tuple[str, str]] = field(default_factory=list)
-
-    def debug(self, message: str, **kwargs: Any) -> None:
-        self.lines.append(("debug", message))
-
-    def info(self, message: str, **kwargs: Any) -> None:
-        self.lines.append(("info", message))
-
-    def warning(self, message: str, **kwargs: Any) -> None:
-        self.lines.append(("warning", message))
-
-    def error(self, message: str, **kwargs: Any) -> None:
-        self.lines.append(("error", message))
 
 
 @dataclass

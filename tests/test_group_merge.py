@@ -21,6 +21,7 @@ from dc_group.merge import (
     record_key,
 )
 from dc_group.pipeline import GroupPipeline
+from tests.fakes import RecordingLogger
 
 REPO = Path(__file__).resolve().parent.parent
 S = 1_000_000_000
@@ -32,26 +33,6 @@ def group(section: dict[str, Any], name: str = "g") -> GroupConfig:
 
 def rec(key: str, record: dict[str, Any], topic: str | None = None) -> InputRecord:
     return InputRecord(topic=topic or f"/dc/measurement/{key}", key=key, record=record)
-
-
-class RecordingLogger:
-    def __init__(self) -> None:
-        self.lines: list[tuple[str, str]] = []
-
-    def debug(self, message: str, **kwargs: Any) -> None:
-        self.lines.append(("debug", message))
-
-    def info(self, message: str, **kwargs: Any) -> None:
-        self.lines.append(("info", message))
-
-    def warning(self, message: str, **kwargs: Any) -> None:
-        self.lines.append(("warning", message))
-
-    def error(self, message: str, **kwargs: Any) -> None:
-        self.lines.append(("error", message))
-
-    def at(self, level: str) -> list[str]:
-        return [m for lvl, m in self.lines if lvl == level]
 
 
 # -- configuration ---------------------------------------------------------------------------
