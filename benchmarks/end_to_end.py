@@ -1,30 +1,30 @@
 """End-to-end benchmark of destination_server against the raw rclpy transport, in one run.
 
-    .venv/bin/python benchmarks/end_to_end.py [--executors single,events] [--runs 1] [--json PATH]
+    .venv/bin/python benchmarks/end_to_end.py [--transports single,intake] [--runs 1] [--json PATH]
 
 Every figure comes from separate processes on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
 a ROS domain of its own), so the ratios compare like with like:
 
 1. transport: a publisher process floods (or paces at 1,000/s) StringStamped records of ~200 bytes
-   to a bare rclpy subscriber process spinning the same executor, with the same loop, as
-   destination_server (the transport's limit);
+   to a bare rclpy subscriber process (the transport's limit), one per --transports kind:
+   ``single``, rclpy's SingleThreadedExecutor in a ``spin_once`` loop (what destination_server used
+   before its intake, and what a plain rclpy node does); ``intake``, the same loop as
+   destination_server's (dc_core.lifecycle.ServerLoop: the subscription taken by dc_core.intake,
+   the executor for the rest); ``events``, rclpy's experimental EventsExecutor;
 2. intake: the same publisher to a real destination_server process (`python -m
    dc_destinations.server PARAMS --autostart`) whose File destination is down (its folder is
    missing), so the committed rows stay in the SQLite buffer: records/s from the first publish to
    the commit of 95 % of the records committed (to the arrival of 95 % in (1): a few records resent
    late by the reliable protocol must not set the rate), for storage_sync normal and full, and the
-   ratio to (1) (target >= 80 %);
+   ratio to each (1) (target >= 80 %);
 3. drain: a buffer of --backlog records → File destination, records/s;
 4. cost: CPU seconds per 1,000 records of destination_server at a paced 1,000/s (File destination
-   up) against the bare subscriber's in the same run (target within 1.3x), from /proc/<pid>/stat
+   up) against each bare subscriber's in the same run (target within 1.3x), from /proc/<pid>/stat
    utime+stime over the same window: from the first publish to 2 s after the last;
 5. memory: VmRSS/VmHWM of destination_server started on the --backlog buffer with its destination
    down, then its peak while delivering the backlog.
 
-``events`` runs the same processes under rclpy's experimental EventsExecutor. destination_server
-under it is run by run_server with its executor swapped (the change docs/performance.md proposes)
-and with a one-argument subscription callback, because the EventsExecutor of Jazzy cannot call a
-callback that takes MessageInfo: those rows measure the cost, without the hop's deduplication.
+destination_server always runs as shipped (`python -m dc_destinations.server PARAMS --autostart`).
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ CLK_TCK = os.sysconf("SC_CLK_TCK")
 INTAKE_TARGET = 0.8
 BULK = 0.95  # rates are those of the first 95 % of the records delivered
 CPU_TARGET = 1.3
+SERVER = "dc"  # the executor column of destination_server's rows: run_server's own loop
 
 # ~200 bytes of JSON once tagged, like design.md §7's figures.
 _DATA = {
@@ -71,20 +72,6 @@ _DATA = {
     "name": "system",
     "tags": [DESTINATION],
 }
-
-# run_server with its executor swapped; the one-argument callback is what the EventsExecutor can call.
-_SERVER_RUNNER = """
-import sys
-import dc_core.lifecycle as lifecycle
-import dc_destinations.server as server
-from dc_core.executors import make_executor
-kind = sys.argv.pop(1)
-lifecycle.SingleThreadedExecutor = lambda: make_executor(kind)
-if kind == "events":
-    server.DestinationServer._callback = lambda self, topic: (lambda msg: self._on_message(topic, msg, None))
-sys.exit(server.main())
-"""
-
 
 # ---------------------------------------------------------------------------------------------
 # child roles
@@ -137,11 +124,13 @@ def role_publisher(count: int, rate: float) -> None:
 
 
 def role_subscriber(kind: str) -> None:
-    """A bare subscriber: counts records, with the executor and spin loop of run_server."""
+    """A bare subscriber: counts records; ``intake`` with run_server's loop, else an executor's spin_once loop."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
     from dc_core.executors import make_executor, spin_until
+    from dc_core.intake import Intake
+    from dc_core.lifecycle import ServerLoop
     from dc_core.qos import VOLATILE_RECORD_QOS
     from dc_interfaces.msg import StringStamped
 
@@ -155,9 +144,13 @@ def role_subscriber(kind: str) -> None:
         state["count"] += 1
         state["last"] = time.time()
 
-    node.create_subscription(StringStamped, TOPIC, on_message, VOLATILE_RECORD_QOS)
-    executor = make_executor(kind)
+    executor = make_executor("single" if kind == "intake" else kind)
     executor.add_node(node)
+    intake = Intake(node)
+    if kind == "intake":
+        intake.subscribe(StringStamped, TOPIC, lambda msg, info: on_message(msg), VOLATILE_RECORD_QOS)
+    else:
+        node.create_subscription(StringStamped, TOPIC, on_message, VOLATILE_RECORD_QOS)
     reported = [-1]
 
     def report() -> None:  # a line every 0.2 s at most: negligible beside the records
@@ -167,11 +160,19 @@ def role_subscriber(kind: str) -> None:
 
     node.create_timer(0.2, report)
     print("ready", flush=True)
-    spin_until(executor, stop, lambda exc: print(f"error {exc!r}", file=sys.stderr, flush=True))
+    if kind == "intake":
+        ServerLoop(executor, intake).run(stop, _StderrLog())
+    else:
+        spin_until(executor, stop, lambda exc: print(f"error {exc!r}", file=sys.stderr, flush=True))
     report()
     executor.shutdown()
     node.destroy_node()
     rclpy.shutdown()
+
+
+class _StderrLog:
+    def error(self, message: str) -> None:
+        print(f"error {message}", file=sys.stderr, flush=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -286,8 +287,6 @@ class Bench:
             XDG_DATA_HOME=str(workdir / "xdg"),
             PYTHONUNBUFFERED="1",
         )
-        self.runner = workdir / "run_server.py"
-        self.runner.write_text(_SERVER_RUNNER)
         self._seq = 0
 
     def _log(self, name: str) -> Path:
@@ -308,12 +307,9 @@ class Bench:
     def subscriber(self, kind: str) -> Child:
         return Child(self.me("--role", "subscriber", "--executor", kind), self.env, self._log(f"subscriber-{kind}"))
 
-    def server(self, kind: str, params: Path) -> Child:
-        if kind == "single":
-            argv = [sys.executable, "-m", "dc_destinations.server", str(params), "--autostart"]
-        else:
-            argv = [sys.executable, str(self.runner), kind, str(params), "--autostart"]
-        return Child(argv, self.env, self._log(f"server-{kind}"))
+    def server(self, params: Path) -> Child:
+        argv = [sys.executable, "-m", "dc_destinations.server", str(params), "--autostart"]
+        return Child(argv, self.env, self._log("server"))
 
     def params(self, name: str, sync: str, destination_up: bool) -> tuple[Path, Path, Path]:
         """A destination_server parameter file; returns it, the buffer folder and the output folder."""
@@ -473,11 +469,11 @@ def transport(bench: Bench, kind: str, count: int, rate: float) -> Flow:
     return Flow(name, kind, "-", count, delivered, bulk, max(t_bulk - sent["t_first"], 1e-9), cpu1 - cpu0)
 
 
-def intake(bench: Bench, kind: str, sync: str, count: int, rate: float, destination_up: bool) -> Flow:
-    name = f"server-{kind}-{sync}-{'up' if destination_up else 'down'}-{rate:g}"
+def intake(bench: Bench, sync: str, count: int, rate: float, destination_up: bool) -> Flow:
+    name = f"server-{sync}-{'up' if destination_up else 'down'}-{rate:g}"
     params, buffer, _out = bench.params(name, sync, destination_up)
     reader = BufferReader(buffer)
-    with running(bench.server(kind, params)) as server, running(bench.publisher(count, rate)) as pub:
+    with running(bench.server(params)) as server, running(bench.publisher(count, rate)) as pub:
         sent, cpu0, cpu1 = _publish(pub, server.pid, count, rate)
         if destination_up:
             wait_stable(lambda: reader.counters()[1], count, 60.0)
@@ -492,7 +488,7 @@ def intake(bench: Bench, kind: str, sync: str, count: int, rate: float, destinat
     )
     if t_bulk is None:  # delivered rows are gone from the queue: paced, the rate is the publisher's
         bulk, t_bulk = committed, sent["t_last"]
-    return Flow(scenario, kind, sync, count, committed, bulk, max(t_bulk - sent["t_first"], 1e-9), cpu1 - cpu0)
+    return Flow(scenario, SERVER, sync, count, committed, bulk, max(t_bulk - sent["t_first"], 1e-9), cpu1 - cpu0)
 
 
 def fill_backlog(folder: Path, count: int) -> float:
@@ -530,12 +526,12 @@ class Backlog:
     drain_rate: float
 
 
-def backlog(bench: Bench, kind: str, sync: str, prepared: Path, count: int) -> Backlog:
-    params, buffer, out = bench.params(f"backlog-{sync}-{kind}", sync, destination_up=False)
+def backlog(bench: Bench, sync: str, prepared: Path, count: int) -> Backlog:
+    params, buffer, out = bench.params(f"backlog-{sync}", sync, destination_up=False)
     shutil.copytree(prepared, buffer)
     reader = BufferReader(buffer)
     started = time.monotonic()
-    with running(bench.server(kind, params)) as server:
+    with running(bench.server(params)) as server:
         if not wait_until(lambda: "listening on" in server.log_text(), START_DEADLINE_S):
             raise RuntimeError(f"destination_server did not start; see {server.log.name}")
         start_s = time.monotonic() - started
@@ -556,7 +552,7 @@ def backlog(bench: Bench, kind: str, sync: str, prepared: Path, count: int) -> B
     with (out / "records.jsonl").open("rb") as lines:
         delivered = sum(chunk.count(b"\n") for chunk in iter(lambda: lines.read(1 << 20), b""))
     rate = sent / (done - first) if first is not None and done > first else 0.0
-    return Backlog(sync, kind, count, start_s, idle["VmRSS"], idle["VmHWM"], peak["VmHWM"], delivered, rate)
+    return Backlog(sync, SERVER, count, start_s, idle["VmRSS"], idle["VmHWM"], peak["VmHWM"], delivered, rate)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -586,8 +582,8 @@ def summarise(flows: list[Flow], kinds: list[str]) -> dict[str, Any]:
         raw_flood = med.get(("transport flood", kind, "-"))
         raw_paced = med.get(("transport paced 1,000/s", kind, "-"))
         for sync in ("normal", "full"):
-            server_flood = med.get(("server flood → buffer", kind, sync))
-            server_paced = med.get(("server paced 1,000/s → file", kind, sync))
+            server_flood = med.get(("server flood → buffer", SERVER, sync))
+            server_paced = med.get(("server paced 1,000/s → file", SERVER, sync))
             if raw_flood and server_flood:
                 ratios[f"intake/transport {kind} {sync}"] = server_flood["rate"] / raw_flood["rate"]
             if raw_paced and server_paced:
@@ -630,7 +626,9 @@ def main() -> None:
     parser.add_argument("--executor", default="single", help=argparse.SUPPRESS)
     parser.add_argument("--count", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--rate", type=float, default=0.0, help=argparse.SUPPRESS)
-    parser.add_argument("--executors", default="single,events", help="comma-separated: single, events")
+    parser.add_argument(
+        "--transports", default="single,intake", help="bare subscribers, comma-separated: single, intake, events"
+    )
     parser.add_argument("--flood", type=int, default=20_000, help="records published as fast as possible")
     parser.add_argument("--paced-seconds", type=float, default=10.0, help="length of the 1,000/s runs")
     parser.add_argument("--backlog", type=int, default=1_000_000, help="records of the backlog (0: skip)")
@@ -645,7 +643,7 @@ def main() -> None:
         role_subscriber(args.executor)
         return
 
-    kinds = [k for k in args.executors.split(",") if k]
+    kinds = [k for k in args.transports.split(",") if k]
     paced = int(args.paced_seconds * 1000)
     flows: list[Flow] = []
     backlogs: list[Backlog] = []
@@ -653,28 +651,29 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="dc-bench-") as tmp:
         bench = Bench(Path(tmp), args.domain)
         for run in range(args.runs):
+            steps: list[tuple[str, str, int, float, bool]] = []
             for kind in kinds:
-                steps: list[tuple[str, int, float, bool]] = [("-", args.flood, 0.0, False), ("-", paced, 1000.0, True)]
-                for sync in ("normal", "full"):
-                    steps += [(sync, args.flood, 0.0, False), (sync, paced, 1000.0, True)]
-                for sync, count, rate, destination_up in steps:
-                    if sync == "-":
-                        flow = transport(bench, kind, count, rate)
-                    else:
-                        flow = intake(bench, kind, sync, count, rate, destination_up)
-                    flows.append(flow)
-                    print(
-                        f"run {run + 1}: {flow.scenario:<30} {flow.executor:<7} {flow.storage_sync:<6} "
-                        f"{flow.delivered:>6}/{flow.sent:<6} {flow.rate:>8,.0f} rec/s "
-                        f"{flow.cpu_ms_per_1000:>5.0f} ms CPU/1000",
-                        flush=True,
-                    )
+                steps += [(kind, "-", args.flood, 0.0, False), (kind, "-", paced, 1000.0, True)]
+            for sync in ("normal", "full"):
+                steps += [(SERVER, sync, args.flood, 0.0, False), (SERVER, sync, paced, 1000.0, True)]
+            for kind, sync, count, rate, destination_up in steps:
+                if sync == "-":
+                    flow = transport(bench, kind, count, rate)
+                else:
+                    flow = intake(bench, sync, count, rate, destination_up)
+                flows.append(flow)
+                print(
+                    f"run {run + 1}: {flow.scenario:<30} {flow.executor:<7} {flow.storage_sync:<6} "
+                    f"{flow.delivered:>6}/{flow.sent:<6} {flow.rate:>8,.0f} rec/s "
+                    f"{flow.cpu_ms_per_1000:>5.0f} ms CPU/1000",
+                    flush=True,
+                )
         if args.backlog > 0:
             prepared = Path(tmp) / "backlog"
             seconds = fill_backlog(prepared, args.backlog)
             print(f"backlog of {args.backlog:,} records written in {seconds:.1f} s", flush=True)
             for sync in ("normal", "full"):
-                backlogs.append(backlog(bench, kinds[0], sync, prepared, args.backlog))
+                backlogs.append(backlog(bench, sync, prepared, args.backlog))
     summary = summarise(flows, kinds)
     print_table(flows, backlogs, summary, args.runs)
     document = {

@@ -20,16 +20,27 @@ from typing import Any
 
 import rclpy
 import rclpy.utilities
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import (
+    ConditionReachedException,
+    Executor,
+    ExternalShutdownException,
+    ShutdownException,
+    SingleThreadedExecutor,
+    TimeoutException,
+)
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 from dc_core.errors import DcError
+from dc_core.intake import EXECUTOR_TURN_S, Intake
 from dc_interfaces.msg import Heartbeat
 
 HEARTBEAT_TOPIC = "/dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+SPIN_TIMEOUT_S = 0.1
+# Ready executor callbacks run per turn while the intake is active; the rest wait for the next turn.
+EXECUTOR_TURN_MAX_CALLBACKS = 16
 
 
 class ManagedServer(LifecycleNode):
@@ -39,6 +50,8 @@ class ManagedServer(LifecycleNode):
         # node_kwargs reach rclpy's LifecycleNode (e.g. context= for tests with a fresh context).
         super().__init__(node_name, **node_kwargs)
         self.params_file = params_file
+        # Subscriptions for records: the main loop takes them itself (dc_core.intake).
+        self.intake = Intake(self)
         self._heartbeat_seq = 0
         self._heartbeat_pub = self.create_publisher(Heartbeat, HEARTBEAT_TOPIC, HEARTBEAT_QOS)
         # The heartbeat runs in every state: it tells the manager the process is alive.
@@ -150,13 +163,7 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
                 return 1
             if node.trigger_activate() != TransitionCallbackReturn.SUCCESS:
                 return 1
-        while not stop.is_set():
-            try:
-                executor.spin_once(timeout_sec=0.1)
-            except (KeyboardInterrupt, ExternalShutdownException):
-                break
-            except Exception as exc:  # keep serving: one bad callback must not stop collection
-                node.get_logger().error(f"callback failed: {exc!r}\n{traceback.format_exc()}")
+        ServerLoop(executor, node.intake).run(stop, node.get_logger())
         state = node.lifecycle_state
         if state in ("active", "inactive", "unconfigured"):
             node.trigger_shutdown()
@@ -167,3 +174,54 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
             rclpy.shutdown()
         sys.stdout.flush()
     return code
+
+
+class ServerLoop:
+    """A server's main loop: records through its intake while it has subscriptions, the rest through the executor.
+
+    While the intake is active the executor gets a non-blocking turn at least every EXECUTOR_TURN_S
+    (services, timers); otherwise the executor waits on its own, as rclpy's spin would.
+    """
+
+    def __init__(self, executor: Executor, intake: Intake) -> None:
+        self.executor = executor
+        self.intake = intake
+        self._next_turn = 0.0
+
+    def spin_once(self, timeout_sec: float = SPIN_TIMEOUT_S) -> None:
+        """Handle what is ready, waiting up to ``timeout_sec`` for something to be."""
+        if not self.intake.active:
+            self.executor.spin_once(timeout_sec=timeout_sec)
+            return
+        now = time.monotonic()
+        if now >= self._next_turn:
+            self._next_turn = now + EXECUTOR_TURN_S
+            run_ready_callbacks(self.executor, EXECUTOR_TURN_MAX_CALLBACKS)
+            return
+        self.intake.take(min(timeout_sec, self._next_turn - now))
+
+    def run(self, stop: threading.Event, logger: Any) -> None:
+        """Spin until ``stop`` is set or the context shuts down; a failing callback is logged, not fatal."""
+        while not stop.is_set():
+            try:
+                self.spin_once()
+            except (KeyboardInterrupt, ExternalShutdownException):
+                break
+            except Exception as exc:  # keep serving: one bad callback must not stop collection
+                logger.error(f"callback failed: {exc!r}\n{traceback.format_exc()}")
+
+
+def run_ready_callbacks(executor: Executor, limit: int) -> int:
+    """Run up to ``limit`` callbacks that are ready now, without waiting; returns how many ran."""
+    ran = 0
+    while ran < limit:
+        try:
+            handler = executor.wait_for_ready_callbacks(timeout_sec=0.0)[0]
+        except (TimeoutException, ShutdownException, ConditionReachedException):
+            break
+        ran += 1
+        handler()
+        exception = handler.exception()
+        if exception is not None:
+            raise exception
+    return ran

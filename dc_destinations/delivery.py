@@ -1,6 +1,7 @@
 """Durable delivery: group-committed intake into the SQLite buffer, one sender thread per destination.
 
-``submit`` runs on the ROS executor thread: it only puts the record on an in-memory hand-off queue.
+``submit`` runs on the server's main thread (its intake): it only puts the record on an in-memory
+hand-off queue.
 A writer thread takes everything waiting there (up to ``commit_batch_size``) and writes it in one
 transaction — a group commit — so the cost of a commit is shared by all the records that arrived
 meanwhile. A record is durable once its group commit is done (see :meth:`DeliveryPipeline.flush_intake`

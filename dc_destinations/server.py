@@ -1,7 +1,9 @@
 """destination_server: subscribes to its destinations' inputs, routes records by tag, hands them to delivery.
 
-The subscription callback only parses, routes and submits (the delivery pipeline's ``submit_record`` puts
-the record on an in-memory queue); writing to the buffer and sending run in the pipeline's threads.
+The input subscriptions are served by the main loop's intake (dc_core.intake), not by rclpy's executor,
+which would rebuild its wait set over the node's services and timers for every record. The callback
+only parses, routes and submits (the delivery pipeline's ``submit_record`` puts the record on an
+in-memory queue); writing to the buffer and sending run in the pipeline's threads.
 
 Topics published by DC's own servers are subscribed transient-local: after a (re)start the server
 receives the publishers' history again, and the hop (dc_destinations.hop) drops what the buffer
@@ -16,7 +18,6 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-from rclpy.exceptions import InvalidHandle
 from rclpy.qos import QoSProfile
 
 from dc_core.config import internal_topics, load_params_file
@@ -34,7 +35,6 @@ from dc_interfaces.msg import StringStamped
 
 NODE_NAME = "destination_server"
 PREVIEW_CHARS = 200
-DRAIN_MAX = 256
 # Keys kept per topic to recognise replays, in histories: a replay is at most one history per
 # publisher, so this covers four publishers of one topic (each of DC's own topics has one).
 HOP_WINDOW_HISTORIES = 4
@@ -156,7 +156,7 @@ class DestinationServer(ManagedServer):
         with_history = []
         for topic in self.routing.topics:
             qos = _with_room_for_a_replay(subscription_qos(topic, self._internal_topics))
-            self._subscription_of[topic] = self.create_subscription(StringStamped, topic, self._callback(topic), qos)
+            self._subscription_of[topic] = self.intake.subscribe(StringStamped, topic, self._callback(topic), qos)
             if topic in self._internal_topics:
                 with_history.append(topic)
         self.get_logger().info(
@@ -182,40 +182,19 @@ class DestinationServer(ManagedServer):
         subscriptions = list(self._subscription_of.values())
         self._subscription_of.clear()
         for subscription in subscriptions:
-            self.destroy_subscription(subscription)
+            self.intake.unsubscribe(subscription)
         if self._hop_log_timer is not None:
             self.destroy_timer(self._hop_log_timer)
             self._hop_log_timer = None
         if self._hop_loss_log is not None:
             self._hop_loss_log.tick()
 
-    # -- intake (ROS executor thread) --------------------------------------------------------------
+    # -- intake (the main loop's intake, on the main thread) --------------------------------------------
     def _callback(self, topic: str) -> Any:
-        # Two parameters: rclpy passes the MessageInfo (source timestamp, sequence number) as well
-        # (its type hints allow only one, hence Any).
         def callback(msg: Any, info: Any) -> None:
             self._on_message(topic, msg, info)
-            subscription = self._subscription_of.get(topic)
-            if subscription is not None:
-                self._drain(topic, subscription)
 
         return callback
-
-    def _drain(self, topic: str, subscription: Any) -> None:
-        """Take what is already queued on ``subscription`` without going back to the executor.
-
-        The default executor rebuilds its wait set at every wake-up, which is most of its cost per
-        message (docs/performance.md); under a burst, one wake-up now handles up to DRAIN_MAX records.
-        """
-        for _ in range(DRAIN_MAX):
-            try:
-                with subscription.handle:
-                    taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
-            except InvalidHandle:  # destroyed by a deactivate meanwhile
-                return
-            if taken is None:
-                return
-            self._on_message(topic, taken[0], taken[1])
 
     def _on_message(self, topic: str, msg: Any, info: Any = None) -> None:
         assert self.hop is not None and self.pipeline is not None
@@ -306,7 +285,7 @@ def _with_room_for_a_replay(qos: QoSProfile) -> QoSProfile:
     """The same QoS with a queue twice the publishers' history.
 
     A (re)started subscription receives a whole history at once while live records keep coming;
-    with a queue only as deep as the history, the executor's lag made DDS overwrite some of them
+    with a queue only as deep as the history, the server's lag made DDS overwrite some of them
     (measured at 2,000 records/s). The queue costs memory only while records wait in it.
     """
     return QoSProfile(

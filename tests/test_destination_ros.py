@@ -21,6 +21,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from dc_core.lifecycle import ServerLoop
 from dc_destinations.server import DestinationServer
 from dc_interfaces.msg import StringStamped
 
@@ -36,12 +37,16 @@ class Running:
     topic: str
     out_file: Path
 
+    def __post_init__(self) -> None:
+        # run_server's loop: the server's intake takes the records, the executor the rest.
+        self.loop = ServerLoop(self.executor, self.server.intake)
+
     def spin_until(self, done: Callable[[], bool]) -> bool:
         deadline = time.monotonic() + DEADLINE_S
         while time.monotonic() < deadline:
             if done():
                 return True
-            self.executor.spin_once(timeout_sec=0.02)
+            self.loop.spin_once(timeout_sec=0.02)
         return done()
 
     def wait_for_subscription(self) -> None:

@@ -35,8 +35,13 @@ FLOOD_RATE = 2_000.0
 # history of 5 s of records covers the restart.
 RESTART_ALLOWANCE_S = 5.0
 COVERING_DEPTH = int(FLOOD_RATE * RESTART_ALLOWANCE_S)
+# The hop under test is measurement_server → destination_server. The hop before it (this publisher →
+# measurement_server's StringStamped subscription) is volatile and uncounted (docs/delivery.md): its
+# queues hold every record of the test, so that a second or two of CPU starvation on a 2-CPU machine
+# (a restarted destination_server taking a replay at full speed) cannot lose records there.
+INPUT_DEPTH = TOTAL
 
-# argv: first number, count, rate; with "--await-forwarded" it exits only once measurement_server
+# argv: first number, count, rate, queue depth; with "--await-forwarded" it exits only once measurement_server
 # has republished its last record (so that record is in measurement_server's history).
 PUBLISHER = """
 import json, sys, time
@@ -47,7 +52,7 @@ first, count, rate = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
 last = first + count - 1
 rclpy.init()
 node = rclpy.create_node("numbers")
-qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+qos = QoSProfile(depth=int(sys.argv[4]), reliability=ReliabilityPolicy.RELIABLE)
 pub = node.create_publisher(StringStamped, "/robot/numbers", qos)
 await_forwarded = "--await-forwarded" in sys.argv
 forwarded = []
@@ -95,7 +100,7 @@ measurement_server:
       plugin: "dc_measurements/StringStamped"
       topic: "/robot/numbers"
       timer_based: false
-      qos_depth: 1000
+      qos_depth: {INPUT_DEPTH}
       history_depth: {history_depth}
       enable_validator: false
       tags: ["file"]
@@ -128,7 +133,7 @@ def numbers_in(path: Path) -> Counter[int]:
 
 def publish(env: dict[str, str], first: int, count: int, rate: float, *flags: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, "-c", PUBLISHER, str(first), str(count), str(rate), *flags],
+        [sys.executable, "-c", PUBLISHER, str(first), str(count), str(rate), str(INPUT_DEPTH), *flags],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

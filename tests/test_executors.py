@@ -4,7 +4,8 @@ rclpy's EventsExecutor is experimental in Jazzy (design.md §7: its spin() never
 probe, a lifecycle node under it once hung ignoring SIGTERM). These tests prove, for each kind,
 with the spin_once loop DC uses: timers fire, subscriptions deliver, the lifecycle services drive
 the transitions (including destroying subscriptions and replacing timers from inside one), and a
-real destination_server process stops promptly and cleanly on SIGTERM, also in the middle of a flood.
+real destination_server process (run_server's own loop, with its intake) stops promptly and cleanly on
+SIGTERM, also in the middle of a flood.
 """
 
 from __future__ import annotations
@@ -17,12 +18,11 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-import rclpy
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.context import Context
@@ -34,35 +34,11 @@ from std_msgs.msg import String
 from dc_core.executors import EXECUTOR_KINDS, make_executor, spin_until
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ManagedServer
 from dc_interfaces.msg import Heartbeat, StringStamped
+from tests.ros_util import two_contexts, wait_for
 
 DEADLINE_S = 15.0
 REPO = Path(__file__).resolve().parent.parent
 RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-
-# run_server with its executor swapped: the change docs/performance.md proposes for dc_core.lifecycle.
-# Under the EventsExecutor the subscription callback takes one argument: it cannot call one that
-# takes MessageInfo (test_message_info_callbacks_receive_messages below).
-SERVER_RUNNER = """
-import sys
-import dc_core.lifecycle as lifecycle
-import dc_destinations.server as server
-from dc_core.executors import make_executor
-kind = sys.argv.pop(1)
-lifecycle.SingleThreadedExecutor = lambda: make_executor(kind)
-if kind == "events":
-    server.DestinationServer._callback = lambda self, topic: (lambda msg: self._on_message(topic, msg, None))
-sys.exit(server.main())
-"""
-
-
-def wait_for(condition: Callable[[], bool], spin: Callable[[], None], deadline_s: float = DEADLINE_S) -> bool:
-    deadline = time.monotonic() + deadline_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        spin()
-    return condition()
-
 
 def test_unknown_kind_is_refused() -> None:
     with pytest.raises(ValueError, match="unknown executor 'threads'"):
@@ -144,14 +120,8 @@ class Operator:
 
 @pytest.fixture
 def contexts() -> Iterator[tuple[Context, Context]]:
-    server_context, operator_context = Context(), Context()
-    rclpy.init(context=server_context)
-    rclpy.init(context=operator_context)
-    try:
-        yield server_context, operator_context
-    finally:
-        rclpy.shutdown(context=operator_context)
-        rclpy.shutdown(context=server_context)
+    with two_contexts() as both:
+        yield both
 
 
 @pytest.mark.parametrize("kind", EXECUTOR_KINDS)
@@ -219,12 +189,10 @@ destination_server:
     return params
 
 
-def _start_server(tmp_path: Path, kind: str, topic: str) -> subprocess.Popen[str]:
-    runner = tmp_path / "run_server.py"
-    runner.write_text(SERVER_RUNNER)
+def _start_server(tmp_path: Path, topic: str) -> subprocess.Popen[str]:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen(
-        [sys.executable, str(runner), kind, str(_server_params(tmp_path, topic))],
+        [sys.executable, "-m", "dc_destinations.server", str(_server_params(tmp_path, topic))],
         cwd=REPO,
         env=env,
         stdout=subprocess.PIPE,
@@ -246,13 +214,14 @@ def _stop(process: subprocess.Popen[str]) -> tuple[int | None, str, float]:
         return None, output, time.monotonic() - started
 
 
-@pytest.mark.parametrize("kind", EXECUTOR_KINDS)
 def test_destination_server_process_is_driven_by_services_and_stops_on_sigterm(
-    kind: str, tmp_path: Path, contexts: tuple[Context, Context]
+    tmp_path: Path, contexts: tuple[Context, Context]
 ) -> None:
+    # run_server's own loop only: its records go through dc_core.intake, not the executor, and rclpy's
+    # EventsExecutor cannot drive it (it runs subscriptions whatever their callback group says).
     _, operator_context = contexts
     topic = f"/dc_test/executor_{uuid.uuid4().hex[:8]}"
-    process = _start_server(tmp_path, kind, topic)
+    process = _start_server(tmp_path, topic)
     assert process.stdout is not None
     node = Node(f"dc_operator_{uuid.uuid4().hex[:8]}", context=operator_context)
     executor = SingleThreadedExecutor(context=operator_context)

@@ -1,0 +1,136 @@
+"""Subscriptions whose messages a server's main loop takes itself, outside rclpy's executor.
+
+rclpy's ``SingleThreadedExecutor`` gathers every entity of its nodes, enters each handle and builds a
+new wait set at every wake-up. A lifecycle node has about a dozen services and a few timers, and at
+robot rates records arrive one per wake-up, so that per-wake Python work was most of
+destination_server's CPU (docs/performance.md). An :class:`Intake` waits on its subscriptions alone,
+takes every message already queued on a ready one, and leaves services and timers to the executor,
+which ``run_server`` gives a non-blocking turn at least every :data:`EXECUTOR_TURN_S`.
+
+Both run on the server's main thread, one after the other: a transition never runs while a record
+is being handled, exactly as when the executor ran everything.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from rclpy.callback_groups import CallbackGroup
+from rclpy.exceptions import InvalidHandle
+from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from rclpy.subscription import Subscription
+
+# How long the executor (services, timers) may wait while the intake waits for records. It bounds
+# the latency of a lifecycle transition and the jitter of the heartbeat; at 20 turns per second
+# the executor's own cost is a few ms of CPU per second.
+EXECUTOR_TURN_S = 0.05
+# Messages taken from one subscription per wake-up: under a flood, a single busy topic must not
+# keep the executor's turn or the other topics waiting for long.
+DRAIN_MAX = 256
+
+MessageCallback = Callable[[Any, Any], None]
+"""Called with the message and its ``MessageInfo`` (source timestamp, publication sequence number)."""
+
+
+class _TakenByIntake(CallbackGroup):
+    """A callback group the executor never waits on nor runs: the intake takes its messages."""
+
+    def can_execute(self, entity: Any) -> bool:
+        return False
+
+    def beginning_execution(self, entity: Any) -> bool:
+        return False
+
+    def ending_execution(self, entity: Any) -> None:
+        return None
+
+
+class Intake:
+    """The subscriptions of one node that its server's main loop serves itself (see the module doc)."""
+
+    def __init__(self, node: Node, *, drain_max: int = DRAIN_MAX) -> None:
+        self._node = node
+        self._group = _TakenByIntake()
+        self._drain_max = drain_max
+        self._callback_of: dict[Subscription, MessageCallback] = {}
+        self._wait_set: Any = None
+        self._wait_set_size = -1
+
+    @property
+    def active(self) -> bool:
+        """Whether there is anything to wait on."""
+        return bool(self._callback_of)
+
+    def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile) -> Subscription:
+        """A subscription of the node (``ros2 node info`` lists it there) served by this intake."""
+        # rclpy would call the callback itself only through an executor, which never runs this group.
+        subscription = self._node.create_subscription(msg_type, topic, _never_called, qos, callback_group=self._group)
+        self._callback_of[subscription] = callback
+        return subscription
+
+    def unsubscribe(self, subscription: Subscription) -> None:
+        self._callback_of.pop(subscription, None)
+        self._node.destroy_subscription(subscription)
+
+    def take(self, timeout_s: float) -> int:
+        """Wait up to ``timeout_s`` for a message, then hand every queued one to its callback.
+
+        Returns the number of messages handed over. A callback that raises stops this call; the
+        messages still queued are taken at the next one.
+        """
+        subscriptions = list(self._callback_of)
+        if not subscriptions:
+            return 0
+        wait_set = self._wait_set_for(len(subscriptions))
+        wait_set.clear_entities()
+        for subscription in subscriptions:
+            wait_set.add_subscription(subscription.handle)
+        wait_set.wait(int(timeout_s * 1e9))
+        if not self._node.context.ok():
+            raise ExternalShutdownException()
+        ready = wait_set.get_ready_entities("subscription")
+        if not ready:
+            return 0
+        taken = 0
+        for subscription in subscriptions:
+            if subscription.handle.pointer in ready:
+                taken += self._drain(subscription)
+        return taken
+
+    def _drain(self, subscription: Subscription) -> int:
+        callback = self._callback_of.get(subscription)
+        taken = 0
+        while callback is not None and taken < self._drain_max:
+            try:
+                with subscription.handle:
+                    message_and_info = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+            except InvalidHandle:  # destroyed by a callback of this drain (a deactivate cannot be one)
+                break
+            if message_and_info is None:
+                break
+            taken += 1
+            callback(message_and_info[0], message_and_info[1])
+            callback = self._callback_of.get(subscription)
+        return taken
+
+    def _wait_set_for(self, size: int) -> Any:
+        # rclpy's own wait_for_message builds its wait set the same way; the executor has no API
+        # for waiting on a subset of a node's entities.
+        if size != self._wait_set_size:
+            self._wait_set = _rclpy.WaitSet(size, 0, 0, 0, 0, 0, self._node.context.handle)
+            self._wait_set_size = size
+        return self._wait_set
+
+    def destroy(self) -> None:
+        for subscription in list(self._callback_of):
+            self.unsubscribe(subscription)
+        self._wait_set = None
+        self._wait_set_size = -1
+
+
+def _never_called(message: Any) -> None:
+    raise AssertionError("an intake subscription was run by an executor")

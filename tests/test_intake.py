@@ -1,0 +1,260 @@
+"""dc_core.intake and run_server's loop: records taken outside the executor, services and timers still served.
+
+The intake exists for speed (docs/performance.md); these tests hold what a server relies on when it
+uses one: every record arrives once, in order, with its MessageInfo; the executor never runs an intake
+subscription; a drain is bounded so that services and timers get their turn under a flood; lifecycle
+transitions that create and destroy intake subscriptions work through the loop; a failing callback
+is logged and the records after it still arrive.
+"""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from dc_core.intake import DRAIN_MAX, Intake
+from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ManagedServer, ServerLoop
+from dc_interfaces.msg import Heartbeat
+from tests.fakes import RecordingLogger
+from tests.ros_util import two_contexts, wait_for
+
+RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+DEADLINE_S = 15.0
+
+
+@pytest.fixture
+def contexts() -> Iterator[tuple[Context, Context]]:
+    with two_contexts() as both:
+        yield both
+
+
+class Peer:
+    """A node in the other context: publishes records, and can call a server's lifecycle services."""
+
+    def __init__(self, topic: str, context: Context) -> None:
+        self.node = Node(f"dc_peer_{uuid.uuid4().hex[:8]}", context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.publisher = self.node.create_publisher(String, topic, RECORD_QOS)
+        self._clients: dict[str, Any] = {}
+
+    def spin(self) -> None:
+        self.executor.spin_once(timeout_sec=0.02)
+
+    def transition(self, server_name: str, transition_id: int) -> bool:
+        client = self._clients.get(server_name)
+        if client is None:
+            client = self._clients[server_name] = self.node.create_client(ChangeState, f"/{server_name}/change_state")
+        assert wait_for(client.service_is_ready, self.spin), "change_state never appeared"
+        request = ChangeState.Request()
+        request.transition.id = transition_id
+        future = client.call_async(request)
+        assert wait_for(future.done, self.spin), "change_state never answered"
+        return bool(future.result().success)
+
+    def publish(self, *texts: str) -> None:
+        for text in texts:
+            self.publisher.publish(String(data=text))
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+@dataclass
+class Witnessed:
+    """A node with an intake subscription and, on the same topic, a witness run by an executor.
+
+    Once the witness has every record, so had the executor the chance to run the intake's
+    subscription, had it been in its wait set; and every record is queued for the intake.
+    """
+
+    intake: Intake
+    taken: list[tuple[str, Any]]
+    witnessed: list[str]
+    peer: Peer
+    executor: SingleThreadedExecutor
+
+    def spin_executor(self) -> None:
+        self.executor.spin_once(timeout_sec=0.02)
+        self.peer.spin()
+
+    def publish_and_witness(self, texts: list[str]) -> None:
+        assert wait_for(lambda: self.peer.publisher.get_subscription_count() >= 2, self.spin_executor)
+        self.peer.publish(*texts)
+        assert wait_for(lambda: len(self.witnessed) == len(texts), self.spin_executor), self.witnessed
+
+
+@pytest.fixture(params=[DRAIN_MAX, 4], ids=["drain_max", "drain_4"])
+def witnessed(request: pytest.FixtureRequest, contexts: tuple[Context, Context]) -> Iterator[Witnessed]:
+    server_context, other_context = contexts
+    topic = f"/dc_test/intake_{uuid.uuid4().hex[:8]}"
+    node = Node(f"dc_intake_{uuid.uuid4().hex[:8]}", context=server_context)
+    intake = Intake(node, drain_max=request.param)
+    taken: list[tuple[str, Any]] = []
+    intake.subscribe(String, topic, lambda msg, info: taken.append((msg.data, info)), RECORD_QOS)
+    witnessed: list[str] = []
+    node.create_subscription(String, topic, lambda msg: witnessed.append(msg.data), RECORD_QOS)
+    executor = SingleThreadedExecutor(context=server_context)
+    executor.add_node(node)
+    peer = Peer(topic, other_context)
+    try:
+        yield Witnessed(intake, taken, witnessed, peer, executor)
+    finally:
+        peer.close()
+        executor.shutdown()
+        node.destroy_node()
+
+
+def test_records_reach_the_intake_with_their_message_info_and_never_the_executor(witnessed: Witnessed) -> None:
+    texts = [f"record {i}" for i in range(20)]
+    witnessed.publish_and_witness(texts)
+    assert witnessed.taken == [], "the executor ran an intake subscription"
+
+    taken = witnessed.taken
+    assert wait_for(lambda: len(taken) == 20, lambda: witnessed.intake.take(0.05)), taken
+    assert [text for text, _ in taken] == texts
+    sequence_numbers = [info["publication_sequence_number"] for _, info in taken]
+    assert sequence_numbers == sorted(sequence_numbers) and len(set(sequence_numbers)) == 20
+    assert all(info["source_timestamp"] > 0 for _, info in taken)
+    assert witnessed.intake.take(0.0) == 0, "a record was handed over twice"
+
+
+@pytest.mark.parametrize("witnessed", [4], indirect=True, ids=["drain_4"])
+def test_a_drain_is_bounded_and_the_rest_comes_at_the_next_take(witnessed: Witnessed) -> None:
+    witnessed.publish_and_witness([str(i) for i in range(10)])
+    assert witnessed.intake.take(1.0) == 4
+    assert witnessed.intake.take(1.0) == 4
+    assert witnessed.intake.take(1.0) == 2
+    assert [text for text, _ in witnessed.taken] == [str(i) for i in range(10)]
+
+
+def test_unsubscribing_from_a_callback_stops_the_drain(contexts: tuple[Context, Context]) -> None:
+    server_context, other_context = contexts
+    topic = f"/dc_test/intake_{uuid.uuid4().hex[:8]}"
+    node = Node(f"dc_intake_{uuid.uuid4().hex[:8]}", context=server_context)
+    intake = Intake(node)
+    taken: list[str] = []
+
+    def on_record(msg: Any, info: Any) -> None:
+        taken.append(msg.data)
+        if msg.data == "stop":
+            intake.unsubscribe(subscription)
+
+    subscription = intake.subscribe(String, topic, on_record, RECORD_QOS)
+    peer = Peer(topic, other_context)
+    try:
+        assert wait_for(lambda: peer.publisher.get_subscription_count() >= 1, peer.spin)
+        peer.publish("a", "stop", "b", "c")
+        assert wait_for(lambda: "stop" in taken, lambda: intake.take(0.05))
+        assert taken == ["a", "stop"]
+        assert not intake.active
+        assert intake.take(0.01) == 0
+    finally:
+        peer.close()
+        node.destroy_node()
+
+
+class IntakeServer(ManagedServer):
+    """A server that, like destination_server, subscribes through its intake while active."""
+
+    def __init__(self, topic: str, context: Context, fail_on: str = "") -> None:
+        super().__init__(f"dc_intake_server_{uuid.uuid4().hex[:8]}", "", heartbeat_period=0.05, context=context)
+        self.topic = topic
+        self.fail_on = fail_on
+        self.received: list[str] = []
+        self._subscription: Any = None
+
+    def configure_server(self) -> None:
+        pass
+
+    def activate_server(self) -> None:
+        self._subscription = self.intake.subscribe(String, self.topic, self._on_record, RECORD_QOS)
+
+    def _on_record(self, msg: Any, info: Any) -> None:
+        if msg.data == self.fail_on:
+            raise ValueError(f"cannot handle {msg.data!r}")
+        self.received.append(msg.data)
+
+    def deactivate_server(self) -> None:
+        self.intake.unsubscribe(self._subscription)
+
+    def cleanup_server(self) -> None:
+        pass
+
+
+@pytest.fixture
+def served(contexts: tuple[Context, Context]) -> Iterator[tuple[IntakeServer, Peer, RecordingLogger]]:
+    """An IntakeServer run by ServerLoop.run in a thread (run_server's loop), and a peer to drive it."""
+    server_context, other_context = contexts
+    topic = f"/dc_test/intake_{uuid.uuid4().hex[:8]}"
+    server = IntakeServer(topic, server_context, fail_on="poison")
+    executor = SingleThreadedExecutor(context=server_context)
+    executor.add_node(server)
+    logger = RecordingLogger()
+    stop = threading.Event()
+    loop = threading.Thread(target=ServerLoop(executor, server.intake).run, args=(stop, logger), daemon=True)
+    loop.start()
+    peer = Peer(topic, other_context)
+    try:
+        yield server, peer, logger
+    finally:
+        peer.close()
+        stop.set()
+        loop.join(timeout=5.0)
+        assert not loop.is_alive(), "the loop did not stop"
+        executor.shutdown()
+        server.destroy_node()
+
+
+def test_transitions_heartbeats_and_records_through_the_server_loop(
+    served: tuple[IntakeServer, Peer, RecordingLogger],
+) -> None:
+    server, peer, logger = served
+    beats: list[Any] = []
+    peer.node.create_subscription(
+        Heartbeat,
+        HEARTBEAT_TOPIC,
+        lambda m: beats.append(m) if m.node_name == server.get_name() else None,
+        HEARTBEAT_QOS,
+    )
+    assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)
+    for cycle in range(2):  # the second activation subscribes anew
+        assert peer.transition(server.get_name(), Transition.TRANSITION_ACTIVATE)
+        assert wait_for(lambda: peer.publisher.get_subscription_count() == 1, peer.spin)
+        # Records keep the intake busy; the heartbeat timer must still fire (the executor's turns).
+        texts = [f"{cycle}-{i}" for i in range(300)]
+        beats_before = len(beats)
+        peer.publish(*texts)
+        assert wait_for(lambda t=texts: server.received[-300:] == t, peer.spin), server.received[-3:]  # type: ignore[misc]
+        assert wait_for(lambda b=beats_before: len(beats) >= b + 3, peer.spin), "no heartbeat while active"  # type: ignore[misc]
+        assert beats[-1].state == 3  # active
+        assert peer.transition(server.get_name(), Transition.TRANSITION_DEACTIVATE)
+        assert wait_for(lambda: peer.publisher.get_subscription_count() == 0, peer.spin), "still subscribed"
+        assert not server.intake.active
+    assert logger.at("error") == []
+
+
+def test_a_failing_callback_is_logged_and_the_records_after_it_arrive(
+    served: tuple[IntakeServer, Peer, RecordingLogger],
+) -> None:
+    server, peer, logger = served
+    assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)
+    assert peer.transition(server.get_name(), Transition.TRANSITION_ACTIVATE)
+    assert wait_for(lambda: peer.publisher.get_subscription_count() == 1, peer.spin)
+    peer.publish("before", "poison", "after")
+    assert wait_for(lambda: server.received == ["before", "after"], peer.spin), server.received
+    errors = logger.at("error")
+    assert len(errors) == 1 and "cannot handle 'poison'" in errors[0]
