@@ -139,6 +139,7 @@ STATUS_COLUMNS = [
     ("dropped", "dropped"),
     ("dead_lettered", "dead-lettered"),
     ("dead_letters", "dead now"),
+    ("dead_letters_dropped", "dead dropped"),
     ("oldest_pending_age_s", "oldest s"),
 ]
 

@@ -540,6 +540,28 @@ class SqliteBuffer:
                 moved += 1
         return moved
 
+    def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
+        """Delete the oldest dead letters of ``destination`` until theirs fit in ``max_bytes``; returns how many."""
+        with self._transaction() as conn:
+            total = conn.execute(
+                "SELECT coalesce(sum(size), 0) FROM dead_letters WHERE destination = ?", (destination,)
+            ).fetchone()[0]
+            excess = int(total) - max_bytes
+            if excess <= 0:
+                return 0
+            doomed: list[int] = []
+            for letter_id, size in conn.execute(
+                "SELECT id, size FROM dead_letters WHERE destination = ? ORDER BY id", (destination,)
+            ):
+                doomed.append(int(letter_id))
+                excess -= int(size)
+                if excess <= 0:
+                    break
+            conn.execute(
+                "DELETE FROM dead_letters WHERE id IN (SELECT value FROM json_each(?))", (json.dumps(doomed),)
+            )
+        return len(doomed)
+
     def stats(self, destination: str) -> QueueStats:
         with self._locked() as conn:
             row = conn.execute(

@@ -19,7 +19,6 @@ import contextlib
 import json
 import os
 import queue
-import secrets
 import threading
 import time
 import uuid
@@ -57,26 +56,48 @@ __all__ = ["DeliveryPipeline", "new_record_id", "uuid7"]
 
 class _Uuid7Source:
     """RFC 9562 UUIDv7: 48-bit Unix milliseconds, then a 12-bit counter that keeps ids from one
-    process increasing within a millisecond, then 62 random bits."""
+    process increasing within a millisecond, then 62 random bits.
+
+    The random bits come from the operating system's CSPRNG, read 4 KiB at a time: one getrandom()
+    per id was a system call on the intake's hot path, where each one also lets the writer thread
+    take the GIL. A forked child forgets the pool, so parent and child never share bits.
+    """
+
+    _POOL_BYTES = 4096
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._last_ms = -1
         self._counter = 0
+        self._pool = b""
+        self._pool_pos = 0
+        os.register_at_fork(after_in_child=self._forget_pool)
+
+    def _forget_pool(self) -> None:
+        self._pool, self._pool_pos = b"", 0
+
+    def _random_bits(self, bits: int) -> int:
+        """``bits`` (at most 64) random bits; call with the lock held."""
+        if self._pool_pos + 8 > len(self._pool):
+            self._pool, self._pool_pos = os.urandom(self._POOL_BYTES), 0
+        word = int.from_bytes(self._pool[self._pool_pos : self._pool_pos + 8], "big")
+        self._pool_pos += 8
+        return word >> (64 - bits)
 
     def next(self) -> uuid.UUID:
         with self._lock:
             ms = time.time_ns() // 1_000_000
             if ms > self._last_ms:
                 self._last_ms = ms
-                self._counter = secrets.randbits(11)  # top bit clear leaves room to count up
+                self._counter = self._random_bits(11)  # top bit clear leaves room to count up
             else:
                 self._counter += 1
                 if self._counter > 0xFFF:  # 4,096 ids in one millisecond: borrow the next one
                     self._last_ms += 1
                     self._counter = 0
             ms, counter = self._last_ms, self._counter
-        value = (ms & 0xFFFF_FFFF_FFFF) << 80 | 0x7 << 76 | counter << 64 | 0b10 << 62 | secrets.randbits(62)
+            random62 = self._random_bits(62)
+        value = (ms & 0xFFFF_FFFF_FFFF) << 80 | 0x7 << 76 | counter << 64 | 0b10 << 62 | random62
         return uuid.UUID(int=value)
 
 
@@ -109,10 +130,12 @@ class _Route:
     destination: Destination
     params: DestinationDeliveryParams
     limit: QueueLimit
+    dead_letter_max_bytes: int | None
     metrics: DestinationMetrics
     drop_log: BurstLog
     failure_log: BurstLog
     dead_letter_log: BurstLog
+    dead_letter_drop_log: BurstLog
     wakeup: threading.Event = field(default_factory=threading.Event)
     pending_hint: int = 0
     thread: threading.Thread | None = None
@@ -121,6 +144,7 @@ class _Route:
         self.drop_log.tick()
         self.failure_log.tick()
         self.dead_letter_log.tick()
+        self.dead_letter_drop_log.tick()
 
 
 class DeliveryPipeline:
@@ -157,10 +181,16 @@ class DeliveryPipeline:
                 destination=destination,
                 params=params,
                 limit=QueueLimit(max_bytes=max_bytes, drop_oldest=params.when_full == "drop_oldest"),
+                dead_letter_max_bytes=parse_size(params.dead_letter_limit_size),
                 metrics=DestinationMetrics(),
                 drop_log=BurstLog(logger.warning, f"destination {name}: records dropped"),
                 failure_log=BurstLog(logger.warning, f"destination {name}: delivery failed, will retry"),
                 dead_letter_log=BurstLog(logger.error, f"destination {name}: records dead-lettered"),
+                dead_letter_drop_log=BurstLog(
+                    logger.warning,
+                    f"destination {name}: oldest dead letters deleted "
+                    f"(dead_letter_limit_size {params.dead_letter_limit_size})",
+                ),
             )
         self._intake_drop_log = BurstLog(logger.error, "delivery intake: records dropped")
         self._commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
@@ -189,6 +219,8 @@ class DeliveryPipeline:
             self.storage_file, synchronous=self.settings.storage_sync, on_quarantine=self._on_quarantine
         )
         self._buffer.ensure_queues(list(self._routes))
+        for route in self._routes.values():  # a limit lowered since the last run applies at once
+            self._bound_dead_letters(route, self._buffer)
         backlog = {name: self._buffer.stats(name).rows for name in self._routes}
         self.logger.info(
             f"delivery buffer {self.storage_file} (storage_sync={self.settings.storage_sync}: "
@@ -486,6 +518,7 @@ class DeliveryPipeline:
             sent_rows.append(row)
         if unreadable:
             route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))
+            self._bound_dead_letters(route, buffer)
         if not records:
             return False
         retry: dict[int, str] = {}
@@ -533,7 +566,16 @@ class DeliveryPipeline:
             moved = buffer.dead_letter(route.name, dead)
             route.metrics.add("dead_lettered", moved)
             route.dead_letter_log.event(moved, f"{dead[0][1]}; see `dc buffer list`")
+            self._bound_dead_letters(route, buffer)
         return retried > 0
+
+    def _bound_dead_letters(self, route: _Route, buffer: SqliteBuffer) -> None:
+        if route.dead_letter_max_bytes is None:
+            return
+        deleted = buffer.trim_dead_letters(route.name, route.dead_letter_max_bytes)
+        if deleted:
+            route.metrics.add("dead_letters_dropped", deleted)
+            route.dead_letter_drop_log.event(deleted, "the newest are kept; see `dc buffer list`")
 
     # -- storage ------------------------------------------------------------------------------------
 

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-COUNTERS = ("received", "sent", "retried", "failed", "dropped", "dead_lettered")
+COUNTERS = ("received", "sent", "retried", "failed", "dropped", "dead_lettered", "dead_letters_dropped")
 
 
 @dataclass
@@ -25,6 +25,7 @@ class _Counts:
     failed: int = 0
     dropped: int = 0
     dead_lettered: int = 0
+    dead_letters_dropped: int = 0
 
 
 class DestinationMetrics:
@@ -143,6 +144,7 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         ("failed", "send() calls that failed in whole or in part"),
         ("dropped", "Records dropped by the size limit or a full intake queue"),
         ("dead_lettered", "Records moved to the dead-letter table"),
+        ("dead_letters_dropped", "Oldest dead letters deleted by dead_letter_limit_size"),
     ):
         family(
             f"dc_delivery_{counter}_total",

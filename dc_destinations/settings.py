@@ -77,6 +77,11 @@ class DestinationDeliveryParams:
         choices=WHEN_FULL_POLICIES,
         doc="When full: drop_oldest deletes the oldest buffered records; drop_newest refuses new ones",
     )
+    dead_letter_limit_size: str = param(
+        "100M",
+        doc='Most bytes of dead letters kept for this destination; beyond it the oldest are deleted and counted'
+        ' ("0" or "" = no limit)',
+    )
 
 
 def parse_size(text: str, path: str = "") -> int | None:
@@ -93,3 +98,4 @@ def parse_size(text: str, path: str = "") -> int | None:
 def check_destination_params(params: DestinationDeliveryParams, path: str) -> None:
     """Checks :func:`parse_params` cannot express; ``path`` is the destination's YAML path."""
     parse_size(params.storage_total_limit_size, f"{path}.storage_total_limit_size")
+    parse_size(params.dead_letter_limit_size, f"{path}.dead_letter_limit_size")

@@ -93,6 +93,20 @@ def test_dead_letters_keep_the_error_and_can_be_replayed_or_purged(buffer: Sqlit
     assert buffer.list_dead_letters() == []
 
 
+def test_dead_letters_beyond_their_limit_lose_the_oldest_of_their_destination_only(buffer: SqliteBuffer) -> None:
+    size = pending(0).size
+    buffer.append({"a": [pending(i) for i in range(6)], "b": [pending(100)]})
+    buffer.dead_letter("a", [(row, "rejected") for row in buffer.read_batch("a", 10)])
+    buffer.dead_letter("b", [(row, "rejected") for row in buffer.read_batch("b", 10)])
+
+    assert buffer.trim_dead_letters("a", 6 * size) == 0  # exactly at the limit: nothing to do
+    assert buffer.trim_dead_letters("a", 4 * size + 1) == 2
+    assert [d.record_id for d in buffer.list_dead_letters("a")] == [f"id-{i:08d}" for i in range(2, 6)]
+    assert [d.record_id for d in buffer.list_dead_letters("b")] == ["id-00000100"]
+    assert buffer.trim_dead_letters("a", 0) == 4
+    assert buffer.list_dead_letters("a") == [] and buffer.stats("b").dead_letters == 1
+
+
 def test_size_limit_drop_newest_keeps_the_oldest(buffer: SqliteBuffer) -> None:
     size = pending(0).size
     limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=False)}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -128,6 +129,23 @@ class RecordedWaits:
         return False
 
 
+def test_a_forked_child_draws_other_random_bits_than_its_parent() -> None:
+    new_record_id()  # the parent's pool of random bytes is filled before the fork
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: its ids go to the parent through the pipe
+        os.write(write_end, " ".join(new_record_id() for _ in range(20)).encode())
+        os._exit(0)
+    os.close(write_end)
+    with os.fdopen(read_end) as pipe:
+        child = pipe.read().split()
+    os.waitpid(pid, 0)
+    parent = [new_record_id() for _ in range(20)]
+    random_bits = 2**62 - 1
+    assert len(child) == 20
+    assert not {uuid.UUID(i).int & random_bits for i in child} & {uuid.UUID(i).int & random_bits for i in parent}
+
+
 def test_record_ids_are_uuid7_and_increase() -> None:
     ids = [new_record_id() for _ in range(5000)]
     assert len(set(ids)) == len(ids)
@@ -239,6 +257,56 @@ def test_permanent_rejection_goes_to_dead_letters_with_the_error(tmp_path: Path)
         assert all("400 Bad Request" in d.error for d in letters)
     finally:
         buffer.close()
+
+
+def test_dead_letters_are_bounded_the_oldest_deleted_counted_and_logged_once(tmp_path: Path) -> None:
+    def reject(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        raise RejectedError("400 Bad Request")
+
+    size = len(record(0).to_json().encode("utf-8"))  # the bytes a dead letter counts
+    params = DestinationDeliveryParams(batch_size=1, dead_letter_limit_size=str(3 * size + size // 2))
+    logger = ListLogger()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(behaviour=reject), params)}, logger)
+    pipeline.start()
+    try:
+        for i in range(8):
+            pipeline.submit("sink", record(i))
+        wait_until(lambda: pipeline.metrics()["sink"]["dead_lettered"] == 8, what="dead letters")
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["dead_letters"] == 3 and metrics["dead_letters_dropped"] == 5
+    finally:
+        pipeline.stop(grace=0.5)
+    deleted_lines = [m for level, m in logger.lines if "oldest dead letters deleted" in m]
+    assert len(deleted_lines) == 1 and deleted_lines[0].startswith("destination sink: oldest dead letters deleted")
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        assert [json.loads(d.payload)["n"] for d in buffer.list_dead_letters("sink")] == [5, 6, 7]
+    finally:
+        buffer.close()
+
+
+def test_a_lowered_dead_letter_limit_applies_at_start(tmp_path: Path) -> None:
+    def reject(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        raise RejectedError("400 Bad Request")
+
+    pipeline = DeliveryPipeline(
+        settings(tmp_path), {"sink": (Recorder(behaviour=reject), DestinationDeliveryParams())}, LOG
+    )
+    pipeline.start()
+    try:
+        for i in range(4):
+            pipeline.submit("sink", record(i))
+        wait_until(lambda: pipeline.metrics()["sink"]["dead_letters"] == 4, what="dead letters")
+    finally:
+        pipeline.stop(grace=0.5)
+    lowered = DestinationDeliveryParams(dead_letter_limit_size="1")
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(), lowered)}, LOG)
+    pipeline.start()
+    try:
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["dead_letters"] == 0 and metrics["dead_letters_dropped"] == 4
+    finally:
+        pipeline.stop(grace=0.5)
 
 
 def test_partial_outcome_is_per_record(tmp_path: Path) -> None:

@@ -153,6 +153,11 @@ def test_fluent_bit_json_date_names_set_the_time_key() -> None:
         ({**stdout_section(), "flb": {"flsh": 1}}, "destination_server.flb.flsh", 'did you mean "flush"'),
         ({**stdout_section(), "flb": {"flush": "soon"}}, "destination_server.flb.flush", "expected a number"),
         ({**stdout_section(), "flb": "fast"}, "destination_server.flb", "expected a mapping"),
+        (
+            stdout_section(dead_letter_limit_size="lots"),
+            "destination_server.flb_stdout.dead_letter_limit_size",
+            'expected a size such as "500M"',
+        ),
     ],
     ids=[
         "unknown common key",
@@ -172,6 +177,7 @@ def test_fluent_bit_json_date_names_set_the_time_key() -> None:
         "unknown flb key",
         "flb wrong type",
         "flb not a mapping",
+        "dead letter limit not a size",
     ],
 )
 def test_errors_name_the_yaml_path(section: dict[str, Any], path: str, message: str) -> None:
