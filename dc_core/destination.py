@@ -39,14 +39,22 @@ class SendOutcome:
 
 @dataclass(frozen=True)
 class OutgoingRecord:
-    """A record routed to one destination: ``tags`` removed, time key and ``record_id`` added."""
+    """A record routed to one destination: ``tags`` removed, time key and ``record_id`` added.
+
+    Destinations read it and never change it: ``data`` and ``to_json()`` must stay the same record.
+    """
 
     record_id: str
     topic: str
     stamp_ns: int
     data: dict[str, Any]
+    # The JSON text of ``data`` as the buffer holds it, when the record comes from the buffer:
+    # to_json() returns it instead of serialising again (``data`` is read-only for destinations).
+    json_text: str | None = field(default=None, compare=False, repr=False)
 
     def to_json(self) -> str:
+        if self.json_text is not None:
+            return self.json_text
         return json.dumps(self.data, ensure_ascii=False, separators=(",", ":"))
 
 

@@ -514,7 +514,7 @@ class DeliveryPipeline:
             except ValueError as exc:
                 unreadable.append((row, f"unreadable payload in the buffer: {exc}"))
                 continue
-            records.append(OutgoingRecord(row.record_id, row.topic, row.stamp_ns, data))
+            records.append(OutgoingRecord(row.record_id, row.topic, row.stamp_ns, data, json_text=row.payload))
             sent_rows.append(row)
         if unreadable:
             route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))

@@ -176,6 +176,22 @@ def test_records_are_delivered_in_order_and_removed_from_the_buffer(tmp_path: Pa
         pipeline.stop(grace=1.0)
 
 
+def test_a_delivered_record_serialises_to_the_text_that_was_buffered(tmp_path: Path) -> None:
+    sink = Recorder()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
+    pipeline.start()
+    try:
+        rid = new_record_id()
+        data = {"date": 1.5, "name": "caméra ✓", "nested": {"list": [1, 2.0, None, True]}, "record_id": rid}
+        pipeline.submit("sink", OutgoingRecord(rid, "/t", 1, data))
+        (got,) = sink.wait_for(1)
+    finally:
+        pipeline.stop(grace=1.0)
+    assert got.data == data
+    assert got.json_text is not None  # from the buffer, not serialised again
+    assert got.to_json() == json.dumps(data, ensure_ascii=False, separators=(",", ":"))
+
+
 def test_retryable_failures_back_off_exponentially_then_deliver(tmp_path: Path) -> None:
     def fail_three_times(call: int, batch: Sequence[OutgoingRecord]) -> None:
         if call <= 3:
