@@ -39,8 +39,8 @@ from dc_interfaces.msg import Heartbeat
 HEARTBEAT_TOPIC = "/dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 SPIN_TIMEOUT_S = 0.1
-# Ready executor callbacks run per turn while the intake is active; the rest wait for the next turn.
-EXECUTOR_TURN_MAX_CALLBACKS = 16
+# Most executor callbacks run in one turn while the intake is active; the rest wait for the next turn.
+EXECUTOR_TURN_MAX_CALLBACKS = 256
 
 
 class ManagedServer(LifecycleNode):
@@ -212,14 +212,26 @@ class ServerLoop:
 
 
 def run_ready_callbacks(executor: Executor, limit: int) -> int:
-    """Run up to ``limit`` callbacks that are ready now, without waiting; returns how many ran."""
+    """Run callbacks that are ready, without waiting, until none is or ``limit`` ran; returns how many ran.
+
+    rclpy's executor takes one message per subscription per wait, so passes are repeated while the
+    last one found work: a subscription of the node's own (a plugin's, say) is not held to one
+    message per turn.
+    """
     ran = 0
+    ran_in_pass = 0
     while ran < limit:
         try:
             handler = executor.wait_for_ready_callbacks(timeout_sec=0.0)[0]
-        except (TimeoutException, ShutdownException, ConditionReachedException):
+        except TimeoutException:  # the end of one pass over the wait set
+            if ran_in_pass == 0:
+                break
+            ran_in_pass = 0
+            continue
+        except (ShutdownException, ConditionReachedException):
             break
         ran += 1
+        ran_in_pass += 1
         handler()
         exception = handler.exception()
         if exception is not None:

@@ -90,6 +90,7 @@ def test_prometheus_text_format() -> None:
         "failed": 1,
         "dropped": 0,
         "dead_lettered": 0,
+        "dead_letters_dropped": 2,
         "buffered": 1,
         "buffered_bytes": 120,
         "dead_letters": 0,
@@ -101,6 +102,7 @@ def test_prometheus_text_format() -> None:
     assert 'dc_delivery_sent_total{destination="b"} 4' in text
     assert 'dc_delivery_received_total{destination="we\\"ird"} 5' in text
     assert 'dc_delivery_oldest_pending_age_seconds{destination="b"} 2.5' in text
+    assert 'dc_delivery_dead_letters_dropped_total{destination="b"} 2' in text
     assert "dc_delivery_buffer_quarantined_total 1" in text
     assert text.endswith("\n")
 

@@ -175,13 +175,19 @@ class IntakeServer(ManagedServer):
         self.topic = topic
         self.fail_on = fail_on
         self.received: list[str] = []
+        self.plugin_received: list[str] = []
         self._subscription: Any = None
+        self._plugin_subscription: Any = None
 
     def configure_server(self) -> None:
         pass
 
     def activate_server(self) -> None:
         self._subscription = self.intake.subscribe(String, self.topic, self._on_record, RECORD_QOS)
+        # What a plugin may do with the node it is given: an ordinary subscription, run by the executor.
+        self._plugin_subscription = self.create_subscription(
+            String, self.topic + "_plugin", lambda msg: self.plugin_received.append(msg.data), RECORD_QOS
+        )
 
     def _on_record(self, msg: Any, info: Any) -> None:
         if msg.data == self.fail_on:
@@ -190,6 +196,7 @@ class IntakeServer(ManagedServer):
 
     def deactivate_server(self) -> None:
         self.intake.unsubscribe(self._subscription)
+        self.destroy_subscription(self._plugin_subscription)
 
     def cleanup_server(self) -> None:
         pass
@@ -258,3 +265,23 @@ def test_a_failing_callback_is_logged_and_the_records_after_it_arrive(
     assert wait_for(lambda: server.received == ["before", "after"], peer.spin), server.received
     errors = logger.at("error")
     assert len(errors) == 1 and "cannot handle 'poison'" in errors[0]
+
+
+def test_the_nodes_own_subscriptions_keep_up_while_the_intake_is_active(
+    served: tuple[IntakeServer, Peer, RecordingLogger],
+) -> None:
+    server, peer, logger = served
+    assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)
+    assert peer.transition(server.get_name(), Transition.TRANSITION_ACTIVATE)
+    plugin_publisher = peer.node.create_publisher(String, server.topic + "_plugin", RECORD_QOS)
+    assert wait_for(lambda: plugin_publisher.get_subscription_count() == 1, peer.spin)
+    assert wait_for(lambda: peer.publisher.get_subscription_count() == 1, peer.spin)
+    # 500 messages in the executor's hands, with records arriving meanwhile: at one message per turn
+    # (20 turns a second) they would take 25 s.
+    texts = [str(i) for i in range(500)]
+    for text in texts:
+        plugin_publisher.publish(String(data=text))
+    peer.publish("record")
+    assert wait_for(lambda: server.plugin_received == texts, peer.spin), len(server.plugin_received)
+    assert wait_for(lambda: server.received == ["record"], peer.spin)
+    assert logger.at("error") == []
