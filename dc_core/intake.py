@@ -37,13 +37,17 @@ MessageCallback = Callable[[Any, Any], None]
 
 
 class _TakenByIntake(CallbackGroup):
-    """A callback group the executor never waits on nor runs: the intake takes its messages."""
+    """A callback group whose subscriptions the executor never waits on nor runs: the intake takes their messages.
+
+    Their QoS event handlers (rclpy's "incompatible QoS" warning, say) share the group and stay the
+    executor's, as in a reentrant group.
+    """
 
     def can_execute(self, entity: Any) -> bool:
-        return False
+        return not isinstance(entity, Subscription)
 
     def beginning_execution(self, entity: Any) -> bool:
-        return False
+        return not isinstance(entity, Subscription)
 
     def ending_execution(self, entity: Any) -> None:
         return None

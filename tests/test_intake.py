@@ -285,3 +285,22 @@ def test_the_nodes_own_subscriptions_keep_up_while_the_intake_is_active(
     assert wait_for(lambda: server.plugin_received == texts, peer.spin), len(server.plugin_received)
     assert wait_for(lambda: server.received == ["record"], peer.spin)
     assert logger.at("error") == []
+
+
+def test_qos_events_of_intake_subscriptions_still_reach_the_log(
+    served: tuple[IntakeServer, Peer, RecordingLogger], capfd: pytest.CaptureFixture[str]
+) -> None:
+    # rclpy's default handler logs a publisher whose QoS cannot match; it runs on the executor.
+    server, peer, _logger = served
+    assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)
+    assert peer.transition(server.get_name(), Transition.TRANSITION_ACTIVATE)
+    best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    peer.node.create_publisher(String, server.topic, best_effort)
+    stderr: list[str] = []
+
+    def seen() -> bool:
+        stderr.append(capfd.readouterr().err)
+        # The server's side of it (the publisher's own side logs "New subscription discovered ...").
+        return f"New publisher discovered on topic '{server.topic}', offering incompatible QoS" in "".join(stderr)
+
+    assert wait_for(seen, peer.spin), "".join(stderr)[-2000:]
