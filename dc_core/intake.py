@@ -129,12 +129,6 @@ class Intake:
             self._wait_set_size = size
         return self._wait_set
 
-    def destroy(self) -> None:
-        for subscription in list(self._callback_of):
-            self.unsubscribe(subscription)
-        self._wait_set = None
-        self._wait_set_size = -1
-
 
 def _never_called(message: Any) -> None:
     raise AssertionError("an intake subscription was run by an executor")
