@@ -33,12 +33,12 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 from dc_core.errors import DcError
+from dc_core.executors import SPIN_PERIOD_S
 from dc_core.intake import EXECUTOR_TURN_S, Intake
 from dc_interfaces.msg import Heartbeat
 
 HEARTBEAT_TOPIC = "/dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-SPIN_TIMEOUT_S = 0.1
 # Most executor callbacks run in one turn while the intake is active; the rest wait for the next turn.
 EXECUTOR_TURN_MAX_CALLBACKS = 256
 
@@ -188,7 +188,7 @@ class ServerLoop:
         self.intake = intake
         self._next_turn = 0.0
 
-    def spin_once(self, timeout_sec: float = SPIN_TIMEOUT_S) -> None:
+    def spin_once(self, timeout_sec: float = SPIN_PERIOD_S) -> None:
         """Handle what is ready, waiting up to ``timeout_sec`` for something to be."""
         if not self.intake.active:
             self.executor.spin_once(timeout_sec=timeout_sec)

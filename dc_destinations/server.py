@@ -12,6 +12,7 @@ already holds and counts what was lost (docs/delivery.md, "The hop between serve
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from collections import Counter
@@ -156,7 +157,8 @@ class DestinationServer(ManagedServer):
         with_history = []
         for topic in self.routing.topics:
             qos = _with_room_for_a_replay(subscription_qos(topic, self._internal_topics))
-            self._subscription_of[topic] = self.intake.subscribe(StringStamped, topic, self._callback(topic), qos)
+            on_message = functools.partial(self._on_message, topic)
+            self._subscription_of[topic] = self.intake.subscribe(StringStamped, topic, on_message, qos)
             if topic in self._internal_topics:
                 with_history.append(topic)
         self.get_logger().info(
@@ -190,12 +192,6 @@ class DestinationServer(ManagedServer):
             self._hop_loss_log.tick()
 
     # -- intake (the main loop's intake, on the main thread) --------------------------------------------
-    def _callback(self, topic: str) -> Any:
-        def callback(msg: Any, info: Any) -> None:
-            self._on_message(topic, msg, info)
-
-        return callback
-
     def _on_message(self, topic: str, msg: Any, info: Any = None) -> None:
         assert self.hop is not None and self.pipeline is not None
         key = hop_key(topic, info)

@@ -110,6 +110,10 @@ def settings(tmp_path: Path, **overrides: Any) -> DeliveryParams:
     return DeliveryParams(**values)
 
 
+def reject_all(call: int, batch: Sequence[OutgoingRecord]) -> None:
+    raise RejectedError("400 Bad Request: field 'x' unknown")
+
+
 def wait_until(predicate: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
@@ -252,10 +256,7 @@ def test_jitter_is_full(tmp_path: Path) -> None:
 
 
 def test_permanent_rejection_goes_to_dead_letters_with_the_error(tmp_path: Path) -> None:
-    def reject(call: int, batch: Sequence[OutgoingRecord]) -> None:
-        raise RejectedError("400 Bad Request: field 'x' unknown")
-
-    sink = Recorder(behaviour=reject)
+    sink = Recorder(behaviour=reject_all)
     pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
     pipeline.start()
     try:
@@ -276,13 +277,10 @@ def test_permanent_rejection_goes_to_dead_letters_with_the_error(tmp_path: Path)
 
 
 def test_dead_letters_are_bounded_the_oldest_deleted_counted_and_logged_once(tmp_path: Path) -> None:
-    def reject(call: int, batch: Sequence[OutgoingRecord]) -> None:
-        raise RejectedError("400 Bad Request")
-
     size = len(record(0).to_json().encode("utf-8"))  # the bytes a dead letter counts
     params = DestinationDeliveryParams(batch_size=1, dead_letter_limit_size=str(3 * size + size // 2))
     logger = ListLogger()
-    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(behaviour=reject), params)}, logger)
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(behaviour=reject_all), params)}, logger)
     pipeline.start()
     try:
         for i in range(8):
@@ -302,11 +300,8 @@ def test_dead_letters_are_bounded_the_oldest_deleted_counted_and_logged_once(tmp
 
 
 def test_a_lowered_dead_letter_limit_applies_at_start(tmp_path: Path) -> None:
-    def reject(call: int, batch: Sequence[OutgoingRecord]) -> None:
-        raise RejectedError("400 Bad Request")
-
     pipeline = DeliveryPipeline(
-        settings(tmp_path), {"sink": (Recorder(behaviour=reject), DestinationDeliveryParams())}, LOG
+        settings(tmp_path), {"sink": (Recorder(behaviour=reject_all), DestinationDeliveryParams())}, LOG
     )
     pipeline.start()
     try:

@@ -64,6 +64,12 @@ class Peer:
         assert wait_for(future.done, self.spin), "change_state never answered"
         return bool(future.result().success)
 
+    def bring_up(self, server_name: str) -> None:
+        """Configure and activate a server, then wait until its intake subscribes to the peer's topic."""
+        assert self.transition(server_name, Transition.TRANSITION_CONFIGURE)
+        assert self.transition(server_name, Transition.TRANSITION_ACTIVATE)
+        assert wait_for(lambda: self.publisher.get_subscription_count() == 1, self.spin)
+
     def publish(self, *texts: str) -> None:
         for text in texts:
             self.publisher.publish(String(data=text))
@@ -258,9 +264,7 @@ def test_a_failing_callback_is_logged_and_the_records_after_it_arrive(
     served: tuple[IntakeServer, Peer, RecordingLogger],
 ) -> None:
     server, peer, logger = served
-    assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)
-    assert peer.transition(server.get_name(), Transition.TRANSITION_ACTIVATE)
-    assert wait_for(lambda: peer.publisher.get_subscription_count() == 1, peer.spin)
+    peer.bring_up(server.get_name())
     peer.publish("before", "poison", "after")
     assert wait_for(lambda: server.received == ["before", "after"], peer.spin), server.received
     errors = logger.at("error")
@@ -271,8 +275,7 @@ def test_the_nodes_own_subscriptions_keep_up_while_the_intake_is_active(
     served: tuple[IntakeServer, Peer, RecordingLogger],
 ) -> None:
     server, peer, logger = served
-    assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)
-    assert peer.transition(server.get_name(), Transition.TRANSITION_ACTIVATE)
+    peer.bring_up(server.get_name())
     plugin_publisher = peer.node.create_publisher(String, server.topic + "_plugin", RECORD_QOS)
     assert wait_for(lambda: plugin_publisher.get_subscription_count() == 1, peer.spin)
     assert wait_for(lambda: peer.publisher.get_subscription_count() == 1, peer.spin)
@@ -292,8 +295,7 @@ def test_qos_events_of_intake_subscriptions_still_reach_the_log(
 ) -> None:
     # rclpy's default handler logs a publisher whose QoS cannot match; it runs on the executor.
     server, peer, _logger = served
-    assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)
-    assert peer.transition(server.get_name(), Transition.TRANSITION_ACTIVATE)
+    peer.bring_up(server.get_name())
     best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
     peer.node.create_publisher(String, server.topic, best_effort)
     stderr: list[str] = []
