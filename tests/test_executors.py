@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import rclpy
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.context import Context
@@ -34,6 +35,7 @@ from std_msgs.msg import String
 from dc_core.executors import EXECUTOR_KINDS, make_executor, spin_until
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ManagedServer
 from dc_interfaces.msg import Heartbeat, StringStamped
+from tests.bringup_util import fresh_domain_id
 from tests.ros_util import two_contexts, wait_for
 
 DEADLINE_S = 15.0
@@ -189,8 +191,8 @@ destination_server:
     return params
 
 
-def _start_server(tmp_path: Path, topic: str) -> subprocess.Popen[str]:
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+def _start_server(tmp_path: Path, topic: str, domain_id: int) -> subprocess.Popen[str]:
+    env = dict(os.environ, PYTHONUNBUFFERED="1", ROS_DOMAIN_ID=str(domain_id))
     return subprocess.Popen(
         [sys.executable, "-m", "dc_destinations.server", str(_server_params(tmp_path, topic))],
         cwd=REPO,
@@ -214,14 +216,26 @@ def _stop(process: subprocess.Popen[str]) -> tuple[int | None, str, float]:
         return None, output, time.monotonic() - started
 
 
+@pytest.fixture
+def isolated_operator_context() -> Iterator[tuple[Context, int]]:
+    """A context in a ROS domain of its own: no other node named destination_server can answer there."""
+    domain_id = fresh_domain_id()
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    try:
+        yield context, domain_id
+    finally:
+        rclpy.shutdown(context=context)
+
+
 def test_destination_server_process_is_driven_by_services_and_stops_on_sigterm(
-    tmp_path: Path, contexts: tuple[Context, Context]
+    tmp_path: Path, isolated_operator_context: tuple[Context, int]
 ) -> None:
     # run_server's own loop only: its records go through dc_core.intake, not the executor, and rclpy's
     # EventsExecutor cannot drive it (it runs subscriptions whatever their callback group says).
-    _, operator_context = contexts
+    operator_context, domain_id = isolated_operator_context
     topic = f"/dc_test/executor_{uuid.uuid4().hex[:8]}"
-    process = _start_server(tmp_path, topic)
+    process = _start_server(tmp_path, topic, domain_id)
     assert process.stdout is not None
     node = Node(f"dc_operator_{uuid.uuid4().hex[:8]}", context=operator_context)
     executor = SingleThreadedExecutor(context=operator_context)
