@@ -58,6 +58,7 @@ def cmd_pub(args: argparse.Namespace) -> int:
         print("dc pub: the record must be a JSON object", file=sys.stderr)
         return 2
     import rclpy
+    from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     from dc_core.topics import ros_topic, topic_problem
@@ -77,6 +78,8 @@ def cmd_pub(args: argparse.Namespace) -> int:
         depth=max(args.count, 10), reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
     )
     publisher = node.create_publisher(StringStamped, args.topic, qos)
+    sent = 0
+    unacknowledged = False
     try:
         deadline = time.monotonic() + args.wait_matched
         while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
@@ -85,7 +88,6 @@ def cmd_pub(args: argparse.Namespace) -> int:
             print(
                 f"dc pub: no subscriber on {args.topic} after {args.wait_matched} s; publishing anyway", file=sys.stderr
             )
-        sent = 0
         while args.count == 0 or sent < args.count:
             msg = StringStamped()
             msg.header.stamp = node.get_clock().now().to_msg()
@@ -96,17 +98,21 @@ def cmd_pub(args: argparse.Namespace) -> int:
             if args.count and sent >= args.count:
                 break
             rclpy.spin_once(node, timeout_sec=1.0 / args.rate if args.rate > 0 else 0)
-        # Give reliable delivery a moment to finish before the publisher goes away.
-        end = time.monotonic() + args.linger
-        while time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.05)
+        # Records a subscriber has not acknowledged are gone once this process exits.
+        if not publisher.wait_for_all_acked(Duration(seconds=args.linger)):
+            print(
+                f"dc pub: a subscriber of {args.topic} had not acknowledged every record after {args.linger} s;"
+                " it may miss the last ones",
+                file=sys.stderr,
+            )
+            unacknowledged = True
     except KeyboardInterrupt:
         pass
     finally:
         node.destroy_node()
         rclpy.shutdown()
     print(f"published {sent} record(s) on {args.topic}")
-    return 0
+    return 1 if unacknowledged else 0
 
 
 def _get_json(url: str) -> Any:
@@ -222,7 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
     p.add_argument("--group-key", default="")
     p.add_argument("--wait-matched", type=float, default=5.0, help="seconds to wait for a subscriber")
-    p.add_argument("--linger", type=float, default=0.5, help="seconds to stay after the last record")
+    p.add_argument(
+        "--linger", type=float, default=5.0, help="at most this many seconds to wait for subscribers' acknowledgements"
+    )
     p.set_defaults(func=cmd_pub)
 
     p = sub.add_parser("status", help="delivery metrics of a running destination_server")

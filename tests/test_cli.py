@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from tests.bringup_util import REPO, dc
+from tests.bringup_util import BIN, REPO, dc, fresh_domain_id
 
 PLUGIN_SRC = REPO / "tests" / "data" / "dc_example_plugin"
 
@@ -175,3 +176,95 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
     unreachable = dc("status", "--port", "1")
     assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr
+
+
+# Prints each received number as a line; the test freezes it with SIGSTOP after the first one.
+SLOW_SUBSCRIBER = """
+import rclpy, sys
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from dc_interfaces.msg import StringStamped
+rclpy.init()
+node = rclpy.create_node("slow_subscriber")
+node.create_subscription(
+    StringStamped, "/acks", lambda m: print(m.data, flush=True), QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+)
+print("subscribed", flush=True)
+rclpy.spin(node)
+"""
+
+
+class FrozenSubscriber:
+    """A subscriber process of /acks, frozen (SIGSTOP) as soon as it has received a first record."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", SLOW_SUBSCRIBER], env=env, stdout=subprocess.PIPE, text=True
+        )
+        assert self.process.stdout is not None
+        assert self.process.stdout.readline().strip() == "subscribed"
+
+    def freeze_at_first_record(self) -> str:
+        assert self.process.stdout is not None
+        first = self.process.stdout.readline().strip()
+        self.process.send_signal(signal.SIGSTOP)
+        return first
+
+    def thaw_and_read(self, count: int) -> list[str]:
+        self.process.send_signal(signal.SIGCONT)
+        assert self.process.stdout is not None
+        return [self.process.stdout.readline().strip() for _ in range(count)]
+
+    def close(self) -> None:
+        self.process.send_signal(signal.SIGCONT)
+        self.process.kill()
+        self.process.wait()
+
+
+@pytest.fixture
+def ros_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(fresh_domain_id())
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    return env
+
+
+def start_dc_pub(env: dict[str, str], count: int, linger_s: float) -> subprocess.Popen[str]:
+    """`dc pub` of ``count`` records ``{"n": 1}`` on /acks, 20 a second."""
+    return subprocess.Popen(
+        [str(BIN / "dc"), "pub", "/acks", '{"n": 1}', "--count", str(count), "--rate", "20", "--linger", str(linger_s)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def test_pub_exits_only_once_a_slow_subscriber_has_every_record(ros_env: dict[str, str]) -> None:
+    subscriber = FrozenSubscriber(ros_env)
+    try:
+        pub = start_dc_pub(ros_env, count=10, linger_s=120)
+        assert subscriber.freeze_at_first_record() == '{"n": 1}'
+        # Frozen while dc pub publishes the other nine (0.45 s) and well after: it cannot acknowledge them.
+        with pytest.raises(subprocess.TimeoutExpired):
+            pub.wait(2.0)
+        received = subscriber.thaw_and_read(9)
+        # It returns on the acknowledgement, not at the end of --linger.
+        out, err = pub.communicate(timeout=60)
+    finally:
+        subscriber.close()
+    assert pub.returncode == 0, err
+    assert received == ['{"n": 1}'] * 9
+    assert "published 10 record(s) on /acks" in out
+
+
+def test_pub_says_when_a_subscriber_did_not_acknowledge_within_linger(ros_env: dict[str, str]) -> None:
+    subscriber = FrozenSubscriber(ros_env)
+    try:
+        pub = start_dc_pub(ros_env, count=3, linger_s=1)
+        subscriber.freeze_at_first_record()
+        out, err = pub.communicate(timeout=30)
+    finally:
+        subscriber.close()
+    assert pub.returncode == 1
+    assert "had not acknowledged every record after 1.0 s" in err
+    assert "published 3 record(s) on /acks" in out
