@@ -93,6 +93,7 @@ def test_example_6_as_printed_warns_and_delivers_nothing(tmp_path: Path) -> None
 INDEPENDENT_PUBLISHER = """
 import json, sys, time
 import rclpy
+from rclpy.duration import Duration
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from dc_interfaces.msg import StringStamped
 rclpy.init()
@@ -108,9 +109,7 @@ for i in range(20):
     msg.data = json.dumps({"seq": i, "event": "dock"})
     msg.group_key = "events"
     pub.publish(msg)
-deadline = time.monotonic() + 2
-while time.monotonic() < deadline:
-    rclpy.spin_once(node, timeout_sec=0.05)
+sys.exit(0 if pub.wait_for_all_acked(Duration(seconds=30)) else 4)
 """
 
 
