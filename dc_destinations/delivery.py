@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
-from dc_core.logs import Logger
+from dc_core.logs import BurstLog, Logger
 from dc_core.paths import expand_env
 from dc_destinations.backoff import Backoff
 from dc_destinations.buffer import (
@@ -43,7 +43,7 @@ from dc_destinations.buffer import (
     default_storage_dir,
 )
 from dc_destinations.http_status import StatusServer
-from dc_destinations.metrics import BurstLog, DestinationMetrics, prometheus_text
+from dc_destinations.metrics import DestinationMetrics, prometheus_text
 from dc_destinations.settings import (
     DeliveryParams,
     DestinationDeliveryParams,

@@ -7,11 +7,10 @@ sequence number, which a replay repeats unchanged — and the keys of records al
 kept in the delivery buffer, committed with the records themselves. A replayed record whose key
 is there is a duplicate and is dropped before routing.
 
-Sequence numbers also show what never arrived: each DDS writer numbers its samples 1, 2, 3, ...,
-so a jump from 5,000 to 7,001 means 2,000 records were lost between the publisher and this server
-(dropped by DDS under a flood, or published while the server was down, beyond the history).
-rclpy gives no publisher id, so the writers of a topic are told apart by their numbers
-(:class:`TopicWriters`). Pure: no ROS, no I/O.
+Sequence numbers also show what never arrived: a jump from 5,000 to 7,001 means 2,000 records
+were lost between the publisher and this server (dropped by DDS under a flood, or published while
+the server was down, beyond the history); :class:`dc_core.sequence_numbers.TopicWriters` counts
+them. Pure: no ROS, no I/O.
 """
 
 from __future__ import annotations
@@ -21,7 +20,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-MAX_WRITERS_PER_TOPIC = 8
+from dc_core.sequence_numbers import MAX_WRITERS_PER_TOPIC, TopicWriters
 
 
 class HopKey(NamedTuple):
@@ -48,52 +47,6 @@ def hop_key(topic: str, info: Mapping[str, Any] | None) -> HopKey | None:
     if not isinstance(source_ns, int) or not isinstance(seq, int) or source_ns <= 0 or seq <= 0:
         return None
     return HopKey(topic, source_ns, seq)
-
-
-@dataclass
-class _Writer:
-    last_seq: int
-    last_used: int
-
-
-class TopicWriters:
-    """The publishers of one topic, recognised by their sequence numbers; counts the numbers skipped.
-
-    A record continues the writer whose last number is the highest one below its own (ties go to
-    the writer heard from last); a record below every known writer's last number starts a new
-    writer — a publisher that restarted numbers from 1 again. With one publisher per topic (each
-    of DC's topics has one) this is exact. With several, told apart while their numbers stay
-    apart; once two of them reach the same number, a record can be taken for the other's, which
-    shows as a gap that was none (or hides one): the counts are then approximate.
-    """
-
-    def __init__(self, max_writers: int = MAX_WRITERS_PER_TOPIC) -> None:
-        self._max_writers = max_writers
-        self._writers: list[_Writer] = []
-        self._clock = 0
-
-    def observe(self, seq: int) -> int | None:
-        """Numbers skipped before ``seq`` by its writer (0 in order), or ``None`` for a new writer."""
-        self._clock += 1
-        best: _Writer | None = None
-        for writer in self._writers:
-            if writer.last_seq < seq and (
-                best is None or (writer.last_seq, writer.last_used) > (best.last_seq, best.last_used)
-            ):
-                best = writer
-        if best is None:
-            if len(self._writers) >= self._max_writers:
-                self._writers.remove(min(self._writers, key=lambda w: w.last_used))
-            self._writers.append(_Writer(seq, self._clock))
-            return None
-        skipped = seq - best.last_seq - 1
-        best.last_seq = seq
-        best.last_used = self._clock
-        return skipped
-
-    @property
-    def count(self) -> int:
-        return len(self._writers)
 
 
 @dataclass(frozen=True)

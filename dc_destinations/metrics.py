@@ -1,16 +1,15 @@
-"""Per-destination delivery counters and once-per-burst logging of repeated events.
+"""Per-destination delivery counters and their Prometheus text.
 
 Counters are since the pipeline started (the database keeps lifetime totals for ``dc status``).
 A notable event (record dropped, send failed) increments its counter and goes through a
-:class:`BurstLog` in the same place, so a flood of drops is one log line when it starts and one
-summary when it ends, never one line per record.
+:class:`dc_core.logs.BurstLog` in the same place, so a flood of drops is one log line when it
+starts and one summary when it ends, never one line per record.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,69 +55,6 @@ class DestinationMetrics:
             out: dict[str, Any] = {name: getattr(self._counts, name) for name in COUNTERS}
             out["last_error"] = self.last_error
         return out
-
-
-class BurstLog:
-    """Log the first event of a burst at once, then a summary when ``quiet`` seconds pass without one.
-
-    While a burst lasts longer than ``interval``, a summary is also written every ``interval``
-    seconds, so a drop that never stops stays visible. Call :meth:`tick` periodically.
-    """
-
-    def __init__(
-        self,
-        log: Callable[[str], Any],
-        what: str,
-        *,
-        quiet: float = 5.0,
-        interval: float = 60.0,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> None:
-        self._log = log
-        self._what = what
-        self._quiet = quiet
-        self._interval = interval
-        self._clock = clock
-        self._lock = threading.Lock()
-        self._pending = 0
-        self._last_detail = ""
-        self._burst_start: float | None = None
-        self._last_event = 0.0
-        self._last_summary = 0.0
-
-    def event(self, count: int, detail: str) -> None:
-        now = self._clock()
-        message = None
-        with self._lock:
-            if self._burst_start is None:
-                self._burst_start = self._last_summary = now
-                message = f"{self._what}: {count} ({detail})"
-            else:
-                self._pending += count
-                self._last_detail = detail
-            self._last_event = now
-        if message is not None:
-            self._log(message)
-        self.tick()
-
-    def tick(self) -> None:
-        now = self._clock()
-        message = None
-        with self._lock:
-            if self._burst_start is None:
-                return
-            ended = now - self._last_event >= self._quiet
-            if self._pending and (ended or now - self._last_summary >= self._interval):
-                message = (
-                    f"{self._what}: {self._pending} more in the last {now - self._last_summary:.0f} s"
-                    f" (latest: {self._last_detail})"
-                )
-                self._pending = 0
-                self._last_summary = now
-            if ended:
-                self._burst_start = None
-        if message is not None:
-            self._log(message)
 
 
 def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, Any]) -> str:

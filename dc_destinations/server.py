@@ -25,12 +25,11 @@ from dc_core.config import internal_topics, load_params_file
 from dc_core.destination import Destination
 from dc_core.errors import ConfigError, PluginError
 from dc_core.lifecycle import ManagedServer, run_server
-from dc_core.logs import Logger
+from dc_core.logs import BurstLog, Logger
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline, new_record_id
 from dc_destinations.hop import HopIntake, HopKey, hop_key
-from dc_destinations.metrics import BurstLog
 from dc_destinations.routing import RoutingTable
 from dc_interfaces.msg import StringStamped
 

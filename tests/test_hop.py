@@ -14,9 +14,10 @@ from typing import Any
 import pytest
 
 from dc_core.destination import Destination, OutgoingRecord
+from dc_core.sequence_numbers import TopicWriters
 from dc_destinations.buffer import FILE_NAME, PendingRecord, SqliteBuffer
 from dc_destinations.delivery import DeliveryPipeline, new_record_id
-from dc_destinations.hop import HopIntake, HopKey, TopicWriters, hop_key
+from dc_destinations.hop import HopIntake, HopKey, hop_key
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 TOPIC = "/dc/measurement/numbers"

@@ -11,8 +11,9 @@ from typing import Any
 
 import pytest
 
+from dc_core.logs import BurstLog
 from dc_destinations.http_status import StatusServer
-from dc_destinations.metrics import BurstLog, prometheus_text
+from dc_destinations.metrics import prometheus_text
 
 
 class State:

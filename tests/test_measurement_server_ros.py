@@ -20,6 +20,7 @@ import pytest
 import rclpy
 import yaml
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
@@ -270,8 +271,20 @@ measurement_server:
 # --- event-driven StringStamped ------------------------------------------------------------------
 
 
-def string_stamped_params(name: str, topic: str, timer_based: bool) -> str:
-    return f"""
+@dataclass
+class ActiveStringStamped:
+    """An active StringStamped measurement: the test publishes on ``publisher`` and reads ``received``."""
+
+    name: str
+    topic: str
+    plugin: Any
+    publisher: Any
+    received: list[Any]
+
+
+def start_string_stamped(harness: Harness, timer_based: bool, qos_depth: int = 100) -> ActiveStringStamped:
+    name, topic = unique("events"), f"/{unique('robot_events')}"
+    server = harness.start_server(f"""
 measurement_server:
   ros__parameters:
     measurement_plugins: ["{name}"]
@@ -279,9 +292,16 @@ measurement_server:
       plugin: "dc_measurements/StringStamped"
       topic: "{topic}"
       timer_based: {str(timer_based).lower()}
+      qos_depth: {qos_depth}
       polling_interval: 100
       group_key: "configured_key"
-"""
+""")
+    received = harness.listen(f"/dc/measurement/{name}")
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{name}")
+    assert server.trigger_activate() == SUCCESS
+    publisher = harness.input_publisher(topic)
+    return ActiveStringStamped(name, topic, server.runners[name].plugin, publisher, received)
 
 
 def stamped(data: str, sec: int = 0, nanosec: int = 0, group_key: str = "") -> StringStamped:
@@ -295,13 +315,8 @@ def stamped(data: str, sec: int = 0, nanosec: int = 0, group_key: str = "") -> S
 def test_event_driven_string_stamped_publishes_each_record_once_with_its_stamp_and_group_key(
     harness: Harness,
 ) -> None:
-    name, topic = unique("events"), f"/{unique('robot_events')}"
-    server = harness.start_server(string_stamped_params(name, topic, timer_based=False))
-    received = harness.listen(f"/dc/measurement/{name}")
-    assert server.trigger_configure() == SUCCESS
-    harness.wait_publisher(f"/dc/measurement/{name}")
-    assert server.trigger_activate() == SUCCESS
-    publisher = harness.input_publisher(topic)
+    measurement = start_string_stamped(harness, timer_based=False)
+    publisher, received = measurement.publisher, measurement.received
 
     for seq in range(5):
         # The last one has no group key of its own: the configured one applies.
@@ -316,32 +331,51 @@ def test_event_driven_string_stamped_publishes_each_record_once_with_its_stamp_a
         (1_700_000_000 + seq, 1_000 * seq) for seq in range(5)
     ]
     assert [m.group_key for m in received] == ["source_key"] * 4 + ["configured_key"]
-    assert all(r["name"] == name for r in records(received))
+    assert all(r["name"] == measurement.name for r in records(received))
 
 
 @pytest.mark.parametrize("timer_based", [False, True], ids=["event-driven", "timer-based"])
 def test_malformed_input_is_logged_and_counted_and_the_next_record_passes(
     harness: Harness, capfd: pytest.CaptureFixture[str], timer_based: bool
 ) -> None:
-    name, topic = unique("events"), f"/{unique('robot_events')}"
-    server = harness.start_server(string_stamped_params(name, topic, timer_based=timer_based))
-    received = harness.listen(f"/dc/measurement/{name}")
-    assert server.trigger_configure() == SUCCESS
-    harness.wait_publisher(f"/dc/measurement/{name}")
-    assert server.trigger_activate() == SUCCESS
-    publisher = harness.input_publisher(topic)
-    plugin: Any = server.runners[name].plugin
+    measurement = start_string_stamped(harness, timer_based=timer_based)
+    plugin, topic = measurement.plugin, measurement.topic
 
-    publisher.publish(stamped('{"seq": 1,'))
+    measurement.publisher.publish(stamped('{"seq": 1,'))
     harness.spin_until(lambda: plugin.malformed == 1, "the first malformed record")
-    publisher.publish(stamped("[1, 2]"))
+    measurement.publisher.publish(stamped("[1, 2]"))
     harness.spin_until(lambda: plugin.malformed == 2, "the second malformed record")
-    publisher.publish(stamped('{"seq": 2}', 1_700_000_000))
-    harness.spin_until(lambda: len(received) >= 1, "the valid record")
-    assert [r["seq"] for r in records(received)] == [2]
+    measurement.publisher.publish(stamped('{"seq": 2}', 1_700_000_000))
+    harness.spin_until(lambda: len(measurement.received) >= 1, "the valid record")
+    assert [r["seq"] for r in records(measurement.received)] == [2]
     log = capfd.readouterr().err
     assert f"record on {topic} is not JSON" in log and "'{\"seq\": 1,'" in log, log
     assert f"record on {topic} is not a JSON object" in log, log
+
+
+def test_records_overwritten_in_the_input_queue_are_counted_and_logged(
+    harness: Harness, capfd: pytest.CaptureFixture[str]
+) -> None:
+    measurement = start_string_stamped(harness, timer_based=False, qos_depth=5)
+    publisher, received = measurement.publisher, measurement.received
+
+    publisher.publish(stamped('{"n": 0}'))
+    harness.spin_until(lambda: len(received) == 1, "the first record")
+    # 50 more while the server's executor does not run: its queue of 5 keeps the last five.
+    for n in range(1, 51):
+        publisher.publish(stamped(json.dumps({"n": n})))
+    assert publisher.wait_for_all_acked(Duration(seconds=DEADLINE_S))
+    harness.spin_until(lambda: len(received) == 6, "the five records the queue kept")
+
+    assert [r["n"] for r in records(received)] == [0, 46, 47, 48, 49, 50]
+    assert measurement.plugin.lost == 45
+    log = capfd.readouterr().err
+    # Record n is the publisher's sample n + 1.
+    assert (
+        f"measurement {measurement.name}: records lost before measurement_server: 45 ({measurement.topic}:"
+        " publication sequence numbers"
+        " 2..46 never arrived; the queues, qos_depth 5 and the publisher's depth, overflowed)"
+    ) in log, log
 
 
 # --- the doc pages' examples run -----------------------------------------------------------------

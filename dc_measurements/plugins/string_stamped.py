@@ -8,8 +8,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.errors import PluginError
+from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement
 from dc_core.params import param
+from dc_core.sequence_numbers import TopicWriters
 from dc_core.topics import ros_topic, topic_problem
 
 _LOGGED_TEXT = 2000
@@ -37,7 +39,13 @@ class StringStampedInput(Measurement):
         self._lock = threading.Lock()
         self._latest: tuple[dict[str, Any], int, str] | None = None
         self._subscription: Any = None
+        self._loss_log_timer: Any = None
+        self._writers = TopicWriters()
+        self._loss_log: BurstLog | None = None
         self.malformed = 0
+        # Records your nodes published that never reached this subscription (DDS overwrote them in
+        # a queue of qos_depth while the server was busy): seen as jumps in a publisher's numbers.
+        self.lost = 0
 
     @property
     def timer_driven(self) -> bool:
@@ -54,14 +62,34 @@ class StringStampedInput(Measurement):
             self.context.logger.warning(
                 f"topic {self.params.topic!r} is not a valid ROS 2 name: listening on {topic!r}"
             )
+        self._topic = topic
+        self._writers = TopicWriters()
+        self._loss_log = BurstLog(
+            self.context.logger.error, f"measurement {self.context.name}: records lost before measurement_server"
+        )
+        self._loss_log_timer = node.create_timer(1.0, self._loss_log.tick)
         self._subscription = node.create_subscription(StringStamped, topic, self._on_message, self.params.qos_depth)
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:
             self.context.node.destroy_subscription(self._subscription)
             self._subscription = None
+        if self._loss_log_timer is not None:
+            self.context.node.destroy_timer(self._loss_log_timer)
+            self._loss_log_timer = None
 
-    def _on_message(self, msg: Any) -> None:
+    def _on_message(self, msg: Any, info: Any) -> None:
+        seq = info.get("publication_sequence_number") if info else None
+        if isinstance(seq, int) and seq > 0:
+            skipped = self._writers.observe(seq)
+            if skipped:
+                self.lost += skipped
+                assert self._loss_log is not None
+                self._loss_log.event(
+                    skipped,
+                    f"{self._topic}: publication sequence numbers {seq - skipped}..{seq - 1} never arrived;"
+                    f" the queues, qos_depth {self.params.qos_depth} and the publisher's depth, overflowed",
+                )
         try:
             record = json.loads(msg.data)
         except json.JSONDecodeError as exc:
