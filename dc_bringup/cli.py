@@ -120,19 +120,30 @@ def _get_json(url: str) -> Any:
         return json.loads(response.read())
 
 
-def _status_address(args: argparse.Namespace) -> tuple[str, int]:
-    """--host/--port, or the flb.http_listen/http_port of --params."""
-    host, port = args.host, args.port
-    if args.params:
-        from dc_core.config import load_params_file
+def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
+    """(server, host, port) to ask: --host/--port, or the servers with an HTTP server in --params."""
+    if not args.params:
+        return [("", args.host, args.port)]
+    from dc_core.config import load_params_file
 
-        flb = load_params_file(args.params).get("destination_server", {}).get("flb", {})
-        if not flb.get("http_server", False):
-            print(f"dc status: flb.http_server is not true in {args.params}", file=sys.stderr)
-        listen = str(flb.get("http_listen", "127.0.0.1"))
-        host = "127.0.0.1" if listen in ("0.0.0.0", "") else listen
-        port = int(flb.get("http_port", 2020))
-    return host, port
+    sections = load_params_file(args.params)
+    targets = []
+    for server, settings, default_port in (
+        ("destination_server", sections.get("destination_server", {}).get("flb", {}), 2020),
+        ("group_server", sections.get("group_server", {}), 2021),
+    ):
+        if settings.get("http_server", False):
+            listen = str(settings.get("http_listen", "127.0.0.1"))
+            host = "127.0.0.1" if listen in ("0.0.0.0", "") else listen
+            targets.append((server, host, int(settings.get("http_port", default_port))))
+    if not targets:
+        print(
+            f"dc status: neither destination_server's flb.http_server nor group_server's http_server is true in"
+            f" {args.params}; asking {args.host}:{args.port}",
+            file=sys.stderr,
+        )
+        targets.append(("", args.host, args.port))
+    return targets
 
 
 STATUS_COLUMNS = [
@@ -150,33 +161,60 @@ STATUS_COLUMNS = [
 ]
 
 
+GROUP_COLUMNS = [
+    ("published", "published"),
+    ("published_partial", "partial"),
+    ("dropped_incomplete", "dropped"),
+    ("superseded", "superseded"),
+    ("late", "late"),
+    ("overflowed", "overflowed"),
+    ("renamed_keys", "renamed"),
+    ("pending", "pending"),
+]
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     try:
-        host, port = _status_address(args)
+        targets = _status_targets(args)
     except DcError as exc:
         print(f"dc status: {exc}", file=sys.stderr)
         return 2
-    url = f"http://{host}:{port}/api/v1/metrics"
-    try:
-        metrics = _get_json(url)
-    except (urllib.error.URLError, OSError) as exc:
-        print(f"dc status: cannot reach {url}: {exc} (is flb.http_server true?)", file=sys.stderr)
-        return 1
+    documents: dict[str, Any] = {}
+    unreachable = False
+    for server, host, port in targets:
+        url = f"http://{host}:{port}/api/v1/metrics"
+        try:
+            documents[server] = _get_json(url)
+        except (urllib.error.URLError, OSError) as exc:
+            print(f"dc status: cannot reach {server or 'a DC server'} at {url}: {exc} (is it active?)", file=sys.stderr)
+            unreachable = True
     if args.json:
-        print(json.dumps(metrics, indent=2))
-        return 0
-    destinations = metrics.get("destinations", {})
-    widths = [max(len(title), 8) + 2 for _, title in STATUS_COLUMNS]
-    print(
-        f"{'destination':<20}"
-        + "".join(f"{t:>{w}}" for (_, t), w in zip(STATUS_COLUMNS, widths, strict=True))
-        + "  last error"
-    )
-    for name, row in sorted(destinations.items()):
+        # --host/--port: that server's document; --params: {server: document}, whichever servers it enables.
+        if documents:
+            print(json.dumps(documents.get("", documents), indent=2))
+    else:
+        for metrics in documents.values():
+            if "groups" in metrics:
+                _print_groups(metrics)
+            else:
+                _print_delivery(metrics)
+    return 1 if unreachable else 0
+
+
+def _print_table(title: str, columns: list[tuple[str, str]], rows: dict[str, Any], text_column: str = "") -> None:
+    """One row per name; ``text_column``, a free-text key, goes last and unaligned."""
+    widths = [max(len(heading), 8) + 2 for _, heading in columns]
+    header = f"{title:<20}" + "".join(f"{t:>{w}}" for (_, t), w in zip(columns, widths, strict=True))
+    print(header + (f"  {text_column.replace('_', ' ')}" if text_column else ""))
+    for name, row in sorted(rows.items()):
         if not isinstance(row, dict):
             continue
-        cells = "".join(f"{_cell(row.get(k)):>{w}}" for (k, _), w in zip(STATUS_COLUMNS, widths, strict=True))
-        print(f"{name:<20}{cells}  {row.get('last_error') or ''}")
+        cells = "".join(f"{_cell(row.get(k)):>{w}}" for (k, _), w in zip(columns, widths, strict=True))
+        print(f"{name:<20}{cells}" + (f"  {row.get(text_column) or ''}" if text_column else ""))
+
+
+def _print_delivery(metrics: dict[str, Any]) -> None:
+    _print_table("destination", STATUS_COLUMNS, metrics.get("destinations", {}), text_column="last_error")
     buffer = metrics.get("buffer")
     if isinstance(buffer, dict):
         print(
@@ -186,7 +224,13 @@ def cmd_status(args: argparse.Namespace) -> int:
     for section, values in sorted(metrics.items()):
         if section not in ("destinations", "buffer") and isinstance(values, dict):
             print(f"{section}: " + ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict)))
-    return 0
+
+
+def _print_groups(metrics: dict[str, Any]) -> None:
+    _print_table("group", GROUP_COLUMNS, metrics.get("groups", {}))
+    malformed = {topic: v.get("malformed", 0) for topic, v in metrics.get("inputs", {}).items() if isinstance(v, dict)}
+    if any(malformed.values()):
+        print("malformed inputs: " + ", ".join(f"{topic} {n}" for topic, n in sorted(malformed.items()) if n))
 
 
 def _cell(value: Any) -> str:
@@ -233,10 +277,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_pub)
 
-    p = sub.add_parser("status", help="delivery metrics of a running destination_server")
+    p = sub.add_parser("status", help="metrics of a running destination_server and group_server")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=2020)
-    p.add_argument("--params", default="", help="read flb.http_listen and http_port from this parameter file")
+    p.add_argument(
+        "--params",
+        default="",
+        help="ask the servers whose HTTP server this parameter file enables (destination_server flb.http_*,"
+        " group_server http_*)",
+    )
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.set_defaults(func=cmd_status)
 

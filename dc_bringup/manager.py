@@ -15,6 +15,8 @@ from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC
 from dc_interfaces.msg import Heartbeat
 
 NODE_NAME = "lifecycle_manager_dc"
+# get_state answers at once from a live process: a probe unanswered this long was lost.
+GET_STATE_PROBE_S = 0.5
 
 
 class LifecycleManager(Node):
@@ -67,7 +69,7 @@ class LifecycleManager(Node):
         return future.result()
 
     def _wait_ready(self, proc: ServerProcess, started: float) -> bool:
-        """The new process sent a heartbeat and its lifecycle services are discovered."""
+        """The new process sent a heartbeat and answers on its lifecycle services."""
         deadline = time.monotonic() + self.service_timeout
         while self._last_heartbeat.get(proc.name, 0.0) < started:
             if not proc.running() or time.monotonic() > deadline:
@@ -79,8 +81,17 @@ class LifecycleManager(Node):
             if not proc.running():
                 return False
             if change.service_is_ready() and get.service_is_ready():
-                return True
+                break
             self.spin_for(0.05)
+        # "Ready" only says the graph knows a server of that name, and a killed process stays in the
+        # graph until its DDS lease ends (~20 s): a request sent before the new process' endpoints
+        # are matched is lost, and its transition waited service_timeout / attempts (seen in CI
+        # after SIGSTOP + restart). Only the new process can answer get_state; ask it until it does.
+        while time.monotonic() < deadline:
+            if not proc.running():
+                return False
+            if self._call(get, GetState.Request(), GET_STATE_PROBE_S) is not None:
+                return True
         return False
 
     def transition(self, server: str, label: str, target: str, attempts: int = 3) -> bool:

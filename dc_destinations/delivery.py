@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.http_status import StatusServer
 from dc_core.logs import BurstLog, Logger
 from dc_core.paths import expand_env
 from dc_destinations.backoff import Backoff
@@ -42,7 +43,6 @@ from dc_destinations.buffer import (
     SqliteBuffer,
     default_storage_dir,
 )
-from dc_destinations.http_status import StatusServer
 from dc_destinations.metrics import DestinationMetrics, prometheus_text
 from dc_destinations.settings import (
     DeliveryParams,

@@ -13,6 +13,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from dc_core.http_status import PrometheusText, prometheus_labels
+
 COUNTERS = ("received", "sent", "retried", "failed", "dropped", "dead_lettered", "dead_letters_dropped")
 
 
@@ -59,19 +61,11 @@ class DestinationMetrics:
 
 def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, Any]) -> str:
     """Prometheus text exposition (format 0.0.4) of :meth:`DeliveryPipeline.metrics`."""
-    lines: list[str] = []
-
-    def family(name: str, kind: str, doc: str, samples: list[tuple[str, float]]) -> None:
-        lines.append(f"# HELP {name} {doc}")
-        lines.append(f"# TYPE {name} {kind}")
-        for labels, value in samples:
-            lines.append(
-                f"{name}{labels} {value:g}" if isinstance(value, float) else f"{name}{labels} {value}"
-            )
+    text = PrometheusText()
+    family = text.family
 
     def label(destination: str) -> str:
-        escaped = destination.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
-        return f'{{destination="{escaped}"}}'
+        return prometheus_labels(destination=destination)
 
     for counter, doc in (
         ("received", "Records routed to the destination"),
@@ -127,4 +121,4 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         "Records waiting for the next group commit",
         [("", buffer["intake_pending"])],
     )
-    return "\n".join(lines) + "\n"
+    return text.text()

@@ -5,7 +5,7 @@ Parsing is pure (no I/O): ``dc validate`` and ``dc-bringup`` call it before anyt
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from dc_core.errors import ConfigError
@@ -24,6 +24,9 @@ ROS_NODE_PARAMS = ("use_sim_time",)
 class GroupServerParams:
     groups: list[str] = param(doc="Ids of the groups to enable; each has a section of the same name")
     heartbeat_period: float = param(1.0, minimum=0.05, doc="Seconds between heartbeats to the manager")
+    http_server: bool = param(False, doc="Serve health and per-group counters over HTTP while active")
+    http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server")
+    http_port: int = param(2021, minimum=0, maximum=65535, doc="Port of the metrics HTTP server (0: any free one)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -73,6 +76,9 @@ class GroupConfig:
 class GroupServerConfig:
     groups: tuple[GroupConfig, ...]
     heartbeat_period: float = 1.0
+    http_server: bool = False
+    http_listen: str = "127.0.0.1"
+    http_port: int = 2021
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -95,7 +101,7 @@ def parse_group_server(section: dict[str, Any], path: str = "group_server") -> G
     """Build the group server configuration from its ``ros__parameters`` mapping."""
     if not isinstance(section, dict):
         raise ConfigError(path, f"expected a mapping, got {section!r}")
-    node_keys = ("groups", "heartbeat_period")
+    node_keys = tuple(f.name for f in fields(GroupServerParams))
     node = parse_params(GroupServerParams, {k: v for k, v in section.items() if k in node_keys}, path)
     names = list(node.groups)
     for i, name in enumerate(names):
@@ -119,7 +125,14 @@ def parse_group_server(section: dict[str, Any], path: str = "group_server") -> G
         for g in groups
         if g.sync_timeout < g.sync_delay
     ]
-    return GroupServerConfig(groups=groups, heartbeat_period=node.heartbeat_period, warnings=warnings)
+    return GroupServerConfig(
+        groups=groups,
+        heartbeat_period=node.heartbeat_period,
+        http_server=node.http_server,
+        http_listen=node.http_listen,
+        http_port=node.http_port,
+        warnings=warnings,
+    )
 
 
 def _parse_group(name: str, section: Any, path: str) -> GroupConfig:

@@ -8,16 +8,19 @@ cleanup releases the publishers. ``python -m dc_group.server PARAMS [--autostart
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError
+from dc_core.http_status import StatusServer
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
 from dc_group.config import GroupServerConfig, parse_group_server
 from dc_group.merge import MalformedRecord, parse_input
+from dc_group.metrics import group_prometheus_text
 from dc_group.pipeline import GroupOutput, GroupPipeline
 from dc_interfaces.msg import StringStamped
 
@@ -39,6 +42,9 @@ class GroupServer(ManagedServer):
         self._expiry_timer: Any = None
         self._malformed_logged_at: dict[str, float] = {}
         self._zero_stamp_warned: set[str] = set()
+        # The metrics HTTP thread reads what the executor's callbacks change.
+        self._lock = threading.Lock()
+        self._status: StatusServer | None = None
 
     # -- transitions ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -75,6 +81,9 @@ class GroupServer(ManagedServer):
         # A set times out at most a quarter of its timeout late, and never more than 0.5 s late.
         period = min(0.5, max(0.02, min(timeouts) / 4)) if timeouts else 0.5
         self._expiry_timer = self.create_timer(period, self._expire)
+        assert self.config is not None
+        if self.config.http_server:
+            self._start_status_server(self.config.http_listen, self.config.http_port)
 
     def deactivate_server(self) -> None:
         for subscription in self._input_subscriptions:
@@ -85,15 +94,20 @@ class GroupServer(ManagedServer):
             self.destroy_timer(self._expiry_timer)
             self._expiry_timer = None
         # No message can complete what is pending any more: settle it as on a timeout.
-        for name, pipeline in self.pipelines.items():
-            self._publish(name, pipeline.flush())
-            self.get_logger().info(f"group {name}: {pipeline.stats()}")
+        with self._lock:
+            for name, pipeline in self.pipelines.items():
+                self._publish(name, pipeline.flush())
+                self.get_logger().info(f"group {name}: {pipeline.stats()}")
+        if self._status is not None:
+            self._status.stop()
+            self._status = None
 
     def cleanup_server(self) -> None:
         for publisher in self._group_publishers.values():
             self.destroy_publisher(publisher)
         self._group_publishers.clear()
         self.pipelines.clear()
+        self.malformed.clear()
         self._routes.clear()
         self.config = None
 
@@ -105,6 +119,10 @@ class GroupServer(ManagedServer):
         return on_message
 
     def _on_message(self, topic: str, msg: Any) -> None:
+        with self._lock:
+            self._take(topic, msg)
+
+    def _take(self, topic: str, msg: Any) -> None:
         now = time.monotonic()
         try:
             record = parse_input(topic, msg.group_key, msg.data)
@@ -123,8 +141,9 @@ class GroupServer(ManagedServer):
 
     def _expire(self) -> None:
         now = time.monotonic()
-        for name, pipeline in self.pipelines.items():
-            self._publish(name, pipeline.expire(now))
+        with self._lock:
+            for name, pipeline in self.pipelines.items():
+                self._publish(name, pipeline.expire(now))
 
     def _publish(self, group_name: str, outputs: list[GroupOutput]) -> None:
         publisher = self._group_publishers.get(group_name)
@@ -146,7 +165,36 @@ class GroupServer(ManagedServer):
             self.get_logger().error(f"{exc}; message ignored ({count} malformed on {topic} so far)")
 
     def stats(self) -> dict[str, dict[str, int]]:
-        return {name: pipeline.stats() for name, pipeline in self.pipelines.items()}
+        with self._lock:
+            return {name: pipeline.stats() for name, pipeline in self.pipelines.items()}
+
+    # -- metrics over HTTP ---------------------------------------------------------------------
+    def metrics_document(self) -> dict[str, Any]:
+        """Per group its counters, per input topic the malformed messages; both since configure."""
+        groups = self.stats()
+        with self._lock:
+            inputs = {topic: {"malformed": self.malformed.get(topic, 0)} for topic in self._routes}
+        return {"groups": groups, "inputs": inputs}
+
+    @property
+    def http_address(self) -> tuple[str, int] | None:
+        return self._status.address if self._status is not None else None
+
+    def _start_status_server(self, listen: str, port: int) -> None:
+        try:
+            self._status = StatusServer(
+                listen,
+                port,
+                health=lambda: self.lifecycle_state == "active",
+                metrics=self.metrics_document,
+                prometheus=lambda: group_prometheus_text(self.metrics_document()),
+            )
+        except OSError as exc:
+            # Metrics are for operators: grouping goes on without them.
+            self.get_logger().error(f"metrics HTTP server on {listen}:{port} not started: {exc}")
+            return
+        host, bound = self._status.address
+        self.get_logger().info(f"metrics HTTP server on http://{host}:{bound}/api/v1/")
 
 
 def main() -> int:

@@ -192,6 +192,8 @@ def test_hung_server_is_detected_by_missing_heartbeat(tmp_path: Path) -> None:
         pid = int(line.rsplit("pid ", 1)[1].rstrip(")"))
         os.kill(pid, signal.SIGSTOP)  # alive but silent: only the heartbeat can tell
         run.wait_stderr("measurement_server no heartbeat for", timeout=30)
-        run.wait_stderr("measurement_server active (pid", timeout=60)
+        run.wait_until(
+            lambda: sum("measurement_server active (pid" in s for s in run.stderr) == 2, 60, "the new process active"
+        )
         before = len(run.records())
         run.wait_records(before + 1, timeout=30)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 from itertools import pairwise
 from pathlib import Path
 from typing import Any
@@ -9,7 +10,7 @@ from typing import Any
 import pytest
 import yaml
 
-from tests.bringup_util import REPO, Bringup
+from tests.bringup_util import REPO, Bringup, dc
 
 pytestmark = pytest.mark.e2e
 
@@ -24,13 +25,17 @@ def dummy(value: str, polling_interval: int, **extra: Any) -> dict[str, Any]:
 
 
 def write_config(
-    tmp_path: Path, measurements: dict[str, dict[str, Any]], groups: dict[str, dict[str, Any]], listen: str
+    tmp_path: Path,
+    measurements: dict[str, dict[str, Any]],
+    groups: dict[str, dict[str, Any]],
+    listen: str,
+    group_server: dict[str, Any] | None = None,
 ) -> Path:
     config = {
         "measurement_server": {
             "ros__parameters": {"measurement_plugins": list(measurements), "run_id": {"enabled": False}, **measurements}
         },
-        "group_server": {"ros__parameters": {"groups": list(groups), **groups}},
+        "group_server": {"ros__parameters": {"groups": list(groups), **(group_server or {}), **groups}},
         "destination_server": {
             "ros__parameters": {
                 "destination_plugins": ["stdout"],
@@ -41,6 +46,13 @@ def write_config(
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(config, sort_keys=False))
     return path
+
+
+def free_port() -> int:
+    """A loopback port nothing listens on now (dc status must know the port in advance)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
 
 
 def body(record: dict[str, Any]) -> dict[str, Any]:
@@ -123,6 +135,7 @@ def test_partial_records_when_one_input_stops(tmp_path: Path) -> None:
             }
         },
         "/dc/group/pair",
+        group_server={"http_server": True, "http_port": free_port()},
     )
 
     def partial_after_complete() -> list[dict[str, Any]]:
@@ -134,6 +147,13 @@ def test_partial_records_when_one_input_stops(tmp_path: Path) -> None:
         run.wait_until(lambda: len(partial_after_complete()) >= 3, 60, "3 partial records after a complete one")
         complete = [r for r in run.records() if "missing_inputs" not in r]
         partial = partial_after_complete()
+        status = dc("status", "--params", str(params), env=run.env)
+    # What an operator sees: the group's counters, from group_server's metrics HTTP server.
+    assert status.returncode == 0, status.stderr
+    header, row = status.stdout.splitlines()
+    assert header.split()[:4] == ["group", "published", "partial", "dropped"]
+    published, published_partial = (int(cell) for cell in row.split()[1:3])
+    assert row.split()[0] == "pair" and published >= len(complete) and published_partial >= len(partial)
     # Three samples of "stops" (a sample published before discovery completes may be lost).
     assert 1 <= len(complete) <= 3
     assert all(body(r) == {"steady": {"value": "steady", "name": "steady"},

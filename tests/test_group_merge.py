@@ -115,6 +115,9 @@ def test_inputs_outputs_and_tags_of_the_server() -> None:
         ({"groups": ["g"], "g": {"inputs": ["/dc/group/g"]}}, "group_server.g.inputs", "loop: g -> g"),
         ({"groups": ["a", "b"], "a": {"inputs": ["/x"], "output": "/o"},
           "b": {"inputs": ["/y"], "output": "/o"}}, "group_server.b.output", "already the output of group a"),
+        ({"groups": ["g"], "g": {"inputs": ["/a"]}, "http_port": "2021"}, "group_server.http_port", "integer"),
+        ({"groups": ["g"], "g": {"inputs": ["/a"]}, "http_port": 70000}, "group_server.http_port", "<= 65535"),
+        ({"groups": ["http_server"]}, "group_server.groups[0]", "is a server parameter"),
     ],
 )  # fmt: skip
 def test_configuration_errors_name_the_yaml_path(section: dict[str, Any], path: str, message: str) -> None:
@@ -122,6 +125,13 @@ def test_configuration_errors_name_the_yaml_path(section: dict[str, Any], path: 
         parse_group_server(section)
     assert info.value.path == path
     assert message in info.value.message
+
+
+def test_the_metrics_http_server_is_off_by_default_and_on_loopback() -> None:
+    default = parse_group_server({"groups": ["g"], "g": {"inputs": ["/a"]}})
+    assert (default.http_server, default.http_listen, default.http_port) == (False, "127.0.0.1", 2021)
+    enabled = parse_group_server({"groups": ["g"], "g": {"inputs": ["/a"]}, "http_server": True, "http_port": 0})
+    assert (enabled.http_server, enabled.http_port) == (True, 0)
 
 
 def test_groups_feeding_each_other_in_a_loop_are_refused() -> None:

@@ -7,7 +7,10 @@ context and shuts it down afterwards (rclpy then starts the next test with a new
 from __future__ import annotations
 
 import json
+import socket
 import time
+import urllib.error
+import urllib.request
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -89,8 +92,10 @@ class Harness:
         assert self.spin_until(lambda: publisher.get_subscription_count() > 0), f"no subscriber on {name}"
 
 
-def write_params(tmp_path: Path, prefix: str, groups: dict[str, dict[str, Any]]) -> Path:
-    section: dict[str, Any] = {"groups": list(groups)}
+def write_params(
+    tmp_path: Path, prefix: str, groups: dict[str, dict[str, Any]], server_params: dict[str, Any] | None = None
+) -> Path:
+    section: dict[str, Any] = {"groups": list(groups), **(server_params or {})}
     for name, body in groups.items():
         body = dict(body)
         body["inputs"] = [f"{prefix}/{t}" for t in body["inputs"]]
@@ -106,9 +111,9 @@ def start(tmp_path: Path) -> Iterator[Callable[[dict[str, dict[str, Any]]], Harn
     rclpy.init()
     harnesses: list[Harness] = []
 
-    def make(groups: dict[str, dict[str, Any]]) -> Harness:
+    def make(groups: dict[str, dict[str, Any]], **server_params: Any) -> Harness:
         prefix = f"/test_group_{uuid.uuid4().hex[:8]}"
-        server = GroupServer(str(write_params(tmp_path, prefix, groups)))
+        server = GroupServer(str(write_params(tmp_path, prefix, groups, server_params)))
         helper = rclpy.create_node(f"group_test_{uuid.uuid4().hex[:8]}")
         executor = SingleThreadedExecutor()
         executor.add_node(server)
@@ -191,6 +196,75 @@ def test_a_silent_input_drops_sets_by_default_and_counts_them(start: Any) -> Non
     h.publish("a", {"v": 1}, 7 * S)
     assert h.spin_until(lambda: h.server.stats()["g"]["dropped_incomplete"] == 1)
     assert out == []
+
+
+def get(url: str) -> tuple[int, str]:
+    try:
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            return reply.status, reply.read().decode()
+    except urllib.error.HTTPError as error:
+        return error.code, error.read().decode()
+
+
+def test_counters_are_served_over_http_while_active(start: Any) -> None:
+    h = start(
+        {"pair": {"inputs": ["a", "b"], "sync_delay": 0.1, "sync_timeout": 0.2}},
+        http_server=True,
+        http_port=0,
+    )
+    activate(h)
+    assert h.server.http_address is not None
+    host, port = h.server.http_address
+    assert host == "127.0.0.1"
+    base = f"http://{host}:{port}/api/v1"
+    h.listen("pair")
+    h.publish("a", {"v": 1}, 7 * S)  # alone: dropped at its timeout
+    h.publish("a", "{not json", 8 * S)
+    assert h.spin_until(lambda: h.server.stats()["pair"]["dropped_incomplete"] == 1)
+    h.publish("a", {"v": 2}, 9 * S)
+    h.publish("b", {"w": 2}, 9 * S)
+    h.wait_for_output("pair")
+
+    status, body = get(f"{base}/metrics")
+    assert status == 200
+    document = json.loads(body)
+    assert document["groups"]["pair"] == {
+        "published": 1,
+        "published_partial": 0,
+        "dropped_incomplete": 1,
+        "superseded": 0,
+        "late": 0,
+        "overflowed": 0,
+        "renamed_keys": 0,
+        "pending": 0,
+    }
+    assert document["inputs"] == {h.topic("a"): {"malformed": 1}, h.topic("b"): {"malformed": 0}}
+    status, text = get(f"{base}/metrics/prometheus")
+    assert status == 200
+    assert 'dc_group_published_total{group="pair"} 1' in text.splitlines()
+    assert 'dc_group_dropped_incomplete_total{group="pair"} 1' in text.splitlines()
+    assert f'dc_group_malformed_total{{topic="{h.topic("a")}"}} 1' in text.splitlines()
+    assert get(f"{base}/health") == (200, '{"status": "ok"}')
+
+    assert h.server.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    assert h.server.http_address is None
+    with pytest.raises(urllib.error.URLError):
+        urllib.request.urlopen(f"{base}/health", timeout=5)
+
+
+def test_a_taken_metrics_port_is_logged_and_grouping_goes_on(start: Any, capfd: pytest.CaptureFixture[str]) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        h = start({"pair": {"inputs": ["a", "b"], "sync_delay": 0.5}}, http_server=True, http_port=port)
+        activate(h)
+        assert h.server.http_address is None
+        h.listen("pair")
+        h.publish("a", {"v": 1}, 9 * S)
+        h.publish("b", {"w": 2}, 9 * S)
+        h.wait_for_output("pair")
+    assert f"metrics HTTP server on 127.0.0.1:{port} not started" in capfd.readouterr().err
 
 
 def test_a_group_feeds_another_group(start: Any) -> None:

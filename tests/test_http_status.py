@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
+from dc_core.http_status import StatusServer
 from dc_core.logs import BurstLog
-from dc_destinations.http_status import StatusServer
 from dc_destinations.metrics import prometheus_text
 
 

@@ -1,14 +1,15 @@
-"""Health and metrics over HTTP, the paths Fluent Bit users know (``/api/v1/...``).
+"""Health and metrics of a DC server over HTTP, the paths Fluent Bit users know (``/api/v1/...``).
 
 Standard library only; one daemon thread serving requests one at a time, which is plenty for a
-scraper and an operator. Bound to loopback unless ``http_listen`` says otherwise.
+scraper and an operator. Bound to loopback unless ``http_listen`` says otherwise. Each server
+brings its own documents; :class:`PrometheusText` writes its counters in the text format.
 """
 
 from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from typing import Any
 
@@ -87,3 +88,30 @@ class StatusServer:
         self._server.shutdown()
         self._server.server_close()
         self._thread.join(timeout=2.0)
+
+
+class PrometheusText:
+    """Prometheus text exposition (format 0.0.4), one metric family at a time."""
+
+    def __init__(self) -> None:
+        self._lines: list[str] = []
+
+    def family(self, name: str, kind: str, doc: str, samples: Sequence[tuple[str, float]]) -> None:
+        """``samples`` are (labels, value); labels come from :func:`prometheus_labels` or are ``""``."""
+        self._lines.append(f"# HELP {name} {doc}")
+        self._lines.append(f"# TYPE {name} {kind}")
+        for labels, value in samples:
+            shown = f"{value:g}" if isinstance(value, float) else str(value)
+            self._lines.append(f"{name}{labels} {shown}")
+
+    def text(self) -> str:
+        return "\n".join(self._lines) + "\n"
+
+
+def prometheus_labels(**labels: str) -> str:
+    """``{key="value",...}`` with the values escaped as the text format requires."""
+    return "{" + ",".join(f'{key}="{_escaped(value)}"' for key, value in labels.items()) + "}"
+
+
+def _escaped(value: str) -> str:
+    return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
