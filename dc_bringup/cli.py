@@ -131,6 +131,7 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
     for server, settings, default_port in (
         ("destination_server", sections.get("destination_server", {}).get("flb", {}), 2020),
         ("group_server", sections.get("group_server", {}), 2021),
+        ("measurement_server", sections.get("measurement_server", {}), 2022),
     ):
         if settings.get("http_server", False):
             listen = str(settings.get("http_listen", "127.0.0.1"))
@@ -138,8 +139,8 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
             targets.append((server, host, int(settings.get("http_port", default_port))))
     if not targets:
         print(
-            f"dc status: neither destination_server's flb.http_server nor group_server's http_server is true in"
-            f" {args.params}; asking {args.host}:{args.port}",
+            f"dc status: no server has its HTTP server enabled in {args.params} (destination_server flb.http_server,"
+            f" group_server or measurement_server http_server); asking {args.host}:{args.port}",
             file=sys.stderr,
         )
         targets.append(("", args.host, args.port))
@@ -173,6 +174,18 @@ GROUP_COLUMNS = [
 ]
 
 
+MEASUREMENT_COLUMNS = [
+    ("collected", "collected"),
+    ("published", "published"),
+    ("gated", "gated"),
+    ("empty", "empty"),
+    ("invalid", "invalid"),
+    ("errors", "errors"),
+    ("malformed", "malformed"),
+    ("lost", "lost"),
+]
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     try:
         targets = _status_targets(args)
@@ -196,6 +209,8 @@ def cmd_status(args: argparse.Namespace) -> int:
         for metrics in documents.values():
             if "groups" in metrics:
                 _print_groups(metrics)
+            elif "measurements" in metrics:
+                _print_table("measurement", MEASUREMENT_COLUMNS, metrics["measurements"])
             else:
                 _print_delivery(metrics)
     return 1 if unreachable else 0
@@ -277,14 +292,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_pub)
 
-    p = sub.add_parser("status", help="metrics of a running destination_server and group_server")
+    p = sub.add_parser("status", help="counters of the running DC servers")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=2020)
     p.add_argument(
         "--params",
         default="",
         help="ask the servers whose HTTP server this parameter file enables (destination_server flb.http_*,"
-        " group_server http_*)",
+        " group_server and measurement_server http_*)",
     )
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.set_defaults(func=cmd_status)

@@ -97,6 +97,32 @@ def _cross_checks(configs: dict[str, Any]) -> list[str]:
                     warnings.append(f"{where}: {tag!r} names no destination" + did_you_mean(tag, names))
     elif tagged and any(tags for _, tags in tagged):
         warnings.append("records are tagged but there is no destination_server section: they go nowhere")
+    warnings.extend(_shared_metrics_ports(configs))
+    return warnings
+
+
+def _shared_metrics_ports(configs: dict[str, Any]) -> list[str]:
+    """Two servers whose metrics HTTP servers would bind the same port: the second one fails to."""
+    enabled: list[tuple[str, str, int]] = []
+    destinations = configs.get("destination_server")
+    if destinations is not None and destinations.node.flb.http_server:
+        flb = destinations.node.flb
+        enabled.append(("destination_server.flb", flb.http_listen, flb.http_port))
+    groups = configs.get("group_server")
+    if groups is not None and groups.http_server:
+        enabled.append(("group_server", groups.http_listen, groups.http_port))
+    measurements = configs.get("measurement_server")
+    if measurements is not None and measurements.node.http_server:
+        enabled.append(("measurement_server", measurements.node.http_listen, measurements.node.http_port))
+    warnings = []
+    for i, (where, listen, port) in enumerate(enabled):
+        for other, other_listen, other_port in enabled[:i]:
+            wildcard = "0.0.0.0" in (listen, other_listen) or "" in (listen, other_listen)
+            if port != 0 and port == other_port and (listen == other_listen or wildcard):
+                warnings.append(
+                    f"{where}.http_port: {port} is also {other}.http_port: {where.split('.')[0]} will not serve "
+                    "its metrics"
+                )
     return warnings
 
 

@@ -13,6 +13,8 @@ from collections.abc import Callable, Sequence
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from typing import Any
 
+from dc_core.logs import Logger
+
 
 class _Handler(BaseHTTPRequestHandler):
     server: _Server
@@ -88,6 +90,29 @@ class StatusServer:
         self._server.shutdown()
         self._server.server_close()
         self._thread.join(timeout=2.0)
+
+
+def start_status_server(
+    logger: Logger,
+    listen: str,
+    port: int,
+    *,
+    health: Callable[[], bool],
+    metrics: Callable[[], dict[str, Any]],
+    prometheus: Callable[[], str],
+) -> StatusServer | None:
+    """A :class:`StatusServer`, its address logged; ``None`` (and an error logged) if it cannot bind.
+
+    Metrics are for operators: a taken port must not stop a server from doing its work.
+    """
+    try:
+        server = StatusServer(listen, port, health=health, metrics=metrics, prometheus=prometheus)
+    except OSError as exc:
+        logger.error(f"metrics HTTP server on {listen}:{port} not started: {exc}")
+        return None
+    host, bound = server.address
+    logger.info(f"metrics HTTP server on http://{host}:{bound}/api/v1/")
+    return server
 
 
 class PrometheusText:

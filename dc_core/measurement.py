@@ -76,6 +76,10 @@ class Measurement(abc.ABC):
     def on_cleanup(self) -> None:
         """Release what on_configure opened."""
 
+    def counters(self) -> dict[str, int]:
+        """Counters of the plugin's own (e.g. malformed input), served beside the server's for it."""
+        return {}
+
     @abc.abstractmethod
     def collect(self) -> dict[str, Any] | None:
         """One sample as a JSON-able object, or None when there is nothing to report."""

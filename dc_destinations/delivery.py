@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
-from dc_core.http_status import StatusServer
+from dc_core.http_status import StatusServer, start_status_server
 from dc_core.logs import BurstLog, Logger
 from dc_core.paths import expand_env
 from dc_destinations.backoff import Backoff
@@ -679,22 +679,13 @@ class DeliveryPipeline:
         return self._status.address if self._status is not None else None
 
     def _start_status_server(self) -> None:
-        try:
-            self._status = StatusServer(
-                self.settings.http_listen,
-                self.settings.http_port,
-                health=self.healthy,
-                metrics=self.status_document,
-                prometheus=self.prometheus,
-            )
-        except OSError as exc:
-            self.logger.error(
-                f"metrics HTTP server on {self.settings.http_listen}:{self.settings.http_port} "
-                f"not started: {exc}"
-            )
-            return
-        self.logger.info(
-            f"metrics HTTP server on http://{self._status.address[0]}:{self._status.address[1]}/api/v1/"
+        self._status = start_status_server(
+            self.logger,
+            self.settings.http_listen,
+            self.settings.http_port,
+            health=self.healthy,
+            metrics=self.status_document,
+            prometheus=self.prometheus,
         )
 
 

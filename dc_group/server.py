@@ -15,7 +15,7 @@ from typing import Any
 
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError
-from dc_core.http_status import StatusServer
+from dc_core.http_status import StatusServer, start_status_server
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
 from dc_group.config import GroupServerConfig, parse_group_server
@@ -181,20 +181,14 @@ class GroupServer(ManagedServer):
         return self._status.address if self._status is not None else None
 
     def _start_status_server(self, listen: str, port: int) -> None:
-        try:
-            self._status = StatusServer(
-                listen,
-                port,
-                health=lambda: self.lifecycle_state == "active",
-                metrics=self.metrics_document,
-                prometheus=lambda: group_prometheus_text(self.metrics_document()),
-            )
-        except OSError as exc:
-            # Metrics are for operators: grouping goes on without them.
-            self.get_logger().error(f"metrics HTTP server on {listen}:{port} not started: {exc}")
-            return
-        host, bound = self._status.address
-        self.get_logger().info(f"metrics HTTP server on http://{host}:{bound}/api/v1/")
+        self._status = start_status_server(
+            self.get_logger(),
+            listen,
+            port,
+            health=lambda: self.lifecycle_state == "active",
+            metrics=self.metrics_document,
+            prometheus=lambda: group_prometheus_text(self.metrics_document()),
+        )
 
 
 def main() -> int:

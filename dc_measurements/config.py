@@ -41,6 +41,9 @@ class MeasurementServerParams:
     custom_str_params_list: list[str] = param([], doc="Ids of custom string parameters added to records")
     run_id: RunIdParams = param(default_factory=RunIdParams, doc="Run identifier")
     heartbeat_period: float = param(0.5, minimum=0.05, doc="Seconds between heartbeats to the manager")
+    http_server: bool = param(False, doc="Serve health and per-measurement counters over HTTP while active")
+    http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server")
+    http_port: int = param(2022, minimum=0, maximum=65535, doc="Port of the metrics HTTP server (0: any free one)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -12,6 +12,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, PluginError
+from dc_core.http_status import StatusServer, start_status_server
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import Logger
 from dc_core.measurement import BasePaths, Measurement
@@ -22,6 +23,7 @@ from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
 from dc_measurements.config import MeasurementServerConfig, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
+from dc_measurements.metrics import measurement_prometheus_text
 from dc_measurements.runner import MeasurementRunner
 from dc_measurements.validation import RecordValidator
 
@@ -59,6 +61,7 @@ class MeasurementServer(ManagedServer):
         self._init_pending: list[str] = []
         self._start_deadline = 0.0
         self._init_timer: Any = None
+        self._status: StatusServer | None = None
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -182,6 +185,30 @@ class MeasurementServer(ManagedServer):
         if self._init_pending:
             self._start_deadline = time.monotonic() + INIT_MATCH_WAIT_S
             self._init_timer = self.create_timer(0.02, self._start_collection)
+        assert self.config is not None
+        node = self.config.node
+        if node.http_server:
+            self._status = start_status_server(
+                self.get_logger(),
+                node.http_listen,
+                node.http_port,
+                health=lambda: self._active,
+                metrics=self.metrics_document,
+                prometheus=lambda: measurement_prometheus_text(self.metrics_document()),
+            )
+
+    @property
+    def http_address(self) -> tuple[str, int] | None:
+        return self._status.address if self._status is not None else None
+
+    def metrics_document(self) -> dict[str, Any]:
+        """Per measurement its counters since configure (the HTTP thread reads them: ints, no lock needed)."""
+        return {
+            "measurements": {
+                name: {**dataclasses.asdict(runner.stats), **runner.plugin.counters()}
+                for name, runner in list(self.runners.items())
+            }
+        }
 
     @staticmethod
     def _topic_record_callback(runtime: ConditionRuntime) -> Any:
@@ -233,6 +260,9 @@ class MeasurementServer(ManagedServer):
 
     def deactivate_server(self) -> None:
         self._active = False
+        if self._status is not None:
+            self._status.stop()
+            self._status = None
         self._init_pending.clear()
         if self._init_timer is not None:
             self._init_timer.cancel()

@@ -268,3 +268,27 @@ def test_pub_says_when_a_subscriber_did_not_acknowledge_within_linger(ros_env: d
     assert pub.returncode == 1
     assert "had not acknowledged every record after 1.0 s" in err
     assert "published 3 record(s) on /acks" in out
+
+
+def test_validate_warns_when_two_servers_would_serve_metrics_on_one_port(tmp_path: Path) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text("""
+measurement_server:
+  ros__parameters:
+    http_server: true
+    http_listen: 0.0.0.0
+    measurement_plugins: ["uptime"]
+    uptime:
+      plugin: "dc_measurements/Uptime"
+group_server:
+  ros__parameters:
+    groups: []
+    http_server: true
+    http_port: 2022
+""")
+    result = dc("validate", str(params))
+    assert result.returncode == 0, result.stderr
+    assert (
+        "measurement_server.http_port: 2022 is also group_server.http_port: measurement_server will not serve its"
+        " metrics" in result.stderr
+    )

@@ -30,10 +30,16 @@ def write_config(
     groups: dict[str, dict[str, Any]],
     listen: str,
     group_server: dict[str, Any] | None = None,
+    measurement_server: dict[str, Any] | None = None,
 ) -> Path:
     config = {
         "measurement_server": {
-            "ros__parameters": {"measurement_plugins": list(measurements), "run_id": {"enabled": False}, **measurements}
+            "ros__parameters": {
+                "measurement_plugins": list(measurements),
+                "run_id": {"enabled": False},
+                **(measurement_server or {}),
+                **measurements,
+            }
         },
         "group_server": {"ros__parameters": {"groups": list(groups), **(group_server or {}), **groups}},
         "destination_server": {
@@ -136,6 +142,7 @@ def test_partial_records_when_one_input_stops(tmp_path: Path) -> None:
         },
         "/dc/group/pair",
         group_server={"http_server": True, "http_port": free_port()},
+        measurement_server={"http_server": True, "http_port": free_port()},
     )
 
     def partial_after_complete() -> list[dict[str, Any]]:
@@ -148,12 +155,16 @@ def test_partial_records_when_one_input_stops(tmp_path: Path) -> None:
         complete = [r for r in run.records() if "missing_inputs" not in r]
         partial = partial_after_complete()
         status = dc("status", "--params", str(params), env=run.env)
-    # What an operator sees: the group's counters, from group_server's metrics HTTP server.
+    # What an operator sees: the counters of each server that serves them, one table each.
     assert status.returncode == 0, status.stderr
-    header, row = status.stdout.splitlines()
-    assert header.split()[:4] == ["group", "published", "partial", "dropped"]
-    published, published_partial = (int(cell) for cell in row.split()[1:3])
-    assert row.split()[0] == "pair" and published >= len(complete) and published_partial >= len(partial)
+    group_header, group_row, measurement_header, *measurement_rows = status.stdout.splitlines()
+    assert group_header.split()[:4] == ["group", "published", "partial", "dropped"]
+    published, published_partial = (int(cell) for cell in group_row.split()[1:3])
+    assert group_row.split()[0] == "pair" and published >= len(complete) and published_partial >= len(partial)
+    assert measurement_header.split()[:3] == ["measurement", "collected", "published"]
+    stops = next(row.split() for row in measurement_rows if row.startswith("stops "))
+    # init_max_measurements 3: three published, then nothing more can be.
+    assert stops[2] == "3" and stops[-2:] == ["-", "-"]  # no malformed/lost columns for a Dummy
     # Three samples of "stops" (a sample published before discovery completes may be lost).
     assert 1 <= len(complete) <= 3
     assert all(body(r) == {"steady": {"value": "steady", "name": "steady"},

@@ -275,6 +275,10 @@ def test_condition_with_topic_judges_the_other_topic() -> None:
             server({}, custom_str_params_list=["robot"], custom_str_params={"robot": {"name": "robot"}}),
             "measurement_server.custom_str_params.robot: needs 'value' or 'value_from_file'",
         ),
+        (
+            server({"u": {"plugin": "dc_measurements/Uptime"}}, http_port=-1),
+            "measurement_server.http_port: expected an integer >= 0",
+        ),
     ],
 )
 def test_configuration_errors(section: dict[str, Any], message: str) -> None:

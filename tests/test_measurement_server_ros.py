@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import re
 import time
+import urllib.error
+import urllib.request
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -282,11 +284,14 @@ class ActiveStringStamped:
     received: list[Any]
 
 
-def start_string_stamped(harness: Harness, timer_based: bool, qos_depth: int = 100) -> ActiveStringStamped:
+def start_string_stamped(
+    harness: Harness, timer_based: bool, qos_depth: int = 100, server_params: str = ""
+) -> ActiveStringStamped:
     name, topic = unique("events"), f"/{unique('robot_events')}"
     server = harness.start_server(f"""
 measurement_server:
   ros__parameters:
+    {server_params}
     measurement_plugins: ["{name}"]
     {name}:
       plugin: "dc_measurements/StringStamped"
@@ -376,6 +381,45 @@ def test_records_overwritten_in_the_input_queue_are_counted_and_logged(
         " publication sequence numbers"
         " 2..46 never arrived; the queues, qos_depth 5 and the publisher's depth, overflowed)"
     ) in log, log
+
+
+def test_counters_are_served_over_http_while_active(harness: Harness) -> None:
+    measurement = start_string_stamped(harness, timer_based=False, server_params="http_server: true\n    http_port: 0")
+    assert harness.server is not None and harness.server.http_address is not None
+    host, port = harness.server.http_address
+    assert host == "127.0.0.1"
+    base = f"http://{host}:{port}/api/v1"
+    measurement.publisher.publish(stamped("[1, 2]"))
+    measurement.publisher.publish(stamped('{"seq": 1}'))
+    harness.spin_until(lambda: len(measurement.received) == 1, "the valid record")
+
+    with urllib.request.urlopen(f"{base}/metrics", timeout=5) as reply:
+        document = json.load(reply)
+    assert document == {
+        "measurements": {
+            measurement.name: {
+                "collected": 1,
+                "published": 1,
+                "empty": 0,
+                "invalid": 0,
+                "gated": 0,
+                "errors": 0,
+                "malformed": 1,
+                "lost": 0,
+            }
+        }
+    }
+    with urllib.request.urlopen(f"{base}/metrics/prometheus", timeout=5) as reply:
+        lines = reply.read().decode().splitlines()
+    assert f'dc_measurement_published_total{{measurement="{measurement.name}"}} 1' in lines
+    assert f'dc_measurement_malformed_total{{measurement="{measurement.name}"}} 1' in lines
+    with urllib.request.urlopen(f"{base}/health", timeout=5) as reply:
+        assert json.load(reply) == {"status": "ok"}
+
+    assert harness.server.trigger_deactivate() == SUCCESS
+    assert harness.server.http_address is None
+    with pytest.raises(urllib.error.URLError):
+        urllib.request.urlopen(f"{base}/health", timeout=5)
 
 
 # --- the doc pages' examples run -----------------------------------------------------------------

@@ -114,6 +114,9 @@ class StringStampedInput(Measurement):
         with self._lock:
             self._latest = (record, stamp_ns, msg.group_key)
 
+    def counters(self) -> dict[str, int]:
+        return {"malformed": self.malformed, "lost": self.lost}
+
     def collect_stamped(self) -> tuple[dict[str, Any] | None, int | None, str | None]:
         # Each received record is published once: the original re-published the last one at every tick.
         with self._lock:

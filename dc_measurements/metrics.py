@@ -1,0 +1,37 @@
+"""The measurement server's counters as its metrics HTTP server serves them (JSON and Prometheus text)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from dc_core.http_status import PrometheusText, prometheus_labels
+
+# Counters of every measurement (dc_measurements.runner.RunnerStats), then those some plugins add.
+MEASUREMENT_COUNTERS = {
+    "collected": "Samples collected (collect() called or a record emitted by an event)",
+    "published": "Records published on the measurement's output topic",
+    "gated": "Samples not published because the conditions said no",
+    "empty": "Collections that returned nothing",
+    "invalid": "Records that failed JSON schema validation (published unless drop_invalid)",
+    "errors": "Collections or record builds that raised",
+    "malformed": "Input messages that were not a JSON object, skipped (StringStamped)",
+    "lost": "Input messages DDS overwrote before they were taken, from publisher sequence gaps (StringStamped)",
+}
+
+
+def measurement_prometheus_text(document: dict[str, Any]) -> str:
+    """Prometheus text of :meth:`dc_measurements.server.MeasurementServer.metrics_document`."""
+    text = PrometheusText()
+    measurements: dict[str, dict[str, int]] = document["measurements"]
+    keys = list(MEASUREMENT_COUNTERS)
+    keys += sorted({key for values in measurements.values() for key in values} - set(keys))
+    for key in keys:
+        samples = [
+            (prometheus_labels(measurement=name), values[key])
+            for name, values in sorted(measurements.items())
+            if key in values
+        ]
+        if samples:
+            doc = MEASUREMENT_COUNTERS.get(key, f"Plugin counter {key}")
+            text.family(f"dc_measurement_{key}_total", "counter", doc, samples)
+    return text.text()
