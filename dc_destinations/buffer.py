@@ -34,7 +34,7 @@ from pathlib import Path
 from dc_core.errors import DcError
 
 FILE_NAME = "delivery.sqlite3"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: queues.dead_bytes
 
 _SQLITE_CORRUPT = 11
 _SQLITE_NOTADB = 26
@@ -49,7 +49,8 @@ CREATE TABLE IF NOT EXISTS queues (
     received INTEGER NOT NULL DEFAULT 0,
     sent INTEGER NOT NULL DEFAULT 0,
     dropped INTEGER NOT NULL DEFAULT 0,
-    dead_lettered INTEGER NOT NULL DEFAULT 0
+    dead_lettered INTEGER NOT NULL DEFAULT 0,
+    dead_bytes INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS dead_letters (
     id INTEGER PRIMARY KEY,
@@ -72,6 +73,18 @@ CREATE TABLE IF NOT EXISTS hop_seen (
     seq INTEGER NOT NULL
 );
 CREATE INDEX IF NOT EXISTS hop_seen_by_topic ON hop_seen (topic, id);
+"""
+
+# queues.dead_bytes is the size of a destination's dead letters, kept by triggers so that every
+# way of adding or removing one (the sender, `dc buffer replay|purge`, an older DC) keeps it right
+# and dead_letter_limit_size needs no scan. Created after the schema-1 migration below.
+_DEAD_BYTES_TRIGGERS = """
+CREATE TRIGGER IF NOT EXISTS dead_letter_added AFTER INSERT ON dead_letters BEGIN
+    UPDATE queues SET dead_bytes = dead_bytes + NEW.size WHERE name = NEW.destination;
+END;
+CREATE TRIGGER IF NOT EXISTS dead_letter_removed AFTER DELETE ON dead_letters BEGIN
+    UPDATE queues SET dead_bytes = dead_bytes - OLD.size WHERE name = OLD.destination;
+END;
 """
 
 _QUEUE_COLUMNS = "id, record_id, topic, stamp_ns, enqueued_ns, attempts, size, payload"
@@ -231,9 +244,8 @@ class SqliteBuffer:
             conn.execute("PRAGMA journal_mode=WAL").fetchone()
             conn.execute(f"PRAGMA synchronous={self.synchronous}")
             conn.executescript(_SCHEMA)
-            row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
-            if row is None:
-                conn.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+            _migrate(conn)
+            conn.executescript(_DEAD_BYTES_TRIGGERS)
             # Touch every queue's head so that a damaged file is found now rather than mid-delivery.
             qids = dict(conn.execute("SELECT name, qid FROM queues").fetchall())
             for qid in qids.values():
@@ -541,12 +553,15 @@ class SqliteBuffer:
         return moved
 
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
-        """Delete the oldest dead letters of ``destination`` until theirs fit in ``max_bytes``; returns how many."""
+        """Delete the oldest dead letters of ``destination`` until theirs fit in ``max_bytes``.
+
+        Returns how many. Reads their total from ``queues.dead_bytes`` and walks only the oldest
+        ones it deletes: no scan of them all.
+        """
         with self._transaction() as conn:
-            total = conn.execute(
-                "SELECT coalesce(sum(size), 0) FROM dead_letters WHERE destination = ?", (destination,)
-            ).fetchone()[0]
-            excess = int(total) - max_bytes
+            row = conn.execute("SELECT dead_bytes FROM queues WHERE name = ?", (destination,)).fetchone()
+            total = int(row[0]) if row is not None else 0
+            excess = total - max_bytes
             if excess <= 0:
                 return 0
             doomed: list[int] = []
@@ -648,6 +663,34 @@ class SqliteBuffer:
         where, args = self._select_dead(destination, ids)
         with self._transaction() as conn:
             return int(conn.execute(f"DELETE FROM dead_letters{where}", args).rowcount)
+
+
+def _migrate(conn: sqlite3.Connection) -> None:
+    """Bring a buffer written by an older DC to SCHEMA_VERSION (in one transaction: a second
+    process opening the file meanwhile finds it migrated)."""
+    if _schema_version(conn) == SCHEMA_VERSION:
+        return
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+        columns = {column[1] for column in conn.execute("PRAGMA table_info(queues)")}
+        if "dead_bytes" not in columns:  # schema 1
+            conn.execute("ALTER TABLE queues ADD COLUMN dead_bytes INTEGER NOT NULL DEFAULT 0")
+            conn.execute(
+                "UPDATE queues SET dead_bytes = "
+                "(SELECT coalesce(sum(size), 0) FROM dead_letters WHERE destination = queues.name)"
+            )
+        if row is None or int(row[0]) < SCHEMA_VERSION:  # a newer DC's number stays
+            conn.execute("INSERT OR REPLACE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+        conn.execute("COMMIT")
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+
+
+def _schema_version(conn: sqlite3.Connection) -> int | None:
+    row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+    return int(row[0]) if row is not None else None
 
 
 _QUEUE_DDL = (

@@ -107,6 +107,46 @@ def test_dead_letters_beyond_their_limit_lose_the_oldest_of_their_destination_on
     assert buffer.list_dead_letters("a") == [] and buffer.stats("b").dead_letters == 1
 
 
+def test_dead_letter_limit_counts_what_replay_and_purge_removed(buffer: SqliteBuffer) -> None:
+    size = pending(0).size
+    buffer.append({"a": [pending(i) for i in range(6)]})
+    buffer.dead_letter("a", [(row, "rejected") for row in buffer.read_batch("a", 10)])
+    letters = buffer.list_dead_letters("a")
+    buffer.purge_dead_letters("a", [letters[0].id])
+    buffer.replay_dead_letters("a", [letters[1].id])
+    # Four left: a limit of three deletes one, the oldest of them, not three.
+    assert buffer.trim_dead_letters("a", 3 * size) == 1
+    assert [d.record_id for d in buffer.list_dead_letters("a")] == [f"id-{i:08d}" for i in range(3, 6)]
+    buffer.dead_letter("a", [(row, "rejected again") for row in buffer.read_batch("a", 10)])
+    assert buffer.trim_dead_letters("a", 3 * size) == 1
+
+
+def test_a_buffer_of_schema_1_is_migrated_with_its_dead_letters_counted(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    size = pending(0).size
+    old = SqliteBuffer(path)
+    old.append({"a": [pending(i) for i in range(5)]})
+    old.dead_letter("a", [(row, "rejected") for row in old.read_batch("a", 10)])
+    old.close()
+    # What DC wrote before dead_bytes existed: no column, no triggers, version 1.
+    conn = sqlite3.connect(path)
+    conn.executescript(
+        "DROP TRIGGER dead_letter_added; DROP TRIGGER dead_letter_removed;"
+        "ALTER TABLE queues DROP COLUMN dead_bytes; UPDATE meta SET value = '1' WHERE key = 'schema_version';"
+    )
+    conn.close()
+
+    migrated = SqliteBuffer(path)
+    try:
+        assert migrated.trim_dead_letters("a", 3 * size) == 2
+        assert [d.record_id for d in migrated.list_dead_letters("a")] == [f"id-{i:08d}" for i in range(2, 5)]
+    finally:
+        migrated.close()
+    conn = sqlite3.connect(path)
+    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == ("2",)
+    conn.close()
+
+
 def test_size_limit_drop_newest_keeps_the_oldest(buffer: SqliteBuffer) -> None:
     size = pending(0).size
     limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=False)}

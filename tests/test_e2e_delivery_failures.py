@@ -31,10 +31,10 @@ pytestmark = pytest.mark.e2e
 
 SCHEDULER_BASE = 0.2
 SCHEDULER_CAP = 2.0
-# Issue 5 asks for a receiver failing for 30 s, at the default backoff (5 s, then 10, 20 s: three
-# attempts). With a 0.2 s base and a 2 s cap the ceiling reaches the cap after 5 failures (~1.5 s),
-# so 12 s of failure shows the whole ramp and then ~8 attempts at the cap, in a test 18 s shorter.
-OUTAGE_S = 12.0
+# Issue 5's receiver fails for 30 s. At the default backoff (5 s, then 10, 20 s) that is three
+# attempts; with a 0.2 s base and a 2 s cap the ceiling reaches the cap after 5 failures (~1.5 s),
+# so the test sees the whole ramp and then ~20 attempts at the cap.
+OUTAGE_S = 30.0
 # Time between two attempts beyond the backoff itself: reading the batch, the POST, a busy CPU.
 SLACK_S = 0.3
 
