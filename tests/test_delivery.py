@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -12,7 +13,7 @@ import threading
 import time
 import urllib.request
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -689,3 +690,62 @@ def test_a_full_intake_queue_drops_and_counts(tmp_path: Path) -> None:
         assert sum("intake_queue_limit" in line for _level, line in logger.lines) == 1
     finally:
         pipeline.stop(grace=0.5)
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    """A real file system of 2 MB (tmpfs), so that the buffer meets a real ENOSPC."""
+    mount_point = tmp_path / "disk"
+    mount_point.mkdir()
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount_point)], capture_output=True, text=True
+    )
+    if mounted.returncode != 0:
+        pytest.skip(f"mounting a small tmpfs needs root: {mounted.stderr.strip()}")
+    try:
+        yield mount_point
+    finally:
+        subprocess.run(["umount", "--lazy", str(mount_point)], check=False)
+
+
+def fill(path: Path) -> None:
+    """Write zeros into ``path`` until its file system has no space left."""
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT)
+    try:
+        while True:
+            os.write(descriptor, b"\0" * 65536)
+    except OSError as exc:
+        assert exc.errno == errno.ENOSPC, exc
+    finally:
+        os.close(descriptor)
+
+
+def test_a_full_disk_under_the_buffer_keeps_records_in_memory_until_space_returns(small_disk: Path) -> None:
+    logger = ListLogger()
+    sink = Recorder()
+    pipeline = DeliveryPipeline(settings(small_disk), {"sink": (sink, DestinationDeliveryParams())}, logger)
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(0))
+        sink.wait_for(1)
+        filler = small_disk / "filler"
+        fill(filler)
+        # ~300 KB of records: more than the buffer's WAL can take without growing.
+        padded = [
+            OutgoingRecord(r.record_id, r.topic, r.stamp_ns, {**r.data, "pad": "x" * 2000})
+            for r in (record(n) for n in range(1, 151))
+        ]
+        for outgoing in padded:
+            pipeline.submit("sink", outgoing)
+        wait_until(lambda: any("group commit failed" in line for _, line in logger.lines), what="a failed commit")
+        failure = next(line for _, line in logger.lines if "group commit failed" in line)
+        assert "database or disk is full" in failure, failure
+        assert len(sink.delivered) == 1, "a record reaches a destination only once committed"
+
+        filler.unlink()
+        delivered = sink.wait_for(151, timeout=30)
+        assert [r.data["n"] for r in delivered] == list(range(151))
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["dropped"] == 0 and metrics["buffered"] == 0
+    finally:
+        pipeline.stop(grace=1.0)
