@@ -97,6 +97,7 @@ run: install
 
 test: install test-deps
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 	mkdir -p $(ROS_LOG_DIR)
 	export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_LOG_DIR=$(ROS_LOG_DIR); \

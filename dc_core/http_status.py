@@ -24,9 +24,7 @@ class _Handler(BaseHTTPRequestHandler):
         try:
             if path == "/api/v1/health":
                 ok = self.server.health()
-                self._reply(
-                    200 if ok else 503, "application/json", json.dumps({"status": "ok" if ok else "error"})
-                )
+                self._reply(200 if ok else 503, "application/json", json.dumps({"status": "ok" if ok else "error"}))
             elif path == "/api/v1/metrics":
                 self._reply(200, "application/json", json.dumps(self.server.metrics(), indent=2))
             elif path == "/api/v1/metrics/prometheus":

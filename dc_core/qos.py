@@ -15,7 +15,6 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 RECORD_HISTORY_DEPTH = 1000
 
 
-
 def record_qos(depth: int = RECORD_HISTORY_DEPTH) -> QoSProfile:
     """Publishers of records: reliable, transient-local history of ``depth`` records."""
     return QoSProfile(

@@ -12,9 +12,7 @@ from collections.abc import Callable
 
 
 class Backoff:
-    def __init__(
-        self, base: float, cap: float, uniform: Callable[[float, float], float] | None = None
-    ) -> None:
+    def __init__(self, base: float, cap: float, uniform: Callable[[float, float], float] | None = None) -> None:
         self.base = base
         self.cap = cap
         self._uniform = uniform if uniform is not None else random.Random().uniform

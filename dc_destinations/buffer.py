@@ -88,9 +88,7 @@ END;
 """
 
 _QUEUE_COLUMNS = "id, record_id, topic, stamp_ns, enqueued_ns, attempts, size, payload"
-_DEAD_COLUMNS = (
-    "id, destination, record_id, topic, stamp_ns, enqueued_ns, failed_ns, attempts, error, size, payload"
-)
+_DEAD_COLUMNS = "id, destination, record_id, topic, stamp_ns, enqueued_ns, failed_ns, attempts, error, size, payload"
 
 
 class DeliveryBufferError(DcError):
@@ -190,9 +188,7 @@ def default_storage_dir() -> Path:
 def is_corruption(exc: BaseException) -> bool:
     code = getattr(exc, "sqlite_errorcode", None)
     return (
-        isinstance(exc, sqlite3.DatabaseError)
-        and code is not None
-        and code & 0xFF in (_SQLITE_CORRUPT, _SQLITE_NOTADB)
+        isinstance(exc, sqlite3.DatabaseError) and code is not None and code & 0xFF in (_SQLITE_CORRUPT, _SQLITE_NOTADB)
     )
 
 
@@ -477,9 +473,7 @@ class SqliteBuffer:
             qid = self._qids.get(destination)
             if qid is None:
                 return []
-            rows = conn.execute(
-                f"SELECT {_QUEUE_COLUMNS} FROM q_{qid} ORDER BY id LIMIT ?", (limit,)
-            ).fetchall()
+            rows = conn.execute(f"SELECT {_QUEUE_COLUMNS} FROM q_{qid} ORDER BY id LIMIT ?", (limit,)).fetchall()
         return [BufferedRow(*row) for row in rows]
 
     def delete(self, destination: str, row_ids: Sequence[int]) -> int:
@@ -523,9 +517,7 @@ class SqliteBuffer:
         with self._transaction() as conn:
             qid = self._qid(conn, destination)
             for row, error in failures:
-                gone = conn.execute(
-                    f"DELETE FROM q_{qid} WHERE id = ? RETURNING attempts", (row.row_id,)
-                ).fetchone()
+                gone = conn.execute(f"DELETE FROM q_{qid} WHERE id = ? RETURNING attempts", (row.row_id,)).fetchone()
                 if gone is None:
                     continue  # dropped by the size limit meanwhile
                 conn.execute(
@@ -572,9 +564,7 @@ class SqliteBuffer:
                 excess -= int(size)
                 if excess <= 0:
                     break
-            conn.execute(
-                "DELETE FROM dead_letters WHERE id IN (SELECT value FROM json_each(?))", (json.dumps(doomed),)
-            )
+            conn.execute("DELETE FROM dead_letters WHERE id IN (SELECT value FROM json_each(?))", (json.dumps(doomed),))
         return len(doomed)
 
     def stats(self, destination: str) -> QueueStats:
@@ -583,9 +573,7 @@ class SqliteBuffer:
                 "SELECT qid, rows, bytes, received, sent, dropped, dead_lettered FROM queues WHERE name=?",
                 (destination,),
             ).fetchone()
-            dead = conn.execute(
-                "SELECT count(*) FROM dead_letters WHERE destination=?", (destination,)
-            ).fetchone()[0]
+            dead = conn.execute("SELECT count(*) FROM dead_letters WHERE destination=?", (destination,)).fetchone()[0]
             if row is None:
                 return QueueStats(destination, 0, 0, None, dead, 0, 0, 0, 0)
             qid, rows, size, received, sent, dropped, dead_lettered = row
@@ -607,22 +595,17 @@ class SqliteBuffer:
                 ).fetchall()
             else:
                 rows = conn.execute(
-                    f"SELECT {_DEAD_COLUMNS} FROM dead_letters "
-                    "WHERE destination = ? AND id > ? ORDER BY id LIMIT ?",
+                    f"SELECT {_DEAD_COLUMNS} FROM dead_letters WHERE destination = ? AND id > ? ORDER BY id LIMIT ?",
                     (destination, after_id, limit),
                 ).fetchall()
         return [DeadLetter(*row) for row in rows]
 
     def get_dead_letter(self, dead_letter_id: int) -> DeadLetter | None:
         with self._locked() as conn:
-            row = conn.execute(
-                f"SELECT {_DEAD_COLUMNS} FROM dead_letters WHERE id = ?", (dead_letter_id,)
-            ).fetchone()
+            row = conn.execute(f"SELECT {_DEAD_COLUMNS} FROM dead_letters WHERE id = ?", (dead_letter_id,)).fetchone()
         return DeadLetter(*row) if row else None
 
-    def _select_dead(
-        self, destination: str | None, ids: Sequence[int] | None
-    ) -> tuple[str, tuple[object, ...]]:
+    def _select_dead(self, destination: str | None, ids: Sequence[int] | None) -> tuple[str, tuple[object, ...]]:
         clauses: list[str] = []
         args: list[object] = []
         if destination is not None:
@@ -641,9 +624,7 @@ class SqliteBuffer:
         where, args = self._select_dead(destination, ids)
         moved = 0
         with self._transaction() as conn:
-            rows = conn.execute(
-                f"SELECT {_DEAD_COLUMNS} FROM dead_letters{where} ORDER BY id", args
-            ).fetchall()
+            rows = conn.execute(f"SELECT {_DEAD_COLUMNS} FROM dead_letters{where} ORDER BY id", args).fetchall()
             for row in rows:
                 letter = DeadLetter(*row)
                 qid = self._qid(conn, letter.destination)
@@ -652,9 +633,7 @@ class SqliteBuffer:
                     "VALUES (?, ?, ?, ?, ?, ?)",
                     (letter.record_id, letter.topic, letter.stamp_ns, enqueued, letter.size, letter.payload),
                 )
-                conn.execute(
-                    "UPDATE queues SET rows = rows + 1, bytes = bytes + ? WHERE qid = ?", (letter.size, qid)
-                )
+                conn.execute("UPDATE queues SET rows = rows + 1, bytes = bytes + ? WHERE qid = ?", (letter.size, qid))
                 conn.execute("DELETE FROM dead_letters WHERE id = ?", (letter.id,))
                 moved += 1
         return moved

@@ -122,9 +122,7 @@ def run_cli(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
                 _print_list(letters, out)
         elif args.action == "show":
             if not ids:
-                raise BufferAdminError(
-                    "dc buffer show: give one or more dead-letter ids (see dc buffer list)"
-                )
+                raise BufferAdminError("dc buffer show: give one or more dead-letter ids (see dc buffer list)")
             for dead_letter_id in ids:
                 letter = show_dead_letter(path, dead_letter_id)
                 if letter is None:

@@ -142,9 +142,7 @@ def _parse_destination(name: str, body: Any, path: str) -> DestinationConfig:
     return DestinationConfig(name, common, delivery, plugin_class, plugin_params)
 
 
-def parse_destination_server(
-    section: dict[str, Any], path: str = "destination_server"
-) -> DestinationServerConfig:
+def parse_destination_server(section: dict[str, Any], path: str = "destination_server") -> DestinationServerConfig:
     warnings: list[str] = []
     node_keys = field_names(DestinationServerParams)
     node_values = {key: section[key] for key in node_keys if key in section}
@@ -161,9 +159,7 @@ def parse_destination_server(
     if not node.destination_plugins:
         warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
 
-    destinations = [
-        _parse_destination(name, section.get(name), f"{path}.{name}") for name in node.destination_plugins
-    ]
+    destinations = [_parse_destination(name, section.get(name), f"{path}.{name}") for name in node.destination_plugins]
 
     for key in section:
         if key in node_keys or key in seen or key == "flb_grace":

@@ -592,9 +592,7 @@ class DeliveryPipeline:
                 raise PermissionError(f"{directory} is not writable")
         except OSError as exc:
             fallback = default_storage_dir()
-            self.logger.error(
-                f"flb.storage_path {directory} cannot be used ({exc}); buffering in {fallback} instead"
-            )
+            self.logger.error(f"flb.storage_path {directory} cannot be used ({exc}); buffering in {fallback} instead")
             fallback.mkdir(parents=True, exist_ok=True)
             return fallback
         return directory

@@ -104,10 +104,7 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         "dc_delivery_oldest_pending_age_seconds",
         "gauge",
         "Age of the oldest waiting record (0 when empty)",
-        [
-            (label(name), float(values["oldest_pending_age_s"] or 0.0))
-            for name, values in sorted(destinations.items())
-        ],
+        [(label(name), float(values["oldest_pending_age_s"] or 0.0)) for name, values in sorted(destinations.items())],
     )
     family(
         "dc_delivery_buffer_quarantined_total",

@@ -20,25 +20,17 @@ _UNITS = {"": 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4}
 
 @dataclass(frozen=True, kw_only=True)
 class DeliveryParams:
-    flush: float = param(
-        1.0, minimum=0.01, doc="Seconds between two delivery rounds of a destination's queue"
-    )
-    grace: float = param(
-        1.0, minimum=0.0, doc="Seconds to keep delivering at shutdown before leaving the rest on disk"
-    )
+    flush: float = param(1.0, minimum=0.01, doc="Seconds between two delivery rounds of a destination's queue")
+    grace: float = param(1.0, minimum=0.0, doc="Seconds to keep delivering at shutdown before leaving the rest on disk")
     log_level: str = param("info", doc="Accepted for compatibility; use dc-bringup --log-level")
-    storage_path: str = param(
-        "", doc="Buffer folder (default: $XDG_DATA_HOME/dc/buffer or ~/.local/share/dc/buffer)"
-    )
+    storage_path: str = param("", doc="Buffer folder (default: $XDG_DATA_HOME/dc/buffer or ~/.local/share/dc/buffer)")
     storage_sync: str = param(
         "normal",
         choices=("normal", "full"),
         doc="normal: committed records survive a process crash; full: they also survive a power cut",
     )
     storage_checksum: str = param("off", doc="Accepted for compatibility; SQLite checks its own pages")
-    storage_backlog_mem_limit: str = param(
-        "5M", doc="Accepted for compatibility; the backlog is streamed from disk"
-    )
+    storage_backlog_mem_limit: str = param("5M", doc="Accepted for compatibility; the backlog is streamed from disk")
     scheduler_cap: float = param(2000.0, minimum=0.0, doc="Longest wait between two retries, seconds")
     scheduler_base: float = param(5.0, minimum=0.0, doc="Base of the exponential retry backoff, seconds")
     http_server: bool = param(False, doc="Serve health and metrics over HTTP")
@@ -79,7 +71,7 @@ class DestinationDeliveryParams:
     )
     dead_letter_limit_size: str = param(
         "100M",
-        doc='Most bytes of dead letters kept for this destination; beyond it the oldest are deleted and counted'
+        doc="Most bytes of dead letters kept for this destination; beyond it the oldest are deleted and counted"
         ' ("0" or "" = no limit)',
     )
 

@@ -41,9 +41,7 @@ class GroupParams:
         doc="Seconds a message waits for its partners before its set is incomplete "
         f"(default sync_delay + {TIMEOUT_MARGIN_S:g})",
     )
-    on_sync_timeout: str = param(
-        "drop", choices=("drop", "emit_partial"), doc="What happens to an incomplete set"
-    )
+    on_sync_timeout: str = param("drop", choices=("drop", "emit_partial"), doc="What happens to an incomplete set")
     queue_size: int = param(10, minimum=1, doc="Pending messages kept per input; the oldest goes first")
     group_key: str = param("", doc="StringStamped.group_key of the output (default the group id)")
     exclude_keys: list[str] = param(
@@ -114,9 +112,7 @@ def parse_group_server(section: dict[str, Any], path: str = "group_server") -> G
     for key in section:
         if key not in node_keys and key not in ROS_NODE_PARAMS and key not in names:
             hint = did_you_mean(str(key), [*node_keys, *names])
-            raise ConfigError(
-                f"{path}.{key}", f"unknown parameter (not a group listed in {path}.groups){hint}"
-            )
+            raise ConfigError(f"{path}.{key}", f"unknown parameter (not a group listed in {path}.groups){hint}")
     groups = tuple(_parse_group(name, section.get(name), f"{path}.{name}") for name in names)
     _check_topology(groups, path)
     warnings = [

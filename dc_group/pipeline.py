@@ -109,9 +109,7 @@ class GroupPipeline:
                     f'the group itself; this record is published under "{given}" instead'
                 )
         data = json.dumps(merged.record, ensure_ascii=False, separators=(",", ":"))
-        return GroupOutput(
-            stamp_ns=synced.stamp_ns, data=data, group_key=self.group.group_key, complete=complete
-        )
+        return GroupOutput(stamp_ns=synced.stamp_ns, data=data, group_key=self.group.group_key, complete=complete)
 
     def stats(self) -> dict[str, int]:
         sync = self.sync.counters

@@ -58,9 +58,7 @@ class GroupServer(ManagedServer):
         for group in config.groups:
             pipeline = GroupPipeline(group, self.get_logger())
             self.pipelines[group.name] = pipeline
-            self._group_publishers[group.name] = self.create_publisher(
-                StringStamped, group.output, RECORD_QOS
-            )
+            self._group_publishers[group.name] = self.create_publisher(StringStamped, group.output, RECORD_QOS)
             for topic in group.inputs:
                 self._routes.setdefault(topic, []).append(pipeline)
             self.get_logger().info(

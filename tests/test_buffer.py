@@ -71,9 +71,7 @@ def test_failures_are_counted_per_row(buffer: SqliteBuffer) -> None:
 def test_dead_letters_keep_the_error_and_can_be_replayed_or_purged(buffer: SqliteBuffer) -> None:
     buffer.append({"a": [pending(i) for i in range(3)]})
     rows = buffer.read_batch("a", 10)
-    assert (
-        buffer.dead_letter("a", [(rows[0], "rejected: 400 bad field"), (rows[2], "rejected: too big")]) == 2
-    )
+    assert buffer.dead_letter("a", [(rows[0], "rejected: 400 bad field"), (rows[2], "rejected: too big")]) == 2
     assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000001"]
     letters = buffer.list_dead_letters("a")
     assert [(d.record_id, d.error) for d in letters] == [
@@ -299,9 +297,7 @@ def test_wal_mode_and_sync_setting(tmp_path: Path) -> None:
 # -- dc buffer (buffer_admin) ------------------------------------------------------------------
 
 
-def _cli(
-    tmp_path: Path, action: str, *ids: str, destination: str = "", all_: bool = False
-) -> tuple[int, str]:
+def _cli(tmp_path: Path, action: str, *ids: str, destination: str = "", all_: bool = False) -> tuple[int, str]:
     args = argparse.Namespace(
         action=action, ids=list(ids), storage_path=str(tmp_path), params="", destination=destination, all=all_
     )
@@ -314,9 +310,7 @@ def _with_dead_letters(tmp_path: Path) -> list[int]:
     buffer = SqliteBuffer(tmp_path / FILE_NAME)
     try:
         buffer.append({"a": [pending(i) for i in range(3)], "b": [pending(9)]})
-        buffer.dead_letter(
-            "a", [(row, f"rejected: 422 row {i}") for i, row in enumerate(buffer.read_batch("a", 10))]
-        )
+        buffer.dead_letter("a", [(row, f"rejected: 422 row {i}") for i, row in enumerate(buffer.read_batch("a", 10))])
         buffer.dead_letter("b", [(row, "rejected: 400") for row in buffer.read_batch("b", 10)])
         return [d.id for d in buffer.list_dead_letters()]
     finally:
@@ -350,9 +344,7 @@ def test_dc_buffer_without_a_buffer_says_so(tmp_path: Path, capsys: pytest.Captu
 
 def test_dc_buffer_finds_the_storage_path_in_a_parameter_file(tmp_path: Path) -> None:
     params = tmp_path / "params.yaml"
-    params.write_text(
-        f'destination_server:\n  ros__parameters:\n    flb:\n      storage_path: "{tmp_path}/buf"\n'
-    )
+    params.write_text(f'destination_server:\n  ros__parameters:\n    flb:\n      storage_path: "{tmp_path}/buf"\n')
     assert buffer_admin.storage_file(params_file=str(params)) == tmp_path / "buf" / FILE_NAME
 
 

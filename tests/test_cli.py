@@ -135,9 +135,19 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
 
     document = {
         "destinations": {
-            "pg": {"received": 10, "buffered": 3, "buffered_bytes": 600, "sent": 7, "retried": 2, "failed": 2,
-                   "dropped": 0, "dead_lettered": 1, "dead_letters": 1, "oldest_pending_age_s": 12.5,
-                   "last_error": "HTTP 503 Service Unavailable"},
+            "pg": {
+                "received": 10,
+                "buffered": 3,
+                "buffered_bytes": 600,
+                "sent": 7,
+                "retried": 2,
+                "failed": 2,
+                "dropped": 0,
+                "dead_lettered": 1,
+                "dead_letters": 1,
+                "oldest_pending_age_s": 12.5,
+                "last_error": "HTTP 503 Service Unavailable",
+            },
         },
         "buffer": {"path": "/b/delivery.sqlite3", "storage_sync": "full", "quarantined": 1, "intake_pending": 0},
         "intake": {"received": 10, "malformed": 2},

@@ -83,36 +83,22 @@ CASES: list[Any] = [
     pytest.param(BoolEqual, {"key": "ok", "value": True}, {"ok": True}, True, id="bool-true"),
     pytest.param(BoolEqual, {"key": "ok", "value": False}, {"ok": False}, True, id="bool-false"),
     pytest.param(BoolEqual, {"key": "ok", "value": True}, {"ok": False}, False, id="bool-differs"),
-    pytest.param(
-        BoolEqual, {"key": "ok", "value": True}, {"ok": 1}, Inactive("not a bool"), id="bool-vs-int"
-    ),
-    pytest.param(
-        BoolEqual, {"key": "ok", "value": True}, {"ok": "true"}, Inactive("not a bool"), id="bool-vs-string"
-    ),
-    pytest.param(
-        BoolEqual, {"key": "inspected/barcode/1/ok", "value": False}, BARCODES, True, id="bool-in-array"
-    ),
+    pytest.param(BoolEqual, {"key": "ok", "value": True}, {"ok": 1}, Inactive("not a bool"), id="bool-vs-int"),
+    pytest.param(BoolEqual, {"key": "ok", "value": True}, {"ok": "true"}, Inactive("not a bool"), id="bool-vs-string"),
+    pytest.param(BoolEqual, {"key": "inspected/barcode/1/ok", "value": False}, BARCODES, True, id="bool-in-array"),
     pytest.param(BoolEqual, {"key": "ok", "value": True}, {}, Inactive("'ok'"), id="bool-missing"),
     # DoubleEqual: integers and floats compare as numbers; bools are not numbers.
     pytest.param(DoubleEqual, {"key": "v", "value": 3.5}, {"v": 3.5}, True, id="double-eq-float"),
     pytest.param(DoubleEqual, {"key": "v", "value": 3.0}, {"v": 3}, True, id="double-eq-int-value"),
     pytest.param(DoubleEqual, {"key": "v", "value": 3}, {"v": 3}, True, id="double-eq-int-param"),
     pytest.param(DoubleEqual, {"key": "v", "value": 3.0}, {"v": 3.1}, False, id="double-eq-differs"),
-    pytest.param(
-        DoubleEqual, {"key": "v", "value": 1.0}, {"v": True}, Inactive("not a number"), id="double-eq-bool"
-    ),
+    pytest.param(DoubleEqual, {"key": "v", "value": 1.0}, {"v": True}, Inactive("not a number"), id="double-eq-bool"),
     pytest.param(
         DoubleEqual, {"key": "v", "value": 1.0}, {"v": "1.0"}, Inactive("not a number"), id="double-eq-string"
     ),
-    pytest.param(
-        DoubleEqual, {"key": "v", "value": 1.0}, {"v": None}, Inactive("not a number"), id="double-eq-null"
-    ),
-    pytest.param(
-        DoubleEqual, {"key": "v", "value": 1.0}, {"v": [1.0]}, Inactive("not a number"), id="double-eq-list"
-    ),
-    pytest.param(
-        DoubleEqual, {"key": "v", "value": 1.0}, {"w": 1.0}, Inactive("'v'"), id="double-eq-missing"
-    ),
+    pytest.param(DoubleEqual, {"key": "v", "value": 1.0}, {"v": None}, Inactive("not a number"), id="double-eq-null"),
+    pytest.param(DoubleEqual, {"key": "v", "value": 1.0}, {"v": [1.0]}, Inactive("not a number"), id="double-eq-list"),
+    pytest.param(DoubleEqual, {"key": "v", "value": 1.0}, {"w": 1.0}, Inactive("'v'"), id="double-eq-missing"),
     # DoubleInferior / DoubleSuperior with and without include_value.
     pytest.param(DoubleInferior, {"key": "v", "value": 20.0}, {"v": 19.9}, True, id="double-inf-below"),
     pytest.param(DoubleInferior, {"key": "v", "value": 20.0}, {"v": 20}, True, id="double-inf-equal-int"),
@@ -154,9 +140,7 @@ CASES: list[Any] = [
     pytest.param(IntegerEqual, {"key": "v", "value": -3}, {"v": -3}, True, id="int-eq-negative"),
     pytest.param(IntegerEqual, {"key": "v", "value": 3}, {"v": 4}, False, id="int-eq-differs"),
     pytest.param(IntegerEqual, {"key": "v", "value": 3}, {"v": 3.0}, True, id="int-eq-integral-float"),
-    pytest.param(
-        IntegerEqual, {"key": "v", "value": 3}, {"v": 3.5}, Inactive("not an integer"), id="int-eq-fraction"
-    ),
+    pytest.param(IntegerEqual, {"key": "v", "value": 3}, {"v": 3.5}, Inactive("not an integer"), id="int-eq-fraction"),
     pytest.param(
         IntegerEqual,
         {"key": "v", "value": 1},
@@ -202,16 +186,10 @@ CASES: list[Any] = [
         id="int-sup-equal-excluded",
     ),
     pytest.param(IntegerSuperior, {"key": "v", "value": 10}, {"v": 9}, False, id="int-sup-below"),
-    pytest.param(
-        IntegerSuperior, {"key": "v", "value": 0}, {"v": "5"}, Inactive("not a number"), id="int-sup-string"
-    ),
-    pytest.param(
-        IntegerSuperior, {"key": "v", "value": 0}, None, Inactive("no sample"), id="int-sup-no-sample"
-    ),
+    pytest.param(IntegerSuperior, {"key": "v", "value": 0}, {"v": "5"}, Inactive("not a number"), id="int-sup-string"),
+    pytest.param(IntegerSuperior, {"key": "v", "value": 0}, None, Inactive("no sample"), id="int-sup-no-sample"),
     # List* conditions: the key names an array (the original never found it).
-    pytest.param(
-        ListIntegerEqual, {"key": "ids", "value": [1, 2, 3]}, {"ids": [1, 2, 3]}, True, id="list-int-ordered"
-    ),
+    pytest.param(ListIntegerEqual, {"key": "ids", "value": [1, 2, 3]}, {"ids": [1, 2, 3]}, True, id="list-int-ordered"),
     pytest.param(
         ListIntegerEqual,
         {"key": "ids", "value": [1, 2, 3]},
@@ -356,9 +334,7 @@ CASES: list[Any] = [
         Inactive("not a string"),
         id="list-string-number-item",
     ),
-    pytest.param(
-        ListStringEqual, {"key": "tags", "value": ["a"]}, {}, Inactive("'tags'"), id="list-string-missing"
-    ),
+    pytest.param(ListStringEqual, {"key": "tags", "value": ["a"]}, {}, Inactive("'tags'"), id="list-string-missing"),
     # StringMatch: the whole string must match.
     pytest.param(
         StringMatch,
@@ -408,9 +384,7 @@ CASES: list[Any] = [
 
 
 @pytest.mark.parametrize(("cls", "params", "sample", "expected"), CASES)
-def test_condition(
-    cls: type[Condition], params: dict[str, Any], sample: Any, expected: bool | Inactive
-) -> None:
+def test_condition(cls: type[Condition], params: dict[str, Any], sample: Any, expected: bool | Inactive) -> None:
     check(configured(cls, params), sample, expected)
 
 
@@ -426,9 +400,7 @@ def test_unordered_comparison_leaves_the_parameter_untouched() -> None:
         pytest.param(Exist, {}, "key", "required", id="exist-no-key"),
         pytest.param(BoolEqual, {"key": "k", "value": 1}, "value", "expected a boolean", id="bool-int-value"),
         pytest.param(BoolEqual, {"key": "k"}, "value", "required", id="bool-no-value"),
-        pytest.param(
-            DoubleEqual, {"key": "k", "value": "high"}, "value", "expected a number", id="double-string"
-        ),
+        pytest.param(DoubleEqual, {"key": "k", "value": "high"}, "value", "expected a number", id="double-string"),
         pytest.param(
             DoubleInferior,
             {"key": "k", "value": 1.0, "include_value": 3},
@@ -436,15 +408,9 @@ def test_unordered_comparison_leaves_the_parameter_untouched() -> None:
             "expected a boolean",
             id="double-include-int",
         ),
-        pytest.param(
-            IntegerEqual, {"key": "k", "value": 2.5}, "value", "expected an integer", id="int-float"
-        ),
-        pytest.param(
-            IntegerSuperior, {"key": "k", "value": True}, "value", "expected an integer", id="int-bool"
-        ),
-        pytest.param(
-            IntegerEqual, {"key": "k", "value": 1, "vaule": 2}, "vaule", "did you mean", id="int-typo"
-        ),
+        pytest.param(IntegerEqual, {"key": "k", "value": 2.5}, "value", "expected an integer", id="int-float"),
+        pytest.param(IntegerSuperior, {"key": "k", "value": True}, "value", "expected an integer", id="int-bool"),
+        pytest.param(IntegerEqual, {"key": "k", "value": 1, "vaule": 2}, "vaule", "did you mean", id="int-typo"),
         pytest.param(
             ListIntegerEqual,
             {"key": "k", "value": 3},
@@ -475,9 +441,7 @@ def test_unordered_comparison_leaves_the_parameter_untouched() -> None:
         ),
         pytest.param(StringMatch, {"key": "k"}, "regex", "required", id="string-no-regex"),
         pytest.param(SameAsPrevious, {"keys": "path"}, "keys", "expected a list", id="same-keys-not-list"),
-        pytest.param(
-            Moving, {"speed_threshold": -1.0}, "speed_threshold", ">= 0", id="moving-negative-speed"
-        ),
+        pytest.param(Moving, {"speed_threshold": -1.0}, "speed_threshold", ">= 0", id="moving-negative-speed"),
         pytest.param(Moving, {"count_limit": 0}, "count_limit", ">= 1", id="moving-zero-limit"),
         pytest.param(
             Moving,
@@ -567,16 +531,12 @@ def test_same_as_previous_first_sample_is_never_the_same() -> None:
 @pytest.mark.parametrize(
     ("params", "samples", "expected"),
     [
-        pytest.param(
-            {}, [{"a": 1}, {"a": 2}, {"a": 2}, {"a": 1}], [False, False, True, False], id="value-changes"
-        ),
+        pytest.param({}, [{"a": 1}, {"a": 2}, {"a": 2}, {"a": 1}], [False, False, True, False], id="value-changes"),
         pytest.param({}, [{"a": 1}, {"a": 1.0}], [False, True], id="int-and-float-are-the-same-number"),
         pytest.param({}, [{"a": 1}, {"a": True}], [False, False], id="bool-is-not-1"),
         pytest.param({}, [{"a": [1, 2]}, {"a": [2, 1]}], [False, False], id="array-order-matters"),
         pytest.param({}, [{"a": 1}, {"a": 1, "b": 2}], [False, False], id="new-key"),
-        pytest.param(
-            {}, [{"a": 1, "tags": ["x"]}, {"a": 1, "tags": ["y"]}], [False, True], id="tags-ignored"
-        ),
+        pytest.param({}, [{"a": 1, "tags": ["x"]}, {"a": 1, "tags": ["y"]}], [False, True], id="tags-ignored"),
         pytest.param(
             {"exclude": ["stamp"]},
             [{"a": 1, "stamp": 1}, {"a": 1, "stamp": 2}],

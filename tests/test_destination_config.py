@@ -75,9 +75,7 @@ def test_several_destinations_union_of_inputs() -> None:
 
 
 def test_common_delivery_and_plugin_params_share_one_section() -> None:
-    section = stdout_section(
-        time_format="iso8601", time_key="ts", debug=True, batch_size=10, format="json_lines"
-    )
+    section = stdout_section(time_format="iso8601", time_key="ts", debug=True, batch_size=10, format="json_lines")
     (dest,) = parse_destination_server(section).destinations
     assert (dest.common.time_format, dest.common.time_key, dest.common.debug) == ("iso8601", "ts", True)
     assert dest.delivery.batch_size == 10
@@ -126,8 +124,7 @@ def test_fluent_bit_json_date_names_set_the_time_key() -> None:
         (
             stdout_section(plugin="dc_destinations/FlbStdot"),
             "destination_server.flb_stdout.plugin",
-            "unknown destination plugin 'dc_destinations/FlbStdot'"
-            ' (did you mean "dc_destinations/FlbStdout"?)',
+            "unknown destination plugin 'dc_destinations/FlbStdot' (did you mean \"dc_destinations/FlbStdout\"?)",
         ),
         (
             {"destination_plugins": ["d"], "d": {"plugin": "dc_destinations/Null"}},
@@ -218,9 +215,7 @@ def test_flb_numbers_written_as_strings_as_in_the_seed_reference() -> None:
 def test_misspelled_flb_grace_is_a_deprecated_alias(section: dict[str, Any]) -> None:
     config = parse_destination_server(section)
     assert config.node.flb.grace == 4.0
-    assert any(
-        "flb_grace is a deprecated spelling of destination_server.flb.grace" in w for w in config.warnings
-    )
+    assert any("flb_grace is a deprecated spelling of destination_server.flb.grace" in w for w in config.warnings)
 
 
 def test_grace_wins_over_flb_grace() -> None:

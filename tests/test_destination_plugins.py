@@ -315,9 +315,7 @@ def test_doc_page_documents_every_parameter(cls: type[Destination], page: str) -
 
 
 @pytest.mark.parametrize("page", sorted(PAGES.values()))
-def test_doc_examples_are_valid_configurations(
-    page: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_doc_examples_are_valid_configurations(page: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("HOME", str(tmp_path))
     blocks = re.findall(r"```yaml\n(.*?)```", (DOCS / page).read_text(), flags=re.DOTALL)
     assert blocks, f"{page} has no example configuration"

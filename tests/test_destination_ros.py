@@ -50,9 +50,7 @@ class Running:
         return done()
 
     def wait_for_subscription(self) -> None:
-        assert self.spin_until(lambda: self.publisher.get_subscription_count() >= 1), (
-            "server never subscribed"
-        )
+        assert self.spin_until(lambda: self.publisher.get_subscription_count() >= 1), "server never subscribed"
 
     def publish(self, data: str, stamp: tuple[int, int] = STAMP) -> None:
         msg = StringStamped()
@@ -102,9 +100,7 @@ def running(tmp_path: Path) -> Iterator[Running]:
         server = DestinationServer(str(write_params(tmp_path, topic)))
         executor = SingleThreadedExecutor()
         executor.add_node(server)
-        publisher_node = rclpy.create_node(
-            f"dc_test_publisher_{uuid.uuid4().hex[:8]}", context=publisher_context
-        )
+        publisher_node = rclpy.create_node(f"dc_test_publisher_{uuid.uuid4().hex[:8]}", context=publisher_context)
         publisher = publisher_node.create_publisher(
             StringStamped, topic, QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         )
@@ -138,9 +134,7 @@ def test_published_records_reach_the_file_destination(running: Running) -> None:
     assert running.spin_until(lambda: server.stats.received >= 9)
     lines = running.lines()
     assert len({line.pop("record_id") for line in lines}) == 5, "each record carries its own record_id"
-    assert lines == [
-        {"date": "2023-11-14T22:13:20.005000Z", "name": "uptime", "time": i} for i in range(5)
-    ]
+    assert lines == [{"date": "2023-11-14T22:13:20.005000Z", "name": "uptime", "time": i} for i in range(5)]
     assert server.stats.malformed == 2
     assert sum(server.stats.unrouted.values()) == 2
     assert server.intake_metrics()["routed"] == 5

@@ -42,6 +42,7 @@ DEADLINE_S = 15.0
 REPO = Path(__file__).resolve().parent.parent
 RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
+
 def test_unknown_kind_is_refused() -> None:
     with pytest.raises(ValueError, match="unknown executor 'threads'"):
         make_executor("threads")

@@ -147,9 +147,7 @@ def test_groups_feeding_each_other_in_a_loop_are_refused() -> None:
 
 
 def test_a_timeout_shorter_than_the_slop_is_a_warning() -> None:
-    config = parse_group_server(
-        {"groups": ["g"], "g": {"inputs": ["/a"], "sync_delay": 5, "sync_timeout": 2}}
-    )
+    config = parse_group_server({"groups": ["g"], "g": {"inputs": ["/a"], "sync_delay": 5, "sync_timeout": 2}})
     assert len(config.warnings) == 1
     assert "group_server.g" in config.warnings[0]
 
@@ -275,9 +273,7 @@ def test_flat_output() -> None:
 
 def test_group_output_nests_under_the_downstream_group() -> None:
     # The output of one group is an input of another: nested under the first group's group_key.
-    inner = group(
-        {"inputs": ["/dc/measurement/memory", "/dc/measurement/uptime"], "tags": ["t"]}, "memory_uptime"
-    )
+    inner = group({"inputs": ["/dc/measurement/memory", "/dc/measurement/uptime"], "tags": ["t"]}, "memory_uptime")
     first = merge(inner, [rec("memory", {"used": 1}), rec("uptime", {"time": 2})]).record
     outer = group({"inputs": ["/dc/group/memory_uptime", "/dc/measurement/cpu"], "tags": ["out"]}, "system")
     second = merge(outer, [parse_input("/dc/group/memory_uptime", inner.group_key, json.dumps(first)),

@@ -321,12 +321,8 @@ def test_deactivate_stops_intake_and_settles_pending_sets(start: Any) -> None:
 def test_a_bad_configuration_fails_configure_and_keeps_the_node_alive(start: Any) -> None:
     h = start({"g": {"inputs": ["a"]}})
     params = Path(h.server.params_file)
-    params.write_text(
-        yaml.safe_dump({"group_server": {"ros__parameters": {"groups": ["g"], "g": {"input": ["/a"]}}}})
-    )
+    params.write_text(yaml.safe_dump({"group_server": {"ros__parameters": {"groups": ["g"], "g": {"input": ["/a"]}}}}))
     assert h.server.trigger_configure() == TransitionCallbackReturn.FAILURE
     assert h.server.lifecycle_state == "unconfigured"
-    params.write_text(
-        yaml.safe_dump({"group_server": {"ros__parameters": {"groups": ["g"], "g": {"inputs": ["/a"]}}}})
-    )
+    params.write_text(yaml.safe_dump({"group_server": {"ros__parameters": {"groups": ["g"], "g": {"inputs": ["/a"]}}}}))
     assert h.server.trigger_configure() == TransitionCallbackReturn.SUCCESS

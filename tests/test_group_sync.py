@@ -21,9 +21,7 @@ def label(synced: SyncedSet[str]) -> tuple[str | None, ...]:
     return tuple(m.payload if m is not None else None for m in synced.members)
 
 
-def make(
-    inputs: int = 2, slop: float = 0.1, timeout: float = 100.0, queue_size: int = 10
-) -> ApproximateTimeSync[str]:
+def make(inputs: int = 2, slop: float = 0.1, timeout: float = 100.0, queue_size: int = 10) -> ApproximateTimeSync[str]:
     return ApproximateTimeSync(inputs, slop_ns=ns(slop), timeout=timeout, queue_size=queue_size)
 
 

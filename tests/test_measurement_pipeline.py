@@ -335,8 +335,10 @@ def test_a_condition_that_remembers_samples_shared_by_two_measurements_is_warned
     same = {"plugin": "dc_conditions/SameAsPrevious"}
     shared = parse_measurement_server(
         server(
-            {"a": {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["same"]},
-             "b": {"plugin": "dc_measurements/Uptime", "if_none_conditions": ["same"]}},
+            {
+                "a": {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["same"]},
+                "b": {"plugin": "dc_measurements/Uptime", "if_none_conditions": ["same"]},
+            },
             {"same": same},
         )
     )

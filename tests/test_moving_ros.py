@@ -90,9 +90,7 @@ def configured_moving(ros: Ros, topic: str) -> Moving:
 def test_moving_follows_published_odometry(ros: Ros, publisher_reliability: ReliabilityPolicy) -> None:
     topic = fresh_topic()
     moving = configured_moving(ros, topic)
-    publisher = ros.node.create_publisher(
-        Odometry, topic, QoSProfile(depth=10, reliability=publisher_reliability)
-    )
+    publisher = ros.node.create_publisher(Odometry, topic, QoSProfile(depth=10, reliability=publisher_reliability))
     try:
         assert ros.spin_until(lambda: publisher.get_subscription_count() >= 1), "subscription never matched"
         assert moving.evaluate(None) is False, "starts inactive"

@@ -44,9 +44,7 @@ ROUTING_CASES = [
 @pytest.mark.parametrize(
     ("inputs", "topic", "tags", "expected"), [c[1:] for c in ROUTING_CASES], ids=[c[0] for c in ROUTING_CASES]
 )
-def test_routing_table(
-    inputs: dict[str, list[str]], topic: str, tags: list[str], expected: list[str]
-) -> None:
+def test_routing_table(inputs: dict[str, list[str]], topic: str, tags: list[str], expected: list[str]) -> None:
     assert destinations(table(**inputs), topic, {"tags": tags, "time": 1}) == expected
 
 

@@ -54,9 +54,7 @@ class FakeContext:
     node: Any = None
     paths: BasePaths = field(default_factory=BasePaths)
 
-    def emit(
-        self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None
-    ) -> None:
+    def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
         raise AssertionError("system measurements are timer driven")
 
 
@@ -153,9 +151,7 @@ BAD_PARAMS = [
 
 
 @pytest.mark.parametrize(("cls", "values", "key"), BAD_PARAMS)
-def test_parameter_errors_name_the_yaml_path(
-    cls: type[Measurement], values: dict[str, Any], key: str
-) -> None:
+def test_parameter_errors_name_the_yaml_path(cls: type[Measurement], values: dict[str, Any], key: str) -> None:
     with pytest.raises(ConfigError) as info:
         parse_params(cls.Params, values, "measurement_server.x")
     assert info.value.path == f"measurement_server.x.{key}"
@@ -390,9 +386,7 @@ def fake_ping(directory: Path, body: str) -> None:
     script.chmod(0o755)
 
 
-def test_network_command_method_reads_the_round_trip_of_ping(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_network_command_method_reads_the_round_trip_of_ping(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     fake_ping(tmp_path, 'echo "64 bytes from 10.1.2.3: icmp_seq=1 ttl=64 time=0.042 ms"')
     monkeypatch.setenv("PATH", f"{tmp_path}:{os.environ['PATH']}")
     record = configured(Network, ping_address="10.1.2.3", ping_method="command").collect()
@@ -400,9 +394,7 @@ def test_network_command_method_reads_the_round_trip_of_ping(
     assert record["online"] is True
 
 
-def test_network_command_method_is_bounded_by_ping_timeout(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_network_command_method_is_bounded_by_ping_timeout(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     fake_ping(tmp_path, "exec sleep 10")
     monkeypatch.setenv("PATH", f"{tmp_path}:{os.environ['PATH']}")
     plugin = configured(Network, ping_address="10.1.2.3", ping_method="command", ping_timeout=200)

@@ -97,7 +97,6 @@ class HttpParams:
         return [self.header] if isinstance(self.header, str) else list(self.header)
 
 
-
 class Http(Destination):
     """POST each batch as JSON to an HTTP(S) endpoint; 5xx, 408, 429 and network errors are retried."""
 
