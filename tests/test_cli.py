@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import queue
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -206,23 +208,35 @@ rclpy.spin(node)
 class FrozenSubscriber:
     """A subscriber process of /acks, frozen (SIGSTOP) as soon as it has received a first record."""
 
+    LINE_TIMEOUT_S = 30.0
+
     def __init__(self, env: dict[str, str]) -> None:
         self.process = subprocess.Popen(
             [sys.executable, "-c", SLOW_SUBSCRIBER], env=env, stdout=subprocess.PIPE, text=True
         )
+        self._lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+        assert self._next_line() == "subscribed"
+
+    def _read(self) -> None:
         assert self.process.stdout is not None
-        assert self.process.stdout.readline().strip() == "subscribed"
+        for line in self.process.stdout:
+            self._lines.put(line.strip())
+
+    def _next_line(self) -> str:
+        try:
+            return self._lines.get(timeout=self.LINE_TIMEOUT_S)
+        except queue.Empty:
+            raise AssertionError(f"the subscriber printed nothing for {self.LINE_TIMEOUT_S} s") from None
 
     def freeze_at_first_record(self) -> str:
-        assert self.process.stdout is not None
-        first = self.process.stdout.readline().strip()
+        first = self._next_line()
         self.process.send_signal(signal.SIGSTOP)
         return first
 
     def thaw_and_read(self, count: int) -> list[str]:
         self.process.send_signal(signal.SIGCONT)
-        assert self.process.stdout is not None
-        return [self.process.stdout.readline().strip() for _ in range(count)]
+        return [self._next_line() for _ in range(count)]
 
     def close(self) -> None:
         self.process.send_signal(signal.SIGCONT)
