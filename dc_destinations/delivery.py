@@ -473,6 +473,10 @@ class DeliveryPipeline:
                 continue
             except BufferClosed:
                 return
+            except Exception as exc:  # disk full, I/O error: the sender waits and tries again, never dies
+                if self._buffer_trouble(route, backoff, f"reading the buffer: {type(exc).__name__}: {exc}"):
+                    return
+                continue
             if not rows:
                 if closing:
                     return
@@ -487,6 +491,12 @@ class DeliveryPipeline:
                 return
             except BufferCorrupted:
                 continue
+            except Exception as exc:
+                # The destination may have taken the batch before the buffer failed to record it
+                # (deleting needs disk space too): those records are sent again, as after a crash.
+                if self._buffer_trouble(route, backoff, f"updating the buffer: {type(exc).__name__}: {exc}"):
+                    return
+                continue
             if must_retry:
                 delay = backoff.next_delay()
                 if self._wait_backoff(delay):
@@ -497,6 +507,13 @@ class DeliveryPipeline:
                     route.pending_hint = 0
                     route.wakeup.wait(self.settings.flush)
                     route.wakeup.clear()
+
+    def _buffer_trouble(self, route: _Route, backoff: Backoff, what: str) -> bool:
+        """Count and log a failed buffer operation, then back off; True when the pipeline is stopping."""
+        route.metrics.add("failed")
+        route.metrics.set_error(what)
+        route.failure_log.event(1, what)
+        return self._wait_backoff(backoff.next_delay())
 
     def _wait_backoff(self, delay: float) -> bool:
         if self._wait is not None:

@@ -728,6 +728,8 @@ def test_a_full_disk_under_the_buffer_keeps_records_in_memory_until_space_return
     try:
         pipeline.submit("sink", record(0))
         sink.wait_for(1)
+        # Record 0 deleted from the buffer before the disk fills (a disk filling meanwhile is the next test).
+        wait_until(lambda: pipeline.metrics()["sink"]["buffered"] == 0, what="record 0 out of the buffer")
         filler = small_disk / "filler"
         fill(filler)
         # ~300 KB of records: more than the buffer's WAL can take without growing.
@@ -747,5 +749,32 @@ def test_a_full_disk_under_the_buffer_keeps_records_in_memory_until_space_return
         assert [r.data["n"] for r in delivered] == list(range(151))
         metrics = pipeline.metrics()["sink"]
         assert metrics["dropped"] == 0 and metrics["buffered"] == 0
+    finally:
+        pipeline.stop(grace=1.0)
+
+
+def test_a_disk_that_fills_while_a_batch_is_sent_does_not_stop_the_sender(small_disk: Path) -> None:
+    filler = small_disk / "filler"
+
+    def fill_the_disk_first(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        if call == 1:
+            fill(filler)  # the batch is confirmed, but deleting it from the buffer needs space
+
+    logger = ListLogger()
+    sink = Recorder(behaviour=fill_the_disk_first)
+    pipeline = DeliveryPipeline(settings(small_disk), {"sink": (sink, DestinationDeliveryParams())}, logger)
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(0))
+        wait_until(
+            lambda: any("updating the buffer" in line for _, line in logger.lines), what="the failed delete logged"
+        )
+        assert "database or disk is full" in pipeline.metrics()["sink"]["last_error"]
+        filler.unlink()
+        pipeline.submit("sink", record(1))
+        delivered = sink.wait_for(3)
+        # Record 0 again (the buffer could not forget it), then record 1: at least once, nothing lost.
+        assert [r.data["n"] for r in delivered] == [0, 0, 1]
+        wait_until(lambda: pipeline.metrics()["sink"]["buffered"] == 0, what="an empty queue")
     finally:
         pipeline.stop(grace=1.0)
