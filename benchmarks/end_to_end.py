@@ -123,7 +123,7 @@ def role_publisher(count: int, rate: float) -> None:
     rclpy.shutdown()
 
 
-def role_subscriber(kind: str) -> None:
+def role_subscriber(kind: str, topic: str = TOPIC) -> None:
     """A bare subscriber: counts records; ``intake`` with run_server's loop, else an executor's spin_once loop."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
@@ -148,9 +148,9 @@ def role_subscriber(kind: str) -> None:
     executor.add_node(node)
     intake = Intake(node)
     if kind == "intake":
-        intake.subscribe(StringStamped, TOPIC, lambda msg, info: on_message(msg), VOLATILE_RECORD_QOS)
+        intake.subscribe(StringStamped, topic, lambda msg, info: on_message(msg), VOLATILE_RECORD_QOS)
     else:
-        node.create_subscription(StringStamped, TOPIC, on_message, VOLATILE_RECORD_QOS)
+        node.create_subscription(StringStamped, topic, on_message, VOLATILE_RECORD_QOS)
     reported = [-1]
 
     def report() -> None:  # a line every 0.2 s at most: negligible beside the records
@@ -304,8 +304,12 @@ class Bench:
             stdin=True,
         )
 
-    def subscriber(self, kind: str) -> Child:
-        return Child(self.me("--role", "subscriber", "--executor", kind), self.env, self._log(f"subscriber-{kind}"))
+    def subscriber(self, kind: str, topic: str = TOPIC) -> Child:
+        return Child(
+            self.me("--role", "subscriber", "--executor", kind, "--topic", topic),
+            self.env,
+            self._log(f"subscriber-{kind}"),
+        )
 
     def server(self, params: Path) -> Child:
         argv = [sys.executable, "-m", "dc_destinations.server", str(params), "--autostart"]
@@ -626,6 +630,7 @@ def main() -> None:
     parser.add_argument("--executor", default="single", help=argparse.SUPPRESS)
     parser.add_argument("--count", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--rate", type=float, default=0.0, help=argparse.SUPPRESS)
+    parser.add_argument("--topic", default=TOPIC, help=argparse.SUPPRESS)
     parser.add_argument(
         "--transports", default="single,intake", help="bare subscribers, comma-separated: single, intake, events"
     )
@@ -640,7 +645,7 @@ def main() -> None:
         role_publisher(args.count, args.rate)
         return
     if args.role == "subscriber":
-        role_subscriber(args.executor)
+        role_subscriber(args.executor, args.topic)
         return
 
     kinds = [k for k in args.transports.split(",") if k]
@@ -684,7 +689,7 @@ def main() -> None:
             "python": platform.python_version(),
             "kernel": platform.release(),
         },
-        "settings": {k: v for k, v in vars(args).items() if k not in ("role", "executor", "count", "rate")},
+        "settings": {k: v for k, v in vars(args).items() if k not in ("role", "executor", "count", "rate", "topic")},
         "flows": [asdict(f) for f in flows],
         "backlog": [asdict(b) for b in backlogs],
         **summary,

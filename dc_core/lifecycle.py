@@ -41,6 +41,8 @@ HEARTBEAT_TOPIC = "/dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # Most executor callbacks run in one turn while the intake is active; the rest wait for the next turn.
 EXECUTOR_TURN_MAX_CALLBACKS = 256
+# The shortest wait between two executor turns while the intake is active.
+TIMER_SLACK_S = 0.001
 
 
 class ManagedServer(LifecycleNode):
@@ -179,8 +181,8 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
 class ServerLoop:
     """A server's main loop: records through its intake while it has subscriptions, the rest through the executor.
 
-    While the intake is active the executor gets a non-blocking turn at least every EXECUTOR_TURN_S
-    (services, timers); otherwise the executor waits on its own, as rclpy's spin would.
+    While the intake is active the executor gets a non-blocking turn when a timer is due and at least
+    every EXECUTOR_TURN_S (services); otherwise the executor waits on its own, as rclpy's spin would.
     """
 
     def __init__(self, executor: Executor, intake: Intake) -> None:
@@ -195,10 +197,24 @@ class ServerLoop:
             return
         now = time.monotonic()
         if now >= self._next_turn:
-            self._next_turn = now + EXECUTOR_TURN_S
             run_ready_callbacks(self.executor, EXECUTOR_TURN_MAX_CALLBACKS)
+            # The next turn comes when the next timer is due: a measurement's collection is not
+            # delayed by up to a turn's period because its server also takes records.
+            self._next_turn = time.monotonic() + self._until_next_timer()
             return
         self.intake.take(min(timeout_sec, self._next_turn - now))
+
+    def _until_next_timer(self) -> float:
+        """Seconds until the executor's next timer is due, within [TIMER_SLACK_S, EXECUTOR_TURN_S]."""
+        nearest = EXECUTOR_TURN_S
+        for node in self.executor.get_nodes():
+            for timer in node.timers:
+                until_ns = timer.time_until_next_call()
+                if until_ns is not None:  # None: cancelled
+                    nearest = min(nearest, until_ns / 1e9)
+        # A timer already due whose callback did not run this turn (the turn's limit) must not make
+        # the loop spin without waiting.
+        return max(nearest, TIMER_SLACK_S)
 
     def run(self, stop: threading.Event, logger: Any) -> None:
         """Spin until ``stop`` is set or the context shuts down; a failing callback is logged, not fatal."""

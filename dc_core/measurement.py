@@ -13,13 +13,17 @@ from __future__ import annotations
 
 import abc
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any, ClassVar, Protocol
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 from dc_core.errors import PluginError
 from dc_core.logs import Logger
 from dc_core.params import NoParams
+
+if TYPE_CHECKING:
+    from rclpy.qos import QoSProfile
 
 
 @dataclass(frozen=True)
@@ -46,6 +50,17 @@ class MeasurementContext(Protocol):
     def paths(self) -> BasePaths: ...
     def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
         """Offer a record from an event (gated, validated and published like a collected one)."""
+
+    def subscribe(self, msg_type: Any, topic: str, callback: Callable[[Any, Any], None], qos: QoSProfile) -> Any:
+        """Subscribe to a topic of records: ``callback(message, message_info)`` for each message.
+
+        The server takes these messages itself, outside rclpy's executor, which costs a fraction
+        per message (docs/performance.md); callbacks run on the server's main thread, as executor
+        callbacks do. Returns the subscription, for :meth:`unsubscribe` in ``on_cleanup``.
+        """
+
+    def unsubscribe(self, subscription: Any) -> None:
+        """Destroy a subscription made by :meth:`subscribe`."""
 
 
 class Measurement(abc.ABC):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,6 +46,12 @@ class _PluginContext:
 
     def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
         self.server.emit_from_event(self.name, record, stamp_ns, group_key)
+
+    def subscribe(self, msg_type: Any, topic: str, callback: Callable[[Any, Any], None], qos: QoSProfile) -> Any:
+        return self.server.intake.subscribe(msg_type, topic, callback, qos)
+
+    def unsubscribe(self, subscription: Any) -> None:
+        self.server.intake.unsubscribe(subscription)
 
 
 class MeasurementServer(ManagedServer):

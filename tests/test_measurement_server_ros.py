@@ -28,6 +28,7 @@ from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from dc_core.lifecycle import ServerLoop
 from dc_interfaces.msg import StringStamped
 from dc_measurements.config import parse_measurement_server
 from dc_measurements.server import MeasurementServer
@@ -46,6 +47,7 @@ class Harness:
     peer_executor: SingleThreadedExecutor
     server_executor: SingleThreadedExecutor
     server: MeasurementServer | None = None
+    server_loop: ServerLoop | None = None
     received: dict[str, list[Any]] = field(default_factory=dict)
 
     def start_server(self, measurement_server_yaml: str) -> MeasurementServer:
@@ -53,10 +55,13 @@ class Harness:
         params.write_text(measurement_server_yaml)
         self.server = MeasurementServer(str(params))
         self.server_executor.add_node(self.server)
+        # The loop dc-bringup's server processes run: the executor, and the intake for records.
+        self.server_loop = ServerLoop(self.server_executor, self.server.intake)
         return self.server
 
     def spin_once(self) -> None:
-        self.server_executor.spin_once(timeout_sec=0.01)
+        if self.server_loop is not None:
+            self.server_loop.spin_once(timeout_sec=0.01)
         self.peer_executor.spin_once(timeout_sec=0.01)
 
     def spin_until(self, done: Callable[[], bool], what: str, timeout: float = DEADLINE_S) -> None:
@@ -322,6 +327,7 @@ def test_event_driven_string_stamped_publishes_each_record_once_with_its_stamp_a
 ) -> None:
     measurement = start_string_stamped(harness, timer_based=False)
     publisher, received = measurement.publisher, measurement.received
+    assert harness.server is not None and harness.server.intake.active, "records are taken by the server's intake"
 
     for seq in range(5):
         # The last one has no group key of its own: the configured one applies.

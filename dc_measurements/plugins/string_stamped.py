@@ -55,6 +55,8 @@ class StringStampedInput(Measurement):
         node = self.context.node
         if node is None:
             raise PluginError("StringStamped needs a ROS node")
+        from rclpy.qos import QoSProfile
+
         from dc_interfaces.msg import StringStamped
 
         topic = ros_topic(self.params.topic)
@@ -68,11 +70,13 @@ class StringStampedInput(Measurement):
             self.context.logger.error, f"measurement {self.context.name}: records lost before measurement_server"
         )
         self._loss_log_timer = node.create_timer(1.0, self._loss_log.tick)
-        self._subscription = node.create_subscription(StringStamped, topic, self._on_message, self.params.qos_depth)
+        self._subscription = self.context.subscribe(
+            StringStamped, topic, self._on_message, QoSProfile(depth=self.params.qos_depth)
+        )
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:
-            self.context.node.destroy_subscription(self._subscription)
+            self.context.unsubscribe(self._subscription)
             self._subscription = None
         if self._loss_log_timer is not None:
             self.context.node.destroy_timer(self._loss_log_timer)
