@@ -39,6 +39,7 @@ class StringStampedInput(Measurement):
         self._lock = threading.Lock()
         self._latest: tuple[dict[str, Any], int, str] | None = None
         self._subscription: Any = None
+        self._topic = ""
         self._loss_log_timer: Any = None
         self._writers = TopicWriters()
         self._loss_log: BurstLog | None = None
