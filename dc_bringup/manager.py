@@ -17,6 +17,9 @@ from dc_interfaces.msg import Heartbeat
 NODE_NAME = "lifecycle_manager_dc"
 # get_state answers at once from a live process: a probe unanswered this long was lost.
 GET_STATE_PROBE_S = 0.5
+PROBES_PER_CLIENT = 4
+# Longest wait between two attempts to restart a server that does not come up.
+MAX_RETRY_DELAY_S = 60.0
 
 
 class LifecycleManager(Node):
@@ -29,6 +32,11 @@ class LifecycleManager(Node):
         self.executor_.add_node(self)
         self._last_heartbeat: dict[str, float] = {}
         self._watch_since: dict[str, float] = {}
+        # Servers whose last bring-up failed, with the seconds to wait before the next attempt:
+        # restarted then even if their heartbeat goes on (a process that sends heartbeats but never
+        # got configured would otherwise stay so), at doubling intervals (a configure that keeps
+        # failing must not become a restart loop).
+        self._not_up: dict[str, float] = {}
         self._lifecycle_clients: dict[str, tuple[Any, Any]] = {}
         self.restarts: dict[str, int] = {s.name: 0 for s in servers}
         self.create_subscription(Heartbeat, HEARTBEAT_TOPIC, self._on_heartbeat, HEARTBEAT_QOS)
@@ -68,31 +76,42 @@ class LifecycleManager(Node):
             return None
         return future.result()
 
-    def _wait_ready(self, proc: ServerProcess, started: float) -> bool:
-        """The new process sent a heartbeat and answers on its lifecycle services."""
+    def _not_ready(self, proc: ServerProcess, started: float) -> str | None:
+        """None once the new process sent a heartbeat and answers on its lifecycle services, else why not."""
         deadline = time.monotonic() + self.service_timeout
         while self._last_heartbeat.get(proc.name, 0.0) < started:
-            if not proc.running() or time.monotonic() > deadline:
-                return False
+            if not proc.running():
+                return f"exited with code {proc.exit_code()}"
+            if time.monotonic() > deadline:
+                return f"sent no heartbeat in {self.service_timeout:g} s"
             self.spin_for(0.05)
         self._forget_clients(proc.name)
         change, get = self._client(proc.name)
-        while time.monotonic() < deadline:
+        while not (change.service_is_ready() and get.service_is_ready()):
             if not proc.running():
-                return False
-            if change.service_is_ready() and get.service_is_ready():
-                break
+                return f"exited with code {proc.exit_code()}"
+            if time.monotonic() > deadline:
+                return f"its lifecycle services were not discovered in {self.service_timeout:g} s"
             self.spin_for(0.05)
         # "Ready" only says the graph knows a server of that name, and a killed process stays in the
         # graph until its DDS lease ends (~20 s): a request sent before the new process' endpoints
-        # are matched is lost, and its transition waited service_timeout / attempts (seen in CI
-        # after SIGSTOP + restart). Only the new process can answer get_state; ask it until it does.
-        while time.monotonic() < deadline:
+        # are matched is lost, and its transition waited service_timeout / attempts (seen after
+        # SIGSTOP + restart). Only the new process can answer get_state; ask it until it does, with
+        # fresh clients now and then in case the ones we have were matched with the dead process only.
+        probes = 0
+        while True:
             if not proc.running():
-                return False
+                return f"exited with code {proc.exit_code()}"
+            if time.monotonic() > deadline:
+                return f"did not answer get_state in {self.service_timeout:g} s ({probes} requests)"
             if self._call(get, GetState.Request(), GET_STATE_PROBE_S) is not None:
-                return True
-        return False
+                if probes:
+                    self.get_logger().info(f"{proc.name} answered get_state after {probes} unanswered requests")
+                return None
+            probes += 1
+            if probes % PROBES_PER_CLIENT == 0:
+                self._forget_clients(proc.name)
+                change, get = self._client(proc.name)
 
     def transition(self, server: str, label: str, target: str, attempts: int = 3) -> bool:
         """Send a transition by label (an id sent to a wrong state kills rclpy's service; see notes).
@@ -119,8 +138,9 @@ class LifecycleManager(Node):
 
     def bring_up(self, proc: ServerProcess, started: float) -> bool:
         log = self.get_logger()
-        if not self._wait_ready(proc, started):
-            log.error(f"{proc.name} did not come up (exit code {proc.exit_code()})")
+        reason = self._not_ready(proc, started)
+        if reason is not None:
+            log.error(f"{proc.name} did not come up: {reason}")
             return False
         for label, target in (("configure", "inactive"), ("activate", "active")):
             if not self.transition(proc.name, label, target):
@@ -145,6 +165,10 @@ class LifecycleManager(Node):
             reason = None
             if not proc.running():
                 reason = f"exited with code {proc.exit_code()}"
+            elif proc.name in self._not_up:
+                if now - self._watch_since[proc.name] < self._not_up[proc.name]:
+                    continue
+                reason = "did not come up"
             else:
                 last = max(self._last_heartbeat.get(proc.name, 0.0), self._watch_since.get(proc.name, now))
                 if now - last > self.bond_timeout:
@@ -157,9 +181,14 @@ class LifecycleManager(Node):
             self.restarts[proc.name] += 1
             started = time.monotonic()
             proc.start()
-            if not self.bring_up(proc, started):
-                self.get_logger().error(f"{proc.name} could not be restarted; will try again")
+            if self.bring_up(proc, started):
+                self._not_up.pop(proc.name, None)
+            else:
+                previous = self._not_up.get(proc.name)
+                delay = min(2 * previous, MAX_RETRY_DELAY_S) if previous else self.bond_timeout
+                self._not_up[proc.name] = delay
                 self._watch_since[proc.name] = time.monotonic()
+                self.get_logger().error(f"{proc.name} could not be restarted; trying again in {delay:g} s")
 
     def shut_down(self, timeout: float) -> None:
         """Reverse order: measurements stop first, destinations flush last."""
