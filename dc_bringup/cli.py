@@ -124,19 +124,12 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
     """(server, host, port) to ask: --host/--port, or the servers with an HTTP server in --params."""
     if not args.params:
         return [("", args.host, args.port)]
-    from dc_core.config import load_params_file
+    from dc_bringup.validate import metrics_endpoints, validate_params_file
 
-    sections = load_params_file(args.params)
-    targets = []
-    for server, settings, default_port in (
-        ("destination_server", sections.get("destination_server", {}).get("flb", {}), 2020),
-        ("group_server", sections.get("group_server", {}), 2021),
-        ("measurement_server", sections.get("measurement_server", {}), 2022),
-    ):
-        if settings.get("http_server", False):
-            listen = str(settings.get("http_listen", "127.0.0.1"))
-            host = "127.0.0.1" if listen in ("0.0.0.0", "") else listen
-            targets.append((server, host, int(settings.get("http_port", default_port))))
+    targets = [
+        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
+        for e in metrics_endpoints(validate_params_file(args.params).configs)
+    ]
     if not targets:
         print(
             f"dc status: no server has its HTTP server enabled in {args.params} (destination_server flb.http_server,"

@@ -101,27 +101,43 @@ def _cross_checks(configs: dict[str, Any]) -> list[str]:
     return warnings
 
 
+@dataclass(frozen=True)
+class MetricsEndpoint:
+    """Where a server of the configuration serves its counters (its http_server is true)."""
+
+    server: str
+    path: str  # of its http_* parameters, for messages
+    listen: str
+    port: int
+
+
+def metrics_endpoints(configs: dict[str, Any]) -> list[MetricsEndpoint]:
+    """The metrics HTTP servers a parsed configuration enables, in start order."""
+    settings = {
+        "destination_server": ("destination_server.flb", lambda c: c.node.flb),
+        "group_server": ("group_server", lambda c: c.node),
+        "measurement_server": ("measurement_server", lambda c: c.node),
+    }
+    endpoints = []
+    for server, (path, http_settings) in settings.items():
+        if server in configs:
+            node = http_settings(configs[server])
+            if node.http_server:
+                endpoints.append(MetricsEndpoint(server, path, node.http_listen, node.http_port))
+    return endpoints
+
+
 def _shared_metrics_ports(configs: dict[str, Any]) -> list[str]:
     """Two servers whose metrics HTTP servers would bind the same port: the second one fails to."""
-    enabled: list[tuple[str, str, int]] = []
-    destinations = configs.get("destination_server")
-    if destinations is not None and destinations.node.flb.http_server:
-        flb = destinations.node.flb
-        enabled.append(("destination_server.flb", flb.http_listen, flb.http_port))
-    groups = configs.get("group_server")
-    if groups is not None and groups.http_server:
-        enabled.append(("group_server", groups.http_listen, groups.http_port))
-    measurements = configs.get("measurement_server")
-    if measurements is not None and measurements.node.http_server:
-        enabled.append(("measurement_server", measurements.node.http_listen, measurements.node.http_port))
+    enabled = metrics_endpoints(configs)
     warnings = []
-    for i, (where, listen, port) in enumerate(enabled):
-        for other, other_listen, other_port in enabled[:i]:
-            wildcard = "0.0.0.0" in (listen, other_listen) or "" in (listen, other_listen)
-            if port != 0 and port == other_port and (listen == other_listen or wildcard):
+    for i, endpoint in enumerate(enabled):
+        for other in enabled[:i]:
+            wildcard = "0.0.0.0" in (endpoint.listen, other.listen) or "" in (endpoint.listen, other.listen)
+            if endpoint.port != 0 and endpoint.port == other.port and (endpoint.listen == other.listen or wildcard):
                 warnings.append(
-                    f"{where}.http_port: {port} is also {other}.http_port: {where.split('.')[0]} will not serve "
-                    "its metrics"
+                    f"{endpoint.path}.http_port: {endpoint.port} is also {other.path}.http_port: {endpoint.server} "
+                    "will not serve its metrics"
                 )
     return warnings
 

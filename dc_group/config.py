@@ -72,11 +72,8 @@ class GroupConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class GroupServerConfig:
+    node: GroupServerParams
     groups: tuple[GroupConfig, ...]
-    heartbeat_period: float = 1.0
-    http_server: bool = False
-    http_listen: str = "127.0.0.1"
-    http_port: int = 2021
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -121,14 +118,7 @@ def parse_group_server(section: dict[str, Any], path: str = "group_server") -> G
         for g in groups
         if g.sync_timeout < g.sync_delay
     ]
-    return GroupServerConfig(
-        groups=groups,
-        heartbeat_period=node.heartbeat_period,
-        http_server=node.http_server,
-        http_listen=node.http_listen,
-        http_port=node.http_port,
-        warnings=warnings,
-    )
+    return GroupServerConfig(node=node, groups=groups, warnings=warnings)
 
 
 def _parse_group(name: str, section: Any, path: str) -> GroupConfig:

@@ -54,7 +54,7 @@ class GroupServer(ManagedServer):
         config = parse_group_server(sections[NODE_NAME], NODE_NAME)
         for warning in config.warnings:
             self.get_logger().warning(warning)
-        self.set_heartbeat_period(config.heartbeat_period)
+        self.set_heartbeat_period(config.node.heartbeat_period)
         for group in config.groups:
             pipeline = GroupPipeline(group, self.get_logger())
             self.pipelines[group.name] = pipeline
@@ -80,8 +80,16 @@ class GroupServer(ManagedServer):
         period = min(0.5, max(0.02, min(timeouts) / 4)) if timeouts else 0.5
         self._expiry_timer = self.create_timer(period, self._expire)
         assert self.config is not None
-        if self.config.http_server:
-            self._start_status_server(self.config.http_listen, self.config.http_port)
+        node = self.config.node
+        if node.http_server:
+            self._status = start_status_server(
+                self.get_logger(),
+                node.http_listen,
+                node.http_port,
+                health=lambda: self.lifecycle_state == "active",
+                metrics=self.metrics_document,
+                prometheus=lambda: group_prometheus_text(self.metrics_document()),
+            )
 
     def deactivate_server(self) -> None:
         for subscription in self._input_subscriptions:
@@ -177,16 +185,6 @@ class GroupServer(ManagedServer):
     @property
     def http_address(self) -> tuple[str, int] | None:
         return self._status.address if self._status is not None else None
-
-    def _start_status_server(self, listen: str, port: int) -> None:
-        self._status = start_status_server(
-            self.get_logger(),
-            listen,
-            port,
-            health=lambda: self.lifecycle_state == "active",
-            metrics=self.metrics_document,
-            prometheus=lambda: group_prometheus_text(self.metrics_document()),
-        )
 
 
 def main() -> int:
