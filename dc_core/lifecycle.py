@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
@@ -34,6 +34,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from dc_core.errors import DcError
 from dc_core.executors import SPIN_PERIOD_S
+from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import EXECUTOR_TURN_S, Intake
 from dc_interfaces.msg import Heartbeat
 
@@ -58,6 +59,31 @@ class ManagedServer(LifecycleNode):
         self._heartbeat_pub = self.create_publisher(Heartbeat, HEARTBEAT_TOPIC, HEARTBEAT_QOS)
         # The heartbeat runs in every state: it tells the manager the process is alive.
         self._heartbeat_timer = self.create_timer(heartbeat_period, self._send_heartbeat)
+        self._metrics_http: StatusServer | None = None
+
+    # -- metrics over HTTP -------------------------------------------------------------------
+    def start_metrics_http(
+        self, listen: str, port: int, document: Callable[[], dict[str, Any]], prometheus: Callable[[], str]
+    ) -> None:
+        """Serve ``document()`` (and its Prometheus text) while active; health is the lifecycle state."""
+        self._metrics_http = start_status_server(
+            self.get_logger(),
+            listen,
+            port,
+            health=lambda: self.lifecycle_state == "active",
+            metrics=document,
+            prometheus=prometheus,
+        )
+
+    def stop_metrics_http(self) -> None:
+        if self._metrics_http is not None:
+            self._metrics_http.stop()
+            self._metrics_http = None
+
+    @property
+    def http_address(self) -> tuple[str, int] | None:
+        """Where the metrics HTTP server listens (None when it does not run)."""
+        return self._metrics_http.address if self._metrics_http is not None else None
 
     # -- heartbeat ---------------------------------------------------------------------------
     def _send_heartbeat(self) -> None:

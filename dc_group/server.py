@@ -15,7 +15,6 @@ from typing import Any
 
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError
-from dc_core.http_status import StatusServer, start_status_server
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
 from dc_group.config import GroupServerConfig, parse_group_server
@@ -44,7 +43,6 @@ class GroupServer(ManagedServer):
         self._zero_stamp_warned: set[str] = set()
         # The metrics HTTP thread reads what the executor's callbacks change.
         self._lock = threading.Lock()
-        self._status: StatusServer | None = None
 
     # -- transitions ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -82,13 +80,11 @@ class GroupServer(ManagedServer):
         assert self.config is not None
         node = self.config.node
         if node.http_server:
-            self._status = start_status_server(
-                self.get_logger(),
+            self.start_metrics_http(
                 node.http_listen,
                 node.http_port,
-                health=lambda: self.lifecycle_state == "active",
-                metrics=self.metrics_document,
-                prometheus=lambda: group_prometheus_text(self.metrics_document()),
+                self.metrics_document,
+                lambda: group_prometheus_text(self.metrics_document()),
             )
 
     def deactivate_server(self) -> None:
@@ -104,9 +100,7 @@ class GroupServer(ManagedServer):
             for name, pipeline in self.pipelines.items():
                 self._publish(name, pipeline.flush())
                 self.get_logger().info(f"group {name}: {pipeline.stats()}")
-        if self._status is not None:
-            self._status.stop()
-            self._status = None
+        self.stop_metrics_http()
 
     def cleanup_server(self) -> None:
         for publisher in self._group_publishers.values():
@@ -181,10 +175,6 @@ class GroupServer(ManagedServer):
         with self._lock:
             inputs = {topic: {"malformed": self.malformed.get(topic, 0)} for topic in self._routes}
         return {"groups": groups, "inputs": inputs}
-
-    @property
-    def http_address(self) -> tuple[str, int] | None:
-        return self._status.address if self._status is not None else None
 
 
 def main() -> int:

@@ -13,7 +13,6 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, PluginError
-from dc_core.http_status import StatusServer, start_status_server
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import Logger
 from dc_core.measurement import BasePaths, Measurement
@@ -68,7 +67,6 @@ class MeasurementServer(ManagedServer):
         self._init_pending: list[str] = []
         self._start_deadline = 0.0
         self._init_timer: Any = None
-        self._status: StatusServer | None = None
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -195,18 +193,12 @@ class MeasurementServer(ManagedServer):
         assert self.config is not None
         node = self.config.node
         if node.http_server:
-            self._status = start_status_server(
-                self.get_logger(),
+            self.start_metrics_http(
                 node.http_listen,
                 node.http_port,
-                health=lambda: self._active,
-                metrics=self.metrics_document,
-                prometheus=lambda: measurement_prometheus_text(self.metrics_document()),
+                self.metrics_document,
+                lambda: measurement_prometheus_text(self.metrics_document()),
             )
-
-    @property
-    def http_address(self) -> tuple[str, int] | None:
-        return self._status.address if self._status is not None else None
 
     def metrics_document(self) -> dict[str, Any]:
         """Per measurement its counters since configure (the HTTP thread reads them: ints, no lock needed)."""
@@ -267,9 +259,7 @@ class MeasurementServer(ManagedServer):
 
     def deactivate_server(self) -> None:
         self._active = False
-        if self._status is not None:
-            self._status.stop()
-            self._status = None
+        self.stop_metrics_http()
         self._init_pending.clear()
         if self._init_timer is not None:
             self._init_timer.cancel()

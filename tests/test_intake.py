@@ -173,6 +173,9 @@ def test_unsubscribing_from_a_callback_stops_the_drain(contexts: tuple[Context, 
         node.destroy_node()
 
 
+TICK_PERIOD_S = 0.005
+
+
 class IntakeServer(ManagedServer):
     """A server that, like destination_server, subscribes through its intake while active."""
 
@@ -184,6 +187,8 @@ class IntakeServer(ManagedServer):
         self.plugin_received: list[str] = []
         self._subscription: Any = None
         self._plugin_subscription: Any = None
+        self.ticks = 0
+        self._ticker: Any = None
 
     def configure_server(self) -> None:
         pass
@@ -194,6 +199,11 @@ class IntakeServer(ManagedServer):
         self._plugin_subscription = self.create_subscription(
             String, self.topic + "_plugin", lambda msg: self.plugin_received.append(msg.data), RECORD_QOS
         )
+        # A fast timer, like a measurement's collection.
+        self._ticker = self.create_timer(TICK_PERIOD_S, self._tick)
+
+    def _tick(self) -> None:
+        self.ticks += 1
 
     def _on_record(self, msg: Any, info: Any) -> None:
         if msg.data == self.fail_on:
@@ -203,6 +213,7 @@ class IntakeServer(ManagedServer):
     def deactivate_server(self) -> None:
         self.intake.unsubscribe(self._subscription)
         self.destroy_subscription(self._plugin_subscription)
+        self.destroy_timer(self._ticker)
 
     def cleanup_server(self) -> None:
         pass
@@ -288,6 +299,19 @@ def test_the_nodes_own_subscriptions_keep_up_while_the_intake_is_active(
     assert wait_for(lambda: server.plugin_received == texts, peer.spin), len(server.plugin_received)
     assert wait_for(lambda: server.received == ["record"], peer.spin)
     assert logger.at("error") == []
+
+
+def test_timers_fire_at_their_period_while_the_intake_is_active(
+    served: tuple[IntakeServer, Peer, RecordingLogger],
+) -> None:
+    server, peer, _logger = served
+    peer.bring_up(server.get_name())
+    assert wait_for(lambda: peer.publisher.get_subscription_count() == 1, peer.spin)
+    assert server.intake.active
+    # rcl skips the periods a timer missed: with a turn every EXECUTOR_TURN_S (50 ms) instead of one
+    # when the timer is due, 400 ticks of a 5 ms timer would take 20 s, beyond wait_for's deadline.
+    ticks_before = server.ticks
+    assert wait_for(lambda: server.ticks >= ticks_before + 400, peer.spin), server.ticks - ticks_before
 
 
 def test_qos_events_of_intake_subscriptions_still_reach_the_log(
