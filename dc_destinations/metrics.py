@@ -71,7 +71,7 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         ("received", "Records routed to the destination"),
         ("sent", "Records the destination confirmed"),
         ("retried", "Records put back in the queue after a failed attempt"),
-        ("failed", "send() calls that failed in whole or in part"),
+        ("failed", "send() calls that failed in whole or in part, and failed buffer operations of the sender"),
         ("dropped", "Records dropped by the size limit or a full intake queue"),
         ("dead_lettered", "Records moved to the dead-letter table"),
         ("dead_letters_dropped", "Oldest dead letters deleted by dead_letter_limit_size"),
