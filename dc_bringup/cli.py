@@ -49,13 +49,12 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_pub(args: argparse.Namespace) -> int:
+    from dc_core.records import MalformedRecord, parse_record
+
     try:
-        parsed = json.loads(args.json)
-    except json.JSONDecodeError as exc:
-        print(f"dc pub: the record is not JSON: {exc}", file=sys.stderr)
-        return 2
-    if not isinstance(parsed, dict):
-        print("dc pub: the record must be a JSON object", file=sys.stderr)
+        parse_record(args.json)
+    except MalformedRecord as exc:  # what DC's servers would count as malformed is not sent at all
+        print(f"dc pub: refused, not JSON that DC carries: {exc}", file=sys.stderr)
         return 2
     import rclpy
     from rclpy.duration import Duration
@@ -148,6 +147,7 @@ STATUS_COLUMNS = [
     ("retried", "retried"),
     ("failed", "failed"),
     ("dropped", "dropped"),
+    ("malformed", "malformed"),
     ("dead_lettered", "dead-lettered"),
     ("dead_letters", "dead now"),
     ("dead_letters_dropped", "dead dropped"),
@@ -176,6 +176,7 @@ MEASUREMENT_COLUMNS = [
     ("errors", "errors"),
     ("malformed", "malformed"),
     ("lost", "lost"),
+    ("replaced", "replaced"),
 ]
 
 
@@ -229,6 +230,11 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
             f"buffer: {buffer.get('path')} (storage_sync {buffer.get('storage_sync')}), "
             f"awaiting commit {buffer.get('intake_pending')}, corrupt files set aside {buffer.get('quarantined')}"
         )
+        if buffer.get("commit_error"):
+            print(
+                f"buffer: COMMITS FAILING for {_cell(buffer.get('commit_failing_s'))} s, records wait in memory: "
+                f"{buffer['commit_error']}"
+            )
     for section, values in sorted(metrics.items()):
         if section not in ("destinations", "buffer") and isinstance(values, dict):
             print(f"{section}: " + ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict)))

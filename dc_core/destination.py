@@ -11,7 +11,6 @@ destination's own worker thread, never on the ROS executor, so it may block on I
 from __future__ import annotations
 
 import abc
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol
@@ -19,6 +18,7 @@ from typing import Any, ClassVar, Protocol
 from dc_core.errors import DcError
 from dc_core.logs import Logger
 from dc_core.params import NoParams
+from dc_core.records import dump_record
 
 
 class RetryableError(DcError):
@@ -53,9 +53,10 @@ class OutgoingRecord:
     json_text: str | None = field(default=None, compare=False, repr=False)
 
     def to_json(self) -> str:
+        """Compact JSON text; :class:`dc_core.records.MalformedRecord` if ``data`` is not valid UTF-8 JSON."""
         if self.json_text is not None:
             return self.json_text
-        return json.dumps(self.data, ensure_ascii=False, separators=(",", ":"))
+        return dump_record(self.data)
 
 
 class DestinationContext(Protocol):

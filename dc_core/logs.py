@@ -20,7 +20,9 @@ class BurstLog:
     """Log the first event of a burst at once, then a summary when ``quiet`` seconds pass without one.
 
     While a burst lasts longer than ``interval``, a summary is also written every ``interval``
-    seconds, so a drop that never stops stays visible. Call :meth:`tick` periodically.
+    seconds, so a drop that never stops stays visible. Call :meth:`tick` periodically. With
+    ``each`` above 1, the first ``each`` events of a burst get a line of their own (their details
+    differ: two malformed records are two different mistakes), the rest are counted.
     """
 
     def __init__(
@@ -31,8 +33,11 @@ class BurstLog:
         quiet: float = 5.0,
         interval: float = 60.0,
         clock: Callable[[], float] = time.monotonic,
+        each: int = 1,
     ) -> None:
         self._log = log
+        self._each = each
+        self._logged_in_burst = 0
         self._what = what
         self._quiet = quiet
         self._interval = interval
@@ -44,12 +49,16 @@ class BurstLog:
         self._last_event = 0.0
         self._last_summary = 0.0
 
-    def event(self, count: int, detail: str) -> None:
+    def event(self, count: int, detail: str) -> bool:
+        """Count ``count`` events; True when this call logged a line of its own."""
         now = self._clock()
         message = None
         with self._lock:
             if self._burst_start is None:
                 self._burst_start = self._last_summary = now
+                self._logged_in_burst = 0
+            if self._logged_in_burst < self._each:
+                self._logged_in_burst += 1
                 message = f"{self._what}: {count} ({detail})"
             else:
                 self._pending += count
@@ -58,6 +67,7 @@ class BurstLog:
         if message is not None:
             self._log(message)
         self.tick()
+        return message is not None
 
     def tick(self) -> None:
         now = self._clock()

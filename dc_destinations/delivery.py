@@ -16,9 +16,9 @@ must be retried.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import queue
+import sqlite3
 import threading
 import time
 import uuid
@@ -31,9 +31,11 @@ from dc_core.destination import Destination, OutgoingRecord, RejectedError, Retr
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.logs import BurstLog, Logger
 from dc_core.paths import expand_env
+from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.backoff import Backoff
 from dc_destinations.buffer import (
     FILE_NAME,
+    AppendResult,
     BufferClosed,
     BufferCorrupted,
     BufferedRow,
@@ -125,6 +127,30 @@ class _Handoff:
 
 
 @dataclass
+class _CommitBatch:
+    """The records of one group commit by destination, with their hop keys."""
+
+    by_destination: dict[str, list[PendingRecord]] = field(default_factory=dict)
+    limits: dict[str, QueueLimit] = field(default_factory=dict)
+    seen: list[tuple[str, int, int]] = field(default_factory=list)
+    committed: list[tuple[str, str]] = field(default_factory=list)  # (destination, record_id), as they came
+
+    def add(self, route: _Route, record: PendingRecord) -> None:
+        self.by_destination.setdefault(route.name, []).append(record)
+        self.limits[route.name] = route.limit
+        self.committed.append((route.name, record.record_id))
+
+    @property
+    def count(self) -> int:
+        return len(self.committed)
+
+
+def _may_pass(exc: Exception) -> bool:
+    """Whether a failed commit is the disk's or the system's (retry it) rather than its records' own."""
+    return isinstance(exc, (sqlite3.OperationalError, OSError, MemoryError, BufferClosed))
+
+
+@dataclass
 class _Route:
     name: str
     destination: Destination
@@ -136,6 +162,7 @@ class _Route:
     failure_log: BurstLog
     dead_letter_log: BurstLog
     dead_letter_drop_log: BurstLog
+    malformed_log: BurstLog
     wakeup: threading.Event = field(default_factory=threading.Event)
     pending_hint: int = 0
     thread: threading.Thread | None = None
@@ -145,6 +172,7 @@ class _Route:
         self.failure_log.tick()
         self.dead_letter_log.tick()
         self.dead_letter_drop_log.tick()
+        self.malformed_log.tick()
 
 
 class DeliveryPipeline:
@@ -191,6 +219,9 @@ class DeliveryPipeline:
                     f"destination {name}: oldest dead letters deleted "
                     f"(dead_letter_limit_size {params.dead_letter_limit_size})",
                 ),
+                malformed_log=BurstLog(
+                    logger.error, f"destination {name}: records not stored, they are not valid UTF-8 JSON"
+                ),
             )
         self._intake_drop_log = BurstLog(logger.error, "delivery intake: records dropped")
         self._commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
@@ -201,6 +232,8 @@ class DeliveryPipeline:
         self._closing = threading.Event()
         self._deadline = float("inf")
         self._quarantined = 0
+        # (since, error) while group commits fail for a reason that may pass (disk full, I/O error).
+        self._commit_error: tuple[float, str] | None = None
         self._last_log_tick = 0.0
         self._commit_listeners: list[Callable[[Sequence[tuple[str, str]]], None]] = []
         self._status: StatusServer | None = None
@@ -403,39 +436,84 @@ class DeliveryPipeline:
 
     def _commit(self, items: list[Any]) -> None:
         """One group commit of intake items: ``(route, record)`` pairs and :class:`_Handoff` s."""
-        records: list[tuple[_Route, OutgoingRecord]] = []
-        seen: list[tuple[str, int, int]] = []
-        for item in items:
-            if isinstance(item, _Handoff):
-                records.extend(item.records)
-                if item.seen is not None:
-                    seen.append(item.seen)
-            else:
-                records.append(item)
-        by_destination: dict[str, list[PendingRecord]] = {}
-        for route, record in records:
-            by_destination.setdefault(route.name, []).append(
-                PendingRecord(record.record_id, record.topic, record.stamp_ns, record.to_json())
-            )
-        limits = {name: self._routes[name].limit for name in by_destination}
+        handoffs = [item if isinstance(item, _Handoff) else _Handoff([item], None) for item in items]
+        batch = self._storable(handoffs)
         assert self._buffer is not None
         while True:
             try:
-                result = self._buffer.append(by_destination, limits, seen=seen, seen_window=self._seen_window)
+                result = self._buffer.append(
+                    batch.by_destination, batch.limits, seen=batch.seen, seen_window=self._seen_window
+                )
                 break
             except BufferCorrupted:
                 continue  # the buffer was replaced by an empty one: write the batch there
-            except Exception as exc:  # disk full, I/O error: keep the batch and try again
-                self._commit_log.event(len(records), f"{type(exc).__name__}: {exc}")
-                if self._closing.wait(1.0) or not self._accepting:
-                    for name, batch in by_destination.items():
-                        self._routes[name].metrics.add("received", len(batch))
-                        self._routes[name].metrics.add("dropped", len(batch))
-                    self.logger.error(f"delivery buffer: {len(records)} records lost at shutdown: {exc}")
+            except Exception as exc:
+                if not _may_pass(exc):
+                    # Something in the records themselves: find it, so that one record never holds up
+                    # the others (a group commit retried forever stalled every destination).
+                    self._commit_apart(handoffs, exc)
                     return
-        for name, batch in by_destination.items():
+                # Disk full, I/O error: keep the batch and try again, visibly.
+                self._commit_failed(batch, exc)
+                if self._closing.wait(1.0) or not self._accepting:
+                    for name, records in batch.by_destination.items():
+                        self._routes[name].metrics.add("received", len(records))
+                        self._routes[name].metrics.add("dropped", len(records))
+                    self.logger.error(f"delivery buffer: {batch.count} records lost at shutdown: {exc}")
+                    return
+        self._commit_error = None
+        self._account(batch, result)
+
+    def _storable(self, handoffs: list[_Handoff]) -> _CommitBatch:
+        """What of ``handoffs`` the buffer can hold; a record that is not valid UTF-8 JSON is counted apart."""
+        batch = _CommitBatch()
+        for handoff in handoffs:
+            if handoff.seen is not None:
+                batch.seen.append(handoff.seen)
+            for route, record in handoff.records:
+                try:
+                    pending = PendingRecord(record.record_id, record.topic, record.stamp_ns, record.to_json())
+                    pending.size  # noqa: B018 - encodes the payload: a lone surrogate fails here, not in append
+                except (MalformedRecord, UnicodeError, ValueError, TypeError, RecursionError) as exc:
+                    self._not_storable(route, record.record_id, f"{type(exc).__name__}: {exc}")
+                    continue
+                batch.add(route, pending)
+        return batch
+
+    def _commit_apart(self, handoffs: list[_Handoff], exc: Exception) -> None:
+        """Commit each received record alone after ``exc`` failed their group commit."""
+        if len(handoffs) > 1:
+            for handoff in handoffs:
+                self._commit([handoff])
+            return
+        (handoff,) = handoffs
+        for route, record in handoff.records:
+            self._not_storable(route, record.record_id, f"the buffer refused it: {type(exc).__name__}: {exc}")
+        if handoff.seen is not None:
+            self._commit([_Handoff([], handoff.seen)])  # handled: a replay of it is not reported as new
+
+    def _not_storable(self, route: _Route, record_id: str, reason: str) -> None:
+        route.metrics.add("received")
+        route.metrics.add("malformed")
+        route.malformed_log.event(1, f"record {record_id}: {reason}")
+
+    def _commit_failed(self, batch: _CommitBatch, exc: Exception) -> None:
+        error = f"committing to the buffer: {type(exc).__name__}: {exc}"
+        if self._commit_error is None:
+            self._commit_error = (self._clock(), error)
+        else:
+            self._commit_error = (self._commit_error[0], error)
+        self._commit_log.event(batch.count, f"{type(exc).__name__}: {exc}")
+        for name in batch.by_destination:
+            metrics = self._routes[name].metrics
+            metrics.add("failed")
+            metrics.set_error(error)
+
+    def _account(self, batch: _CommitBatch, result: AppendResult) -> None:
+        """Counters, drop logs and sender wake-ups after a group commit."""
+        for name, records in batch.by_destination.items():
             route = self._routes[name]
-            route.metrics.add("received", len(batch))
+            route.metrics.add("received", len(records))
             dropped_newest = result.dropped_newest.get(name, 0)
             dropped_oldest = result.dropped_oldest.get(name, 0)
             if dropped_newest or dropped_oldest:
@@ -449,7 +527,7 @@ class DeliveryPipeline:
             if route.pending_hint >= route.params.batch_size:
                 route.wakeup.set()
         if self._commit_listeners:
-            committed = [(route.name, record.record_id) for route, record in records]
+            committed = batch.committed
             for listener in self._commit_listeners:
                 try:
                     listener(committed)
@@ -527,8 +605,9 @@ class DeliveryPipeline:
         unreadable: list[tuple[BufferedRow, str]] = []
         for row in rows:
             try:
-                data = json.loads(row.payload)
-            except ValueError as exc:
+                data = parse_record(row.payload)
+            except MalformedRecord as exc:
+                # Written by an older DC (it let NaN through) or changed by hand: never sent as is.
                 unreadable.append((row, f"unreadable payload in the buffer: {exc}"))
                 continue
             records.append(OutgoingRecord(row.record_id, row.topic, row.stamp_ns, data, json_text=row.payload))
@@ -661,13 +740,17 @@ class DeliveryPipeline:
         return out
 
     def buffer_metrics(self) -> dict[str, Any]:
-        """The buffer as a whole: file, sync mode, corrupt files set aside, records awaiting commit."""
+        """The buffer as a whole: file, sync mode, corrupt files set aside, records awaiting commit,
+        and while group commits fail, since how long and why."""
+        failing = self._commit_error
         return {
             "path": str(self.storage_file) if self.storage_file else None,
             "storage_sync": self.settings.storage_sync,
             "quarantined": self._quarantined,
             "intake_pending": self._intake.qsize(),
             "running": self._writer is not None and self._writer.is_alive(),
+            "commit_error": failing[1] if failing else "",
+            "commit_failing_s": round(self._clock() - failing[0], 3) if failing else 0.0,
         }
 
     def add_metrics_section(self, name: str, supplier: Callable[[], Any]) -> None:
@@ -682,7 +765,9 @@ class DeliveryPipeline:
         return document
 
     def healthy(self) -> bool:
-        if self._writer is None or not self._writer.is_alive():
+        """Writer and senders alive, and records reaching the disk (a failing group commit keeps
+        every new record in memory only)."""
+        if self._writer is None or not self._writer.is_alive() or self._commit_error is not None:
             return False
         return all(route.thread is not None and route.thread.is_alive() for route in self._routes.values())
 

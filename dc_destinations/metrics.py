@@ -15,7 +15,16 @@ from typing import Any
 
 from dc_core.http_status import PrometheusText, prometheus_labels
 
-COUNTERS = ("received", "sent", "retried", "failed", "dropped", "dead_lettered", "dead_letters_dropped")
+COUNTERS = (
+    "received",
+    "sent",
+    "retried",
+    "failed",
+    "dropped",
+    "malformed",
+    "dead_lettered",
+    "dead_letters_dropped",
+)
 
 
 @dataclass
@@ -25,6 +34,7 @@ class _Counts:
     retried: int = 0
     failed: int = 0
     dropped: int = 0
+    malformed: int = 0
     dead_lettered: int = 0
     dead_letters_dropped: int = 0
 
@@ -73,6 +83,7 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         ("retried", "Records put back in the queue after a failed attempt"),
         ("failed", "send() calls that failed in whole or in part, and failed buffer operations of the sender"),
         ("dropped", "Records dropped by the size limit or a full intake queue"),
+        ("malformed", "Records the buffer could not store: not valid UTF-8 JSON (normally caught at intake)"),
         ("dead_lettered", "Records moved to the dead-letter table"),
         ("dead_letters_dropped", "Oldest dead letters deleted by dead_letter_limit_size"),
     ):
@@ -111,6 +122,12 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         "counter",
         "Corrupt buffer files moved aside",
         [("", buffer["quarantined"])],
+    )
+    family(
+        "dc_delivery_commit_failing_seconds",
+        "gauge",
+        "How long group commits to the buffer have been failing (0 when they succeed)",
+        [("", float(buffer.get("commit_failing_s") or 0.0))],
     )
     family(
         "dc_delivery_intake_pending",

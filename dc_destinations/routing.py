@@ -4,7 +4,8 @@ A record that arrived on topic T reaches destination D only if D lists T in its 
 name is one of the record's ``tags`` — compared whole: the original matched tags as substrings, so
 a destination ``flb_pg`` also caught records tagged ``flb_pgsql``. Each delivery is a copy of the
 record without ``tags``, with the destination's time key first (the header stamp in its
-``time_format``) and a fresh ``record_id``. Pure: no ROS, no I/O.
+``time_format``) and a fresh ``record_id``, serialised (:func:`dc_core.records.dump_record`, which
+raises ``MalformedRecord`` for a record that is not valid UTF-8 JSON). Pure: no ROS, no I/O.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dc_core.destination import OutgoingRecord
+from dc_core.records import dump_record
 from dc_core.timefmt import format_stamp
 from dc_destinations.config import DestinationConfig
 
@@ -117,5 +119,7 @@ class RoutingTable:
                 data.pop(target.time_key, None)
                 # First, as the original's output showed it: {"date": ..., <record>}.
                 data = {target.time_key: format_stamp(stamp_ns, target.time_format), **data}
-            deliveries.append((target.name, OutgoingRecord(record_id, topic, stamp_ns, data)))
+            # Serialised here, once: what cannot be written back as JSON (an infinite number, a lone
+            # surrogate) raises MalformedRecord before any copy reaches the buffer.
+            deliveries.append((target.name, OutgoingRecord(record_id, topic, stamp_ns, data, dump_record(data))))
         return Routed(deliveries)

@@ -13,7 +13,6 @@ already holds and counts what was lost (docs/delivery.md, "The hop between serve
 from __future__ import annotations
 
 import functools
-import json
 import sys
 from collections import Counter
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from dc_core.errors import ConfigError, PluginError
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog, Logger
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
+from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline, new_record_id
 from dc_destinations.hop import HopIntake, HopKey, hop_key
@@ -38,6 +38,8 @@ PREVIEW_CHARS = 200
 # Keys kept per topic to recognise replays, in histories: a replay is at most one history per
 # publisher, so this covers four publishers of one topic (each of DC's own topics has one).
 HOP_WINDOW_HISTORIES = 4
+# Malformed records logged one by one at the start of a burst; the rest are counted in a summary.
+MALFORMED_LINES_PER_BURST = 10
 
 
 @dataclass
@@ -86,6 +88,9 @@ class DestinationServer(ManagedServer):
         self.hop: HopIntake | None = None
         self._hop_loss_log: BurstLog | None = None
         self._hop_log_timer: Any = None
+        self._malformed_log = BurstLog(
+            self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
+        )
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -152,7 +157,7 @@ class DestinationServer(ManagedServer):
         hop.load(HopKey(*key) for key in self.pipeline.hop_keys())
         self.hop = hop
         self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")
-        self._hop_log_timer = self.create_timer(1.0, self._hop_loss_log.tick)
+        self._hop_log_timer = self.create_timer(1.0, self._tick_logs)
         with_history = []
         for topic in self.routing.topics:
             qos = _with_room_for_a_replay(subscription_qos(topic, self._internal_topics))
@@ -187,8 +192,7 @@ class DestinationServer(ManagedServer):
         if self._hop_log_timer is not None:
             self.destroy_timer(self._hop_log_timer)
             self._hop_log_timer = None
-        if self._hop_loss_log is not None:
-            self._hop_loss_log.tick()
+        self._tick_logs()
 
     # -- intake (the main loop's intake, on the main thread) --------------------------------------------
     def _on_message(self, topic: str, msg: Any, info: Any = None) -> None:
@@ -206,22 +210,18 @@ class DestinationServer(ManagedServer):
             )
         self.stats.received += 1
         text: str = msg.data
-        try:
-            record = json.loads(text)
-        except ValueError as exc:
-            self._malformed(topic, text, f"invalid JSON ({exc})")
-            self._hand_over([], key)
-            return
-        if not isinstance(record, dict):
-            self._malformed(topic, text, f"expected a JSON object, got a JSON {type(record).__name__}")
-            self._hand_over([], key)
-            return
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if stamp_ns == 0:
             # An unstamped message (a bare `ros2 topic pub`) would otherwise be dated 1970.
             stamp_ns = self.get_clock().now().nanoseconds
         assert self.routing is not None
-        routed = self.routing.route(topic, record, stamp_ns, new_record_id)
+        try:
+            record = parse_record(text)
+            routed = self.routing.route(topic, record, stamp_ns, new_record_id)
+        except MalformedRecord as exc:
+            self._malformed(topic, text, str(exc))
+            self._hand_over([], key)
+            return
         if routed.unrouted_reason is not None:
             self._unrouted(topic, routed.unrouted_reason, record)
             self._hand_over([], key)
@@ -231,6 +231,11 @@ class DestinationServer(ManagedServer):
             if name in self._debug:
                 self.get_logger().info(f"{name} <- {outgoing.to_json()}")
         self._hand_over(routed.deliveries, key)
+
+    def _tick_logs(self) -> None:
+        if self._hop_loss_log is not None:
+            self._hop_loss_log.tick()
+        self._malformed_log.tick()
 
     def _hand_over(self, deliveries: list[tuple[str, Any]], key: HopKey | None) -> None:
         """Submit the copies of one record with its key, which is remembered once the pipeline took them.
@@ -248,10 +253,11 @@ class DestinationServer(ManagedServer):
     def _malformed(self, topic: str, text: str, reason: str) -> None:
         self.stats.malformed += 1
         log = self.get_logger()
-        log.error(f"record on {topic} not delivered: {reason}; {len(text)} chars: {text[:PREVIEW_CHARS]!r}")
+        own_line = self._malformed_log.event(1, f"{topic}: {reason}; {len(text)} chars: {text[:PREVIEW_CHARS]!r}")
         if len(text) > PREVIEW_CHARS:
-            # The buffer has no place for a record that is not a JSON object: this line is its only copy.
-            log.error(f"whole record on {topic} not delivered: {text!r}")
+            # The buffer has no place for a record it cannot parse: this line is its only copy. A
+            # flood of them (a broken or hostile publisher) is counted, and kept at debug level.
+            (log.error if own_line else log.debug)(f"whole record on {topic} not delivered: {text!r}")
 
     def _unrouted(self, topic: str, reason: str, record: dict[str, Any]) -> None:
         key = (topic, reason)

@@ -15,22 +15,17 @@ get ``<key>_2``, ``<key>_3``... (first free suffix).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from typing import Any
 
-from dc_core.errors import DcError
+from dc_core.records import MalformedRecord, parse_record
 from dc_group.config import GroupConfig
 
 MISSING_INPUTS_KEY = "missing_inputs"
 TAGS_KEY = "tags"
 NAME_KEY = "name"
-
-
-class MalformedRecord(DcError):
-    """An input message whose data is not a JSON object."""
 
 
 @dataclass(frozen=True)
@@ -59,13 +54,10 @@ def record_key(group_key: str, topic: str) -> str:
 def parse_input(topic: str, group_key: str, data: str) -> InputRecord:
     """Parse a StringStamped's data; raises :class:`MalformedRecord` unless it is a JSON object."""
     try:
-        record = json.loads(data)
-    except (json.JSONDecodeError, RecursionError) as exc:
+        record = parse_record(data)
+    except MalformedRecord as exc:
         preview = data if len(data) <= 80 else data[:77] + "..."
-        raise MalformedRecord(f"data of a message on {topic} is not JSON ({exc}): {preview!r}") from None
-    if not isinstance(record, dict):
-        kind = type(record).__name__
-        raise MalformedRecord(f"data of a message on {topic} is a JSON {kind}, not an object")
+        raise MalformedRecord(f"data of a message on {topic}: {exc}: {preview!r}") from None
     return InputRecord(topic=topic, key=record_key(group_key, topic), record=record)
 
 

@@ -17,8 +17,9 @@ from dc_core.config import load_params_file
 from dc_core.errors import ConfigError
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
+from dc_core.records import MalformedRecord
 from dc_group.config import GroupServerConfig, parse_group_server
-from dc_group.merge import MalformedRecord, parse_input
+from dc_group.merge import parse_input
 from dc_group.metrics import group_prometheus_text
 from dc_group.pipeline import GroupOutput, GroupPipeline
 from dc_interfaces.msg import StringStamped

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Mapping
 from typing import Any
 
 from dc_core.condition import Condition
 from dc_core.logs import Logger
+from dc_core.records import MalformedRecord, parse_record
 
 
 class ConditionRuntime:
@@ -37,14 +37,9 @@ class ConditionRuntime:
     def on_topic_record(self, data: str) -> None:
         """Latest record of the condition's own `topic`."""
         try:
-            parsed = json.loads(data)
-        except json.JSONDecodeError as exc:
-            self._logger.debug(f"condition {self.name}: record on {self.topic} is not JSON ({exc}); ignored")
-            return
-        if isinstance(parsed, dict):
-            self._latest = parsed
-        else:
-            self._logger.debug(f"condition {self.name}: record on {self.topic} is not a JSON object; ignored")
+            self._latest = parse_record(data)
+        except MalformedRecord as exc:
+            self._logger.debug(f"condition {self.name}: record on {self.topic} ignored: {exc}")
 
     def evaluate(self, sample: Mapping[str, Any] | None) -> bool:
         """Active now? Never raises: missing or malformed data means inactive, said at debug level."""

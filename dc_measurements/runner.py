@@ -6,7 +6,6 @@ publisher and calls :meth:`MeasurementRunner.tick` from the measurement's timer.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -15,6 +14,7 @@ from dc_core.gating import Gate
 from dc_core.jsonpath import flatten as flatten_record
 from dc_core.logs import Logger
 from dc_core.measurement import Measurement
+from dc_core.records import MalformedRecord, dump_record
 from dc_measurements.condition_runtime import ConditionRuntime, conditions_met
 from dc_measurements.config import MeasurementConfig
 from dc_measurements.metadata import apply_metadata
@@ -140,10 +140,10 @@ class MeasurementRunner:
         if record is None:
             return
         try:
-            text = json.dumps(record, ensure_ascii=False, separators=(",", ":"), allow_nan=False)
-        except (TypeError, ValueError) as exc:
+            text = dump_record(record)
+        except MalformedRecord as exc:  # a plugin's sample with NaN, a lone surrogate (a file name), ...
             self.stats.errors += 1
-            self._logger.error(f"measurement {self.config.name}: record is not JSON-serialisable: {exc}")
+            self._logger.error(f"measurement {self.config.name}: record not published: {exc}")
             return
         self._publish(text, self.config.common.group_key if group_key is None else group_key, stamp_ns)
         if self.config.common.debug:

@@ -130,6 +130,23 @@ def test_pub_rejects_non_json() -> None:
     assert result.returncode == 2 and "not JSON" in result.stderr
 
 
+@pytest.mark.parametrize(
+    ("record", "reason"),
+    [
+        ('{"v": NaN}', "NaN is not a JSON number"),
+        ('{"v": -Infinity}', "-Infinity is not a JSON number"),
+        ('{"v": 1e999}', "not finite"),
+        ('{"t": "\\udcff"}', "lone surrogate \\udcff"),
+        ("[1, 2]", "expected a JSON object, got a JSON array"),
+    ],
+    ids=["nan", "infinity", "overflow", "lone-surrogate", "array"],
+)
+def test_pub_refuses_what_the_servers_would_count_as_malformed(record: str, reason: str) -> None:
+    result = dc("pub", "/x", record)
+    assert result.returncode == 2, result.stderr
+    assert reason in result.stderr
+
+
 def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None:
     import http.server
     import json as _json
@@ -151,7 +168,14 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
                 "last_error": "HTTP 503 Service Unavailable",
             },
         },
-        "buffer": {"path": "/b/delivery.sqlite3", "storage_sync": "full", "quarantined": 1, "intake_pending": 0},
+        "buffer": {
+            "path": "/b/delivery.sqlite3",
+            "storage_sync": "full",
+            "quarantined": 1,
+            "intake_pending": 0,
+            "commit_error": "committing to the buffer: OperationalError: database or disk is full",
+            "commit_failing_s": 42.0,
+        },
         "intake": {"received": 10, "malformed": 2},
     }
 
@@ -185,6 +209,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert cells[:4] == ["pg", "10", "3", "600"] and "12.5" in cells
     assert row.endswith("HTTP 503 Service Unavailable")
     assert any("corrupt files set aside 1" in line for line in rest)
+    assert any("COMMITS FAILING for 42.0 s" in line and "disk is full" in line for line in rest), rest
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
     unreachable = dc("status", "--port", "1")
     assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr

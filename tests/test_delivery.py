@@ -197,6 +197,42 @@ def test_a_delivered_record_serialises_to_the_text_that_was_buffered(tmp_path: P
     assert got.to_json() == json.dumps(data, ensure_ascii=False, separators=(",", ":"))
 
 
+@pytest.mark.parametrize(
+    "poison",
+    [
+        OutgoingRecord("poison", "/t", 5, {"t": "\udcff"}),  # a lone surrogate: not UTF-8
+        OutgoingRecord("poison", "/t", 5, {"v": float("nan")}),  # NaN: not JSON
+        OutgoingRecord("poison", "/t", 5, {"t": "x"}, json_text='{"t":"\udcff"}'),  # text given as is
+        OutgoingRecord("poison", "/t", 2**64, {"t": "x"}),  # a stamp SQLite cannot store: append() fails
+    ],
+    ids=["lone-surrogate", "nan", "json-text", "stamp-overflow"],
+)
+def test_one_record_the_buffer_cannot_store_never_stops_the_others(tmp_path: Path, poison: OutgoingRecord) -> None:
+    logger = ListLogger()
+    sink = Recorder()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, commit_interval=0.05), {"sink": (sink, DestinationDeliveryParams())}, logger
+    )
+    pipeline.start()
+    try:
+        for n in range(5):
+            pipeline.submit_record([("sink", record(n))])
+        pipeline.submit_record([("sink", poison)], ("/t", 5, 5))
+        for n in range(5, 10):
+            pipeline.submit_record([("sink", record(n))])
+        delivered = sink.wait_for(10)
+        assert [r.data["n"] for r in delivered] == list(range(10))
+        assert pipeline.flush_intake(5.0)
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["malformed"] == 1 and metrics["received"] == 11
+        assert pipeline.healthy()
+        assert ("/t", 5, 5) in pipeline.hop_keys(), "the poison record's key is kept: a replay is not new"
+        (line,) = [line for level, line in logger.lines if "not valid UTF-8 JSON" in line]
+        assert "record poison" in line
+    finally:
+        pipeline.stop(grace=1.0)
+
+
 def test_retryable_failures_back_off_exponentially_then_deliver(tmp_path: Path) -> None:
     def fail_three_times(call: int, batch: Sequence[OutgoingRecord]) -> None:
         if call <= 3:
@@ -743,12 +779,18 @@ def test_a_full_disk_under_the_buffer_keeps_records_in_memory_until_space_return
         failure = next(line for _, line in logger.lines if "group commit failed" in line)
         assert "database or disk is full" in failure, failure
         assert len(sink.delivered) == 1, "a record reaches a destination only once committed"
+        # A commit that keeps failing is visible where operators look, not only in the log.
+        assert not pipeline.healthy()
+        assert "database or disk is full" in pipeline.metrics()["sink"]["last_error"]
+        assert pipeline.metrics()["sink"]["failed"] >= 1
+        assert "database or disk is full" in pipeline.buffer_metrics()["commit_error"]
 
         filler.unlink()
         delivered = sink.wait_for(151, timeout=30)
         assert [r.data["n"] for r in delivered] == list(range(151))
         metrics = pipeline.metrics()["sink"]
         assert metrics["dropped"] == 0 and metrics["buffered"] == 0
+        assert pipeline.healthy() and pipeline.buffer_metrics()["commit_error"] == ""
     finally:
         pipeline.stop(grace=1.0)
 

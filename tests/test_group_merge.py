@@ -180,11 +180,16 @@ def test_parse_input() -> None:
 @pytest.mark.parametrize(
     ("data", "message"),
     [
-        ("{not json", "is not JSON"),
-        ("[1, 2]", "JSON list, not an object"),
-        ("", "is not JSON"),
-        ("null", "NoneType"),
+        ("{not json", "invalid JSON"),
+        ("[1, 2]", "expected a JSON object, got a JSON array"),
+        ("", "invalid JSON"),
+        ("null", "got a JSON null"),
+        ('{"a": NaN}', "NaN is not a JSON number"),
+        ('{"a": 1e400}', "not finite"),
+        ('{"t": "\\udcff"}', "lone surrogate"),
+        ('{"a": ' + "[" * 5000 + "]" * 5000 + "}", "nested too deeply"),
     ],
+    ids=["not-json", "array", "empty", "null", "nan", "overflow", "lone-surrogate", "deep"],
 )
 def test_malformed_input_is_a_clear_error(data: str, message: str) -> None:
     with pytest.raises(MalformedRecord, match="/dc/measurement/cpu") as info:

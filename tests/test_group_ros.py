@@ -27,6 +27,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from dc_group.server import GroupServer
 from dc_interfaces.msg import StringStamped
+from tests.hostile_records import hostile_stream
 
 DEADLINE_S = 10.0
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -166,6 +167,30 @@ def test_malformed_json_is_counted_and_does_not_stop_the_group(start: Any) -> No
     h.publish("b", {"w": 2}, 6 * S)
     (record,) = h.wait_for_output("g")
     assert record.data == {"a": {"v": 1}, "b": {"w": 2}, "name": "g"}
+    assert h.server.lifecycle_state == "active"
+
+
+def test_hostile_input_is_counted_as_malformed_and_every_valid_record_is_grouped_once(start: Any) -> None:
+    h = start({"g": {"inputs": ["a"], "sync_delay": 0.1}})
+    activate(h)
+    out = h.listen("g")
+    stream = hostile_stream(valid=500, hostile=1500, tags=["file"], seed=7)
+    topic = h.topic("a")
+    for start_at in range(0, len(stream), 100):
+        chunk = stream[start_at : start_at + 100]
+        for i, item in enumerate(chunk, start_at):
+            h.publish("a", item.text, (i + 1) * S // 1000)  # one input: each valid record is a complete set
+        taken = start_at + len(chunk)
+        valid_so_far = sum(not item.malformed for item in stream[:taken])
+        malformed_so_far = taken - valid_so_far
+        assert h.spin_until(
+            lambda m=malformed_so_far, v=valid_so_far: h.server.malformed.get(topic, 0) == m and len(out) == v
+        ), f"{h.server.malformed.get(topic, 0)} malformed, {len(out)} grouped after {taken} inputs"
+    grouped = [r.data["a"] for r in out]
+    assert sorted(r["n"] for r in grouped if "n" in r) == list(range(500))
+    valid_odd = sorted(item.odd for item in stream if item.odd is not None)
+    assert sorted(r["odd"] for r in grouped if "odd" in r) == valid_odd
+    assert h.server.malformed[topic] == sum(item.malformed for item in stream)
     assert h.server.lifecycle_state == "active"
 
 

@@ -90,6 +90,7 @@ def test_prometheus_text_format() -> None:
         "retried": 1,
         "failed": 1,
         "dropped": 0,
+        "malformed": 3,
         "dead_lettered": 0,
         "dead_letters_dropped": 2,
         "buffered": 1,
@@ -98,13 +99,15 @@ def test_prometheus_text_format() -> None:
         "oldest_pending_age_s": 2.5,
         "last_error": "x",
     }
-    text = prometheus_text({'we"ird': row, "b": row}, {"quarantined": 1, "intake_pending": 0})
+    text = prometheus_text({'we"ird': row, "b": row}, {"quarantined": 1, "intake_pending": 0, "commit_failing_s": 12.5})
     assert "# TYPE dc_delivery_sent_total counter" in text
     assert 'dc_delivery_sent_total{destination="b"} 4' in text
     assert 'dc_delivery_received_total{destination="we\\"ird"} 5' in text
     assert 'dc_delivery_oldest_pending_age_seconds{destination="b"} 2.5' in text
     assert 'dc_delivery_dead_letters_dropped_total{destination="b"} 2' in text
     assert "dc_delivery_buffer_quarantined_total 1" in text
+    assert 'dc_delivery_malformed_total{destination="b"} 3' in text
+    assert "dc_delivery_commit_failing_seconds 12.5" in text
     assert text.endswith("\n")
 
 
@@ -123,6 +126,19 @@ def test_burst_log_is_one_line_then_a_summary() -> None:
     assert len(lines) == 2
     log.event(2, "again")  # a new burst starts with a line of its own
     assert lines[2] == "sink: records dropped: 2 (again)"
+
+
+def test_burst_log_gives_the_first_events_of_a_burst_a_line_each() -> None:
+    now = [0.0]
+    lines: list[str] = []
+    log = BurstLog(lines.append, "malformed", quiet=5.0, clock=lambda: now[0], each=3)
+    own_lines = [log.event(1, f"record {i}") for i in range(10)]
+    assert own_lines == [True] * 3 + [False] * 7
+    assert lines == [f"malformed: 1 (record {i})" for i in range(3)]
+    now[0] += 5.0
+    log.tick()
+    assert lines[3] == "malformed: 7 more in the last 5 s (latest: record 9)"
+    assert log.event(1, "next burst")  # a new burst has its own lines again
 
 
 def test_burst_log_reports_a_burst_that_never_ends() -> None:

@@ -32,6 +32,7 @@ from dc_core.lifecycle import ServerLoop
 from dc_interfaces.msg import StringStamped
 from dc_measurements.config import parse_measurement_server
 from dc_measurements.server import MeasurementServer
+from tests.hostile_records import hostile_stream
 
 DEADLINE_S = 15.0
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -360,8 +361,47 @@ def test_malformed_input_is_logged_and_counted_and_the_next_record_passes(
     harness.spin_until(lambda: len(measurement.received) >= 1, "the valid record")
     assert [r["seq"] for r in records(measurement.received)] == [2]
     log = capfd.readouterr().err
-    assert f"record on {topic} is not JSON" in log and "'{\"seq\": 1,'" in log, log
-    assert f"record on {topic} is not a JSON object" in log, log
+    assert f"malformed records on {topic} not published: 1 (invalid JSON" in log and "'{\"seq\": 1,'" in log, log
+    assert f"malformed records on {topic} not published: 1 (expected a JSON object, got a JSON array" in log, log
+
+
+def test_hostile_input_is_counted_as_malformed_and_every_valid_record_is_published_once(harness: Harness) -> None:
+    stream = hostile_stream(valid=500, hostile=1500, tags=["file"], seed=11)
+    measurement = start_string_stamped(harness, timer_based=False, qos_depth=1000)
+    plugin, received = measurement.plugin, measurement.received
+    runner = harness.server.runners[measurement.name] if harness.server else None
+    assert runner is not None
+    for start in range(0, len(stream), 200):
+        for item in stream[start : start + 200]:
+            measurement.publisher.publish(stamped(item.text, 1_700_000_000))
+        taken = min(start + 200, len(stream))
+        harness.spin_until(lambda taken=taken: plugin.malformed + runner.stats.collected >= taken, "the chunk")
+        # And read by this test before the next chunk: its own queue (depth 1000) must not overflow.
+        valid_so_far = sum(not item.malformed for item in stream[:taken])
+        harness.spin_until(lambda n=valid_so_far: len(received) >= n, "the chunk's valid records")
+
+    valid = [item for item in stream if not item.malformed]
+    published = records(received)
+    assert sorted(r["n"] for r in published if "n" in r) == list(range(500))
+    assert sorted(r["odd"] for r in published if "odd" in r) == sorted(i.odd for i in valid if i.odd is not None)
+    assert plugin.malformed == sum(item.malformed for item in stream)
+    assert runner.stats.errors == 0 and plugin.lost == 0
+
+
+def test_timer_based_counts_and_logs_once_the_records_a_newer_one_replaced(
+    harness: Harness, capfd: pytest.CaptureFixture[str]
+) -> None:
+    measurement = start_string_stamped(harness, timer_based=True)
+    plugin, received = measurement.plugin, measurement.received
+    for seq in range(50):  # a burst between two polls (polling_interval 100 ms)
+        measurement.publisher.publish(stamped(json.dumps({"seq": seq}), 1_700_000_000 + seq))
+    harness.spin_until(lambda: plugin.replaced + len(received) == 50, "every record published or replaced")
+    assert plugin.replaced > 0
+    assert records(received)[-1]["seq"] == 49, "the latest record is the one a poll publishes"
+    assert harness.server is not None
+    assert harness.server.metrics_document()["measurements"][measurement.name]["replaced"] == plugin.replaced
+    log = capfd.readouterr().err
+    assert log.count("replaced by a newer one before a poll published them") == 1, log
 
 
 def test_records_overwritten_in_the_input_queue_are_counted_and_logged(
@@ -412,6 +452,7 @@ def test_counters_are_served_over_http_while_active(harness: Harness) -> None:
                 "errors": 0,
                 "malformed": 1,
                 "lost": 0,
+                "replaced": 0,
             }
         }
     }

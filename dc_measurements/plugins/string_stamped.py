@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -11,10 +10,13 @@ from dc_core.errors import PluginError
 from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement
 from dc_core.params import param
+from dc_core.records import MalformedRecord, parse_record
 from dc_core.sequence_numbers import TopicWriters
 from dc_core.topics import ros_topic, topic_problem
 
 _LOGGED_TEXT = 2000
+# Malformed records logged one by one at the start of a burst; the rest are counted in a summary.
+_MALFORMED_LINES_PER_BURST = 10
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -24,7 +26,9 @@ class StringStampedParams:
         check=lambda name: topic_problem(name) and "a ROS 2 topic name",
     )
     timer_based: bool = param(
-        True, doc="true: publish the latest record at every polling interval; false: every record as it arrives"
+        True,
+        doc="true: publish the latest record at every polling interval (records arriving faster are "
+        "replaced, and counted as `replaced`); false: every record as it arrives",
     )
     qos_depth: int = param(100, minimum=1, doc="Subscription queue depth")
 
@@ -43,7 +47,11 @@ class StringStampedInput(Measurement):
         self._loss_log_timer: Any = None
         self._writers = TopicWriters()
         self._loss_log: BurstLog | None = None
+        self._malformed_log: BurstLog | None = None
+        self._replaced_log: BurstLog | None = None
         self.malformed = 0
+        # Records a newer one replaced before a poll published them (timer_based: true).
+        self.replaced = 0
         # Records your nodes published that never reached this subscription (DDS overwrote them in
         # a queue of qos_depth while the server was busy): seen as jumps in a publisher's numbers.
         self.lost = 0
@@ -70,7 +78,17 @@ class StringStampedInput(Measurement):
         self._loss_log = BurstLog(
             self.context.logger.error, f"measurement {self.context.name}: records lost before measurement_server"
         )
-        self._loss_log_timer = node.create_timer(1.0, self._loss_log.tick)
+        self._malformed_log = BurstLog(
+            self.context.logger.error,
+            f"measurement {self.context.name}: malformed records on {topic} not published",
+            each=_MALFORMED_LINES_PER_BURST,
+        )
+        self._replaced_log = BurstLog(
+            self.context.logger.warning,
+            f"measurement {self.context.name}: records on {topic} replaced by a newer one before a poll published "
+            "them (timer_based: true keeps the latest per polling_interval; timer_based: false forwards every record)",
+        )
+        self._loss_log_timer = node.create_timer(1.0, self._tick_logs)
         self._subscription = self.context.subscribe(
             StringStamped, topic, self._on_message, QoSProfile(depth=self.params.qos_depth)
         )
@@ -82,6 +100,11 @@ class StringStampedInput(Measurement):
         if self._loss_log_timer is not None:
             self.context.node.destroy_timer(self._loss_log_timer)
             self._loss_log_timer = None
+
+    def _tick_logs(self) -> None:
+        for log in (self._loss_log, self._malformed_log, self._replaced_log):
+            if log is not None:
+                log.tick()
 
     def _on_message(self, msg: Any, info: Any) -> None:
         seq = info.get("publication_sequence_number") if info else None
@@ -96,20 +119,11 @@ class StringStampedInput(Measurement):
                     f" the queues, qos_depth {self.params.qos_depth} and the publisher's depth, overflowed",
                 )
         try:
-            record = json.loads(msg.data)
-        except json.JSONDecodeError as exc:
+            record = parse_record(msg.data)
+        except MalformedRecord as exc:
             self.malformed += 1
-            self.context.logger.error(
-                f"measurement {self.context.name}: record on {self.params.topic} is not JSON ({exc}); "
-                f"record: {msg.data[:_LOGGED_TEXT]!r}"
-            )
-            return
-        if not isinstance(record, dict):
-            self.malformed += 1
-            self.context.logger.error(
-                f"measurement {self.context.name}: record on {self.params.topic} is not a JSON object; "
-                f"record: {msg.data[:_LOGGED_TEXT]!r}"
-            )
+            assert self._malformed_log is not None
+            self._malformed_log.event(1, f"{exc}; record: {msg.data[:_LOGGED_TEXT]!r}")
             return
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         group_key = msg.group_key or None
@@ -117,10 +131,15 @@ class StringStampedInput(Measurement):
             self.context.emit(record, stamp_ns=stamp_ns or None, group_key=group_key)
             return
         with self._lock:
+            replaced = self._latest is not None
             self._latest = (record, stamp_ns, msg.group_key)
+        if replaced:
+            self.replaced += 1
+            assert self._replaced_log is not None
+            self._replaced_log.event(1, "a newer record arrived before the next poll")
 
     def counters(self) -> dict[str, int]:
-        return {"malformed": self.malformed, "lost": self.lost}
+        return {"malformed": self.malformed, "lost": self.lost, "replaced": self.replaced}
 
     def collect_stamped(self) -> tuple[dict[str, Any] | None, int | None, str | None]:
         # Each received record is published once: the original re-published the last one at every tick.
