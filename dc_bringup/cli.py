@@ -174,6 +174,7 @@ MEASUREMENT_COLUMNS = [
     ("empty", "empty"),
     ("invalid", "invalid"),
     ("errors", "errors"),
+    ("overrun", "overrun"),
     ("malformed", "malformed"),
     ("lost", "lost"),
     ("replaced", "replaced"),

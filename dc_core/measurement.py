@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 from dc_core.errors import PluginError
 from dc_core.logs import Logger
 from dc_core.params import NoParams
+from dc_core.worker import Worker
 
 if TYPE_CHECKING:
     from rclpy.qos import QoSProfile
@@ -62,12 +63,22 @@ class MeasurementContext(Protocol):
     def unsubscribe(self, subscription: Any) -> None:
         """Destroy a subscription made by :meth:`subscribe`."""
 
+    @property
+    def worker(self) -> Worker:
+        """Threads for slow parts of a plugin's work (saving an image, hashing a file): ``submit(job,
+        on_done)`` runs ``job()`` on a thread and ``on_done(outcome)`` back on the main thread."""
+
 
 class Measurement(abc.ABC):
     """Base class of measurement plugins."""
 
     Params: ClassVar[type] = NoParams
     schema_file: ClassVar[str | None] = None
+    # True: collect() runs on the server's worker threads, so a collection that waits (a ping, a
+    # subprocess, a file written) never holds up records, other measurements' timers or the
+    # heartbeat. collect() must then not touch what callbacks on the main thread change without a
+    # lock; the sample is gated, validated and published on the main thread.
+    collect_in_worker: ClassVar[bool] = False
     schema_package: ClassVar[str] = "dc_measurements"
 
     def __init__(self, context: MeasurementContext, params: Any) -> None:

@@ -14,6 +14,7 @@ MEASUREMENT_COUNTERS = {
     "empty": "Collections that returned nothing",
     "invalid": "Records that failed JSON schema validation (published unless drop_invalid)",
     "errors": "Collections or record builds that raised, or records not valid JSON (NaN, lone surrogate)",
+    "overrun": "Polls skipped because the previous collection still ran on the worker (collect_in_worker)",
     "malformed": "Input messages that were not a JSON object DC can carry, skipped (StringStamped)",
     "lost": "Input messages DDS overwrote before they were taken, from publisher sequence gaps (StringStamped)",
     "replaced": "Input records a newer one replaced before a poll published them (StringStamped, timer_based)",

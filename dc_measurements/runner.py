@@ -6,15 +6,17 @@ publisher and calls :meth:`MeasurementRunner.tick` from the measurement's timer.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from dc_core.gating import Gate
 from dc_core.jsonpath import flatten as flatten_record
-from dc_core.logs import Logger
+from dc_core.logs import BurstLog, Logger
 from dc_core.measurement import Measurement
 from dc_core.records import MalformedRecord, dump_record
+from dc_core.worker import Outcome, Worker
 from dc_measurements.condition_runtime import ConditionRuntime, conditions_met
 from dc_measurements.config import MeasurementConfig
 from dc_measurements.metadata import apply_metadata
@@ -32,6 +34,14 @@ class RunnerStats:
     invalid: int = 0
     gated: int = 0
     errors: int = 0
+    overrun: int = 0
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """A period that collects: ``met`` is the verdict of conditions judged without the sample, if any."""
+
+    met: bool | None
 
 
 class MeasurementRunner:
@@ -58,6 +68,19 @@ class MeasurementRunner:
         self.gate = Gate(common.init_max_measurements, common.condition_max_measurements, bool(config.conditions))
         self.stats = RunnerStats()
         self._empty_warned = False
+        self._collecting = False
+        # Bumped at each activation and deactivation: a collection that finishes in another one
+        # than it started in is not published.
+        self._generation = 0
+        self._overrun_log = BurstLog(
+            logger.warning,
+            f"measurement {config.name}: polls skipped, the previous collection was still running",
+        )
+
+    def set_active(self, active: bool) -> None:
+        """Called by the server at activation and deactivation (see ``tick_in_worker``)."""
+        self._generation += 1
+        self._collecting = False
 
     @property
     def finished(self) -> bool:
@@ -73,24 +96,65 @@ class MeasurementRunner:
         return conditions_met(c.if_all_conditions, c.if_any_conditions, c.if_none_conditions, states)
 
     def tick(self) -> None:
-        """One polling period of a timer-driven measurement."""
-        if self.gate.finished:
+        """One polling period of a timer-driven measurement, collected on this thread."""
+        plan = self._plan()
+        if plan is not None:
+            self._collected(plan, self._collect_outcome(self.plugin.collect_stamped))
+
+    def tick_in_worker(self, worker: Worker) -> None:
+        """One polling period whose collection runs on ``worker`` (``collect_in_worker`` plugins).
+
+        The conditions that do not need the sample are judged now, the sample's own when it comes
+        back. A period that comes while the previous collection still runs is skipped and counted
+        as ``overrun``: collections of one measurement never overlap.
+        """
+        self._overrun_log.tick()
+        if self._collecting:
+            self.stats.overrun += 1
+            self._overrun_log.event(1, f"polling_interval {self.config.common.polling_interval} ms")
             return
+        plan = self._plan()
+        if plan is None:
+            return
+        self._collecting = True
+
+        def collect() -> tuple[dict[str, Any] | None, int | None, str | None]:
+            sample, stamp_ns, group_key = self.plugin.collect_stamped()
+            # Stamped when collected, not when the main thread gets to it.
+            return sample, stamp_ns if stamp_ns is not None else time.time_ns(), group_key
+
+        generation = self._generation
+
+        def on_done(outcome: Outcome[tuple[dict[str, Any] | None, int | None, str | None]]) -> None:
+            if generation != self._generation:
+                return
+            self._collecting = False
+            self._collected(plan, self._collect_outcome(outcome.get))
+
+        worker.submit(collect, on_done)
+
+    def _plan(self) -> _Plan | None:
+        """Whether this period collects, and the verdict of conditions judged without the sample."""
+        if self.gate.finished:
+            return None
         if self.gate.needs_conditions and not any(rt.needs_sample for rt in self._used_conditions()):
             met = self._evaluate(None)
             if not self.gate.would_admit(met):
                 # Conditions are judged without the sample: do not even collect (#213 upstream).
                 self.gate.observe_conditions(met)
                 self.stats.gated += 1
-                return
-            sample, stamp_ns, group_key = self._collect()
-            if sample is not None:
-                self._offer(sample, met, stamp_ns, group_key)
-            return
-        sample, stamp_ns, group_key = self._collect()
+                return None
+            return _Plan(met)
+        return _Plan(None)
+
+    def _collected(self, plan: _Plan, collected: tuple[dict[str, Any] | None, int | None, str | None]) -> None:
+        sample, stamp_ns, group_key = collected
         if sample is None:
             return
-        met = self._evaluate(sample) if self.gate.needs_conditions else True
+        if plan.met is not None:
+            met = plan.met
+        else:
+            met = self._evaluate(sample) if self.gate.needs_conditions else True
         self._offer(sample, met, stamp_ns, group_key)
 
     def emit(self, sample: dict[str, Any], stamp_ns: int | None = None, group_key: str | None = None) -> None:
@@ -103,9 +167,11 @@ class MeasurementRunner:
         met = self._evaluate(sample) if self.gate.needs_conditions else True
         self._offer(sample, met, stamp_ns, group_key)
 
-    def _collect(self) -> tuple[dict[str, Any] | None, int | None, str | None]:
+    def _collect_outcome(
+        self, collect: Callable[[], tuple[dict[str, Any] | None, int | None, str | None]]
+    ) -> tuple[dict[str, Any] | None, int | None, str | None]:
         try:
-            sample, stamp_ns, group_key = self.plugin.collect_stamped()
+            sample, stamp_ns, group_key = collect()
         except Exception as exc:  # one failing collect must not stop the measurement
             self.stats.errors += 1
             self._logger.error(f"measurement {self.config.name}: collect failed: {exc!r}")

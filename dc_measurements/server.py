@@ -18,6 +18,7 @@ from dc_core.logs import Logger
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
 from dc_core.qos import record_qos
+from dc_core.worker import Worker
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
@@ -29,6 +30,8 @@ from dc_measurements.validation import RecordValidator
 
 NODE_NAME = "measurement_server"
 INIT_MATCH_WAIT_S = 2.0
+# How long deactivate waits for collections running on the worker.
+WORKER_DRAIN_S = 5.0
 # Late subscribers (a dashboard, a test) get the current state of a condition at once.
 CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -52,6 +55,11 @@ class _PluginContext:
     def unsubscribe(self, subscription: Any) -> None:
         self.server.intake.unsubscribe(subscription)
 
+    @property
+    def worker(self) -> Worker:
+        assert self.server.worker is not None, "the worker exists from configure to cleanup"
+        return self.server.worker
+
 
 class MeasurementServer(ManagedServer):
     def __init__(self, params_file: str) -> None:
@@ -67,6 +75,13 @@ class MeasurementServer(ManagedServer):
         self._init_pending: list[str] = []
         self._start_deadline = 0.0
         self._init_timer: Any = None
+        # Slow work of plugins (collect_in_worker, context.worker): finished jobs wake the loop.
+        self.worker: Worker | None = None
+        self._worker_done = self.create_guard_condition(self._run_finished_work)
+
+    def _run_finished_work(self) -> None:
+        if self.worker is not None:
+            self.worker.run_finished()
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -86,6 +101,7 @@ class MeasurementServer(ManagedServer):
         # Last of the checks that can fail: a failed configure does not use up a run id.
         run_id = next_run_id(config.node.run_id)
         log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
+        self.worker = Worker(f"{NODE_NAME}-worker", self._worker_done.trigger)
 
         for name, ccfg in config.conditions.items():
             publisher = self.create_publisher(ConditionMsg, f"/dc/condition/{name}", CONDITION_QOS)
@@ -183,6 +199,7 @@ class MeasurementServer(ManagedServer):
                 )
         self._active = True
         for name, runner in self.runners.items():
+            runner.set_active(True)
             self._record_publishers[name].on_activate(None)
             runner.plugin.on_activate()
             if runner.plugin.timer_driven:
@@ -241,11 +258,18 @@ class MeasurementServer(ManagedServer):
 
     def _tick(self, name: str) -> None:
         runner = self.runners[name]
-        started = time.monotonic()
-        runner.tick()
-        elapsed = time.monotonic() - started
-        if elapsed > runner.config.common.polling_interval / 1000.0:
-            self.get_logger().warning(f"measurement {name}: collect took {elapsed:.3f} s, longer than its interval")
+        if runner.plugin.collect_in_worker:
+            assert self.worker is not None
+            runner.tick_in_worker(self.worker)
+        else:
+            started = time.monotonic()
+            runner.tick()
+            elapsed = time.monotonic() - started
+            if elapsed > runner.config.common.polling_interval / 1000.0:
+                self.get_logger().warning(
+                    f"measurement {name}: collect took {elapsed:.3f} s, longer than its interval, and held up "
+                    "the server meanwhile (a plugin whose collect waits should set collect_in_worker)"
+                )
         if runner.finished and name in self._collect_timers:
             timer = self._collect_timers.pop(name)
             timer.cancel()
@@ -259,6 +283,8 @@ class MeasurementServer(ManagedServer):
 
     def deactivate_server(self) -> None:
         self._active = False
+        for runner in self.runners.values():
+            runner.set_active(False)
         self.stop_metrics_http()
         self._init_pending.clear()
         if self._init_timer is not None:
@@ -272,6 +298,12 @@ class MeasurementServer(ManagedServer):
         for sub in self._condition_subscriptions:
             self.destroy_subscription(sub)
         self._condition_subscriptions.clear()
+        # A plugin is not deactivated under a collection still running on the worker.
+        if self.worker is not None and not self.worker.wait_idle(WORKER_DRAIN_S):
+            self.get_logger().warning(
+                f"deactivating while {self.worker.running} collection(s) still run after {WORKER_DRAIN_S:g} s; "
+                "their samples are dropped"
+            )
         errors = []
         for name, runner in self.runners.items():
             self._record_publishers[name].on_deactivate(None)
@@ -289,6 +321,9 @@ class MeasurementServer(ManagedServer):
 
     def cleanup_server(self) -> None:
         self._active = False
+        if self.worker is not None:
+            self.worker.shutdown()
+            self.worker = None
         for name, runner in self.runners.items():
             try:
                 runner.plugin.on_cleanup()

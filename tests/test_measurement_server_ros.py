@@ -7,14 +7,17 @@ participant, as another process' node would be.
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
+import threading
 import time
 import urllib.error
 import urllib.request
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from importlib.metadata import EntryPoint
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +31,11 @@ from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from dc_core.lifecycle import ServerLoop
-from dc_interfaces.msg import StringStamped
+from dc_core import plugins
+from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ServerLoop
+from dc_core.measurement import Measurement
+from dc_core.worker import Outcome, Worker
+from dc_interfaces.msg import Heartbeat, StringStamped
 from dc_measurements.config import parse_measurement_server
 from dc_measurements.server import MeasurementServer
 from tests.hostile_records import hostile_stream
@@ -450,6 +456,7 @@ def test_counters_are_served_over_http_while_active(harness: Harness) -> None:
                 "invalid": 0,
                 "gated": 0,
                 "errors": 0,
+                "overrun": 0,
                 "malformed": 1,
                 "lost": 0,
                 "replaced": 0,
@@ -507,3 +514,122 @@ def test_index_page_examples_are_valid_configurations(monkeypatch: pytest.Monkey
     assert blocks
     for block in blocks:
         parse_measurement_server(yaml.safe_load(block)["measurement_server"]["ros__parameters"])
+
+
+# --- slow collections on the worker ----------------------------------------------------------------
+# A plugin that sleeps 2 s in collect() (as a camera saving JPEGs or a ping to a dead host would
+# block) runs beside a 100 ms measurement in one server; the peer counts both outputs and the
+# server's heartbeats.
+
+SLEEP_S = 2.0
+
+
+class SleepyMeasurement(Measurement):
+    """Sleeps in collect(), as a collection waiting on a slow device does."""
+
+    collect_in_worker = True
+
+    def __init__(self, context: Any, params: Any) -> None:
+        super().__init__(context, params)
+        self.collections = 0
+        self.threads: set[str] = set()
+
+    def collect(self) -> dict[str, Any]:
+        self.threads.add(threading.current_thread().name)
+        time.sleep(SLEEP_S)
+        self.collections += 1
+        return {"collection": self.collections}
+
+
+@pytest.fixture
+def sleepy_plugin(monkeypatch: pytest.MonkeyPatch) -> None:
+    original = plugins._entry_points
+    entry = EntryPoint("test/Sleepy", f"{__name__}:SleepyMeasurement", "dc.measurements")
+
+    def with_sleepy(kind: str) -> dict[str, EntryPoint]:
+        found = original(kind)
+        return {**found, entry.name: entry} if kind == "measurements" else found
+
+    monkeypatch.setattr(plugins, "_entry_points", with_sleepy)
+
+
+def gaps(times: list[float]) -> list[float]:
+    return [b - a for a, b in itertools.pairwise(times)]
+
+
+def test_a_collection_sleeping_2_s_delays_neither_a_fast_measurement_nor_the_heartbeat(
+    harness: Harness,
+    sleepy_plugin: None,
+) -> None:
+    slow, fast = unique("sleepy"), unique("uptime")
+    server = harness.start_server(f"""
+measurement_server:
+  ros__parameters:
+    heartbeat_period: 0.2
+    measurement_plugins: ["{slow}", "{fast}"]
+    {slow}:
+      plugin: "test/Sleepy"
+      polling_interval: 500
+      enable_validator: false
+    {fast}:
+      plugin: "dc_measurements/Uptime"
+      polling_interval: 100
+""")
+    slow_out = harness.listen(f"/dc/measurement/{slow}")
+    fast_out = harness.listen(f"/dc/measurement/{fast}")
+    fast_times: list[float] = []
+    heartbeats: list[float] = []
+    harness.peer.create_subscription(
+        Heartbeat, HEARTBEAT_TOPIC, lambda msg: heartbeats.append(time.monotonic()), HEARTBEAT_QOS
+    )
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{fast}")
+    assert server.trigger_activate() == SUCCESS
+
+    def fast_arrivals() -> bool:
+        while len(fast_times) < len(fast_out):
+            fast_times.append(time.monotonic())
+        return len(slow_out) >= 2
+
+    harness.spin_until(fast_arrivals, "two records of the sleeping measurement", timeout=15.0)
+    plugin = server.runners[slow].plugin
+    assert isinstance(plugin, SleepyMeasurement)
+    assert [r["collection"] for r in records(slow_out)] == [1, 2]
+    assert all(name.startswith("measurement_server-worker") for name in plugin.threads), plugin.threads
+    # 100 ms and 200 ms periods: a collection on the main thread would leave 2 s gaps in both.
+    assert len(fast_times) >= 30
+    assert max(gaps(fast_times)) < 1.0, gaps(fast_times)
+    assert max(gaps(heartbeats)) < 1.0, gaps(heartbeats)
+    # Polls that came while a collection ran were skipped, not queued behind it.
+    assert server.runners[slow].stats.overrun >= 4
+    assert server.metrics_document()["measurements"][slow]["overrun"] == server.runners[slow].stats.overrun
+
+    # Deactivate waits for the collection under way; nothing of it is published afterwards.
+    assert server.trigger_deactivate() == SUCCESS
+    published = len(slow_out)
+    harness.spin_for(0.5)
+    assert len(slow_out) == published
+
+
+def test_worker_hands_outcomes_back_on_the_thread_that_runs_them() -> None:
+    woken = threading.Event()
+    worker = Worker("test-worker", woken.set, threads=2)
+    outcomes: list[tuple[str, Any]] = []
+
+    def fail() -> int:
+        raise ValueError("broken device")
+
+    try:
+        worker.submit(lambda: 42, lambda o: outcomes.append((threading.current_thread().name, o.get())))
+        worker.submit(fail, lambda o: outcomes.append(("error", o.error)))
+        assert worker.wait_idle(5.0)
+        assert woken.is_set()
+        assert outcomes == [], "nothing runs before the main thread asks"
+        assert worker.run_finished() == 2
+        assert (threading.current_thread().name, 42) in outcomes
+        (error,) = [o for kind, o in outcomes if kind == "error"]
+        assert isinstance(error, ValueError)
+        with pytest.raises(ValueError, match="broken device"):
+            Outcome[int](error=ValueError("broken device")).get()
+    finally:
+        worker.shutdown()

@@ -141,6 +141,8 @@ class Network(Measurement):
 
     Params = NetworkParams
     schema_file = "network.json"
+    # A probe waits up to ping_timeout (10 s at most) for its answer.
+    collect_in_worker = True
     params: NetworkParams
 
     def __init__(self, context: MeasurementContext, params: NetworkParams) -> None:
