@@ -17,10 +17,8 @@ class BoolEqualParams:
     value: bool = param(doc="Expected bool")
 
 
-class BoolEqual(Condition):
+class BoolEqual(Condition[BoolEqualParams]):
     """Bool at the key path equals `value` (a number or string is not a bool: inactive)."""
-
-    Params = BoolEqualParams
 
     def evaluate(self, sample: Mapping[str, Any] | None) -> bool:
         params: BoolEqualParams = self.params

@@ -16,10 +16,8 @@ class ExistParams:
     key: str = param(doc="Key path, `/`-separated, array items by index (`inspected/barcode/0`)")
 
 
-class Exist(Condition):
+class Exist(Condition[ExistParams]):
     """Key path exists in the sample, whatever its value (null, empty and false included)."""
-
-    Params = ExistParams
 
     def evaluate(self, sample: Mapping[str, Any] | None) -> bool:
         if sample is None:

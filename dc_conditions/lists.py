@@ -49,7 +49,7 @@ class ListStringEqualParams:
     order_matters: bool = param(True, doc=_ORDER_DOC)
 
 
-class _ListEqual(Condition):
+class _ListEqual(Condition[Any]):
     @staticmethod
     @abc.abstractmethod
     def read_item(item: Any) -> Any:

@@ -69,10 +69,9 @@ def linear_speed(odometry: Any) -> float:
     return math.sqrt(linear.x * linear.x + linear.y * linear.y + linear.z * linear.z)
 
 
-class Moving(Condition):
+class Moving(Condition[MovingParams]):
     """Robot is moving: odometry speed above a threshold, with hysteresis."""
 
-    Params = MovingParams
     needs_sample = False
 
     def __init__(self, context: ConditionContext, params: MovingParams) -> None:
@@ -89,23 +88,22 @@ class Moving(Condition):
             raise PluginError(f"{self.context.name}.count_hysteresis: {exc}") from None
 
     def on_configure(self) -> None:
-        node = self.context.node
-        if node is None:
+        if self.context.node is None:
             raise PluginError(f"{self.context.name}: Moving needs a ROS node to subscribe to odometry")
         self.on_cleanup()  # a second configure replaces the subscription rather than adding one
         with self._lock:
             self._hysteresis = self._new_hysteresis()
         topic = self.params.odom_topic
-        self._subscription = node.create_subscription(Odometry, topic, self._on_odometry, ODOMETRY_QOS)
+        self._subscription = self.context.subscribe(Odometry, topic, self._on_odometry, ODOMETRY_QOS)
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:
-            self.context.node.destroy_subscription(self._subscription)
+            self.context.unsubscribe(self._subscription)
             self._subscription = None
         with self._lock:
             self._hysteresis = None
 
-    def _on_odometry(self, message: Any) -> None:
+    def _on_odometry(self, message: Any, info: Any = None) -> None:
         speed = linear_speed(message)
         with self._lock:
             if self._hysteresis is not None:

@@ -48,7 +48,7 @@ class IntegerBoundParams:
     include_value: bool = param(True, doc=_INCLUDE_DOC)
 
 
-class _NumericCondition(Condition):
+class _NumericCondition(Condition[Any]):
     relation: ClassVar[Relation] = "equal"
     integers_only: ClassVar[bool] = False
 

@@ -78,10 +78,9 @@ def _typed(value: Any) -> tuple[str, Any]:
     return type(value).__name__, value
 
 
-class SameAsPrevious(Condition):
+class SameAsPrevious(Condition[SameAsPreviousParams]):
     """Sample equals the previous one, ignoring `tags` and `exclude`, comparing the files at `keys`."""
 
-    Params = SameAsPreviousParams
     remembers_samples = True
 
     def __init__(self, context: ConditionContext, params: SameAsPreviousParams) -> None:

@@ -19,10 +19,8 @@ class StringMatchParams:
     regex: str = param(doc="Python regular expression the whole string must match")
 
 
-class StringMatch(Condition):
+class StringMatch(Condition[StringMatchParams]):
     """String at the key path fully matches `regex` (a non-string value is inactive)."""
-
-    Params = StringMatchParams
 
     def __init__(self, context: ConditionContext, params: StringMatchParams) -> None:
         super().__init__(context, params)

@@ -15,46 +15,21 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Mapping
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar
 
-from dc_core.logs import Logger
-from dc_core.params import NoParams
+from dc_core.plugin import ParamsT, Plugin, PluginContext
 
-
-class ConditionContext(Protocol):
-    @property
-    def name(self) -> str: ...
-    @property
-    def logger(self) -> Logger: ...
-    @property
-    def node(self) -> Any:
-        """The rclpy node, for conditions with their own subscriptions (``None`` without ROS)."""
+ConditionContext = PluginContext
+"""What the measurement server gives a condition plugin (the common plugin context)."""
 
 
-class Condition(abc.ABC):
+class Condition(Plugin[ParamsT]):
     """Base class of condition plugins."""
 
-    Params: ClassVar[type] = NoParams
     needs_sample: ClassVar[bool] = True
     # True when the answer depends on earlier samples: such a condition should judge the samples of
     # one measurement only (configuration checks warn when several list it).
     remembers_samples: ClassVar[bool] = False
-
-    def __init__(self, context: ConditionContext, params: Any) -> None:
-        self.context = context
-        self.params = params
-
-    def on_configure(self) -> None:
-        """Create subscriptions; raise PluginError to fail configure."""
-
-    def on_activate(self) -> None:
-        """Called when the server activates."""
-
-    def on_deactivate(self) -> None:
-        """Called when the server deactivates."""
-
-    def on_cleanup(self) -> None:
-        """Release what on_configure created."""
 
     @abc.abstractmethod
     def evaluate(self, sample: Mapping[str, Any] | None) -> bool:

@@ -13,11 +13,10 @@ from __future__ import annotations
 import abc
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol
+from typing import Any
 
 from dc_core.errors import DcError
-from dc_core.logs import Logger
-from dc_core.params import NoParams
+from dc_core.plugin import ParamsT, Plugin, PluginContext
 from dc_core.records import dump_record
 
 
@@ -59,36 +58,12 @@ class OutgoingRecord:
         return dump_record(self.data)
 
 
-class DestinationContext(Protocol):
-    @property
-    def name(self) -> str: ...
-    @property
-    def logger(self) -> Logger: ...
-    @property
-    def node(self) -> Any:
-        """The rclpy node (``Rcl`` logs through it); ``None`` without ROS."""
+DestinationContext = PluginContext
+"""What the destination server gives a destination plugin (the common plugin context)."""
 
 
-class Destination(abc.ABC):
+class Destination(Plugin[ParamsT]):
     """Base class of destination plugins."""
-
-    Params: ClassVar[type] = NoParams
-
-    def __init__(self, context: DestinationContext, params: Any) -> None:
-        self.context = context
-        self.params = params
-
-    def on_configure(self) -> None:
-        """Check what can be checked without connecting; raise PluginError to fail configure."""
-
-    def on_activate(self) -> None:
-        """Open connections. Failing to connect here is not fatal: send() will be retried."""
-
-    def on_deactivate(self) -> None:
-        """Flush and close what send() keeps open."""
-
-    def on_cleanup(self) -> None:
-        """Release everything."""
 
     @abc.abstractmethod
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:

@@ -16,6 +16,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import rclpy
@@ -36,6 +37,9 @@ from dc_core.errors import DcError
 from dc_core.executors import SPIN_PERIOD_S
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import EXECUTOR_TURN_S, Intake
+from dc_core.logs import Logger
+from dc_core.plugin import MessageCallback
+from dc_core.worker import Worker
 from dc_interfaces.msg import Heartbeat
 
 HEARTBEAT_TOPIC = "/dc/heartbeat"
@@ -44,6 +48,36 @@ HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 EXECUTOR_TURN_MAX_CALLBACKS = 256
 # The shortest wait between two executor turns while the intake is active.
 TIMER_SLACK_S = 0.001
+
+
+@dataclass
+class ServerPluginContext:
+    """What a server gives each plugin instance (dc_core.plugin.PluginContext), for every kind."""
+
+    name: str
+    logger: Logger
+    server: ManagedServer
+
+    @property
+    def node(self) -> Any:
+        return self.server
+
+    def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile) -> Any:
+        return self.server.intake.subscribe(msg_type, topic, callback, qos)
+
+    def unsubscribe(self, subscription: Any) -> None:
+        self.server.intake.unsubscribe(subscription)
+
+    def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
+        return self.server.create_timer(period_s, callback)
+
+    def destroy_timer(self, timer: Any) -> None:
+        timer.cancel()
+        self.server.destroy_timer(timer)
+
+    @property
+    def worker(self) -> Worker:
+        return self.server.worker
 
 
 class ManagedServer(LifecycleNode):
@@ -60,6 +94,34 @@ class ManagedServer(LifecycleNode):
         # The heartbeat runs in every state: it tells the manager the process is alive.
         self._heartbeat_timer = self.create_timer(heartbeat_period, self._send_heartbeat)
         self._metrics_http: StatusServer | None = None
+        # Slow work of plugins (dc_core.worker): a finished job wakes the loop through this guard.
+        self._worker: Worker | None = None
+        self._worker_done = self.create_guard_condition(self._run_finished_work)
+
+    # -- plugins -----------------------------------------------------------------------------
+    def plugin_context(self, name: str) -> ServerPluginContext:
+        """The context a plugin instance named ``name`` gets (dc_core.plugin.PluginContext)."""
+        return ServerPluginContext(name, self.get_logger().get_child(name), self)
+
+    @property
+    def worker(self) -> Worker:
+        """The server's worker threads, started on first use and stopped by :meth:`stop_worker`."""
+        if self._worker is None:
+            self._worker = Worker(f"{self.get_name()}-worker", self._worker_done.trigger)
+        return self._worker
+
+    def stop_worker(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for running jobs, then stop the worker; False if some still ran."""
+        worker, self._worker = self._worker, None
+        if worker is None:
+            return True
+        idle = worker.wait_idle(timeout)
+        worker.shutdown()
+        return idle
+
+    def _run_finished_work(self) -> None:
+        if self._worker is not None:
+            self._worker.run_finished()
 
     # -- metrics over HTTP -------------------------------------------------------------------
     def start_metrics_http(

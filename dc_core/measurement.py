@@ -1,6 +1,7 @@
 """The measurement plugin contract.
 
-A measurement is one small class: its parameters (a frozen dataclass in ``Params``), its JSON
+A measurement is one small class: its parameters (a frozen dataclass, the type argument of its
+base: ``class Cpu(Measurement[CpuParams])``, see dc_core.plugin), its JSON
 schema (``schema_file`` in ``<schema_package>/schemas/``) and ``collect()``. Everything common —
 timer, gating, validation, metadata, publishing — is done by the measurement server.
 
@@ -13,18 +14,12 @@ from __future__ import annotations
 
 import abc
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 from dc_core.errors import PluginError
-from dc_core.logs import Logger
-from dc_core.params import NoParams
-from dc_core.worker import Worker
-
-if TYPE_CHECKING:
-    from rclpy.qos import QoSProfile
+from dc_core.plugin import ParamsT, Plugin, PluginContext
 
 
 @dataclass(frozen=True)
@@ -36,75 +31,34 @@ class BasePaths:
     remote_prefixes: dict[str, str] = field(default_factory=dict)
 
 
-class MeasurementContext(Protocol):
-    """What the server gives a measurement plugin."""
-
-    @property
-    def name(self) -> str: ...
-    @property
-    def logger(self) -> Logger: ...
-    @property
-    def node(self) -> Any:
-        """The rclpy node, to create subscriptions in ``on_configure`` (``None`` without ROS)."""
+class MeasurementContext(PluginContext, Protocol):
+    """What the measurement server gives a measurement plugin: the common ways in, and more."""
 
     @property
     def paths(self) -> BasePaths: ...
     def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
         """Offer a record from an event (gated, validated and published like a collected one)."""
 
-    def subscribe(self, msg_type: Any, topic: str, callback: Callable[[Any, Any], None], qos: QoSProfile) -> Any:
-        """Subscribe to a topic of records: ``callback(message, message_info)`` for each message.
 
-        The server takes these messages itself, outside rclpy's executor, which costs a fraction
-        per message (docs/performance.md); callbacks run on the server's main thread, as executor
-        callbacks do. Returns the subscription, for :meth:`unsubscribe` in ``on_cleanup``.
-        """
-
-    def unsubscribe(self, subscription: Any) -> None:
-        """Destroy a subscription made by :meth:`subscribe`."""
-
-    @property
-    def worker(self) -> Worker:
-        """Threads for slow parts of a plugin's work (saving an image, hashing a file): ``submit(job,
-        on_done)`` runs ``job()`` on a thread and ``on_done(outcome)`` back on the main thread."""
-
-
-class Measurement(abc.ABC):
+class Measurement(Plugin[ParamsT]):
     """Base class of measurement plugins."""
 
-    Params: ClassVar[type] = NoParams
     schema_file: ClassVar[str | None] = None
+    schema_package: ClassVar[str] = "dc_measurements"
     # True: collect() runs on the server's worker threads, so a collection that waits (a ping, a
     # subprocess, a file written) never holds up records, other measurements' timers or the
     # heartbeat. collect() must then not touch what callbacks on the main thread change without a
     # lock; the sample is gated, validated and published on the main thread.
     collect_in_worker: ClassVar[bool] = False
-    schema_package: ClassVar[str] = "dc_measurements"
+    context: MeasurementContext
 
-    def __init__(self, context: MeasurementContext, params: Any) -> None:
-        self.context = context
-        self.params = params
+    def __init__(self, context: MeasurementContext, params: ParamsT) -> None:
+        super().__init__(context, params)
 
     @property
     def timer_driven(self) -> bool:
         """False for measurements that publish from events through ``context.emit``."""
         return True
-
-    def on_configure(self) -> None:
-        """Open what the plugin needs (files, subscriptions). Raise PluginError to fail configure."""
-
-    def on_activate(self) -> None:
-        """Called when the server activates, before the first collect."""
-
-    def on_deactivate(self) -> None:
-        """Called when the server deactivates; no collect follows until the next activate."""
-
-    def on_cleanup(self) -> None:
-        """Release what on_configure opened."""
-
-    def counters(self) -> dict[str, int]:
-        """Counters of the plugin's own (e.g. malformed input), served beside the server's for it."""
-        return {}
 
     @abc.abstractmethod
     def collect(self) -> dict[str, Any] | None:

@@ -56,7 +56,23 @@ def load_plugin(kind: str, name: str) -> type:
         raise PluginError(f"plugin {name!r} ({ep.value}) failed to import: {exc}") from exc
     if not isinstance(cls, type):
         raise PluginError(f"plugin {name!r} ({ep.value}) is not a class")
+    base = plugin_base(kind)
+    if not issubclass(cls, base):
+        raise PluginError(
+            f"plugin {name!r} ({ep.value}) is not a {kind[:-1]} plugin: "
+            f"its class must subclass {base.__module__}.{base.__qualname__}"
+        )
     return cls
+
+
+def plugin_base(kind: str) -> type:
+    """The class every plugin of ``kind`` subclasses."""
+    from dc_core.condition import Condition
+    from dc_core.destination import Destination
+    from dc_core.measurement import Measurement
+
+    bases: dict[str, type] = {"measurements": Measurement, "conditions": Condition, "destinations": Destination}
+    return bases[kind]
 
 
 def describe(cls: type) -> str:

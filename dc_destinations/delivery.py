@@ -153,7 +153,7 @@ def _may_pass(exc: Exception) -> bool:
 @dataclass
 class _Route:
     name: str
-    destination: Destination
+    destination: Destination[Any]
     params: DestinationDeliveryParams
     limit: QueueLimit
     dead_letter_max_bytes: int | None
@@ -186,7 +186,7 @@ class DeliveryPipeline:
     def __init__(
         self,
         settings: DeliveryParams,
-        destinations: Mapping[str, tuple[Destination, DestinationDeliveryParams]],
+        destinations: Mapping[str, tuple[Destination[Any], DestinationDeliveryParams]],
         logger: Logger,
         *,
         seen_window: int | None = None,

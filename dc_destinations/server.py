@@ -24,7 +24,7 @@ from dc_core.config import internal_topics, load_params_file
 from dc_core.destination import Destination
 from dc_core.errors import ConfigError, PluginError
 from dc_core.lifecycle import ManagedServer, run_server
-from dc_core.logs import BurstLog, Logger
+from dc_core.logs import BurstLog
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
@@ -40,15 +40,6 @@ PREVIEW_CHARS = 200
 HOP_WINDOW_HISTORIES = 4
 # Malformed records logged one by one at the start of a burst; the rest are counted in a summary.
 MALFORMED_LINES_PER_BURST = 10
-
-
-@dataclass
-class _DestinationContext:
-    """What a destination plugin sees of the server (dc_core.destination.DestinationContext)."""
-
-    name: str
-    logger: Logger
-    node: Any
 
 
 @dataclass
@@ -76,7 +67,7 @@ class DestinationServer(ManagedServer):
     def __init__(self, params_file: str) -> None:
         super().__init__(NODE_NAME, params_file)
         self.config: DestinationServerConfig | None = None
-        self.plugins: dict[str, Destination] = {}
+        self.plugins: dict[str, Destination[Any]] = {}
         self.pipeline: DeliveryPipeline | None = None
         self.routing: RoutingTable | None = None
         self.stats = IntakeStats()
@@ -107,8 +98,8 @@ class DestinationServer(ManagedServer):
         self.set_heartbeat_period(config.node.heartbeat_period)
 
         for d in config.destinations:
-            context = _DestinationContext(d.name, self.get_logger().get_child(d.name), self)
-            plugin: Destination = d.plugin_class(context, d.plugin_params)
+            context = self.plugin_context(d.name)
+            plugin: Destination[Any] = d.plugin_class(context, d.plugin_params)
             try:
                 plugin.on_configure()
             except ConfigError:

@@ -14,7 +14,7 @@ class ConditionRuntime:
     """One configured condition, shared by every measurement that lists it."""
 
     def __init__(
-        self, name: str, condition: Condition, topic: str, logger: Logger, publish_state: Callable[[bool], None]
+        self, name: str, condition: Condition[Any], topic: str, logger: Logger, publish_state: Callable[[bool], None]
     ) -> None:
         self.name = name
         self.condition = condition

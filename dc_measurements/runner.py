@@ -48,7 +48,7 @@ class MeasurementRunner:
     def __init__(
         self,
         config: MeasurementConfig,
-        plugin: Measurement,
+        plugin: Measurement[Any],
         conditions: dict[str, ConditionRuntime],
         validator: RecordValidator | None,
         run_id: str | None,

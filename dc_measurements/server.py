@@ -5,20 +5,17 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, PluginError
-from dc_core.lifecycle import ManagedServer, run_server
-from dc_core.logs import Logger
+from dc_core.lifecycle import ManagedServer, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
 from dc_core.qos import record_qos
-from dc_core.worker import Worker
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
@@ -37,28 +34,14 @@ CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, dura
 
 
 @dataclass
-class _PluginContext:
-    """What a plugin sees of the server (dc_core.measurement.MeasurementContext)."""
+class _MeasurementContext(ServerPluginContext):
+    """What a measurement or condition sees of the server (dc_core.measurement.MeasurementContext)."""
 
-    name: str
-    logger: Logger
-    node: Any
-    paths: BasePaths
-    server: MeasurementServer
+    paths: BasePaths = field(default_factory=BasePaths)
 
     def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
+        assert isinstance(self.server, MeasurementServer)
         self.server.emit_from_event(self.name, record, stamp_ns, group_key)
-
-    def subscribe(self, msg_type: Any, topic: str, callback: Callable[[Any, Any], None], qos: QoSProfile) -> Any:
-        return self.server.intake.subscribe(msg_type, topic, callback, qos)
-
-    def unsubscribe(self, subscription: Any) -> None:
-        self.server.intake.unsubscribe(subscription)
-
-    @property
-    def worker(self) -> Worker:
-        assert self.server.worker is not None, "the worker exists from configure to cleanup"
-        return self.server.worker
 
 
 class MeasurementServer(ManagedServer):
@@ -75,13 +58,6 @@ class MeasurementServer(ManagedServer):
         self._init_pending: list[str] = []
         self._start_deadline = 0.0
         self._init_timer: Any = None
-        # Slow work of plugins (collect_in_worker, context.worker): finished jobs wake the loop.
-        self.worker: Worker | None = None
-        self._worker_done = self.create_guard_condition(self._run_finished_work)
-
-    def _run_finished_work(self) -> None:
-        if self.worker is not None:
-            self.worker.run_finished()
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -101,12 +77,11 @@ class MeasurementServer(ManagedServer):
         # Last of the checks that can fail: a failed configure does not use up a run id.
         run_id = next_run_id(config.node.run_id)
         log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
-        self.worker = Worker(f"{NODE_NAME}-worker", self._worker_done.trigger)
 
         for name, ccfg in config.conditions.items():
             publisher = self.create_publisher(ConditionMsg, f"/dc/condition/{name}", CONDITION_QOS)
             self._condition_publishers.append(publisher)
-            context = _PluginContext(name, self.get_logger().get_child(name), self, paths, self)
+            context = _MeasurementContext(name, self.get_logger().get_child(name), self, paths)
             condition = ccfg.plugin_class(context, ccfg.plugin_params)
             runtime = ConditionRuntime(name, condition, ccfg.common.topic, log, self._state_publisher(publisher))
             condition.on_configure()
@@ -117,8 +92,8 @@ class MeasurementServer(ManagedServer):
             measurement_paths = dataclasses.replace(
                 paths, remote_prefixes=dict(zip(c.remote_keys, c.remote_prefixes, strict=False))
             )
-            context = _PluginContext(mcfg.name, self.get_logger().get_child(mcfg.name), self, measurement_paths, self)
-            plugin: Measurement = mcfg.plugin_class(context, mcfg.plugin_params)
+            context = _MeasurementContext(mcfg.name, self.get_logger().get_child(mcfg.name), self, measurement_paths)
+            plugin: Measurement[Any] = mcfg.plugin_class(context, mcfg.plugin_params)
             validator = self._validator(mcfg.name, plugin, c.enable_validator, c.json_schema_path)
             publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, record_qos(c.history_depth))
             self._record_publishers[mcfg.name] = publisher
@@ -154,7 +129,9 @@ class MeasurementServer(ManagedServer):
         )
         return BasePaths(save_local_base_path=save, all_base_path=all_base)
 
-    def _validator(self, name: str, plugin: Measurement, enabled: bool, schema_path: str) -> RecordValidator | None:
+    def _validator(
+        self, name: str, plugin: Measurement[Any], enabled: bool, schema_path: str
+    ) -> RecordValidator | None:
         if not enabled:
             return None
         if schema_path:
@@ -259,7 +236,6 @@ class MeasurementServer(ManagedServer):
     def _tick(self, name: str) -> None:
         runner = self.runners[name]
         if runner.plugin.collect_in_worker:
-            assert self.worker is not None
             runner.tick_in_worker(self.worker)
         else:
             started = time.monotonic()
@@ -299,7 +275,7 @@ class MeasurementServer(ManagedServer):
             self.destroy_subscription(sub)
         self._condition_subscriptions.clear()
         # A plugin is not deactivated under a collection still running on the worker.
-        if self.worker is not None and not self.worker.wait_idle(WORKER_DRAIN_S):
+        if not self.worker.wait_idle(WORKER_DRAIN_S):
             self.get_logger().warning(
                 f"deactivating while {self.worker.running} collection(s) still run after {WORKER_DRAIN_S:g} s; "
                 "their samples are dropped"
@@ -321,9 +297,8 @@ class MeasurementServer(ManagedServer):
 
     def cleanup_server(self) -> None:
         self._active = False
-        if self.worker is not None:
-            self.worker.shutdown()
-            self.worker = None
+        if not self.stop_worker(WORKER_DRAIN_S):
+            self.get_logger().warning(f"cleanup: jobs of plugins still ran after {WORKER_DRAIN_S:g} s")
         for name, runner in self.runners.items():
             try:
                 runner.plugin.on_cleanup()

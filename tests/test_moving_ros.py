@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import logging
 import time
 import uuid
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import pytest
 import rclpy
@@ -19,15 +17,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from dc_conditions.moving import Moving, linear_speed
 from dc_core.params import parse_params
+from dc_core.testing import FakeContext
 
 DEADLINE_S = 10.0
-
-
-@dataclass
-class NodeContext:
-    node: Any
-    name: str = "moving"
-    logger: Any = field(default_factory=lambda: logging.getLogger("test_moving_ros"))
 
 
 @dataclass
@@ -77,7 +69,7 @@ def fresh_topic() -> str:
 
 def configured_moving(ros: Ros, topic: str) -> Moving:
     params = parse_params(Moving.Params, {"odom_topic": topic}, "measurement_server.moving")
-    moving = Moving(NodeContext(ros.node), params)
+    moving = Moving(FakeContext(name="moving", node=ros.node), params)
     moving.on_configure()
     return moving
 

@@ -51,11 +51,8 @@ def stamp_text(stamp_ns: int) -> str:
     return f"{seconds}.{nanos:09d}"
 
 
-class File(Destination):
+class File(Destination[FileParams]):
     """Append records to a local file (JSON lines, csv, ltsv, ...), fsynced before they are confirmed."""
-
-    Params = FileParams
-    params: FileParams
 
     def __init__(self, context: Any, params: FileParams) -> None:
         super().__init__(context, params)

@@ -97,11 +97,8 @@ class HttpParams:
         return [self.header] if isinstance(self.header, str) else list(self.header)
 
 
-class Http(Destination):
+class Http(Destination[HttpParams]):
     """POST each batch as JSON to an HTTP(S) endpoint; 5xx, 408, 429 and network errors are retried."""
-
-    Params = HttpParams
-    params: HttpParams
 
     def __init__(self, context: Any, params: HttpParams) -> None:
         super().__init__(context, params)

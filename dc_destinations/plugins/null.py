@@ -5,9 +5,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from dc_core.destination import Destination, OutgoingRecord
+from dc_core.params import NoParams
 
 
-class Null(Destination):
+class Null(Destination[NoParams]):
     """Discard every record (confirmed at once): for tests and for measuring the pipeline alone."""
 
     def send(self, batch: Sequence[OutgoingRecord]) -> None:

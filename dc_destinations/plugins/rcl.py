@@ -5,9 +5,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from dc_core.destination import Destination, OutgoingRecord
+from dc_core.params import NoParams
 
 
-class Rcl(Destination):
+class Rcl(Destination[NoParams]):
     """Log each record as JSON through the destination server's ROS logger, at info level."""
 
     def send(self, batch: Sequence[OutgoingRecord]) -> None:

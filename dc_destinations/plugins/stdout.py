@@ -24,10 +24,8 @@ class StdoutParams:
     )
 
 
-class Stdout(Destination):
+class Stdout(Destination[StdoutParams]):
     """Print each record as one JSON line on standard output."""
-
-    Params = StdoutParams
 
     def send(self, batch: Sequence[OutgoingRecord]) -> None:
         text = "".join(record.to_json() + "\n" for record in batch)

@@ -29,12 +29,10 @@ def _busy_and_total(times: Any) -> tuple[float, float]:
     return total - idle, total
 
 
-class Cpu(Measurement):
+class Cpu(Measurement[CpuParams]):
     """Average CPU usage since the previous sample, process count and top processes by CPU."""
 
-    Params = CpuParams
     schema_file = "cpu.json"
-    params: CpuParams
 
     def __init__(self, context: MeasurementContext, params: CpuParams) -> None:
         super().__init__(context, params)

@@ -24,10 +24,9 @@ class DummyParams:
             raise ConfigError("record", "expected a JSON object")
 
 
-class Dummy(Measurement):
+class Dummy(Measurement[DummyParams]):
     """A fixed JSON record, for trying pipelines and destinations."""
 
-    Params = DummyParams
     schema_file = "dummy.json"
 
     def on_configure(self) -> None:

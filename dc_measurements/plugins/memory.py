@@ -7,9 +7,10 @@ from typing import Any
 import psutil
 
 from dc_core.measurement import Measurement
+from dc_core.params import NoParams
 
 
-class Memory(Measurement):
+class Memory(Measurement[NoParams]):
     """System memory used, in percent of total RAM (from available memory)."""
 
     schema_file = "memory.json"

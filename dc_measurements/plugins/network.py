@@ -136,14 +136,12 @@ def interface_names() -> list[str]:
     return [name for _, name in socket.if_nameindex()]
 
 
-class Network(Measurement):
+class Network(Measurement[NetworkParams]):
     """Round trip to a host (ms, -1 when unanswered), online status and network interface names."""
 
-    Params = NetworkParams
     schema_file = "network.json"
     # A probe waits up to ping_timeout (10 s at most) for its answer.
     collect_in_worker = True
-    params: NetworkParams
 
     def __init__(self, context: MeasurementContext, params: NetworkParams) -> None:
         super().__init__(context, params)

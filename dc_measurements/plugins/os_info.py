@@ -9,6 +9,7 @@ from typing import Any
 import psutil
 
 from dc_core.measurement import Measurement
+from dc_core.params import NoParams
 
 _GIB = 1024**3
 
@@ -22,7 +23,7 @@ def distribution_name() -> str:
     return release.get("PRETTY_NAME") or release.get("NAME") or platform.system()
 
 
-class OperatingSystem(Measurement):
+class OperatingSystem(Measurement[NoParams]):
     """Operating system name, kernel release, number of CPUs and total memory (GiB)."""
 
     schema_file = "os.json"

@@ -42,12 +42,10 @@ def format_mode(mode: int, style: str) -> str:
     return f"{stat.S_IMODE(mode):03o}"
 
 
-class Permissions(Measurement):
+class Permissions(Measurement[PermissionsParams]):
     """Owner, group, existence and permissions (octal or rwx) of a file or directory."""
 
-    Params = PermissionsParams
     schema_file = "permissions.json"
-    params: PermissionsParams
 
     def __init__(self, context: MeasurementContext, params: PermissionsParams) -> None:
         super().__init__(context, params)

@@ -17,12 +17,10 @@ class StorageParams:
     path: str = param(doc="Directory whose file system is measured ($ENV expanded)")
 
 
-class Storage(Measurement):
+class Storage(Measurement[StorageParams]):
     """Free space (available to unprivileged users) and capacity of the file system holding `path`."""
 
-    Params = StorageParams
     schema_file = "storage.json"
-    params: StorageParams
 
     def __init__(self, context: MeasurementContext, params: StorageParams) -> None:
         super().__init__(context, params)

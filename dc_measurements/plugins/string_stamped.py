@@ -33,10 +33,8 @@ class StringStampedParams:
     qos_depth: int = param(100, minimum=1, doc="Subscription queue depth")
 
 
-class StringStampedInput(Measurement):
+class StringStampedInput(Measurement[StringStampedParams]):
     """Forwards JSON records that your own nodes publish as dc_interfaces/StringStamped."""
-
-    Params = StringStampedParams
 
     def __init__(self, context: Any, params: Any) -> None:
         super().__init__(context, params)

@@ -25,12 +25,10 @@ class TcpHealthParams:
     timeout: int = param(500, minimum=1, maximum=10000, doc="Milliseconds allowed to resolve and connect")
 
 
-class TcpHealth(Measurement):
+class TcpHealth(Measurement[TcpHealthParams]):
     """Whether a TCP server accepts connections on host:port (a real connect with a timeout)."""
 
-    Params = TcpHealthParams
     schema_file = "tcp_health.json"
-    params: TcpHealthParams
 
     def __init__(self, context: MeasurementContext, params: TcpHealthParams) -> None:
         super().__init__(context, params)

@@ -5,11 +5,12 @@ from __future__ import annotations
 from typing import Any
 
 from dc_core.measurement import Measurement
+from dc_core.params import NoParams
 
 PROC_UPTIME = "/proc/uptime"
 
 
-class Uptime(Measurement):
+class Uptime(Measurement[NoParams]):
     """Seconds since the system booted (integer, from /proc/uptime)."""
 
     schema_file = "uptime.json"
