@@ -86,7 +86,7 @@ class Plugin(abc.ABC, Generic[ParamsT]):
             args = get_args(base)
             origin = get_origin(base)
             if args and isinstance(args[0], type) and isinstance(origin, type) and issubclass(origin, Plugin):
-                cls.Params = args[0]
+                cls.Params = NoParams if args[0] is type(None) else args[0]
                 return
 
     def __init__(self, context: PluginContext, params: ParamsT) -> None:

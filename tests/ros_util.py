@@ -12,7 +12,7 @@ from rclpy.context import Context
 DEADLINE_S = 15.0
 
 
-def wait_for(condition: Callable[[], bool], spin: Callable[[], None], deadline_s: float = DEADLINE_S) -> bool:
+def wait_for(condition: Callable[[], bool], spin: Callable[[], object], deadline_s: float = DEADLINE_S) -> bool:
     """Call ``spin`` until ``condition`` holds or the deadline passes; returns the condition."""
     deadline = time.monotonic() + deadline_s
     while time.monotonic() < deadline:

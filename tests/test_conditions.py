@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import logging
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,16 +29,10 @@ from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, PluginError
 from dc_core.params import describe_params, field_names, parse_params
 from dc_core.plugins import describe, load_plugin, plugin_names
+from dc_core.testing import FakeContext
 from dc_measurements.config import parse_measurement_server
 
 PATH = "measurement_server.c"
-
-
-@dataclass
-class FakeContext:
-    name: str = "c"
-    logger: Any = field(default_factory=lambda: logging.getLogger("test_conditions"))
-    node: Any = None
 
 
 @dataclass(frozen=True)
@@ -49,13 +42,13 @@ class Inactive:
     reason: str
 
 
-def configured(cls: type[Condition], params: dict[str, Any]) -> Condition:
-    condition = cls(FakeContext(), parse_params(cls.Params, params, PATH))
+def configured(cls: type[Condition[Any]], params: dict[str, Any]) -> Condition[Any]:
+    condition = cls(FakeContext(name="c"), parse_params(cls.Params, params, PATH))
     condition.on_configure()
     return condition
 
 
-def check(condition: Condition, sample: Any, expected: bool | Inactive) -> None:
+def check(condition: Condition[Any], sample: Any, expected: bool | Inactive) -> None:
     if isinstance(expected, Inactive):
         with pytest.raises((LookupError, TypeError, ValueError)) as caught:
             condition.evaluate(sample)
@@ -384,7 +377,7 @@ CASES: list[Any] = [
 
 
 @pytest.mark.parametrize(("cls", "params", "sample", "expected"), CASES)
-def test_condition(cls: type[Condition], params: dict[str, Any], sample: Any, expected: bool | Inactive) -> None:
+def test_condition(cls: type[Condition[Any]], params: dict[str, Any], sample: Any, expected: bool | Inactive) -> None:
     check(configured(cls, params), sample, expected)
 
 
@@ -453,7 +446,7 @@ def test_unordered_comparison_leaves_the_parameter_untouched() -> None:
     ],
 )
 def test_parameter_errors_name_the_yaml_path(
-    cls: type[Condition], params: dict[str, Any], bad_path: str, message: str
+    cls: type[Condition[Any]], params: dict[str, Any], bad_path: str, message: str
 ) -> None:
     with pytest.raises(ConfigError) as caught:
         parse_params(cls.Params, params, PATH)
@@ -462,7 +455,7 @@ def test_parameter_errors_name_the_yaml_path(
 
 
 def test_parameter_defaults_follow_the_original() -> None:
-    moving = parse_params(Moving.Params, {}, PATH)
+    moving: Any = parse_params(Moving.Params, {}, PATH)
     assert (moving.odom_topic, moving.speed_threshold, moving.count_limit, moving.count_hysteresis) == (
         "/odom",
         0.2,
@@ -481,8 +474,8 @@ def test_parameter_defaults_follow_the_original() -> None:
         pytest.param(SameAsPrevious, {"exclude": ["ok", "*stamp"]}, "c.exclude[1]", id="same-bad-exclude"),
     ],
 )
-def test_bad_regex_fails_configure(cls: type[Condition], params: dict[str, Any], where: str) -> None:
-    condition = cls(FakeContext(), parse_params(cls.Params, params, PATH))
+def test_bad_regex_fails_configure(cls: type[Condition[Any]], params: dict[str, Any], where: str) -> None:
+    condition = cls(FakeContext(name="c"), parse_params(cls.Params, params, PATH))
     with pytest.raises(PluginError, match=r"invalid regular expression") as caught:
         condition.on_configure()
     assert str(caught.value).startswith(where)
@@ -697,7 +690,7 @@ def test_moving_rejects_a_hysteresis_it_could_never_reach(limit: int, hysteresis
 
 
 def test_moving_without_ros_node_fails_configure() -> None:
-    condition = Moving(FakeContext(), parse_params(Moving.Params, {}, PATH))
+    condition = Moving(FakeContext(name="c"), parse_params(Moving.Params, {}, PATH))
     with pytest.raises(PluginError, match="ROS node"):
         condition.on_configure()
     assert condition.evaluate(None) is False
@@ -705,7 +698,7 @@ def test_moving_without_ros_node_fails_configure() -> None:
 
 def test_moving_hysteresis_above_limit_fails_configure() -> None:
     condition = Moving(
-        FakeContext(node=object()),
+        FakeContext(name="c", node=object()),
         parse_params(Moving.Params, {"count_limit": 4, "count_hysteresis": 5}, PATH),
     )
     with pytest.raises(PluginError, match=r"^c\.count_hysteresis"):
@@ -739,7 +732,7 @@ def yaml_blocks(page: str) -> list[str]:
 
 
 @pytest.mark.parametrize(("cls", "page"), list(PAGES.items()), ids=[c.__name__ for c in PAGES])
-def test_doc_page_documents_every_parameter_and_shows_the_plugin(cls: type[Condition], page: str) -> None:
+def test_doc_page_documents_every_parameter_and_shows_the_plugin(cls: type[Condition[Any]], page: str) -> None:
     text = (DOCS / page).read_text()
     for info in describe_params(cls.Params):
         assert f"| `{info.name}` |" in text, f"{page} lacks a row for {info.name}"

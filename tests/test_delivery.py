@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import errno
 import json
-import logging
 import os
 import signal
 import subprocess
@@ -20,50 +19,19 @@ from typing import Any
 import pytest
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.buffer import FILE_NAME, SqliteBuffer
 from dc_destinations.delivery import DeliveryPipeline, new_record_id, uuid7
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
-
-class ListLogger:
-    """Keeps what is logged, so tests can assert on it (and satisfies dc_core.logs.Logger)."""
-
-    def __init__(self) -> None:
-        self.lines: list[tuple[str, str]] = []
-        self._log = logging.getLogger("test_delivery")
-
-    def _add(self, level: str, message: str) -> None:
-        self.lines.append((level, message))
-        self._log.log(logging.getLevelName(level.upper()), message)
-
-    def debug(self, message: str, **kwargs: Any) -> None:
-        self._add("debug", message)
-
-    def info(self, message: str, **kwargs: Any) -> None:
-        self._add("info", message)
-
-    def warning(self, message: str, **kwargs: Any) -> None:
-        self._add("warning", message)
-
-    def error(self, message: str, **kwargs: Any) -> None:
-        self._add("error", message)
+LOG = RecordingLogger("test_delivery")
 
 
-LOG = ListLogger()
-
-
-class _Context:
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self.logger = LOG
-        self.node = None
-
-
-class Recorder(Destination):
+class Recorder(Destination[None]):
     """Accepts everything, keeps what it got; ``behaviour`` decides the outcome of each call."""
 
     def __init__(self, name: str = "sink", behaviour: Callable[[int, Sequence[OutgoingRecord]], Any] | None = None):
-        super().__init__(_Context(name), None)
+        super().__init__(FakeContext(name=name, logger=LOG), None)
         self.behaviour = behaviour
         self.calls = 0
         self.delivered: list[OutgoingRecord] = []
@@ -208,7 +176,7 @@ def test_a_delivered_record_serialises_to_the_text_that_was_buffered(tmp_path: P
     ids=["lone-surrogate", "nan", "json-text", "stamp-overflow"],
 )
 def test_one_record_the_buffer_cannot_store_never_stops_the_others(tmp_path: Path, poison: OutgoingRecord) -> None:
-    logger = ListLogger()
+    logger = RecordingLogger()
     sink = Recorder()
     pipeline = DeliveryPipeline(
         settings(tmp_path, commit_interval=0.05), {"sink": (sink, DestinationDeliveryParams())}, logger
@@ -316,7 +284,7 @@ def test_permanent_rejection_goes_to_dead_letters_with_the_error(tmp_path: Path)
 def test_dead_letters_are_bounded_the_oldest_deleted_counted_and_logged_once(tmp_path: Path) -> None:
     size = len(record(0).to_json().encode("utf-8"))  # the bytes a dead letter counts
     params = DestinationDeliveryParams(batch_size=1, dead_letter_limit_size=str(3 * size + size // 2))
-    logger = ListLogger()
+    logger = RecordingLogger()
     pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(behaviour=reject_all), params)}, logger)
     pipeline.start()
     try:
@@ -509,7 +477,7 @@ def test_flush_intake_means_committed(tmp_path: Path, storage_sync: str) -> None
 
 
 def test_size_limit_drops_the_oldest_counts_and_logs_once(tmp_path: Path) -> None:
-    logger = ListLogger()
+    logger = RecordingLogger()
 
     def down(call: int, batch: Sequence[OutgoingRecord]) -> None:
         raise RetryableError("down")
@@ -541,7 +509,7 @@ def test_size_limit_drops_the_oldest_counts_and_logs_once(tmp_path: Path) -> Non
 
 def test_a_corrupt_buffer_at_start_is_set_aside_and_new_records_flow(tmp_path: Path) -> None:
     (tmp_path / FILE_NAME).write_bytes(b"\x00garbage" * 4096)
-    logger = ListLogger()
+    logger = RecordingLogger()
     sink = Recorder()
     pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, logger)
     pipeline.start()
@@ -559,7 +527,7 @@ def test_an_unwritable_storage_path_falls_back_to_the_default(tmp_path: Path, mo
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
     blocked = tmp_path / "blocked"
     blocked.write_text("a file where a folder should be")
-    logger = ListLogger()
+    logger = RecordingLogger()
     sink = Recorder()
     pipeline = DeliveryPipeline(
         settings(tmp_path, storage_path=str(blocked / "buffer")),
@@ -709,7 +677,7 @@ def test_commit_listeners_hear_every_committed_record(tmp_path: Path) -> None:
 
 
 def test_a_full_intake_queue_drops_and_counts(tmp_path: Path) -> None:
-    logger = ListLogger()
+    logger = RecordingLogger()
     pipeline = DeliveryPipeline(
         settings(tmp_path, intake_queue_limit=5, commit_interval=0.5),
         {"sink": (Recorder(), DestinationDeliveryParams())},
@@ -757,7 +725,7 @@ def fill(path: Path) -> None:
 
 
 def test_a_full_disk_under_the_buffer_keeps_records_in_memory_until_space_returns(small_disk: Path) -> None:
-    logger = ListLogger()
+    logger = RecordingLogger()
     sink = Recorder()
     pipeline = DeliveryPipeline(settings(small_disk), {"sink": (sink, DestinationDeliveryParams())}, logger)
     pipeline.start()
@@ -802,7 +770,7 @@ def test_a_disk_that_fills_while_a_batch_is_sent_does_not_stop_the_sender(small_
         if call == 1:
             fill(filler)  # the batch is confirmed, but deleting it from the buffer needs space
 
-    logger = ListLogger()
+    logger = RecordingLogger()
     sink = Recorder(behaviour=fill_the_disk_first)
     pipeline = DeliveryPipeline(settings(small_disk), {"sink": (sink, DestinationDeliveryParams())}, logger)
     pipeline.start()

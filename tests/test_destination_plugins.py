@@ -8,7 +8,6 @@ import logging
 import os
 import re
 import stat
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,29 +17,22 @@ from dc_core.config import load_params_file
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError, DcError
 from dc_core.params import describe_params, parse_params
+from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.config import DestinationCommonParams, parse_destination_server
 from dc_destinations.plugins.file import File, FileParams
 from dc_destinations.plugins.null import Null
 from dc_destinations.plugins.rcl import Rcl
 from dc_destinations.plugins.stdout import Stdout, StdoutParams
-from tests.fakes import RecordingLogger
 
 STAMP_NS = 1_677_668_906_045_817_000
-
-
-@dataclass
-class Context:
-    name: str
-    logger: RecordingLogger = field(default_factory=RecordingLogger)
-    node: Any = None
 
 
 def record(data: dict[str, Any], record_id: str = "r1", stamp_ns: int = STAMP_NS) -> OutgoingRecord:
     return OutgoingRecord(record_id, "/dc/measurement/uptime", stamp_ns, data)
 
 
-def make(cls: type[Destination], name: str = "dest", **params: Any) -> Destination:
-    plugin = cls(Context(name), parse_params(cls.Params, params, f"destination_server.{name}"))
+def make(cls: type[Destination[Any]], name: str = "dest", **params: Any) -> Destination[Any]:
+    plugin = cls(FakeContext(name=name), parse_params(cls.Params, params, f"destination_server.{name}"))
     plugin.on_configure()
     return plugin
 
@@ -112,7 +104,7 @@ def test_rcl_logs_each_record_at_info() -> None:
 
 
 def test_rcl_works_with_a_standard_logger(caplog: pytest.LogCaptureFixture) -> None:
-    rcl = Rcl(Context("rcl", logger=logging.getLogger("dc.test.rcl")), None)  # type: ignore[arg-type]
+    rcl = Rcl(FakeContext(name="rcl", logger=logging.getLogger("dc.test.rcl")), None)  # type: ignore[arg-type]
     with caplog.at_level(logging.INFO, logger="dc.test.rcl"):
         rcl.send(UPTIMES[:1])
     assert caplog.messages == [UPTIMES[0].to_json()]
@@ -305,7 +297,7 @@ PAGES = {Stdout: "stdout.md", File: "file.md", Null: "null.md", Rcl: "rcl.md"}
 
 
 @pytest.mark.parametrize(("cls", "page"), list(PAGES.items()), ids=[c.__name__ for c in PAGES])
-def test_doc_page_documents_every_parameter(cls: type[Destination], page: str) -> None:
+def test_doc_page_documents_every_parameter(cls: type[Destination[Any]], page: str) -> None:
     text = (DOCS / page).read_text()
     for info in describe_params(cls.Params):
         assert f"| `{info.name}` |" in text, f"{page} lacks a row for {info.name}"
@@ -325,7 +317,7 @@ def test_doc_examples_are_valid_configurations(page: str, tmp_path: Path, monkey
         config = parse_destination_server(load_params_file(params_file)["destination_server"])
         assert config.destinations and config.warnings == []
         for d in config.destinations:
-            d.plugin_class(Context(d.name), d.plugin_params).on_configure()
+            d.plugin_class(FakeContext(name=d.name), d.plugin_params).on_configure()
 
 
 def test_stdout_doc_common_parameter_table_matches_the_code() -> None:

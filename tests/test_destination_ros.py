@@ -174,7 +174,11 @@ def test_hostile_records_are_counted_and_every_valid_one_is_delivered_once(runni
             running.publish(item.text)
         # Chunks the server has taken before the next: a queue overflow is not what this test is about.
         sent = min(start + 200, len(stream))
-        assert running.spin_until(lambda sent=sent: server.stats.received >= sent), server.stats.as_dict()
+
+        def chunk_taken(sent: int = sent) -> bool:
+            return server.stats.received >= sent
+
+        assert running.spin_until(chunk_taken), server.stats.as_dict()
 
     valid = [item for item in stream if not item.malformed]
     assert running.spin_until(lambda: len(running.lines()) >= len(valid)), f"{len(running.lines())} lines"

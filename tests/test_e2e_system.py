@@ -34,7 +34,7 @@ DEFAULT_JOB = {
 
 
 def assert_matches_schema(plugin: str, record: dict[str, Any]) -> None:
-    measurement = cast(type[Measurement], load_plugin("measurements", plugin))
+    measurement = cast(type[Measurement[Any]], load_plugin("measurements", plugin))
     schema = measurement.load_schema()
     assert schema is not None, f"{plugin} has no schema"
     sample = {key: value for key, value in record.items() if key not in METADATA}

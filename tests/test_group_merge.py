@@ -10,10 +10,11 @@ import pytest
 
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError
+from dc_core.records import MalformedRecord
+from dc_core.testing import RecordingLogger
 from dc_group.config import GroupConfig, parse_group_server
 from dc_group.merge import (
     InputRecord,
-    MalformedRecord,
     exclude,
     flatten_dotted,
     merge,
@@ -21,7 +22,6 @@ from dc_group.merge import (
     record_key,
 )
 from dc_group.pipeline import GroupPipeline
-from tests.fakes import RecordingLogger
 
 REPO = Path(__file__).resolve().parent.parent
 S = 1_000_000_000

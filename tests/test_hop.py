@@ -15,6 +15,7 @@ import pytest
 
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.sequence_numbers import TopicWriters
+from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.buffer import FILE_NAME, PendingRecord, SqliteBuffer
 from dc_destinations.delivery import DeliveryPipeline, new_record_id
 from dc_destinations.hop import HopIntake, HopKey, hop_key
@@ -222,25 +223,11 @@ def test_keys_are_written_only_with_their_records(tmp_path: Path, monkeypatch: p
 # -- keys through the delivery pipeline -------------------------------------------------------------
 
 
-class _Quiet:
-    def debug(self, message: str, /, **kwargs: Any) -> None: ...
-    def info(self, message: str, /, **kwargs: Any) -> None: ...
-    def warning(self, message: str, /, **kwargs: Any) -> None: ...
-    def error(self, message: str, /, **kwargs: Any) -> None: ...
-
-
-class _Context:
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self.logger = _Quiet()
-        self.node = None
-
-
-class _Down(Destination):
+class _Down(Destination[None]):
     """Never confirms: what was committed stays in the queue, where the test can count it."""
 
     def __init__(self, name: str) -> None:
-        super().__init__(_Context(name), None)
+        super().__init__(FakeContext(name=name), None)
 
     def send(self, batch: Sequence[OutgoingRecord]) -> None:
         raise ConnectionError("down")
@@ -249,7 +236,7 @@ class _Down(Destination):
 def pipeline(tmp_path: Path) -> DeliveryPipeline:
     settings = DeliveryParams(storage_path=str(tmp_path), flush=0.05, scheduler_base=60.0, scheduler_cap=60.0)
     destinations = {name: (_Down(name), DestinationDeliveryParams()) for name in ("a", "b")}
-    return DeliveryPipeline(settings, destinations, _Quiet(), seen_window=100)
+    return DeliveryPipeline(settings, destinations, RecordingLogger(), seen_window=100)
 
 
 def outgoing(n: int) -> OutgoingRecord:

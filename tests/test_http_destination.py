@@ -14,7 +14,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from types import TracebackType
@@ -26,6 +26,7 @@ from dc_core.config import load_params_file
 from dc_core.destination import OutgoingRecord, RejectedError, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.params import describe_params, parse_params
+from dc_core.testing import FakeContext
 from dc_destinations.buffer import FILE_NAME, SqliteBuffer
 from dc_destinations.config import parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline, new_record_id
@@ -177,15 +178,8 @@ class Receiver:
 # -- the destination under test -------------------------------------------------------------------------
 
 
-@dataclass
-class Context:
-    name: str
-    logger: Any = field(default_factory=lambda: logging.getLogger("test_http_destination"))
-    node: Any = None
-
-
 def http_destination(name: str = "web", **params: Any) -> Http:
-    plugin = Http(Context(name), parse_params(HttpParams, params, f"destination_server.{name}"))
+    plugin = Http(FakeContext(name=name), parse_params(HttpParams, params, f"destination_server.{name}"))
     plugin.on_configure()
     plugin.on_activate()
     return plugin
@@ -418,7 +412,7 @@ def test_password_never_reaches_logs_errors_metrics_or_dead_letters(
             {"port": receiver.port, "http_user": "robot", "http_passwd": PASSWORD},
             "destination_server.web",
         )
-        dest = Http(Context("web", logger), params)
+        dest = Http(FakeContext(name="web", logger=logger), params)
         dest.on_configure()
         settings = DeliveryParams(storage_path=str(tmp_path), flush=0.05, scheduler_base=0.05, scheduler_cap=0.1)
         pipeline = DeliveryPipeline(settings, {"web": (dest, DestinationDeliveryParams(retry_limit=2))}, logger)
@@ -467,7 +461,7 @@ def configure(body: dict[str, Any]) -> None:
     section = {"destination_plugins": ["web"], "web": {"plugin": "dc_destinations/HTTP", "inputs": ["/dc/x"], **body}}
     config = parse_destination_server(section)
     (d,) = config.destinations
-    d.plugin_class(Context(d.name), d.plugin_params).on_configure()
+    d.plugin_class(FakeContext(name=d.name), d.plugin_params).on_configure()
 
 
 @pytest.mark.parametrize(
@@ -597,4 +591,4 @@ def test_doc_examples_are_valid_configurations(tmp_path: Path) -> None:
         config = parse_destination_server(load_params_file(params_file)["destination_server"])
         assert config.destinations and config.warnings == []
         for d in config.destinations:
-            d.plugin_class(Context(d.name), d.plugin_params).on_configure()
+            d.plugin_class(FakeContext(name=d.name), d.plugin_params).on_configure()

@@ -13,7 +13,7 @@ import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import pytest
 from lifecycle_msgs.msg import Transition
@@ -26,8 +26,8 @@ from std_msgs.msg import String
 
 from dc_core.intake import DRAIN_MAX, Intake
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ManagedServer, ServerLoop
+from dc_core.testing import RecordingLogger
 from dc_interfaces.msg import Heartbeat
-from tests.fakes import RecordingLogger
 from tests.ros_util import two_contexts, wait_for
 
 RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -112,7 +112,7 @@ def witnessed(request: pytest.FixtureRequest, contexts: tuple[Context, Context])
     taken: list[tuple[str, Any]] = []
     intake.subscribe(String, topic, lambda msg, info: taken.append((msg.data, info)), RECORD_QOS)
     witnessed: list[str] = []
-    node.create_subscription(String, topic, lambda msg: witnessed.append(msg.data), RECORD_QOS)
+    node.create_subscription(String, topic, lambda msg: witnessed.append(cast(Any, msg).data), RECORD_QOS)
     executor = SingleThreadedExecutor(context=server_context)
     executor.add_node(node)
     peer = Peer(topic, other_context)
@@ -197,7 +197,7 @@ class IntakeServer(ManagedServer):
         self._subscription = self.intake.subscribe(String, self.topic, self._on_record, RECORD_QOS)
         # What a plugin may do with the node it is given: an ordinary subscription, run by the executor.
         self._plugin_subscription = self.create_subscription(
-            String, self.topic + "_plugin", lambda msg: self.plugin_received.append(msg.data), RECORD_QOS
+            String, self.topic + "_plugin", lambda msg: self.plugin_received.append(cast(Any, msg).data), RECORD_QOS
         )
         # A fast timer, like a measurement's collection.
         self._ticker = self.create_timer(TICK_PERIOD_S, self._tick)
@@ -251,7 +251,7 @@ def test_transitions_heartbeats_and_records_through_the_server_loop(
     peer.node.create_subscription(
         Heartbeat,
         HEARTBEAT_TOPIC,
-        lambda m: beats.append(m) if m.node_name == server.get_name() else None,
+        lambda m: beats.append(m) if cast(Any, m).node_name == server.get_name() else None,
         HEARTBEAT_QOS,
     )
     assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)

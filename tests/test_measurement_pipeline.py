@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import logging
 from pathlib import Path
 from typing import Any
 
@@ -11,23 +10,14 @@ import pytest
 
 from dc_core.errors import ConfigError
 from dc_core.paths import expand_env, expand_time, expand_values
+from dc_core.testing import FakeContext, RecordingLogger
 from dc_measurements.condition_runtime import ConditionRuntime, conditions_met
 from dc_measurements.config import RunIdParams, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
 from dc_measurements.runner import MeasurementRunner
 from dc_measurements.validation import RecordValidator
 
-LOG = logging.getLogger("test")
-
-
-class FakeContext:
-    name = "m"
-    logger = LOG
-    node = None
-    paths = None
-
-    def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
-        raise AssertionError("not event driven")
+LOG = RecordingLogger("test")
 
 
 def server(
@@ -54,7 +44,7 @@ def make_runner(
     plugin.on_configure()
     if samples is not None:
         queue = list(samples)
-        plugin.collect = lambda: queue.pop(0)  # type: ignore[method-assign]
+        plugin.collect = lambda: queue.pop(0)
     runtimes = {
         name: ConditionRuntime(
             name, c.plugin_class(FakeContext(), c.plugin_params), c.common.topic, LOG, lambda s: None
@@ -327,7 +317,7 @@ def test_path_expansion() -> None:
         expand_env("$NOPE/x", "measurement_server.save_local_base_path", environ=env)
     assert expand_values("base/=robot/={site}", {"robot": "C3PO", "site": "lyon"}.get) == "base/C3PO/lyon"
     with pytest.raises(ConfigError, match="'=missing' names no string parameter"):
-        expand_values("=missing", {}.get)
+        expand_values("=missing", lambda name: None)
     assert expand_time("%Y-%m-%dT%H", when=0, utc=True) == "1970-01-01T00"
 
 

@@ -34,6 +34,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from dc_core import plugins
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ServerLoop
 from dc_core.measurement import Measurement
+from dc_core.params import NoParams
 from dc_core.worker import Outcome, Worker
 from dc_interfaces.msg import Heartbeat, StringStamped
 from dc_measurements.config import parse_measurement_server
@@ -381,10 +382,18 @@ def test_hostile_input_is_counted_as_malformed_and_every_valid_record_is_publish
         for item in stream[start : start + 200]:
             measurement.publisher.publish(stamped(item.text, 1_700_000_000))
         taken = min(start + 200, len(stream))
-        harness.spin_until(lambda taken=taken: plugin.malformed + runner.stats.collected >= taken, "the chunk")
+
+        def chunk_taken(taken: int = taken) -> bool:
+            return bool(plugin.malformed + runner.stats.collected >= taken)
+
+        harness.spin_until(chunk_taken, "the chunk")
         # And read by this test before the next chunk: its own queue (depth 1000) must not overflow.
         valid_so_far = sum(not item.malformed for item in stream[:taken])
-        harness.spin_until(lambda n=valid_so_far: len(received) >= n, "the chunk's valid records")
+
+        def chunk_read(valid_so_far: int = valid_so_far) -> bool:
+            return len(received) >= valid_so_far
+
+        harness.spin_until(chunk_read, "the chunk's valid records")
 
     valid = [item for item in stream if not item.malformed]
     published = records(received)
@@ -524,7 +533,7 @@ def test_index_page_examples_are_valid_configurations(monkeypatch: pytest.Monkey
 SLEEP_S = 2.0
 
 
-class SleepyMeasurement(Measurement):
+class SleepyMeasurement(Measurement[NoParams]):
     """Sleeps in collect(), as a collection waiting on a slow device does."""
 
     collect_in_worker = True

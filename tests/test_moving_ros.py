@@ -15,7 +15,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from dc_conditions.moving import Moving, linear_speed
+from dc_conditions.moving import Moving, MovingParams, linear_speed
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext
 
@@ -68,7 +68,7 @@ def fresh_topic() -> str:
 
 
 def configured_moving(ros: Ros, topic: str) -> Moving:
-    params = parse_params(Moving.Params, {"odom_topic": topic}, "measurement_server.moving")
+    params: MovingParams = parse_params(Moving.Params, {"odom_topic": topic}, "measurement_server.moving")
     moving = Moving(FakeContext(name="moving", node=ros.node), params)
     moving.on_configure()
     return moving

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import grp
 import json
-import logging
 import os
 import pwd
 import re
@@ -19,7 +18,6 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +26,10 @@ import pytest
 import yaml
 
 from dc_core.errors import ConfigError, PluginError
-from dc_core.measurement import BasePaths, Measurement
+from dc_core.measurement import Measurement
 from dc_core.params import parse_params
 from dc_core.plugins import describe, load_plugin
+from dc_core.testing import FakeContext
 from dc_measurements.config import parse_measurement_server
 from dc_measurements.plugins import network as network_module
 from dc_measurements.plugins.cpu import Cpu
@@ -47,18 +46,7 @@ UNROUTABLE = "203.0.113.1"
 INVALID = "255.255.255.255"  # broadcast: sockets refuse to send there without SO_BROADCAST
 
 
-@dataclass
-class FakeContext:
-    name: str
-    logger: Any = field(default_factory=lambda: logging.getLogger("test_system_measurements"))
-    node: Any = None
-    paths: BasePaths = field(default_factory=BasePaths)
-
-    def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
-        raise AssertionError("system measurements are timer driven")
-
-
-def configured(cls: type[Measurement], measurement_id: str = "m", /, **values: Any) -> Any:
+def configured(cls: type[Measurement[Any]], measurement_id: str = "m", /, **values: Any) -> Any:
     params: Any = parse_params(cls.Params, values, f"measurement_server.{measurement_id}")
     plugin = cls(FakeContext(measurement_id), params)
     plugin.on_configure()
@@ -66,7 +54,7 @@ def configured(cls: type[Measurement], measurement_id: str = "m", /, **values: A
     return plugin
 
 
-def assert_valid(cls: type[Measurement], record: dict[str, Any]) -> None:
+def assert_valid(cls: type[Measurement[Any]], record: dict[str, Any]) -> None:
     schema = cls.load_schema()
     assert schema is not None
     jsonschema.Draft7Validator(schema).validate(record)
@@ -90,7 +78,7 @@ def meminfo() -> dict[str, int]:
 
 # --- registration, schemas, parameters -------------------------------------------------------
 
-PLUGINS: dict[str, type[Measurement]] = {
+PLUGINS: dict[str, type[Measurement[Any]]] = {
     "dc_measurements/Cpu": Cpu,
     "dc_measurements/Memory": Memory,
     "dc_measurements/OS": OperatingSystem,
@@ -113,13 +101,13 @@ def test_plugin_is_registered_with_description_and_valid_schema(type_name: str) 
 
 
 def test_defaults_are_the_originals() -> None:
-    cpu = parse_params(Cpu.Params, {}, "m")
+    cpu: Any = parse_params(Cpu.Params, {}, "m")
     assert (cpu.max_processes, cpu.cpu_min) == (5, 5.0)
-    net = parse_params(Network.Params, {}, "m")
+    net: Any = parse_params(Network.Params, {}, "m")
     assert (net.ping_address, net.ping_timeout) == ("8.8.8.8", 200)
-    tcp = parse_params(TcpHealth.Params, {"name": "minio"}, "m")
+    tcp: Any = parse_params(TcpHealth.Params, {"name": "minio"}, "m")
     assert (tcp.host, tcp.port) == ("127.0.0.1", 80)
-    perm = parse_params(Permissions.Params, {"path": "/"}, "m")
+    perm: Any = parse_params(Permissions.Params, {"path": "/"}, "m")
     assert perm.format == "int"
 
 
@@ -151,7 +139,7 @@ BAD_PARAMS = [
 
 
 @pytest.mark.parametrize(("cls", "values", "key"), BAD_PARAMS)
-def test_parameter_errors_name_the_yaml_path(cls: type[Measurement], values: dict[str, Any], key: str) -> None:
+def test_parameter_errors_name_the_yaml_path(cls: type[Measurement[Any]], values: dict[str, Any], key: str) -> None:
     with pytest.raises(ConfigError) as info:
         parse_params(cls.Params, values, "measurement_server.x")
     assert info.value.path == f"measurement_server.x.{key}"
@@ -516,7 +504,7 @@ def test_two_cpu_measurements_do_not_share_their_window(busy_child: subprocess.P
 # --- documentation ---------------------------------------------------------------------------
 
 DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "measurements"
-DOC_PAGES: dict[str, type[Measurement]] = {
+DOC_PAGES: dict[str, type[Measurement[Any]]] = {
     "cpu": Cpu,
     "memory": Memory,
     "os": OperatingSystem,
