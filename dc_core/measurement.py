@@ -2,7 +2,7 @@
 
 A measurement is one small class: its parameters (a frozen dataclass, the type argument of its
 base: ``class Cpu(Measurement[CpuParams])``, see dc_core.plugin), its JSON
-schema (``schema_file`` in ``<schema_package>/schemas/``) and ``collect()``. Everything common —
+schema (``schema.json`` beside its module) and ``collect()``. Everything common —
 timer, gating, validation, metadata, publishing — is done by the measurement server.
 
 Timer-driven measurements return a record from :meth:`Measurement.collect` (or ``None`` when they
@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import abc
 import json
+import sys
 from dataclasses import dataclass, field
 from importlib import resources
+from importlib.resources.abc import Traversable
 from typing import Any, ClassVar, Protocol
 
 from dc_core.errors import PluginError
@@ -43,8 +45,9 @@ class MeasurementContext(PluginContext, Protocol):
 class Measurement(Plugin[ParamsT]):
     """Base class of measurement plugins."""
 
-    schema_file: ClassVar[str | None] = None
-    schema_package: ClassVar[str] = "dc_measurements"
+    # The JSON schema (draft-07) of the plugin's own fields, beside its module: a plugin folder
+    # holds ``schema.json``. None: the plugin has no schema (its records are someone else's).
+    schema_file: ClassVar[str | None] = "schema.json"
     # True: collect() runs on the server's worker threads, so a collection that waits (a ping, a
     # subprocess, a file written) never holds up records, other measurements' timers or the
     # heartbeat. collect() must then not touch what callbacks on the main thread change without a
@@ -77,12 +80,32 @@ class Measurement(Plugin[ParamsT]):
 
     @classmethod
     def load_schema(cls) -> dict[str, Any] | None:
-        """The plugin's built-in JSON schema, or None if it has none."""
+        """The plugin's built-in JSON schema, or None if it has none.
+
+        The default ``schema.json`` is optional (a plugin written without a schema has none); a
+        file named on purpose must exist.
+        """
         if cls.schema_file is None:
             return None
+        path = schema_path(cls)
         try:
-            text = resources.files(cls.schema_package).joinpath("schemas", cls.schema_file).read_text()
-        except (OSError, ModuleNotFoundError) as exc:
-            raise PluginError(f"schema {cls.schema_file!r} of {cls.__name__} not found: {exc}") from exc
-        schema: dict[str, Any] = json.loads(text)
+            text = path.read_text()
+        except FileNotFoundError:
+            if cls.schema_file == Measurement.schema_file:
+                return None
+            raise PluginError(f"schema {cls.schema_file!r} of {cls.__name__} not found at {path}") from None
+        except OSError as exc:
+            raise PluginError(f"schema {cls.schema_file!r} of {cls.__name__} cannot be read: {exc}") from exc
+        try:
+            schema: dict[str, Any] = json.loads(text)
+        except ValueError as exc:
+            raise PluginError(f"schema {path} of {cls.__name__} is not JSON: {exc}") from exc
         return schema
+
+
+def schema_path(cls: type[Measurement[Any]]) -> Traversable:
+    """Where a measurement's ``schema_file`` is: in the folder of the module that defines the class."""
+    module = sys.modules[cls.__module__]
+    is_package = getattr(module, "__path__", None) is not None
+    package = cls.__module__ if is_package else cls.__module__.rpartition(".")[0]
+    return resources.files(package).joinpath(cls.schema_file or "")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,12 +24,9 @@ from dc_conditions.numeric import (
 from dc_conditions.same_as_previous import SameAsPrevious
 from dc_conditions.string_match import StringMatch
 from dc_core.condition import Condition
-from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, PluginError
-from dc_core.params import describe_params, field_names, parse_params
-from dc_core.plugins import describe, load_plugin, plugin_names
+from dc_core.params import parse_params
 from dc_core.testing import FakeContext
-from dc_measurements.config import parse_measurement_server
 
 PATH = "measurement_server.c"
 
@@ -481,33 +477,6 @@ def test_bad_regex_fails_configure(cls: type[Condition[Any]], params: dict[str, 
     assert str(caught.value).startswith(where)
 
 
-def test_every_registered_condition_loads_with_a_description() -> None:
-    names = plugin_names("conditions")
-    expected = {
-        "Exist",
-        "BoolEqual",
-        "Moving",
-        "DoubleEqual",
-        "DoubleInferior",
-        "DoubleSuperior",
-        "IntegerEqual",
-        "IntegerInferior",
-        "IntegerSuperior",
-        "ListBoolEqual",
-        "ListDoubleEqual",
-        "ListIntegerEqual",
-        "ListStringEqual",
-        "StringMatch",
-        "SameAsPrevious",
-    }
-    assert {f"dc_conditions/{n}" for n in expected} <= set(names)
-    for name in expected:
-        cls = load_plugin("conditions", f"dc_conditions/{name}")
-        assert issubclass(cls, Condition)
-        assert describe(cls), name
-        assert "topic" not in field_names(cls.Params), "topic is the server's parameter"
-
-
 # SameAsPrevious: stateful, so each case is a sequence of samples and the expected answer to each.
 
 
@@ -703,53 +672,3 @@ def test_moving_hysteresis_above_limit_fails_configure() -> None:
     )
     with pytest.raises(PluginError, match=r"^c\.count_hysteresis"):
         condition.on_configure()
-
-
-# The documentation: every example configuration parses, every parameter is documented.
-
-DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "conditions"
-PAGES = {
-    Exist: "exist.md",
-    BoolEqual: "bool_equal.md",
-    DoubleEqual: "numeric.md",
-    DoubleInferior: "numeric.md",
-    DoubleSuperior: "numeric.md",
-    IntegerEqual: "numeric.md",
-    IntegerInferior: "numeric.md",
-    IntegerSuperior: "numeric.md",
-    ListBoolEqual: "lists.md",
-    ListDoubleEqual: "lists.md",
-    ListIntegerEqual: "lists.md",
-    ListStringEqual: "lists.md",
-    StringMatch: "string_match.md",
-    SameAsPrevious: "same_as_previous.md",
-    Moving: "moving.md",
-}
-
-
-def yaml_blocks(page: str) -> list[str]:
-    return re.findall(r"```yaml\n(.*?)```", (DOCS / page).read_text(), flags=re.DOTALL)
-
-
-@pytest.mark.parametrize(("cls", "page"), list(PAGES.items()), ids=[c.__name__ for c in PAGES])
-def test_doc_page_documents_every_parameter_and_shows_the_plugin(cls: type[Condition[Any]], page: str) -> None:
-    text = (DOCS / page).read_text()
-    for info in describe_params(cls.Params):
-        assert f"| `{info.name}` |" in text, f"{page} lacks a row for {info.name}"
-    assert f'plugin: "dc_conditions/{cls.__name__}"' in text, f"{page} has no example for {cls.__name__}"
-    assert "## Differences from the original" in text
-
-
-@pytest.mark.parametrize("page", sorted(set(PAGES.values())))
-def test_doc_examples_are_valid_configurations(page: str, tmp_path: Path) -> None:
-    blocks = yaml_blocks(page)
-    assert blocks, f"{page} has no example configuration"
-    for index, block in enumerate(blocks):
-        params_file = tmp_path / f"example_{index}.yaml"
-        params_file.write_text(block)
-        config = parse_measurement_server(load_params_file(params_file)["measurement_server"])
-        assert config.conditions, f"{page} example {index} configures no condition"
-        for condition in config.conditions.values():
-            instance = condition.plugin_class(FakeContext(name=condition.name), condition.plugin_params)
-            if not isinstance(instance, Moving):  # Moving needs a ROS node: tested in test_moving_ros.py
-                instance.on_configure()

@@ -11,10 +11,10 @@ import yaml
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError
 from dc_destinations.config import parse_destination_server
-from dc_destinations.plugins.file import File
-from dc_destinations.plugins.null import Null
-from dc_destinations.plugins.rcl import Rcl
-from dc_destinations.plugins.stdout import Stdout
+from dc_destinations.file import File
+from dc_destinations.null import Null
+from dc_destinations.rcl import Rcl
+from dc_destinations.stdout import Stdout
 
 UPTIME = "/dc/measurement/uptime"
 

@@ -22,7 +22,6 @@ from typing import Any
 
 import pytest
 
-from dc_core.config import load_params_file
 from dc_core.destination import OutgoingRecord, RejectedError, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.params import describe_params, parse_params
@@ -30,7 +29,7 @@ from dc_core.testing import FakeContext
 from dc_destinations.buffer import FILE_NAME, SqliteBuffer
 from dc_destinations.config import parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline, new_record_id
-from dc_destinations.plugins.http import Http, HttpParams
+from dc_destinations.http import Http, HttpParams
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 # -- a receiver: a real HTTP/1.1 server on 127.0.0.1, in threads of the test process ----------------
@@ -566,29 +565,3 @@ def test_tls_refuses_an_unknown_certificate_unless_told_not_to_verify(certificat
             http_destination(port=receiver.port, tls=True).send(BATCH)
         assert http_destination(port=receiver.port, tls=True, tls_verify=False).send(BATCH) is None
     assert len(receiver.records()) == 2
-
-
-# -- documentation -----------------------------------------------------------------------------------------
-
-DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "destinations"
-
-
-def test_doc_page_documents_every_parameter() -> None:
-    text = (DOCS / "http.md").read_text()
-    for info in describe_params(HttpParams):
-        assert f"| `{info.name}` |" in text, f"http.md lacks a row for {info.name}"
-    for heading in ("## Example configuration", "## Example output", "## Differences from the original"):
-        assert heading in text
-    assert "[http.md](http.md)" in (DOCS / "index.md").read_text()
-
-
-def test_doc_examples_are_valid_configurations(tmp_path: Path) -> None:
-    blocks = re.findall(r"```yaml\n(.*?)```", (DOCS / "http.md").read_text(), flags=re.DOTALL)
-    assert blocks
-    for index, block in enumerate(blocks):
-        params_file = tmp_path / f"example_{index}.yaml"
-        params_file.write_text(block)
-        config = parse_destination_server(load_params_file(params_file)["destination_server"])
-        assert config.destinations and config.warnings == []
-        for d in config.destinations:
-            d.plugin_class(FakeContext(name=d.name), d.plugin_params).on_configure()
