@@ -21,7 +21,8 @@ from collections.abc import Sequence
 import psutil
 
 from dc_core.destination import Destination, OutgoingRecord, RetryableError
-from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 _DATA = {

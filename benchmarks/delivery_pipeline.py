@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RetryableError
-from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 # ~200 bytes of JSON, like the measured figures of design.md §7.

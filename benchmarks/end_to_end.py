@@ -498,7 +498,7 @@ def intake(bench: Bench, sync: str, count: int, rate: float, destination_up: boo
 def fill_backlog(folder: Path, count: int) -> float:
     """A buffer of ``count`` records for the destination, written with the buffer API; returns seconds."""
     from dc_destinations.buffer import PendingRecord, SqliteBuffer
-    from dc_destinations.delivery import new_record_id
+    from dc_destinations.record_ids import new_record_id
 
     started = time.perf_counter()
     buffer = SqliteBuffer(folder / "delivery.sqlite3", synchronous="normal")

@@ -30,6 +30,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 from dc_core.errors import DcError
 
@@ -180,11 +181,6 @@ class Quarantine:
     reason: str
 
 
-def default_storage_dir() -> Path:
-    base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
-    return Path(base) / "dc" / "buffer"
-
-
 def is_corruption(exc: BaseException) -> bool:
     code = getattr(exc, "sqlite_errorcode", None)
     return (
@@ -194,6 +190,71 @@ def is_corruption(exc: BaseException) -> bool:
 
 def _now_ns() -> int:
     return time.time_ns()
+
+
+class Buffer(Protocol):
+    """What delivery (dc_destinations.delivery, .commit, .sender) and `dc buffer` need of a buffer.
+
+    :class:`SqliteBuffer` is the one DC ships; tests/test_buffer.py is the suite a buffer must
+    pass. Every method is thread-safe and atomic (a crash leaves an operation done or not done);
+    an operation on a closed buffer raises :class:`BufferClosed`, one that met corruption (the
+    store was set aside and replaced) raises :class:`BufferCorrupted` and was not done.
+    """
+
+    @property
+    def closed(self) -> bool: ...
+    def close(self) -> None: ...
+    def ensure_queues(self, destinations: Sequence[str]) -> None:
+        """Create the queues that do not exist yet."""
+
+    def append(
+        self,
+        records: Mapping[str, Sequence[PendingRecord]],
+        limits: Mapping[str, QueueLimit] | None = None,
+        *,
+        now_ns: int | None = None,
+        seen: Sequence[tuple[str, int, int]] = (),
+        seen_window: int | None = None,
+    ) -> AppendResult:
+        """Write records of several queues and their hop keys at once (one group commit)."""
+
+    def seen_keys(self) -> list[tuple[str, int, int]]:
+        """The hop keys kept, oldest first."""
+
+    def read_batch(self, destination: str, limit: int) -> list[BufferedRow]:
+        """The oldest ``limit`` rows of a queue."""
+
+    def delete(self, destination: str, row_ids: Sequence[int]) -> int:
+        """Forget confirmed rows; returns how many were there."""
+
+    def record_failure(self, destination: str, row_ids: Sequence[int]) -> dict[int, int]:
+        """One more failed attempt for each row; returns their attempt counts."""
+
+    def dead_letter(
+        self, destination: str, failures: Sequence[tuple[BufferedRow, str]], *, now_ns: int | None = None
+    ) -> int:
+        """Move rows to the dead letters with their error text; returns how many moved."""
+
+    def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
+        """Delete the oldest dead letters of a queue beyond ``max_bytes``; returns how many."""
+
+    def stats(self, destination: str) -> QueueStats:
+        """What waits in a queue, its dead letters and lifetime totals."""
+
+    # What `dc buffer` does with the dead letters.
+    def list_dead_letters(
+        self, destination: str | None = None, *, limit: int = 100, after_id: int = 0
+    ) -> list[DeadLetter]:
+        """Dead letters oldest first, ``limit`` at a time after ``after_id``."""
+
+    def get_dead_letter(self, dead_letter_id: int) -> DeadLetter | None: ...
+    def replay_dead_letters(
+        self, destination: str | None = None, ids: Sequence[int] | None = None, *, now_ns: int | None = None
+    ) -> int:
+        """Move dead letters back to the end of their queues, attempts reset; returns how many."""
+
+    def purge_dead_letters(self, destination: str | None = None, ids: Sequence[int] | None = None) -> int:
+        """Delete dead letters; returns how many."""
 
 
 class SqliteBuffer:

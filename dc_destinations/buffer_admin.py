@@ -23,7 +23,8 @@ import yaml
 
 from dc_core.errors import DcError
 from dc_core.paths import expand_env
-from dc_destinations.buffer import FILE_NAME, DeadLetter, QueueStats, SqliteBuffer, default_storage_dir
+from dc_destinations.buffer import FILE_NAME, DeadLetter, QueueStats, SqliteBuffer
+from dc_destinations.storage import default_storage_dir
 
 
 class BufferAdminError(DcError):

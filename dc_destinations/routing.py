@@ -10,7 +10,6 @@ raises ``MalformedRecord`` for a record that is not valid UTF-8 JSON). Pure: no 
 
 from __future__ import annotations
 
-import uuid
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,6 +18,7 @@ from dc_core.destination import OutgoingRecord
 from dc_core.records import dump_record
 from dc_core.timefmt import format_stamp
 from dc_destinations.config import DestinationConfig
+from dc_destinations.record_ids import new_record_id
 
 RECORD_ID_KEY = "record_id"
 TAGS_KEY = "tags"
@@ -27,10 +27,6 @@ TAGS_KEY = "tags"
 NO_TAGS = "no tags"
 BAD_TAGS = "tags is not a list of strings"
 NO_LISTENER = "its tags name no destination listening on this topic"
-
-
-def new_uuid_record_id() -> str:
-    return str(uuid.uuid4())
 
 
 @dataclass(frozen=True)
@@ -93,7 +89,7 @@ class RoutingTable:
         topic: str,
         record: Mapping[str, Any],
         stamp_ns: int,
-        new_record_id: Callable[[], str] = new_uuid_record_id,
+        new_record_id: Callable[[], str] = new_record_id,
     ) -> Routed:
         if TAGS_KEY not in record:
             return Routed(unrouted_reason=NO_TAGS)

@@ -28,8 +28,9 @@ from dc_core.logs import BurstLog
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
-from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.hop import HopIntake, HopKey, hop_key
+from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
 from dc_interfaces.msg import StringStamped
 

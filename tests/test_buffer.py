@@ -1,4 +1,10 @@
-"""The SQLite delivery buffer on its own: queues, limits, dead letters, corruption, restart."""
+"""The delivery buffer on its own: queues, limits, dead letters, corruption, restart.
+
+The tests taking the ``buffer`` fixture are the suite of the ``Buffer`` protocol
+(dc_destinations.buffer): they use its methods only and run against every implementation in
+``BUFFERS``. A new buffer (another store) adds its factory there and must pass them. The tests
+after them are SqliteBuffer's own (its file, WAL, corruption handling, `dc buffer`).
+"""
 
 from __future__ import annotations
 
@@ -10,7 +16,7 @@ import os
 import sqlite3
 import time
 import tracemalloc
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -18,6 +24,7 @@ import pytest
 from dc_destinations import buffer_admin
 from dc_destinations.buffer import (
     FILE_NAME,
+    Buffer,
     BufferCorrupted,
     PendingRecord,
     Quarantine,
@@ -31,14 +38,17 @@ def pending(n: int, width: int = 0) -> PendingRecord:
     return PendingRecord(record_id=f"id-{n:08d}", topic="/dc/measurement/t", stamp_ns=n, payload=payload)
 
 
-@pytest.fixture
-def buffer(tmp_path: Path) -> Iterator[SqliteBuffer]:
-    b = SqliteBuffer(tmp_path / FILE_NAME)
+BUFFERS: dict[str, Callable[[Path], Buffer]] = {"sqlite": lambda folder: SqliteBuffer(folder / FILE_NAME)}
+
+
+@pytest.fixture(params=sorted(BUFFERS))
+def buffer(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Buffer]:
+    b = BUFFERS[request.param](tmp_path)
     yield b
     b.close()
 
 
-def test_append_read_delete(buffer: SqliteBuffer) -> None:
+def test_append_read_delete(buffer: Buffer) -> None:
     result = buffer.append({"a": [pending(i) for i in range(10)], "b": [pending(100)]})
     assert result.appended == {"a": 10, "b": 1}
     rows = buffer.read_batch("a", 4)
@@ -52,7 +62,7 @@ def test_append_read_delete(buffer: SqliteBuffer) -> None:
     assert buffer.stats("b").rows == 1  # queues are independent
 
 
-def test_deleting_twice_counts_once(buffer: SqliteBuffer) -> None:
+def test_deleting_twice_counts_once(buffer: Buffer) -> None:
     buffer.append({"a": [pending(1)]})
     (row,) = buffer.read_batch("a", 10)
     assert buffer.delete("a", [row.row_id]) == 1
@@ -60,7 +70,7 @@ def test_deleting_twice_counts_once(buffer: SqliteBuffer) -> None:
     assert buffer.stats("a").sent_total == 1
 
 
-def test_failures_are_counted_per_row(buffer: SqliteBuffer) -> None:
+def test_failures_are_counted_per_row(buffer: Buffer) -> None:
     buffer.append({"a": [pending(1), pending(2)]})
     first, second = buffer.read_batch("a", 10)
     assert buffer.record_failure("a", [first.row_id]) == {first.row_id: 1}
@@ -68,7 +78,7 @@ def test_failures_are_counted_per_row(buffer: SqliteBuffer) -> None:
     assert [r.attempts for r in buffer.read_batch("a", 10)] == [2, 1]
 
 
-def test_dead_letters_keep_the_error_and_can_be_replayed_or_purged(buffer: SqliteBuffer) -> None:
+def test_dead_letters_keep_the_error_and_can_be_replayed_or_purged(buffer: Buffer) -> None:
     buffer.append({"a": [pending(i) for i in range(3)]})
     rows = buffer.read_batch("a", 10)
     assert buffer.dead_letter("a", [(rows[0], "rejected: 400 bad field"), (rows[2], "rejected: too big")]) == 2
@@ -91,7 +101,7 @@ def test_dead_letters_keep_the_error_and_can_be_replayed_or_purged(buffer: Sqlit
     assert buffer.list_dead_letters() == []
 
 
-def test_dead_letters_beyond_their_limit_lose_the_oldest_of_their_destination_only(buffer: SqliteBuffer) -> None:
+def test_dead_letters_beyond_their_limit_lose_the_oldest_of_their_destination_only(buffer: Buffer) -> None:
     size = pending(0).size
     buffer.append({"a": [pending(i) for i in range(6)], "b": [pending(100)]})
     buffer.dead_letter("a", [(row, "rejected") for row in buffer.read_batch("a", 10)])
@@ -105,7 +115,7 @@ def test_dead_letters_beyond_their_limit_lose_the_oldest_of_their_destination_on
     assert buffer.list_dead_letters("a") == [] and buffer.stats("b").dead_letters == 1
 
 
-def test_dead_letter_limit_counts_what_replay_and_purge_removed(buffer: SqliteBuffer) -> None:
+def test_dead_letter_limit_counts_what_replay_and_purge_removed(buffer: Buffer) -> None:
     size = pending(0).size
     buffer.append({"a": [pending(i) for i in range(6)]})
     buffer.dead_letter("a", [(row, "rejected") for row in buffer.read_batch("a", 10)])
@@ -145,7 +155,7 @@ def test_a_buffer_of_schema_1_is_migrated_with_its_dead_letters_counted(tmp_path
     conn.close()
 
 
-def test_size_limit_drop_newest_keeps_the_oldest(buffer: SqliteBuffer) -> None:
+def test_size_limit_drop_newest_keeps_the_oldest(buffer: Buffer) -> None:
     size = pending(0).size
     limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=False)}
     result = buffer.append({"a": [pending(i) for i in range(7)]}, limit)
@@ -158,7 +168,7 @@ def test_size_limit_drop_newest_keeps_the_oldest(buffer: SqliteBuffer) -> None:
     assert stats.bytes == 10 * size and stats.dropped_total == 4 and stats.received_total == 14
 
 
-def test_size_limit_drop_oldest_keeps_the_newest(buffer: SqliteBuffer) -> None:
+def test_size_limit_drop_oldest_keeps_the_newest(buffer: Buffer) -> None:
     size = pending(0).size
     limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=True)}
     buffer.append({"a": [pending(i) for i in range(7)]}, limit)
@@ -174,7 +184,7 @@ def test_size_limit_drop_oldest_keeps_the_newest(buffer: SqliteBuffer) -> None:
 
 
 @pytest.mark.parametrize("drop_oldest", [True, False])
-def test_a_record_bigger_than_the_limit_is_dropped_alone(buffer: SqliteBuffer, drop_oldest: bool) -> None:
+def test_a_record_bigger_than_the_limit_is_dropped_alone(buffer: Buffer, drop_oldest: bool) -> None:
     limit = {"a": QueueLimit(max_bytes=200, drop_oldest=drop_oldest)}
     buffer.append({"a": [pending(1)]}, limit)
     result = buffer.append({"a": [pending(2, width=500)]}, limit)

@@ -21,7 +21,8 @@ import pytest
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.buffer import FILE_NAME, SqliteBuffer
-from dc_destinations.delivery import DeliveryPipeline, new_record_id, uuid7
+from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 LOG = RecordingLogger("test_delivery")
@@ -561,7 +562,8 @@ def test_stop_within_grace_delivers_what_it_can(tmp_path: Path) -> None:
 _CHILD = r"""
 import json, os, sys, time
 from dc_core.destination import Destination, OutgoingRecord
-from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 class Log:

@@ -17,8 +17,9 @@ from dc_core.destination import Destination, OutgoingRecord
 from dc_core.sequence_numbers import TopicWriters
 from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.buffer import FILE_NAME, PendingRecord, SqliteBuffer
-from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.hop import HopIntake, HopKey, hop_key
+from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 TOPIC = "/dc/measurement/numbers"

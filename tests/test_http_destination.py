@@ -28,8 +28,9 @@ from dc_core.params import describe_params, parse_params
 from dc_core.testing import FakeContext
 from dc_destinations.buffer import FILE_NAME, SqliteBuffer
 from dc_destinations.config import parse_destination_server
-from dc_destinations.delivery import DeliveryPipeline, new_record_id
+from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.http import Http, HttpParams
+from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 # -- a receiver: a real HTTP/1.1 server on 127.0.0.1, in threads of the test process ----------------

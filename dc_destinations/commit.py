@@ -1,0 +1,314 @@
+"""From the server's intake to the disk: a hand-off queue and a writer thread doing group commits.
+
+``submit_record`` runs on the server's main thread: it only puts the record on an in-memory
+hand-off queue. The writer thread takes everything waiting there (up to ``commit_batch_size``)
+and writes it in one transaction — a group commit — so the cost of a commit is shared by all the
+records that arrived meanwhile. A record is durable once its group commit is done (see
+:meth:`GroupCommitter.flush` and docs/delivery.md for the loss window of each ``storage_sync``).
+
+One record never stops the others: a record that is not valid UTF-8 JSON is counted apart, and a
+commit that fails because of what is in its records is split per received record. A commit that
+fails on the disk (full, I/O error) is retried every second, visibly (``failed``, ``last_error``,
+:attr:`GroupCommitter.failing`).
+"""
+
+from __future__ import annotations
+
+import queue
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from dc_core.destination import OutgoingRecord
+from dc_core.logs import BurstLog, Logger
+from dc_core.records import MalformedRecord
+from dc_destinations.buffer import AppendResult, Buffer, BufferClosed, BufferCorrupted, PendingRecord, QueueLimit
+from dc_destinations.sender import Closing, Route
+from dc_destinations.settings import DeliveryParams
+
+HopKey = tuple[str, int, int]
+CommitListener = Callable[[Sequence[tuple[str, str]]], None]
+
+_STOP = object()
+
+
+@dataclass(frozen=True)
+class _Handoff:
+    """One received record: its copies for each destination and its hop key, committed together."""
+
+    records: list[tuple[Route, OutgoingRecord]]
+    seen: HopKey | None
+
+
+@dataclass
+class _CommitBatch:
+    """The records of one group commit by destination, with their hop keys."""
+
+    by_destination: dict[str, list[PendingRecord]] = field(default_factory=dict)
+    limits: dict[str, QueueLimit] = field(default_factory=dict)
+    seen: list[HopKey] = field(default_factory=list)
+    committed: list[tuple[str, str]] = field(default_factory=list)  # (destination, record_id), as they came
+
+    def add(self, route: Route, record: PendingRecord) -> None:
+        self.by_destination.setdefault(route.name, []).append(record)
+        self.limits[route.name] = route.limit
+        self.committed.append((route.name, record.record_id))
+
+    @property
+    def count(self) -> int:
+        return len(self.committed)
+
+
+def _may_pass(exc: Exception) -> bool:
+    """Whether a failed commit is the disk's or the system's (retry it) rather than its records' own."""
+    return isinstance(exc, (sqlite3.OperationalError, OSError, MemoryError, BufferClosed))
+
+
+class GroupCommitter:
+    """The hand-off queue and the writer thread; see the module documentation."""
+
+    def __init__(
+        self,
+        routes: Mapping[str, Route],
+        buffer: Buffer,
+        settings: DeliveryParams,
+        closing: Closing,
+        logger: Logger,
+        *,
+        seen_window: int | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        tick_logs: Callable[[], None] = lambda: None,
+    ) -> None:
+        self._routes = routes
+        self._buffer = buffer
+        self.settings = settings
+        self._closing = closing
+        self.logger = logger
+        self._seen_window = seen_window
+        self._clock = clock
+        self._tick_logs = tick_logs
+        self._intake: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._accepting = False
+        self._writer: threading.Thread | None = None
+        self._listeners: list[CommitListener] = []
+        self.intake_drop_log = BurstLog(logger.error, "delivery intake: records dropped")
+        self.commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
+        # (since, error) while group commits fail for a reason that may pass (disk full, I/O error).
+        self.failing: tuple[float, str] | None = None
+
+    # -- the server's side ------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._intake = queue.SimpleQueue()
+        self._accepting = True
+        self._writer = threading.Thread(target=self._write_loop, name="dc-delivery-writer", daemon=True)
+        self._writer.start()
+
+    def stop(self) -> None:
+        """Refuse new records, commit what was submitted, end the writer."""
+        if self._writer is None:
+            return
+        self._accepting = False
+        self._intake.put(_STOP)
+        self._writer.join()
+        self._writer = None
+
+    @property
+    def running(self) -> bool:
+        return self._writer is not None and self._writer.is_alive()
+
+    @property
+    def waiting(self) -> int:
+        """Records handed over and not committed yet."""
+        return self._intake.qsize()
+
+    def submit(self, destination: str, record: OutgoingRecord) -> None:
+        """Hand a record over for ``destination``; never blocks. Durable after its group commit."""
+        self.submit_record([(destination, record)])
+
+    def submit_record(self, deliveries: Sequence[tuple[str, OutgoingRecord]], seen: HopKey | None = None) -> bool:
+        """Hand over the copies of one record, and its hop key, to be committed in one transaction.
+
+        Never blocks. Returns False when the record was dropped (counted for each destination):
+        its key is then not written either, so a replay of the record is delivered. With no
+        deliveries, only the key is written (a record that reaches no destination was handled too).
+        """
+        routes = [(self._routes[name], record) for name, record in deliveries]
+        reason = None
+        if not self._accepting:
+            reason = "the delivery pipeline is not running"
+        elif self._intake.qsize() >= self.settings.intake_queue_limit:
+            reason = f"{self.settings.intake_queue_limit} records already wait for the disk (intake_queue_limit)"
+        if reason is not None:
+            for route, _ in routes:
+                route.metrics.add("received")
+                route.metrics.add("dropped")
+            if routes:
+                self.intake_drop_log.event(len(routes), reason)
+            return False
+        self._intake.put(_Handoff(routes, seen))
+        return True
+
+    def flush(self, timeout: float | None = None) -> bool:
+        """Wait until every record submitted before this call is committed; False on timeout."""
+        if self._writer is None:
+            return False
+        done = threading.Event()
+        self._intake.put(done)
+        return done.wait(timeout)
+
+    def add_listener(self, listener: CommitListener) -> None:
+        """Call ``listener`` on the writer thread with ``(destination, record_id)`` of each group commit."""
+        self._listeners.append(listener)
+
+    # -- the writer thread ------------------------------------------------------------------------
+
+    def _write_loop(self) -> None:
+        limit = self.settings.commit_batch_size
+        while True:
+            try:
+                first = self._intake.get(timeout=0.5)
+            except queue.Empty:
+                self._tick_logs()
+                continue
+            items = [first]
+            self._take_waiting(items, limit)
+            if len(items) < limit and self.settings.commit_interval > 0 and first is not _STOP:
+                # Let a trickle of records gather into one commit: at robot rates this turns a
+                # commit (and, with storage_sync full, an fsync) per record into a few per second.
+                time.sleep(self.settings.commit_interval)
+                self._take_waiting(items, limit)
+            stop = False
+            handoffs: list[_Handoff] = []
+            markers: list[threading.Event] = []
+            for item in items:
+                if item is _STOP:
+                    stop = True
+                elif isinstance(item, threading.Event):
+                    markers.append(item)
+                else:
+                    handoffs.append(item)
+            if handoffs:
+                self._commit(handoffs)
+            self._tick_logs()
+            for marker in markers:
+                marker.set()
+            if stop:
+                # Whatever was submitted before the stop is committed before the writer ends.
+                self._drain_after_stop()
+                return
+
+    def _take_waiting(self, items: list[Any], limit: int) -> None:
+        while len(items) < limit:
+            try:
+                items.append(self._intake.get_nowait())
+            except queue.Empty:
+                return
+
+    def _drain_after_stop(self) -> None:
+        while True:
+            try:
+                item = self._intake.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(item, threading.Event):
+                item.set()
+            elif item is not _STOP:
+                self._commit([item])
+
+    def _commit(self, handoffs: list[_Handoff]) -> None:
+        """One group commit of received records."""
+        batch = self._storable(handoffs)
+        while True:
+            try:
+                result = self._buffer.append(
+                    batch.by_destination, batch.limits, seen=batch.seen, seen_window=self._seen_window
+                )
+                break
+            except BufferCorrupted:
+                continue  # the buffer was replaced by an empty one: write the batch there
+            except Exception as exc:
+                if not _may_pass(exc):
+                    # Something in the records themselves: find it, so that one record never holds up
+                    # the others (a group commit retried forever stalled every destination).
+                    self._commit_apart(handoffs, exc)
+                    return
+                # Disk full, I/O error: keep the batch and try again, visibly.
+                self._commit_failed(batch, exc)
+                if self._closing.event.wait(1.0) or not self._accepting:
+                    for name, records in batch.by_destination.items():
+                        self._routes[name].metrics.add("received", len(records))
+                        self._routes[name].metrics.add("dropped", len(records))
+                    self.logger.error(f"delivery buffer: {batch.count} records lost at shutdown: {exc}")
+                    return
+        self.failing = None
+        self._account(batch, result)
+
+    def _storable(self, handoffs: list[_Handoff]) -> _CommitBatch:
+        """What of ``handoffs`` the buffer can hold; a record that is not valid UTF-8 JSON is counted apart."""
+        batch = _CommitBatch()
+        for handoff in handoffs:
+            if handoff.seen is not None:
+                batch.seen.append(handoff.seen)
+            for route, record in handoff.records:
+                try:
+                    pending = PendingRecord(record.record_id, record.topic, record.stamp_ns, record.to_json())
+                    pending.size  # noqa: B018 - encodes the payload: a lone surrogate fails here, not in append
+                except (MalformedRecord, UnicodeError, ValueError, TypeError, RecursionError) as exc:
+                    self._not_storable(route, record.record_id, f"{type(exc).__name__}: {exc}")
+                    continue
+                batch.add(route, pending)
+        return batch
+
+    def _commit_apart(self, handoffs: list[_Handoff], exc: Exception) -> None:
+        """Commit each received record alone after ``exc`` failed their group commit."""
+        if len(handoffs) > 1:
+            for handoff in handoffs:
+                self._commit([handoff])
+            return
+        (handoff,) = handoffs
+        for route, record in handoff.records:
+            self._not_storable(route, record.record_id, f"the buffer refused it: {type(exc).__name__}: {exc}")
+        if handoff.seen is not None:
+            self._commit([_Handoff([], handoff.seen)])  # handled: a replay of it is not reported as new
+
+    def _not_storable(self, route: Route, record_id: str, reason: str) -> None:
+        route.metrics.add("received")
+        route.metrics.add("malformed")
+        route.malformed_log.event(1, f"record {record_id}: {reason}")
+
+    def _commit_failed(self, batch: _CommitBatch, exc: Exception) -> None:
+        error = f"committing to the buffer: {type(exc).__name__}: {exc}"
+        since = self.failing[0] if self.failing is not None else self._clock()
+        self.failing = (since, error)
+        self.commit_log.event(batch.count, f"{type(exc).__name__}: {exc}")
+        for name in batch.by_destination:
+            metrics = self._routes[name].metrics
+            metrics.add("failed")
+            metrics.set_error(error)
+
+    def _account(self, batch: _CommitBatch, result: AppendResult) -> None:
+        """Counters, drop logs and sender wake-ups after a group commit."""
+        for name, records in batch.by_destination.items():
+            route = self._routes[name]
+            route.metrics.add("received", len(records))
+            dropped_newest = result.dropped_newest.get(name, 0)
+            dropped_oldest = result.dropped_oldest.get(name, 0)
+            if dropped_newest or dropped_oldest:
+                route.metrics.add("dropped", dropped_newest + dropped_oldest)
+                route.drop_log.event(
+                    dropped_newest + dropped_oldest,
+                    f"storage_total_limit_size {route.params.storage_total_limit_size} reached, "
+                    f"when_full {route.params.when_full}",
+                )
+            route.pending_hint += result.appended.get(name, 0)
+            if route.pending_hint >= route.params.batch_size:
+                route.wakeup.set()
+        for listener in self._listeners:
+            try:
+                listener(batch.committed)
+            except Exception as exc:
+                self.logger.error(f"delivery commit listener failed: {exc}")

@@ -1,0 +1,275 @@
+"""How a destination's ``send()`` is called, and retried: one sender thread per destination.
+
+For a destination plugin's author, this is the whole story of delivery:
+
+1. Records wait in the destination's queue in the durable buffer (dc_destinations.buffer), in
+   the order they arrived.
+2. The sender reads the oldest ``batch_size`` of them and calls ``send(batch)`` on its own thread,
+   never on the server's main loop: ``send`` may block on the network. It wakes up when
+   ``batch_size`` records wait or ``flb.flush`` seconds passed.
+3. ``send`` returns ``None``: every record is confirmed and deleted from the queue. It returns a
+   :class:`~dc_core.destination.SendOutcome`: the indexes in ``reject`` go to the dead letters with
+   their reason, those in ``retry`` stay in the queue with one more attempt counted, the others are
+   confirmed. It raises :class:`~dc_core.destination.RejectedError`: the whole batch is
+   dead-lettered. Any other exception (:class:`~dc_core.destination.RetryableError`, a socket
+   error…) means the whole batch is retried.
+4. A retry waits with exponential backoff and full jitter (``scheduler_base`` doubling up to
+   ``scheduler_cap``); a success resets it. A record retried more than ``retry_limit`` times
+   (-1: never given up) is dead-lettered with its last error.
+5. ``send`` is called again with the same records (same ``record_id``) after a retry or a crash
+   of the server between ``send`` and the deletion: a destination that can deduplicate on
+   ``record_id`` delivers exactly once.
+
+A failure of the buffer itself (a full disk) is counted in ``failed``, logged, and retried with the
+same backoff: a sender never dies. Dead letters are bounded per destination by
+``dead_letter_limit_size``, the oldest deleted first.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.logs import BurstLog, Logger
+from dc_core.records import MalformedRecord, parse_record
+from dc_destinations.backoff import Backoff
+from dc_destinations.buffer import Buffer, BufferClosed, BufferCorrupted, BufferedRow, QueueLimit
+from dc_destinations.metrics import DestinationMetrics
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_size
+
+
+@dataclass
+class Route:
+    """One destination's delivery: its plugin and parameters, counters, logs and wake-up."""
+
+    name: str
+    destination: Destination[Any]
+    params: DestinationDeliveryParams
+    limit: QueueLimit
+    dead_letter_max_bytes: int | None
+    metrics: DestinationMetrics
+    drop_log: BurstLog
+    failure_log: BurstLog
+    dead_letter_log: BurstLog
+    dead_letter_drop_log: BurstLog
+    malformed_log: BurstLog
+    wakeup: threading.Event = field(default_factory=threading.Event)
+    # Records committed since the sender last found its queue empty: it wakes at batch_size.
+    pending_hint: int = 0
+    thread: threading.Thread | None = None
+
+    @classmethod
+    def of(cls, name: str, destination: Destination[Any], params: DestinationDeliveryParams, logger: Logger) -> Route:
+        return cls(
+            name=name,
+            destination=destination,
+            params=params,
+            limit=QueueLimit(
+                max_bytes=parse_size(params.storage_total_limit_size), drop_oldest=params.when_full == "drop_oldest"
+            ),
+            dead_letter_max_bytes=parse_size(params.dead_letter_limit_size),
+            metrics=DestinationMetrics(),
+            drop_log=BurstLog(logger.warning, f"destination {name}: records dropped"),
+            failure_log=BurstLog(logger.warning, f"destination {name}: delivery failed, will retry"),
+            dead_letter_log=BurstLog(logger.error, f"destination {name}: records dead-lettered"),
+            dead_letter_drop_log=BurstLog(
+                logger.warning,
+                f"destination {name}: oldest dead letters deleted "
+                f"(dead_letter_limit_size {params.dead_letter_limit_size})",
+            ),
+            malformed_log=BurstLog(
+                logger.error, f"destination {name}: records not stored, they are not valid UTF-8 JSON"
+            ),
+        )
+
+    def tick_logs(self) -> None:
+        self.drop_log.tick()
+        self.failure_log.tick()
+        self.dead_letter_log.tick()
+        self.dead_letter_drop_log.tick()
+        self.malformed_log.tick()
+
+
+@dataclass
+class Closing:
+    """Shared by the pipeline and its senders: set when the pipeline stops; senders deliver until ``deadline``."""
+
+    event: threading.Event = field(default_factory=threading.Event)
+    deadline: float = math.inf
+
+    def reset(self) -> None:
+        self.event.clear()
+        self.deadline = math.inf
+
+
+class Sender:
+    """The thread that delivers one destination's queue; see the module documentation.
+
+    ``wait`` (called with each backoff delay; returns True to give up because the pipeline is
+    stopping) and ``uniform`` (the jitter draw) exist for tests.
+    """
+
+    def __init__(
+        self,
+        route: Route,
+        buffer: Buffer,
+        settings: DeliveryParams,
+        closing: Closing,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        wait: Callable[[float], bool] | None = None,
+        uniform: Callable[[float, float], float] | None = None,
+    ) -> None:
+        self.route = route
+        self.buffer = buffer
+        self.settings = settings
+        self.closing = closing
+        self._clock = clock
+        self._wait = wait
+        self._backoff = Backoff(settings.scheduler_base, settings.scheduler_cap, uniform)
+
+    def run(self) -> None:
+        route, buffer = self.route, self.buffer
+        batch_size = route.params.batch_size
+        while True:
+            closing = self.closing.event.is_set()
+            if closing and self._clock() >= self.closing.deadline:
+                return
+            try:
+                rows = buffer.read_batch(route.name, batch_size)
+            except BufferCorrupted:
+                continue
+            except BufferClosed:
+                return
+            except Exception as exc:  # disk full, I/O error: the sender waits and tries again, never dies
+                if self._buffer_trouble(f"reading the buffer: {type(exc).__name__}: {exc}"):
+                    return
+                continue
+            if not rows:
+                if closing:
+                    return
+                self._idle()
+                route.tick_logs()
+                continue
+            try:
+                must_retry = self.deliver(rows)
+            except BufferClosed:
+                return
+            except BufferCorrupted:
+                continue
+            except Exception as exc:
+                # The destination may have taken the batch before the buffer failed to record it
+                # (deleting needs disk space too): those records are sent again, as after a crash.
+                if self._buffer_trouble(f"updating the buffer: {type(exc).__name__}: {exc}"):
+                    return
+                continue
+            if must_retry:
+                if self._wait_backoff(self._backoff.next_delay()):
+                    return
+            else:
+                self._backoff.reset()
+                if len(rows) < batch_size and not closing:
+                    self._idle()
+
+    def _idle(self) -> None:
+        """Wait for batch_size records to be committed, or flush seconds."""
+        self.route.pending_hint = 0
+        self.route.wakeup.wait(self.settings.flush)
+        self.route.wakeup.clear()
+
+    def _buffer_trouble(self, what: str) -> bool:
+        """Count and log a failed buffer operation, then back off; True when the pipeline is stopping."""
+        self.route.metrics.add("failed")
+        self.route.metrics.set_error(what)
+        self.route.failure_log.event(1, what)
+        return self._wait_backoff(self._backoff.next_delay())
+
+    def _wait_backoff(self, delay: float) -> bool:
+        if self._wait is not None:
+            return self._wait(delay) or self.closing.event.is_set()
+        return self.closing.event.wait(delay)
+
+    def deliver(self, rows: list[BufferedRow]) -> bool:
+        """One send() of ``rows``; returns True when some of them must be retried."""
+        route, buffer = self.route, self.buffer
+        records: list[OutgoingRecord] = []
+        sent_rows: list[BufferedRow] = []
+        unreadable: list[tuple[BufferedRow, str]] = []
+        for row in rows:
+            try:
+                data = parse_record(row.payload)
+            except MalformedRecord as exc:
+                # Written by an older DC (it let NaN through) or changed by hand: never sent as is.
+                unreadable.append((row, f"unreadable payload in the buffer: {exc}"))
+                continue
+            records.append(OutgoingRecord(row.record_id, row.topic, row.stamp_ns, data, json_text=row.payload))
+            sent_rows.append(row)
+        if unreadable:
+            route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))
+            self.bound_dead_letters()
+        if not records:
+            return False
+        retry, reject = _outcome_of(route.destination, records)
+        confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
+        if confirmed:
+            buffer.delete(route.name, confirmed)
+            route.metrics.add("sent", len(confirmed))
+        if not retry and not reject:
+            return False
+        route.metrics.add("failed")
+        first_error = next(iter({**reject, **retry}.values()))
+        route.metrics.set_error(first_error)
+        dead: list[tuple[BufferedRow, str]] = [(sent_rows[i], reason) for i, reason in reject.items()]
+        retried = 0
+        if retry:
+            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in retry])
+            limit = route.params.retry_limit
+            for i, reason in retry.items():
+                row = sent_rows[i]
+                if limit >= 0 and attempts.get(row.row_id, 0) > limit:
+                    dead.append((row, f"retry_limit {limit} exhausted: {reason}"))
+                else:
+                    retried += 1
+            route.metrics.add("retried", retried)
+            if retried:
+                route.failure_log.event(retried, first_error)
+        if dead:
+            moved = buffer.dead_letter(route.name, dead)
+            route.metrics.add("dead_lettered", moved)
+            route.dead_letter_log.event(moved, f"{dead[0][1]}; see `dc buffer list`")
+            self.bound_dead_letters()
+        return retried > 0
+
+    def bound_dead_letters(self) -> None:
+        """Delete the oldest dead letters beyond ``dead_letter_limit_size``, counted and logged."""
+        route = self.route
+        if route.dead_letter_max_bytes is None:
+            return
+        deleted = self.buffer.trim_dead_letters(route.name, route.dead_letter_max_bytes)
+        if deleted:
+            route.metrics.add("dead_letters_dropped", deleted)
+            route.dead_letter_drop_log.event(deleted, "the newest are kept; see `dc buffer list`")
+
+
+def _outcome_of(destination: Destination[Any], records: list[OutgoingRecord]) -> tuple[dict[int, str], dict[int, str]]:
+    """``send(records)`` as (retry, reject): batch indexes with their reasons; the rest were confirmed."""
+    try:
+        outcome = destination.send(records)
+    except RejectedError as exc:
+        return {}, dict.fromkeys(range(len(records)), f"rejected: {exc}")
+    except RetryableError as exc:
+        return dict.fromkeys(range(len(records)), str(exc)), {}
+    except Exception as exc:
+        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}
+    if not isinstance(outcome, SendOutcome):
+        return {}, {}
+    retry = {i: reason for i, reason in outcome.retry.items() if 0 <= i < len(records)}
+    reject = {
+        i: f"rejected: {reason}" for i, reason in outcome.reject.items() if 0 <= i < len(records) and i not in retry
+    }
+    return retry, reject
