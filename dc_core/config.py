@@ -72,25 +72,3 @@ def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     if not servers:
         raise ConfigError("", f"{file}: no DC server section (expected one of {', '.join(SERVERS)})")
     return servers
-
-
-def internal_topics(servers: dict[str, dict[str, Any]]) -> dict[str, int]:
-    """Topics that DC's measurement and group servers publish in this configuration, with the
-    depth of the transient-local history each publisher keeps."""
-    from dc_core.qos import RECORD_HISTORY_DEPTH
-
-    topics: dict[str, int] = {}
-    measurements = servers.get("measurement_server", {})
-    for name in measurements.get("measurement_plugins", []) or []:
-        section = measurements.get(name)
-        section = section if isinstance(section, Mapping) else {}
-        output = section.get("topic_output")
-        depth = section.get("history_depth", RECORD_HISTORY_DEPTH)
-        depth = depth if isinstance(depth, int) and not isinstance(depth, bool) and depth > 0 else RECORD_HISTORY_DEPTH
-        topics[output if isinstance(output, str) and output else f"/dc/measurement/{name}"] = depth
-    groups = servers.get("group_server", {})
-    for name in groups.get("groups", []) or []:
-        section = groups.get(name)
-        output = section.get("output") if isinstance(section, Mapping) else None
-        topics[output if isinstance(output, str) and output else f"/dc/group/{name}"] = RECORD_HISTORY_DEPTH
-    return topics

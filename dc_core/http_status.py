@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from typing import Any
 
@@ -126,6 +126,28 @@ class PrometheusText:
         for labels, value in samples:
             shown = f"{value:g}" if isinstance(value, float) else str(value)
             self._lines.append(f"{name}{labels} {shown}")
+
+    def counter_table(
+        self,
+        prefix: str,
+        label: str,
+        rows: Mapping[str, Mapping[str, Any]],
+        counters: Sequence[tuple[str, str, str]],
+    ) -> None:
+        """One family per ``(key, kind, help)`` of ``counters``, one sample per row that has the key.
+
+        A counter is named ``<prefix>_<key>_total``, a gauge ``<prefix>_<key>``; each sample is
+        labelled ``<label>="<row name>"``.
+        """
+        for key, kind, doc in counters:
+            name = f"{prefix}_{key}_total" if kind == "counter" else f"{prefix}_{key}"
+            samples = [
+                (prometheus_labels(**{label: row}), values[key])
+                for row, values in sorted(rows.items())
+                if key in values
+            ]
+            if samples:
+                self.family(name, kind, doc, samples)
 
     def text(self) -> str:
         return "\n".join(self._lines) + "\n"

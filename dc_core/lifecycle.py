@@ -33,11 +33,13 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from dc_core.errors import DcError
+from dc_core.config import load_params_file
+from dc_core.errors import ConfigError, DcError
 from dc_core.executors import SPIN_PERIOD_S
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import EXECUTOR_TURN_S, Intake
 from dc_core.logs import Logger
+from dc_core.node_params import DEFAULT_HEARTBEAT_PERIOD_S, HeartbeatParams
 from dc_core.plugin import MessageCallback
 from dc_core.worker import Worker
 from dc_interfaces.msg import Heartbeat
@@ -83,7 +85,9 @@ class ServerPluginContext:
 class ManagedServer(LifecycleNode):
     """A DC server process' node."""
 
-    def __init__(self, node_name: str, params_file: str, heartbeat_period: float = 0.5, **node_kwargs: Any) -> None:
+    def __init__(
+        self, node_name: str, params_file: str, heartbeat_period: float = DEFAULT_HEARTBEAT_PERIOD_S, **node_kwargs: Any
+    ) -> None:
         # node_kwargs reach rclpy's LifecycleNode (e.g. context= for tests with a fresh context).
         super().__init__(node_name, **node_kwargs)
         self.params_file = params_file
@@ -94,9 +98,24 @@ class ManagedServer(LifecycleNode):
         # The heartbeat runs in every state: it tells the manager the process is alive.
         self._heartbeat_timer = self.create_timer(heartbeat_period, self._send_heartbeat)
         self._metrics_http: StatusServer | None = None
-        # Slow work of plugins (dc_core.worker): a finished job wakes the loop through this guard.
+        # Slow work of plugins (dc_core.worker): a finished job wakes the loop through a guard
+        # condition, made with the worker (rclpy's EventsExecutor stops firing timers beside one).
         self._worker: Worker | None = None
-        self._worker_done = self.create_guard_condition(self._run_finished_work)
+        self._worker_done: Any = None
+
+    # -- configuration -----------------------------------------------------------------------
+    def read_params_file(self) -> dict[str, dict[str, Any]]:
+        """The DC sections of the parameter file; ConfigError when this server has none."""
+        sections = load_params_file(self.params_file)
+        if self.get_name() not in sections:
+            raise ConfigError(self.get_name(), f"no {self.get_name()} section in {self.params_file}")
+        return sections
+
+    def apply_node_params(self, node: HeartbeatParams, warnings: Sequence[str]) -> None:
+        """What every server does with its parsed configuration: say its warnings, beat at its period."""
+        for warning in warnings:
+            self.get_logger().warning(warning)
+        self.set_heartbeat_period(node.heartbeat_period)
 
     # -- plugins -----------------------------------------------------------------------------
     def plugin_context(self, name: str) -> ServerPluginContext:
@@ -107,8 +126,18 @@ class ManagedServer(LifecycleNode):
     def worker(self) -> Worker:
         """The server's worker threads, started on first use and stopped by :meth:`stop_worker`."""
         if self._worker is None:
+            if self._worker_done is None:
+                self._worker_done = self.create_guard_condition(self._run_finished_work)
             self._worker = Worker(f"{self.get_name()}-worker", self._worker_done.trigger)
         return self._worker
+
+    def wait_worker_idle(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s until no job of the worker runs (True at once without a worker)."""
+        return self._worker is None or self._worker.wait_idle(timeout)
+
+    @property
+    def worker_jobs_running(self) -> int:
+        return self._worker.running if self._worker is not None else 0
 
     def stop_worker(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s for running jobs, then stop the worker; False if some still ran."""

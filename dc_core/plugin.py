@@ -15,9 +15,10 @@ this (``class Battery(Measurement): Params = BatteryParams``) works unchanged.
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, Protocol, TypeVar, get_args, get_origin
 
+from dc_core.errors import ConfigError, DcError, PluginError
 from dc_core.logs import Logger
 from dc_core.params import NoParams
 
@@ -109,3 +110,28 @@ class Plugin(abc.ABC, Generic[ParamsT]):
     def counters(self) -> dict[str, int]:
         """Counters of the plugin's own (e.g. malformed input), served beside the server's for it."""
         return {}
+
+
+def run_hook(what: str, plugin: Plugin[Any], hook: str) -> None:
+    """``plugin.<hook>()``, a failure named after the plugin: ``PluginError("<what>: <hook> failed: ...")``.
+
+    ``what`` says which instance ("destination flb_pg (dc_destinations/PgSQL)"). A ConfigError
+    passes unchanged: it names its YAML path already.
+    """
+    try:
+        getattr(plugin, hook)()
+    except ConfigError:
+        raise
+    except Exception as exc:
+        raise PluginError(f"{what}: {hook} failed: {exc}") from exc
+
+
+def run_hook_on_each(plugins: Iterable[tuple[str, Plugin[Any]]], hook: str) -> list[str]:
+    """``plugin.<hook>()`` on every plugin, even after one failed; returns one message per failure."""
+    errors = []
+    for what, plugin in plugins:
+        try:
+            run_hook(what, plugin, hook)
+        except DcError as exc:
+            errors.append(str(exc))
+    return errors

@@ -30,7 +30,7 @@ RECORD_QOS = record_qos()
 
 # A transient-local subscription does not match a volatile publisher (any plain ROS 2 node, or
 # `ros2 topic pub`), so subscriptions are volatile unless the topic is known to be published by a
-# DC server of the same configuration (dc_core.config.internal_topics).
+# DC server of the same configuration (published_topics of dc_measurements.config and dc_group.config).
 VOLATILE_RECORD_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=RECORD_HISTORY_DEPTH,

@@ -15,16 +15,7 @@ from typing import Any
 
 from dc_core.http_status import PrometheusText, prometheus_labels
 
-COUNTERS = (
-    "received",
-    "sent",
-    "retried",
-    "failed",
-    "dropped",
-    "malformed",
-    "dead_lettered",
-    "dead_letters_dropped",
-)
+COUNTERS = ("received", "sent", "retried", "failed", "dropped", "malformed", "dead_lettered", "dead_letters_dropped")
 
 
 @dataclass
@@ -69,67 +60,52 @@ class DestinationMetrics:
         return out
 
 
+# (key in DeliveryPipeline.metrics(), Prometheus kind, help text)
+DELIVERY_COUNTERS = (
+    ("received", "counter", "Records routed to the destination"),
+    ("sent", "counter", "Records the destination confirmed"),
+    ("retried", "counter", "Records put back in the queue after a failed attempt"),
+    ("failed", "counter", "send() calls that failed in whole or in part, and failed buffer operations of the sender"),
+    ("dropped", "counter", "Records dropped by the size limit or a full intake queue"),
+    ("malformed", "counter", "Records the buffer could not store: not valid UTF-8 JSON (normally caught at intake)"),
+    ("dead_lettered", "counter", "Records moved to the dead-letter table"),
+    ("dead_letters_dropped", "counter", "Oldest dead letters deleted by dead_letter_limit_size"),
+)
+# (metric name, key in DeliveryPipeline.metrics(), help text)
+_QUEUE_GAUGES = (
+    ("dc_delivery_buffered_records", "buffered", "Records waiting in the buffer"),
+    ("dc_delivery_buffered_bytes", "buffered_bytes", "Bytes of records waiting in the buffer"),
+    ("dc_delivery_dead_letters", "dead_letters", "Records in the dead-letter table"),
+    (
+        "dc_delivery_oldest_pending_age_seconds",
+        "oldest_pending_age_s",
+        "Age of the oldest waiting record (0 when empty)",
+    ),
+)
+
+
 def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, Any]) -> str:
     """Prometheus text exposition (format 0.0.4) of :meth:`DeliveryPipeline.metrics`."""
     text = PrometheusText()
-    family = text.family
-
-    def label(destination: str) -> str:
-        return prometheus_labels(destination=destination)
-
-    for counter, doc in (
-        ("received", "Records routed to the destination"),
-        ("sent", "Records the destination confirmed"),
-        ("retried", "Records put back in the queue after a failed attempt"),
-        ("failed", "send() calls that failed in whole or in part, and failed buffer operations of the sender"),
-        ("dropped", "Records dropped by the size limit or a full intake queue"),
-        ("malformed", "Records the buffer could not store: not valid UTF-8 JSON (normally caught at intake)"),
-        ("dead_lettered", "Records moved to the dead-letter table"),
-        ("dead_letters_dropped", "Oldest dead letters deleted by dead_letter_limit_size"),
-    ):
-        family(
-            f"dc_delivery_{counter}_total",
-            "counter",
-            doc,
-            [(label(name), values[counter]) for name, values in sorted(destinations.items())],
-        )
-    family(
-        "dc_delivery_buffered_records",
-        "gauge",
-        "Records waiting in the buffer",
-        [(label(name), values["buffered"]) for name, values in sorted(destinations.items())],
-    )
-    family(
-        "dc_delivery_buffered_bytes",
-        "gauge",
-        "Bytes of records waiting in the buffer",
-        [(label(name), values["buffered_bytes"]) for name, values in sorted(destinations.items())],
-    )
-    family(
-        "dc_delivery_dead_letters",
-        "gauge",
-        "Records in the dead-letter table",
-        [(label(name), values["dead_letters"]) for name, values in sorted(destinations.items())],
-    )
-    family(
-        "dc_delivery_oldest_pending_age_seconds",
-        "gauge",
-        "Age of the oldest waiting record (0 when empty)",
-        [(label(name), float(values["oldest_pending_age_s"] or 0.0)) for name, values in sorted(destinations.items())],
-    )
-    family(
+    text.counter_table("dc_delivery", "destination", destinations, DELIVERY_COUNTERS)
+    for name, key, doc in _QUEUE_GAUGES:
+        samples = [(prometheus_labels(destination=d), values[key]) for d, values in sorted(destinations.items())]
+        if key == "oldest_pending_age_s":
+            samples = [(labels, float(value or 0.0)) for labels, value in samples]
+        text.family(name, "gauge", doc, samples)
+    text.family(
         "dc_delivery_buffer_quarantined_total",
         "counter",
         "Corrupt buffer files moved aside",
         [("", buffer["quarantined"])],
     )
-    family(
+    text.family(
         "dc_delivery_commit_failing_seconds",
         "gauge",
         "How long group commits to the buffer have been failing (0 when they succeed)",
         [("", float(buffer.get("commit_failing_s") or 0.0))],
     )
-    family(
+    text.family(
         "dc_delivery_intake_pending",
         "gauge",
         "Records waiting for the next group commit",

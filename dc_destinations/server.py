@@ -20,11 +20,11 @@ from typing import Any
 
 from rclpy.qos import QoSProfile
 
-from dc_core.config import internal_topics, load_params_file
 from dc_core.destination import Destination
 from dc_core.errors import ConfigError, PluginError
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
+from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
@@ -86,27 +86,18 @@ class DestinationServer(ManagedServer):
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
-        servers = load_params_file(self.params_file)
-        if NODE_NAME not in servers:
-            raise ConfigError(NODE_NAME, f"no {NODE_NAME} section in {self.params_file}")
+        servers = self.read_params_file()
         config = parse_destination_server(servers[NODE_NAME])
         self.config = config
-        self._internal_topics = internal_topics(servers)
+        self._internal_topics = self._published_by_dc(servers)
         self._hop_window = HOP_WINDOW_HISTORIES * max([RECORD_HISTORY_DEPTH, *self._internal_topics.values()])
         log = self.get_logger()
-        for warning in config.warnings:
-            log.warning(warning)
-        self.set_heartbeat_period(config.node.heartbeat_period)
+        self.apply_node_params(config.node, config.warnings)
 
         for d in config.destinations:
             context = self.plugin_context(d.name)
             plugin: Destination[Any] = d.plugin_class(context, d.plugin_params)
-            try:
-                plugin.on_configure()
-            except ConfigError:
-                raise
-            except Exception as exc:
-                raise PluginError(f"destination {d.name} ({d.common.plugin}): {exc}") from exc
+            run_hook(f"destination {d.name} ({d.common.plugin})", plugin, "on_configure")
             self.plugins[d.name] = plugin
             c = d.common
             time_key = f"{c.time_key!r} ({c.time_format})" if c.time_key else "none"
@@ -123,15 +114,30 @@ class DestinationServer(ManagedServer):
         self.pipeline.add_metrics_section("intake", self.intake_metrics)
         self.pipeline.add_metrics_section("hop", self.hop_metrics)
 
+    def _published_by_dc(self, servers: dict[str, dict[str, Any]]) -> dict[str, int]:
+        """Topics the measurement and group servers of this configuration publish, with their history depth.
+
+        A section that does not parse is not this server's to refuse (dc-bringup validated the file
+        first): its topics are then taken as other nodes' ones, and a warning says so.
+        """
+        from dc_group.config import published_topics as group_outputs
+        from dc_measurements.config import published_topics as measurement_outputs
+
+        topics: dict[str, int] = {}
+        for server, published in (("measurement_server", measurement_outputs), ("group_server", group_outputs)):
+            if server in servers:
+                try:
+                    topics.update(published(servers[server]))
+                except ConfigError as exc:
+                    self.get_logger().warning(f"{server}'s outputs unknown, its section does not parse: {exc}")
+        return topics
+
     def cleanup_server(self) -> None:
         self._destroy_subscriptions()
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
-        for name, plugin in self.plugins.items():
-            try:
-                plugin.on_cleanup()
-            except Exception as exc:
-                self.get_logger().error(f"destination {name}: cleanup failed: {exc!r}")
+        for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
+            self.get_logger().error(error)
         self.plugins.clear()
         self._debug.clear()
         self.pipeline = None
@@ -141,8 +147,8 @@ class DestinationServer(ManagedServer):
     # -- activate / deactivate ---------------------------------------------------------------------
     def activate_server(self) -> None:
         assert self.pipeline is not None and self.routing is not None
-        for plugin in self.plugins.values():
-            plugin.on_activate()
+        for what, plugin in self._named_plugins():
+            run_hook(what, plugin, "on_activate")
         self.pipeline.start()
         # Before the first subscription: the history a publisher replays is checked against these keys.
         hop = HopIntake(self._hop_window)
@@ -167,14 +173,14 @@ class DestinationServer(ManagedServer):
         self._destroy_subscriptions()
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)
-        errors = []
-        for name, plugin in self.plugins.items():
-            try:
-                plugin.on_deactivate()
-            except Exception as exc:
-                errors.append(f"{name}: {exc!r}")
+        errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
         if errors:
-            raise PluginError("deactivating destinations failed: " + "; ".join(errors))
+            raise PluginError("; ".join(errors))
+
+    def _named_plugins(self) -> list[tuple[str, Destination[Any]]]:
+        assert self.config is not None
+        kinds = {d.name: d.common.plugin for d in self.config.destinations}
+        return [(f"destination {name} ({kinds[name]})", plugin) for name, plugin in self.plugins.items()]
 
     def _destroy_subscriptions(self) -> None:
         subscriptions = list(self._subscription_of.values())

@@ -10,6 +10,7 @@ import re
 from dataclasses import dataclass
 
 from dc_core.errors import ConfigError
+from dc_core.node_params import MetricsHttpParams, http_port_param
 from dc_core.params import param
 
 WHEN_FULL_POLICIES = ("drop_oldest", "drop_newest")
@@ -19,7 +20,7 @@ _UNITS = {"": 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4}
 
 
 @dataclass(frozen=True, kw_only=True)
-class DeliveryParams:
+class DeliveryParams(MetricsHttpParams):
     flush: float = param(1.0, minimum=0.01, doc="Seconds between two delivery rounds of a destination's queue")
     grace: float = param(1.0, minimum=0.0, doc="Seconds to keep delivering at shutdown before leaving the rest on disk")
     log_level: str = param("info", doc="Accepted for compatibility; use dc-bringup --log-level")
@@ -33,9 +34,7 @@ class DeliveryParams:
     storage_backlog_mem_limit: str = param("5M", doc="Accepted for compatibility; the backlog is streamed from disk")
     scheduler_cap: float = param(2000.0, minimum=0.0, doc="Longest wait between two retries, seconds")
     scheduler_base: float = param(5.0, minimum=0.0, doc="Base of the exponential retry backoff, seconds")
-    http_server: bool = param(False, doc="Serve health and metrics over HTTP")
-    http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server")
-    http_port: int = param(2020, minimum=0, maximum=65535, doc="Port of the metrics HTTP server")
+    http_port: int = http_port_param(2020)
     in_storage_type: str = param("filesystem", doc="Accepted for compatibility; DC always buffers on disk")
     in_storage_pause_on_chunks_overlimit: str = param("off", doc="Accepted for compatibility")
     intake_queue_limit: int = param(

@@ -9,7 +9,9 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from dc_core.errors import ConfigError
+from dc_core.node_params import HeartbeatParams, MetricsHttpParams, http_port_param
 from dc_core.params import did_you_mean, param, parse_params
+from dc_core.qos import RECORD_HISTORY_DEPTH
 
 DEFAULT_OUTPUT_PREFIX = "/dc/group/"
 # How long past the slop an incomplete set is kept when sync_timeout is not set: the latest
@@ -21,12 +23,9 @@ ROS_NODE_PARAMS = ("use_sim_time",)
 
 
 @dataclass(frozen=True, kw_only=True)
-class GroupServerParams:
+class GroupServerParams(HeartbeatParams, MetricsHttpParams):
     groups: list[str] = param(doc="Ids of the groups to enable; each has a section of the same name")
-    heartbeat_period: float = param(1.0, minimum=0.05, doc="Seconds between heartbeats to the manager")
-    http_server: bool = param(False, doc="Serve health and per-group counters over HTTP while active")
-    http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server")
-    http_port: int = param(2021, minimum=0, maximum=65535, doc="Port of the metrics HTTP server (0: any free one)")
+    http_port: int = http_port_param(2021)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -90,6 +89,11 @@ class GroupServerConfig:
     def tags(self) -> dict[str, list[str]]:
         """Output topic -> the tags its records carry."""
         return {group.output: list(group.tags) for group in self.groups}
+
+
+def published_topics(section: dict[str, Any], path: str = "group_server") -> dict[str, int]:
+    """Each group's output topic with the depth of the history it keeps (the destination server asks, for its hop)."""
+    return dict.fromkeys(sorted(parse_group_server(section, path).outputs), RECORD_HISTORY_DEPTH)
 
 
 def parse_group_server(section: dict[str, Any], path: str = "group_server") -> GroupServerConfig:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from dc_core.http_status import PrometheusText, prometheus_labels
+from dc_core.http_status import PrometheusText
 
 # (key in GroupPipeline.stats(), Prometheus kind, help text)
 GROUP_COUNTERS = (
@@ -22,16 +22,11 @@ GROUP_COUNTERS = (
 def group_prometheus_text(document: dict[str, Any]) -> str:
     """Prometheus text of :meth:`dc_group.server.GroupServer.metrics_document`."""
     text = PrometheusText()
-    groups: dict[str, dict[str, int]] = document["groups"]
-    for key, kind, doc in GROUP_COUNTERS:
-        name = f"dc_group_{key}_total" if kind == "counter" else f"dc_group_{key}"
-        samples = [(prometheus_labels(group=group), values[key]) for group, values in sorted(groups.items())]
-        text.family(name, kind, doc, samples)
-    inputs: dict[str, dict[str, int]] = document["inputs"]
-    text.family(
-        "dc_group_malformed_total",
-        "counter",
-        "Input messages that were not a JSON object, ignored",
-        [(prometheus_labels(topic=t), values["malformed"]) for t, values in sorted(inputs.items())],
+    text.counter_table("dc_group", "group", document["groups"], GROUP_COUNTERS)
+    text.counter_table(
+        "dc_group",
+        "topic",
+        document["inputs"],
+        [("malformed", "counter", "Input messages that were not a JSON object DC can carry, ignored")],
     )
     return text.text()

@@ -13,8 +13,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from dc_core.config import load_params_file
-from dc_core.errors import ConfigError
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
 from dc_core.records import MalformedRecord
@@ -47,13 +45,8 @@ class GroupServer(ManagedServer):
 
     # -- transitions ---------------------------------------------------------------------------
     def configure_server(self) -> None:
-        sections = load_params_file(self.params_file)
-        if NODE_NAME not in sections:
-            raise ConfigError(NODE_NAME, f"no {NODE_NAME} section in {self.params_file}")
-        config = parse_group_server(sections[NODE_NAME], NODE_NAME)
-        for warning in config.warnings:
-            self.get_logger().warning(warning)
-        self.set_heartbeat_period(config.node.heartbeat_period)
+        config = parse_group_server(self.read_params_file()[NODE_NAME], NODE_NAME)
+        self.apply_node_params(config.node, config.warnings)
         for group in config.groups:
             pipeline = GroupPipeline(group, self.get_logger())
             self.pipelines[group.name] = pipeline

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any, cast
 
 from dc_core.errors import ConfigError, PluginError
+from dc_core.node_params import HeartbeatParams, MetricsHttpParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.plugins import load_plugin
 
@@ -31,7 +32,7 @@ class CustomStrParam:
 
 
 @dataclass(frozen=True, kw_only=True)
-class MeasurementServerParams:
+class MeasurementServerParams(HeartbeatParams, MetricsHttpParams):
     measurement_plugins: list[str] = param([], doc="Ids of the measurements to load")
     condition_plugins: list[str] = param([], doc="Ids of the conditions to load")
     save_local_base_path: str = param(
@@ -40,10 +41,7 @@ class MeasurementServerParams:
     all_base_path: str = param("", doc="Prefix for local and remote paths ($ENV, =custom_param)")
     custom_str_params_list: list[str] = param([], doc="Ids of custom string parameters added to records")
     run_id: RunIdParams = param(default_factory=RunIdParams, doc="Run identifier")
-    heartbeat_period: float = param(0.5, minimum=0.05, doc="Seconds between heartbeats to the manager")
-    http_server: bool = param(False, doc="Serve health and per-measurement counters over HTTP while active")
-    http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server")
-    http_port: int = param(2022, minimum=0, maximum=65535, doc="Port of the metrics HTTP server (0: any free one)")
+    http_port: int = http_port_param(2022)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -89,12 +87,16 @@ class MeasurementConfig:
 
     @property
     def output_topic(self) -> str:
-        return self.common.topic_output or f"/dc/measurement/{self.name}"
+        return output_topic(self.name, self.common)
 
     @property
     def conditions(self) -> list[str]:
         c = self.common
         return [*c.if_all_conditions, *c.if_any_conditions, *c.if_none_conditions]
+
+
+def output_topic(measurement_id: str, common: MeasurementCommonParams) -> str:
+    return common.topic_output or f"/dc/measurement/{measurement_id}"
 
 
 @dataclass(frozen=True)
@@ -128,6 +130,22 @@ def _load(kind: str, type_name: str, path: str) -> type:
         return load_plugin(kind, type_name)
     except PluginError as exc:
         raise ConfigError(f"{path}.plugin", str(exc)) from exc
+
+
+def published_topics(section: dict[str, Any], path: str = "measurement_server") -> dict[str, int]:
+    """Each measurement's output topic with the depth of the history it keeps, from the common
+    parameters alone: no plugin is imported (the destination server asks, for its hop)."""
+    node_params = parse_params(
+        MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
+    )
+    topics = {}
+    for mid in node_params.measurement_plugins:
+        body = _plugin_section(section, mid, path)
+        common = parse_params(
+            MeasurementCommonParams, body, f"{path}.{mid}", ignore=set(body) - field_names(MeasurementCommonParams)
+        )
+        topics[output_topic(mid, common)] = common.history_depth
+    return topics
 
 
 def parse_measurement_server(section: dict[str, Any], path: str = "measurement_server") -> MeasurementServerConfig:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from dc_core.http_status import PrometheusText, prometheus_labels
+from dc_core.http_status import PrometheusText
 
 # Counters of every measurement (dc_measurements.runner.RunnerStats), then those some plugins add.
 MEASUREMENT_COUNTERS = {
@@ -27,13 +27,6 @@ def measurement_prometheus_text(document: dict[str, Any]) -> str:
     measurements: dict[str, dict[str, int]] = document["measurements"]
     keys = list(MEASUREMENT_COUNTERS)
     keys += sorted({key for values in measurements.values() for key in values} - set(keys))
-    for key in keys:
-        samples = [
-            (prometheus_labels(measurement=name), values[key])
-            for name, values in sorted(measurements.items())
-            if key in values
-        ]
-        if samples:
-            doc = MEASUREMENT_COUNTERS.get(key, f"Plugin counter {key}")
-            text.family(f"dc_measurement_{key}_total", "counter", doc, samples)
+    counters = [(key, "counter", MEASUREMENT_COUNTERS.get(key, f"Plugin counter {key}")) for key in keys]
+    text.counter_table("dc_measurement", "measurement", measurements, counters)
     return text.text()

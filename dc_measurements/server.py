@@ -10,11 +10,11 @@ from typing import Any
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from dc_core.config import load_params_file
-from dc_core.errors import ConfigError, PluginError
+from dc_core.errors import PluginError
 from dc_core.lifecycle import ManagedServer, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
+from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
@@ -61,16 +61,11 @@ class MeasurementServer(ManagedServer):
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
-        servers = load_params_file(self.params_file)
-        if NODE_NAME not in servers:
-            raise ConfigError(NODE_NAME, f"no {NODE_NAME} section in {self.params_file}")
-        section = servers[NODE_NAME]
+        section = self.read_params_file()[NODE_NAME]
         config = parse_measurement_server(section)
         self.config = config
         log = self.get_logger()
-        for warning in config.warnings:
-            log.warning(warning)
-        self.set_heartbeat_period(config.node.heartbeat_period)
+        self.apply_node_params(config.node, config.warnings)
 
         custom = resolve_custom_params(config.custom_str_params)
         paths = self._base_paths(section, config, custom)
@@ -84,7 +79,7 @@ class MeasurementServer(ManagedServer):
             context = _MeasurementContext(name, self.get_logger().get_child(name), self, paths)
             condition = ccfg.plugin_class(context, ccfg.plugin_params)
             runtime = ConditionRuntime(name, condition, ccfg.common.topic, log, self._state_publisher(publisher))
-            condition.on_configure()
+            run_hook(f"condition {name} ({ccfg.common.plugin})", condition, "on_configure")
             self.conditions[name] = runtime
 
         for mcfg in config.measurements:
@@ -100,7 +95,7 @@ class MeasurementServer(ManagedServer):
             runner = MeasurementRunner(
                 mcfg, plugin, self.conditions, validator, run_id, custom, self._publish_fn(publisher), log
             )
-            plugin.on_configure()
+            run_hook(f"measurement {mcfg.name} ({c.plugin})", plugin, "on_configure")
             self.runners[mcfg.name] = runner
             log.info(
                 f"measurement {mcfg.name} ({c.plugin}) -> {mcfg.output_topic}"
@@ -169,7 +164,7 @@ class MeasurementServer(ManagedServer):
     # -- activate / deactivate -----------------------------------------------------------------
     def activate_server(self) -> None:
         for runtime in self.conditions.values():
-            runtime.condition.on_activate()
+            run_hook(f"condition {runtime.name}", runtime.condition, "on_activate")
             if runtime.topic:
                 self._condition_subscriptions.append(
                     self.create_subscription(StringStamped, runtime.topic, self._topic_record_callback(runtime), 10)
@@ -178,7 +173,7 @@ class MeasurementServer(ManagedServer):
         for name, runner in self.runners.items():
             runner.set_active(True)
             self._record_publishers[name].on_activate(None)
-            runner.plugin.on_activate()
+            run_hook(f"measurement {name} ({runner.config.common.plugin})", runner.plugin, "on_activate")
             if runner.plugin.timer_driven:
                 self._init_pending.append(name)
         if self._init_pending:
@@ -275,41 +270,34 @@ class MeasurementServer(ManagedServer):
             self.destroy_subscription(sub)
         self._condition_subscriptions.clear()
         # A plugin is not deactivated under a collection still running on the worker.
-        if not self.worker.wait_idle(WORKER_DRAIN_S):
+        if not self.wait_worker_idle(WORKER_DRAIN_S):
             self.get_logger().warning(
-                f"deactivating while {self.worker.running} collection(s) still run after {WORKER_DRAIN_S:g} s; "
+                f"deactivating while {self.worker_jobs_running} collection(s) still run after {WORKER_DRAIN_S:g} s; "
                 "their samples are dropped"
             )
-        errors = []
-        for name, runner in self.runners.items():
+        for name in self.runners:
             self._record_publishers[name].on_deactivate(None)
-            try:
-                runner.plugin.on_deactivate()
-            except Exception as exc:
-                errors.append(f"{name}: {exc!r}")
-        for runtime in self.conditions.values():
-            try:
-                runtime.condition.on_deactivate()
-            except Exception as exc:
-                errors.append(f"{runtime.name}: {exc!r}")
+        errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
         if errors:
             raise PluginError("; ".join(errors))
+
+    def _named_plugins(self) -> list[tuple[str, Plugin[Any]]]:
+        """Measurements, then conditions, each with what names it in a message."""
+        named: list[tuple[str, Plugin[Any]]] = [
+            (f"measurement {name} ({runner.config.common.plugin})", runner.plugin)
+            for name, runner in self.runners.items()
+        ]
+        named += [(f"condition {name}", runtime.condition) for name, runtime in self.conditions.items()]
+        return named
 
     def cleanup_server(self) -> None:
         self._active = False
         if not self.stop_worker(WORKER_DRAIN_S):
             self.get_logger().warning(f"cleanup: jobs of plugins still ran after {WORKER_DRAIN_S:g} s")
-        for name, runner in self.runners.items():
-            try:
-                runner.plugin.on_cleanup()
-            except Exception as exc:
-                self.get_logger().error(f"measurement {name}: cleanup failed: {exc!r}")
+        for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
+            self.get_logger().error(error)
+        for name in self.runners:
             self.destroy_lifecycle_publisher(self._record_publishers[name])
-        for runtime in self.conditions.values():
-            try:
-                runtime.condition.on_cleanup()
-            except Exception as exc:
-                self.get_logger().error(f"condition {runtime.name}: cleanup failed: {exc!r}")
         for publisher in self._condition_publishers:
             self.destroy_publisher(publisher)
         self.runners.clear()

@@ -45,7 +45,8 @@ DEADLINE_S = 15.0
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
-DOCS = Path(__file__).resolve().parent.parent / "docs" / "plugins" / "measurements"
+REPO = Path(__file__).resolve().parent.parent
+DOCS = REPO / "docs" / "plugins" / "measurements"
 
 
 @dataclass
@@ -488,8 +489,8 @@ def test_counters_are_served_over_http_while_active(harness: Harness) -> None:
 # --- the doc pages' examples run -----------------------------------------------------------------
 
 
-def doc_example(page: str) -> tuple[str, dict[str, Any]]:
-    text = (DOCS / f"{page}.md").read_text()
+def doc_example(plugin_folder: str) -> tuple[str, dict[str, Any]]:
+    text = (REPO / "dc_measurements" / plugin_folder / "README.md").read_text()
     config = re.findall(r"```yaml\n(.*?)```", text, re.S)[0]
     output = json.loads(re.findall(r"```json\n(.*?)```", text, re.S)[0])
     return config, output
@@ -510,7 +511,7 @@ def test_doc_page_example_gives_the_documented_record(harness: Harness, page: st
         source = harness.input_publisher(plugin.params.topic.replace("-", "_"))
         payload = {k: v for k, v in documented.items() if k not in ("name", "run_id", "tags")}
         source.publish(stamped(json.dumps(payload), 1_700_000_000))
-    harness.spin_until(lambda: len(received) >= 1, f"the record of {page}.md")
+    harness.spin_until(lambda: len(received) >= 1, f"the record of {page}'s page")
     record = records(received)[0]
     assert set(record) == set(documented), record
     assert record["name"] == documented["name"]

@@ -1,0 +1,32 @@
+"""Parameters every DC server has at its top level, declared once for the three of them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from dc_core.params import param
+
+DEFAULT_HEARTBEAT_PERIOD_S = 1.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class HeartbeatParams:
+    # One a second keeps idle cost low and is ten beats within dc-bringup's default --bond-timeout.
+    heartbeat_period: float = param(
+        DEFAULT_HEARTBEAT_PERIOD_S, minimum=0.05, doc="Seconds between heartbeats to the lifecycle manager"
+    )
+
+
+def http_port_param(default: int) -> Any:
+    """The ``http_port`` parameter of a server whose metrics listen on ``default`` unless told otherwise."""
+    return param(default, minimum=0, maximum=65535, doc="Port of the metrics HTTP server (0: any free one)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MetricsHttpParams:
+    """The metrics HTTP server of a server: a subclass sets its own default ``http_port``."""
+
+    http_server: bool = param(False, doc="Serve health and counters over HTTP (JSON and Prometheus) while active")
+    http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server (loopback by default)")
+    http_port: int = http_port_param(0)
