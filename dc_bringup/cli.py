@@ -309,6 +309,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("ids", nargs="*", help="dead-letter ids (show, replay)")
     p.add_argument("--storage-path", default="", help="buffer folder (flb.storage_path)")
     p.add_argument("--params", default="", help="read the storage path from this parameter file")
+    p.add_argument(
+        "--namespace",
+        default="/",
+        help="ROS namespace of the destination server, for the default buffer folder (with $ROS_DOMAIN_ID)",
+    )
     p.add_argument("--destination", default="", help="only this destination")
     p.add_argument("--all", action="store_true", help="replay or purge every dead letter")
     p.add_argument("--json", action="store_true", help="list: one JSON object per dead letter, error in full")

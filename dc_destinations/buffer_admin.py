@@ -31,11 +31,12 @@ class BufferAdminError(DcError):
     """The buffer cannot be found or opened, or the request is incomplete."""
 
 
-def storage_file(storage_path: str = "", params_file: str = "") -> Path:
-    """The buffer file: ``storage_path``, else a parameter file's ``flb.storage_path``, else the default."""
+def storage_file(storage_path: str = "", params_file: str = "", namespace: str = "/") -> Path:
+    """The buffer file: ``storage_path``, else a parameter file's ``flb.storage_path``, else the default
+    folder of the destination server in ``namespace`` and this environment's ROS_DOMAIN_ID."""
     if not storage_path and params_file:
         storage_path = _storage_path_from_params(Path(params_file))
-    directory = Path(expand_env(storage_path)).expanduser() if storage_path else default_storage_dir()
+    directory = Path(expand_env(storage_path)).expanduser() if storage_path else default_storage_dir(namespace)
     return directory / FILE_NAME if directory.suffix != ".sqlite3" else directory
 
 
@@ -51,7 +52,9 @@ def _storage_path_from_params(params_file: Path) -> str:
 
 def open_buffer(path: Path) -> SqliteBuffer:
     if not path.exists():
-        raise BufferAdminError(f"no buffer at {path} (set --storage-path or --params)")
+        raise BufferAdminError(
+            f"no buffer at {path} (set --storage-path or --params; or --namespace and ROS_DOMAIN_ID as the server had)"
+        )
     return SqliteBuffer(path, repair=False)
 
 
@@ -109,7 +112,7 @@ def _short(text: str, width: int) -> str:
 def run_cli(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     """``dc buffer``: ``args`` has action, ids, storage_path, params, destination and all."""
     try:
-        path = storage_file(args.storage_path, args.params)
+        path = storage_file(args.storage_path, args.params, args.namespace)
         destination = args.destination or None
         ids = [int(i) for i in args.ids] if args.ids else None
         if args.action == "stats":

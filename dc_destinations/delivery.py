@@ -30,7 +30,13 @@ from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.sender import Closing, Route, Sender
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
-from dc_destinations.storage import SYNC_PROMISE, storage_dir
+from dc_destinations.storage import (
+    SYNC_PROMISE,
+    BufferLock,
+    legacy_storage_dir,
+    storage_dir,
+    waiting_in,
+)
 
 __all__ = ["DeliveryPipeline", "new_record_id", "uuid7"]
 
@@ -73,14 +79,49 @@ class DeliveryPipeline:
         self._status: StatusServer | None = None
         self._sections: dict[str, Callable[[], Any]] = {}
         self.storage_file: Path | None = None
+        self._lock: BufferLock | None = None
+        self._lock_taken_by_start = False
 
     # -- lifecycle ----------------------------------------------------------------------------------
+
+    def claim_storage(self, namespace: str = "/") -> Path:
+        """Find the buffer file and take its lock (dc_destinations.storage): the server does it at
+        configure, so that a buffer owned by another process fails configure, with the owner named.
+        :meth:`release_storage` gives it back."""
+        if self._lock is not None and self._lock.held:
+            assert self.storage_file is not None
+            return self.storage_file
+        storage_file = storage_dir(self.settings, self.logger, namespace) / FILE_NAME
+        lock = BufferLock(storage_file)
+        lock.acquire()
+        self.storage_file, self._lock = storage_file, lock
+        if not self.settings.storage_path.strip():
+            self._mention_legacy_backlog()
+        return storage_file
+
+    def release_storage(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
+    def _mention_legacy_backlog(self) -> None:
+        legacy = legacy_storage_dir() / FILE_NAME
+        waiting = waiting_in(legacy)
+        if waiting:
+            self.logger.warning(
+                f"{waiting} records of an earlier DC wait in {legacy}, the default buffer before buffers were "
+                f"separated by ROS domain and namespace; to deliver them, run once with flb.storage_path: "
+                f'"{legacy.parent}"'
+            )
 
     def start(self) -> None:
         """Open (or recover) the buffer, start the writer and one sender per destination."""
         if self._committer is not None and self._committer.running:
             return
-        self.storage_file = storage_dir(self.settings, self.logger) / FILE_NAME
+        if self._lock is None or not self._lock.held:
+            self.claim_storage()
+            self._lock_taken_by_start = True
+        assert self.storage_file is not None
         buffer = SqliteBuffer(
             self.storage_file, synchronous=self.settings.storage_sync, on_quarantine=self._on_quarantine
         )
@@ -161,6 +202,9 @@ class DeliveryPipeline:
                 + ", ".join(f"{name} {rows}" for name, rows in pending.items())
             )
         # The stopped committer stays: records handed over from now on are counted as dropped.
+        if self._lock_taken_by_start:
+            self.release_storage()
+            self._lock_taken_by_start = False
 
     # -- intake ---------------------------------------------------------------------------------
 

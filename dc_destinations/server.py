@@ -111,6 +111,8 @@ class DestinationServer(ManagedServer):
             self.get_logger(),
             seen_window=self._hop_window,
         )
+        # At configure: a buffer another process owns fails configure, with the owner named.
+        self.pipeline.claim_storage(self.get_namespace())
         self.pipeline.add_metrics_section("intake", self.intake_metrics)
         self.pipeline.add_metrics_section("hop", self.hop_metrics)
 
@@ -140,6 +142,8 @@ class DestinationServer(ManagedServer):
             self.get_logger().error(error)
         self.plugins.clear()
         self._debug.clear()
+        if self.pipeline is not None:
+            self.pipeline.release_storage()
         self.pipeline = None
         self.routing = None
         self.config = None

@@ -24,7 +24,11 @@ class DeliveryParams(MetricsHttpParams):
     flush: float = param(1.0, minimum=0.01, doc="Seconds between two delivery rounds of a destination's queue")
     grace: float = param(1.0, minimum=0.0, doc="Seconds to keep delivering at shutdown before leaving the rest on disk")
     log_level: str = param("info", doc="Accepted for compatibility; use dc-bringup --log-level")
-    storage_path: str = param("", doc="Buffer folder (default: $XDG_DATA_HOME/dc/buffer or ~/.local/share/dc/buffer)")
+    storage_path: str = param(
+        "",
+        doc="Buffer folder, owned by one destination server (default: $XDG_DATA_HOME/dc/buffer/domain-<ROS_DOMAIN_ID>/"
+        "<namespace>, XDG_DATA_HOME defaulting to ~/.local/share)",
+    )
     storage_sync: str = param(
         "normal",
         choices=("normal", "full"),

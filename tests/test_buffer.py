@@ -309,7 +309,13 @@ def test_wal_mode_and_sync_setting(tmp_path: Path) -> None:
 
 def _cli(tmp_path: Path, action: str, *ids: str, destination: str = "", all_: bool = False) -> tuple[int, str]:
     args = argparse.Namespace(
-        action=action, ids=list(ids), storage_path=str(tmp_path), params="", destination=destination, all=all_
+        action=action,
+        ids=list(ids),
+        storage_path=str(tmp_path),
+        params="",
+        namespace="/",
+        destination=destination,
+        all=all_,
     )
     out = io.StringIO()
     code = buffer_admin.run_cli(args, out)

@@ -20,10 +20,11 @@ import pytest
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.testing import FakeContext, RecordingLogger
-from dc_destinations.buffer import FILE_NAME, SqliteBuffer
+from dc_destinations.buffer import FILE_NAME, PendingRecord, SqliteBuffer
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+from dc_destinations.storage import BufferInUse, default_storage_dir
 
 LOG = RecordingLogger("test_delivery")
 
@@ -526,6 +527,7 @@ def test_a_corrupt_buffer_at_start_is_set_aside_and_new_records_flow(tmp_path: P
 
 def test_an_unwritable_storage_path_falls_back_to_the_default(tmp_path: Path, monkeypatch: Any) -> None:
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    monkeypatch.setenv("ROS_DOMAIN_ID", "7")
     blocked = tmp_path / "blocked"
     blocked.write_text("a file where a folder should be")
     logger = RecordingLogger()
@@ -539,7 +541,8 @@ def test_an_unwritable_storage_path_falls_back_to_the_default(tmp_path: Path, mo
     try:
         pipeline.submit("sink", record(1))
         sink.wait_for(1)
-        assert pipeline.storage_file == tmp_path / "data" / "dc" / "buffer" / FILE_NAME
+        # The default folder of the root namespace in this domain (dc_destinations.storage).
+        assert pipeline.storage_file == tmp_path / "data" / "dc" / "buffer" / "domain-7" / "default" / FILE_NAME
         assert any(level == "error" and "cannot be used" in line for level, line in logger.lines)
     finally:
         pipeline.stop(grace=0.5)
@@ -790,3 +793,78 @@ def test_a_disk_that_fills_while_a_batch_is_sent_does_not_stop_the_sender(small_
         wait_until(lambda: pipeline.metrics()["sink"]["buffered"] == 0, what="an empty queue")
     finally:
         pipeline.stop(grace=1.0)
+
+
+# -- one owner per buffer ----------------------------------------------------------------------------
+
+
+def test_a_second_pipeline_on_the_same_buffer_is_refused_until_the_first_lets_go(tmp_path: Path) -> None:
+    first = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(), DestinationDeliveryParams())}, LOG)
+    second = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(), DestinationDeliveryParams())}, LOG)
+    first.claim_storage()
+    try:
+        with pytest.raises(BufferInUse) as refused:
+            second.claim_storage()
+        message = str(refused.value)
+        assert f"the delivery buffer {tmp_path / FILE_NAME} is in use by process {os.getpid()}" in message
+        assert "destination_server.ros__parameters.flb.storage_path" in message
+    finally:
+        first.release_storage()
+    assert second.claim_storage() == tmp_path / FILE_NAME
+    second.release_storage()
+
+
+_HOLDER = r"""
+import sys, time
+from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.settings import DeliveryParams
+pipeline = DeliveryPipeline(DeliveryParams(storage_path=sys.argv[1]), {}, None)
+pipeline.claim_storage()
+print("claimed", flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_buffer_whose_owner_was_killed_is_taken_over_at_once(tmp_path: Path) -> None:
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "claimed"
+        pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(), DestinationDeliveryParams())}, LOG)
+        with pytest.raises(BufferInUse, match=f"in use by process {holder.pid}"):
+            pipeline.claim_storage()
+        holder.kill()  # kill -9: no cleanup runs in the holder
+        holder.wait()
+        assert (tmp_path / f"{FILE_NAME}.lock").exists(), "the lock file stays behind, stale"
+        assert pipeline.claim_storage() == tmp_path / FILE_NAME
+        pipeline.release_storage()
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_the_default_buffer_is_separated_by_ros_domain_and_namespace(tmp_path: Path, monkeypatch: Any) -> None:
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    base = tmp_path / "dc" / "buffer"
+    assert default_storage_dir() == base / "domain-42" / "default"
+    assert default_storage_dir("/robot1") == base / "domain-42" / "ns.robot1"
+    assert default_storage_dir("/fleet/robot1/", "3") == base / "domain-3" / "ns.fleet.robot1"
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    assert default_storage_dir() == base / "domain-0" / "default"
+
+
+def test_records_left_in_the_buffer_of_an_earlier_dc_are_mentioned_once_at_start(
+    tmp_path: Path, monkeypatch: Any
+) -> None:
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))
+    legacy = tmp_path / "dc" / "buffer" / FILE_NAME
+    old = SqliteBuffer(legacy)
+    old.append({"out": [PendingRecord("r1", "/t", 1, '{"n":1}'), PendingRecord("r2", "/t", 2, '{"n":2}')]})
+    old.close()
+    logger = RecordingLogger()
+    pipeline = DeliveryPipeline(DeliveryParams(), {"out": (Recorder("out"), DestinationDeliveryParams())}, logger)
+    pipeline.claim_storage()
+    pipeline.release_storage()
+    (warning,) = logger.at("warning")
+    assert f"2 records of an earlier DC wait in {legacy}" in warning
+    assert f'flb.storage_path: "{legacy.parent}"' in warning
