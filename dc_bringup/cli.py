@@ -239,6 +239,10 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
     for section, values in sorted(metrics.items()):
         if section not in ("destinations", "buffer") and isinstance(values, dict):
             print(f"{section}: " + ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict)))
+    unrouted = metrics.get("intake", {}).get("unrouted", {})
+    for topic, reasons in sorted(unrouted.items()) if isinstance(unrouted, dict) else []:
+        for reason, count in sorted(reasons.items()):
+            print(f"unrouted: {count} on {topic}: {reason}")
 
 
 def _print_groups(metrics: dict[str, Any]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,15 @@ import yaml
 from dc_core.errors import ConfigError
 
 SERVERS = ("measurement_server", "group_server", "destination_server")
+# How alike (difflib ratio) a top-level key must be to a server's name to be taken for a typo of it:
+# "destination_sever" is 0.97, Nav2's "controller_server" 0.69 from "group_server".
+TYPO_SIMILARITY = 0.85
+
+
+def other_sections(path: str | Path) -> list[str]:
+    """Top-level keys of a parameter file that are not DC servers (other nodes' parameters, ignored)."""
+    document = yaml.safe_load(Path(path).read_text())
+    return [str(name) for name in document if name not in SERVERS] if isinstance(document, Mapping) else []
 
 
 def nest_dotted_keys(mapping: Mapping[str, Any], path: str = "") -> dict[str, Any]:
@@ -59,7 +69,14 @@ def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     servers: dict[str, dict[str, Any]] = {}
     for name, body in document.items():
         if name not in SERVERS:
-            # Other nodes' sections may share a ROS parameter file; they are not DC's business.
+            # Other nodes' sections may share a ROS parameter file and are not DC's business (Nav2's
+            # controller_server, map_server...); a name a typo away from a server's is a server
+            # whose whole section would be ignored.
+            typo_of = difflib.get_close_matches(str(name), SERVERS, n=1, cutoff=TYPO_SIMILARITY)
+            if typo_of:
+                raise ConfigError(
+                    str(name), f'not a DC server section (did you mean "{typo_of[0]}"?): it would be ignored'
+                )
             continue
         if not isinstance(body, Mapping) or "ros__parameters" not in body:
             raise ConfigError(str(name), "expected a 'ros__parameters' mapping")

@@ -58,3 +58,36 @@ def flatten(document: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     for key, value in document.items():
         walk(value, f"{prefix}/{key}")
     return out
+
+
+def impossible_path(schema: Mapping[str, Any], path: str) -> str | None:
+    """Why no record valid under ``schema`` can have ``path``, or None when one may.
+
+    Conservative: a path is impossible only where the schema lists an object's ``properties`` and
+    forbids others (``additionalProperties: false``, no ``patternProperties``), or where it says a
+    value is not an object or array at all. Combinators (``anyOf``, ``$ref``...) end the check.
+    """
+    node: Any = schema
+    walked: list[str] = []
+    for part in [p for p in path.strip("/").split("/") if p != ""]:
+        if not isinstance(node, Mapping) or any(k in node for k in ("anyOf", "oneOf", "allOf", "$ref", "not", "if")):
+            return None
+        properties = node.get("properties")
+        where = "/".join(walked) or "the record"
+        if isinstance(properties, Mapping) and part in properties:
+            node = properties[part]
+        elif node.get("type") == "array" or "items" in node:
+            items = node.get("items")
+            if not part.lstrip("-").isdigit():
+                return f"{where} is an array: {part!r} is not an index"
+            node = items if isinstance(items, Mapping) else None
+        elif node.get("additionalProperties") is False and not node.get("patternProperties"):
+            known = sorted(properties) if isinstance(properties, Mapping) else []
+            return f"{where} has no key {part!r}; its keys: {', '.join(known) or 'none'}"
+        elif node.get("type") in ("string", "number", "integer", "boolean", "null"):
+            return f"{where} is a {node['type']}, not an object"
+        else:
+            extra = node.get("additionalProperties")
+            node = extra if isinstance(extra, Mapping) else None
+        walked.append(part)
+    return None

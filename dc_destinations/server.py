@@ -272,7 +272,8 @@ class DestinationServer(ManagedServer):
             f"({tags_text}; destinations listening here: {', '.join(listeners) or 'none'})"
         )
         if first:
-            self.get_logger().info(message + "; further ones are counted and logged at debug level")
+            # A warning: a tag naming no destination here drops every record tagged so.
+            self.get_logger().warning(message + "; further ones are counted (unrouted) and logged at debug level")
         else:
             self.get_logger().debug(message)
 

@@ -24,6 +24,10 @@ class ConditionRuntime:
         self._latest: Mapping[str, Any] | None = None
         self._state: bool | None = None
         self._last_reason = ""
+        # Whether the condition could ever judge what it was given: until it could, the first
+        # failure is a warning (a key the records never have gates everything, silently else).
+        self._evaluated_once = False
+        self._failure_warned = False
 
     @property
     def needs_sample(self) -> bool:
@@ -54,7 +58,16 @@ class ConditionRuntime:
         try:
             active = bool(self.condition.evaluate(judged))
         except Exception as exc:  # a condition never crashes the server
-            return self._set(False, f"{type(exc).__name__}: {exc}")
+            reason = f"{type(exc).__name__}: {exc}"
+            if not self._evaluated_once and not self._failure_warned:
+                self._failure_warned = True
+                keys = ", ".join(map(str, judged)) if isinstance(judged, Mapping) else "no record"
+                self._logger.warning(
+                    f"condition {self.name} cannot judge the record it is given ({reason}; the record's keys: "
+                    f"{keys}): it counts as inactive; said once, then at debug level"
+                )
+            return self._set(False, reason)
+        self._evaluated_once = True
         return self._set(active, "")
 
     def _set(self, active: bool, reason: str) -> bool:

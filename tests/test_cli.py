@@ -91,8 +91,13 @@ def test_third_party_plugin_is_listed_and_loaded(third_party_env: dict[str, str]
             "destination_server:\n  ros__parameters:\n    destination_plugins: [o]\n    o:\n      plugin: dc_destinations/Stdout\n",
             "destination_server.o.inputs: required parameter missing",
         ),
+        (
+            "destination_sever:\n  ros__parameters:\n    destination_plugins: []\n"
+            "measurement_server:\n  ros__parameters:\n    measurement_plugins: []\n",
+            'destination_sever: not a DC server section (did you mean "destination_server"?): it would be ignored',
+        ),
     ],
-    ids=["invalid-yaml", "unknown-plugin", "wrong-type", "missing-inputs"],
+    ids=["invalid-yaml", "unknown-plugin", "wrong-type", "missing-inputs", "misspelled-server"],
 )
 def test_validate_reports_errors(tmp_path: Path, text: str, expected: str) -> None:
     params = tmp_path / "p.yaml"
@@ -100,6 +105,44 @@ def test_validate_reports_errors(tmp_path: Path, text: str, expected: str) -> No
     result = dc("validate", str(params))
     assert result.returncode == 2
     assert expected in result.stderr
+
+
+UPTIME_GATED = """
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["uptime"]
+    condition_plugins: ["booted", "elsewhere"]
+    booted:
+      plugin: "dc_conditions/IntegerSuperior"
+      key: "{key}"
+      value: 10
+    elsewhere:
+      plugin: "dc_conditions/Exist"
+      key: "tme"
+      topic: "/dc/measurement/other"
+    uptime:
+      plugin: "dc_measurements/Uptime"
+      if_all_conditions: ["booted", "elsewhere"]
+controller_server:
+  ros__parameters:
+    controller_frequency: 20.0
+"""
+
+
+def test_validate_warns_about_a_condition_key_the_schema_rules_out_and_ignores_other_nodes(tmp_path: Path) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text(UPTIME_GATED.format(key="tme"))
+    result = dc("validate", str(params))
+    assert result.returncode == 0, result.stderr
+    assert (
+        "measurement_server.booted.key: 'tme' is never in the records of uptime (the record has no key 'tme'; "
+        "its keys: time): booted cannot be active for uptime" in result.stderr
+    )
+    assert "elsewhere" not in result.stderr, "a condition on another topic judges that topic's records"
+    # Nav2 and other nodes keep their parameters in the same file: ignored, said once, not an error.
+    assert "controller_server: not a DC server section, ignored" in result.stderr
+    params.write_text(UPTIME_GATED.format(key="time"))
+    assert "never in the records" not in dc("validate", str(params)).stderr
 
 
 def test_validate_warns_about_dangling_inputs_and_unknown_tags(tmp_path: Path) -> None:
@@ -176,7 +219,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
             "commit_error": "committing to the buffer: OperationalError: database or disk is full",
             "commit_failing_s": 42.0,
         },
-        "intake": {"received": 10, "malformed": 2},
+        "intake": {"received": 10, "malformed": 2, "unrouted": {"/t": {"no tags": 3}}},
     }
 
     class Handler(http.server.BaseHTTPRequestHandler):
@@ -211,6 +254,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert any("corrupt files set aside 1" in line for line in rest)
     assert any("COMMITS FAILING for 42.0 s" in line and "disk is full" in line for line in rest), rest
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
+    assert "unrouted: 3 on /t: no tags" in rest
     unreachable = dc("status", "--port", "1")
     assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr
 

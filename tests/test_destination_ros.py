@@ -196,6 +196,21 @@ def test_hostile_records_are_counted_and_every_valid_one_is_delivered_once(runni
     assert server.pipeline.metrics()["disk"]["malformed"] == 0, "all caught at intake"
 
 
+def test_a_tag_routed_nowhere_is_a_warning_once_then_counted(
+    running: Running, capfd: pytest.CaptureFixture[str]
+) -> None:
+    server = running.server
+    assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    running.wait_for_subscription()
+    for n in range(3):
+        running.publish(json.dumps({"n": n, "tags": ["dsik"]}))
+    assert running.spin_until(lambda: sum(server.stats.unrouted.values()) == 3)
+    warnings = [line for line in capfd.readouterr().err.splitlines() if "reaches no destination" in line]
+    assert len(warnings) == 1 and warnings[0].startswith("[WARN]"), warnings
+    assert "tags ['dsik']" in warnings[0] and "destinations listening here: disk, flb_pgsql" in warnings[0]
+
+
 def test_reactivation_resumes_delivery(running: Running) -> None:
     server = running.server
     assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS

@@ -337,3 +337,22 @@ def test_a_condition_that_remembers_samples_shared_by_two_measurements_is_warned
         server({"a": {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["same"]}}, {"same": same})
     )
     assert alone.warnings == []
+
+
+def test_a_condition_that_cannot_judge_its_records_says_so_once() -> None:
+    c = server(
+        {"u": {"plugin": "dc_measurements/Uptime"}},
+        {"c": {"plugin": "dc_conditions/IntegerSuperior", "key": "tme", "value": 1}},
+    )
+    config = parse_measurement_server(c)
+    (ccfg,) = config.conditions.values()
+    logger = RecordingLogger()
+    states: list[bool] = []
+    rt = ConditionRuntime("c", ccfg.plugin_class(FakeContext(), ccfg.plugin_params), "", logger, states.append)
+    for time_s in (5, 6, 7):
+        assert rt.evaluate({"time": time_s}) is False
+    (warning,) = logger.at("warning")
+    assert "condition c cannot judge the record it is given" in warning
+    assert "'tme'" in warning and "the record's keys: time" in warning
+    assert len(logger.at("debug")) == 1, "later failures with the same reason stay quiet"
+    assert states == [False]
