@@ -25,7 +25,7 @@ from typing import Any
 import pytest
 
 from tests.bringup_util import Bringup, dc
-from tests.test_http_destination import Receiver, Request, free_port
+from tests.http_receiver import Receiver, Request, free_port
 
 pytestmark = pytest.mark.e2e
 

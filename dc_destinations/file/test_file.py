@@ -1,10 +1,9 @@
-"""Built-in destinations Stdout, File, Null and Rcl: what they write and how they fail (no ROS)."""
+"""File destination against a real file system: formats, folders, fsync, a full disk."""
 
 from __future__ import annotations
 
 import csv
 import json
-import logging
 import os
 import stat
 from pathlib import Path
@@ -12,27 +11,11 @@ from typing import Any
 
 import pytest
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import RetryableError, SendOutcome
 from dc_core.errors import ConfigError, DcError
-from dc_core.params import describe_params, parse_params
-from dc_core.testing import FakeContext, RecordingLogger
-from dc_destinations.config import DestinationCommonParams
+from dc_core.params import parse_params
 from dc_destinations.file import File, FileParams
-from dc_destinations.null import Null
-from dc_destinations.rcl import Rcl
-from dc_destinations.stdout import Stdout, StdoutParams
-
-STAMP_NS = 1_677_668_906_045_817_000
-
-
-def record(data: dict[str, Any], record_id: str = "r1", stamp_ns: int = STAMP_NS) -> OutgoingRecord:
-    return OutgoingRecord(record_id, "/dc/measurement/uptime", stamp_ns, data)
-
-
-def make(cls: type[Destination[Any]], name: str = "dest", **params: Any) -> Destination[Any]:
-    plugin = cls(FakeContext(name=name), parse_params(cls.Params, params, f"destination_server.{name}"))
-    plugin.on_configure()
-    return plugin
+from tests.destination_helpers import UPTIMES, make, record
 
 
 def file_dest(tmp_path: Path, name: str = "disk", **params: Any) -> File:
@@ -40,75 +23,6 @@ def file_dest(tmp_path: Path, name: str = "disk", **params: Any) -> File:
     assert isinstance(plugin, File)
     plugin.on_activate()
     return plugin
-
-
-UPTIMES = [
-    record({"date": 1677668906.045817, "time": 92395, "robot_name": "C3PO"}, "r1"),
-    record({"date": 1677668911.7, "time": 92400, "robot_name": "C3PO"}, "r2"),
-]
-
-
-# -- Stdout ------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("fmt", ["json", "json_lines", "json_stream", "plain"])
-def test_stdout_prints_one_json_object_per_line(fmt: str, capsys: pytest.CaptureFixture[str]) -> None:
-    out = make(Stdout, format=fmt)
-    assert out.send(UPTIMES) is None
-    assert capsys.readouterr().out.splitlines() == [
-        '{"date":1677668906.045817,"time":92395,"robot_name":"C3PO"}',
-        '{"date":1677668911.7,"time":92400,"robot_name":"C3PO"}',
-    ]
-
-
-def test_stdout_keeps_non_ascii_readable(capsys: pytest.CaptureFixture[str]) -> None:
-    make(Stdout).send([record({"name": "café ✓"})])
-    assert capsys.readouterr().out == '{"name":"café ✓"}\n'
-
-
-def test_stdout_msgpack_is_refused_at_configure() -> None:
-    with pytest.raises(ConfigError) as info:
-        parse_params(StdoutParams, {"format": "msgpack"}, "destination_server.flb_stdout")
-    assert info.value.path == "destination_server.flb_stdout.format"
-
-
-def test_stdout_closed_is_retryable(monkeypatch: pytest.MonkeyPatch) -> None:
-    class Broken:
-        def write(self, text: str) -> int:
-            raise BrokenPipeError(32, "Broken pipe")
-
-        def flush(self) -> None:
-            pass
-
-    monkeypatch.setattr("sys.stdout", Broken())
-    with pytest.raises(RetryableError, match="Broken pipe"):
-        make(Stdout).send(UPTIMES)
-
-
-# -- Null and Rcl ------------------------------------------------------------------------------------
-
-
-def test_null_confirms_and_discards(capsys: pytest.CaptureFixture[str]) -> None:
-    assert make(Null).send(UPTIMES) is None
-    assert capsys.readouterr() == ("", "")
-
-
-def test_rcl_logs_each_record_at_info() -> None:
-    rcl = make(Rcl, "rcl")
-    assert rcl.send(UPTIMES) is None
-    logger = rcl.context.logger
-    assert isinstance(logger, RecordingLogger)
-    assert logger.lines == [("info", r.to_json()) for r in UPTIMES]
-
-
-def test_rcl_works_with_a_standard_logger(caplog: pytest.LogCaptureFixture) -> None:
-    rcl = Rcl(FakeContext(name="rcl", logger=logging.getLogger("dc.test.rcl")), None)  # type: ignore[arg-type]
-    with caplog.at_level(logging.INFO, logger="dc.test.rcl"):
-        rcl.send(UPTIMES[:1])
-    assert caplog.messages == [UPTIMES[0].to_json()]
-
-
-# -- File: formats -----------------------------------------------------------------------------------
 
 
 def test_file_default_is_json_lines_named_after_the_destination(tmp_path: Path) -> None:
@@ -176,9 +90,6 @@ def test_file_template(tmp_path: Path) -> None:
     dest = file_dest(tmp_path, file="t", format="template", template="{time} {name}={value} {missing}")
     dest.send([record({"name": "cpu", "value": {"avg": 3}})])
     assert (tmp_path / "t").read_text() == '1677668906.045817000 cpu={"avg":3} \n'
-
-
-# -- File: folders, configuration, failures ------------------------------------------------------------
 
 
 def test_file_mkdir_creates_missing_folders(tmp_path: Path) -> None:
@@ -280,15 +191,3 @@ def test_file_rotated_away_starts_a_new_file(tmp_path: Path) -> None:
 def test_params_defaults() -> None:
     p = parse_params(FileParams, {}, "x")
     assert (p.path, p.file, p.format, p.mkdir) == ("$HOME/data", "", "json", True)
-
-
-# -- documentation ---------------------------------------------------------------------------------------
-# Every plugin's page is checked by tests/test_plugin_contract.py; what is particular to one is here.
-
-STDOUT_PAGE = Path(__file__).resolve().parent.parent / "dc_destinations" / "stdout" / "README.md"
-
-
-def test_stdout_doc_common_parameter_table_matches_the_code() -> None:
-    text = STDOUT_PAGE.read_text()
-    for info in describe_params(DestinationCommonParams):
-        assert f"| `{info.name}` |" in text, f"stdout.md lacks a row for common parameter {info.name}"

@@ -1,0 +1,51 @@
+"""Test-session environment (tests/ and the plugin folders' tests): ROS traffic stays on this
+machine, in a domain of its own; and the fixtures tests of several plugin folders share."""
+
+from __future__ import annotations
+
+import os
+import random
+import socket
+import tempfile
+from collections.abc import Iterator
+
+import pytest
+
+# Set before any test module imports rclpy, so every context of this session uses them.
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="dc-test-roslog-"))
+os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+
+
+# -- sockets for the tests of measurements that probe the network (Network, TCPHealth) --------
+
+
+@pytest.fixture
+def silent_port() -> Iterator[int]:
+    """A local port whose SYNs are dropped: a listener whose accept queue is full."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(0)
+    port = server.getsockname()[1]
+    fillers = []
+    try:
+        for _ in range(4):
+            filler = socket.socket()
+            filler.setblocking(False)
+            filler.connect_ex(("127.0.0.1", port))
+            fillers.append(filler)
+        yield port
+    finally:
+        for filler in fillers:
+            filler.close()
+        server.close()
+
+
+@pytest.fixture
+def tcp_server() -> Iterator[socket.socket]:
+    server = socket.create_server(("127.0.0.1", 0))
+    try:
+        yield server
+    finally:
+        server.close()
