@@ -39,7 +39,7 @@ from dc_core.executors import SPIN_PERIOD_S
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import EXECUTOR_TURN_S, Intake
 from dc_core.logs import Logger
-from dc_core.node_params import DEFAULT_HEARTBEAT_PERIOD_S, HeartbeatParams
+from dc_core.node_params import DEFAULT_HEARTBEAT_PERIOD_S, HeartbeatParams, MetricsHttpParams
 from dc_core.plugin import MessageCallback
 from dc_core.worker import Worker
 from dc_interfaces.msg import Heartbeat
@@ -154,13 +154,16 @@ class ManagedServer(LifecycleNode):
 
     # -- metrics over HTTP -------------------------------------------------------------------
     def start_metrics_http(
-        self, listen: str, port: int, document: Callable[[], dict[str, Any]], prometheus: Callable[[], str]
+        self, settings: MetricsHttpParams, document: Callable[[], dict[str, Any]], prometheus: Callable[[], str]
     ) -> None:
-        """Serve ``document()`` (and its Prometheus text) while active; health is the lifecycle state."""
+        """Serve ``document()`` (and its Prometheus text) while active, when ``settings.http_server``
+        is on; health is the lifecycle state."""
+        if not settings.http_server:
+            return
         self._metrics_http = start_status_server(
             self.get_logger(),
-            listen,
-            port,
+            settings.http_listen,
+            settings.http_port,
             health=lambda: self.lifecycle_state == "active",
             metrics=document,
             prometheus=prometheus,

@@ -72,14 +72,9 @@ class GroupServer(ManagedServer):
         period = min(0.5, max(0.02, min(timeouts) / 4)) if timeouts else 0.5
         self._expiry_timer = self.create_timer(period, self._expire)
         assert self.config is not None
-        node = self.config.node
-        if node.http_server:
-            self.start_metrics_http(
-                node.http_listen,
-                node.http_port,
-                self.metrics_document,
-                lambda: group_prometheus_text(self.metrics_document()),
-            )
+        self.start_metrics_http(
+            self.config.node, self.metrics_document, lambda: group_prometheus_text(self.metrics_document())
+        )
 
     def deactivate_server(self) -> None:
         for subscription in self._input_subscriptions:

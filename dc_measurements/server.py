@@ -180,14 +180,9 @@ class MeasurementServer(ManagedServer):
             self._start_deadline = time.monotonic() + INIT_MATCH_WAIT_S
             self._init_timer = self.create_timer(0.02, self._start_collection)
         assert self.config is not None
-        node = self.config.node
-        if node.http_server:
-            self.start_metrics_http(
-                node.http_listen,
-                node.http_port,
-                self.metrics_document,
-                lambda: measurement_prometheus_text(self.metrics_document()),
-            )
+        self.start_metrics_http(
+            self.config.node, self.metrics_document, lambda: measurement_prometheus_text(self.metrics_document())
+        )
 
     def metrics_document(self) -> dict[str, Any]:
         """Per measurement its counters since configure (the HTTP thread reads them: ints, no lock needed)."""
