@@ -102,6 +102,12 @@ class FakeContext:
             self._worker = Worker(f"{self.name}-worker", self.worker_woken.set, threads=2)
         return self._worker
 
+    def stop_worker(self) -> None:
+        """Stop the worker threads, if the plugin used them."""
+        if self._worker is not None:
+            self._worker.shutdown()
+            self._worker = None
+
     def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
         self.emitted.append(Emitted(record, stamp_ns, group_key))
 
@@ -146,6 +152,4 @@ class PluginHarness:
         """Deactivated and cleaned up; its worker stopped."""
         plugin.on_deactivate()
         plugin.on_cleanup()
-        context = self.contexts.pop(id(plugin))
-        if context._worker is not None:
-            context._worker.shutdown()
+        self.contexts.pop(id(plugin)).stop_worker()

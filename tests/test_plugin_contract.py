@@ -250,8 +250,7 @@ def test_a_lifecycle_round_trip_works_with_the_page_example(
     for step in (instance.on_configure, instance.on_activate, instance.on_deactivate, instance.on_cleanup):
         step()
     assert isinstance(instance.counters(), dict)
-    if context._worker is not None:
-        context._worker.shutdown()
+    context.stop_worker()
 
 
 class NotAMeasurement:
