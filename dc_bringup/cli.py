@@ -224,7 +224,12 @@ def _print_table(title: str, columns: list[tuple[str, str]], rows: dict[str, Any
 
 
 def _print_delivery(metrics: dict[str, Any]) -> None:
-    _print_table("destination", STATUS_COLUMNS, metrics.get("destinations", {}), text_column="last_error")
+    destinations = metrics.get("destinations", {})
+    _print_table("destination", STATUS_COLUMNS, destinations, text_column="last_error")
+    for name, values in sorted(destinations.items()):
+        own = values.get("plugin") if isinstance(values, dict) else None
+        if own:
+            print(f"{name} (its own counters): " + ", ".join(f"{k} {_cell(v)}" for k, v in sorted(own.items())))
     buffer = metrics.get("buffer")
     if isinstance(buffer, dict):
         print(

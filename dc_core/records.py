@@ -35,8 +35,18 @@ def _reject_constant(name: str) -> Any:
 _DECODER = json.JSONDecoder(parse_constant=_reject_constant)
 # What a text must hold for its parsed record to fail dump_record: a \u escape (a lone surrogate
 # can come only from one) or a number that may overflow a double (a 3-digit exponent, or 309+
-# digits). Most records hold neither and are not serialised twice.
-_MAY_NOT_DUMP = re.compile(r"\\u|[eE][+]?\d{3}|\d{309}")
+# digits). Most records hold neither and are not serialised twice. Three cheap tests rather than
+# one regex: the alternation cost 2 us a record, these 0.9.
+_BIG_EXPONENT = re.compile(r"[eE][+]?\d{3}")
+_LONG_NUMBER = re.compile(r"\d{309}")
+
+
+def _may_not_dump(text: str) -> bool:
+    return (
+        "\\u" in text
+        or _BIG_EXPONENT.search(text) is not None
+        or (len(text) > 309 and _LONG_NUMBER.search(text) is not None)
+    )
 
 
 def parse_record(text: str) -> dict[str, Any]:
@@ -51,7 +61,7 @@ def parse_record(text: str) -> dict[str, Any]:
         raise MalformedRecord("nested too deeply for the JSON parser") from None
     if not isinstance(record, dict):
         raise MalformedRecord(f"expected a JSON object, got a JSON {_json_kind(record)}")
-    if _MAY_NOT_DUMP.search(text):
+    if _may_not_dump(text):
         dump_record(record)
     return record
 

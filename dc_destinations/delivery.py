@@ -264,12 +264,14 @@ class DeliveryPipeline:
     # -- observability ------------------------------------------------------------------------------
 
     def metrics(self) -> dict[str, dict[str, Any]]:
-        """Per destination: counters since start, what waits in the buffer, the last error."""
+        """Per destination: counters since start, what waits in the buffer, the last error, and the
+        plugin's own counters (``plugin``: its ``counters()``)."""
         out: dict[str, dict[str, Any]] = {}
         now_ns = time.time_ns()
         for name, route in self._routes.items():
             values = route.metrics.snapshot()
             values.update(buffered=None, buffered_bytes=None, dead_letters=None, oldest_pending_age_s=None)
+            values["plugin"] = _plugin_counters(route)
             if self._buffer is not None and not self._buffer.closed:
                 try:
                     stats = self._buffer.stats(name)
@@ -339,3 +341,11 @@ class DeliveryPipeline:
             metrics=self.status_document,
             prometheus=self.prometheus,
         )
+
+
+def _plugin_counters(route: Route) -> dict[str, int]:
+    """A destination plugin's own counters; a plugin whose counters() fails has none shown (never a 500)."""
+    try:
+        return dict(route.destination.counters())
+    except Exception:
+        return {}

@@ -88,6 +88,15 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
     """Prometheus text exposition (format 0.0.4) of :meth:`DeliveryPipeline.metrics`."""
     text = PrometheusText()
     text.counter_table("dc_delivery", "destination", destinations, DELIVERY_COUNTERS)
+    # The plugins' own counters (Destination.counters()), one family per name.
+    plugin_rows = {name: values.get("plugin") or {} for name, values in destinations.items()}
+    plugin_keys = sorted({key for counters in plugin_rows.values() for key in counters})
+    text.counter_table(
+        "dc_delivery_plugin",
+        "destination",
+        plugin_rows,
+        [(key, "counter", f"Plugin counter {key}") for key in plugin_keys],
+    )
     for name, key, doc in _QUEUE_GAUGES:
         samples = [(prometheus_labels(destination=d), values[key]) for d, values in sorted(destinations.items())]
         if key == "oldest_pending_age_s":

@@ -209,6 +209,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
                 "dead_letters": 1,
                 "oldest_pending_age_s": 12.5,
                 "last_error": "HTTP 503 Service Unavailable",
+                "plugin": {"reconnects": 4},
             },
         },
         "buffer": {
@@ -255,6 +256,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert any("COMMITS FAILING for 42.0 s" in line and "disk is full" in line for line in rest), rest
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
     assert "unrouted: 3 on /t: no tags" in rest
+    assert "pg (its own counters): reconnects 4" in rest
     unreachable = dc("status", "--port", "1")
     assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr
 

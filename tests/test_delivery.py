@@ -419,8 +419,15 @@ def test_stop_leaves_undelivered_records_for_the_next_pipeline(tmp_path: Path) -
         second.stop(grace=0.5)
 
 
+class CountingRecorder(Recorder):
+    """A destination with counters of its own, as a plugin keeps them (reconnections, say)."""
+
+    def counters(self) -> dict[str, int]:
+        return {"batches": self.calls}
+
+
 def test_metrics_over_http(tmp_path: Path) -> None:
-    sink = Recorder()
+    sink = CountingRecorder()
     pipeline = DeliveryPipeline(
         settings(tmp_path, http_server=True, http_port=0), {"sink": (sink, DestinationDeliveryParams())}, LOG
     )
@@ -437,10 +444,12 @@ def test_metrics_over_http(tmp_path: Path) -> None:
         with urllib.request.urlopen(f"{base}/metrics", timeout=5) as reply:
             body = json.load(reply)
         assert body["destinations"]["sink"]["sent"] == 1
+        assert body["destinations"]["sink"]["plugin"] == {"batches": 1}, "the plugin's own counters are served too"
         assert body["buffer"]["storage_sync"] == "normal"
         with urllib.request.urlopen(f"{base}/metrics/prometheus", timeout=5) as reply:
             text = reply.read().decode()
         assert 'dc_delivery_sent_total{destination="sink"} 1' in text
+        assert 'dc_delivery_plugin_batches_total{destination="sink"} 1' in text
     finally:
         pipeline.stop(grace=0.5)
     assert pipeline.http_address is None

@@ -1,0 +1,55 @@
+"""dc_core.records: what every server refuses to carry, and what it carries unchanged."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+from dc_core.records import MalformedRecord, dump_record, parse_record
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("{nope", "invalid JSON"),
+        ("[1]", "expected a JSON object, got a JSON array"),
+        ('{"a": NaN}', "NaN is not a JSON number"),
+        ('{"a": -Infinity}', "-Infinity is not a JSON number"),
+        ('{"a": 1e309}', "not finite"),
+        ('{"a": ' + "1" + "0" * 309 + ".5}", "not finite"),
+        ('{"a": ' + "9" * 5000 + "}", "invalid JSON (Exceeds the limit"),
+        ('{"t": "a\\ud800b"}', "lone surrogate \\ud800"),
+        ('{"a": ' + "[" * 3000 + "]" * 3000 + "}", "nested too deeply"),
+    ],
+    ids=["invalid", "array", "nan", "infinity", "exponent", "309-digit-float", "huge-int", "surrogate", "deep"],
+)
+def test_what_no_server_carries(text: str, reason: str) -> None:
+    with pytest.raises(MalformedRecord, match=None) as refused:
+        parse_record(text)
+    assert reason in str(refused.value)
+
+
+@pytest.mark.parametrize(
+    "record",
+    [
+        {"a": 1e308, "b": -0.0, "big": 10**300},
+        {"pair": "\U0001f600", "nul": "\x00", "quote": '"'},
+        {"nested": [[{"k": [1, 2.5, None, True]}]]},
+    ],
+    ids=["large-but-finite", "unicode-and-controls", "nested"],
+)
+def test_what_every_server_carries_unchanged(record: dict[str, Any]) -> None:
+    text = dump_record(record)
+    assert parse_record(text) == record
+    assert json.loads(text) == record, "any JSON reader gets the same record"
+
+
+def test_dump_refuses_what_a_plugin_may_produce() -> None:
+    with pytest.raises(MalformedRecord, match="not finite"):
+        dump_record({"v": float("nan")})
+    with pytest.raises(MalformedRecord, match="lone surrogate"):
+        dump_record({"file": "caf\udce9.txt"})  # a file name that is not UTF-8, as os.listdir gives it
+    with pytest.raises(MalformedRecord, match="not JSON-serialisable"):
+        dump_record({"when": object()})
