@@ -8,6 +8,7 @@ import random
 import socket
 import tempfile
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 
@@ -49,3 +50,20 @@ def tcp_server() -> Iterator[socket.socket]:
         yield server
     finally:
         server.close()
+
+
+# -- a ROS node for tests that give plugins a node (FakeContext(node=...)) ---------------------------
+
+
+@pytest.fixture(scope="module")
+def ros_node() -> Iterator[Any]:
+    """A node in the default context, shared by the tests of one module."""
+    import rclpy  # here, not at the top: the environment above is set before anything imports rclpy
+
+    rclpy.init()
+    node = rclpy.create_node(f"dc_test_{os.getpid()}_{random.randint(0, 1 << 30)}")
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()

@@ -20,6 +20,7 @@ meets the corruption: collection goes on and the file is kept for inspection.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import sqlite3
@@ -113,8 +114,10 @@ class PendingRecord:
     stamp_ns: int
     payload: str
 
-    @property
+    @functools.cached_property
     def size(self) -> int:
+        # Encoded once: the writer checks it before the commit (a lone surrogate fails there) and
+        # the commit stores it.
         return len(self.payload.encode("utf-8"))
 
 

@@ -125,10 +125,6 @@ class GroupCommitter:
         """Records handed over and not committed yet."""
         return self._intake.qsize()
 
-    def submit(self, destination: str, record: OutgoingRecord) -> None:
-        """Hand a record over for ``destination``; never blocks. Durable after its group commit."""
-        self.submit_record([(destination, record)])
-
     def submit_record(self, deliveries: Sequence[tuple[str, OutgoingRecord]], seen: HopKey | None = None) -> bool:
         """Hand over the copies of one record, and its hop key, to be committed in one transaction.
 

@@ -20,8 +20,6 @@ from __future__ import annotations
 import json
 import re
 import sys
-import uuid
-from collections.abc import Iterator
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint
 from pathlib import Path
@@ -29,7 +27,6 @@ from typing import Any
 
 import jsonschema
 import pytest
-import rclpy
 import yaml
 from rclpy.node import Node
 
@@ -209,17 +206,6 @@ def test_a_measurement_schema_is_valid_and_the_page_outputs_match_it(plugin: Ins
         jsonschema.validate(fields, schema)
 
 
-@pytest.fixture(scope="module")
-def node() -> Iterator[Node]:
-    rclpy.init()
-    node = rclpy.create_node(f"dc_contract_{uuid.uuid4().hex[:8]}")
-    try:
-        yield node
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
-
-
 def example_params(plugin: Installed, tmp_path: Path) -> Any:
     """The plugin's parameters as its page's first example sets them, parsed as the server does."""
     for index, block in enumerate(yaml_blocks(plugin.page.read_text())):
@@ -242,10 +228,10 @@ def example_params(plugin: Installed, tmp_path: Path) -> Any:
 
 @pytest.mark.parametrize("plugin", INSTALLED, ids=str)
 def test_a_lifecycle_round_trip_works_with_the_page_example(
-    plugin: Installed, node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    plugin: Installed, ros_node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setenv("HOME", str(tmp_path))  # examples write under $HOME
-    context = FakeContext(name=f"contract_{plugin.cls.__name__.lower()}", node=node)
+    context = FakeContext(name=f"contract_{plugin.cls.__name__.lower()}", node=ros_node)
     instance = plugin.cls(context, example_params(plugin, tmp_path))
     for step in (instance.on_configure, instance.on_activate, instance.on_deactivate, instance.on_cleanup):
         step()

@@ -20,7 +20,6 @@ from typing import Any
 
 import jsonschema
 import pytest
-import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -43,26 +42,15 @@ def guide_module(first_line: str) -> types.ModuleType:
     return module
 
 
-@pytest.fixture
-def node() -> Iterator[Node]:
-    rclpy.init()
-    node = rclpy.create_node(f"dc_guide_{uuid.uuid4().hex[:8]}")
-    try:
-        yield node
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
-
-
-def test_the_guide_measurement_reports_the_battery_state_it_received(node: Node) -> None:
+def test_the_guide_measurement_reports_the_battery_state_it_received(ros_node: Node) -> None:
     battery_module = guide_module("# my_robot_dc/battery/__init__.py")
     (schema_text,) = re.findall(r"```json\n(.*?)```", GUIDE, re.S)
     topic = f"/battery_{uuid.uuid4().hex[:8]}"
-    harness = PluginHarness(node)
+    harness = PluginHarness(ros_node)
     battery = harness.start(battery_module.Battery, {"topic": topic, "low_percent": 15.0})
     executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    publisher = node.create_publisher(BatteryState, topic, QoSProfile(depth=10))
+    executor.add_node(ros_node)
+    publisher = ros_node.create_publisher(BatteryState, topic, QoSProfile(depth=10))
     try:
         assert battery.collect() is None, "nothing received yet: nothing to publish"
         state = BatteryState()
