@@ -130,8 +130,9 @@ def waiting_in(buffer_file: Path) -> int:
     """Records waiting in the queues of a buffer file (0 when it is not one), read without changing it."""
     if not buffer_file.is_file():
         return 0
+    read_only = f"{buffer_file.resolve().as_uri()}?mode=ro"  # a URI: a '?' or '#' in the path stays a path
     try:
-        with contextlib.closing(sqlite3.connect(f"file:{buffer_file}?mode=ro", uri=True, timeout=1.0)) as conn:
+        with contextlib.closing(sqlite3.connect(read_only, uri=True, timeout=1.0)) as conn:
             row = conn.execute("SELECT COALESCE(SUM(rows), 0) FROM queues").fetchone()
     except sqlite3.Error:
         return 0
