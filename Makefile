@@ -1,6 +1,6 @@
 # DC — developer entry points.
 #
-#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces (cmake) + DC (editable, with test extras)
+#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, tf2_msgs (cmake) + DC (editable, with test extras)
 #   make test-deps   Debian packages the tests need (installed only if missing)
 #   make test        ruff, mypy, pytest
 #   make run         dc-bringup with params/default.yaml (PARAMS=... to change)
@@ -18,7 +18,6 @@ VENV := $(CURDIR)/.venv
 VPY := $(VENV)/bin/python
 PIP := $(VPY) -m pip --disable-pip-version-check
 CONSTRAINTS := $(CURDIR)/constraints.txt
-IFACE_BUILD := $(CURDIR)/build/dc_interfaces
 NPROC := $(shell nproc 2>/dev/null || echo 2)
 PARAMS ?= params/default.yaml
 PYTEST_ARGS ?=
@@ -36,6 +35,8 @@ TEST_DEBS :=
 
 IFACE_SRCS := dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
 	$(wildcard dc_interfaces/msg/*.msg dc_interfaces/srv/*.srv dc_interfaces/action/*.action)
+TF2_MSGS_SRCS := interfaces/tf2_msgs/CMakeLists.txt interfaces/tf2_msgs/package.xml \
+	$(wildcard interfaces/tf2_msgs/msg/*.msg)
 
 # Keep ROS traffic and logs of `run` and `test` on this machine and inside the checkout.
 ROS_LOG_DIR := $(CURDIR)/.ros/log
@@ -59,22 +60,38 @@ $(VENV)/.stamp-ros: $(CONSTRAINTS)
 	$(PIP) install -c $(CONSTRAINTS) $(ROS_PKGS)
 	touch $@
 
-# 2. dc_interfaces, built out of tree with plain cmake and installed into the venv prefix (the ament
-#    index is searched there), so `from dc_interfaces.msg import ...` works without sourcing.
+# 2. Interface packages, built out of tree with plain cmake and installed into the venv prefix (the
+#    ament index is searched there), so `from dc_interfaces.msg import ...` works without sourcing.
 #    LD_LIBRARY_PATH is computed from a clean environment, so only this venv's ROS libraries are used.
-$(VENV)/.stamp-interfaces: $(VENV)/.stamp-ros $(IFACE_SRCS)
+define build_interfaces
 	unset AMENT_PREFIX_PATH CMAKE_PREFIX_PATH COLCON_PREFIX_PATH PYTHONPATH; \
 	export LD_LIBRARY_PATH="$$(env -u LD_LIBRARY_PATH $(VPY) -c \
 		'import ros_wheels_bootstrapper as b; print(b.get_ros_paths())')"; \
-	cmake -S dc_interfaces -B $(IFACE_BUILD) \
+	cmake -S $(1) -B $(CURDIR)/build/$(notdir $(1)) \
 		-DCMAKE_PREFIX_PATH=$(VENV) -DCMAKE_INSTALL_PREFIX=$(VENV) \
 		-DPython3_EXECUTABLE=$(VPY) -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF; \
-	cmake --build $(IFACE_BUILD) -j $(NPROC); \
-	cmake --install $(IFACE_BUILD)
+	cmake --build $(CURDIR)/build/$(notdir $(1)) -j $(NPROC); \
+	cmake --install $(CURDIR)/build/$(notdir $(1))
+endef
+
+$(VENV)/.stamp-interfaces: $(VENV)/.stamp-ros $(IFACE_SRCS)
+	$(call build_interfaces,dc_interfaces)
+	touch $@
+
+# 2b. tf2_msgs (TFMessage, to read /tf without tf2_ros), only where no real one is importable: a
+#     robot's ROS installation has it. The marker file tells our build from a real one.
+TF2_MARKER := $(VENV)/share/tf2_msgs/built-by-dc
+$(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
+	if $(VPY) -c 'import tf2_msgs.msg' 2>/dev/null && [ ! -e $(TF2_MARKER) ]; then \
+		echo "tf2_msgs is installed already: not building DC's copy"; \
+	else \
+		$(call build_interfaces,interfaces/tf2_msgs); \
+		touch $(TF2_MARKER); \
+	fi
 	touch $@
 
 # 3. DC itself, editable, with the test tools.
-$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces pyproject.toml
+$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml
 	$(PIP) install -c $(CONSTRAINTS) -e '.[test]'
 	touch $@
 
