@@ -1,0 +1,87 @@
+"""What CmdVel and Speed share: the latest twist of a topic, and what a poll reports of it.
+
+A poll reports the newest message received since the previous poll. When none arrived, it reports
+nothing by default, as the original did (a robot standing without a controller sends no
+``/cmd_vel``); with ``repeat_last: true`` it reports the last message again, and the record's
+``age`` says how old that message is. Either way the state is not cleared by a poll of another
+measurement or by a failed publication: each measurement keeps its own.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from dc_core.params import param
+from dc_core.topics import topic_problem
+
+# Best effort matches reliable and best-effort publishers alike: real robots publish /odom best
+# effort, teleop and Nav2 publish /cmd_vel reliable. A reliable subscription would miss the former.
+SENSOR_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+
+
+def topic_param(default: str, doc: str) -> Any:
+    return param(default, doc=doc, check=lambda name: topic_problem(name) and "a ROS 2 topic name")
+
+
+def repeat_last_param() -> Any:
+    return param(
+        False,
+        doc="false: a poll with no new message since the previous one publishes nothing; true: it publishes the "
+        "last message again, with its `age`",
+    )
+
+
+def vector(v: Any) -> dict[str, float]:
+    return {"x": float(v.x), "y": float(v.y), "z": float(v.z)}
+
+
+def twist_record(twist: Any, age_s: float) -> dict[str, Any]:
+    """The record of a geometry_msgs/Twist: both vectors, the planar speed, and how old it is."""
+    return {
+        "linear": vector(twist.linear),
+        "angular": vector(twist.angular),
+        "computed": math.hypot(float(twist.linear.x), float(twist.linear.y)),
+        "age": max(0.0, age_s),
+    }
+
+
+@dataclass
+class _Received:
+    twist: Any
+    received_ns: int
+
+
+class LatestTwist:
+    """The newest twist received and whether a poll has reported it yet (callbacks and polls may run on
+    different threads)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._latest: _Received | None = None
+        self._reported = True
+        self.received = 0
+
+    def update(self, twist: Any, received_ns: int) -> None:
+        with self._lock:
+            self._latest = _Received(twist, received_ns)
+            self._reported = False
+            self.received += 1
+
+    def take(self, now_ns: int, repeat_last: bool) -> dict[str, Any] | None:
+        """The record a poll at ``now_ns`` reports, or None (see the module documentation)."""
+        with self._lock:
+            latest = self._latest
+            if latest is None or (self._reported and not repeat_last):
+                return None
+            self._reported = True
+        return twist_record(latest.twist, (now_ns - latest.received_ns) / 1e9)
+
+    def reset(self) -> None:
+        with self._lock:
+            self._latest = None
+            self._reported = True
