@@ -276,6 +276,35 @@ def cmd_buffer(args: argparse.Namespace) -> int:
     return code
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from dc_bringup.replay import ReplayError, ReplayOptions, replay, topics_argument
+
+    if args.rate <= 0:
+        print("dc replay: --rate must be above 0", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
+    signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    options = ReplayOptions(
+        rate=args.rate, loop=args.loop, topics=topics_argument(args.topics), clock=not args.no_clock, delay_s=args.delay
+    )
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        replay(args.bag, options, stop)
+    except ReplayError as exc:
+        print(f"dc replay: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        rclpy.shutdown()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dc", description="DC robot data collection: tools")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -327,10 +356,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--all", action="store_true", help="replay or purge every dead letter")
     p.add_argument("--json", action="store_true", help="list: one JSON object per dead letter, error in full")
     p.set_defaults(func=cmd_buffer)
+
+    p = sub.add_parser("replay", help="play a rosbag2 bag (SQLite3 or MCAP) to its topics, with /clock")
+    p.add_argument("bag", help="the bag's folder (with metadata.yaml)")
+    p.add_argument("--rate", type=float, default=1.0, help="speed factor of the recorded pace (default 1)")
+    p.add_argument("--loop", action="store_true", help="start over at the end, until Ctrl-C")
+    p.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics (default: all)")
+    p.add_argument("--no-clock", action="store_true", help="do not publish the bag's time on /clock")
+    p.add_argument(
+        "--delay", type=float, default=1.0, help="seconds between creating the publishers and the first message"
+    )
+    p.set_defaults(func=cmd_replay)
+
+    # Listed for `dc --help`; main() hands `dc sim ...` to the simulator's own parser.
+    sub.add_parser("sim", help="a simulated robot: odometry, TF, /map, /cmd_vel (dc sim --help)", add_help=False)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["sim"]:
+        # Every option after "sim" is the simulator's (argparse's REMAINDER drops leading options).
+        from dc_sim.node import main as sim_main
+
+        return sim_main(argv[1:])
     args = build_parser().parse_args(argv)
     code: int = args.func(args)
     return code

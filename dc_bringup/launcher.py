@@ -36,6 +36,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=15.0,
         help="seconds each server gets to stop before it is killed (default 15)",
     )
+    parser.add_argument(
+        "--namespace", default="", help="ROS namespace of every server and of the lifecycle manager (e.g. robot1)"
+    )
+    parser.add_argument(
+        "--use-sim-time",
+        action="store_true",
+        help="every server follows /clock (a bag replay, a simulator); a server's own use_sim_time: true does too",
+    )
     parser.add_argument("--validate-only", action="store_true", help="check the configuration and exit")
     return parser
 
@@ -69,20 +77,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dc_bringup.processes import ServerProcess
 
     rclpy.init(args=["--ros-args", "--log-level", args.log_level], signal_handler_options=SignalHandlerOptions.NO)
+    from dc_core.lifecycle import ros_namespace
+
+    namespace = ros_namespace(args.namespace) if args.namespace.strip("/") else ""
     servers = [
-        ServerProcess(name, SERVER_MODULES[name], params_file, args.log_level)
+        ServerProcess(name, SERVER_MODULES[name], params_file, args.log_level, namespace, args.use_sim_time)
         for name in SERVER_MODULES
         if name in report.servers
     ]
-    manager = LifecycleManager(servers, bond_timeout=args.bond_timeout)
+    manager = LifecycleManager(servers, bond_timeout=args.bond_timeout, namespace=namespace)
     code = 0
     try:
         if not manager.start_all():
             code = 1
         else:
             manager.get_logger().info("DC is up: " + ", ".join(s.name for s in servers))
-            while not stop.is_set():
+            while not stop.is_set() and not manager.shutdown_requested:
                 manager.spin_for(0.2)
+                manager.run_commands()
                 manager.check_bonds()
     finally:
         manager.shut_down(args.stop_timeout)

@@ -1,18 +1,29 @@
-"""The lifecycle manager: ordered configure/activate, heartbeats, restart of what died."""
+"""The lifecycle manager: ordered configure/activate, heartbeats, restart of what died, and the services
+``manage_nodes`` (dc_interfaces/srv/ManageLifecycleNodes: startup, pause, resume, reset, shutdown) and
+``is_active`` (std_srvs/srv/Trigger), as Nav2's lifecycle manager offers them.
+
+Transitions run on the main loop only (:meth:`LifecycleManager.run_commands`): a service request is
+queued and answered when the loop has carried it out, so a request never spins the executor from
+inside one of its callbacks.
+"""
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from typing import Any
 
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.task import Future
+from std_srvs.srv import Trigger
 
 from dc_bringup.processes import ServerProcess
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC
 from dc_interfaces.msg import Heartbeat
+from dc_interfaces.srv import ManageLifecycleNodes
 
 NODE_NAME = "lifecycle_manager_dc"
 # get_state answers at once from a live process: a probe unanswered this long was lost.
@@ -22,10 +33,39 @@ PROBES_PER_CLIENT = 4
 MAX_RETRY_DELAY_S = 60.0
 
 
+# What each manage_nodes command brings the servers to: (transitions in order, reversed order?, target state).
+_COMMANDS = {
+    ManageLifecycleNodes.Request.STARTUP: ((("configure", "inactive"), ("activate", "active")), False, "active"),
+    ManageLifecycleNodes.Request.RESUME: ((("activate", "active"),), False, "active"),
+    ManageLifecycleNodes.Request.PAUSE: ((("deactivate", "inactive"),), True, "inactive"),
+    ManageLifecycleNodes.Request.RESET: (
+        (("deactivate", "inactive"), ("cleanup", "unconfigured")),
+        True,
+        "unconfigured",
+    ),
+}
+# Where each transition label can start from.
+_SOURCE_STATE = {"configure": "unconfigured", "activate": "inactive", "deactivate": "active", "cleanup": "inactive"}
+
+
 class LifecycleManager(Node):
-    def __init__(self, servers: list[ServerProcess], bond_timeout: float, service_timeout: float = 30.0) -> None:
-        super().__init__(NODE_NAME)
+    def __init__(
+        self,
+        servers: list[ServerProcess],
+        bond_timeout: float,
+        service_timeout: float = 30.0,
+        namespace: str = "",
+    ) -> None:
+        super().__init__(NODE_NAME, namespace=namespace or None)
         self.servers = servers
+        # Servers are addressed by fully qualified name: two DC instances in other namespaces share the
+        # heartbeat topic and may have servers of the same name.
+        ns = self.get_namespace().rstrip("/")
+        self._fqn = {s.name: f"{ns}/{s.name}" for s in servers}
+        # The state the servers should be in: a server restarted while paused comes back paused.
+        self.target_state = "active"
+        self.shutdown_requested = False
+        self._commands: deque[tuple[int, Future]] = deque()
         self.bond_timeout = bond_timeout
         self.service_timeout = service_timeout
         self.executor_ = SingleThreadedExecutor()
@@ -40,9 +80,58 @@ class LifecycleManager(Node):
         self._lifecycle_clients: dict[str, tuple[Any, Any]] = {}
         self.restarts: dict[str, int] = {s.name: 0 for s in servers}
         self.create_subscription(Heartbeat, HEARTBEAT_TOPIC, self._on_heartbeat, HEARTBEAT_QOS)
+        self._server_of = {fqn: name for name, fqn in self._fqn.items()}
+        self.create_service(ManageLifecycleNodes, "~/manage_nodes", self._on_manage_nodes)
+        self.create_service(Trigger, "~/is_active", self._on_is_active)
 
     def _on_heartbeat(self, msg: Any) -> None:
-        self._last_heartbeat[msg.node_name] = time.monotonic()
+        name = self._server_of.get(msg.node_name)
+        if name is not None:
+            self._last_heartbeat[name] = time.monotonic()
+
+    # -- services ------------------------------------------------------------------------------
+    async def _on_manage_nodes(self, request: Any, response: Any) -> Any:
+        if request.command not in _COMMANDS and request.command != ManageLifecycleNodes.Request.SHUTDOWN:
+            self.get_logger().error(f"manage_nodes: unknown command {request.command}")
+            response.success = False
+            return response
+        done = Future()
+        self._commands.append((request.command, done))
+        response.success = bool(await done)
+        return response
+
+    def _on_is_active(self, request: Any, response: Any) -> Any:
+        down = sorted(self._not_up)
+        response.success = self.target_state == "active" and not down
+        response.message = f"servers {self.target_state}" + (f"; not up: {', '.join(down)}" if down else "")
+        return response
+
+    def run_commands(self) -> None:
+        """Carry out the manage_nodes requests received (main loop only)."""
+        while self._commands:
+            command, done = self._commands.popleft()
+            if command == ManageLifecycleNodes.Request.SHUTDOWN:
+                self.get_logger().info("manage_nodes: shutdown requested")
+                self.shutdown_requested = True
+                done.set_result(True)
+                continue
+            steps, reverse, target = _COMMANDS[command]
+            self.get_logger().info(f"manage_nodes: bringing every server to {target}")
+            self.target_state = target
+            done.set_result(self.bring_to(target, steps, reverse))
+
+    def bring_to(self, target: str, steps: Any, reverse: bool) -> bool:
+        ok = True
+        for proc in reversed(self.servers) if reverse else self.servers:
+            for label, state in steps:
+                current = self.state(proc.name)
+                if current == state or current != _SOURCE_STATE[label]:
+                    continue
+                if not self.transition(proc.name, label, state):
+                    self.get_logger().error(f"{proc.name}: {label} failed")
+                    ok = False
+                    break
+        return ok
 
     def _forget_clients(self, server: str) -> None:
         # A client matched with a dead process' service may send its request there only: a restarted
@@ -55,8 +144,8 @@ class LifecycleManager(Node):
     def _client(self, server: str) -> tuple[Any, Any]:
         if server not in self._lifecycle_clients:
             self._lifecycle_clients[server] = (
-                self.create_client(ChangeState, f"/{server}/change_state"),
-                self.create_client(GetState, f"/{server}/get_state"),
+                self.create_client(ChangeState, f"{self._fqn[server]}/change_state"),
+                self.create_client(GetState, f"{self._fqn[server]}/get_state"),
             )
         return self._lifecycle_clients[server]
 
@@ -142,12 +231,13 @@ class LifecycleManager(Node):
         if reason is not None:
             log.error(f"{proc.name} did not come up: {reason}")
             return False
-        for label, target in (("configure", "inactive"), ("activate", "active")):
+        steps = (("configure", "inactive"), ("activate", "active"))
+        for label, target in steps[: {"unconfigured": 0, "inactive": 1}.get(self.target_state, 2)]:
             if not self.transition(proc.name, label, target):
                 log.error(f"{proc.name}: {label} failed (see its log above)")
                 return False
         self._watch_since[proc.name] = time.monotonic()
-        log.info(f"{proc.name} active (pid {proc.pid})")
+        log.info(f"{proc.name} {self.target_state} (pid {proc.pid})")
         return True
 
     def start_all(self) -> bool:

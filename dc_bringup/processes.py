@@ -19,16 +19,30 @@ def _die_with_parent() -> None:
 
 
 class ServerProcess:
-    def __init__(self, name: str, module: str, params_file: str, log_level: str) -> None:
+    def __init__(
+        self,
+        name: str,
+        module: str,
+        params_file: str,
+        log_level: str,
+        namespace: str = "",
+        use_sim_time: bool = False,
+    ) -> None:
         self.name = name
         self.module = module
         self.params_file = params_file
         self.log_level = log_level
+        self.namespace = namespace
+        self.use_sim_time = use_sim_time
         self.process: subprocess.Popen[bytes] | None = None
         self.starts = 0
 
     def start(self) -> None:
         cmd = [sys.executable, "-m", self.module, self.params_file, "--log-level", self.log_level]
+        if self.namespace:
+            cmd += ["--namespace", self.namespace]
+        if self.use_sim_time:
+            cmd.append("--use-sim-time")
         # Own process group: a terminal's Ctrl-C reaches dc-bringup only, which stops servers in order.
         self.process = subprocess.Popen(cmd, preexec_fn=_die_with_parent, process_group=0, env=os.environ.copy())
         self.starts += 1

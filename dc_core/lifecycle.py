@@ -21,6 +21,8 @@ from typing import Any
 
 import rclpy
 import rclpy.utilities
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.executors import (
     ConditionReachedException,
     Executor,
@@ -30,6 +32,7 @@ from rclpy.executors import (
     TimeoutException,
 )
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
@@ -39,7 +42,7 @@ from dc_core.executors import SPIN_PERIOD_S
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import EXECUTOR_TURN_S, Intake
 from dc_core.logs import Logger
-from dc_core.node_params import DEFAULT_HEARTBEAT_PERIOD_S, HeartbeatParams, MetricsHttpParams
+from dc_core.node_params import DEFAULT_HEARTBEAT_PERIOD_S, MetricsHttpParams, ServerNodeParams
 from dc_core.plugin import MessageCallback
 from dc_core.worker import Worker
 from dc_interfaces.msg import Heartbeat
@@ -95,8 +98,10 @@ class ManagedServer(LifecycleNode):
         self.intake = Intake(self)
         self._heartbeat_seq = 0
         self._heartbeat_pub = self.create_publisher(Heartbeat, HEARTBEAT_TOPIC, HEARTBEAT_QOS)
-        # The heartbeat runs in every state: it tells the manager the process is alive.
-        self._heartbeat_timer = self.create_timer(heartbeat_period, self._send_heartbeat)
+        # The heartbeat runs in every state: it tells the manager the process is alive. On the steady
+        # clock: under use_sim_time a paused or finished bag stops ROS time, not the process.
+        self._steady_clock = Clock(clock_type=ClockType.STEADY_TIME)
+        self._heartbeat_timer = self.create_timer(heartbeat_period, self._send_heartbeat, clock=self._steady_clock)
         self._metrics_http: StatusServer | None = None
         # Slow work of plugins (dc_core.worker): a finished job wakes the loop through a guard
         # condition, made with the worker (rclpy's EventsExecutor stops firing timers beside one).
@@ -111,11 +116,15 @@ class ManagedServer(LifecycleNode):
             raise ConfigError(self.get_name(), f"no {self.get_name()} section in {self.params_file}")
         return sections
 
-    def apply_node_params(self, node: HeartbeatParams, warnings: Sequence[str]) -> None:
+    def apply_node_params(self, node: ServerNodeParams, warnings: Sequence[str]) -> None:
         """What every server does with its parsed configuration: say its warnings, beat at its period."""
         for warning in warnings:
             self.get_logger().warning(warning)
         self.set_heartbeat_period(node.heartbeat_period)
+        if node.use_sim_time and not self.get_parameter("use_sim_time").value:
+            # rclpy's time source starts following /clock when the parameter changes.
+            self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
+            self.get_logger().info("use_sim_time: following /clock")
 
     # -- plugins -----------------------------------------------------------------------------
     def plugin_context(self, name: str) -> ServerPluginContext:
@@ -179,11 +188,16 @@ class ManagedServer(LifecycleNode):
         """Where the metrics HTTP server listens (None when it does not run)."""
         return self._metrics_http.address if self._metrics_http is not None else None
 
+    def create_steady_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
+        """A timer on the steady clock, for the server's own housekeeping: it keeps its period under
+        use_sim_time, where the node's timers follow simulated time (and stop with it)."""
+        return self.create_timer(period_s, callback, clock=self._steady_clock)
+
     # -- heartbeat ---------------------------------------------------------------------------
     def _send_heartbeat(self) -> None:
         msg = Heartbeat()
         msg.stamp = self.get_clock().now().to_msg()
-        msg.node_name = self.get_name()
+        msg.node_name = self.get_fully_qualified_name()
         self._heartbeat_seq += 1
         msg.sequence = self._heartbeat_seq
         msg.state = self._state_machine.current_state[0]
@@ -192,7 +206,7 @@ class ManagedServer(LifecycleNode):
     def set_heartbeat_period(self, period: float) -> None:
         self._heartbeat_timer.cancel()
         self.destroy_timer(self._heartbeat_timer)
-        self._heartbeat_timer = self.create_timer(period, self._send_heartbeat)
+        self._heartbeat_timer = self.create_timer(period, self._send_heartbeat, clock=self._steady_clock)
 
     @property
     def lifecycle_state(self) -> str:
@@ -255,18 +269,27 @@ class ManagedServer(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
 
+def ros_namespace(namespace: str) -> str:
+    """``robot1`` or ``/robot1/`` as ROS writes a namespace: ``/robot1``."""
+    return "/" + namespace.strip("/")
+
+
 def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = None) -> int:
     """Process entry point of a server: ``python -m <module> PARAMS [--autostart]``."""
     parser = argparse.ArgumentParser(prog=node_class.__name__)
     parser.add_argument("params_file")
     parser.add_argument("--log-level", default=os.environ.get("DC_LOG_LEVEL", "info"))
     parser.add_argument("--autostart", action="store_true", help="configure and activate without a manager")
+    parser.add_argument("--namespace", default="", help="ROS namespace of the node")
+    parser.add_argument("--use-sim-time", action="store_true", help="follow /clock (a bag, a simulator)")
     args = parser.parse_args(argv)
 
-    rclpy.init(
-        args=["--ros-args", "--log-level", args.log_level],
-        signal_handler_options=SignalHandlerOptions.NO,
-    )
+    ros_args = ["--ros-args", "--log-level", args.log_level]
+    if args.namespace:
+        ros_args += ["-r", f"__ns:={ros_namespace(args.namespace)}"]
+    if args.use_sim_time:
+        ros_args += ["-p", "use_sim_time:=true"]
+    rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:

@@ -11,7 +11,12 @@ DEFAULT_HEARTBEAT_PERIOD_S = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
-class HeartbeatParams:
+class ServerNodeParams:
+    use_sim_time: bool = param(
+        False,
+        doc="Follow the /clock topic (a bag, a simulator) instead of the system clock: record dates, polling "
+        "intervals, TF lookups (dc-bringup --use-sim-time sets it for every server)",
+    )
     # One a second keeps idle cost low and is ten beats within dc-bringup's default --bond-timeout.
     heartbeat_period: float = param(
         DEFAULT_HEARTBEAT_PERIOD_S, minimum=0.05, doc="Seconds between heartbeats to the lifecycle manager"

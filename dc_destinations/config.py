@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dc_core.errors import ConfigError, PluginError
-from dc_core.node_params import HeartbeatParams
+from dc_core.node_params import ServerNodeParams
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.plugins import load_plugin
 from dc_core.timefmt import TIME_FORMATS
@@ -28,7 +28,7 @@ _FLB_RENAMED = {"flb_grace": "grace", "metrics": "http_server"}
 
 
 @dataclass(frozen=True, kw_only=True)
-class DestinationServerParams(HeartbeatParams):
+class DestinationServerParams(ServerNodeParams):
     destination_plugins: list[str] = param([], doc="Names of the destinations to load, each with its section")
     flb: DeliveryParams = param(default_factory=DeliveryParams, doc="Delivery settings (Fluent Bit's names)")
 

@@ -159,7 +159,7 @@ class DestinationServer(ManagedServer):
         hop.load(HopKey(*key) for key in self.pipeline.hop_keys())
         self.hop = hop
         self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")
-        self._hop_log_timer = self.create_timer(1.0, self._tick_logs)
+        self._hop_log_timer = self.create_steady_timer(1.0, self._tick_logs)
         with_history = []
         for topic in self.routing.topics:
             qos = _with_room_for_a_replay(subscription_qos(topic, self._internal_topics))

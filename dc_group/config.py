@@ -9,7 +9,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from dc_core.errors import ConfigError
-from dc_core.node_params import HeartbeatParams, MetricsHttpParams, http_port_param
+from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, param, parse_params
 from dc_core.qos import RECORD_HISTORY_DEPTH
 
@@ -19,11 +19,10 @@ DEFAULT_OUTPUT_PREFIX = "/dc/group/"
 # collection and transport delays.
 TIMEOUT_MARGIN_S = 1.0
 # Standard ROS parameters that may sit in any node's section; accepted and not used.
-ROS_NODE_PARAMS = ("use_sim_time",)
 
 
 @dataclass(frozen=True, kw_only=True)
-class GroupServerParams(HeartbeatParams, MetricsHttpParams):
+class GroupServerParams(ServerNodeParams, MetricsHttpParams):
     groups: list[str] = param(doc="Ids of the groups to enable; each has a section of the same name")
     http_port: int = http_port_param(2021)
 
@@ -106,12 +105,12 @@ def parse_group_server(section: dict[str, Any], path: str = "group_server") -> G
     for i, name in enumerate(names):
         if not name:
             raise ConfigError(f"{path}.groups[{i}]", "a group id cannot be empty")
-        if name in node_keys or name in ROS_NODE_PARAMS:
+        if name in node_keys:
             raise ConfigError(f"{path}.groups[{i}]", f'"{name}" is a server parameter, not a group id')
         if name in names[:i]:
             raise ConfigError(f"{path}.groups[{i}]", f'group "{name}" is listed twice')
     for key in section:
-        if key not in node_keys and key not in ROS_NODE_PARAMS and key not in names:
+        if key not in node_keys and key not in names:
             hint = did_you_mean(str(key), [*node_keys, *names])
             raise ConfigError(f"{path}.{key}", f"unknown parameter (not a group listed in {path}.groups){hint}")
     groups = tuple(_parse_group(name, section.get(name), f"{path}.{name}") for name in names)

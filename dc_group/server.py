@@ -70,7 +70,7 @@ class GroupServer(ManagedServer):
         timeouts = [p.group.sync_timeout for p in self.pipelines.values()]
         # A set times out at most a quarter of its timeout late, and never more than 0.5 s late.
         period = min(0.5, max(0.02, min(timeouts) / 4)) if timeouts else 0.5
-        self._expiry_timer = self.create_timer(period, self._expire)
+        self._expiry_timer = self.create_steady_timer(period, self._expire)
         assert self.config is not None
         self.start_metrics_http(
             self.config.node, self.metrics_document, lambda: group_prometheus_text(self.metrics_document())

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any, cast
 
 from dc_core.errors import ConfigError, PluginError
-from dc_core.node_params import HeartbeatParams, MetricsHttpParams, http_port_param
+from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.plugins import load_plugin
 
@@ -32,7 +32,7 @@ class CustomStrParam:
 
 
 @dataclass(frozen=True, kw_only=True)
-class MeasurementServerParams(HeartbeatParams, MetricsHttpParams):
+class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
     measurement_plugins: list[str] = param([], doc="Ids of the measurements to load")
     condition_plugins: list[str] = param([], doc="Ids of the conditions to load")
     save_local_base_path: str = param(

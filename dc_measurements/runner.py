@@ -55,6 +55,7 @@ class MeasurementRunner:
         custom: list[tuple[str, str, bool]],
         publish: PublishFn,
         logger: Logger,
+        clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         self.config = config
         self.plugin = plugin
@@ -64,6 +65,8 @@ class MeasurementRunner:
         self._custom = custom
         self._publish = publish
         self._logger = logger
+        # The node's clock (simulated time under use_sim_time): stamps of samples collected on the worker.
+        self._clock_ns = clock_ns
         common = config.common
         self.gate = Gate(common.init_max_measurements, common.condition_max_measurements, bool(config.conditions))
         self.stats = RunnerStats()
@@ -121,7 +124,7 @@ class MeasurementRunner:
         def collect() -> tuple[dict[str, Any] | None, int | None, str | None]:
             sample, stamp_ns, group_key = self.plugin.collect_stamped()
             # Stamped when collected, not when the main thread gets to it.
-            return sample, stamp_ns if stamp_ns is not None else time.time_ns(), group_key
+            return sample, stamp_ns if stamp_ns is not None else self._clock_ns(), group_key
 
         generation = self._generation
 

@@ -16,6 +16,7 @@ from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
+from dc_core.rostime import now_ns
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
@@ -58,6 +59,7 @@ class MeasurementServer(ManagedServer):
         self._init_pending: list[str] = []
         self._start_deadline = 0.0
         self._init_timer: Any = None
+        self._clock_wait_logged = False
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -93,7 +95,15 @@ class MeasurementServer(ManagedServer):
             publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, record_qos(c.history_depth))
             self._record_publishers[mcfg.name] = publisher
             runner = MeasurementRunner(
-                mcfg, plugin, self.conditions, validator, run_id, custom, self._publish_fn(publisher), log
+                mcfg,
+                plugin,
+                self.conditions,
+                validator,
+                run_id,
+                custom,
+                self._publish_fn(publisher),
+                log,
+                clock_ns=lambda: now_ns(self),
             )
             run_hook(f"measurement {mcfg.name} ({c.plugin})", plugin, "on_configure")
             self.runners[mcfg.name] = runner
@@ -178,7 +188,7 @@ class MeasurementServer(ManagedServer):
                 self._init_pending.append(name)
         if self._init_pending:
             self._start_deadline = time.monotonic() + INIT_MATCH_WAIT_S
-            self._init_timer = self.create_timer(0.02, self._start_collection)
+            self._init_timer = self.create_steady_timer(0.02, self._start_collection)
         assert self.config is not None
         self.start_metrics_http(
             self.config.node, self.metrics_document, lambda: measurement_prometheus_text(self.metrics_document())
@@ -208,6 +218,13 @@ class MeasurementServer(ManagedServer):
         together, so measurements polled at related intervals stay in phase (a group can match
         their records), and each period counts from the first sample.
         """
+        if self.get_parameter("use_sim_time").value and self.get_clock().now().nanoseconds == 0:
+            # Simulated time has not started (no /clock yet): a sample now would be dated 1970.
+            if not self._clock_wait_logged:
+                self.get_logger().info("use_sim_time: waiting for /clock before collecting")
+                self._clock_wait_logged = True
+            self._start_deadline = time.monotonic() + INIT_MATCH_WAIT_S
+            return
         matched = all(self._record_publishers[n].get_subscription_count() > 0 for n in self._init_pending)
         if not matched and time.monotonic() < self._start_deadline:
             return

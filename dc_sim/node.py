@@ -35,7 +35,8 @@ import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import TransformStamped, Twist
 from nav_msgs.msg import OccupancyGrid, Odometry
-from rclpy.clock import Clock, ClockType
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -375,9 +376,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else {}
     )
     context = Context()
-    rclpy.init(
-        args=["dc sim", *ros_arguments], context=context, signal_handler_options=SignalHandlerOptions.NO
-    )
+    rclpy.init(args=["dc sim", *ros_arguments], context=context, signal_handler_options=SignalHandlerOptions.NO)
     try:
         try:
             node = SimRobot(options, context=context)

@@ -95,7 +95,7 @@ class Operator:
         self.node.create_subscription(Heartbeat, HEARTBEAT_TOPIC, self._on_heartbeat, HEARTBEAT_QOS)
 
     def _on_heartbeat(self, msg: Any) -> None:
-        if msg.node_name == self.server_name:
+        if msg.node_name == f"/{self.server_name}":
             self.heartbeats.append(msg)
 
     def spin(self) -> None:
@@ -246,7 +246,7 @@ def test_destination_server_process_is_driven_by_services_and_stops_on_sigterm(
     beats: list[Heartbeat] = []
 
     def on_heartbeat(msg: Any) -> None:
-        if msg.node_name == "destination_server":
+        if msg.node_name == "/destination_server":
             beats.append(msg)
 
     node.create_subscription(Heartbeat, HEARTBEAT_TOPIC, on_heartbeat, HEARTBEAT_QOS)

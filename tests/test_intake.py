@@ -251,7 +251,7 @@ def test_transitions_heartbeats_and_records_through_the_server_loop(
     peer.node.create_subscription(
         Heartbeat,
         HEARTBEAT_TOPIC,
-        lambda m: beats.append(m) if cast(Any, m).node_name == server.get_name() else None,
+        lambda m: beats.append(m) if cast(Any, m).node_name == server.get_fully_qualified_name() else None,
         HEARTBEAT_QOS,
     )
     assert peer.transition(server.get_name(), Transition.TRANSITION_CONFIGURE)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import random
 from collections.abc import Iterator
@@ -34,7 +35,7 @@ def test_slow_motion_below_the_minimum_step_still_adds_up() -> None:
 def test_the_total_is_cumulative_along_a_square() -> None:
     odometer = Odometer(min_step=0.01)
     corners = [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (0.0, 0.0)]
-    for (x0, y0), (x1, y1) in zip(corners, corners[1:], strict=False):
+    for (x0, y0), (x1, y1) in itertools.pairwise(corners):
         for i in range(1, 21):
             odometer.add(x0 + (x1 - x0) * i / 20, y0 + (y1 - y0) * i / 20)
     assert odometer.total == pytest.approx(4.0 - 0.05)  # the first sample is the start, at the first corner + 5 cm

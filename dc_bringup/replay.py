@@ -1,0 +1,193 @@
+"""``dc replay BAG``: play a rosbag2 recording (SQLite3 or MCAP) to ROS 2 topics, as ``ros2 bag play`` would.
+
+ros2cli and rosbag2_py are not on PyPI; the ``rosbags`` package reads both storage formats without
+ROS. Messages are published as the bag holds them (serialised CDR, no decoding), at the recorded
+pace times ``--rate``, with ``/clock`` following the bag's time so that DC started with
+``use_sim_time`` sees the robot's time. A topic whose type is not installed here (a robot's own
+interface package) cannot be published: it is skipped with one warning.
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dc_core.errors import DcError
+from dc_core.logs import Logger
+
+# Bag time on /clock at least this often (wall time), so sim-time timers between messages fire on time.
+CLOCK_PERIOD_S = 0.01
+QUEUE_DEPTH = 100
+
+
+class ReplayError(DcError):
+    """A bag that cannot be replayed (missing, unreadable, nothing to play)."""
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    rate: float = 1.0
+    loop: bool = False
+    topics: tuple[str, ...] = ()
+    clock: bool = True
+    delay_s: float = 1.0
+
+
+@dataclass
+class ReplayReport:
+    published: dict[str, int] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)  # topic -> its type
+    loops: int = 0
+
+
+def message_class(msgtype: str) -> Any:
+    """The installed Python class of ``pkg/msg/Name``, or None."""
+    package, _, name = msgtype.partition("/msg/")
+    if not package or not name:
+        return None
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError):
+        return None
+
+
+def _recorded_qos(connection: Any) -> Any:
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    profiles = getattr(connection.ext, "offered_qos_profiles", None) or []
+    latched = any(getattr(p.durability, "name", "") == "TRANSIENT_LOCAL" for p in profiles)
+    # Reliable matches reliable and best-effort subscribers; the publishers of a latched topic
+    # (/tf_static, /map) keep it for subscribers that come later, as the robot's did.
+    return QoSProfile(
+        depth=QUEUE_DEPTH,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )
+
+
+class BagPlayer:
+    """Publishes one bag's messages from a node; :meth:`play` blocks until the end or ``stop``."""
+
+    def __init__(self, node: Any, bag: str | Path, options: ReplayOptions, logger: Logger) -> None:
+        from rosbags.rosbag2 import Reader
+
+        self.node = node
+        self.options = options
+        self.logger = logger
+        self.report = ReplayReport()
+        path = Path(bag)
+        if not path.exists():
+            raise ReplayError(f"no bag at {path}")
+        try:
+            self.reader = Reader(path)
+            self.reader.open()
+        except Exception as exc:  # rosbags raises its own errors for every unreadable bag
+            raise ReplayError(f"cannot read the bag {path}: {exc}") from exc
+        self._publishers: dict[int, Any] = {}
+        self._connections: list[Any] = []
+        for connection in self.reader.connections:
+            if options.topics and connection.topic not in options.topics:
+                continue
+            cls = message_class(connection.msgtype)
+            if cls is None:
+                if connection.topic not in self.report.skipped:
+                    self.report.skipped[connection.topic] = connection.msgtype
+                    logger.warning(
+                        f"{connection.topic}: type {connection.msgtype} is not installed here; topic skipped"
+                    )
+                continue
+            self._publishers[connection.id] = node.create_publisher(cls, connection.topic, _recorded_qos(connection))
+            self._connections.append(connection)
+            self.report.published.setdefault(connection.topic, 0)
+        missing = [t for t in options.topics if t not in self.report.published and t not in self.report.skipped]
+        if missing:
+            logger.warning(f"not in the bag: {', '.join(missing)}")
+        if not self._connections:
+            raise ReplayError(f"nothing to replay in {path}: no topic selected whose type is installed")
+        self._clock_publisher: Any = None
+        if options.clock:
+            from rosgraph_msgs.msg import Clock
+
+            self._clock_publisher = node.create_publisher(Clock, "/clock", QUEUE_DEPTH)
+        self._last_clock_ns = 0
+
+    def close(self) -> None:
+        self.reader.close()
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.reader.duration) / 1e9
+
+    def _publish_clock(self, bag_ns: int) -> None:
+        if self._clock_publisher is None:
+            return
+        from rosgraph_msgs.msg import Clock
+
+        if self._last_clock_ns and bag_ns < self._last_clock_ns and bag_ns > self._last_clock_ns - 10**9:
+            bag_ns = self._last_clock_ns  # never a little backwards: a message a bit late in the bag
+        message = Clock()
+        message.clock.sec, message.clock.nanosec = divmod(bag_ns, 1_000_000_000)
+        self._clock_publisher.publish(message)
+        self._last_clock_ns = bag_ns
+
+    def play(self, stop: threading.Event) -> ReplayReport:
+        if self.options.delay_s and stop.wait(self.options.delay_s):  # discovery: let subscribers match first
+            return self.report
+        while True:
+            if not self._play_once(stop) or not self.options.loop or stop.is_set():
+                return self.report
+            self.report.loops += 1
+            self._last_clock_ns = 0  # time starts over: /clock jumps back, as ros2 bag play --loop does
+
+    def _play_once(self, stop: threading.Event) -> bool:
+        """One pass over the bag; False when stopped before its end."""
+        rate = self.options.rate
+        start_wall = time.monotonic()
+        start_bag = int(self.reader.start_time)
+        next_clock = start_wall
+        for connection, bag_ns, raw in self.reader.messages(connections=self._connections):
+            due = start_wall + (bag_ns - start_bag) / 1e9 / rate
+            while True:
+                now = time.monotonic()
+                if now >= next_clock:
+                    self._publish_clock(start_bag + int((now - start_wall) * rate * 1e9))
+                    next_clock = now + CLOCK_PERIOD_S
+                if now >= due:
+                    break
+                if stop.wait(min(due, next_clock) - now):
+                    return False
+            self._publish_clock(bag_ns)
+            self._publishers[connection.id].publish(bytes(raw))
+            self.report.published[connection.topic] += 1
+        return True
+
+
+def replay(bag: str, options: ReplayOptions, stop: threading.Event, logger: Logger | None = None) -> ReplayReport:
+    """Play ``bag`` from a node of its own (rclpy initialised by the caller)."""
+    import rclpy
+
+    node = rclpy.create_node("dc_replay")
+    log: Logger = logger or node.get_logger()
+    player = BagPlayer(node, bag, options, log)
+    try:
+        log.info(
+            f"replaying {bag}: {len(player.report.published)} topics, {player.duration_s:.1f} s at {options.rate:g}x"
+            + (", /clock on" if options.clock else "")
+            + (", looping" if options.loop else "")
+        )
+        report = player.play(stop)
+        log.info("published " + ", ".join(f"{topic} {n}" for topic, n in sorted(report.published.items())))
+        return report
+    finally:
+        player.close()
+        node.destroy_node()
+
+
+def topics_argument(values: Sequence[str] | None) -> tuple[str, ...]:
+    """``--topics /odom /tf`` or ``--topics /odom,/tf``."""
+    return tuple(t for value in values or () for t in value.split(",") if t)
