@@ -283,7 +283,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from dc_bringup.replay import ReplayError, ReplayOptions, replay, topics_argument
+    from dc_bringup.replay import ReplayError, ReplayOptions, replay, topics_argument, wait_for_argument
 
     if args.rate <= 0:
         print("dc replay: --rate must be above 0", file=sys.stderr)
@@ -291,11 +291,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
     signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
-    options = ReplayOptions(
-        rate=args.rate, loop=args.loop, topics=topics_argument(args.topics), clock=not args.no_clock, delay_s=args.delay
-    )
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
+        options = ReplayOptions(
+            rate=args.rate,
+            loop=args.loop,
+            topics=topics_argument(args.topics),
+            clock=not args.no_clock,
+            delay_s=args.delay,
+            wait_for=wait_for_argument(args.wait_for),
+        )
         replay(args.bag, options, stop)
     except ReplayError as exc:
         print(f"dc replay: {exc}", file=sys.stderr)
@@ -365,6 +370,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-clock", action="store_true", help="do not publish the bag's time on /clock")
     p.add_argument(
         "--delay", type=float, default=1.0, help="seconds between creating the publishers and the first message"
+    )
+    p.add_argument(
+        "--wait-for",
+        nargs="+",
+        metavar="TOPIC[=N]",
+        help="before playing, wait until TOPIC has N subscribers (default 1), e.g. --wait-for /tf=2 /odom",
     )
     p.set_defaults(func=cmd_replay)
 

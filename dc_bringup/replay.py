@@ -36,6 +36,9 @@ class ReplayOptions:
     topics: tuple[str, ...] = ()
     clock: bool = True
     delay_s: float = 1.0
+    # Topics whose publisher must be matched with that many subscriptions before the first message.
+    wait_for: tuple[tuple[str, int], ...] = ()
+    wait_timeout_s: float = 30.0
 
 
 @dataclass
@@ -135,7 +138,31 @@ class BagPlayer:
         self._clock_publisher.publish(message)
         self._last_clock_ns = bag_ns
 
+    def _wait_for_subscribers(self, stop: threading.Event) -> bool:
+        """Wait until the topics of ``wait_for`` are matched with enough subscriptions; False if stopped."""
+        publishers = {c.topic: self._publishers[c.id] for c in self._connections}
+        for topic, _ in self.options.wait_for:
+            if topic not in publishers:
+                raise ReplayError(f"--wait-for {topic}: the bag has no such topic to replay")
+        deadline = time.monotonic() + self.options.wait_timeout_s
+        while True:
+            missing = [
+                f"{topic} ({publishers[topic].get_subscription_count()} of {count})"
+                for topic, count in self.options.wait_for
+                if publishers[topic].get_subscription_count() < count
+            ]
+            if not missing:
+                return True
+            if time.monotonic() > deadline:
+                raise ReplayError(
+                    f"subscribers not matched after {self.options.wait_timeout_s:g} s: {', '.join(missing)}"
+                )
+            if stop.wait(0.02):
+                return False
+
     def play(self, stop: threading.Event) -> ReplayReport:
+        if not self._wait_for_subscribers(stop):
+            return self.report
         if self.options.delay_s and stop.wait(self.options.delay_s):  # discovery: let subscribers match first
             return self.report
         while True:
@@ -186,6 +213,18 @@ def replay(bag: str, options: ReplayOptions, stop: threading.Event, logger: Logg
     finally:
         player.close()
         node.destroy_node()
+
+
+def wait_for_argument(values: Sequence[str] | None) -> tuple[tuple[str, int], ...]:
+    """``--wait-for /tf=3 /odom`` (a count of 1 when none is given)."""
+    pairs = []
+    for value in values or ():
+        topic, _, count = value.partition("=")
+        try:
+            pairs.append((topic, int(count) if count else 1))
+        except ValueError:
+            raise ReplayError(f"--wait-for {value!r}: expected TOPIC or TOPIC=COUNT") from None
+    return tuple(pairs)
 
 
 def topics_argument(values: Sequence[str] | None) -> tuple[str, ...]:
