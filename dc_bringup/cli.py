@@ -310,6 +310,47 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+LIFECYCLE_COMMANDS = ("startup", "pause", "resume", "reset", "shutdown", "is-active")
+
+
+def cmd_lifecycle(args: argparse.Namespace) -> int:
+    """Ask dc-bringup's lifecycle manager (its manage_nodes and is_active services)."""
+    import rclpy
+    from std_srvs.srv import Trigger
+
+    from dc_bringup.manager import NODE_NAME
+    from dc_interfaces.srv import ManageLifecycleNodes
+
+    namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
+    manager = f"{namespace}/{NODE_NAME}"
+    rclpy.init()
+    node = rclpy.create_node("dc_lifecycle")
+    try:
+        if args.command_name == "is-active":
+            client, request = node.create_client(Trigger, f"{manager}/is_active"), Trigger.Request()
+        else:
+            client = node.create_client(ManageLifecycleNodes, f"{manager}/manage_nodes")
+            request = ManageLifecycleNodes.Request()
+            request.command = getattr(ManageLifecycleNodes.Request, args.command_name.upper())
+        if not client.wait_for_service(timeout_sec=args.timeout):
+            print(f"dc lifecycle: no lifecycle manager at {manager} (is dc-bringup running?)", file=sys.stderr)
+            return 2
+        future = client.call_async(request)
+        rclpy.spin_until_future_complete(node, future, timeout_sec=args.timeout)
+        if not future.done():
+            print(f"dc lifecycle: {manager} did not answer in {args.timeout:g} s", file=sys.stderr)
+            return 2
+        response = future.result()
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+    if args.command_name == "is-active":
+        print(f"{'active' if response.success else 'not active'}: {response.message}")
+    else:
+        print(f"{args.command_name}: {'done' if response.success else 'failed (see dc-bringup log)'}")
+    return 0 if response.success else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dc", description="DC robot data collection: tools")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -378,6 +419,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="before playing, wait until TOPIC has N subscribers (default 1), e.g. --wait-for /tf=2 /odom",
     )
     p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("lifecycle", help="start, pause, resume, reset or shut down the servers of a dc-bringup")
+    p.add_argument("command_name", metavar="command", choices=LIFECYCLE_COMMANDS, help=", ".join(LIFECYCLE_COMMANDS))
+    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the manager and its answer")
+    p.set_defaults(func=cmd_lifecycle)
 
     # Listed for `dc --help`; main() hands `dc sim ...` to the simulator's own parser.
     sub.add_parser("sim", help="a simulated robot: odometry, TF, /map, /cmd_vel (dc sim --help)", add_help=False)

@@ -2,22 +2,25 @@
 ``manage_nodes`` (dc_interfaces/srv/ManageLifecycleNodes: startup, pause, resume, reset, shutdown) and
 ``is_active`` (std_srvs/srv/Trigger), as Nav2's lifecycle manager offers them.
 
-Transitions run on the main loop only (:meth:`LifecycleManager.run_commands`): a service request is
-queued and answered when the loop has carried it out, so a request never spins the executor from
-inside one of its callbacks.
+Transitions run on the main loop only (:meth:`LifecycleManager.run_commands`). The services are
+served by a node of their own on a thread of its own: a request is queued and its answer waits until
+the main loop has carried it out. (Served by the manager's own executor, an async callback awaiting
+the main loop made every spin of that executor resume the waiting task instead of taking messages:
+the transitions' answers and the heartbeats stopped arriving.)
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
+from concurrent.futures import Future
 from typing import Any
 
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from dc_bringup.processes import ServerProcess
@@ -31,6 +34,8 @@ GET_STATE_PROBE_S = 0.5
 PROBES_PER_CLIENT = 4
 # Longest wait between two attempts to restart a server that does not come up.
 MAX_RETRY_DELAY_S = 60.0
+# Longest a manage_nodes request waits for the main loop to carry it out.
+COMMAND_TIMEOUT_S = 300.0
 
 
 # What each manage_nodes command brings the servers to: (transitions in order, reversed order?, target state).
@@ -65,7 +70,7 @@ class LifecycleManager(Node):
         # The state the servers should be in: a server restarted while paused comes back paused.
         self.target_state = "active"
         self.shutdown_requested = False
-        self._commands: deque[tuple[int, Future]] = deque()
+        self._commands: deque[tuple[int, Future[bool]]] = deque()
         self.bond_timeout = bond_timeout
         self.service_timeout = service_timeout
         self.executor_ = SingleThreadedExecutor()
@@ -81,8 +86,32 @@ class LifecycleManager(Node):
         self.restarts: dict[str, int] = {s.name: 0 for s in servers}
         self.create_subscription(Heartbeat, HEARTBEAT_TOPIC, self._on_heartbeat, HEARTBEAT_QOS)
         self._server_of = {fqn: name for name, fqn in self._fqn.items()}
-        self.create_service(ManageLifecycleNodes, "~/manage_nodes", self._on_manage_nodes)
-        self.create_service(Trigger, "~/is_active", self._on_is_active)
+        self._services_node = Node(f"{NODE_NAME}_services", namespace=namespace or None, context=self.context)
+        me = self.get_fully_qualified_name()
+        self._services_node.create_service(ManageLifecycleNodes, f"{me}/manage_nodes", self._on_manage_nodes)
+        self._services_node.create_service(Trigger, f"{me}/is_active", self._on_is_active)
+        self._services_executor = SingleThreadedExecutor(context=self.context)
+        self._services_executor.add_node(self._services_node)
+        self._services_stop = threading.Event()
+        self._services_thread = threading.Thread(target=self._serve, name="manager-services", daemon=True)
+        self._services_thread.start()
+
+    def _serve(self) -> None:
+        while not self._services_stop.is_set():
+            try:
+                self._services_executor.spin_once(timeout_sec=0.1)
+            except Exception as exc:  # the context ended under it: dc-bringup is stopping
+                if not self._services_stop.is_set():
+                    self.get_logger().error(f"lifecycle services stopped: {exc!r}")
+                return
+
+    def destroy_node(self) -> None:
+        # The services' thread lets go of its node before the node goes.
+        self._services_stop.set()
+        self._services_thread.join(timeout=5.0)
+        self._services_executor.shutdown(timeout_sec=1.0)
+        self._services_node.destroy_node()
+        super().destroy_node()
 
     def _on_heartbeat(self, msg: Any) -> None:
         name = self._server_of.get(msg.node_name)
@@ -90,14 +119,18 @@ class LifecycleManager(Node):
             self._last_heartbeat[name] = time.monotonic()
 
     # -- services ------------------------------------------------------------------------------
-    async def _on_manage_nodes(self, request: Any, response: Any) -> Any:
+    def _on_manage_nodes(self, request: Any, response: Any) -> Any:
+        """On the services thread: queue the command, answer once the main loop carried it out."""
         if request.command not in _COMMANDS and request.command != ManageLifecycleNodes.Request.SHUTDOWN:
             self.get_logger().error(f"manage_nodes: unknown command {request.command}")
             response.success = False
             return response
-        done = Future()
+        done: Future[bool] = Future()
         self._commands.append((request.command, done))
-        response.success = bool(await done)
+        try:
+            response.success = done.result(timeout=COMMAND_TIMEOUT_S)
+        except TimeoutError:
+            response.success = False
         return response
 
     def _on_is_active(self, request: Any, response: Any) -> Any:

@@ -114,8 +114,10 @@ def sim_run(tmp_path_factory: pytest.TempPathFactory) -> SimRun:
     with Bringup(params, tmp / "home", args=["--use-sim-time"]) as dc:
         dc.wait_ready()
         sim = subprocess.run(
-            [str(BIN / "dc"), "sim", "--clock", "--rate", str(RATE), "--duration", str(DURATION_S)]
-            + ["--truth", str(truth_file), "--wait-subscribers", "20"],
+            [
+                *(str(BIN / "dc"), "sim", "--clock", "--rate", str(RATE), "--duration", str(DURATION_S)),
+                *("--truth", str(truth_file), "--wait-subscribers", "20"),
+            ],
             env=dc.env,
             capture_output=True,
             text=True,
