@@ -2,8 +2,8 @@
 
 Local path: ``save_local_base_path / all_base_path / save_path``; remote path per ``remote_keys``
 entry: ``all_base_path / <its remote_prefixes entry> / save_path`` without a leading ``/`` (the
-object key a storage destination uploads to). strftime tokens are expanded with the time the file
-is saved (the node's clock: simulated time under ``use_sim_time``), in local time, as the original.
+object key a storage destination uploads to). strftime tokens (in all three) are expanded with the
+time the file is saved (the node's clock: simulated time under ``use_sim_time``), in local time, as the original.
 """
 
 from __future__ import annotations
@@ -31,8 +31,7 @@ class FileLocations:
 def file_locations(paths: BasePaths, save_path: str, when_s: float) -> FileLocations:
     relative = expand_time(save_path, when_s)
     common = expand_time(paths.all_base_path, when_s)
-    local = os.path.join(paths.save_local_base_path, common, relative) if paths.save_local_base_path else ""
-    local = local or os.path.join(common, relative)
+    local = os.path.join(expand_time(paths.save_local_base_path, when_s), common, relative)
     remote = {
         key: "/".join(part.strip("/") for part in (common, expand_time(prefix, when_s), relative) if part.strip("/"))
         for key, prefix in paths.remote_prefixes.items()

@@ -114,7 +114,8 @@ def test_map_saves_pgm_yaml_and_png_of_a_non_square_grid_once(ros: Ros, tmp_path
     plugin = ros.harness.make(
         Map, {"topic": topic, "save_path": "maps/%Y/map", "save_base64": True, "save_map_timeout": 0.0}
     )
-    ros.harness.context(plugin).paths = BasePaths(str(tmp_path), "robot1", {"minio": "bucket-prefix"})
+    # strftime tokens in every part of the path (the default save_local_base_path ends in %Y/%m/%d/%H).
+    ros.harness.context(plugin).paths = BasePaths(f"{tmp_path}/%Y", "robot1", {"minio": "bucket-prefix"})
     plugin.on_configure()
     plugin.on_activate()
     record = collected(ros, plugin)
@@ -123,7 +124,7 @@ def test_map_saves_pgm_yaml_and_png_of_a_non_square_grid_once(ros: Ros, tmp_path
     assert record["resolution"] == pytest.approx(0.05)
     assert record["origin"] == {"x": -1.5, "y": -2.0, "yaw": 0.0}
     year = Path(record["local_paths"]["pgm"]).parent.name
-    assert record["local_paths"]["pgm"] == str(tmp_path / "robot1" / "maps" / year / "map.pgm")
+    assert record["local_paths"]["pgm"] == str(tmp_path / year / "robot1" / "maps" / year / "map.pgm")
     assert record["remote_paths"] == {
         "minio": {kind: f"robot1/bucket-prefix/maps/{year}/map.{kind}" for kind in ("yaml", "pgm", "png")}
     }
