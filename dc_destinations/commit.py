@@ -280,11 +280,12 @@ class GroupCommitter:
         error = f"committing to the buffer: {type(exc).__name__}: {exc}"
         since = self.failing[0] if self.failing is not None else self._clock()
         self.failing = (since, error)
-        self.commit_log.event(batch.count, f"{type(exc).__name__}: {exc}")
+        # Counted before it is logged: whoever reads the log line finds the counters saying it too.
         for name in batch.by_destination:
             metrics = self._routes[name].metrics
             metrics.add("failed")
             metrics.set_error(error)
+        self.commit_log.event(batch.count, f"{type(exc).__name__}: {exc}")
 
     def _account(self, batch: _CommitBatch, result: AppendResult) -> None:
         """Counters, drop logs and sender wake-ups after a group commit."""

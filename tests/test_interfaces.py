@@ -96,3 +96,35 @@ def test_string_stamped_roundtrip() -> None:
             node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
+
+
+# tf2_msgs/msg/TFMessage's hash as Jazzy's tf2_msgs gives it (`ros2 topic info -v /tf` on a robot): when
+# make install builds DC's copy, a different hash would make DC's /tf subscriptions miss real robots.
+UPSTREAM_TF_MESSAGE_HASH = "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+
+
+def test_tf_message_has_the_type_hash_of_real_robots() -> None:
+    from tf2_msgs.msg import TFMessage
+
+    context = Context()
+    rclpy.init(context=context, domain_id=random.randint(1, 200))
+    try:
+        node = rclpy.create_node("dc_test_tf_hash", context=context)
+        node.create_publisher(TFMessage, "/dc_test_tf_hash", 10)
+        (endpoint,) = node.get_publishers_info_by_topic("/dc_test_tf_hash")
+        assert str(endpoint.topic_type_hash) == UPSTREAM_TF_MESSAGE_HASH
+        assert list(TFMessage.get_fields_and_field_types().items()) == [
+            ("transforms", "sequence<geometry_msgs/TransformStamped>")
+        ]
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+
+
+def test_manage_lifecycle_nodes_is_nav2s_service() -> None:
+    from dc_interfaces.srv import ManageLifecycleNodes
+
+    request = ManageLifecycleNodes.Request
+    assert (request.STARTUP, request.PAUSE, request.RESUME, request.RESET, request.SHUTDOWN) == (0, 1, 2, 3, 4)
+    assert request.get_fields_and_field_types() == {"command": "uint8"}
+    assert ManageLifecycleNodes.Response.get_fields_and_field_types() == {"success": "boolean"}
