@@ -9,14 +9,17 @@ measurement or by a failed publication: each measurement keeps its own.
 
 from __future__ import annotations
 
+import abc
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar, Protocol, TypeVar
 
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
+from dc_core.rostime import now_ns
 from dc_core.topics import topic_problem
 
 # Best effort matches reliable and best-effort publishers alike: real robots publish /odom best
@@ -85,3 +88,51 @@ class LatestTwist:
         with self._lock:
             self._latest = None
             self._reported = True
+
+
+class TwistParams(Protocol):
+    @property
+    def repeat_last(self) -> bool: ...
+
+
+TwistParamsT = TypeVar("TwistParamsT", bound=TwistParams)
+
+
+class LatestTwistMeasurement(Measurement[TwistParamsT]):
+    """A measurement that reports the newest twist of one topic (CmdVel, Speed): see the module documentation."""
+
+    message_type: ClassVar[Any]
+
+    def __init__(self, context: MeasurementContext, params: TwistParamsT) -> None:
+        super().__init__(context, params)
+        self._latest = LatestTwist()
+        self._subscription: Any = None
+
+    @property
+    @abc.abstractmethod
+    def topic(self) -> str:
+        """The topic of ``message_type`` subscribed to."""
+
+    @staticmethod
+    def twist_of(message: Any) -> Any:
+        """The geometry_msgs/Twist a message carries."""
+        return message
+
+    def on_configure(self) -> None:
+        self.on_cleanup()
+        self._subscription = self.context.subscribe(self.message_type, self.topic, self._on_message, SENSOR_QOS)
+
+    def on_cleanup(self) -> None:
+        if self._subscription is not None:
+            self.context.unsubscribe(self._subscription)
+            self._subscription = None
+        self._latest.reset()
+
+    def _on_message(self, message: Any, info: Any = None) -> None:
+        self._latest.update(self.twist_of(message), now_ns(self.context.node))
+
+    def collect(self) -> dict[str, Any] | None:
+        return self._latest.take(now_ns(self.context.node), self.params.repeat_last)
+
+    def counters(self) -> dict[str, int]:
+        return {"received": self._latest.received}

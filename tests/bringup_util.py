@@ -139,6 +139,10 @@ class Bringup:
                 out.append(value)
         return out
 
+    def named(self, name: str) -> list[dict[str, Any]]:
+        """The records of one measurement (or group), oldest first by their date."""
+        return sorted(self.records(lambda r: r.get("name") == name), key=lambda r: float(r["date"]))
+
     def record_times(self) -> list[float]:
         """Arrival time (monotonic) of each stdout line that is a JSON record."""
         return [t for line, t in zip(list(self.stdout), list(self._stdout_times), strict=False) if line.startswith("{")]

@@ -162,15 +162,14 @@ def replay_through_dc(bag: Path, tmp_path: Path) -> Replayed:
         # Simulated time stops with the bag: the last polls are those due before its end.
         last_poll = end - POLL_MS / 1000.0
 
-        def named(name: str) -> list[dict[str, Any]]:
-            return sorted(dc.records(lambda r: r["name"] == name), key=lambda r: float(r["date"]))
-
         dc.wait_until(
-            lambda: all(any(r["date"] >= last_poll - 0.3 for r in named(n)) for n in ("distance_traveled", "position")),
+            lambda: all(
+                any(r["date"] >= last_poll - 0.3 for r in dc.named(n)) for n in ("distance_traveled", "position")
+            ),
             30,
             "the last polls of the bag's time",
         )
-        records = {name: named(name) for name in ("distance_traveled", "position", "speed", "stop_position")}
+        records = {name: dc.named(name) for name in ("distance_traveled", "position", "speed", "stop_position")}
         stderr = list(dc.stderr)
     assert all("neato2_interfaces" in line for line in replay.stderr.splitlines() if "WARN" in line)
     return Replayed(records, odometry, stderr)

@@ -127,18 +127,15 @@ def sim_run(tmp_path_factory: pytest.TempPathFactory) -> SimRun:
         truth = [json.loads(line) for line in truth_file.read_text().splitlines()]
         end = truth[-1]["t"]
 
-        def named(name: str) -> list[dict[str, Any]]:
-            return sorted(dc.records(lambda r: r["name"] == name), key=lambda r: float(r["date"]))
-
         dc.wait_until(
             lambda: all(
-                any(r["date"] >= end - POLL_MS / 1000 - 0.3 for r in named(n))
+                any(r["date"] >= end - POLL_MS / 1000 - 0.3 for r in dc.named(n))
                 for n in ("distance_traveled", "position")
             ),
             30,
             "the last polls of the simulated time",
         )
-        records = {n: named(n) for n in ("distance_traveled", "position", "speed", "map", "stop_position")}
+        records = {n: dc.named(n) for n in ("distance_traveled", "position", "speed", "map", "stop_position")}
     return SimRun(records, truth, dc.home)
 
 
@@ -193,3 +190,30 @@ def test_the_saved_map_is_the_published_grid_pixel_for_pixel(sim_run: SimRun) ->
     image = np.frombuffer(pgm[len(header) :], dtype=np.uint8).reshape(grid.height, grid.width)
     assert (image == expected[::-1]).all()
     assert record["origin"] == pytest.approx({"x": grid.origin.x, "y": grid.origin.y, "yaw": 0.0})
+
+
+def test_the_robot_demo_runs_on_the_simulated_robot_as_the_readme_says(tmp_path: Path) -> None:
+    """params/demos/robot_stdout.yaml with `dc sim --clock`: the group record and the saved map."""
+    demo = Path(__file__).resolve().parent.parent / "params" / "demos" / "robot_stdout.yaml"
+    with Bringup(demo, tmp_path, args=["--use-sim-time"]) as dc:
+        dc.wait_ready()
+        sim = subprocess.Popen(
+            [str(BIN / "dc"), "sim", "--clock", "--rate", "4", "--duration", "40"],
+            env=dc.env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            robot = dc.wait_records(2, 60, lambda r: r.get("name") == "robot")
+            (saved,) = dc.wait_records(1, 60, lambda r: r.get("name") == "map")
+            distance = dc.wait_records(2, 60, lambda r: r.get("name") == "distance_traveled")
+        finally:
+            sim.terminate()
+            sim.wait(10)
+    assert {"cmd_vel", "position", "speed"} <= set(robot[-1])
+    assert robot[-1]["position"]["robot_name"] == "C3PO"
+    assert distance[-1]["distance_traveled"] > 0
+    pgm = tmp_path / saved["local_paths"]["pgm"]  # under var/dc/data/C3PO/<sim time's %Y/%m/%d/%H>/map/
+    assert pgm.is_file() and "/C3PO/2023/11/14/" in str(pgm)
+    assert saved["remote_paths"]["minio"]["png"].startswith("C3PO/2023/11/14/")

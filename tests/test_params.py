@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import pytest
 
@@ -100,3 +101,27 @@ def test_load_params_file_errors(tmp_path: object) -> None:
     no_ros.write_text("measurement_server:\n  a: 1\n")
     with pytest.raises(ConfigError, match="measurement_server: expected a 'ros__parameters' mapping"):
         load_params_file(no_ros)
+
+
+# -- use_sim_time: a ROS parameter every server takes in its section ---------------------------------
+
+
+def _server_sections() -> list[tuple[str, Any, dict[str, Any]]]:
+    from dc_destinations.config import parse_destination_server
+    from dc_group.config import parse_group_server
+    from dc_measurements.config import parse_measurement_server
+
+    return [
+        ("measurement_server", parse_measurement_server, {"measurement_plugins": []}),
+        ("destination_server", parse_destination_server, {"destination_plugins": []}),
+        ("group_server", parse_group_server, {"groups": []}),
+    ]
+
+
+@pytest.mark.parametrize("server", ["measurement_server", "destination_server", "group_server"])
+def test_every_server_takes_use_sim_time(server: str) -> None:
+    name, parse, section = next(s for s in _server_sections() if s[0] == server)
+    assert parse(section).node.use_sim_time is False
+    assert parse({**section, "use_sim_time": True}).node.use_sim_time is True
+    with pytest.raises(ConfigError, match=f"{name}.use_sim_time"):
+        parse({**section, "use_sim_time": "sometimes"})

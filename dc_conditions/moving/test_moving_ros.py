@@ -2,57 +2,23 @@
 
 from __future__ import annotations
 
-import time
 import uuid
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 
 import pytest
-import rclpy
 from nav_msgs.msg import Odometry
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from dc_conditions.moving import Moving, MovingParams, linear_speed
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext
-
-DEADLINE_S = 10.0
-
-
-@dataclass
-class Ros:
-    node: Node
-    executor: SingleThreadedExecutor
-
-    def spin_until(self, done: Callable[[], bool], step: Callable[[], None] = lambda: None) -> bool:
-        """Spin (running ``step`` each turn) until ``done`` or the deadline."""
-        deadline = time.monotonic() + DEADLINE_S
-        while time.monotonic() < deadline:
-            if done():
-                return True
-            step()
-            self.executor.spin_once(timeout_sec=0.02)
-        return done()
+from tests.robot_helpers import Ros, ros_session
 
 
 @pytest.fixture
 def ros() -> Iterator[Ros]:
-    context = Context()
-    rclpy.init(context=context)
-    try:
-        node = rclpy.create_node(f"test_moving_{uuid.uuid4().hex[:8]}", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        try:
-            yield Ros(node, executor)
-        finally:
-            executor.shutdown()
-            node.destroy_node()
-    finally:
-        rclpy.shutdown(context=context)
+    with ros_session("moving") as session:
+        yield session
 
 
 def odometry(vx: float, vy: float = 0.0, vz: float = 0.0) -> Odometry:

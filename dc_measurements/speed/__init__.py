@@ -7,9 +7,7 @@ from typing import Any
 
 from nav_msgs.msg import Odometry
 
-from dc_core.measurement import Measurement, MeasurementContext
-from dc_core.rostime import now_ns
-from dc_measurements.velocity import SENSOR_QOS, LatestTwist, repeat_last_param, topic_param
+from dc_measurements.velocity import LatestTwistMeasurement, repeat_last_param, topic_param
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -18,29 +16,15 @@ class SpeedParams:
     repeat_last: bool = repeat_last_param()
 
 
-class Speed(Measurement[SpeedParams]):
+class Speed(LatestTwistMeasurement[SpeedParams]):
     """Robot velocity from odometry: linear and angular vectors (in the odometry's child frame) and planar speed."""
 
-    def __init__(self, context: MeasurementContext, params: SpeedParams) -> None:
-        super().__init__(context, params)
-        self._latest = LatestTwist()
-        self._subscription: Any = None
+    message_type = Odometry
 
-    def on_configure(self) -> None:
-        self.on_cleanup()
-        self._subscription = self.context.subscribe(Odometry, self.params.odom_topic, self._on_odometry, SENSOR_QOS)
+    @property
+    def topic(self) -> str:
+        return self.params.odom_topic
 
-    def on_cleanup(self) -> None:
-        if self._subscription is not None:
-            self.context.unsubscribe(self._subscription)
-            self._subscription = None
-        self._latest.reset()
-
-    def _on_odometry(self, message: Any, info: Any = None) -> None:
-        self._latest.update(message.twist.twist, now_ns(self.context.node))
-
-    def collect(self) -> dict[str, Any] | None:
-        return self._latest.take(now_ns(self.context.node), self.params.repeat_last)
-
-    def counters(self) -> dict[str, int]:
-        return {"received": self._latest.received}
+    @staticmethod
+    def twist_of(message: Any) -> Any:
+        return message.twist.twist
