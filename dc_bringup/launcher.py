@@ -44,6 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="every server follows /clock (a bag replay, a simulator); a server's own use_sim_time: true does too",
     )
+    parser.add_argument(
+        "--no-autostart",
+        action="store_true",
+        help="start the server processes but configure and activate them only on `dc lifecycle startup`",
+    )
     parser.add_argument("--validate-only", action="store_true", help="check the configuration and exit")
     return parser
 
@@ -86,12 +91,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         if name in report.servers
     ]
     manager = LifecycleManager(servers, bond_timeout=args.bond_timeout, namespace=namespace)
+    if args.no_autostart:
+        manager.target_state = "unconfigured"
     code = 0
     try:
         if not manager.start_all():
             code = 1
         else:
-            manager.get_logger().info("DC is up: " + ", ".join(s.name for s in servers))
+            if args.no_autostart:
+                manager.get_logger().info(
+                    "DC is waiting for startup (dc lifecycle startup): " + ", ".join(s.name for s in servers)
+                )
+            else:
+                manager.get_logger().info("DC is up: " + ", ".join(s.name for s in servers))
             while not stop.is_set() and not manager.shutdown_requested:
                 manager.spin_for(0.2)
                 manager.run_commands()

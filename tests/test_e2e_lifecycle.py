@@ -73,3 +73,15 @@ def test_pause_resume_reset_startup_and_shutdown_in_a_namespace(tmp_path: Path) 
     assert any("[robot1.destination_server]" in line for line in bringup.stderr)
     assert any("[robot1.measurement_server]" in line for line in bringup.stderr)
     assert list((tmp_path / "home").rglob("ns.robot1/delivery.sqlite3"))
+
+
+def test_without_autostart_nothing_is_collected_until_startup(tmp_path: Path) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text(PARAMS)
+    with Bringup(params, tmp_path / "home", args=["--no-autostart"]) as bringup:
+        bringup.wait_stderr("DC is waiting for startup")
+        result = dc("lifecycle", "is-active", env=bringup.env)
+        assert result.returncode == 1 and "servers unconfigured" in result.stdout
+        assert not bringup.records()
+        assert dc("lifecycle", "startup", env=bringup.env).returncode == 0
+        bringup.wait_records(2)
