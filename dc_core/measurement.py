@@ -78,6 +78,12 @@ class Measurement(Plugin[ParamsT]):
     def on_failed_validation(self, record: dict[str, Any], error: str) -> None:
         """Hook called when a record does not match the schema (after it was logged)."""
 
+    def on_published(self, sample: dict[str, Any]) -> None:
+        """Called on the main thread once the record of ``sample`` (the object collect() or emit() gave) was
+        published: the place for side effects that only a published record should have, such as writing the
+        files it points to (hand slow work to ``context.worker``). A sample the conditions, a limit or the
+        validation dropped gets no call."""
+
     @classmethod
     def load_schema(cls) -> dict[str, Any] | None:
         """The plugin's built-in JSON schema, or None if it has none.

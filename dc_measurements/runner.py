@@ -218,6 +218,11 @@ class MeasurementRunner:
         if self.config.common.debug:
             self._logger.info(f"measurement {self.config.name} published: {text}")
         self.stats.published += 1
+        try:
+            self.plugin.on_published(sample)
+        except Exception as exc:  # a plugin's bug must not stop the measurement
+            self.stats.errors += 1
+            self._logger.error(f"measurement {self.config.name}: on_published raised {exc!r}")
 
     def build_record(self, sample: dict[str, Any]) -> dict[str, Any] | None:
         """Validate, nest, flatten and add metadata; None when the record is dropped."""

@@ -43,8 +43,10 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock as ClockMessage
+from sensor_msgs.msg import Image
 from tf2_msgs.msg import TFMessage
 
+from dc_sim.camera import CameraView
 from dc_sim.kinematics import DiffDrive, Pose2D, RouteFollower
 from dc_sim.warehouse import Grid, warehouse_grid, warehouse_route, warehouse_start
 
@@ -71,6 +73,8 @@ TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 # Latched: a subscriber arriving any time later gets the last message, as from tf2's static
 # broadcaster and Nav2's map server.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# Camera drivers publish frames best effort: a late frame is worth nothing.
+CAMERA_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT)
 # Best effort matches both reliable and best-effort command publishers (teleop tools differ).
 CMD_VEL_SUBSCRIPTION_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
@@ -87,6 +91,8 @@ class SimOptions:
     odom_qos: str = "best_effort"
     truth: Path | None = None
     wait_subscribers: float = 0.0
+    camera_fps: float = 10.0
+    camera_size: tuple[int, int] = (640, 480)
 
 
 def _positive(text: str) -> float:
@@ -125,7 +131,24 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="wait up to S wall-clock seconds for a subscriber of odom before starting",
     )
+    parser.add_argument(
+        "--camera-fps",
+        type=_non_negative,
+        default=10.0,
+        help="frames per wall-clock second on camera/image_raw (sensor_msgs/Image, bgr8); 0: no camera",
+    )
+    parser.add_argument("--camera-size", type=_size, default=(640, 480), metavar="WxH", help="frame size (640x480)")
     return parser
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text}") from None
+    if width < 320 or height < 240:
+        raise argparse.ArgumentTypeError(f"the shelf labels need at least 320x240, got {text}")
+    return width, height
 
 
 def parse_args(argv: Sequence[str]) -> SimOptions:
@@ -140,6 +163,8 @@ def parse_args(argv: Sequence[str]) -> SimOptions:
         odom_qos=args.odom_qos,
         truth=args.truth,
         wait_subscribers=args.wait_subscribers,
+        camera_fps=args.camera_fps,
+        camera_size=args.camera_size,
     )
 
 
@@ -210,6 +235,14 @@ class SimRobot(Node):
             Twist, "cmd_vel", self._on_cmd_vel, CMD_VEL_SUBSCRIPTION_QOS
         )
         self._truth: IO[str] | None = options.truth.open("a", encoding="utf-8") if options.truth else None
+        self._camera: CameraView | None = None
+        self._camera_timer: Any = None
+        if options.camera_fps > 0:
+            self._camera = CameraView(self.follower.waypoints, *options.camera_size)
+            self._image_publisher = self.create_publisher(Image, "camera/image_raw", CAMERA_QOS)
+            self._camera_timer = self.create_timer(
+                1.0 / options.camera_fps, self._publish_frame, clock=Clock(clock_type=ClockType.STEADY_TIME)
+            )
 
         start = _time_message(self._stamp_ns())
         self._tf_static_publisher.publish(
@@ -337,6 +370,20 @@ class SimRobot(Node):
             )
         )
 
+    def _publish_frame(self) -> None:
+        assert self._camera is not None
+        if self.done or self._waiting_until is not None:
+            return
+        frame = self._camera.frame(self._camera.label_in_view(self.map_pose))
+        image = Image()
+        image.header.stamp = _time_message(self._stamp_ns())
+        image.header.frame_id = "camera_link"
+        image.height, image.width = frame.shape[:2]
+        image.encoding = "bgr8"
+        image.step = frame.shape[1] * 3
+        image.data = frame.tobytes()
+        self._image_publisher.publish(image)
+
     def _write_truth(self, stamp_ns: int) -> None:
         assert self._truth is not None
         v, w = self.command
@@ -348,6 +395,7 @@ class SimRobot(Node):
             "v": v,
             "w": w,
             "stopped_at": self.follower.stopped_at,
+            "label_in_view": self._camera.label_in_view(self.map_pose) if self._camera is not None else None,
         }
         self._truth.write(json.dumps(line) + "\n")
         self._truth.flush()  # a reader (a test, a script) may follow the file while the sim runs

@@ -174,6 +174,30 @@ def test_conditions_gate_on_the_raw_sample_and_are_evaluated_once() -> None:
     assert evaluations.count("has_a") == 4 and evaluations.count("has_b") == 4
 
 
+def test_on_published_is_called_for_published_samples_only() -> None:
+    # Files a record points to are written in on_published (Camera): never for a sample that was dropped.
+    runner, published = make_runner(
+        {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["has_time"], "drop_invalid": True},
+        conditions={"has_time": {"plugin": "dc_conditions/Exist", "key": "time"}},
+        samples=[{"time": 1}, {"other": 1}, {"time": 2}, {"time": "late"}],
+    )
+    seen: list[dict[str, Any]] = []
+    runner.plugin.on_published = seen.append  # type: ignore[method-assign]
+    for _ in range(4):
+        runner.tick()
+    # Gated ({"other": 1}) and invalid (time is not an integer, drop_invalid) samples get no call.
+    assert seen == [{"time": 1}, {"time": 2}]
+    assert [r["time"] for r in records(published)] == [1, 2]
+
+    def broken(sample: dict[str, Any]) -> None:
+        raise OSError("disk gone")
+
+    runner.plugin.on_published = broken  # type: ignore[method-assign]
+    runner.plugin.collect = lambda: {"time": 4}  # type: ignore[method-assign]
+    runner.tick()
+    assert len(published) == 3 and runner.stats.errors == 1  # published, and the failure counted
+
+
 def test_conditions_met_truth_table() -> None:
     states = {"a": True, "b": False}
     assert conditions_met([], [], [], states)
