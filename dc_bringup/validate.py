@@ -16,14 +16,17 @@ from dc_core.paths import expand_env
 from dc_core.topics import ros_topic
 
 # Servers in start order: destinations first so nothing published at start is lost.
+# In start order: destinations first (nothing published at start is lost), measurements last.
 SERVER_MODULES = {
     "destination_server": "dc_destinations.server",
     "group_server": "dc_group.server",
+    "image_services": "dc_measurements.image_services",
     "measurement_server": "dc_measurements.server",
 }
 _PARSERS = {
     "destination_server": ("dc_destinations.config", "parse_destination_server"),
     "group_server": ("dc_group.config", "parse_group_server"),
+    "image_services": ("dc_measurements.image_services", "parse_image_services"),
     "measurement_server": ("dc_measurements.config", "parse_measurement_server"),
 }
 

@@ -11,7 +11,7 @@ import yaml
 
 from dc_core.errors import ConfigError
 
-SERVERS = ("measurement_server", "group_server", "destination_server")
+SERVERS = ("measurement_server", "group_server", "destination_server", "image_services")
 # How alike (difflib ratio) a top-level key must be to a server's name to be taken for a typo of it:
 # "destination_sever" is 0.97, Nav2's "controller_server" 0.69 from "group_server".
 TYPO_SIMILARITY = 0.85

@@ -80,6 +80,12 @@ class ConditionRuntime:
         return active
 
 
+def already_unmet(all_of: list[str], none_of: list[str], states: Mapping[str, bool]) -> bool:
+    """Whether the conditions judged so far (``states``, the others unknown) rule a sample out whatever the
+    rest say: an if_all condition inactive, or an if_none condition active."""
+    return any(states.get(c) is False for c in all_of) or any(states.get(c) is True for c in none_of)
+
+
 def conditions_met(all_of: list[str], any_of: list[str], none_of: list[str], states: Mapping[str, bool]) -> bool:
     """if_all: every one active; if_any: at least one (when listed); if_none: none active."""
     if not all(states[c] for c in all_of):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from dc_core.gating import Gate
@@ -17,7 +17,7 @@ from dc_core.logs import BurstLog, Logger
 from dc_core.measurement import Measurement
 from dc_core.records import MalformedRecord, dump_record
 from dc_core.worker import Outcome, Worker
-from dc_measurements.condition_runtime import ConditionRuntime, conditions_met
+from dc_measurements.condition_runtime import ConditionRuntime, already_unmet, conditions_met
 from dc_measurements.config import MeasurementConfig
 from dc_measurements.metadata import apply_metadata
 from dc_measurements.validation import RecordValidator
@@ -39,9 +39,11 @@ class RunnerStats:
 
 @dataclass(frozen=True)
 class _Plan:
-    """A period that collects: ``met`` is the verdict of conditions judged without the sample, if any."""
+    """A period that collects: ``met`` is the verdict of conditions judged without the sample, if any;
+    ``known`` the states of those judged already (not judged again with the sample)."""
 
     met: bool | None
+    known: dict[str, bool] = field(default_factory=dict)
 
 
 class MeasurementRunner:
@@ -92,9 +94,12 @@ class MeasurementRunner:
     def _used_conditions(self) -> list[ConditionRuntime]:
         return [self._conditions[c] for c in dict.fromkeys(self.config.conditions)]
 
-    def _evaluate(self, sample: dict[str, Any] | None) -> bool:
+    def _evaluate(self, sample: dict[str, Any] | None, known: dict[str, bool] | None = None) -> bool:
         # Each condition is evaluated exactly once per sample, even when listed twice.
-        states = {rt.name: rt.evaluate(sample) for rt in self._used_conditions()}
+        known = known or {}
+        states = {
+            rt.name: known[rt.name] if rt.name in known else rt.evaluate(sample) for rt in self._used_conditions()
+        }
         c = self.config.common
         return conditions_met(c.if_all_conditions, c.if_any_conditions, c.if_none_conditions, states)
 
@@ -140,7 +145,10 @@ class MeasurementRunner:
         """Whether this period collects, and the verdict of conditions judged without the sample."""
         if self.gate.finished:
             return None
-        if self.gate.needs_conditions and not any(rt.needs_sample for rt in self._used_conditions()):
+        if not self.gate.needs_conditions:
+            return _Plan(None)
+        used = self._used_conditions()
+        if not any(rt.needs_sample for rt in used):
             met = self._evaluate(None)
             if not self.gate.would_admit(met):
                 # Conditions are judged without the sample: do not even collect (#213 upstream).
@@ -148,7 +156,15 @@ class MeasurementRunner:
                 self.stats.gated += 1
                 return None
             return _Plan(met)
-        return _Plan(None)
+        # Some need the sample; when those that do not already rule it out (the robot moves, for a camera
+        # gated by if_none_conditions: [moving]) the frame is not even read.
+        c = self.config.common
+        known = {rt.name: rt.evaluate(None) for rt in used if not rt.needs_sample}
+        if already_unmet(c.if_all_conditions, c.if_none_conditions, known):
+            self.gate.observe_conditions(False)
+            self.stats.gated += 1
+            return None
+        return _Plan(None, known)
 
     def _collected(self, plan: _Plan, collected: tuple[dict[str, Any] | None, int | None, str | None]) -> None:
         sample, stamp_ns, group_key = collected
@@ -157,7 +173,7 @@ class MeasurementRunner:
         if plan.met is not None:
             met = plan.met
         else:
-            met = self._evaluate(sample) if self.gate.needs_conditions else True
+            met = self._evaluate(sample, plan.known) if self.gate.needs_conditions else True
         self._offer(sample, met, stamp_ns, group_key)
 
     def emit(self, sample: dict[str, Any], stamp_ns: int | None = None, group_key: str | None = None) -> None:

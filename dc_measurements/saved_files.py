@@ -10,8 +10,11 @@ from __future__ import annotations
 
 import os
 import tempfile
-from dataclasses import dataclass
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from dc_core.measurement import BasePaths
 from dc_core.paths import expand_time
@@ -39,16 +42,48 @@ def file_locations(paths: BasePaths, save_path: str, when_s: float) -> FileLocat
     return FileLocations(local, remote)
 
 
-def unused_locations(locations: FileLocations, suffixes: tuple[str, ...]) -> FileLocations:
-    """``locations``, or with ``-1``, ``-2``… appended, so that no file of an earlier sample saved in the same
-    second is overwritten (its record points at it)."""
-    candidate, n = locations, 0
-    while any(os.path.exists(candidate.local + suffix) for suffix in suffixes):
-        n += 1
-        candidate = FileLocations(
-            f"{locations.local}-{n}", {key: f"{path}-{n}" for key, path in locations.remote.items()}
-        )
-    return candidate
+class ReservedPaths:
+    """Base paths handed to records whose files are not written yet (they are written once the record is
+    published, on a worker): a second sample in the same second must get another name, not overwrite them."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._reserved: set[str] = set()
+
+    def reserve(self, locations: FileLocations, suffixes: tuple[str, ...]) -> FileLocations:
+        """``locations``, or with ``-1``, ``-2``… appended when taken by a reservation or an existing file."""
+        candidate, n = locations, 0
+        with self._lock:
+            while candidate.local in self._reserved or any(
+                os.path.exists(candidate.local + suffix) for suffix in suffixes
+            ):
+                n += 1
+                candidate = FileLocations(
+                    f"{locations.local}-{n}", {key: f"{path}-{n}" for key, path in locations.remote.items()}
+                )
+            self._reserved.add(candidate.local)
+        return candidate
+
+    def release(self, local: str) -> None:
+        with self._lock:
+            self._reserved.discard(local)
+
+
+FileContent = bytes | Callable[[], bytes]
+
+
+@dataclass
+class PendingFiles:
+    """The files of one sample, written when (and only if) its record is published."""
+
+    sample: dict[str, Any]
+    base: str  # the reserved local base path
+    files: dict[str, FileContent] = field(default_factory=dict)  # path -> content, or what makes it
+
+    def write(self) -> int:
+        for path, content in self.files.items():
+            write_atomically(path, content() if callable(content) else content)
+        return len(self.files)
 
 
 def write_atomically(path: str, content: bytes) -> None:

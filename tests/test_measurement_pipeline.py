@@ -182,7 +182,7 @@ def test_on_published_is_called_for_published_samples_only() -> None:
         samples=[{"time": 1}, {"other": 1}, {"time": 2}, {"time": "late"}],
     )
     seen: list[dict[str, Any]] = []
-    runner.plugin.on_published = seen.append  # type: ignore[method-assign]
+    runner.plugin.on_published = seen.append  # type: ignore[method-assign,assignment]
     for _ in range(4):
         runner.tick()
     # Gated ({"other": 1}) and invalid (time is not an integer, drop_invalid) samples get no call.
@@ -196,6 +196,45 @@ def test_on_published_is_called_for_published_samples_only() -> None:
     runner.plugin.collect = lambda: {"time": 4}  # type: ignore[method-assign]
     runner.tick()
     assert len(published) == 3 and runner.stats.errors == 1  # published, and the failure counted
+
+
+def test_a_sample_the_conditions_without_it_already_rule_out_is_not_collected() -> None:
+    # A camera gated by if_none_conditions: [moving] and an Exist on what it reads: while the robot moves
+    # the frame is not even read; when it stands, Moving is judged once per sample, not twice.
+    runner, published = make_runner(
+        {"plugin": "dc_measurements/Dummy", "if_all_conditions": ["has_a"], "if_none_conditions": ["moving"]},
+        conditions={
+            "has_a": {"plugin": "dc_conditions/Exist", "key": "a"},
+            "moving": {"plugin": "dc_conditions/Moving"},
+        },
+        samples=[{"a": 1}, {"a": 2}, {"a": 3}],
+    )
+    moving_runtime = runner._conditions["moving"]
+    moving_state = [True]
+    judged: list[str] = []
+
+    def moving(sample: Any) -> bool:
+        judged.append("moving")
+        return moving_state[0]
+
+    moving_runtime.evaluate = moving  # type: ignore[method-assign]
+    collected: list[int] = []
+    original_collect = runner.plugin.collect
+
+    def counting_collect() -> Any:
+        sample = original_collect()
+        assert sample is not None
+        collected.append(sample["a"])
+        return sample
+
+    runner.plugin.collect = counting_collect  # type: ignore[method-assign]
+    runner.tick()
+    assert collected == [] and published == [] and runner.stats.gated == 1
+    moving_state[0] = False
+    judged.clear()
+    runner.tick()
+    assert collected == [1] and [r["a"] for r in records(published)] == [1]
+    assert judged == ["moving"]  # once for this sample
 
 
 def test_conditions_met_truth_table() -> None:

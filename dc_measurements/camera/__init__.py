@@ -15,7 +15,7 @@ detection service.
 from __future__ import annotations
 
 import base64
-import os
+import functools
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -29,7 +29,7 @@ from dc_core.params import param
 from dc_core.rostime import now_ns, stamp_ns
 from dc_core.topics import topic_problem
 from dc_core.worker import Outcome
-from dc_measurements.saved_files import FileLocations, file_locations, write_atomically
+from dc_measurements.saved_files import PendingFiles, ReservedPaths, file_locations
 
 DETECTION_MODULES = ("qr", "barcode")
 # Best effort matches cameras publishing either way; depth 1: only the newest frame matters.
@@ -90,14 +90,6 @@ class _Frame:
     number: int
 
 
-@dataclass
-class _PendingImages:
-    """What on_published writes for the sample collect() returned."""
-
-    sample: dict[str, Any]
-    files: dict[str, Any]  # path -> BGR array or JPEG bytes
-
-
 class Camera(Measurement[CameraParams]):
     """Camera frames: QR codes and barcodes read in them, and raw, turned and inspected images (JPEG)."""
 
@@ -112,10 +104,8 @@ class Camera(Measurement[CameraParams]):
         self._subscription: Any = None
         self._detector: Any = None
         self._compressed = False
-        self._pending: _PendingImages | None = None
-        # Paths handed to records whose files are not written yet: a second sample in the same second
-        # must not get (and overwrite) them.
-        self._reserved: set[str] = set()
+        self._pending: list[PendingFiles] = []
+        self._reserved = ReservedPaths()
         self._bad_frame_log = BurstLog(context.logger.error, f"measurement {context.name}: frames not readable")
         self._save_log = BurstLog(context.logger.error, f"measurement {context.name}: images not saved")
         self.stale = 0
@@ -151,7 +141,9 @@ class Camera(Measurement[CameraParams]):
             self._subscription = None
         with self._lock:
             self._frame = None
-            self._pending = None
+            pending, self._pending = self._pending, []
+        for files in pending:
+            self._reserved.release(files.base)
 
     def _on_frame(self, message: Any, info: Any = None) -> None:
         with self._lock:
@@ -215,7 +207,7 @@ class Camera(Measurement[CameraParams]):
             }
         saved = {"raw": p.save_raw_img, "rotated": p.save_rotated_img, "inspected": p.save_detections_img}
         in_record = {"raw": p.save_raw_base64, "rotated": p.save_rotated_base64, "inspected": p.save_inspected_base64}
-        files: dict[str, Any] = {}
+        pending: list[PendingFiles] = []
         when_s = now_ns(self.context.node) / 1e9
         for kind in IMAGE_KINDS:
             if kind not in images:
@@ -224,16 +216,23 @@ class Camera(Measurement[CameraParams]):
             if encoded is not None:
                 sample.setdefault("base64", {})[kind] = base64.b64encode(encoded).decode("ascii")
             if saved[kind]:
-                locations = self._reserve(file_locations(self.context.paths, self._save_path(kind), when_s))
+                locations = file_locations(self.context.paths, self._save_path(kind), when_s)
+                locations = self._reserved.reserve(locations, (_SUFFIX,))
                 local, remote = locations.with_suffix(_SUFFIX)
                 sample.setdefault("local_paths", {})[kind] = local
                 for key, path in remote.items():
                     sample.setdefault("remote_paths", {}).setdefault(key, {})[kind] = path
-                files[local] = encoded if encoded is not None else images[kind]
+                # JPEG encoding waits for publication too, unless the record carries the image already.
+                content = (
+                    encoded if encoded is not None else functools.partial(encode_jpeg, images[kind], p.jpeg_quality)
+                )
+                pending.append(PendingFiles(sample, locations.local, {local: content}))
         if len(sample) == 1:
             return None  # nothing read, nothing to save: no record (camera_name alone says nothing)
         with self._lock:
-            self._pending = _PendingImages(sample, files)
+            for files in self._pending:  # a sample not published: its names are free again
+                self._reserved.release(files.base)
+            self._pending = pending
         return sample
 
     def _save_path(self, kind: str) -> str:
@@ -243,43 +242,23 @@ class Camera(Measurement[CameraParams]):
             "inspected": self.params.save_inspected_path,
         }[kind]
 
-    def _reserve(self, locations: FileLocations) -> FileLocations:
-        candidate, n = locations, 0
-        with self._lock:
-            while candidate.local in self._reserved or os.path.exists(candidate.local + _SUFFIX):
-                n += 1
-                candidate = FileLocations(
-                    f"{locations.local}-{n}", {key: f"{path}-{n}" for key, path in locations.remote.items()}
-                )
-            self._reserved.add(candidate.local)
-        return candidate
-
     # -- images of published records -----------------------------------------------------------------
     def on_published(self, sample: dict[str, Any]) -> None:
         with self._lock:
-            pending, self._pending = self._pending, None
-        if pending is None or pending.sample is not sample or not pending.files:
-            return
-        quality = self.params.jpeg_quality
+            pending, self._pending = self._pending, []
+        for files in pending:
+            if files.sample is sample:
+                self.context.worker.submit(files.write, functools.partial(self._written, files))
+            else:
+                self._reserved.release(files.base)
 
-        def write() -> int:
-            from dc_measurements.camera.images import encode_jpeg
-
-            for path, content in pending.files.items():
-                write_atomically(path, content if isinstance(content, bytes) else encode_jpeg(content, quality))
-            return len(pending.files)
-
-        self.context.worker.submit(write, lambda outcome: self._written(pending, outcome))
-
-    def _written(self, pending: _PendingImages, outcome: Outcome[int]) -> None:
-        with self._lock:
-            for path in pending.files:
-                self._reserved.discard(path.removesuffix(_SUFFIX))
+    def _written(self, files: PendingFiles, outcome: Outcome[int]) -> None:
+        self._reserved.release(files.base)
         try:
             self.saved_images += outcome.get()
         except Exception as exc:
             self.save_errors += 1
-            self._save_log.event(1, f"{', '.join(pending.files)}: {exc}")
+            self._save_log.event(1, f"{', '.join(files.files)}: {exc}")
 
     def counters(self) -> dict[str, int]:
         return {

@@ -1,10 +1,12 @@
 """Map measurement: the occupancy grid of ``/map`` saved as map_saver's PGM + YAML and a PNG.
 
 The grid arrives on a TRANSIENT_LOCAL subscription (a map server publishes it once; a late
-subscriber still gets it). A poll saves the newest grid on the server's worker — the original ran
+subscriber still gets it). A poll renders the newest grid on the server's worker — the original ran
 ``map_saver_cli`` in a shell from its timer, holding the server up to ``save_map_timeout`` — unless
 it is identical to the grid saved last: a map that did not change is not written, nor published,
-again. Width and height come from the grid (the original assumed a square map).
+again. The files are written, on the worker, once the record is published (:meth:`Map.on_published`):
+a record the conditions drop leaves no file. Width and height come from the grid (the original
+assumed a square map).
 """
 
 from __future__ import annotations
@@ -25,8 +27,9 @@ from dc_core.errors import PluginError
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
 from dc_core.rostime import now_ns
+from dc_core.worker import Outcome
 from dc_measurements.map.files import map_yaml, pgm_bytes, png_bytes, trinary_image
-from dc_measurements.saved_files import file_locations, unused_locations, write_atomically
+from dc_measurements.saved_files import PendingFiles, ReservedPaths, file_locations
 from dc_measurements.velocity import topic_param
 
 MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -66,9 +69,12 @@ class Map(Measurement[MapParams]):
         self._grid_arrived = threading.Event()
         self._saved_fingerprint: bytes | None = None
         self._subscription: Any = None
+        self._pending: tuple[PendingFiles, bytes] | None = None
+        self._reserved = ReservedPaths()
         self.unchanged = 0
         self.no_map = 0
         self.saved = 0
+        self.save_errors = 0
 
     def on_configure(self) -> None:
         p = self.params
@@ -108,15 +114,13 @@ class Map(Measurement[MapParams]):
         if fingerprint == self._saved_fingerprint:
             self.unchanged += 1
             return None
-        record = self._save(info, data)
-        self._saved_fingerprint = fingerprint
-        self.saved += 1
-        return record
+        return self._prepare(info, data, fingerprint)
 
-    def _save(self, info: Any, data: bytes) -> dict[str, Any]:
+    def _prepare(self, info: Any, data: bytes, fingerprint: bytes) -> dict[str, Any]:
+        """The record and, pending until it is published, its files."""
         p = self.params
         node_time = now_ns(self.context.node) / 1e9
-        locations = unused_locations(
+        locations = self._reserved.reserve(
             file_locations(self.context.paths, p.save_path, node_time or time.time()), _SUFFIXES
         )
         image = trinary_image(info.width, info.height, data, p.free_thresh, p.occupied_thresh)
@@ -125,11 +129,9 @@ class Map(Measurement[MapParams]):
             os.path.basename(locations.local) + ".pgm", float(info.resolution), origin, p.free_thresh, p.occupied_thresh
         )
         png = png_bytes(image)
-        local_paths = {}
-        for suffix, content in ((".pgm", pgm_bytes(image)), (".png", png), (".yaml", yaml_text.encode())):
-            path = locations.local + suffix
-            write_atomically(path, content)
-            local_paths[suffix[1:]] = path
+        files = {locations.local + ".pgm": pgm_bytes(image), locations.local + ".png": png}
+        files[locations.local + ".yaml"] = yaml_text.encode()
+        local_paths = {path.rsplit(".", 1)[1]: path for path in files}
         record: dict[str, Any] = {
             "resolution": float(info.resolution),
             "origin": {"x": origin[0], "y": origin[1], "yaw": origin[2]},
@@ -144,10 +146,39 @@ class Map(Measurement[MapParams]):
             }
         if p.save_base64:
             record["base64"] = {"png": base64.b64encode(png).decode("ascii"), "yaml": yaml_text}
+        with self._lock:
+            if self._pending is not None:
+                self._reserved.release(self._pending[0].base)
+            self._pending = (PendingFiles(record, locations.local, dict(files)), fingerprint)
         return record
 
+    def on_published(self, sample: dict[str, Any]) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, None
+        if pending is None or pending[0].sample is not sample:
+            return
+        files, fingerprint = pending
+        # The map counts as saved from now on: the same grid is not published again while it is written.
+        self._saved_fingerprint = fingerprint
+        self.context.worker.submit(files.write, lambda outcome: self._written(files, outcome))
+
+    def _written(self, files: PendingFiles, outcome: Outcome[int]) -> None:
+        self._reserved.release(files.base)
+        try:
+            outcome.get()
+            self.saved += 1
+        except Exception as exc:
+            self._saved_fingerprint = None  # saved again at the next poll
+            self.save_errors += 1
+            self.context.logger.error(f"measurement {self.context.name}: map files not saved: {exc}")
+
     def counters(self) -> dict[str, int]:
-        return {"saved": self.saved, "unchanged": self.unchanged, "no_map": self.no_map}
+        return {
+            "saved": self.saved,
+            "unchanged": self.unchanged,
+            "no_map": self.no_map,
+            "save_errors": self.save_errors,
+        }
 
 
 def _origin(info: Any) -> tuple[float, float, float]:

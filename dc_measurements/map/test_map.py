@@ -99,6 +99,12 @@ def collected(ros: Ros, plugin: Map) -> dict[str, Any]:
     return record
 
 
+def publish_record(ros: Ros, plugin: Map, record: dict[str, Any]) -> None:
+    """What the server does once it published the record: the plugin writes its files on the worker."""
+    plugin.on_published(record)
+    ros.harness.run_finished_work(plugin)
+
+
 @pytest.fixture
 def ros() -> Iterator[Ros]:
     with ros_session("map") as session:
@@ -120,6 +126,9 @@ def test_map_saves_pgm_yaml_and_png_of_a_non_square_grid_once(ros: Ros, tmp_path
     plugin.on_activate()
     record = collected(ros, plugin)
     assert_valid(Map, record)
+    # The files are written once the record is published: a record the server drops leaves none.
+    assert not list(tmp_path.rglob("map.*"))
+    publish_record(ros, plugin, record)
     assert (record["width"], record["height"]) == (37, 23)
     assert record["resolution"] == pytest.approx(0.05)
     assert record["origin"] == {"x": -1.5, "y": -2.0, "yaw": 0.0}
@@ -156,6 +165,7 @@ def test_map_saves_pgm_yaml_and_png_of_a_non_square_grid_once(ros: Ros, tmp_path
     # A changed map in the same second: new files beside the first ones, which stay as they were.
     publisher.publish(grid(37, 23, seed=2))
     changed = collected(ros, plugin)
+    publish_record(ros, plugin, changed)
     assert changed["local_paths"] != record["local_paths"]
     assert (read_pgm(Path(record["local_paths"]["pgm"])) == expected).all()
     assert not list(tmp_path.rglob("*.part"))

@@ -1,0 +1,204 @@
+"""image_services: the original DC's image services, served by one lifecycle node with the Camera's code.
+
+``/dc/service/detect_barcodes`` (dc_interfaces/srv/DetectBarcode), ``/dc/service/draw_image``
+(DrawImage) and ``/dc/service/save_image`` (SaveImage), for nodes written against the original. DC's
+own Camera measurement does not need them (it reads and draws in-process). dc-bringup starts this
+server when the parameter file has an ``image_services`` section::
+
+    image_services:
+      ros__parameters:
+        services: ["detect_barcodes", "draw_image", "save_image"]
+
+``python -m dc_measurements.image_services PARAMS [--autostart]``.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from dc_core.errors import ConfigError
+from dc_core.lifecycle import ManagedServer, run_server
+from dc_core.node_params import ServerNodeParams
+from dc_core.params import did_you_mean, param, parse_params
+
+NODE_NAME = "image_services"
+SERVICES = ("detect_barcodes", "draw_image", "save_image")
+
+
+def _services_problem(names: list[str]) -> str | None:
+    unknown = [n for n in names if n not in SERVICES]
+    return f"services among {list(SERVICES)} (unknown: {unknown})" if unknown else None
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImageServicesParams(ServerNodeParams):
+    services: list[str] = param(list(SERVICES), doc="The services to offer", check=_services_problem)
+    service_namespace: str = param("/dc/service", doc="Where the services are (the original's /dc/service)")
+    detection_modules: list[str] = param(
+        ["barcode"], doc='What detect_barcodes reads: "qr" and/or "barcode" (as the Camera measurement)'
+    )
+
+
+@dataclass(frozen=True)
+class ImageServicesConfig:
+    node: ImageServicesParams
+    warnings: list[str]
+
+
+def parse_image_services(section: dict[str, Any], path: str = NODE_NAME) -> ImageServicesConfig:
+    if not isinstance(section, dict):
+        raise ConfigError(path, f"expected a mapping, got {section!r}")
+    known = {f.name for f in fields(ImageServicesParams)}
+    for key in section:
+        if key not in known:
+            raise ConfigError(f"{path}.{key}", "unknown parameter" + did_you_mean(str(key), known))
+    node = parse_params(ImageServicesParams, section, path)
+    from dc_measurements.camera import _modules_problem
+
+    problem = _modules_problem(node.detection_modules)
+    if problem:
+        raise ConfigError(f"{path}.detection_modules", f"expected {problem}")
+    return ImageServicesConfig(node, [])
+
+
+def image_message(array: Any, header: Any = None) -> Any:
+    """A bgr8 (or mono8) sensor_msgs/Image of an OpenCV array."""
+    from sensor_msgs.msg import Image
+
+    message = Image()
+    if header is not None:
+        message.header = header
+    message.height, message.width = array.shape[:2]
+    message.encoding = "bgr8" if array.ndim == 3 else "mono8"
+    message.step = array.shape[1] * (3 if array.ndim == 3 else 1)
+    message.data = array.tobytes()
+    return message
+
+
+class ImageServices(ManagedServer):
+    def __init__(self, params_file: str) -> None:
+        super().__init__(NODE_NAME, params_file)
+        self.config: ImageServicesConfig | None = None
+        self._detector: Any = None
+        self._services: list[Any] = []
+
+    def configure_server(self) -> None:
+        self.config = parse_image_services(self.read_params_file()[NODE_NAME])
+        self.apply_node_params(self.config.node, self.config.warnings)
+        from dc_measurements.camera.detection import BarcodeDetector
+
+        self._detector = BarcodeDetector(self.config.node.detection_modules)
+
+    def activate_server(self) -> None:
+        from dc_interfaces.srv import DetectBarcode, DrawImage, SaveImage
+
+        assert self.config is not None
+        prefix = "/" + self.config.node.service_namespace.strip("/")
+        handlers = {
+            "detect_barcodes": (DetectBarcode, self._detect),
+            "draw_image": (DrawImage, self._draw),
+            "save_image": (SaveImage, self._save),
+        }
+        for name in self.config.node.services:
+            service_type, handler = handlers[name]
+            self._services.append(self.create_service(service_type, f"{prefix}/{name}".replace("//", "/"), handler))
+        self.get_logger().info(f"serving {', '.join(f'{prefix}/{n}' for n in self.config.node.services)}")
+
+    def deactivate_server(self) -> None:
+        for service in self._services:
+            self.destroy_service(service)
+        self._services.clear()
+
+    def cleanup_server(self) -> None:
+        self._detector = None
+        self.config = None
+
+    # -- the services --------------------------------------------------------------------------------
+    def _frame(self, message: Any) -> Any:
+        from dc_measurements.camera.images import image_to_array
+
+        return image_to_array(message)
+
+    def _detect(self, request: Any, response: Any) -> Any:
+        from dc_interfaces.msg import Barcode
+        from dc_measurements.camera.images import ImageError
+
+        try:
+            detections = self._detector.detect(self._frame(request.frame))
+        except ImageError as exc:
+            self.get_logger().error(f"detect_barcodes: {exc}")
+            return response
+        for d in detections:
+            response.barcodes.append(
+                Barcode(
+                    data=d.data,
+                    type=d.type,
+                    top=min(d.top, 65535),
+                    left=min(d.left, 65535),
+                    width=min(d.width, 65535),
+                    height=min(d.height, 65535),
+                )
+            )
+        return response
+
+    def _draw(self, request: Any, response: Any) -> Any:
+        import cv2
+
+        from dc_measurements.camera.images import ImageError
+
+        if request.shape != "rectangle":
+            self.get_logger().error(f"draw_image: shape {request.shape!r} is not supported (only 'rectangle')")
+            response.success = False
+            return response
+        try:
+            image = self._frame(request.frame)
+        except ImageError as exc:
+            self.get_logger().error(f"draw_image: {exc}")
+            response.success = False
+            return response
+        if image.ndim == 2:
+            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        color = tuple(int(c) for c in request.color[:3]) if len(request.color) >= 3 else (255, 0, 0)
+        thickness = int(request.box_thickness) or 2
+        top_left = (int(request.box_left), int(request.box_top))
+        bottom_right = (int(request.box_left + request.box_width), int(request.box_top + request.box_height))
+        cv2.rectangle(image, top_left, bottom_right, color, thickness)
+        if request.text:
+            scale = float(request.font_scale) or 0.8
+            cv2.putText(
+                image,
+                request.text,
+                (top_left[0], max(0, top_left[1] - 9)),
+                int(request.font_txt),
+                scale,
+                color,
+                int(request.font_thickness) or 2,
+            )
+        response.frame = image_message(image, request.frame.header)
+        response.success = True
+        return response
+
+    def _save(self, request: Any, response: Any) -> Any:
+        import cv2
+
+        from dc_measurements.camera.images import ImageError
+
+        try:
+            image = self._frame(request.frame)
+            Path(request.path).parent.mkdir(parents=True, exist_ok=True)
+            response.success = bool(cv2.imwrite(request.path, image))
+        except (ImageError, OSError, cv2.error) as exc:
+            self.get_logger().error(f"save_image {request.path!r}: {exc}")
+            response.success = False
+        return response
+
+
+def main() -> int:
+    return run_server(ImageServices)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
