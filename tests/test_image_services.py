@@ -1,0 +1,117 @@
+"""image_services: the original's detect_barcodes, draw_image and save_image, served by a real server process."""
+
+from __future__ import annotations
+
+import os
+import random
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+
+from dc_core.errors import ConfigError
+from dc_interfaces.srv import DetectBarcode, DrawImage, SaveImage
+from dc_measurements.camera.images import image_to_array
+from dc_measurements.image_services import image_message, parse_image_services
+from dc_sim.camera import ShelfLabel, label_frame
+from tests.ros_util import wait_for
+
+LABEL = ShelfLabel("WH1/AISLE-2/SHELF-03", "4006381330015", "EAN13")
+
+
+@pytest.fixture(scope="module")
+def services(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, SingleThreadedExecutor]]:
+    params = tmp_path_factory.mktemp("image_services") / "params.yaml"
+    params.write_text("image_services:\n  ros__parameters:\n    detection_modules: [barcode]\n")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(201, 230)))
+    server = subprocess.Popen(
+        [sys.executable, "-m", "dc_measurements.image_services", str(params), "--autostart"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    context = Context()
+    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]))
+    node = rclpy.create_node("test_image_services", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        yield node, executor
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        server.terminate()
+        server.wait(15)
+
+
+def call(services: tuple[Any, SingleThreadedExecutor], service_type: Any, name: str, request: Any) -> Any:
+    node, executor = services
+    client = node.create_client(service_type, name)
+
+    def spin() -> None:
+        executor.spin_once(timeout_sec=0.05)
+
+    assert wait_for(client.service_is_ready, spin, 30), f"{name} never appeared"
+    future = client.call_async(request)
+    assert wait_for(future.done, spin, 30), f"{name} never answered"
+    node.destroy_client(client)
+    return future.result()
+
+
+def test_detect_barcodes_reads_the_codes_of_a_frame(services: tuple[Any, SingleThreadedExecutor]) -> None:
+    frame = label_frame(LABEL, 640, 480)
+    response = call(
+        services, DetectBarcode, "/dc/service/detect_barcodes", DetectBarcode.Request(frame=image_message(frame))
+    )
+    codes = {(b.type, b.data) for b in response.barcodes}
+    assert codes == {("QRCODE", LABEL.qr), ("EAN13", LABEL.linear)}
+    for code in response.barcodes:
+        assert 0 < code.width < 640 and 0 < code.height < 480
+
+
+def test_draw_image_draws_a_rectangle_and_refuses_other_shapes(services: tuple[Any, SingleThreadedExecutor]) -> None:
+    blank = np.full((120, 160, 3), 255, dtype=np.uint8)
+    request = DrawImage.Request(frame=image_message(blank), shape="rectangle", text="QRCODE-x")
+    request.box_left, request.box_top, request.box_width, request.box_height, request.box_thickness = 40, 50, 60, 40, 3
+    request.color = [0, 0, 255]
+    response = call(services, DrawImage, "/dc/service/draw_image", request)
+    assert response.success
+    drawn = image_to_array(response.frame)
+    assert drawn[50, 70].tolist() == [0, 0, 255]  # on the top edge: red in BGR
+    assert drawn[70, 70].tolist() == [255, 255, 255]  # inside: untouched
+    circle = DrawImage.Request(frame=image_message(blank), shape="circle")
+    assert not call(services, DrawImage, "/dc/service/draw_image", circle).success
+
+
+def test_save_image_writes_the_frame(services: tuple[Any, SingleThreadedExecutor], tmp_path: Path) -> None:
+    frame = label_frame(LABEL, 640, 480)
+    path = tmp_path / "saved" / "label.png"
+    response = call(
+        services, SaveImage, "/dc/service/save_image", SaveImage.Request(frame=image_message(frame), path=str(path))
+    )
+    assert response.success
+    saved = cv2.imread(str(path))
+    assert saved is not None
+    assert (saved == frame).all()  # PNG: lossless
+    unwritable = SaveImage.Request(frame=image_message(frame), path="/proc/forbidden/label.png")
+    assert not call(services, SaveImage, "/dc/service/save_image", unwritable).success
+
+
+def test_configuration_is_checked() -> None:
+    assert parse_image_services({}).node.services == ["detect_barcodes", "draw_image", "save_image"]
+    with pytest.raises(ConfigError, match=r"image_services\.services"):
+        parse_image_services({"services": ["ocr"]})
+    with pytest.raises(ConfigError, match=r"image_services\.detection_modules"):
+        parse_image_services({"detection_modules": ["faces"]})
+    with pytest.raises(ConfigError, match=r"image_services\.servises: unknown parameter"):
+        parse_image_services({"servises": []})
