@@ -33,7 +33,7 @@ from rclpy.node import Node
 from dc_bringup.validate import validate_params_file
 from dc_core import plugins
 from dc_core.errors import PluginError
-from dc_core.measurement import Measurement
+from dc_core.measurement import BasePaths, Measurement
 from dc_core.params import describe_params
 from dc_core.plugin import Plugin
 from dc_core.testing import FakeContext
@@ -231,7 +231,12 @@ def test_a_lifecycle_round_trip_works_with_the_page_example(
     plugin: Installed, ros_node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setenv("HOME", str(tmp_path))  # examples write under $HOME
-    context = FakeContext(name=f"contract_{plugin.cls.__name__.lower()}", node=ros_node)
+    # Plugins that save files (Map, Camera, IpCamera) keep them under the test's folder.
+    context = FakeContext(
+        name=f"contract_{plugin.cls.__name__.lower()}",
+        node=ros_node,
+        paths=BasePaths(save_local_base_path=str(tmp_path / "data")),
+    )
     instance = plugin.cls(context, example_params(plugin, tmp_path))
     for step in (instance.on_configure, instance.on_activate, instance.on_deactivate, instance.on_cleanup):
         step()
