@@ -49,9 +49,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-Image = npt.NDArray[Any]  # uint8; OpenCV's stubs type every array it returns as integer-or-float
+# The names configurations use, declared with the measurement's parameters (without OpenCV's import).
+from dc_measurements.camera import DETECTION_MODULES
 
-DETECTION_MODULES = ("qr", "barcode")
+Image = npt.NDArray[Any]  # uint8; OpenCV's stubs type every array it returns as integer-or-float
 
 QR_TYPES = frozenset({"QRCODE"})
 BARCODE_TYPES = frozenset({"QRCODE", "EAN13", "EAN8", "UPCA", "UPCE", "CODE128", "CODE39", "DATAMATRIX"})
