@@ -68,30 +68,7 @@ HTTP_LINE = re.compile(r"metrics HTTP server on http://([0-9.]+):(\d+)/api/v1/")
 # over UDP in 64 kB fragments, and a best-effort reader loses most of them once the socket's receive
 # buffer (net.core.rmem_default, 208 kB here) overflows. A robot streaming raw images gives Fast DDS
 # a larger segment; so does this benchmark unless --transport default.
-FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <transport_descriptors>
-    <transport_descriptor>
-      <transport_id>shm_frames</transport_id>
-      <type>SHM</type>
-      <segment_size>16777216</segment_size>
-    </transport_descriptor>
-    <transport_descriptor>
-      <transport_id>udp</transport_id>
-      <type>UDPv4</type>
-    </transport_descriptor>
-  </transport_descriptors>
-  <participant profile_name="dc_bench_camera" is_default_profile="true">
-    <rtps>
-      <userTransports>
-        <transport_id>shm_frames</transport_id>
-        <transport_id>udp</transport_id>
-      </userTransports>
-      <useBuiltinTransports>false</useBuiltinTransports>
-    </rtps>
-  </participant>
-</profiles>
-"""
+FASTDDS_PROFILE = Path(__file__).resolve().parent.parent / "params" / "fastdds" / "large_frames.xml"
 
 
 @dataclass(frozen=True)
@@ -323,9 +300,7 @@ def measure(workdir: Path, domain: int, scenario: Scenario, run: int, args: argp
     bench = e2e.Bench(folder, domain)
     bench.env["HOME"] = str(folder)
     if args.transport == "shm":
-        profile = folder / "fastdds.xml"
-        profile.write_text(FASTDDS_PROFILE)
-        bench.env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(profile)
+        bench.env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_PROFILE)
     me = [sys.executable, str(Path(__file__).resolve())]
     if scenario.polling_ms == 0:
         receiver = e2e.Child([*me, "--role", "subscriber"], bench.env, folder / "subscriber.log")
