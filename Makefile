@@ -1,6 +1,6 @@
 # DC — developer entry points.
 #
-#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, tf2_msgs (cmake) + DC (editable, with test and camera extras)
+#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, tf2_msgs (cmake) + DC (editable, with the test, camera and destination extras)
 #   make test-deps   Debian packages the tests need (installed only if missing)
 #   make test        ruff, mypy, pytest
 #   make run         dc-bringup with params/default.yaml (PARAMS=... to change)
@@ -30,9 +30,9 @@ ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces \
 	ros-jazzy-ament-cmake-ros ros-jazzy-ament-cmake-gmock ros-jazzy-ament-cmake-gtest \
 	ros-jazzy-ament-cmake-pytest ros-jazzy-python-cmake-module
 
-# Debian packages needed by the tests (planned: postgresql mosquitto influxdb): the zbar library the
-# Camera's 1D-code reader loads, ffmpeg for IpCamera.
-TEST_DEBS := libzbar0 ffmpeg
+# Debian packages needed by the tests (planned: postgresql influxdb): the zbar library the Camera's
+# 1D-code reader loads, ffmpeg for IpCamera, the mosquitto broker for the MQTT destination.
+TEST_DEBS := libzbar0 ffmpeg mosquitto
 
 IFACE_SRCS := dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
 	$(wildcard dc_interfaces/msg/*.msg dc_interfaces/srv/*.srv dc_interfaces/action/*.action)
@@ -93,7 +93,7 @@ $(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
 
 # 3. DC itself, editable, with the test tools.
 $(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml
-	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera]'
+	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack]'
 	touch $@
 
 test-deps:

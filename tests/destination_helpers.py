@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.params import parse_params
@@ -25,3 +28,46 @@ UPTIMES = [
     record({"date": 1677668906.045817, "time": 92395, "robot_name": "C3PO"}, "r1"),
     record({"date": 1677668911.7, "time": 92400, "robot_name": "C3PO"}, "r2"),
 ]
+
+
+def forwarding_params(
+    tmp_path: Path,
+    destination: str,
+    settings: dict[str, Any],
+    *,
+    measurement: str = "events",
+    topic: str = "/robot/events",
+) -> Path:
+    """A parameter file for end-to-end tests: StringStamped forwards every record published on ``topic``
+    (as ``dc pub`` does) to the destination ``destination`` (``settings``: its plugin and parameters),
+    whose buffer lives in ``tmp_path`` and retries quickly (0.2 s doubling to 2 s)."""
+    document = {
+        "measurement_server": {
+            "ros__parameters": {
+                "measurement_plugins": [measurement],
+                measurement: {
+                    "plugin": "dc_measurements/StringStamped",
+                    "topic": topic,
+                    "timer_based": False,
+                    "qos_depth": 1000,
+                    "enable_validator": False,
+                    "tags": [destination],
+                },
+            }
+        },
+        "destination_server": {
+            "ros__parameters": {
+                "flb": {
+                    "storage_path": str(tmp_path / "buffer"),
+                    "flush": 0.2,
+                    "scheduler_base": 0.2,
+                    "scheduler_cap": 2.0,
+                },
+                "destination_plugins": [destination],
+                destination: {"inputs": [f"/dc/measurement/{measurement}"], **settings},
+            }
+        },
+    }
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump(document, sort_keys=False))
+    return params

@@ -1,13 +1,23 @@
-"""HTTP destination: one POST of JSON per batch to a web endpoint, over a kept-alive connection."""
+"""HTTP destination: one POST per batch to a web endpoint, over a kept-alive connection.
+
+The body is the batch as JSON (an array, lines or a stream of objects) or msgpack, optionally
+gzip-compressed. The server's answer decides the outcome: 2xx confirms the batch; 408, 429, 5xx and
+network failures are retried (after the server's Retry-After, when it gives one); any other answer
+means the server refuses these records, which go to the dead letters. Credentials (basic password,
+bearer token, TLS key password) are secrets: never logged, masked should a server echo them.
+"""
 
 from __future__ import annotations
 
 import base64
+import email.utils
+import gzip
 import http.client
 import re
 import ssl
 import threading
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -15,7 +25,9 @@ from dc_core.destination import Destination, OutgoingRecord, RejectedError, Retr
 from dc_core.errors import ConfigError
 from dc_core.params import param
 
-FORMATS = ("json", "json_lines", "json_stream")
+FORMATS = ("json", "json_lines", "json_stream", "msgpack")
+CONTENT_TYPES = {"json_lines": "application/x-ndjson", "msgpack": "application/msgpack"}
+COMPRESSIONS = ("", "gzip")
 # Statuses a server uses to say "not now": the same request may succeed later.
 RETRYABLE_STATUSES = frozenset({408, 429})
 _HEADER_TOKEN = r"[!#$%&'*+.^_`|~0-9A-Za-z-]+"
@@ -60,21 +72,34 @@ class HttpParams:
     format: str = param(
         "json",
         choices=FORMATS,
-        doc="json: the batch as one JSON array; json_lines: one object per line; json_stream: objects back to back",
+        doc="json: one JSON array; json_lines: one object per line; json_stream: objects back to back; "
+        "msgpack: one msgpack array",
     )
+    compress: str = param("", choices=COMPRESSIONS, doc="gzip: compress the body (Content-Encoding: gzip); empty: none")
     header: list[str] | str = param(
         [], doc='Extra request headers, "Name: value" each (Fluent Bit\'s "Name value" is accepted too)'
     )
+    headers: dict[str, Any] = param(default_factory=dict, doc="Extra request headers as a mapping of name to value")
     header_tag: str = param("", doc="Header that carries the destination's name (Fluent Bit's tag); empty: none")
     allow_duplicated_headers: bool = param(
         True, doc="Send every `header` entry; when false, the last entry of a name replaces the earlier ones"
     )
     http_user: str = param("", doc="User name of HTTP basic authentication; empty: no authentication")
     http_passwd: str = param("", secret=True, doc="Password of HTTP basic authentication (never logged)")
+    bearer_token: str = param("", secret=True, doc="Token sent as `Authorization: Bearer <token>` (never logged)")
     tls: bool = param(False, doc="Use HTTPS")
     tls_verify: bool = param(True, doc="Check the server's certificate and host name (with `tls`)")
     tls_ca_file: str = param("", doc="CA certificates (PEM) to trust instead of the system's (with `tls`)")
+    tls_crt_file: str = param("", doc="Client certificate (PEM) for servers that ask for one (with `tls`)")
+    tls_key_file: str = param("", doc="Private key (PEM) of tls_crt_file, when not in the same file")
+    tls_key_passwd: str = param("", secret=True, doc="Password of an encrypted tls_key_file (never logged)")
     timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read or write")
+    retry_after_max: float = param(
+        60.0,
+        minimum=0,
+        maximum=3600,
+        doc="Longest Retry-After of a 408, 429 or 5xx answer obeyed, in seconds; 0: ignore it",
+    )
     log_response_payload: bool = param(
         True, doc="Quote the start of the server's answer in failure messages and dead letters"
     )
@@ -83,6 +108,23 @@ class HttpParams:
         for i, entry in enumerate(self.headers_list):
             if parse_header(entry) is None:
                 raise ConfigError(f"header[{i}]", f'expected "Name: value", got "{entry}"')
+        for name, value in self.headers.items():
+            if not re.fullmatch(_HEADER_TOKEN, str(name)):
+                raise ConfigError(f"headers.{name}", "expected a header name (letters, digits, '-')")
+            if (
+                not isinstance(value, (str, int, float, bool))
+                or not _latin1(str(value))
+                or any(c in str(value) for c in "\r\n")
+            ):
+                raise ConfigError(f"headers.{name}", "expected a one-line Latin-1 text value")
+        if self.bearer_token and self.http_user:
+            raise ConfigError("bearer_token", "choose http_user/http_passwd or bearer_token, not both")
+        if self.bearer_token and (not _latin1(self.bearer_token) or any(c in self.bearer_token for c in " \r\n")):
+            raise ConfigError("bearer_token", "expected a token of Latin-1 characters without spaces")
+        if self.tls_key_file and not self.tls_crt_file:
+            raise ConfigError("tls_key_file", "set tls_crt_file too (the key goes with a client certificate)")
+        if self.tls_key_passwd and not (self.tls_key_file or self.tls_crt_file):
+            raise ConfigError("tls_key_passwd", "set tls_key_file (or tls_crt_file) too")
         if self.http_passwd and not self.http_user:
             raise ConfigError("http_passwd", "set http_user too (basic authentication needs both)")
         if ":" in self.http_user:
@@ -98,7 +140,7 @@ class HttpParams:
 
 
 class Http(Destination[HttpParams]):
-    """POST each batch as JSON to an HTTP(S) endpoint; 5xx, 408, 429 and network errors are retried."""
+    """POST each batch (JSON or msgpack) to an HTTP(S) endpoint; 5xx, 408, 429 and network errors are retried."""
 
     def __init__(self, context: Any, params: HttpParams) -> None:
         super().__init__(context, params)
@@ -107,6 +149,10 @@ class Http(Destination[HttpParams]):
         self._connection: http.client.HTTPConnection | None = None
         self._tls: ssl.SSLContext | None = None
         self._lock = threading.Lock()
+        self._encode: Callable[[Sequence[OutgoingRecord]], bytes] = _json_encoder("json")
+        # Monotonic time before which the server asked not to be called again (Retry-After).
+        self._not_before = 0.0
+        self._stopping = threading.Event()
         self.url = ""
 
     # -- lifecycle -------------------------------------------------------------------------------
@@ -116,27 +162,38 @@ class Http(Destination[HttpParams]):
         host = f"[{p.host}]" if ":" in p.host else p.host
         # Without the query: it may hold an API key, and this URL goes into logs and dead letters.
         self.url = f"{scheme}://{host}:{p.port}{p.uri.split('?', 1)[0]}"
-        content_type = "application/x-ndjson" if p.format == "json_lines" else "application/json"
+        content_type = CONTENT_TYPES.get(p.format, "application/json")
         headers = [("Content-Type", content_type), ("User-Agent", "dc-destinations")]
         if p.http_user:
             token = base64.b64encode(f"{p.http_user}:{p.http_passwd}".encode()).decode("ascii")
             headers.append(("Authorization", f"Basic {token}"))
             self._secrets = [s for s in (p.http_passwd, token) if s]
+        if p.bearer_token:
+            headers.append(("Authorization", f"Bearer {p.bearer_token}"))
+            self._secrets = [p.bearer_token]
+        if p.tls_key_passwd:
+            self._secrets.append(p.tls_key_passwd)
+        if p.compress:
+            headers.append(("Content-Encoding", p.compress))
         if p.header_tag:
             headers.append((p.header_tag, self.context.name))
         for entry in p.headers_list:
             pair = parse_header(entry)
             assert pair is not None  # checked by HttpParams
             headers.append(pair)
+        headers.extend((str(name), _header_value(value)) for name, value in p.headers.items())
         self._headers = _merge_headers(headers, keep_duplicates=p.allow_duplicated_headers)
+        self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_encoder(p.format)
         self._tls = self._tls_context() if p.tls else None
 
     def on_activate(self) -> None:
+        self._stopping.clear()
         # The connection opens with the first batch, in the sender's thread: a server that is down
         # or slow to answer must not hold up activation.
         self.context.logger.info(f"posting {self.params.format} batches to {self.url}")
 
     def on_deactivate(self) -> None:
+        self._stopping.set()  # ends a wait for Retry-After at once
         with self._lock:
             self._close()
 
@@ -146,10 +203,14 @@ class Http(Destination[HttpParams]):
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         body = self._body(batch)
+        # The sender's backoff may be shorter than what the server asked for: wait for the rest.
+        delay = self._not_before - time.monotonic()
+        if delay > 0 and self._stopping.wait(delay):
+            raise RetryableError(f"stopping while waiting for the server's Retry-After ({self.url})")
         with self._lock:
             reused = self._connection is not None
             try:
-                status, reason, excerpt = self._post(body)
+                status, reason, excerpt, retry_after = self._post(body)
             except (OSError, http.client.HTTPException) as first:
                 self._close()
                 if not (reused and _is_stale_connection(first)):
@@ -157,7 +218,7 @@ class Http(Destination[HttpParams]):
                 # A kept-alive connection the server closed while idle fails at the first use; this
                 # is not a failure of the destination, so try once more on a fresh connection.
                 try:
-                    status, reason, excerpt = self._post(body)
+                    status, reason, excerpt, retry_after = self._post(body)
                 except (OSError, http.client.HTTPException) as second:
                     self._close()
                     raise RetryableError(self._network_error(second)) from None
@@ -167,21 +228,22 @@ class Http(Destination[HttpParams]):
         message = f"HTTP {status} {reason}" + (f": {excerpt}" if excerpt else "") + f" ({self.url})"
         message = self._scrub(message)
         if status in RETRYABLE_STATUSES or status >= 500:
+            wait = _retry_after_seconds(retry_after)
+            if wait is not None and self.params.retry_after_max > 0:
+                wait = min(wait, self.params.retry_after_max)
+                self._not_before = time.monotonic() + wait
+                message += f"; Retry-After {wait:g} s"
             raise RetryableError(message)
         raise RejectedError(message)
 
     def _body(self, batch: Sequence[OutgoingRecord]) -> bytes:
-        objects = [record.to_json() for record in batch]
-        fmt = self.params.format
-        if fmt == "json_lines":
-            text = "".join(o + "\n" for o in objects)
-        elif fmt == "json_stream":
-            text = "".join(objects)
-        else:
-            text = "[" + ",".join(objects) + "]"
-        return text.encode("utf-8")
+        body = self._encode(batch)
+        if self.params.compress == "gzip":
+            # mtime 0: the same batch compresses to the same bytes on every attempt.
+            body = gzip.compress(body, compresslevel=6, mtime=0)
+        return body
 
-    def _post(self, body: bytes) -> tuple[int, str, str]:
+    def _post(self, body: bytes) -> tuple[int, str, str, str | None]:
         connection = self._open()
         connection.putrequest("POST", self.params.uri, skip_accept_encoding=True)
         for name, value in self._headers:
@@ -195,7 +257,7 @@ class Http(Destination[HttpParams]):
         elif response.will_close:
             self._close()
         excerpt = self._excerpt(data) if self.params.log_response_payload else ""
-        return response.status, response.reason, excerpt
+        return response.status, response.reason, excerpt, response.getheader("Retry-After")
 
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:
@@ -211,12 +273,20 @@ class Http(Destination[HttpParams]):
         try:
             context = ssl.create_default_context(cafile=p.tls_ca_file or None)
         except (OSError, ssl.SSLError) as exc:
-            path = f"destination_server.{self.context.name}.tls_ca_file"
-            raise ConfigError(path, f"cannot load {p.tls_ca_file}: {exc}") from exc
+            raise ConfigError(self._key_path("tls_ca_file"), f"cannot load {p.tls_ca_file}: {exc}") from exc
         if not p.tls_verify:
             context.check_hostname = False
             context.verify_mode = ssl.CERT_NONE
+        if p.tls_crt_file:
+            try:
+                context.load_cert_chain(p.tls_crt_file, p.tls_key_file or None, password=p.tls_key_passwd or None)
+            except (OSError, ssl.SSLError) as exc:
+                # The key password is not part of the message: an SSLError says "bad decrypt" at most.
+                raise ConfigError(self._key_path("tls_crt_file"), f"cannot load {p.tls_crt_file}: {exc}") from exc
         return context
+
+    def _key_path(self, key: str) -> str:
+        return f"destination_server.{self.context.name}.{key}"
 
     def _close(self) -> None:
         if self._connection is not None:
@@ -259,3 +329,54 @@ def _merge_headers(headers: list[tuple[str, str]], *, keep_duplicates: bool) -> 
 
 def _is_stale_connection(exc: BaseException) -> bool:
     return isinstance(exc, (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError))
+
+
+def _json_encoder(fmt: str) -> Callable[[Sequence[OutgoingRecord]], bytes]:
+    def encode(batch: Sequence[OutgoingRecord]) -> bytes:
+        objects = [record.to_json() for record in batch]
+        if fmt == "json_lines":
+            text = "".join(o + "\n" for o in objects)
+        elif fmt == "json_stream":
+            text = "".join(objects)
+        else:
+            text = "[" + ",".join(objects) + "]"
+        return text.encode("utf-8")
+
+    return encode
+
+
+def _msgpack_encoder(path: str) -> Callable[[Sequence[OutgoingRecord]], bytes]:
+    try:
+        import msgpack  # an optional dependency: `pip install ros2-dc[msgpack]`
+    except ImportError as exc:
+        raise ConfigError(path, 'msgpack needs the msgpack package (pip install "ros2-dc[msgpack]")') from exc
+
+    def encode(batch: Sequence[OutgoingRecord]) -> bytes:
+        # One msgpack array of the record maps: the same shape as format json, decoded in one call.
+        packed: bytes = msgpack.packb([record.data for record in batch], use_bin_type=True)
+        return packed
+
+    return encode
+
+
+def _header_value(value: Any) -> str:
+    """A YAML scalar as header text: booleans as YAML writes them, not Python's True."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+def _retry_after_seconds(value: str | None) -> float | None:
+    """Retry-After in seconds, from delay-seconds or an HTTP date; None when absent or unreadable."""
+    if not value:
+        return None
+    value = value.strip()
+    if value.isdigit():
+        return float(value)
+    try:
+        moment = email.utils.parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    if moment.tzinfo is None:
+        return None
+    return max(0.0, moment.timestamp() - time.time())

@@ -1,20 +1,33 @@
-"""HTTP destination against a real HTTP server in the test: what it sends, how each answer is classified."""
+"""HTTP destination against a real HTTP server in the test: what it sends, how each answer is classified.
+
+Bodies are decoded on the receiver's side (gzip, msgpack) as a server would; TLS runs with a private
+CA generated here with the `cryptography` package, with and without a client certificate.
+"""
 
 from __future__ import annotations
 
 import base64
+import datetime as dt
+import gzip
+import ipaddress
 import json
 import logging
 import re
-import shutil
 import ssl
-import subprocess
+import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import pytest
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import NameOID
 
 from dc_core.destination import OutgoingRecord, RejectedError, RetryableError
 from dc_core.errors import ConfigError
@@ -285,7 +298,7 @@ def test_password_never_reaches_logs_errors_metrics_or_dead_letters(
 
 def test_secret_parameter_is_marked_secret() -> None:
     secrets = {p.name for p in describe_params(HttpParams) if p.secret}
-    assert secrets == {"http_passwd"}
+    assert secrets == {"http_passwd", "bearer_token", "tls_key_passwd"}
 
 
 def configure(body: dict[str, Any]) -> None:
@@ -303,7 +316,17 @@ def configure(body: dict[str, Any]) -> None:
         ({"uri": "ingest"}, "destination_server.web.uri: expected a path starting with '/'"),
         ({"uri": "/données"}, "destination_server.web.uri: expected a path starting with '/', ASCII"),
         ({"header": ["X-Robot: 机器人"]}, "destination_server.web.header[0]"),
-        ({"format": "msgpack"}, "destination_server.web.format: expected one of"),
+        ({"format": "gelf"}, "destination_server.web.format: expected one of"),
+        ({"compress": "zstd"}, "destination_server.web.compress: expected one of"),
+        ({"headers": {"X Bad": "1"}}, "destination_server.web.headers.X Bad: expected a header name"),
+        ({"headers": {"X-Multi": "a\nb"}}, "destination_server.web.headers.X-Multi: expected a one-line"),
+        ({"headers": {"X-Nested": {"a": 1}}}, "destination_server.web.headers.X-Nested: expected a one-line"),
+        ({"bearer_token": "t0ken", "http_user": "u"}, "destination_server.web.bearer_token: choose"),
+        ({"tls_key_file": "/k.pem"}, "destination_server.web.tls_key_file: set tls_crt_file too"),
+        (
+            {"tls": True, "tls_crt_file": "/nonexistent/client.pem"},
+            "destination_server.web.tls_crt_file: cannot load /nonexistent/client.pem",
+        ),
         ({"header": ["no-value"]}, 'destination_server.web.header[0]: expected "Name: value", got "no-value"'),
         ({"header": ["X-Ok: 1", ": no name"]}, "destination_server.web.header[1]"),
         ({"http_passwd": "x"}, "destination_server.web.http_passwd: set http_user too"),
@@ -359,38 +382,300 @@ def test_activation_does_not_connect() -> None:
     assert dest.url.startswith("http://127.0.0.1:")
 
 
+# -- formats, compression, headers, bearer token -------------------------------------------------------
+
+
+def test_msgpack_posts_one_array_of_maps(receiver: Receiver) -> None:
+    http_destination(port=receiver.port, format="msgpack").send(BATCH)
+    (request,) = receiver.requests
+    assert request.header("Content-Type") == "application/msgpack"
+    assert msgpack.unpackb(request.body, raw=False) == [r.data for r in BATCH]
+
+
+@pytest.mark.parametrize("fmt", ["json", "json_lines", "msgpack"])
+def test_gzip_compresses_every_format(receiver: Receiver, fmt: str) -> None:
+    plain = http_destination(port=receiver.port, format=fmt)
+    plain.send(BATCH)
+    http_destination(port=receiver.port, format=fmt, compress="gzip").send(BATCH)
+    uncompressed, compressed = receiver.requests
+    assert compressed.header("Content-Encoding") == "gzip" and uncompressed.header("Content-Encoding") is None
+    assert gzip.decompress(compressed.body) == uncompressed.body
+    assert compressed.header("Content-Length") == str(len(compressed.body))
+
+
+def test_gzip_shrinks_a_repetitive_batch(receiver: Receiver) -> None:
+    batch = [record(n, robot="C3PO", status="nominal") for n in range(200)]
+    http_destination(port=receiver.port, compress="gzip").send(batch)
+    body = receiver.requests[0].body
+    assert len(body) * 4 < len(gzip.decompress(body))
+    assert [r["seq"] for r in json.loads(gzip.decompress(body))] == list(range(200))
+
+
+def test_headers_mapping_adds_headers(receiver: Receiver) -> None:
+    headers = {"X-Robot": "c3po", "X-Schema-Version": 2, "X-Debug": True}
+    http_destination(port=receiver.port, headers=headers, header=["X-Fleet: 7"]).send(BATCH)
+    request = receiver.requests[0]
+    assert request.header("X-Robot") == "c3po"
+    assert request.header("X-Schema-Version") == "2" and request.header("X-Debug") == "true"
+    assert request.header("X-Fleet") == "7", "with the original's header list"
+
+
+TOKEN = "eyJhbGciOiJIUzI1NiJ9.c2VjcmV0LXJvYm90.Xq9-token"
+
+
+def bearer_check(token: str) -> Responder:
+    """A server that wants ``token`` and, carelessly, quotes what it got when it refuses."""
+
+    def respond(request: Request) -> tuple[int, bytes]:
+        sent = request.header("Authorization") or ""
+        if sent == f"Bearer {token}":
+            return 200, b"ok"
+        return 401, f"invalid token in {sent}".encode()
+
+    return respond
+
+
+def test_bearer_token_is_sent(receiver: Receiver) -> None:
+    receiver.respond = bearer_check(TOKEN)
+    assert http_destination(port=receiver.port, bearer_token=TOKEN).send(BATCH) is None
+    assert receiver.requests[0].header("Authorization") == f"Bearer {TOKEN}"
+
+
+def test_a_bad_bearer_token_dead_letters_the_batch_and_is_never_logged(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.DEBUG)
+    logger: Any = logging.getLogger("test_http_destination.bearer")
+    bad = "wrong-" + TOKEN
+    with Receiver(bearer_check(TOKEN)) as receiver:
+        params = parse_params(HttpParams, {"port": receiver.port, "bearer_token": bad}, "destination_server.web")
+        dest = Http(FakeContext(name="web", logger=logger), params)
+        dest.on_configure()
+        settings = DeliveryParams(storage_path=str(tmp_path), flush=0.05, scheduler_base=0.05, scheduler_cap=0.1)
+        pipeline = DeliveryPipeline(settings, {"web": (dest, DestinationDeliveryParams())}, logger)
+        dest.on_activate()
+        pipeline.start()
+        try:
+            pipeline.submit("web", record(1))
+            deadline = time.monotonic() + 10
+            while int(pipeline.metrics()["web"]["dead_lettered"]) < 1 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            metrics = pipeline.metrics()["web"]
+            status_text = json.dumps(pipeline.status_document())
+        finally:
+            pipeline.stop(0.5)
+            dest.on_deactivate()
+    assert int(metrics["dead_lettered"]) == 1 and int(metrics["retried"]) == 0, "401 is refused for good"
+    assert len(receiver.requests) == 1
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        (letter,) = buffer.list_dead_letters(None)
+    finally:
+        buffer.close()
+    assert letter.error.startswith("rejected: HTTP 401 Unauthorized: invalid token in Bearer ***")
+    texts = [r.getMessage() for r in caplog.records] + [status_text, letter.error, repr(params), str(params)]
+    for text in texts:
+        assert bad not in text and TOKEN not in text, text
+
+
+# -- Retry-After -------------------------------------------------------------------------------------------
+
+
+class RetryAfterServer:
+    """Answers 429 with a Retry-After header to the first request, then 200 (http_receiver sets no headers)."""
+
+    def __init__(self, retry_after: str) -> None:
+        self.times: list[float] = []
+        server = self
+
+        class Handler(BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"
+
+            def do_POST(self) -> None:
+                self.rfile.read(int(self.headers.get("Content-Length", "0")))
+                server.times.append(time.monotonic())
+                first = len(server.times) == 1
+                self.send_response(429 if first else 200)
+                if first:
+                    self.send_header("Retry-After", retry_after)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+            def log_message(self, format: str, *args: Any) -> None:
+                pass
+
+        self.http = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.http.daemon_threads = True
+        self.port = int(self.http.server_address[1])
+
+    def __enter__(self) -> RetryAfterServer:
+        threading.Thread(target=self.http.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.http.shutdown()
+        self.http.server_close()
+
+
+def test_retry_after_is_obeyed_before_the_next_attempt() -> None:
+    with RetryAfterServer("1") as server:
+        dest = http_destination(port=server.port)
+        with pytest.raises(RetryableError, match=r"HTTP 429 Too Many Requests .*; Retry-After 1 s"):
+            dest.send(BATCH)
+        assert dest.send(BATCH) is None  # at once: the destination waits for the rest of the second
+    assert server.times[1] - server.times[0] >= 0.95
+
+
+def test_retry_after_as_a_date_is_capped_by_retry_after_max() -> None:
+    later = dt.datetime.now(dt.UTC) + dt.timedelta(hours=1)
+    with RetryAfterServer(later.strftime("%a, %d %b %Y %H:%M:%S GMT")) as server:
+        dest = http_destination(port=server.port, retry_after_max=0.5)
+        with pytest.raises(RetryableError, match=r"Retry-After 0.5 s"):
+            dest.send(BATCH)
+        assert dest.send(BATCH) is None
+    assert 0.45 <= server.times[1] - server.times[0] < 5
+
+
+def test_deactivation_ends_a_retry_after_wait() -> None:
+    with RetryAfterServer("60") as server:
+        dest = http_destination(port=server.port)
+        with pytest.raises(RetryableError):
+            dest.send(BATCH)
+        threading.Timer(0.2, dest.on_deactivate).start()
+        started = time.monotonic()
+        with pytest.raises(RetryableError, match="stopping while waiting"):
+            dest.send(BATCH)
+        assert time.monotonic() - started < 5
+
+
+# -- TLS with a private CA -------------------------------------------------------------------------------------
+
+KEY_PASSWORD = "client-key-pa55"
+
+
+@dataclass(frozen=True)
+class Pki:
+    ca: Path
+    server_crt: Path
+    server_key: Path
+    client_crt: Path
+    client_key: Path  # encrypted with KEY_PASSWORD
+    stranger_ca: Path  # a CA that signed none of these
+
+
+def _issue(
+    folder: Path, name: str, issuer: tuple[x509.Name, ec.EllipticCurvePrivateKey] | None, *, server: bool = False
+) -> tuple[x509.Name, ec.EllipticCurvePrivateKey, x509.Certificate]:
+    key = ec.generate_private_key(ec.SECP256R1())
+    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)])
+    issuer_name, issuer_key = issuer if issuer is not None else (subject, key)
+    now = dt.datetime.now(dt.UTC)
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(subject)
+        .issuer_name(issuer_name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + dt.timedelta(days=1))
+        .add_extension(x509.BasicConstraints(ca=issuer is None, path_length=None), critical=True)
+    )
+    if issuer is not None:
+        builder = builder.add_extension(
+            x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False
+        ).add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(issuer_key.public_key()), critical=False)
+    else:
+        builder = builder.add_extension(
+            x509.KeyUsage(False, False, False, False, False, True, True, False, False), critical=True
+        ).add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+    if server:
+        builder = builder.add_extension(
+            x509.SubjectAlternativeName([x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
+            critical=False,
+        )
+    certificate = builder.sign(issuer_key, hashes.SHA256())
+    (folder / f"{name}.crt").write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
+    return subject, key, certificate
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey, password: str | None = None) -> Path:
+    encryption: serialization.KeySerializationEncryption = (
+        serialization.BestAvailableEncryption(password.encode()) if password else serialization.NoEncryption()
+    )
+    path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, encryption))
+    return path
+
+
 @pytest.fixture(scope="module")
-def certificate(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    if shutil.which("openssl") is None:
-        pytest.skip("openssl not installed")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
     folder = tmp_path_factory.mktemp("tls")
-    cert, key = folder / "cert.pem", folder / "key.pem"
-    subprocess.run(
-        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=localhost",
-         "-addext", "subjectAltName=IP:127.0.0.1,DNS:localhost", "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True,
-    )  # fmt: skip
-    return cert, key
+    ca_name, ca_key, _ = _issue(folder, "ca", None)
+    _, server_key, _ = _issue(folder, "server", (ca_name, ca_key), server=True)
+    _, client_key, _ = _issue(folder, "client", (ca_name, ca_key))
+    _issue(folder, "stranger", None)
+    return Pki(
+        ca=folder / "ca.crt",
+        server_crt=folder / "server.crt",
+        server_key=_write_key(folder / "server.key", server_key),
+        client_crt=folder / "client.crt",
+        client_key=_write_key(folder / "client.key", client_key, KEY_PASSWORD),
+        stranger_ca=folder / "stranger.crt",
+    )
 
 
-def tls_receiver(certificate: tuple[Path, Path]) -> Receiver:
+def tls_receiver(pki: Pki, *, client_ca: Path | None = None) -> Receiver:
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-    context.load_cert_chain(str(certificate[0]), str(certificate[1]))
+    context.load_cert_chain(str(pki.server_crt), str(pki.server_key))
+    if client_ca is not None:  # mutual TLS: the server wants a client certificate of this CA
+        context.verify_mode = ssl.CERT_REQUIRED
+        context.load_verify_locations(str(client_ca))
     return Receiver(tls=context)
 
 
-def test_tls_with_the_servers_ca_file(certificate: tuple[Path, Path]) -> None:
-    with tls_receiver(certificate) as receiver:
-        dest = http_destination(port=receiver.port, tls=True, tls_ca_file=str(certificate[0]))
+def test_tls_with_the_servers_ca_file(pki: Pki) -> None:
+    with tls_receiver(pki) as receiver:
+        dest = http_destination(port=receiver.port, tls=True, tls_ca_file=str(pki.ca))
         assert dest.url.startswith("https://")
         assert dest.send(BATCH) is None
         assert dest.send(BATCH) is None
     assert len(receiver.records()) == 4
 
 
-def test_tls_refuses_an_unknown_certificate_unless_told_not_to_verify(certificate: tuple[Path, Path]) -> None:
-    with tls_receiver(certificate) as receiver:
+def test_tls_refuses_an_unknown_certificate_unless_told_not_to_verify(pki: Pki) -> None:
+    with tls_receiver(pki) as receiver:
         with pytest.raises(RetryableError, match=re.compile("certificate", re.IGNORECASE)):
             http_destination(port=receiver.port, tls=True).send(BATCH)
+        with pytest.raises(RetryableError, match=re.compile("certificate", re.IGNORECASE)):
+            http_destination(port=receiver.port, tls=True, tls_ca_file=str(pki.stranger_ca)).send(BATCH)
         assert http_destination(port=receiver.port, tls=True, tls_verify=False).send(BATCH) is None
     assert len(receiver.records()) == 2
+
+
+def test_tls_client_certificate_with_an_encrypted_key(pki: Pki) -> None:
+    with tls_receiver(pki, client_ca=pki.ca) as receiver:
+        with pytest.raises(RetryableError):
+            http_destination(port=receiver.port, tls=True, tls_ca_file=str(pki.ca)).send(BATCH)
+        dest = http_destination(
+            port=receiver.port,
+            tls=True,
+            tls_ca_file=str(pki.ca),
+            tls_crt_file=str(pki.client_crt),
+            tls_key_file=str(pki.client_key),
+            tls_key_passwd=KEY_PASSWORD,
+        )
+        assert dest.send(BATCH) is None
+    assert len(receiver.records()) == 2
+
+
+def test_a_wrong_key_password_fails_configure_without_quoting_it(pki: Pki) -> None:
+    with pytest.raises(ConfigError) as caught:
+        configure(
+            {
+                "tls": True,
+                "tls_crt_file": str(pki.client_crt),
+                "tls_key_file": str(pki.client_key),
+                "tls_key_passwd": "not-the-" + KEY_PASSWORD,
+            }
+        )
+    assert "destination_server.web.tls_crt_file: cannot load" in str(caught.value)
+    assert KEY_PASSWORD not in str(caught.value)

@@ -1,0 +1,377 @@
+"""Kinesis Streams destination: records put into an Amazon Kinesis data stream with PutRecords.
+
+Each batch from the destination server is split into PutRecords requests within the service's limits
+(500 records and 5 MiB per request, 1 MiB per record including its partition key). The service answers
+per record, so the outcome is per record too: records it failed (throughput exceeded, internal
+failure) are retried alone, the others are confirmed; a record bigger than Kinesis accepts is rejected
+alone. When a whole request fails — throttling, 5xx, network, and also a missing stream or refused
+credentials, which an operator can fix while the buffer keeps the records — the records are retried.
+
+Credentials come from boto3's default chain (environment, shared profile, instance or task role)
+unless ``aws_access_key_id``/``aws_secret_access_key`` are given; with ``role_arn`` those are only used
+to assume the role through STS, and the role's temporary credentials are refreshed before they expire.
+The secret key is never logged nor quoted in an error.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+import string
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import boto3
+import botocore.config
+import botocore.credentials
+import botocore.exceptions
+import botocore.session
+
+from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.errors import ConfigError
+from dc_core.params import param
+from dc_core.records import MalformedRecord, dump_record
+
+# The service's limits (Kinesis Data Streams quotas): a record's data plus its partition key, and a
+# PutRecords request's records and bytes (data plus partition keys).
+MAX_RECORD_BYTES = 1024 * 1024
+MAX_REQUEST_BYTES = 5 * 1024 * 1024
+MAX_REQUEST_RECORDS = 500
+MAX_PARTITION_KEY_CHARS = 256
+
+# Whole-request errors that say the request itself is malformed: sending it again cannot help.
+_REJECT_CODES = frozenset({"ValidationException", "InvalidArgumentException", "SerializationException"})
+# Whole-request errors about who is calling: fixed by an operator (keys, role, policy), not by the records.
+_CREDENTIAL_CODES = frozenset(
+    {
+        "AccessDeniedException",
+        "AccessDenied",
+        "UnrecognizedClientException",
+        "InvalidSignatureException",
+        "SignatureDoesNotMatch",
+        "ExpiredTokenException",
+        "ExpiredToken",
+        "InvalidClientTokenId",
+        "IncompleteSignature",
+        "MissingAuthenticationToken",
+    }
+)
+_NETWORK_ERRORS = (
+    botocore.exceptions.EndpointConnectionError,
+    botocore.exceptions.ConnectTimeoutError,
+    botocore.exceptions.ReadTimeoutError,
+    botocore.exceptions.ConnectionClosedError,
+)
+_CREDENTIALS_MISSING = (botocore.exceptions.NoCredentialsError, botocore.exceptions.PartialCredentialsError)
+
+_STREAM_NAME = re.compile(r"[a-zA-Z0-9_.-]{1,128}")
+_STREAM_ARN = re.compile(r"arn:aws[a-z-]*:kinesis:[a-z0-9-]+:\d{12}:stream/[a-zA-Z0-9_.-]{1,128}")
+_REGION = re.compile(r"[a-z]{2,}(-[a-z0-9]+)*(-\d+)?")
+_ROLE_ARN = re.compile(r"arn:aws[a-z-]*:iam::\d{12}:role/[\w+=,.@/-]+")
+_EXTERNAL_ID = re.compile(r"[\w+=,.@:/-]{2,1224}")
+# Fluent Bit's sub-second extensions of strftime in time_key_format.
+_FRACTIONS = {"%3N": 3, "%6N": 6, "%9N": 9, "%L": 9}
+
+
+def _stream_problem(stream: str) -> str | None:
+    ok = _STREAM_NAME.fullmatch(stream) or _STREAM_ARN.fullmatch(stream)
+    return None if ok else "a stream name (letters, digits, '_', '-', '.'; 1 to 128) or a stream ARN"
+
+
+def _region_problem(region: str) -> str | None:
+    return None if _REGION.fullmatch(region) else 'an AWS region such as "eu-west-1"'
+
+
+def _template_fields(template: str) -> list[str]:
+    """Names of the ``{key}`` fields of a partition key template; ValueError when it is not one."""
+    names = []
+    for _, name, spec, conversion in string.Formatter().parse(template):
+        if name is None:
+            continue
+        if not name or spec or conversion or any(c in name for c in ".[]"):
+            raise ValueError(name)
+        names.append(name)
+    return names
+
+
+def _template_problem(template: str) -> str | None:
+    try:
+        _template_fields(template)
+    except ValueError:
+        return 'a template of top-level keys such as "{name}" or "{name}-{robot_id}" (\'{{\' for a brace)'
+    return None if template else "a non-empty template"
+
+
+def _endpoint_url(value: str) -> str | None:
+    """Fluent Bit's ``endpoint`` is a host name (HTTPS); a URL is taken as is."""
+    if not value:
+        return None
+    return value if "://" in value else f"https://{value}"
+
+
+@dataclass(frozen=True, kw_only=True)
+class KinesisParams:
+    region: str = param("us-east-1", check=_region_problem, doc="AWS region of the stream")
+    stream: str = param(check=_stream_problem, doc="Name (or ARN) of the Kinesis data stream")
+    partition_key: str = param(
+        "{name}",
+        check=_template_problem,
+        doc="Partition key template over the record's top-level keys; the record_id when a key is missing",
+    )
+    log_key: str = param("", doc="Send only this key's value instead of the whole record; empty: the whole record")
+    time_key: str = param(
+        "date",
+        aliases=("json_date_key",),
+        doc="The common time_key, read here for time_key_format (one value for both)",
+    )
+    time_key_format: str = param(
+        "", doc="strftime format (UTC; %3N, %6N, %9N, %L for fractions) of the time key; empty: time_format"
+    )
+    endpoint: str = param("", doc="Kinesis endpoint (host name or URL); empty: the region's")
+    sts_endpoint: str = param("", doc="STS endpoint for role_arn (host name or URL); empty: the region's")
+    role_arn: str = param("", doc="IAM role to assume for the puts; empty: use the credentials as they are")
+    external_id: str = param("", doc="External ID required by the role's trust policy (with role_arn)")
+    aws_access_key_id: str = param("", doc="Access key ID; empty: boto3's default chain (env, profile, instance role)")
+    aws_secret_access_key: str = param("", secret=True, doc="Secret access key with aws_access_key_id (never logged)")
+    auto_retry_requests: bool = param(True, doc="Retry a failed request once at once, before the backoff")
+    timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
+
+    def __post_init__(self) -> None:
+        if bool(self.aws_access_key_id) != bool(self.aws_secret_access_key):
+            raise ConfigError(
+                "aws_secret_access_key" if self.aws_access_key_id else "aws_access_key_id",
+                "set aws_access_key_id and aws_secret_access_key together (or neither: boto3's default chain)",
+            )
+        if self.role_arn and not _ROLE_ARN.fullmatch(self.role_arn):
+            raise ConfigError(
+                "role_arn", f'expected an IAM role ARN (arn:aws:iam::<account>:role/<name>), got "{self.role_arn}"'
+            )
+        if self.external_id and not self.role_arn:
+            raise ConfigError("external_id", "set role_arn too (the external ID goes with the role to assume)")
+        if self.external_id and not _EXTERNAL_ID.fullmatch(self.external_id):
+            raise ConfigError("external_id", "expected 2 to 1224 characters among letters, digits and +=,.@:/-")
+        if self.sts_endpoint and not self.role_arn:
+            raise ConfigError("sts_endpoint", "set role_arn too (STS is only called to assume a role)")
+
+
+class _Unsendable(Exception):
+    """This record cannot be put into Kinesis as it is: rejected alone, with the reason."""
+
+
+class KinesisStreams(Destination[KinesisParams]):
+    """Put records into an Amazon Kinesis data stream (PutRecords); failed records are retried alone."""
+
+    def __init__(self, context: Any, params: KinesisParams) -> None:
+        super().__init__(context, params)
+        self._client: Any = None
+        self._fields = _template_fields(params.partition_key)
+        self._last_problem = ""
+        self._lock = threading.Lock()
+        self.where = ""
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def on_configure(self) -> None:
+        p = self.params
+        endpoint = _endpoint_url(p.endpoint)
+        # Named in every message: which stream, where, so an operator sees what to fix.
+        self.where = f"stream {p.stream} in {p.region}" + (f" at {endpoint}" if endpoint else "")
+        config = botocore.config.Config(
+            region_name=p.region,
+            connect_timeout=p.timeout,
+            read_timeout=p.timeout,
+            # Fluent Bit's auto_retry_requests: one immediate retry; the destination server's backoff does the rest.
+            retries={"total_max_attempts": 2 if p.auto_retry_requests else 1, "mode": "standard"},
+            user_agent_extra="dc-destinations",
+        )
+        # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
+        self._client = self._session().client("kinesis", endpoint_url=endpoint, config=config)
+
+    def on_activate(self) -> None:
+        # The stream is not probed here: an unreachable service must not hold up activation, and the
+        # first batch says clearly what is wrong.
+        self.context.logger.info(f"putting records into {self.where}, partition key {self.params.partition_key!r}")
+
+    def on_cleanup(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def _session(self) -> Any:
+        p = self.params
+        base = boto3.session.Session(
+            aws_access_key_id=p.aws_access_key_id or None,
+            aws_secret_access_key=p.aws_secret_access_key or None,
+            region_name=p.region,
+        )
+        if not p.role_arn:
+            return base
+        sts = base.client(
+            "sts",
+            endpoint_url=_endpoint_url(p.sts_endpoint),
+            config=botocore.config.Config(region_name=p.region, connect_timeout=p.timeout, read_timeout=p.timeout),
+        )
+        session_name = re.sub(r"[^\w+=,.@-]", "-", f"dc-{self.context.name}")[:64]
+
+        def assume_role() -> dict[str, str]:
+            request = {"RoleArn": p.role_arn, "RoleSessionName": session_name}
+            if p.external_id:
+                request["ExternalId"] = p.external_id
+            credentials = sts.assume_role(**request)["Credentials"]
+            return {
+                "access_key": credentials["AccessKeyId"],
+                "secret_key": credentials["SecretAccessKey"],
+                "token": credentials["SessionToken"],
+                "expiry_time": credentials["Expiration"].isoformat(),
+            }
+
+        # Deferred: STS is called with the first put, and again shortly before the credentials expire.
+        core = botocore.session.get_session()
+        core._credentials = botocore.credentials.DeferredRefreshableCredentials(
+            refresh_using=assume_role, method="assume-role"
+        )
+        return boto3.session.Session(botocore_session=core, region_name=p.region)
+
+    # -- sending -----------------------------------------------------------------------------------
+    def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        outcome = SendOutcome()
+        requests: list[list[tuple[int, bytes, str]]] = [[]]
+        request_bytes = 0
+        for i, record in enumerate(batch):
+            try:
+                data, key = self._entry(record)
+            except (_Unsendable, MalformedRecord) as exc:
+                outcome.reject[i] = str(exc)
+                continue
+            size = len(data) + len(key.encode("utf-8"))
+            if size > MAX_RECORD_BYTES:
+                outcome.reject[i] = (
+                    f"record of {size} bytes with its partition key, above Kinesis' {MAX_RECORD_BYTES} ({self.where})"
+                )
+                continue
+            if len(requests[-1]) >= MAX_REQUEST_RECORDS or request_bytes + size > MAX_REQUEST_BYTES:
+                requests.append([])
+                request_bytes = 0
+            requests[-1].append((i, data, key))
+            request_bytes += size
+        with self._lock:
+            for n, entries in enumerate(requests):
+                if not entries:
+                    continue
+                try:
+                    results = self._put(entries)
+                except RetryableError as exc:
+                    if n == 0 and not outcome.reject:
+                        raise  # nothing of the batch went: the whole batch is retried
+                    # This request and the ones not sent yet are retried; those already put are confirmed.
+                    for later in requests[n:]:
+                        outcome.retry.update((i, str(exc)) for i, _, _ in later)
+                    break
+                except RejectedError as exc:
+                    outcome.reject.update((i, str(exc)) for i, _, _ in entries)
+                    continue
+                for (i, _, _), result in zip(entries, results, strict=True):
+                    if result.get("ErrorCode"):
+                        # Throughput exceeded, internal failure, a KMS hiccup: the service's per-record
+                        # refusals all pass with time, so the record is retried alone.
+                        outcome.retry[i] = f"{result['ErrorCode']}: {result.get('ErrorMessage', '')} ({self.where})"
+        if outcome.retry or outcome.reject:
+            return outcome
+        return None
+
+    def _entry(self, record: OutgoingRecord) -> tuple[bytes, str]:
+        p = self.params
+        data = record.data
+        if p.time_key_format and p.time_key in data:
+            data = {**data, p.time_key: _strftime(record.stamp_ns, p.time_key_format)}
+        if p.log_key:
+            if p.log_key not in data:
+                raise _Unsendable(f"no key {p.log_key!r} (log_key) in the record")
+            value = data[p.log_key]
+            text = value if isinstance(value, str) else dump_record(value)
+        else:
+            text = record.to_json() if data is record.data else dump_record(data)
+        # One record per line, as Fluent Bit's kinesis_streams output writes them: consumers that
+        # concatenate records (Firehose to S3) keep them apart.
+        return (text + "\n").encode("utf-8"), self._partition_key(record, data)
+
+    def _partition_key(self, record: OutgoingRecord, data: dict[str, Any]) -> str:
+        values: dict[str, str] = {}
+        for name in self._fields:
+            value = data.get(name)
+            if value is None or value == "":
+                return record.record_id
+            values[name] = value if isinstance(value, str) else dump_record(value)
+        key = self.params.partition_key.format_map(values)
+        # Kinesis takes 1 to 256 characters; cut, not hashed, so the same record keeps the same shard.
+        return key[:MAX_PARTITION_KEY_CHARS] or record.record_id
+
+    def _put(self, entries: list[tuple[int, bytes, str]]) -> list[dict[str, Any]]:
+        p = self.params
+        target = {"StreamARN": p.stream} if p.stream.startswith("arn:") else {"StreamName": p.stream}
+        try:
+            response = self._client.put_records(
+                Records=[{"Data": data, "PartitionKey": key} for _, data, key in entries], **target
+            )
+        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+            retryable, message = self._describe(exc)
+            self._problem(message)
+            if retryable:
+                raise RetryableError(message) from None
+            raise RejectedError(message) from None
+        if self._last_problem:
+            self.context.logger.info(f"{self.where}: records accepted again")
+            self._last_problem = ""
+        results: list[dict[str, Any]] = response.get("Records", [])
+        if len(results) != len(entries):
+            raise RetryableError(
+                f"PutRecords answered {len(results)} results for {len(entries)} records ({self.where})"
+            )
+        return results
+
+    # -- messages ----------------------------------------------------------------------------------
+    def _describe(self, exc: Exception) -> tuple[bool, str]:
+        """Whether a whole-request failure may pass, and what to tell the operator."""
+        p = self.params
+        if isinstance(exc, botocore.exceptions.ClientError):
+            error = exc.response.get("Error", {})
+            code, text = str(error.get("Code", "")), str(error.get("Message", ""))
+            status = exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0)
+            if exc.operation_name == "AssumeRole":
+                return True, self._scrub(f"cannot assume role {p.role_arn}: {code}: {text} (for {self.where})")
+            if code == "ResourceNotFoundException":
+                return True, self._scrub(f"no {self.where}: create it or correct `stream` / `region` ({text})")
+            if code in _CREDENTIAL_CODES:
+                return True, self._scrub(
+                    f"AWS refused the credentials for {self.where}: {code}: {text} "
+                    "(check the access key, role_arn and the policy's kinesis:PutRecords)"
+                )
+            if code in _REJECT_CODES:
+                return False, self._scrub(f"Kinesis refused the request: {code}: {text} ({self.where})")
+            return True, self._scrub(f"PutRecords failed: {code or status}: {text} ({self.where})")
+        if isinstance(exc, _CREDENTIALS_MISSING):
+            return True, (
+                f"no AWS credentials for {self.where}: set them in the environment, a profile, an instance "
+                "role, or aws_access_key_id / aws_secret_access_key"
+            )
+        if isinstance(exc, _NETWORK_ERRORS):
+            return True, self._scrub(f"cannot reach Kinesis for {self.where}: {exc}")
+        return True, self._scrub(f"PutRecords failed: {type(exc).__name__}: {exc} ({self.where})")
+
+    def _problem(self, message: str) -> None:
+        """Log a whole-request failure once when it starts (the server logs the retries per burst)."""
+        if message != self._last_problem:
+            self.context.logger.error(message)
+            self._last_problem = message
+
+    def _scrub(self, text: str) -> str:
+        secret = self.params.aws_secret_access_key
+        return text.replace(secret, "***") if secret else text
+
+
+def _strftime(stamp_ns: int, fmt: str) -> str:
+    seconds, nanos = divmod(stamp_ns, 1_000_000_000)
+    for token, digits in _FRACTIONS.items():
+        fmt = fmt.replace(token, f"{nanos:09d}"[:digits])
+    return dt.datetime.fromtimestamp(seconds, tz=dt.UTC).strftime(fmt)

@@ -1,0 +1,315 @@
+"""Slack destination: records posted as messages to a Slack incoming webhook, at most one message a second.
+
+A message carries up to ``max_records_per_message`` records, one line each from ``template``.
+Slack allows an incoming webhook about one message per second and answers ``429`` with
+``Retry-After`` beyond that; this destination keeps to ``rate`` itself and honours ``Retry-After``
+before posting again. It waits inside ``send`` (which runs on the destination's own thread) for at
+most a few seconds, then hands what is left back to the buffer to be retried.
+
+The webhook URL is a credential (whoever has it can post to the channel): it never appears in a
+log, an error, ``last_error``, a dead letter or a repr; messages show ``https://hooks.slack.com/***``.
+"""
+
+from __future__ import annotations
+
+import email.utils
+import http.client
+import json
+import string
+import threading
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any
+
+from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.errors import ConfigError
+from dc_core.params import param
+
+# Longest wait inside one send(): longer would hold up the destination's stop and hide progress.
+SEND_BUDGET_S = 5.0
+# Slack cuts a message at 40,000 characters; a line longer than this is cut with "…".
+LINE_CHARS = 3000
+RETRY_AFTER_DEFAULT_S = 1.0
+RETRY_AFTER_MAX_S = 3600.0
+_BODY_READ_LIMIT = 64 * 1024
+_EXCERPT_CHARS = 200
+# Statuses that say "not now": the same message may be accepted later.
+_RETRYABLE_STATUSES = frozenset({408, 429})
+
+
+def _webhook_problem(url: str) -> str | None:
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname or any(c.isspace() for c in url):
+        return "an https:// URL of a Slack incoming webhook"
+    return None
+
+
+def _template_problem(template: str) -> str | None:
+    try:
+        list(string.Formatter().parse(template))
+    except ValueError as exc:
+        return f"a template with balanced braces ({exc}; write {{{{ and }}}} for literal braces)"
+    return None
+
+
+@dataclass(frozen=True, kw_only=True)
+class SlackParams:
+    webhook: str = param(secret=True, doc="Slack incoming-webhook URL (a credential: never logged)")
+    template: str = param(
+        "", check=_template_problem, doc='Text of a record, e.g. "{name}: {cpu.average:.1f} %"; empty: a summary'
+    )
+    max_records_per_message: int = param(10, minimum=1, maximum=100, doc="Records per message, one line each")
+    rate: float = param(1.0, minimum=0.01, maximum=100, doc="Most messages per second (Slack allows 1)")
+    timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read or write")
+
+    def __post_init__(self) -> None:
+        # Checked here rather than with `check=`: its message would quote the value, the secret.
+        expected = _webhook_problem(self.webhook)
+        if expected is not None:
+            raise ConfigError("webhook", f"expected {expected} (the value is not shown: it is a secret)")
+
+
+class _Missing:
+    """A template field the record lacks: left in the text as written, so the message shows what is missing."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __format__(self, spec: str) -> str:
+        return "{" + self.name + (f":{spec}" if spec else "") + "}"
+
+    def __str__(self) -> str:
+        return "{" + self.name + "}"
+
+    __repr__ = __str__
+
+
+class _RecordFormatter(string.Formatter):
+    """``str.format`` over a flat mapping: ``{cpu.average}`` is the key "cpu.average", not an attribute."""
+
+    def get_field(self, field_name: str, args: Sequence[Any], kwargs: Mapping[str, Any]) -> tuple[Any, str]:
+        return kwargs.get(field_name, _Missing(field_name)), field_name
+
+    def format_field(self, value: Any, format_spec: str) -> str:
+        if isinstance(value, _Missing):
+            return format(value, format_spec)
+        if not format_spec and (value is None or isinstance(value, (bool, dict, list))):
+            return escape(json.dumps(value, ensure_ascii=False, separators=(",", ":")))
+        return escape(super().format_field(value, format_spec))
+
+
+def escape(text: str) -> str:
+    """Slack's three control characters: a record value must not become a link or an @channel."""
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def flatten(data: Mapping[str, Any]) -> dict[str, Any]:
+    """Every key of the record, nested ones by dotted path too: ``{"cpu": {"average": 3}}`` gives
+    "cpu" and "cpu.average"; list items are "list.0", "list.1"..."""
+    out: dict[str, Any] = {}
+
+    def walk(prefix: str, value: Any) -> None:
+        out[prefix] = value
+        children = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+        for key, child in children:
+            walk(f"{prefix}.{key}", child)
+
+    for key, value in data.items():
+        walk(str(key), value)
+    return out
+
+
+def _stamp(stamp_ns: int) -> str:
+    return datetime.fromtimestamp(stamp_ns / 1e9, UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def summary(record: OutgoingRecord) -> str:
+    """The default text: "`cpu` at 2025-03-01T11:08:26Z: {...the record...}"."""
+    name = record.data.get("name") or record.topic.rsplit("/", 1)[-1] or record.topic
+    return f"`{escape(str(name))}` at {_stamp(record.stamp_ns)}: {escape(record.to_json())}"
+
+
+def _shorten(line: str) -> str:
+    return line if len(line) <= LINE_CHARS else line[: LINE_CHARS - 1] + "…"
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    """urllib would turn a redirected POST into a GET without the message: a redirect is an answer instead."""
+
+    def redirect_request(self, *args: Any, **kwargs: Any) -> None:
+        return None
+
+
+class Slack(Destination[SlackParams]):
+    """Post records as messages to a Slack incoming webhook, at most one message a second."""
+
+    def __init__(self, context: Any, params: SlackParams) -> None:
+        super().__init__(context, params)
+        self._formatter = _RecordFormatter()
+        self._opener = urllib.request.build_opener(_NoRedirect())
+        self._secrets: list[str] = []
+        self._stopping = threading.Event()
+        self._next_post_at = 0.0  # monotonic: the rate's next free slot
+        self._not_before = 0.0  # monotonic: Slack's Retry-After
+        self._template_failing = False
+        self.url = ""
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def on_configure(self) -> None:
+        parts = urllib.parse.urlsplit(self.params.webhook)
+        self.url = f"{parts.scheme}://{parts.netloc.rpartition('@')[2]}/***"
+        # The path (T…/B…/token) and query are the credential; its long pieces are masked too,
+        # should a proxy or a server quote part of the request back.
+        secret = self.params.webhook.split(parts.netloc, 1)[1]
+        pieces = [p for p in secret.replace("?", "/").replace("&", "/").split("/") if len(p) >= 8]
+        self._secrets = sorted({self.params.webhook, secret, *pieces} - {"", "/"}, key=len, reverse=True)
+
+    def on_activate(self) -> None:
+        self._stopping.clear()
+        self.context.logger.info(f"posting records to the Slack webhook {self.url}")
+
+    def on_deactivate(self) -> None:
+        self._stopping.set()  # a send waiting for its slot returns at once, its records retried
+
+    def on_cleanup(self) -> None:
+        self.on_deactivate()
+
+    # -- sending -----------------------------------------------------------------------------------
+    def text(self, record: OutgoingRecord) -> str:
+        """The line of one record: ``template`` over its keys, or the summary."""
+        if not self.params.template:
+            return _shorten(summary(record))
+        fields = {
+            "json": record.to_json(),
+            "data": record.to_json(),
+            "topic": record.topic,
+            "stamp": _stamp(record.stamp_ns),
+            "record_id": record.record_id,
+        }
+        fields.update(flatten(record.data))  # a key of the record wins over the extras of the same name
+        try:
+            line = self._formatter.vformat(self.params.template, (), fields)
+        except (ValueError, TypeError, KeyError, IndexError) as exc:
+            # "{name:.1f}" on a string, say: the record still goes out, as the summary.
+            if not self._template_failing:
+                self.context.logger.warning(
+                    f"template does not fit a record of {record.topic} ({exc}); sending the summary instead"
+                )
+            self._template_failing = True
+            return _shorten(summary(record))
+        return _shorten(line)
+
+    def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        deadline = time.monotonic() + SEND_BUDGET_S
+        size = self.params.max_records_per_message
+        chunks = [range(start, min(start + size, len(batch))) for start in range(0, len(batch), size)]
+        retry: dict[int, str] = {}
+        reject: dict[int, str] = {}
+        posted = 0
+        for n, chunk in enumerate(chunks):
+            rest = [i for c in chunks[n:] for i in c]
+            wait_reason = self._wait_for_slot(deadline)
+            if wait_reason is not None:
+                retry.update(dict.fromkeys(rest, wait_reason))
+                break
+            text = "\n".join(self.text(batch[i]) for i in chunk)
+            outcome, reason = self._post(text)
+            if outcome == "sent":
+                posted += 1
+            elif outcome == "retry":
+                retry.update(dict.fromkeys(rest, reason))
+                break
+            elif outcome == "reject_message":  # this message only (400 invalid_payload): the next may pass
+                reject.update(dict.fromkeys(chunk, reason))
+            else:  # the webhook is gone (403, 404, 410): no message will pass
+                reject.update(dict.fromkeys(rest, reason))
+                break
+        if not retry and not reject:
+            return None
+        if len(retry) == len(batch):
+            raise RetryableError(next(iter(retry.values())))
+        if len(reject) == len(batch):
+            raise RejectedError(next(iter(reject.values())))
+        return SendOutcome(retry=retry, reject=reject)
+
+    def _wait_for_slot(self, deadline: float) -> str | None:
+        """Wait for the rate's next slot and Slack's Retry-After; why not, when that is past ``deadline``."""
+        free_at = max(self._next_post_at, self._not_before)
+        now = time.monotonic()
+        if free_at > deadline:
+            if self._not_before > now:
+                return f"Slack rate limited the webhook: waiting {self._not_before - now:.1f} s more ({self.url})"
+            return f"held back by rate {self.params.rate:g} message(s)/s: the rest of the batch follows ({self.url})"
+        if free_at > now and self._stopping.wait(free_at - now):
+            return f"destination stopping before its turn to post ({self.url})"
+        return None
+
+    def _post(self, text: str) -> tuple[str, str]:
+        """POST one message: ("sent" | "retry" | "reject_message" | "reject_all", reason)."""
+        body = json.dumps({"text": text}, ensure_ascii=False).encode("utf-8")
+        request = urllib.request.Request(
+            self.params.webhook,
+            data=body,
+            headers={"Content-Type": "application/json; charset=utf-8", "User-Agent": "dc-destinations"},
+            method="POST",
+        )
+        self._next_post_at = time.monotonic() + 1.0 / self.params.rate
+        try:
+            with self._opener.open(request, timeout=self.params.timeout) as response:
+                response.read(_BODY_READ_LIMIT)
+                return "sent", ""
+        except urllib.error.HTTPError as exc:
+            status, reason = exc.code, exc.reason
+            excerpt = self._excerpt(exc.read(_BODY_READ_LIMIT))
+            retry_after = exc.headers.get("Retry-After") if exc.headers is not None else None
+            exc.close()
+        # ValueError: http.client.InvalidURL; HTTPException: an answer that is not HTTP (BadStatusLine).
+        except (urllib.error.URLError, OSError, ValueError, http.client.HTTPException) as exc:
+            detail = getattr(exc, "reason", None) or exc
+            if isinstance(detail, TimeoutError) or isinstance(exc, TimeoutError):
+                detail = f"no answer within {self.params.timeout:g} s"
+            return "retry", self._scrub(f"cannot POST to the Slack webhook {self.url}: {detail}")
+        message = self._scrub(f"Slack answered HTTP {status} {reason}" + (f": {excerpt}" if excerpt else ""))
+        if status == 429:
+            delay = _retry_after_seconds(retry_after)
+            self._not_before = time.monotonic() + delay
+            return "retry", f"{message}; retrying after {delay:g} s ({self.url})"
+        if status in _RETRYABLE_STATUSES or status >= 500:
+            return "retry", f"{message} ({self.url})"
+        if status == 400:
+            return "reject_message", f"{message} ({self.url})"
+        return "reject_all", f"{message} ({self.url})"
+
+    # -- messages ----------------------------------------------------------------------------------
+    def _excerpt(self, data: bytes) -> str:
+        text = " ".join(data.decode("utf-8", errors="replace").split())
+        if len(text) > _EXCERPT_CHARS:
+            text = text[: _EXCERPT_CHARS - 1] + "…"
+        return self._scrub(text)
+
+    def _scrub(self, text: str) -> str:
+        for secret in self._secrets:
+            text = text.replace(secret, "***")
+        return text
+
+
+def _retry_after_seconds(value: str | None) -> float:
+    """Retry-After as seconds: a number, or an HTTP date; 1 s when absent or unreadable."""
+    if not value:
+        return RETRY_AFTER_DEFAULT_S
+    try:
+        seconds = float(value)
+    except ValueError:
+        try:
+            when = email.utils.parsedate_to_datetime(value)
+        except (TypeError, ValueError):
+            return RETRY_AFTER_DEFAULT_S
+        if when.tzinfo is None:
+            when = when.replace(tzinfo=UTC)
+        seconds = (when - datetime.now(UTC)).total_seconds()
+    return min(max(seconds, 0.0), RETRY_AFTER_MAX_S)
