@@ -23,11 +23,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import boto3
-import botocore.config
-import botocore.credentials
-import botocore.exceptions
-import botocore.session
+try:
+    import boto3
+    import botocore.config
+    import botocore.credentials
+    import botocore.exceptions
+    import botocore.session
+except ImportError as exc:  # an optional dependency: say which extra brings it
+    raise ImportError(f"the KinesisStreams destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError

@@ -20,8 +20,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import paho.mqtt.client as mqtt
-from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
+try:
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
+except ImportError as exc:  # an optional dependency: say which extra brings it
+    raise ImportError(f"the MQTT destination needs paho-mqtt: pip install 'ros2-dc[mqtt]' ({exc})") from exc
 
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
