@@ -4,6 +4,7 @@
 #   make test-deps   Debian packages the tests need (installed only if missing)
 #   make test        ruff, mypy, pytest
 #   make run         dc-bringup with params/default.yaml (PARAMS=... to change)
+#   make servers     the local PostgreSQL, S3 and InfluxDB the storage destinations and demos use
 #   make clean       remove build/ and the install stamps (keeps the venv)
 #   make distclean   clean + remove the venv
 #
@@ -30,9 +31,9 @@ ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces \
 	ros-jazzy-ament-cmake-ros ros-jazzy-ament-cmake-gmock ros-jazzy-ament-cmake-gtest \
 	ros-jazzy-ament-cmake-pytest ros-jazzy-python-cmake-module
 
-# Debian packages needed by the tests (planned: postgresql influxdb): the zbar library the Camera's
-# 1D-code reader loads, ffmpeg for IpCamera, the mosquitto broker for the MQTT destination.
-TEST_DEBS := libzbar0 ffmpeg mosquitto
+# Debian packages needed by the tests: the zbar library the Camera's 1D-code reader loads, ffmpeg for
+# IpCamera, the servers the destinations deliver to (mosquitto, PostgreSQL, InfluxDB 1.x).
+TEST_DEBS := libzbar0 ffmpeg mosquitto postgresql influxdb
 
 IFACE_SRCS := dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
 	$(wildcard dc_interfaces/msg/*.msg dc_interfaces/srv/*.srv dc_interfaces/action/*.action)
@@ -50,7 +51,7 @@ unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
 SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
 
-.PHONY: install test-deps run test clean distclean
+.PHONY: install test-deps run test servers clean distclean
 
 install: $(VENV)/.stamp-dc
 
@@ -93,7 +94,7 @@ $(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
 
 # 3. DC itself, editable, with the test tools.
 $(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml
-	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack]'
+	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql]'
 	touch $@
 
 test-deps:
@@ -112,6 +113,10 @@ run: install
 	@mkdir -p $(ROS_LOG_DIR)
 	@ROS_AUTOMATIC_DISCOVERY_RANGE=$(RUN_DISCOVERY_RANGE) ROS_LOG_DIR=$(ROS_LOG_DIR) \
 		$(VENV)/bin/dc-bringup $(PARAMS)
+
+# The local PostgreSQL, S3 (SeaweedFS) and InfluxDB of the storage demos, until Ctrl-C.
+servers: install test-deps
+	$(VENV)/bin/dc servers run
 
 test: install test-deps
 	$(VENV)/bin/ruff check .

@@ -351,6 +351,16 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     return 0 if response.success else 1
 
 
+def cmd_servers(args: argparse.Namespace) -> int:
+    from dc_bringup.local_servers.run import SERVER_NAMES, main
+
+    unknown = [n for n in args.names if n not in SERVER_NAMES]
+    if unknown:
+        print(f"dc servers: unknown server(s) {', '.join(unknown)} (known: {', '.join(SERVER_NAMES)})", file=sys.stderr)
+        return 2
+    return main(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dc", description="DC robot data collection: tools")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -425,6 +435,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the manager and its answer")
     p.set_defaults(func=cmd_lifecycle)
+
+    p = sub.add_parser(
+        "servers", help="run the local PostgreSQL, S3 (SeaweedFS) and InfluxDB for trying DC, until Ctrl-C"
+    )
+    p.add_argument("action", choices=["run"], help="run: start them, wait for Ctrl-C, stop them")
+    p.add_argument("names", nargs="*", metavar="server", help="postgres, s3, influxdb (default: all three)")
+    p.add_argument("--state-dir", default="var/dc/servers", help="their data, logs and settings.yaml")
+    p.set_defaults(func=cmd_servers)
 
     # Listed for `dc --help`; main() hands `dc sim ...` to the simulator's own parser.
     sub.add_parser("sim", help="a simulated robot: odometry, TF, /map, /cmd_vel (dc sim --help)", add_help=False)

@@ -24,18 +24,23 @@ from dataclasses import dataclass
 from typing import Any
 
 try:
-    import boto3
     import botocore.config
-    import botocore.credentials
     import botocore.exceptions
-    import botocore.session
 except ImportError as exc:  # an optional dependency: say which extra brings it
     raise ImportError(f"the KinesisStreams destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
-from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_core.records import MalformedRecord, dump_record
+from dc_destinations.aws import (
+    CREDENTIAL_CODES,
+    CREDENTIALS_MISSING,
+    NETWORK_ERRORS,
+    aws_session,
+    check_credentials,
+    endpoint_url,
+    region_problem,
+)
 
 # The service's limits (Kinesis Data Streams quotas): a record's data plus its partition key, and a
 # PutRecords request's records and bytes (data plus partition keys).
@@ -46,34 +51,8 @@ MAX_PARTITION_KEY_CHARS = 256
 
 # Whole-request errors that say the request itself is malformed: sending it again cannot help.
 _REJECT_CODES = frozenset({"ValidationException", "InvalidArgumentException", "SerializationException"})
-# Whole-request errors about who is calling: fixed by an operator (keys, role, policy), not by the records.
-_CREDENTIAL_CODES = frozenset(
-    {
-        "AccessDeniedException",
-        "AccessDenied",
-        "UnrecognizedClientException",
-        "InvalidSignatureException",
-        "SignatureDoesNotMatch",
-        "ExpiredTokenException",
-        "ExpiredToken",
-        "InvalidClientTokenId",
-        "IncompleteSignature",
-        "MissingAuthenticationToken",
-    }
-)
-_NETWORK_ERRORS = (
-    botocore.exceptions.EndpointConnectionError,
-    botocore.exceptions.ConnectTimeoutError,
-    botocore.exceptions.ReadTimeoutError,
-    botocore.exceptions.ConnectionClosedError,
-)
-_CREDENTIALS_MISSING = (botocore.exceptions.NoCredentialsError, botocore.exceptions.PartialCredentialsError)
-
 _STREAM_NAME = re.compile(r"[a-zA-Z0-9_.-]{1,128}")
 _STREAM_ARN = re.compile(r"arn:aws[a-z-]*:kinesis:[a-z0-9-]+:\d{12}:stream/[a-zA-Z0-9_.-]{1,128}")
-_REGION = re.compile(r"[a-z]{2,}(-[a-z0-9]+)*(-\d+)?")
-_ROLE_ARN = re.compile(r"arn:aws[a-z-]*:iam::\d{12}:role/[\w+=,.@/-]+")
-_EXTERNAL_ID = re.compile(r"[\w+=,.@:/-]{2,1224}")
 # Fluent Bit's sub-second extensions of strftime in time_key_format.
 _FRACTIONS = {"%3N": 3, "%6N": 6, "%9N": 9, "%L": 9}
 
@@ -81,10 +60,6 @@ _FRACTIONS = {"%3N": 3, "%6N": 6, "%9N": 9, "%L": 9}
 def _stream_problem(stream: str) -> str | None:
     ok = _STREAM_NAME.fullmatch(stream) or _STREAM_ARN.fullmatch(stream)
     return None if ok else "a stream name (letters, digits, '_', '-', '.'; 1 to 128) or a stream ARN"
-
-
-def _region_problem(region: str) -> str | None:
-    return None if _REGION.fullmatch(region) else 'an AWS region such as "eu-west-1"'
 
 
 def _template_fields(template: str) -> list[str]:
@@ -107,16 +82,9 @@ def _template_problem(template: str) -> str | None:
     return None if template else "a non-empty template"
 
 
-def _endpoint_url(value: str) -> str | None:
-    """Fluent Bit's ``endpoint`` is a host name (HTTPS); a URL is taken as is."""
-    if not value:
-        return None
-    return value if "://" in value else f"https://{value}"
-
-
 @dataclass(frozen=True, kw_only=True)
 class KinesisParams:
-    region: str = param("us-east-1", check=_region_problem, doc="AWS region of the stream")
+    region: str = param("us-east-1", check=region_problem, doc="AWS region of the stream")
     stream: str = param(check=_stream_problem, doc="Name (or ARN) of the Kinesis data stream")
     partition_key: str = param(
         "{name}",
@@ -142,21 +110,9 @@ class KinesisParams:
     timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
 
     def __post_init__(self) -> None:
-        if bool(self.aws_access_key_id) != bool(self.aws_secret_access_key):
-            raise ConfigError(
-                "aws_secret_access_key" if self.aws_access_key_id else "aws_access_key_id",
-                "set aws_access_key_id and aws_secret_access_key together (or neither: boto3's default chain)",
-            )
-        if self.role_arn and not _ROLE_ARN.fullmatch(self.role_arn):
-            raise ConfigError(
-                "role_arn", f'expected an IAM role ARN (arn:aws:iam::<account>:role/<name>), got "{self.role_arn}"'
-            )
-        if self.external_id and not self.role_arn:
-            raise ConfigError("external_id", "set role_arn too (the external ID goes with the role to assume)")
-        if self.external_id and not _EXTERNAL_ID.fullmatch(self.external_id):
-            raise ConfigError("external_id", "expected 2 to 1224 characters among letters, digits and +=,.@:/-")
-        if self.sts_endpoint and not self.role_arn:
-            raise ConfigError("sts_endpoint", "set role_arn too (STS is only called to assume a role)")
+        check_credentials(
+            self.aws_access_key_id, self.aws_secret_access_key, self.role_arn, self.external_id, self.sts_endpoint
+        )
 
 
 class _Unsendable(Exception):
@@ -177,7 +133,7 @@ class KinesisStreams(Destination[KinesisParams]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         p = self.params
-        endpoint = _endpoint_url(p.endpoint)
+        endpoint = endpoint_url(p.endpoint)
         # Named in every message: which stream, where, so an operator sees what to fix.
         self.where = f"stream {p.stream} in {p.region}" + (f" at {endpoint}" if endpoint else "")
         config = botocore.config.Config(
@@ -203,38 +159,16 @@ class KinesisStreams(Destination[KinesisParams]):
 
     def _session(self) -> Any:
         p = self.params
-        base = boto3.session.Session(
-            aws_access_key_id=p.aws_access_key_id or None,
-            aws_secret_access_key=p.aws_secret_access_key or None,
-            region_name=p.region,
+        return aws_session(
+            name=self.context.name,
+            region=p.region,
+            access_key=p.aws_access_key_id,
+            secret_key=p.aws_secret_access_key,
+            role_arn=p.role_arn,
+            external_id=p.external_id,
+            sts_endpoint=p.sts_endpoint,
+            timeout=p.timeout,
         )
-        if not p.role_arn:
-            return base
-        sts = base.client(
-            "sts",
-            endpoint_url=_endpoint_url(p.sts_endpoint),
-            config=botocore.config.Config(region_name=p.region, connect_timeout=p.timeout, read_timeout=p.timeout),
-        )
-        session_name = re.sub(r"[^\w+=,.@-]", "-", f"dc-{self.context.name}")[:64]
-
-        def assume_role() -> dict[str, str]:
-            request = {"RoleArn": p.role_arn, "RoleSessionName": session_name}
-            if p.external_id:
-                request["ExternalId"] = p.external_id
-            credentials = sts.assume_role(**request)["Credentials"]
-            return {
-                "access_key": credentials["AccessKeyId"],
-                "secret_key": credentials["SecretAccessKey"],
-                "token": credentials["SessionToken"],
-                "expiry_time": credentials["Expiration"].isoformat(),
-            }
-
-        # Deferred: STS is called with the first put, and again shortly before the credentials expire.
-        core = botocore.session.get_session()
-        core._credentials = botocore.credentials.DeferredRefreshableCredentials(
-            refresh_using=assume_role, method="assume-role"
-        )
-        return boto3.session.Session(botocore_session=core, region_name=p.region)
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
@@ -345,7 +279,7 @@ class KinesisStreams(Destination[KinesisParams]):
                 return True, self._scrub(f"cannot assume role {p.role_arn}: {code}: {text} (for {self.where})")
             if code == "ResourceNotFoundException":
                 return True, self._scrub(f"no {self.where}: create it or correct `stream` / `region` ({text})")
-            if code in _CREDENTIAL_CODES:
+            if code in CREDENTIAL_CODES:
                 return True, self._scrub(
                     f"AWS refused the credentials for {self.where}: {code}: {text} "
                     "(check the access key, role_arn and the policy's kinesis:PutRecords)"
@@ -353,12 +287,12 @@ class KinesisStreams(Destination[KinesisParams]):
             if code in _REJECT_CODES:
                 return False, self._scrub(f"Kinesis refused the request: {code}: {text} ({self.where})")
             return True, self._scrub(f"PutRecords failed: {code or status}: {text} ({self.where})")
-        if isinstance(exc, _CREDENTIALS_MISSING):
+        if isinstance(exc, CREDENTIALS_MISSING):
             return True, (
                 f"no AWS credentials for {self.where}: set them in the environment, a profile, an instance "
                 "role, or aws_access_key_id / aws_secret_access_key"
             )
-        if isinstance(exc, _NETWORK_ERRORS):
+        if isinstance(exc, NETWORK_ERRORS):
             return True, self._scrub(f"cannot reach Kinesis for {self.where}: {exc}")
         return True, self._scrub(f"PutRecords failed: {type(exc).__name__}: {exc} ({self.where})")
 

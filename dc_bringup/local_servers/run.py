@@ -1,0 +1,74 @@
+"""``dc servers run``: the local PostgreSQL, S3 (SeaweedFS) and InfluxDB, for trying DC and its demos.
+
+They run in the foreground until Ctrl-C, on loopback, with their data under ``--state-dir``
+(``var/dc/servers`` by default: a second run finds the same databases and objects). How to reach
+them — ports, users, the generated passwords and keys — is written to ``<state-dir>/settings.yaml``
+(readable by you only) rather than printed: the terminal's scrollback is no place for a password.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from dc_bringup.local_servers import LocalServer, ServerError
+
+SERVER_NAMES = ("postgres", "s3", "influxdb")
+# Fixed ports (the usual ones plus 10000), so the demos' parameter files can name them.
+DEFAULT_PORTS = {"postgres": 15432, "s3": 18333, "influxdb": 18086}
+
+
+def make_server(name: str, state_dir: Path, port: int) -> LocalServer:
+    if name == "postgres":
+        from dc_bringup.local_servers.postgres import PostgresServer
+
+        # A new password at each run (the role's is updated at start): settings.yaml has the current one.
+        return PostgresServer(state_dir / name, port=port, password=secrets.token_urlsafe(16))
+    if name == "s3":
+        from dc_bringup.local_servers.seaweedfs import SeaweedS3Server
+
+        return SeaweedS3Server(state_dir / name, port=port)
+    if name == "influxdb":
+        from dc_bringup.local_servers.influxdb import InfluxServer
+
+        return InfluxServer(state_dir / name, port=port)
+    raise ServerError(f"unknown server {name!r} (known: {', '.join(SERVER_NAMES)})")
+
+
+def run(names: list[str], state_dir: Path, stop: threading.Event, say: Any = print) -> int:
+    """Start ``names``, write their settings, wait for ``stop``, stop them (reverse order)."""
+    started: list[tuple[str, LocalServer]] = []
+    try:
+        for name in names:
+            server = make_server(name, state_dir, DEFAULT_PORTS[name])
+            server.start()
+            started.append((name, server))
+            say(f"{name}: listening on 127.0.0.1:{server.port}")
+        settings_file = state_dir / "settings.yaml"
+        settings_file.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(settings_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            yaml.safe_dump({name: server.settings() for name, server in started}, f, sort_keys=False)
+        say(f"connection settings (passwords and keys included) in {settings_file}; Ctrl-C stops the servers")
+        stop.wait()
+        return 0
+    except ServerError as exc:
+        say(f"dc servers: {exc}")
+        return 2
+    finally:
+        for name, server in reversed(started):
+            server.stop()
+            say(f"{name}: stopped")
+
+
+def main(args: Any) -> int:
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
+    signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    return run(list(args.names or SERVER_NAMES), Path(args.state_dir), stop)

@@ -1,0 +1,126 @@
+"""What the AWS destinations (KinesisStreams, S3) share: boto3 sessions, endpoint and name checks, and
+which of boto3's errors mean what.
+
+Credentials come from boto3's default chain (environment, shared profile, instance or task role)
+unless keys are given; with ``role_arn`` those only serve to assume the role through STS, and its
+temporary credentials are refreshed before they expire.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from dc_core.errors import ConfigError
+
+try:
+    import boto3
+    import botocore.config
+    import botocore.credentials
+    import botocore.exceptions
+    import botocore.session
+except ImportError as exc:  # an optional dependency: say which extra brings it
+    raise ImportError(
+        f"the AWS destinations (KinesisStreams, S3) need boto3: pip install 'ros2-dc[aws]' ({exc})"
+    ) from exc
+
+# Whole-request errors about who is calling: fixed by an operator (keys, role, policy), not by the records.
+CREDENTIAL_CODES = frozenset(
+    {
+        "AccessDeniedException",
+        "AccessDenied",
+        "UnrecognizedClientException",
+        "InvalidSignatureException",
+        "SignatureDoesNotMatch",
+        "ExpiredTokenException",
+        "ExpiredToken",
+        "InvalidClientTokenId",
+        "IncompleteSignature",
+        "MissingAuthenticationToken",
+    }
+)
+NETWORK_ERRORS = (
+    botocore.exceptions.EndpointConnectionError,
+    botocore.exceptions.ConnectTimeoutError,
+    botocore.exceptions.ReadTimeoutError,
+    botocore.exceptions.ConnectionClosedError,
+)
+CREDENTIALS_MISSING = (botocore.exceptions.NoCredentialsError, botocore.exceptions.PartialCredentialsError)
+
+_REGION = re.compile(r"[a-z]{2,}(-[a-z0-9]+)*(-\d+)?")
+ROLE_ARN = re.compile(r"arn:aws[a-z-]*:iam::\d{12}:role/[\w+=,.@/-]+")
+EXTERNAL_ID = re.compile(r"[\w+=,.@:/-]{2,1224}")
+
+
+def check_credentials(access_key: str, secret_key: str, role_arn: str, external_id: str, sts_endpoint: str) -> None:
+    """ConfigError, naming the key, for credentials parameters that do not go together."""
+    if bool(access_key) != bool(secret_key):
+        raise ConfigError(
+            "aws_secret_access_key" if access_key else "aws_access_key_id",
+            "set aws_access_key_id and aws_secret_access_key together (or neither: boto3's default chain)",
+        )
+    if role_arn and not ROLE_ARN.fullmatch(role_arn):
+        raise ConfigError(
+            "role_arn", f'expected an IAM role ARN (arn:aws:iam::<account>:role/<name>), got "{role_arn}"'
+        )
+    if external_id and not role_arn:
+        raise ConfigError("external_id", "set role_arn too (the external ID goes with the role to assume)")
+    if external_id and not EXTERNAL_ID.fullmatch(external_id):
+        raise ConfigError("external_id", "expected 2 to 1224 characters among letters, digits and +=,.@:/-")
+    if sts_endpoint and not role_arn:
+        raise ConfigError("sts_endpoint", "set role_arn too (STS is only called to assume a role)")
+
+
+def region_problem(region: str) -> str | None:
+    return None if _REGION.fullmatch(region) else 'an AWS region such as "eu-west-1"'
+
+
+def endpoint_url(value: str) -> str | None:
+    """Fluent Bit's ``endpoint`` is a host name (HTTPS); a URL is taken as is."""
+    if not value:
+        return None
+    return value if "://" in value else f"https://{value}"
+
+
+def aws_session(
+    *,
+    name: str,
+    region: str,
+    access_key: str,
+    secret_key: str,
+    role_arn: str = "",
+    external_id: str = "",
+    sts_endpoint: str = "",
+    timeout: float = 10.0,
+) -> Any:
+    """A boto3 session: the given keys or boto3's default chain, optionally assuming ``role_arn`` (refreshed)."""
+    base = boto3.session.Session(
+        aws_access_key_id=access_key or None, aws_secret_access_key=secret_key or None, region_name=region
+    )
+    if not role_arn:
+        return base
+    sts = base.client(
+        "sts",
+        endpoint_url=endpoint_url(sts_endpoint),
+        config=botocore.config.Config(region_name=region, connect_timeout=timeout, read_timeout=timeout),
+    )
+    session_name = re.sub(r"[^\w+=,.@-]", "-", f"dc-{name}")[:64]
+
+    def assume_role() -> dict[str, str]:
+        request = {"RoleArn": role_arn, "RoleSessionName": session_name}
+        if external_id:
+            request["ExternalId"] = external_id
+        credentials = sts.assume_role(**request)["Credentials"]
+        return {
+            "access_key": credentials["AccessKeyId"],
+            "secret_key": credentials["SecretAccessKey"],
+            "token": credentials["SessionToken"],
+            "expiry_time": credentials["Expiration"].isoformat(),
+        }
+
+    # Deferred: STS is called with the first upload, and again shortly before the credentials expire.
+    core = botocore.session.get_session()
+    core._credentials = botocore.credentials.DeferredRefreshableCredentials(
+        refresh_using=assume_role, method="assume-role"
+    )
+    return boto3.session.Session(botocore_session=core, region_name=region)

@@ -1,0 +1,324 @@
+"""InfluxDB destination: the line protocol DC writes, delivery to a real influxd (v1 API), the v2 request, an outage.
+
+The v1 tests run against Debian's influxd 1.6 started by a module fixture (skipped when it is not
+installed). No InfluxDB 2.x server installs here (and 1.6 has no /api/v2/write), so the v2 tests
+check the request a local HTTP receiver gets. The last tests go through `dc-bringup`.
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dc_bringup.local_servers.influxdb import InfluxServer, missing_reason
+from dc_core.destination import OutgoingRecord, RetryableError, SendOutcome
+from dc_core.params import describe_params, parse_params
+from dc_core.testing import FakeContext, RecordingLogger
+from dc_destinations.influxdb import InfluxDB, InfluxDBParams, Sequencer, to_point
+from dc_destinations.record_ids import new_record_id
+from tests.bringup_util import BIN, Bringup
+from tests.destination_helpers import forwarding_params
+from tests.http_receiver import Receiver, Request
+
+STAMP = 1_677_668_906_045_817_123
+needs_influxd = pytest.mark.skipif(missing_reason() is not None, reason=str(missing_reason()))
+
+
+def influx(**params: Any) -> InfluxDB:
+    logger: RecordingLogger | None = params.pop("logger", None)
+    plugin = InfluxDB(
+        FakeContext(name="tsdb", logger=logger or RecordingLogger()), parse_params(InfluxDBParams, params, "x")
+    )
+    plugin.on_configure()
+    plugin.on_activate()
+    return plugin
+
+
+def record(data: dict[str, Any], stamp_ns: int = STAMP, record_id: str = "") -> OutgoingRecord:
+    rid = record_id or new_record_id()
+    return OutgoingRecord(rid, "/dc/measurement/cpu", stamp_ns, {**data, "record_id": rid})
+
+
+def line(data: dict[str, Any], stamp_ns: int = STAMP, **params: Any) -> str:
+    rec = OutgoingRecord("r1", "/dc/measurement/cpu", stamp_ns, data)
+    return to_point(rec, parse_params(InfluxDBParams, params, "x")).line()
+
+
+# -- line protocol ----------------------------------------------------------------------------------
+
+
+def test_scalar_fields_and_the_exact_nanosecond_stamp() -> None:
+    text = line({"name": "cpu", "n": 3, "x": 0.5, "whole": 2.0, "ok": True, "no": False, "s": "hi"}, STAMP)
+    assert text == f'cpu n=3i,x=0.5,whole=2.0,ok=true,no=false,s="hi" {STAMP}'
+
+
+def test_every_special_character_is_escaped() -> None:
+    data = {
+        "name": "my cpu,1=x",
+        "host": "a b,c=d",
+        "k ey,=": 'say "hi" \\ there\nline two',
+    }
+    text = line(data, 5, tag_keys=["host"])
+    assert text == "my\\ cpu\\,1=x,host=a\\ b\\,c\\=d k\\ ey\\,\\==" + '"say \\"hi\\" \\\\ there\nline two" 5'
+
+
+def test_nested_objects_and_arrays_are_flattened_and_nulls_skipped() -> None:
+    data = {"name": "cpu", "cpu": {"average": 1.5, "per": [1, 2]}, "sorted": [{"pid": 7}], "none": None, "e": {}}
+    assert line(data, 1) == "cpu cpu.average=1.5,cpu.per.0=1i,cpu.per.1=2i,sorted.0.pid=7i 1"
+    assert line(data, 1, separator="_").startswith("cpu cpu_average=1.5,cpu_per_0=1i")
+    flat = {"name": "cpu", "/cpu/average": 1.5, "/cpu/max": 3}
+    assert line(flat, 1) == "cpu /cpu/average=1.5,/cpu/max=3i 1", "already flattened keys stay"
+
+
+def test_tags_auto_tags_measurement_parameter_and_the_time_key() -> None:
+    data = {"name": "cpu", "robot": "c3po", "run": 4, "load": 0.5, "time": 9, "record_id": "id1"}
+    assert line(data, 1, tag_keys="robot run") == 'cpu,robot=c3po,run=4 load=0.5,time_=9i,record_id="id1" 1'
+    assert line(data, 1, auto_tags=True) == 'cpu,robot=c3po run=4i,load=0.5,time_=9i,record_id="id1" 1', (
+        "record_id stays a field: a tag per record would make a series per record"
+    )
+    assert line(data, 1, measurement="robots").startswith('robots name="cpu",robot="c3po"')
+    no_name = OutgoingRecord("r", "/dc/measurement/uptime", 1, {"v": 1})
+    assert to_point(no_name, parse_params(InfluxDBParams, {}, "x")).line() == "uptime v=1i 1"
+
+
+def test_records_that_cannot_be_points_are_rejected_alone() -> None:
+    dest = influx(port=1, tag_keys=["tag"])
+    batch = [
+        OutgoingRecord("r0", "/dc/measurement/cpu", 1, {"name": "cpu", "v": None, "tag": "x", "e": []}),
+        record({"name": "cpu", "v": 1}),
+        record({"name": "cpu", "big": 2**70}),
+        record({"name": "#cpu", "v": 1}),
+        record({"name": "cpu", "bad\\ key": 1}),
+    ]
+    lines, rejected = dest.lines(batch)
+    assert list(lines) == [1]
+    assert rejected[0] == "the record has no field InfluxDB can store (every value is a tag, null or empty)"
+    assert "64-bit" in rejected[2] and "comment" in rejected[3] and "backslash" in rejected[4]
+
+
+def test_sequence_tag_separates_simultaneous_records_and_stays_on_retry() -> None:
+    dest = influx(port=1)
+    a, b, c = (record({"name": "cpu", "v": i}, stamp_ns=7) for i in range(3))
+    lines, _ = dest.lines([a, b, c])
+    assert [text.split(" ")[0] for text in lines.values()] == ["cpu", "cpu,_seq=1", "cpu,_seq=2"]
+    again, _ = dest.lines([b])
+    assert again[0].startswith("cpu,_seq=1 "), "a retried record keeps its number"
+    sequencer = Sequencer()
+    point = to_point(a, parse_params(InfluxDBParams, {}, "x"))
+    assert [sequencer.number(point, rid) for rid in ("x", "y", "x")] == [0, 1, 0]
+    off, _ = influx(port=1, sequence_tag="").lines([a, b])
+    assert all(text.startswith("cpu v=") for text in off.values())
+
+
+def test_secret_parameters_and_alias() -> None:
+    assert {p.name for p in describe_params(InfluxDBParams) if p.secret} == {"http_passwd", "http_token"}
+    p = parse_params(InfluxDBParams, {"http_user": "u", "http_password": "pw"}, "x")
+    assert p.http_passwd == "pw" and "pw" not in repr(p)
+    assert parse_params(InfluxDBParams, {"bucket": "b"}, "x").api_version == "v2"
+    assert parse_params(InfluxDBParams, {}, "x").api_version == "v1"
+
+
+# -- v1 against a real influxd ------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InfluxServer]:
+    if missing_reason() is not None:
+        pytest.skip(str(missing_reason()))
+    with InfluxServer(tmp_path_factory.mktemp("influx"), database="dc") as s:
+        yield s
+
+
+def rows(server: InfluxServer, query: str) -> list[dict[str, Any]]:
+    (result,) = server.query(query, database=server.database)
+    out = []
+    for series in result.get("series", []):  # type: ignore[attr-defined]
+        for values in series["values"]:
+            out.append({"_measurement": series["name"], **dict(zip(series["columns"], values, strict=True))})
+    return out
+
+
+@needs_influxd
+def test_v1_points_arrive_with_fields_tags_and_time(server: InfluxServer) -> None:
+    dest = influx(**server.settings(), tag_keys=["robot"])
+    batch = [
+        record({"name": "arrive", "robot": "c3po", "cpu": {"average": 1.5}, "n": 3, "s": 'q"\\', "ok": True}, 11),
+        record({"name": "arrive", "robot": "r2d2", "cpu": {"average": 2.5}, "n": 4, "s": "x", "ok": False}, 12),
+    ]
+    assert dest.send(batch) is None
+    got = rows(server, 'SELECT * FROM "arrive"')
+    assert [(r["time"], r["robot"], r["cpu.average"], r["n"], r["s"], r["ok"]) for r in got] == [
+        (11, "c3po", 1.5, 3, 'q"\\', True),
+        (12, "r2d2", 2.5, 4, "x", False),
+    ]
+    assert [r["record_id"] for r in got] == [r.record_id for r in batch]
+
+
+@needs_influxd
+def test_v1_a_field_type_conflict_rejects_only_that_record(server: InfluxServer) -> None:
+    dest = influx(**server.settings())
+    assert dest.send([record({"name": "conflict", "v": 1}, 1)]) is None
+    batch = [record({"name": "conflict", "v": i}, 10 + i) for i in range(4)]
+    batch[2] = record({"name": "conflict", "v": "text"}, 12)
+    outcome = dest.send(batch)
+    assert isinstance(outcome, SendOutcome) and not outcome.retry and list(outcome.reject) == [2]
+    assert (
+        "field type conflict" in outcome.reject[2]
+        and 'input field "v" on measurement "conflict"' in (outcome.reject[2])
+    )
+    assert outcome.reject[2].startswith("HTTP 400 Bad Request: partial write")
+    assert [r["time"] for r in rows(server, 'SELECT v FROM "conflict"')] == [1, 10, 11, 13]
+
+
+@needs_influxd
+def test_v1_an_unnamed_refusal_is_isolated_line_by_line(server: InfluxServer) -> None:
+    dest = influx(**server.settings())
+    batch = [record({"name": "iso", "v": 1}, 1), record({"name": "iso", "v": 2}, 2)]
+    writes: list[int] = []
+    original = dest._write
+
+    def first_refused(lines: list[str]) -> tuple[int, str]:
+        writes.append(len(lines))
+        if len(lines) > 1:
+            return 400, "HTTP 400 Bad Request: something InfluxDB did not explain"
+        return original(lines)
+
+    dest._write = first_refused  # type: ignore[method-assign]
+    assert dest.send(batch) is None
+    assert writes == [2, 1, 1]
+    assert [r["v"] for r in rows(server, 'SELECT v FROM "iso"')] == [1, 2]
+
+
+@needs_influxd
+def test_v1_missing_database_is_retryable_and_named(server: InfluxServer) -> None:
+    dest = influx(host="127.0.0.1", port=server.port, database="nowhere")
+    with pytest.raises(RetryableError, match="InfluxDB database 'nowhere' not found: HTTP 404"):
+        dest.send([record({"name": "x", "v": 1})])
+
+
+PASSWORD = "hunter2-Very-Secret"
+
+
+@needs_influxd
+def test_v1_auth_wrong_password_is_retryable_and_never_logged(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.DEBUG)
+    logger = RecordingLogger("test_influxdb.secret")
+    with InfluxServer(tmp_path / "auth", database="secure", user="admin", password=PASSWORD) as secured:
+        settings = secured.settings()
+        wrong = influx(logger=logger, **{**settings, "http_passwd": "not-" + PASSWORD})
+        with pytest.raises(RetryableError) as caught:
+            wrong.send([record({"name": "a", "v": 1})])
+        message = str(caught.value)
+        assert message.startswith("InfluxDB refused the credentials: HTTP 401")
+        assert "check http_user and http_passwd; sent user 'admin'" in message
+        with pytest.raises(RetryableError, match="sent no credentials"):
+            influx(logger=logger, host="127.0.0.1", port=secured.port, database="secure").send(
+                [record({"name": "a", "v": 1})]
+            )
+        right = influx(logger=logger, **settings)
+        assert right.send([record({"name": "a", "v": 1})]) is None
+    texts = [message, *(r.getMessage() for r in caplog.records), *(m for _, m in logger.lines)]
+    texts += [repr(right.params), repr(wrong.params)]
+    token = base64.b64encode(f"admin:{PASSWORD}".encode()).decode()
+    for text in texts:
+        assert PASSWORD not in text and token not in text, text
+
+
+# -- v2 against a local receiver (no 2.x server installs here) -----------------------------------------
+
+
+def test_v2_request_has_org_bucket_precision_token_and_body() -> None:
+    with Receiver() as receiver:
+        receiver.status = 204
+        dest = influx(port=receiver.port, bucket="robots", org="acme co", http_token="tok-" + PASSWORD)
+        assert dest.send([record({"name": "cpu", "v": 1}, 5, record_id="id9")]) is None
+        (request,) = receiver.requests
+    assert request.path == "/api/v2/write?org=acme+co&bucket=robots&precision=ns"
+    assert request.header("Authorization") == f"Token tok-{PASSWORD}"
+    assert request.body == b'cpu v=1i,record_id="id9" 5\n'
+    assert request.header("Content-Type") == "text/plain; charset=utf-8"
+
+
+def test_v2_statuses() -> None:
+    answers = {"401": (401, b'{"code":"unauthorized","message":"unauthorized access"}')}
+
+    def respond(request: Request) -> tuple[int, bytes]:
+        return answers.get("next", (204, b""))
+
+    with Receiver(respond) as receiver:
+        dest = influx(port=receiver.port, bucket="b", http_token="secret-token")
+        answers["next"] = (401, b'{"code":"unauthorized","message":"unauthorized access secret-token"}')
+        with pytest.raises(RetryableError) as caught:
+            dest.send([record({"name": "cpu", "v": 1})])
+        assert "check http_token" in str(caught.value) and "secret-token" not in str(caught.value)
+        answers["next"] = (404, b'{"code":"not found","message":"bucket \\"b\\" not found"}')
+        with pytest.raises(RetryableError, match="bucket 'b' of org 'fluent' not found"):
+            dest.send([record({"name": "cpu", "v": 1})])
+        answers["next"] = (503, b"busy")
+        with pytest.raises(RetryableError, match="HTTP 503"):
+            dest.send([record({"name": "cpu", "v": 1})])
+        answers["next"] = (422, b'{"code":"unprocessable entity","message":"failure writing points"}')
+        outcome = dest.send([record({"name": "cpu", "v": 1}), record({"name": "cpu", "v": 2})])
+        assert outcome is not None and sorted(outcome.reject) == [0, 1], "each line refused alone"
+
+
+# -- end to end through dc-bringup ------------------------------------------------------------------------
+
+
+def bringup_params(tmp_path: Path, server: InfluxServer) -> Path:
+    settings = {"plugin": "dc_destinations/InfluxDB", **server.settings(), "timeout": 2.0}
+    return forwarding_params(tmp_path, "tsdb", settings, measurement="hello", topic="/hello-world")
+
+
+def publish(run: Bringup, count: int, rate: float) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [str(BIN / "dc"), "pub", "/hello-world", '{"hello": "world"}', "--count", str(count), "--rate", str(rate)],
+        env=run.env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def stored_ids(server: InfluxServer) -> set[str]:
+    try:
+        return {str(r["record_id"]) for r in rows(server, 'SELECT record_id FROM "hello"')}
+    except Exception:
+        return set()  # the server is down
+
+
+OUTAGE_S = 30.0
+
+
+@needs_influxd
+@pytest.mark.e2e
+def test_e2e_a_30_s_influxdb_outage_loses_no_record(tmp_path: Path) -> None:
+    total, rate = 40, 2.0  # 20 s of records: most of them published while the server is down
+    server = InfluxServer(tmp_path / "influx", database="dc")
+    server.start()
+    try:
+        with Bringup(bringup_params(tmp_path, server), tmp_path / "home") as run:
+            run.wait_ready()
+            publisher = publish(run, total, rate)
+            run.wait_until(lambda: len(stored_ids(server)) >= 3, 30, "the first points in InfluxDB")
+            server.stop()
+            down_at = time.monotonic()
+            run.wait_stderr(f"cannot write to InfluxDB at http://127.0.0.1:{server.port}", timeout=OUTAGE_S)
+            output, _ = publisher.communicate(timeout=OUTAGE_S)
+            assert publisher.returncode == 0, output
+            time.sleep(max(0.0, OUTAGE_S - (time.monotonic() - down_at)))  # the outage lasts 30 s
+            server.start()  # the same data folder and port
+            run.wait_until(lambda: len(stored_ids(server)) >= total, 30, f"all {total} records after the outage")
+        points = rows(server, 'SELECT * FROM "hello"')
+    finally:
+        server.stop()
+    assert len({p["record_id"] for p in points}) == total, "every record stored (a rewrite overwrites, none missing)"
+    assert all(p["hello"] == "world" for p in points)
+    print(f"\n{len(points)} points for {total} records across a {OUTAGE_S:g} s outage")

@@ -1,0 +1,322 @@
+"""PgSQL destination against a real PostgreSQL started by the tests: the rows, exactly once, and how failures are classified.
+
+One server (dc_bringup.local_servers.postgres) serves the whole module, in a folder under /tmp that
+the postgres system user can enter when the tests run as root; each test writes to its own table.
+The last two tests go through `dc-bringup` with real processes, the last one across a 30 s outage.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import shutil
+import subprocess
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dc_bringup.local_servers.postgres import PostgresServer, missing_reason
+from dc_core.destination import OutgoingRecord, RetryableError, SendOutcome
+from dc_core.errors import ConfigError
+from dc_core.params import describe_params, parse_params
+from dc_core.testing import FakeContext, RecordingLogger
+from dc_destinations.config import parse_destination_server
+from dc_destinations.pgsql import PgSQL, PgSQLParams
+from dc_destinations.record_ids import new_record_id
+from tests.bringup_util import BIN, Bringup, dc
+from tests.destination_helpers import forwarding_params
+from tests.http_receiver import free_port
+
+if missing_reason() is not None:
+    pytest.skip(f"no local PostgreSQL: {missing_reason()}", allow_module_level=True)
+
+import psycopg  # an optional dependency: imported after the skip
+
+PASSWORD = "pg-Very-Secret-42"
+STAMP_NS = 1_700_000_000_123_456_789
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[PostgresServer]:
+    # Not under pytest's tmp_path: as root, PostgreSQL runs as user postgres, who cannot enter it.
+    folder = Path(tempfile.mkdtemp(prefix="dc-pg-"))
+    pg = PostgresServer(folder, password=PASSWORD)
+    try:
+        pg.start()
+        yield pg
+    finally:
+        pg.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def destinations() -> Iterator[list[PgSQL]]:
+    made: list[PgSQL] = []
+    yield made
+    for d in made:
+        d.on_deactivate()
+
+
+def make(
+    server: PostgresServer, destinations: list[PgSQL], logger: RecordingLogger | None = None, **params: Any
+) -> PgSQL:
+    settings = {**server.settings(), **params}
+    name = str(settings.pop("name", "warehouse"))
+    context = FakeContext(name=name, logger=logger or RecordingLogger())
+    plugin = PgSQL(context, parse_params(PgSQLParams, settings, f"destination_server.{name}"))
+    plugin.on_configure()
+    plugin.on_activate()
+    destinations.append(plugin)
+    return plugin
+
+
+def record(n: int, **data: Any) -> OutgoingRecord:
+    rid = new_record_id()
+    return OutgoingRecord(
+        rid, "/dc/measurement/test", STAMP_NS + n * 1_000_000_000, {"seq": n, **data, "record_id": rid}
+    )
+
+
+def rows(server: PostgresServer, table: str) -> list[tuple[Any, ...]]:
+    s = server.settings()
+    with psycopg.connect(
+        host=str(s["host"]), port=int(s["port"]), user=str(s["user"]), password=str(s["password"]), dbname="dc"
+    ) as connection:
+        query = f'SELECT tag, time, data, record_id FROM "{table}" ORDER BY time'
+        return list(connection.execute(query).fetchall())
+
+
+def test_rows_arrive_with_tag_time_data_and_record_id(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="arrive")
+    batch = [record(0, name="uptime", note="üñí"), record(1, name="memory", used=41.27)]
+    assert dest.send(batch) is None
+    got = rows(server, "arrive")
+    assert [r[0] for r in got] == ["warehouse", "warehouse"], "tag: the destination's name"
+    assert got[0][1] == dt.datetime(2023, 11, 14, 22, 13, 20, 123456), "time: the record's stamp, UTC"
+    assert got[1][1] - got[0][1] == dt.timedelta(seconds=1)
+    assert [r[2] for r in got] == [r.data for r in batch], "data: the record's JSON"
+    assert [r[3] for r in got] == [r.record_id for r in batch]
+
+
+def test_timestamp_key_and_the_originals_spelling(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="stamped", timestamp_Key="date")
+    assert dest.params.timestamp_key == "date"
+    batch = [record(0, date=1677668906.5), record(1, date="2024-05-01T12:00:00Z"), record(2, date="soon")]
+    assert dest.send(batch) is None
+    times = sorted(r[1] for r in rows(server, "stamped"))
+    assert times == [
+        dt.datetime(2023, 3, 1, 11, 8, 26, 500000),
+        dt.datetime(2023, 11, 14, 22, 13, 22, 123456),  # unreadable: the stamp
+        dt.datetime(2024, 5, 1, 12, 0),
+    ]
+
+
+def test_a_batch_sent_twice_is_inserted_once(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="twice")
+    batch = [record(i, name="seq") for i in range(1000)]
+    assert dest.send(batch) is None
+    assert dest.send(batch) is None, "a retried batch is confirmed too"
+    assert dest.send([*batch[500:], record(1000, name="seq")]) is None
+    got = rows(server, "twice")
+    assert len(got) == 1001
+    assert len({r[3] for r in got}) == 1001
+
+
+def test_a_refused_record_goes_alone_to_the_dead_letters(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="refused")
+    batch = [record(0, text="fine"), record(1, text="nul \u0000 inside"), record(2, text="fine too")]
+    outcome = dest.send(batch)
+    assert isinstance(outcome, SendOutcome) and not outcome.retry
+    assert list(outcome.reject) == [1]
+    assert outcome.reject[1].startswith("PostgreSQL refused the record: unsupported Unicode escape sequence")
+    assert "SQLSTATE 22P05" in outcome.reject[1]
+    assert [r[2]["seq"] for r in rows(server, "refused")] == [0, 2], "the others are delivered"
+
+
+def test_a_constraint_refuses_only_the_rows_that_break_it(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="checked")
+    assert dest.send([record(0, level=1)]) is None  # creates the table
+    s = server.settings()
+    with psycopg.connect(
+        host="127.0.0.1", port=int(s["port"]), user="dc", password=PASSWORD, dbname="dc", autocommit=True
+    ) as admin:
+        admin.execute("ALTER TABLE checked ADD CONSTRAINT level_small CHECK ((data->>'level')::int < 10)")
+    outcome = dest.send([record(1, level=5), record(2, level=50), record(3, level=99), record(4, level=7)])
+    assert outcome is not None and sorted(outcome.reject) == [1, 2]
+    assert 'violates check constraint "level_small"' in outcome.reject[1]
+    assert sorted(r[2]["level"] for r in rows(server, "checked")) == [1, 5, 7]
+
+
+def test_a_table_made_by_the_original_gets_record_id(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    s = server.settings()
+    with psycopg.connect(
+        host="127.0.0.1", port=int(s["port"]), user="dc", password=PASSWORD, dbname="dc", autocommit=True
+    ) as admin:
+        admin.execute("CREATE TABLE legacy (tag varchar, time timestamp, data jsonb)")
+        admin.execute("INSERT INTO legacy VALUES ('flb_pgsql', now(), '{\"old\": true}')")
+    dest = make(server, destinations, table="legacy")
+    batch = [record(0)]
+    assert dest.send(batch) is None and dest.send(batch) is None
+    assert sorted(r[3] or "" for r in rows(server, "legacy")) == ["", batch[0].record_id]
+
+
+def test_wrong_password_is_retryable_clear_and_never_shown(
+    server: PostgresServer, destinations: list[PgSQL], caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.DEBUG)
+    logger = RecordingLogger("test_pgsql.secret")
+    wrong = make(server, destinations, logger=logger, password="not-" + PASSWORD, table="secret")
+    with pytest.raises(RetryableError) as caught:
+        wrong.send([record(0)])
+    message = str(caught.value)
+    assert message.startswith(f"cannot connect to PostgreSQL postgresql://dc@127.0.0.1:{server.port}/dc: ")
+    assert 'password authentication failed for user "dc"' in message
+    assert message.endswith("(check `user` and `password`)")
+    right = make(server, destinations, logger=logger, table="secret")
+    assert right.send([record(1)]) is None
+    texts = [message, repr(wrong.params), str(right.params), repr(right), repr(server)]
+    texts += [r.getMessage() for r in caplog.records] + [m for _, m in logger.lines]
+    assert any("connected to" in t for t in texts)
+    for text in texts:
+        assert PASSWORD not in text, text
+    assert {p.name for p in describe_params(PgSQLParams) if p.secret} == {"password"}
+
+
+def test_an_unreachable_server_is_retryable(destinations: list[PgSQL], server: PostgresServer) -> None:
+    port = free_port()
+    dest = make(server, destinations, port=port, connect_timeout=2)
+    with pytest.raises(RetryableError, match=rf"cannot connect to PostgreSQL postgresql://dc@127.0.0.1:{port}/dc: .*"):
+        dest.send([record(0)])
+
+
+def test_a_server_restart_between_batches_is_survived(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    logger = RecordingLogger()
+    dest = make(server, destinations, logger=logger, table="restart", connect_timeout=2)
+    assert dest.send([record(0)]) is None
+    server.stop()
+    with pytest.raises(RetryableError, match="cannot connect to PostgreSQL"):
+        dest.send([record(1)])
+    server.start()
+    assert dest.send([record(2)]) is None
+    server.stop()
+    server.start()
+    assert dest.send([record(3)]) is None, "the kept connection died with the server: a new one, at once"
+    assert [r[2]["seq"] for r in rows(server, "restart")] == [0, 2, 3]
+    assert len([m for m in logger.at("info") if m.startswith("connected to")]) == 3
+
+
+def configure(body: dict[str, Any]) -> PgSQL:
+    section = {"destination_plugins": ["pg"], "pg": {"plugin": "dc_destinations/FlbPgSQL", "inputs": ["/dc/x"], **body}}
+    (d,) = parse_destination_server(section).destinations
+    plugin: PgSQL = d.plugin_class(FakeContext(name=d.name), d.plugin_params)
+    plugin.on_configure()
+    return plugin
+
+
+def test_the_originals_keys_are_accepted() -> None:
+    plugin = configure(
+        {"user": "fluentbit", "password": "password", "database": "fluentbit", "table": "dc", "timestamp_key": "date",
+         "async": False, "min_pool_size": "1", "max_pool_size": 4, "cockroachdb": False}
+    )  # fmt: skip
+    assert plugin.address == "postgresql://fluentbit@127.0.0.1:5432/fluentbit"
+    assert "password" not in repr(plugin.params)
+
+
+def test_defaults() -> None:
+    p = parse_params(PgSQLParams, {}, "x")
+    assert (p.host, p.port, p.user, p.database, p.table, p.timestamp_key) == ("127.0.0.1", 5432, "", "", "dc", "")
+    assert (p.ssl, p.effective_sslmode, p.connect_timeout) == (False, "prefer", 10)
+    assert parse_params(PgSQLParams, {"ssl": True}, "x").effective_sslmode == "require"
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ({"port": 0}, "destination_server.pg.port: expected a TCP port from 1 to 65535, got 0"),
+        ({"table": ""}, 'destination_server.pg.table: expected a table name or "schema.table"'),
+        ({"table": "a.b.c"}, 'destination_server.pg.table: expected a table name or "schema.table"'),
+        ({"sslmode": "strict"}, "destination_server.pg.sslmode: expected one of"),
+        ({"ssl": True, "sslmode": "disable"}, 'destination_server.pg.sslmode: "disable" contradicts ssl: true'),
+        ({"sslrootcert": "/ca.pem"}, "destination_server.pg.sslrootcert: set sslmode to verify-full"),
+        ({"host": "postgres://db"}, "destination_server.pg.host: expected a host name or IP address"),
+        ({"connect_timeout": 1}, "destination_server.pg.connect_timeout: expected an integer >= 2"),
+        ({"passwd": "x"}, 'unknown parameter of dc_destinations/FlbPgSQL (did you mean "password"?)'),
+    ],
+)
+def test_configuration_errors_name_the_yaml_path(body: dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError) as caught:
+        configure(body)
+    assert message in str(caught.value)
+
+
+# -- end to end through dc-bringup ------------------------------------------------------------------------
+
+
+def bringup_params(tmp_path: Path, server: PostgresServer, table: str) -> Path:
+    settings = {"plugin": "dc_destinations/PgSQL", **server.settings(), "table": table, "connect_timeout": 2}
+    return forwarding_params(tmp_path, "warehouse", settings, measurement="hello", topic="/hello-world")
+
+
+def count(server: PostgresServer, table: str) -> tuple[int, int]:
+    """(rows, distinct record ids) of ``table``; (0, 0) while it does not exist or the server is down."""
+    try:
+        got = rows(server, table)
+    except psycopg.Error:
+        return 0, 0
+    return len(got), len({r[3] for r in got})
+
+
+@pytest.mark.e2e
+def test_e2e_records_published_with_dc_pub_become_rows(tmp_path: Path, server: PostgresServer) -> None:
+    with Bringup(bringup_params(tmp_path, server, "e2e"), tmp_path / "home") as run:
+        run.wait_ready()
+        published = dc("pub", "/hello-world", '{"hello": "world"}', "--count", "3", "--rate", "5", env=run.env)
+        assert published.returncode == 0, published.stderr
+        run.wait_until(lambda: count(server, "e2e")[0] >= 3, 30, "three rows")
+    got = rows(server, "e2e")
+    assert len(got) == 3 and {r[0] for r in got} == {"warehouse"}
+    assert all(r[2]["hello"] == "world" and r[2]["name"] == "hello" for r in got)
+    assert [r[2]["record_id"] for r in got] == [r[3] for r in got]
+    assert password_absent(tmp_path)
+
+
+def password_absent(tmp_path: Path) -> bool:
+    return all(PASSWORD not in p.read_text(errors="replace") for p in tmp_path.rglob("*.log") if p.is_file())
+
+
+OUTAGE_S = 30.0
+
+
+@pytest.mark.e2e
+def test_e2e_a_30_s_database_outage_loses_and_duplicates_no_record(tmp_path: Path, server: PostgresServer) -> None:
+    total, rate = 40, 2.0  # 20 s of records: most of them published while the database is down
+    with Bringup(bringup_params(tmp_path, server, "outage"), tmp_path / "home") as run:
+        run.wait_ready()
+        publisher = subprocess.Popen(
+            [str(BIN / "dc"), "pub", "/hello-world", '{"hello": "world"}', "--count", str(total), "--rate", str(rate)],
+            env=run.env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        try:
+            run.wait_until(lambda: count(server, "outage")[0] >= 3, 30, "the first rows")
+            server.stop()
+            down_at = time.monotonic()
+            run.wait_stderr(
+                f"cannot connect to PostgreSQL postgresql://dc@127.0.0.1:{server.port}/dc", timeout=OUTAGE_S
+            )
+            output, _ = publisher.communicate(timeout=OUTAGE_S)
+            assert publisher.returncode == 0, output
+            time.sleep(max(0.0, OUTAGE_S - (time.monotonic() - down_at)))  # the outage lasts 30 s
+        finally:
+            server.start()  # the module's other tests need it back, whatever happened
+        run.wait_until(lambda: count(server, "outage")[1] >= total, 30, f"all {total} rows after the outage")
+        stderr = "\n".join(run.stderr)
+    assert count(server, "outage") == (total, total), "every record exactly once"
+    assert PASSWORD not in stderr
+    print(f"\n{total} rows, each once, across a {OUTAGE_S:g} s outage")

@@ -1,0 +1,378 @@
+"""S3 destination: each batch of records written as an object of JSON lines to Amazon S3 or an S3-compatible store.
+
+In DC the destination server's buffer already gathers records into batches (``batch_size``, every
+``flb.flush`` seconds) and keeps them until they are confirmed, so this plugin holds nothing itself:
+one ``send()`` writes its batch as one object (several when the batch is larger than
+``total_file_size``) and returns only once S3 has it. Fluent Bit's local staging folder
+(``store_dir``) and upload timer (``upload_timeout``) have no role left and are accepted for
+compatibility only.
+
+A retried batch must not leave a second copy behind: the object key's ``$UUID`` (and the suffix
+added when the key has none) is derived from the object's first ``record_id``, and the key's time
+from that record's stamp, so an upload retried after a failure — or after a success whose answer
+was lost — writes the same key again and replaces the object instead of adding one.
+
+Credentials come from boto3's default chain unless ``aws_access_key_id``/``aws_secret_access_key``
+are given; with ``role_arn`` those only assume the role through STS. Refused credentials and a
+missing bucket are retried like a network failure — an operator can fix them while the buffer keeps
+the records — with a message naming the bucket and endpoint, never the secret key.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import datetime as dt
+import gzip
+import hashlib
+import re
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+try:
+    import botocore.config
+    import botocore.exceptions
+except ImportError as exc:  # an optional dependency: say which extra brings it
+    raise ImportError(f"the S3 destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
+
+from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.errors import ConfigError
+from dc_core.params import param
+from dc_core.records import MalformedRecord, dump_record
+from dc_destinations.aws import (
+    CREDENTIAL_CODES,
+    CREDENTIALS_MISSING,
+    NETWORK_ERRORS,
+    aws_session,
+    check_credentials,
+    endpoint_url,
+    region_problem,
+)
+from dc_destinations.settings import parse_size
+
+# S3's multipart limits: every part but the last at least 5 MiB, at most 5 GiB, at most 10000 parts.
+MIN_PART_BYTES = 5 * 1024 * 1024
+MAX_PART_BYTES = 5 * 1024 * 1024 * 1024
+MAX_PARTS = 10_000
+
+CANNED_ACLS = (
+    "",
+    "private",
+    "public-read",
+    "public-read-write",
+    "authenticated-read",
+    "aws-exec-read",
+    "bucket-owner-read",
+    "bucket-owner-full-control",
+)
+STORAGE_CLASSES = (
+    "",
+    "STANDARD",
+    "REDUCED_REDUNDANCY",
+    "STANDARD_IA",
+    "ONEZONE_IA",
+    "INTELLIGENT_TIERING",
+    "GLACIER",
+    "GLACIER_IR",
+    "DEEP_ARCHIVE",
+    "OUTPOSTS",
+    "SNOW",
+    "EXPRESS_ONEZONE",
+)
+# Answers about who is calling, on top of Kinesis' list: S3 names a wrong key ID its own way.
+_S3CREDENTIAL_CODES = CREDENTIAL_CODES | {"InvalidAccessKeyId", "InvalidToken", "TokenRefreshRequired"}
+_BUCKET = re.compile(r"[a-z0-9][a-z0-9.-]{1,61}[a-z0-9]")
+_TAG_PART = re.compile(r"\$TAG\[(\d+)\]")
+_DURATION = re.compile(r"(\d+(?:\.\d+)?)\s*([smhd]?)", re.IGNORECASE)
+
+
+def _bucket_problem(bucket: str) -> str | None:
+    return None if _BUCKET.fullmatch(bucket) else "a bucket name (3 to 63 lowercase letters, digits, '.', '-')"
+
+
+def _size_problem(text: str) -> str | None:
+    try:
+        size = parse_size(text)
+    except ConfigError:
+        size = None
+    return None if size else 'a size such as "100M", "50M" or a number of bytes'
+
+
+def _duration_problem(text: str) -> str | None:
+    return None if _DURATION.fullmatch(text.strip()) else 'a duration such as "10m", "60s" or "1h"'
+
+
+def _key_format_problem(text: str) -> str | None:
+    return None if text.strip("/") else 'a key format such as "/fluent-bit-logs/$TAG/%Y/%m/%d/%H/%M/%S"'
+
+
+@dataclass(frozen=True, kw_only=True)
+class S3Params:
+    bucket: str = param(check=_bucket_problem, doc="Bucket the objects are written to (it must exist)")
+    region: str = param("us-east-1", check=region_problem, doc="AWS region of the bucket")
+    s3_key_format: str = param(
+        "/fluent-bit-logs/$TAG/%Y/%m/%d/%H/%M/%S",
+        check=_key_format_problem,
+        doc="Object key: $TAG, $TAG[n], $UUID, $INDEX and strftime of the first record's time (UTC)",
+    )
+    s3_key_format_tag_delimiters: str = param(".", doc="Characters that split $TAG into $TAG[0], $TAG[1]…")
+    static_file_path: bool = param(False, doc="Do not append -$UUID to a key format without $UUID")
+    total_file_size: str = param("100M", check=_size_problem, doc="Most bytes (before compression) of one object")
+    upload_chunk_size: str = param(
+        "50M", check=_size_problem, doc="Objects above this size are uploaded in parts of this size (5M to 5G)"
+    )
+    use_put_object: bool = param(False, doc="Always one PutObject request, never a multipart upload")
+    upload_timeout: str = param("10m", check=_duration_problem, doc="Accepted for compatibility: not used")
+    store_dir: str = param("/tmp/fluent-bit/s3", doc="Accepted for compatibility: not used (the buffer keeps records)")
+    store_dir_limit_size: str = param("0", doc="Accepted for compatibility: not used")
+    preserve_data_ordering: bool = param(True, doc="Accepted for compatibility: batches are always sent in order")
+    compression: str = param("", choices=("", "gzip"), doc="gzip: compressed objects (.gz, Content-Encoding: gzip)")
+    content_type: str = param("", doc="Content-Type of the objects; empty: application/x-ndjson")
+    canned_acl: str = param("", choices=CANNED_ACLS, doc="Canned ACL of the objects; empty: the bucket's default")
+    storage_class: str = param("", choices=STORAGE_CLASSES, doc="Storage class of the objects; empty: STANDARD")
+    send_content_md5: bool = param(False, doc="Send Content-MD5 with each request (buckets with object lock)")
+    log_key: str = param("", doc="Write only this key's value on each line instead of the whole record")
+    endpoint: str = param("", doc="S3 endpoint (host name or URL; path-style requests); empty: the region's")
+    sts_endpoint: str = param("", doc="STS endpoint for role_arn (host name or URL); empty: the region's")
+    role_arn: str = param("", doc="IAM role to assume for the uploads; empty: use the credentials as they are")
+    external_id: str = param("", doc="External ID required by the role's trust policy (with role_arn)")
+    aws_access_key_id: str = param("", doc="Access key ID; empty: boto3's default chain (env, profile, instance role)")
+    aws_secret_access_key: str = param("", secret=True, doc="Secret access key with aws_access_key_id (never logged)")
+    auto_retry_requests: bool = param(True, doc="Retry a failed request once at once, before the backoff")
+    timeout: float = param(30.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
+
+    def __post_init__(self) -> None:
+        check_credentials(
+            self.aws_access_key_id, self.aws_secret_access_key, self.role_arn, self.external_id, self.sts_endpoint
+        )
+        chunk = parse_size(self.upload_chunk_size) or 0
+        if not MIN_PART_BYTES <= chunk <= MAX_PART_BYTES:
+            raise ConfigError(
+                "upload_chunk_size", f'expected 5M to 5G (S3\'s part sizes), got "{self.upload_chunk_size}"'
+            )
+
+
+class _Unsendable(Exception):
+    """This record cannot be written as a line: rejected alone, with the reason."""
+
+
+class S3(Destination[S3Params]):
+    """Write each batch of records as an object of JSON lines to Amazon S3 or an S3-compatible store."""
+
+    def __init__(self, context: Any, params: S3Params) -> None:
+        super().__init__(context, params)
+        self._client: Any = None
+        self._last_problem = ""
+        self._lock = threading.Lock()
+        self._max_object_bytes = parse_size(params.total_file_size) or 0
+        self._chunk_bytes = parse_size(params.upload_chunk_size) or MIN_PART_BYTES
+        self._tag_parts = self._split_tag(context.name)
+        self.where = ""
+
+    def _split_tag(self, tag: str) -> list[str]:
+        delimiters = self.params.s3_key_format_tag_delimiters
+        parts = re.split(f"[{re.escape(delimiters)}]", tag) if delimiters else [tag]
+        for match in _TAG_PART.finditer(self.params.s3_key_format):
+            if int(match.group(1)) >= len(parts):
+                raise ConfigError(
+                    "s3_key_format",
+                    f"{match.group(0)} is beyond the {len(parts)} part(s) of the tag {tag!r} "
+                    f"split at {delimiters!r} (s3_key_format_tag_delimiters)",
+                )
+        return parts
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def on_configure(self) -> None:
+        p = self.params
+        endpoint = endpoint_url(p.endpoint)
+        # Named in every message: which bucket, where, so an operator sees what to fix.
+        self.where = f"bucket {p.bucket} in {p.region}" + (f" at {endpoint}" if endpoint else "")
+        config = botocore.config.Config(
+            region_name=p.region,
+            connect_timeout=p.timeout,
+            read_timeout=p.timeout,
+            # Fluent Bit's auto_retry_requests: one immediate retry; the destination server's backoff does the rest.
+            retries={"total_max_attempts": 2 if p.auto_retry_requests else 1, "mode": "standard"},
+            # S3-compatible stores (SeaweedFS, MinIO, Ceph) rarely resolve bucket.host names: path-style there.
+            s3={"addressing_style": "path" if endpoint else "auto"},
+            user_agent_extra="dc-destinations",
+        )
+        session = aws_session(
+            name=self.context.name,
+            region=p.region,
+            access_key=p.aws_access_key_id,
+            secret_key=p.aws_secret_access_key,
+            role_arn=p.role_arn,
+            external_id=p.external_id,
+            sts_endpoint=p.sts_endpoint,
+            timeout=p.timeout,
+        )
+        # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
+        self._client = session.client("s3", endpoint_url=endpoint, config=config)
+
+    def on_activate(self) -> None:
+        # The bucket is not probed here: an unreachable store must not hold up activation, and the
+        # first batch says clearly what is wrong.
+        self.context.logger.info(f"writing objects to {self.where}, keys {self.params.s3_key_format!r}")
+
+    def on_cleanup(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    # -- sending -----------------------------------------------------------------------------------
+    def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        outcome = SendOutcome()
+        # Objects of (index in the batch, line) bounded by total_file_size, in the batch's order.
+        objects: list[list[tuple[int, bytes]]] = [[]]
+        size = 0
+        for i, record in enumerate(batch):
+            try:
+                line = self._line(record)
+            except (_Unsendable, MalformedRecord) as exc:
+                outcome.reject[i] = str(exc)
+                continue
+            if objects[-1] and size + len(line) > self._max_object_bytes:
+                objects.append([])
+                size = 0
+            objects[-1].append((i, line))
+            size += len(line)
+        with self._lock:
+            for n, lines in enumerate(objects):
+                if not lines:
+                    continue
+                key = self.object_key(batch[lines[0][0]], n)
+                try:
+                    self._upload(key, b"".join(line for _, line in lines))
+                except RetryableError as exc:
+                    if n == 0 and not outcome.reject:
+                        raise  # nothing of the batch went: the whole batch is retried
+                    # This object and the ones not written yet are retried; those written are confirmed.
+                    for later in objects[n:]:
+                        outcome.retry.update((i, str(exc)) for i, _ in later)
+                    break
+        if outcome.retry or outcome.reject:
+            return outcome
+        return None
+
+    def _line(self, record: OutgoingRecord) -> bytes:
+        p = self.params
+        if p.log_key:
+            if p.log_key not in record.data:
+                raise _Unsendable(f"no key {p.log_key!r} (log_key) in the record")
+            value = record.data[p.log_key]
+            text = value if isinstance(value, str) else dump_record(value)
+            text = text.replace("\n", "\\n")  # one record per line, whatever the value holds
+        else:
+            text = record.to_json()
+        try:
+            return (text + "\n").encode("utf-8")
+        except UnicodeEncodeError as exc:
+            raise _Unsendable(f"the record is not valid UTF-8 text: {exc}") from None
+
+    def object_key(self, first: OutgoingRecord, index: int = 0) -> str:
+        """The key of the object whose first record is ``first``: the same for every attempt."""
+        p = self.params
+        uuid = hashlib.sha256(first.record_id.encode("utf-8")).hexdigest()[:16]
+        seconds = first.stamp_ns // 1_000_000_000
+        # strftime first, so that a '%' in the tag stays as it is.
+        key = dt.datetime.fromtimestamp(seconds, tz=dt.UTC).strftime(p.s3_key_format)
+        key = _TAG_PART.sub(lambda m: self._tag_parts[int(m.group(1))], key)
+        key = key.replace("$TAG", self.context.name).replace("$UUID", uuid).replace("$INDEX", str(index))
+        if "$UUID" not in p.s3_key_format and not p.static_file_path:
+            key += f"-{uuid}"
+        if p.compression == "gzip" and not key.endswith(".gz"):
+            key += ".gz"
+        # An S3 key has no leading slash: "/fluent-bit-logs/…" would make an empty first folder.
+        return key.lstrip("/")
+
+    def _upload(self, key: str, data: bytes) -> None:
+        p = self.params
+        extra: dict[str, str] = {"ContentType": p.content_type or "application/x-ndjson"}
+        if p.compression == "gzip":
+            # mtime=0: the same records give the same bytes on every attempt.
+            data = gzip.compress(data, mtime=0)
+            extra["ContentEncoding"] = "gzip"
+        if p.canned_acl:
+            extra["ACL"] = p.canned_acl
+        if p.storage_class:
+            extra["StorageClass"] = p.storage_class
+        try:
+            if p.use_put_object or len(data) <= self._chunk_bytes:
+                self._client.put_object(Bucket=p.bucket, Key=key, Body=data, **extra, **self._md5(data))
+            else:
+                self._multipart(key, data, extra)
+        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+            message = self._describe(exc, key)
+            self._problem(message)
+            raise RetryableError(message) from None
+        if self._last_problem:
+            self.context.logger.info(f"{self.where}: objects written again")
+            self._last_problem = ""
+
+    def _multipart(self, key: str, data: bytes, extra: dict[str, str]) -> None:
+        p = self.params
+        # Parts no smaller than upload_chunk_size, more of them only up to S3's 10000.
+        part_size = max(self._chunk_bytes, -(-len(data) // MAX_PARTS))
+        upload_id = self._client.create_multipart_upload(Bucket=p.bucket, Key=key, **extra)["UploadId"]
+        try:
+            parts = []
+            for number, start in enumerate(range(0, len(data), part_size), start=1):
+                body = data[start : start + part_size]
+                answer = self._client.upload_part(
+                    Bucket=p.bucket, Key=key, UploadId=upload_id, PartNumber=number, Body=body, **self._md5(body)
+                )
+                parts.append({"PartNumber": number, "ETag": answer["ETag"]})
+            self._client.complete_multipart_upload(
+                Bucket=p.bucket, Key=key, UploadId=upload_id, MultipartUpload={"Parts": parts}
+            )
+        except BaseException:
+            # The parts already stored would be billed until a lifecycle rule removes them.
+            # An unreachable store cannot abort either: the failure being raised says so.
+            with contextlib.suppress(botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError):
+                self._client.abort_multipart_upload(Bucket=p.bucket, Key=key, UploadId=upload_id)
+            raise
+
+    def _md5(self, body: bytes) -> dict[str, str]:
+        if not self.params.send_content_md5:
+            return {}
+        return {"ContentMD5": base64.b64encode(hashlib.md5(body).digest()).decode("ascii")}
+
+    # -- messages ----------------------------------------------------------------------------------
+    def _describe(self, exc: Exception, key: str) -> str:
+        """What to tell the operator about a failed upload (every failure is retried)."""
+        p = self.params
+        if isinstance(exc, botocore.exceptions.ClientError):
+            error = exc.response.get("Error", {})
+            code, text = str(error.get("Code", "")), str(error.get("Message", ""))
+            status = exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0)
+            if exc.operation_name == "AssumeRole":
+                return self._scrub(f"cannot assume role {p.role_arn}: {code}: {text} (for {self.where})")
+            if code == "NoSuchBucket":
+                return self._scrub(f"no {self.where}: create it or correct `bucket` / `region` / `endpoint` ({text})")
+            if code in _S3CREDENTIAL_CODES:
+                return self._scrub(
+                    f"S3 refused the credentials for {self.where}: {code}: {text} "
+                    "(check the access key, secret key, role_arn and the policy's s3:PutObject)"
+                )
+            return self._scrub(f"cannot write {key} to {self.where}: {code or status}: {text}")
+        if isinstance(exc, CREDENTIALS_MISSING):
+            return (
+                f"no AWS credentials for {self.where}: set them in the environment, a profile, an instance "
+                "role, or aws_access_key_id / aws_secret_access_key"
+            )
+        if isinstance(exc, NETWORK_ERRORS):
+            return self._scrub(f"cannot reach S3 for {self.where}: {exc}")
+        return self._scrub(f"cannot write {key} to {self.where}: {type(exc).__name__}: {exc}")
+
+    def _problem(self, message: str) -> None:
+        """Log a failure once when it starts (the server logs the retries per burst)."""
+        if message != self._last_problem:
+            self.context.logger.error(message)
+            self._last_problem = message
+
+    def _scrub(self, text: str) -> str:
+        secret = self.params.aws_secret_access_key
+        return text.replace(secret, "***") if secret else text

@@ -1,0 +1,49 @@
+"""`dc servers run`: the local PostgreSQL, S3 and InfluxDB come up, say where they are, and go away on Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+import signal
+import stat
+import subprocess
+import time
+from pathlib import Path
+
+import psycopg
+import pytest
+import yaml
+
+from tests.bringup_util import BIN
+
+pytestmark = pytest.mark.e2e
+
+
+def test_servers_run_until_interrupted_with_their_settings_kept_private(tmp_path: Path) -> None:
+    state = Path(os.environ.get("TMPDIR", "/tmp")) / f"dc-servers-{os.getpid()}"  # postgres must enter it
+    run = subprocess.Popen(
+        [str(BIN / "dc"), "servers", "run", "postgres", "influxdb", "--state-dir", str(state)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    settings_file = state / "settings.yaml"
+    try:
+        deadline = time.monotonic() + 90
+        while not settings_file.exists() and run.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)  # polling a file another process writes: no event to wait on
+        assert settings_file.exists(), run.stdout.read() if run.stdout else ""
+        assert stat.S_IMODE(settings_file.stat().st_mode) == 0o600  # it holds passwords
+        settings = yaml.safe_load(settings_file.read_text())
+        pg = settings["postgres"]
+        with psycopg.connect(
+            host=pg["host"], port=pg["port"], user=pg["user"], password=pg["password"], dbname=pg["database"]
+        ) as connection:
+            assert connection.execute("select 1").fetchone() == (1,)
+        assert settings["influxdb"]["port"] > 0
+    finally:
+        run.send_signal(signal.SIGINT)
+        output, _ = run.communicate(timeout=60)
+    assert run.returncode == 0, output
+    assert "postgres: stopped" in output and "influxdb: stopped" in output
+    assert pg["password"] not in output  # the settings file has it, the terminal does not
+    subprocess.run(["rm", "-rf", str(state)], check=False)
