@@ -83,7 +83,7 @@ class ImageServices(ManagedServer):
         super().__init__(NODE_NAME, params_file)
         self.config: ImageServicesConfig | None = None
         self._detector: Any = None
-        self._services: list[Any] = []
+        self._offered_services: list[Any] = []
 
     def configure_server(self) -> None:
         self.config = parse_image_services(self.read_params_file()[NODE_NAME])
@@ -104,13 +104,15 @@ class ImageServices(ManagedServer):
         }
         for name in self.config.node.services:
             service_type, handler = handlers[name]
-            self._services.append(self.create_service(service_type, f"{prefix}/{name}".replace("//", "/"), handler))
+            self._offered_services.append(
+                self.create_service(service_type, f"{prefix}/{name}".replace("//", "/"), handler)
+            )
         self.get_logger().info(f"serving {', '.join(f'{prefix}/{n}' for n in self.config.node.services)}")
 
     def deactivate_server(self) -> None:
-        for service in self._services:
+        for service in self._offered_services:
             self.destroy_service(service)
-        self._services.clear()
+        self._offered_services.clear()
 
     def cleanup_server(self) -> None:
         self._detector = None

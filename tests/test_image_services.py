@@ -115,3 +115,32 @@ def test_configuration_is_checked() -> None:
         parse_image_services({"detection_modules": ["faces"]})
     with pytest.raises(ConfigError, match=r"image_services\.servises: unknown parameter"):
         parse_image_services({"servises": []})
+
+
+@pytest.mark.e2e
+def test_dc_bringup_starts_the_image_services_when_the_file_has_their_section(tmp_path: Path) -> None:
+    from tests.bringup_util import Bringup
+
+    params = tmp_path / "params.yaml"
+    params.write_text(
+        "image_services:\n  ros__parameters:\n    services: [detect_barcodes]\n"
+        "measurement_server:\n  ros__parameters:\n    measurement_plugins: [uptime]\n"
+        "    uptime:\n      plugin: dc_measurements/Uptime\n"
+    )
+    with Bringup(params, tmp_path / "home") as bringup:
+        bringup.wait_ready()
+        assert any("image_services active" in line for line in bringup.stderr)
+        context = Context()
+        rclpy.init(context=context, domain_id=bringup.domain_id)
+        node = rclpy.create_node("test_bringup_image_services", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        try:
+            frame = label_frame(LABEL, 640, 480)
+            request = DetectBarcode.Request(frame=image_message(frame))
+            response = call((node, executor), DetectBarcode, "/dc/service/detect_barcodes", request)
+            assert {b.data for b in response.barcodes} == {LABEL.qr, LABEL.linear}
+        finally:
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.shutdown(context=context)
