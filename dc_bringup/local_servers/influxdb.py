@@ -12,9 +12,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import json
-import os
 import shutil
-import signal
 import subprocess
 import time
 import urllib.error
@@ -23,10 +21,9 @@ import urllib.request
 from pathlib import Path
 
 from dc_bringup.local_servers import ServerError
-from dc_bringup.local_servers.postgres import _alive, _wait_gone, free_port
+from dc_bringup.local_servers.processes import free_port, log_tail, pid_from_file, terminate
 
 INSTALL_HINT = "InfluxDB is not installed (apt install influxdb)"
-_LOG_TAIL_LINES = 20
 
 
 def missing_reason() -> str | None:
@@ -90,13 +87,7 @@ class InfluxServer:
         pid = self._pid()
         if pid is None:
             return
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGTERM)
-        _wait_gone(pid, timeout)
-        if _alive(pid):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
-            _wait_gone(pid, 5.0)
+        terminate(pid, timeout)
         if self._process is not None:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self._process.wait(1.0)  # reaps the child: no zombie left behind
@@ -205,18 +196,10 @@ bind-address = "127.0.0.1:{rpc_port}"
         self.query(f"CREATE DATABASE {_ident(self.database)}", post=True)  # a no-op when it exists
 
     def _pid(self) -> int | None:
-        try:
-            pid = int((self.state_dir / "influxd.pid").read_text().split()[0])
-        except (OSError, ValueError, IndexError):
-            return None
-        return pid if _alive(pid) else None
+        return pid_from_file(self.state_dir / "influxd.pid")
 
     def _log_tail(self) -> str:
-        try:
-            lines = self.log_file.read_text(errors="replace").splitlines()[-_LOG_TAIL_LINES:]
-        except OSError:
-            return ""
-        return ("\n--- end of " + str(self.log_file) + " ---\n" + "\n".join(lines)) if lines else ""
+        return log_tail(self.log_file)
 
 
 def _ident(name: str) -> str:

@@ -16,8 +16,6 @@ import glob
 import os
 import pwd
 import shutil
-import signal
-import socket
 import subprocess
 import time
 from collections.abc import Sequence
@@ -25,13 +23,13 @@ from pathlib import Path
 from typing import Any
 
 from dc_bringup.local_servers import ServerError
+from dc_bringup.local_servers.processes import alive, free_port, kill, log_tail
 
 INSTALL_HINT = "PostgreSQL is not installed (apt install postgresql)"
 _SUPERUSER = "postgres"
 _SYSTEM_USER = "postgres"  # the Debian package's account, owner of the cluster when running as root
 # A unix socket path longer than this does not fit in sockaddr_un (108 bytes with the terminator).
 _MAX_SOCKET_PATH = 107
-_LOG_TAIL_LINES = 20
 
 
 def find_bin_dir() -> Path | None:
@@ -60,12 +58,6 @@ def missing_reason() -> str | None:
         except KeyError:
             return f"running as root needs the system user {_SYSTEM_USER!r} (created by apt install postgresql)"
     return None
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class PostgresServer:
@@ -145,11 +137,8 @@ class PostgresServer:
                      "-D", str(self.data_dir)],
                     timeout=timeout + 2,
                 )  # fmt: skip
-        if _alive(pid):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
-            _wait_gone(pid, 5.0)
-            # A killed postmaster leaves its pid file; the next start checks that pid and goes on.
+        # A killed postmaster leaves its pid file; the next start checks that pid and goes on.
+        kill(pid)
 
     def running(self) -> bool:
         return self._pid() is not None
@@ -307,35 +296,10 @@ class PostgresServer:
             pid = int(first)
         except (OSError, ValueError):
             return None
-        return pid if _alive(pid) else None
+        return pid if alive(pid) else None
 
     def _log_tail(self) -> str:
-        try:
-            lines = self.log_file.read_text(errors="replace").splitlines()[-_LOG_TAIL_LINES:]
-        except OSError:
-            return ""
-        return ("\n--- end of " + str(self.log_file) + " ---\n" + "\n".join(lines)) if lines else ""
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    # A zombie (a killed child of this process not yet reaped) counts as gone.
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return True
-    return state != "Z"
-
-
-def _wait_gone(pid: int, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while _alive(pid) and time.monotonic() < deadline:
-        time.sleep(0.05)
+        return log_tail(self.log_file)
 
 
 def current_user() -> str:

