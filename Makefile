@@ -22,6 +22,9 @@ CONSTRAINTS := $(CURDIR)/constraints.txt
 NPROC := $(shell nproc 2>/dev/null || echo 2)
 PARAMS ?= params/default.yaml
 PYTEST_ARGS ?=
+# Test files run in parallel workers (a file's tests stay in one worker, sharing its servers): most
+# of the suite's time is spent waiting on processes, servers and 30 s outages, not computing.
+TEST_WORKERS ?= 3
 
 # ROS 2 Jazzy from PyPI: runtime, then what building dc_interfaces needs (each one is required,
 # see the notes on ROS wheels). Versions come from constraints.txt.
@@ -124,7 +127,7 @@ test: install test-deps
 	$(VENV)/bin/mypy
 	mkdir -p $(ROS_LOG_DIR)
 	export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_LOG_DIR=$(ROS_LOG_DIR); \
-	$(VPY) -m pytest $(PYTEST_ARGS)
+	$(VPY) -m pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 clean:
 	rm -rf build $(VENV)/.stamp-*

@@ -12,9 +12,13 @@ from typing import Any
 
 import pytest
 
+from tests.domains import session_domain_id
+
 # Set before any test module imports rclpy, so every context of this session uses them.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+if "PYTEST_XDIST_WORKER" in os.environ or "ROS_DOMAIN_ID" not in os.environ:
+    # A worker inherits the controller's environment: it needs a domain of its own.
+    os.environ["ROS_DOMAIN_ID"] = str(session_domain_id())
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="dc-test-roslog-"))
 os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
 

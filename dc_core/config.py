@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import difflib
+import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -15,6 +17,10 @@ SERVERS = ("measurement_server", "group_server", "destination_server", "image_se
 # How alike (difflib ratio) a top-level key must be to a server's name to be taken for a typo of it:
 # "destination_sever" is 0.97, Nav2's "controller_server" 0.69 from "group_server".
 TYPO_SIMILARITY = 0.85
+# Fluent Bit's references to the environment in its configuration: ${NAME} (braces required, so that
+# $TAG in an S3 key format or $HOME in a path keep their own meaning); $${ writes a literal ${.
+_INTEGER = re.compile(r"-?(0|[1-9][0-9]*)")
+_REFERENCE = re.compile(r"\$(\$?)\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 
 def other_sections(path: str | Path) -> list[str]:
@@ -85,7 +91,38 @@ def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
             params = {}
         if not isinstance(params, Mapping):
             raise ConfigError(f"{name}.ros__parameters", "expected a mapping")
-        servers[str(name)] = nest_dotted_keys(params, str(name))
+        servers[str(name)] = expand_references(nest_dotted_keys(params, str(name)), str(name))
     if not servers:
         raise ConfigError("", f"{file}: no DC server section (expected one of {', '.join(SERVERS)})")
     return servers
+
+
+def expand_references(value: Any, path: str, environ: Mapping[str, str] | None = None) -> Any:
+    """``${NAME}`` in every string of a parameter tree replaced by the environment variable NAME.
+
+    Secrets (passwords, keys) can then live in the environment of the robot's service rather than in
+    a parameter file. An unset variable is a configuration error naming the key: an empty password
+    sent to a server would fail later and less clearly.
+    """
+    env = os.environ if environ is None else environ
+    if isinstance(value, str):
+        whole = _REFERENCE.fullmatch(value)
+        if whole and not whole.group(1) and _INTEGER.fullmatch(env.get(whole.group(2), "")):
+            # `port: ${DC_POSTGRES_PORT}` is an integer, as `port: 15432` would be. Only integers
+            # written as YAML would read them back unchanged ("0123" or "1.50" stay text).
+            return int(env[whole.group(2)])
+
+        def replace(match: re.Match[str]) -> str:
+            escaped, name = match.group(1), match.group(2)
+            if escaped:
+                return "${" + name + "}"
+            if name not in env:
+                raise ConfigError(path, f"environment variable {name} is not set (referenced as ${{{name}}})")
+            return env[name]
+
+        return _REFERENCE.sub(replace, value)
+    if isinstance(value, Mapping):
+        return {key: expand_references(item, f"{path}.{key}", env) for key, item in value.items()}
+    if isinstance(value, list):
+        return [expand_references(item, f"{path}[{i}]", env) for i, item in enumerate(value)]
+    return value

@@ -44,6 +44,8 @@ class _Plan:
 
     met: bool | None
     known: dict[str, bool] = field(default_factory=dict)
+    # Since when the conditions judged without the sample have allowed collecting (node clock).
+    allowed_since_ns: int | None = None
 
 
 class MeasurementRunner:
@@ -77,6 +79,11 @@ class MeasurementRunner:
         # Bumped at each activation and deactivation: a collection that finishes in another one
         # than it started in is not published.
         self._generation = 0
+        self._allowed_since_ns: int | None = None
+        self._predates_log = BurstLog(
+            logger.info,
+            f"measurement {config.name}: samples dated before their conditions held were not published",
+        )
         self._overrun_log = BurstLog(
             logger.warning,
             f"measurement {config.name}: polls skipped, the previous collection was still running",
@@ -147,28 +154,46 @@ class MeasurementRunner:
             return None
         if not self.gate.needs_conditions:
             return _Plan(None)
+        self._predates_log.tick()
         used = self._used_conditions()
         if not any(rt.needs_sample for rt in used):
             met = self._evaluate(None)
+            self._note_allowed(met)
             if not self.gate.would_admit(met):
                 # Conditions are judged without the sample: do not even collect (#213 upstream).
                 self.gate.observe_conditions(met)
                 self.stats.gated += 1
                 return None
-            return _Plan(met)
+            return _Plan(met, allowed_since_ns=self._allowed_since_ns)
         # Some need the sample; when those that do not already rule it out (the robot moves, for a camera
         # gated by if_none_conditions: [moving]) the frame is not even read.
         c = self.config.common
         known = {rt.name: rt.evaluate(None) for rt in used if not rt.needs_sample}
-        if already_unmet(c.if_all_conditions, c.if_none_conditions, known):
+        unmet = already_unmet(c.if_all_conditions, c.if_none_conditions, known)
+        self._note_allowed(not unmet)
+        if unmet:
             self.gate.observe_conditions(False)
             self.stats.gated += 1
             return None
-        return _Plan(None, known)
+        return _Plan(None, known, self._allowed_since_ns)
+
+    def _note_allowed(self, allowed: bool) -> None:
+        if not allowed:
+            self._allowed_since_ns = None
+        elif self._allowed_since_ns is None:
+            self._allowed_since_ns = self._clock_ns()
 
     def _collected(self, plan: _Plan, collected: tuple[dict[str, Any] | None, int | None, str | None]) -> None:
         sample, stamp_ns, group_key = collected
         if sample is None:
+            return
+        if plan.allowed_since_ns is not None and stamp_ns is not None and stamp_ns < plan.allowed_since_ns:
+            # A sample dated by its source (a camera frame) may predate the moment the conditions
+            # were seen to hold: the picture taken while the robot still moved is not the one
+            # "taken while standing". Skipped without counting against condition_max_measurements:
+            # the next period brings a newer one.
+            self.stats.gated += 1
+            self._predates_log.event(1, f"{(plan.allowed_since_ns - stamp_ns) / 1e9:.3f} s before")
             return
         if plan.met is not None:
             met = plan.met

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -15,19 +14,10 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from tests.domains import fresh_domain_id
+
 REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
-
-_used_domains: set[int] = set()
-
-
-def fresh_domain_id() -> int:
-    """A ROS domain per dc-bringup run, so leftovers of one test never reach another."""
-    while True:
-        candidate = random.randint(101, 200)
-        if candidate not in _used_domains:
-            _used_domains.add(candidate)
-            return candidate
 
 
 class Bringup:

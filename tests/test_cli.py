@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.bringup_util import BIN, REPO, dc, fresh_domain_id
+from tests.bringup_util import BIN, REPO, dc
+from tests.domains import fresh_domain_id
 
 PLUGIN_SRC = REPO / "tests" / "data" / "dc_example_plugin"
 
@@ -162,9 +163,20 @@ def test_validate_warns_about_dangling_inputs_and_unknown_tags(tmp_path: Path) -
 
 
 @pytest.mark.parametrize("example", sorted(p.name for p in (REPO / "params").rglob("*.yaml")))
-def test_every_shipped_configuration_is_valid(example: str) -> None:
+def test_every_shipped_configuration_is_valid(example: str, tmp_path: Path) -> None:
+    from dc_bringup.local_servers.influxdb import InfluxServer
+    from dc_bringup.local_servers.postgres import PostgresServer
+    from dc_bringup.local_servers.run import environment
+    from dc_bringup.local_servers.seaweedfs import SeaweedS3Server
+
     (path,) = list((REPO / "params").rglob(example))
-    result = dc("validate", str(path))
+    # The storage demos name the local servers' settings as servers.env exports them: those names must exist.
+    settings = {
+        "postgres": PostgresServer(tmp_path / "pg", port=15432, password="pw").settings(),
+        "s3": SeaweedS3Server(tmp_path / "s3", port=18333, secret_key="key").settings(),
+        "influxdb": InfluxServer(tmp_path / "influxdb", port=18086).settings(),
+    }
+    result = dc("validate", str(path), env={**os.environ, **environment(settings)})
     assert result.returncode == 0, result.stderr
 
 

@@ -25,7 +25,8 @@ from typing import Any
 import pytest
 
 from dc_core.qos import RECORD_HISTORY_DEPTH
-from tests.bringup_util import Bringup, fresh_domain_id
+from tests.bringup_util import Bringup
+from tests.domains import fresh_domain_id
 
 pytestmark = pytest.mark.e2e
 

@@ -24,10 +24,7 @@ from tests.bringup_util import BIN, REPO, Bringup
 pytestmark = pytest.mark.e2e
 
 RATE = 2.0
-DURATION_S = 70.0
-FRAME_PERIOD_S = (
-    RATE / 10.0
-)  # dc sim's camera: 10 frames per wall-clock second  # the route's six stops take about a minute
+DURATION_S = 76.0  # the route's six stops take about a minute, and the last needs its second poll
 
 
 def test_every_shelf_code_of_the_route_is_read_once_per_stop_and_only_while_standing(tmp_path: Path) -> None:
@@ -63,11 +60,9 @@ def test_every_shelf_code_of_the_route_is_read_once_per_stop_and_only_while_stan
     read_at: dict[int, list[dict[str, Any]]] = {}
     for record in records:
         state = truth_at(record["date"])
-        # Only while standing, in front of a shelf label. A record is dated with its frame, and the newest frame
-        # at the poll that saw the robot stand may have been taken up to one frame period (0.2 s of simulated
-        # time: 10 fps at 2x) before it stood: the robot stands at most that long after the frame.
-        after = truth_at(record["date"] + FRAME_PERIOD_S)
-        assert abs(after["v"]) < standing_below and state["label_in_view"] is not None, (record["date"], state)
+        # Only while standing, in front of a shelf label. A record is dated with its frame: a frame taken
+        # before the poll that saw the robot stand (while it still crept) is not the one kept.
+        assert abs(state["v"]) < standing_below and state["label_in_view"] is not None, (record["date"], state)
         read_at.setdefault(state["label_in_view"], []).append(record)
     # Once per stop, and every label of the route read in full: its QR code and its 1D code.
     assert sorted(read_at) == visited

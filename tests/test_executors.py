@@ -35,7 +35,7 @@ from std_msgs.msg import String
 from dc_core.executors import EXECUTOR_KINDS, make_executor, spin_until
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ManagedServer
 from dc_interfaces.msg import Heartbeat, StringStamped
-from tests.bringup_util import fresh_domain_id
+from tests.domains import fresh_domain_id
 from tests.ros_util import two_contexts, wait_for
 
 DEADLINE_S = 15.0

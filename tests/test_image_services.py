@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import random
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -22,6 +21,7 @@ from dc_interfaces.srv import DetectBarcode, DrawImage, SaveImage
 from dc_measurements.camera.images import image_to_array
 from dc_measurements.image_services import image_message, parse_image_services
 from dc_sim.camera import ShelfLabel, label_frame
+from tests.domains import fresh_domain_id
 from tests.ros_util import wait_for
 
 LABEL = ShelfLabel("WH1/AISLE-2/SHELF-03", "4006381330015", "EAN13")
@@ -31,7 +31,7 @@ LABEL = ShelfLabel("WH1/AISLE-2/SHELF-03", "4006381330015", "EAN13")
 def services(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, SingleThreadedExecutor]]:
     params = tmp_path_factory.mktemp("image_services") / "params.yaml"
     params.write_text("image_services:\n  ros__parameters:\n    detection_modules: [barcode]\n")
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(201, 230)))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain_id()))
     server = subprocess.Popen(
         [sys.executable, "-m", "dc_measurements.image_services", str(params), "--autostart"],
         env=env,

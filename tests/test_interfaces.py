@@ -6,7 +6,6 @@ with any ROS 2 node that feeds DC; a change here breaks them.
 
 from __future__ import annotations
 
-import random
 import time
 from typing import Any
 
@@ -16,6 +15,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
 from dc_interfaces.msg import Condition, Heartbeat, StringStamped
+from tests.domains import fresh_domain_id
 
 TIMEOUT_S = 10.0
 
@@ -57,7 +57,7 @@ def test_message_defaults_and_ranges() -> None:
 
 def test_string_stamped_roundtrip() -> None:
     context = Context()
-    rclpy.init(context=context, domain_id=random.randint(1, 200))
+    rclpy.init(context=context, domain_id=fresh_domain_id())
     try:
         node = rclpy.create_node("dc_interfaces_roundtrip", context=context)
         executor = SingleThreadedExecutor(context=context)
@@ -107,7 +107,7 @@ def test_tf_message_has_the_type_hash_of_real_robots() -> None:
     from tf2_msgs.msg import TFMessage
 
     context = Context()
-    rclpy.init(context=context, domain_id=random.randint(1, 200))
+    rclpy.init(context=context, domain_id=fresh_domain_id())
     try:
         node = rclpy.create_node("dc_test_tf_hash", context=context)
         node.create_publisher(TFMessage, "/dc_test_tf_hash", 10)

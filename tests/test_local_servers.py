@@ -40,6 +40,14 @@ def test_servers_run_until_interrupted_with_their_settings_kept_private(tmp_path
         ) as connection:
             assert connection.execute("select 1").fetchone() == (1,)
         assert settings["influxdb"]["port"] > 0
+        # servers.env: the same settings as DC_<SERVER>_<KEY> for the demos' ${...} references.
+        env_file = state / "servers.env"
+        assert stat.S_IMODE(env_file.stat().st_mode) == 0o600
+        sourced = subprocess.run(
+            ["bash", "-c", f". {env_file} && echo $DC_POSTGRES_PORT && echo $DC_POSTGRES_PASSWORD"],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        assert sourced.stdout.split() == [str(pg["port"]), pg["password"]]
     finally:
         run.send_signal(signal.SIGINT)
         output, _ = run.communicate(timeout=60)

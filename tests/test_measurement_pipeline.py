@@ -37,6 +37,7 @@ def make_runner(
     run_id: str | None = "7",
     custom: list[tuple[str, str, bool]] | None = None,
     samples: list[dict[str, Any] | None] | None = None,
+    clock_ns: Any = None,
 ) -> tuple[MeasurementRunner, list[tuple[str, str, int | None]]]:
     cfg = parse_measurement_server(server({"m": body}, conditions))
     mcfg = cfg.measurements[0]
@@ -63,6 +64,7 @@ def make_runner(
         custom or [],
         lambda text, key, stamp: published.append((text, key, stamp)),
         LOG,
+        **({"clock_ns": clock_ns} if clock_ns else {}),
     )
     return runner, published
 
@@ -235,6 +237,44 @@ def test_a_sample_the_conditions_without_it_already_rule_out_is_not_collected() 
     runner.tick()
     assert collected == [1] and [r["a"] for r in records(published)] == [1]
     assert judged == ["moving"]  # once for this sample
+
+
+def test_a_frame_taken_before_the_conditions_held_is_not_the_one_published() -> None:
+    # The QR-code camera: the newest frame at the poll that first sees the robot standing may have been
+    # taken while it still moved. It is skipped (not counted against condition_max_measurements) and
+    # the next poll's newer frame is the episode's record.
+    now = [10_000]
+    runner, published = make_runner(
+        {
+            "plugin": "dc_measurements/Dummy",
+            "if_all_conditions": ["has_a"],
+            "if_none_conditions": ["moving"],
+            "init_max_measurements": -1,
+            "condition_max_measurements": 1,
+        },
+        conditions={
+            "has_a": {"plugin": "dc_conditions/Exist", "key": "a"},
+            "moving": {"plugin": "dc_conditions/Moving"},
+        },
+        clock_ns=lambda: now[0],
+    )
+    moving = [True]
+    runner._conditions["moving"].evaluate = lambda sample: moving[0]  # type: ignore[method-assign]
+    frames = [({"a": 1}, 9_000), ({"a": 2}, 10_500), ({"a": 3}, 10_700), ({"a": 4}, 10_200)]
+    runner.plugin.collect_stamped = lambda: (*frames.pop(0), None)  # type: ignore[method-assign]
+    runner.tick()  # moving: nothing read
+    moving[0] = False
+    runner.tick()  # standing since 10_000: the frame of 9_000 predates it
+    assert published == [] and runner.stats.gated == 2
+    runner.tick()  # a frame of 10_500: the episode's one record
+    runner.tick()  # condition_max_measurements: 1
+    assert [(r["a"], stamp) for r, (_, _, stamp) in zip(records(published), published, strict=True)] == [(2, 10_500)]
+    moving[0] = True
+    runner.tick()
+    moving[0] = False
+    now[0] = 10_600
+    runner.tick()  # a new episode from 10_600: the frame of 10_200 (read late) predates it too
+    assert len(published) == 1
 
 
 def test_conditions_met_truth_table() -> None:

@@ -125,3 +125,33 @@ def test_every_server_takes_use_sim_time(server: str) -> None:
     assert parse({**section, "use_sim_time": True}).node.use_sim_time is True
     with pytest.raises(ConfigError, match=f"{name}.use_sim_time"):
         parse({**section, "use_sim_time": "sometimes"})
+
+
+def test_environment_references_are_replaced_in_every_string(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("DC_TEST_PASSWORD", "s3cr3t")
+    monkeypatch.setenv("DC_TEST_HOST", "db.local")
+    monkeypatch.setenv("DC_TEST_PORT", "15432")
+    monkeypatch.setenv("DC_TEST_PIN", "0123")
+    file = tmp_path / "params.yaml"
+    file.write_text(
+        "destination_server:\n  ros__parameters:\n"
+        "    pg: {password: '${DC_TEST_PASSWORD}', host: 'x-${DC_TEST_HOST}', hosts: ['${DC_TEST_HOST}']}\n"
+        "    db: {port: '${DC_TEST_PORT}', pin: '${DC_TEST_PIN}', where: ':${DC_TEST_PORT}'}\n"
+        "    s3: {s3_key_format: '/logs/$TAG/%Y', path: '$HOME/data', literal: '$${DC_TEST_HOST}'}\n"
+    )
+    params = load_params_file(file)["destination_server"]
+    assert params["pg"] == {"password": "s3cr3t", "host": "x-db.local", "hosts": ["db.local"]}
+    # A value that is one reference to an integer is an integer (a port); "0123" stays text (a PIN).
+    assert params["db"] == {"port": 15432, "pin": "0123", "where": ":15432"}
+    # Without braces a $ keeps its own meaning (S3's $TAG, paths' $HOME expanded later); $${ is a literal ${.
+    assert params["s3"] == {"s3_key_format": "/logs/$TAG/%Y", "path": "$HOME/data", "literal": "${DC_TEST_HOST}"}
+
+
+def test_an_unset_environment_reference_names_the_key(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("DC_TEST_UNSET", raising=False)
+    file = tmp_path / "params.yaml"
+    file.write_text("destination_server:\n  ros__parameters:\n    pg.password: '${DC_TEST_UNSET}'\n")
+    with pytest.raises(ConfigError) as caught:
+        load_params_file(file)
+    assert caught.value.path == "destination_server.pg.password"
+    assert "environment variable DC_TEST_UNSET is not set" in str(caught.value)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import shlex
 import signal
 import threading
 from pathlib import Path
@@ -50,12 +51,14 @@ def run(names: list[str], state_dir: Path, stop: threading.Event, say: Any = pri
             server.start()
             started.append((name, server))
             say(f"{name}: listening on 127.0.0.1:{server.port}")
+        settings = {name: server.settings() for name, server in started}
+        env_file = state_dir / "servers.env"
+        _write_private(env_file, environment_lines(settings))
+        # Written last: its presence tells scripts and tests that the servers are up.
         settings_file = state_dir / "settings.yaml"
-        settings_file.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(settings_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as f:
-            yaml.safe_dump({name: server.settings() for name, server in started}, f, sort_keys=False)
-        say(f"connection settings (passwords and keys included) in {settings_file}; Ctrl-C stops the servers")
+        _write_private(settings_file, yaml.safe_dump(settings, sort_keys=False))
+        say(f"connection settings (passwords and keys included) in {settings_file} and {env_file}")
+        say(f"for the demos: . {env_file}  (then dc-bringup params/demos/...); Ctrl-C stops the servers")
         stop.wait()
         return 0
     except ServerError as exc:
@@ -65,6 +68,23 @@ def run(names: list[str], state_dir: Path, stop: threading.Event, say: Any = pri
         for name, server in reversed(started):
             server.stop()
             say(f"{name}: stopped")
+
+
+def environment(settings: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """``DC_<SERVER>_<KEY>`` for every setting: the names the demos' ``${...}`` references use."""
+    return {f"DC_{name.upper()}_{key.upper()}": str(v) for name, keys in settings.items() for key, v in keys.items()}
+
+
+def environment_lines(settings: dict[str, dict[str, Any]]) -> str:
+    """:func:`environment` as shell ``export`` lines (servers.env)."""
+    return "".join(f"export {name}={shlex.quote(value)}\n" for name, value in environment(settings).items())
+
+
+def _write_private(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
 
 
 def main(args: Any) -> int:

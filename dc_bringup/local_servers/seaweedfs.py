@@ -232,6 +232,11 @@ class SeaweedS3Server:
                     code = exc.response.get("Error", {}).get("Code", "")
                     if code not in ("BucketAlreadyOwnedByYou", "BucketAlreadyExists"):
                         raise
+                # After a restart the gateway lists objects before the volumes holding them have
+                # reported to the master: reading one back fails (InternalError) for a moment.
+                stored = client.list_objects_v2(Bucket=self.bucket, MaxKeys=1).get("Contents", [])
+                if stored:
+                    client.get_object(Bucket=self.bucket, Key=stored[0]["Key"])["Body"].read()
                 return
             except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
                 problem = str(exc)

@@ -1,0 +1,61 @@
+"""What FilesMetrics says about a file's content: its MIME type, and a video's duration (ffprobe)."""
+
+from __future__ import annotations
+
+import mimetypes
+import shutil
+import subprocess
+
+from dc_core.logs import Logger
+
+OCTET_STREAM = "application/octet-stream"
+# A video ffprobe cannot read in this time is reported without a duration rather than holding the batch.
+PROBE_TIMEOUT_S = 20.0
+
+
+def content_type(path: str) -> str:
+    """The MIME type the file's name suggests (the system's mime.types included), else octet-stream.
+
+    By name rather than by content: the file may already be gone (deleted once stored) when its row
+    is written again.
+    """
+    guessed, _encoding = mimetypes.guess_type(path, strict=False)
+    return guessed or OCTET_STREAM
+
+
+def is_video(mime_type: str) -> bool:
+    return mime_type.startswith("video/")
+
+
+class DurationProbe:
+    """Seconds of video in a file, read by ffprobe; None when ffprobe is missing or cannot tell."""
+
+    def __init__(self, logger: Logger, ffprobe: str | None = None) -> None:
+        self._logger = logger
+        self._ffprobe = ffprobe if ffprobe is not None else shutil.which("ffprobe")
+        self._missing_told = False
+
+    def duration(self, path: str) -> float | None:
+        if not self._ffprobe:
+            if not self._missing_told:
+                # Once per destination: the rows are still written, with an empty duration.
+                self._missing_told = True
+                self._logger.warning("ffprobe not found (apt install ffmpeg): videos are recorded without duration")
+            return None
+        command = [self._ffprobe, "-v", "error", "-show_entries", "format=duration", "-of", "csv=p=0", path]
+        try:
+            done = subprocess.run(
+                command, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S, stdin=subprocess.DEVNULL
+            )
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            self._logger.warning(f"ffprobe failed on {path}: {exc}")
+            return None
+        text = done.stdout.strip()
+        try:
+            seconds = float(text)
+        except ValueError:
+            # "N/A" (a stream without a duration) or an unreadable file: not a reason to hold the record.
+            problem = done.stderr.strip().splitlines()[-1:] or [text or f"exit status {done.returncode}"]
+            self._logger.warning(f"ffprobe found no duration in {path}: {problem[0]}")
+            return None
+        return seconds if seconds >= 0 else None

@@ -1,0 +1,507 @@
+"""MinIO destination: the files records name, uploaded to MinIO, S3 or another S3-compatible store, and verified.
+
+A record of a file-saving measurement (Map, Camera) carries the paths of its files and the object
+key each one goes to (``src_fields`` / ``upload_fields``). A record is confirmed only once every
+file it names is stored and verified — the object's size and ETag compared with the local file's —
+so the buffer keeps the record, and retries it, until the store really has the files. A retried
+record costs a HEAD request per file: files already stored intact are not sent again.
+
+Files above ``multipart_threshold`` go in parts. An interrupted multipart upload is resumed by the
+next attempt: the parts the store already holds with the right content (their ETag is their MD5)
+are kept, the others sent. Nothing is aborted because the network failed, which is what makes it
+resumable.
+
+A file must be left unmodified for ``complete_after`` seconds before it is taken as complete. Files
+younger than that are looked at again after one wait per batch (at most ``complete_after``,
+overlapping the batch's other uploads): unchanged, they go; still growing, their record is retried
+later. A file that is missing is looked for again after the same wait (DC's own measurements write
+their files just after publishing the record), then its record goes to the dead letters with the
+path — unless the object is stored already (a retry after ``delete_when_sent`` deleted it).
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import mimetypes
+import os
+import stat
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, NoReturn
+
+from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.errors import ConfigError
+from dc_core.params import param
+from dc_destinations.object_files import (
+    PART_SIZE_METADATA,
+    FilePair,
+    ObjectStoreParams,
+    StoreUnavailable,
+    file_pairs,
+    part_digests,
+    store_client,
+    store_failure,
+    store_where,
+    stored_object,
+    verify_stored,
+)
+from dc_destinations.settings import parse_size
+
+try:
+    import botocore.exceptions
+except ImportError as exc:  # an optional dependency: say which extra brings it
+    raise ImportError(f"the MinIO destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
+
+# S3's limits: parts of 5 MiB to 5 GiB (the last one smaller), at most 10000 of them, 5 GiB in one PUT.
+MIN_PART_BYTES = 5 * 1024 * 1024
+MAX_PART_BYTES = 5 * 1024 * 1024 * 1024
+MAX_PARTS = 10_000
+MAX_PUT_BYTES = 5 * 1024 * 1024 * 1024
+
+# Types of DC's own files that mimetypes does not know everywhere (it reads the system's tables) or
+# takes for something else (.ts, IpCamera's video segments, is a Qt translation file to it).
+_CONTENT_TYPES = {".yaml": "application/yaml", ".yml": "application/yaml", ".ts": "video/mp2t"}
+_ALREADY_THERE = ("BucketAlreadyOwnedByYou", "BucketAlreadyExists")
+_NO_BUCKET = ("404", "NoSuchBucket", "NotFound")
+
+
+def _size_problem(text: str) -> str | None:
+    try:
+        size = parse_size(text)
+    except ConfigError:
+        size = None
+    return None if size else 'a size such as "64M", "16M" or a number of bytes'
+
+
+@dataclass(frozen=True, kw_only=True, repr=False)
+class MinIOParams(ObjectStoreParams):
+    create_bucket: bool = param(True, doc="Create the bucket at the first upload if it does not exist")
+    multipart_threshold: str = param(
+        "64M", check=_size_problem, doc="Files larger than this are uploaded in parts, resumably (at most 5G)"
+    )
+    part_size: str = param("16M", check=_size_problem, doc="Size of the parts of a multipart upload (5M to 5G)")
+    complete_after: float = param(
+        1.0, minimum=0.0, maximum=60.0, doc="Seconds a file must be left unmodified before it is uploaded"
+    )
+    delete_when_sent: bool = param(
+        False, doc="Delete each local file once its object is verified (one storage; FilesMetrics for several)"
+    )
+    timeout: float = param(30.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
+    verbose_plugin: bool = param(False, doc="Accepted for compatibility: no effect")
+    plugin_path: str = param("", doc="Accepted for compatibility: no effect (there is no Go plugin to load)")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.src_fields:
+            raise ConfigError("src_fields", 'expected at least one dotted path to a file, such as "local_paths.pgm"')
+        part = parse_size(self.part_size) or 0
+        if not MIN_PART_BYTES <= part <= MAX_PART_BYTES:
+            raise ConfigError("part_size", f'expected 5M to 5G (S3\'s part sizes), got "{self.part_size}"')
+        if (parse_size(self.multipart_threshold) or 0) > MAX_PUT_BYTES:
+            raise ConfigError(
+                "multipart_threshold",
+                f'expected at most 5G (S3\'s largest single upload), got "{self.multipart_threshold}"',
+            )
+
+
+@dataclass
+class _File:
+    pair: FilePair
+    seen: os.stat_result | None  # at the first look; None: there was no file
+    ready: bool = False  # complete, or gone with its object stored
+    gone_but_stored: bool = False
+
+    @property
+    def path(self) -> str:
+        return self.pair.local_path
+
+    @property
+    def key(self) -> str:
+        assert self.pair.key is not None
+        return self.pair.key
+
+
+@dataclass
+class _Record:
+    index: int
+    files: list[_File] = field(default_factory=list)
+    rejects: list[str] = field(default_factory=list)  # dead letter, once nothing is left to retry
+    retries: list[str] = field(default_factory=list)
+
+    @property
+    def waiting(self) -> bool:
+        return any(not f.ready for f in self.files)
+
+
+class MinIO(Destination[MinIOParams]):
+    """Upload the files records name to MinIO or S3, verify them, and optionally delete them locally."""
+
+    def __init__(self, context: Any, params: MinIOParams) -> None:
+        super().__init__(context, params)
+        self._client: Any = None
+        self._bucket_ready = False
+        self._last_problem = ""
+        self._stopping = threading.Event()
+        self._part_bytes = parse_size(params.part_size) or MIN_PART_BYTES
+        self._threshold = parse_size(params.multipart_threshold) or MAX_PUT_BYTES
+        self._counts = dict.fromkeys(
+            (
+                "files_uploaded",
+                "bytes_uploaded",
+                "files_already_stored",
+                "parts_reused",
+                "verification_failures",
+                "files_missing",
+                "files_deleted",
+                "delete_failures",
+            ),
+            0,
+        )
+        self.where = ""
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def on_configure(self) -> None:
+        # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
+        self._client = store_client(self.params, self.context.name, self.params.timeout)
+        self.where = store_where(self.params.bucket, self._client)
+
+    def on_activate(self) -> None:
+        self._stopping.clear()
+        # The store is not probed here: an unreachable store must not hold up activation, and the
+        # first batch says clearly what is wrong.
+        fields = ", ".join(self.params.src_fields)
+        self.context.logger.info(f"uploading the files of {fields} to {self.where}")
+
+    def on_deactivate(self) -> None:
+        self._stopping.set()  # a batch waiting for files to be complete stops waiting
+
+    def on_cleanup(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def counters(self) -> dict[str, int]:
+        return dict(self._counts)
+
+    def _pause(self, seconds: float) -> bool:
+        """Wait for files to be complete; True when interrupted (the destination is stopping)."""
+        return self._stopping.wait(seconds)
+
+    # -- sending -----------------------------------------------------------------------------------
+    def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        outcome = SendOutcome()
+        confirmed: set[int] = set()
+        try:
+            self._ensure_bucket()
+            looked_at = time.monotonic()
+            records = [self._look(i, record) for i, record in enumerate(batch)]
+            for record in records:
+                if not record.waiting:
+                    self._deliver(record, outcome, confirmed)
+            waiting = [record for record in records if record.waiting]
+            if waiting:
+                interrupted = self._pause(self._wait_needed(waiting, looked_at))
+                for record in waiting:
+                    self._look_again(record, interrupted)
+                    self._deliver(record, outcome, confirmed)
+        except StoreUnavailable as exc:
+            message = self._scrub(str(exc))
+            self._problem(exc.failure.kind, message)
+            if not confirmed and not outcome.retry and not outcome.reject:
+                raise RetryableError(message) from None  # nothing of the batch went: the whole batch is retried
+            decided = confirmed | set(outcome.retry) | set(outcome.reject)
+            outcome.retry.update((i, message) for i in range(len(batch)) if i not in decided)
+            return outcome
+        if self._last_problem:
+            self.context.logger.info(f"{self.where}: reachable again")
+            self._last_problem = ""
+        return outcome if outcome.retry or outcome.reject else None
+
+    def _ensure_bucket(self) -> None:
+        if self._bucket_ready or not self.params.create_bucket:
+            return
+        bucket = self.params.bucket
+        try:
+            self._client.head_bucket(Bucket=bucket)
+        except botocore.exceptions.ClientError as exc:
+            if str(exc.response.get("Error", {}).get("Code", "")) in _NO_BUCKET:
+                self._create_bucket()
+            elif store_failure(exc, self.where, "").kind != "credentials":
+                self._fail(exc, "look up the bucket")
+            # else: looking at a bucket needs s3:ListBucket, which an uploader may lack; if the
+            # credentials are wrong, the first object says so.
+        except botocore.exceptions.BotoCoreError as exc:
+            self._fail(exc, "look up the bucket")
+        self._bucket_ready = True
+
+    def _create_bucket(self) -> None:
+        request: dict[str, Any] = {"Bucket": self.params.bucket}
+        if self.params.region != "us-east-1":  # S3 refuses the default region spelled out
+            request["CreateBucketConfiguration"] = {"LocationConstraint": self.params.region}
+        try:
+            self._client.create_bucket(**request)
+        except botocore.exceptions.ClientError as exc:
+            if str(exc.response.get("Error", {}).get("Code", "")) not in _ALREADY_THERE:
+                self._fail(exc, "create the bucket")
+            return
+        except botocore.exceptions.BotoCoreError as exc:
+            self._fail(exc, "create the bucket")
+        self.context.logger.info(f"created {self.where}")
+
+    def _look(self, index: int, record: OutgoingRecord) -> _Record:
+        """The record's files as they are now; a missing file is looked up in the store."""
+        looked = _Record(index)
+        for pair in file_pairs(record.data, self.params):
+            if pair.key is None:
+                looked.rejects.append(f"no object key at {pair.upload_field} for {pair.local_path or pair.src_field}")
+                continue
+            if not pair.local_path:
+                looked.rejects.append(f"{pair.src_field} holds no file path")
+                continue
+            try:
+                seen: os.stat_result | None = os.stat(pair.local_path)
+            except FileNotFoundError:
+                seen = None
+            except OSError as exc:
+                looked.rejects.append(f"cannot read {pair.local_path} ({pair.src_field}): {exc.strerror}")
+                continue
+            if seen is not None and not stat.S_ISREG(seen.st_mode):
+                looked.rejects.append(f"{pair.local_path} ({pair.src_field}) is not a file")
+                continue
+            file = _File(pair, seen)
+            if seen is None:
+                file.ready = file.gone_but_stored = (
+                    stored_object(self._client, self.params.bucket, file.key) is not None
+                )
+            else:
+                file.ready = _age(seen) >= self.params.complete_after
+            looked.files.append(file)
+        return looked
+
+    def _wait_needed(self, waiting: list[_Record], looked_at: float) -> float:
+        """Until the youngest file is complete_after old (a missing one: complete_after after the first look)."""
+        limit = self.params.complete_after
+        since_look = time.monotonic() - looked_at
+        left = max(
+            limit - (_age(f.seen) if f.seen is not None else since_look)
+            for r in waiting
+            for f in r.files
+            if not f.ready
+        )
+        return max(0.0, min(limit, left))
+
+    def _look_again(self, record: _Record, interrupted: bool) -> None:
+        limit = self.params.complete_after
+        for file in record.files:
+            if file.ready:
+                continue
+            where = f"{file.path} ({file.pair.src_field})"
+            try:
+                now: os.stat_result | None = os.stat(file.path)
+            except FileNotFoundError:
+                now = None
+            except OSError as exc:
+                record.rejects.append(f"cannot read {where}: {exc.strerror}")
+                continue
+            unchanged = file.seen is not None and now is not None and _same(file.seen, now)
+            if now is None and file.seen is None:
+                self._counts["files_missing"] += 1
+                record.rejects.append(f"no file {where}")
+            elif now is None:
+                record.retries.append(f"{where} vanished while waiting for it to be complete")
+            elif (unchanged and not interrupted) or _age(now) >= limit:
+                file.ready = True
+            elif interrupted:
+                record.retries.append(f"{where} not uploaded: the destination is stopping")
+            else:
+                record.retries.append(f"{where} is still being written (modified {max(0.0, _age(now)):.1f} s ago)")
+
+    def _deliver(self, record: _Record, outcome: SendOutcome, confirmed: set[int]) -> None:
+        verified: dict[str, bool] = {}  # local path -> every object made from it verified
+        for file in record.files:
+            if not file.ready:
+                continue
+            try:
+                ok = self._store(file)
+            except StoreUnavailable:
+                raise
+            except RetryableError as exc:
+                record.retries.append(str(exc))
+                ok = False
+            except FileNotFoundError:
+                record.retries.append(f"{file.path} ({file.pair.src_field}) vanished during the upload")
+                ok = False
+            except OSError as exc:
+                record.rejects.append(f"cannot read {file.path} ({file.pair.src_field}): {exc.strerror or exc}")
+                ok = False
+            verified[file.path] = verified.get(file.path, True) and ok
+        if record.retries:
+            outcome.retry[record.index] = self._scrub("; ".join(record.retries + record.rejects))
+        elif record.rejects:
+            outcome.reject[record.index] = self._scrub("; ".join(record.rejects))
+        else:
+            confirmed.add(record.index)
+        if self.params.delete_when_sent:
+            self._delete([path for path, ok in verified.items() if ok])
+
+    def _store(self, file: _File) -> bool:
+        """Upload the file unless the store holds it intact already; True once verified."""
+        if file.gone_but_stored:
+            return True
+        p = self.params
+        before = verify_stored(self._client, p.bucket, file.key, file.path)
+        if before.verified:
+            self._counts["files_already_stored"] += 1
+            return True
+        size = self._upload(file.path, file.key)
+        after = verify_stored(self._client, p.bucket, file.key, file.path)
+        if not after.verified:
+            self._counts["verification_failures"] += 1
+            raise RetryableError(f"{file.key} not verified after the upload: {after.reason}")
+        self._counts["files_uploaded"] += 1
+        self._counts["bytes_uploaded"] += size
+        return True
+
+    def _upload(self, path: str, key: str) -> int:
+        size = os.stat(path).st_size
+        extension = os.path.splitext(path)[1].lower()
+        content_type = _CONTENT_TYPES.get(extension) or mimetypes.guess_type(path)[0] or "application/octet-stream"
+        try:
+            if size <= self._threshold:
+                (digest,) = part_digests(path, None)
+                with open(path, "rb") as body:
+                    self._client.put_object(
+                        Bucket=self.params.bucket, Key=key, Body=body, ContentType=content_type, ContentMD5=_b64(digest)
+                    )
+            else:
+                self._multipart(path, key, size, content_type)
+        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+            self._fail(exc, f"upload {key}")
+        return size
+
+    def _multipart(self, path: str, key: str, size: int, content_type: str) -> None:
+        p = self.params
+        # Parts no smaller than part_size, larger only to stay within S3's 10000 parts.
+        part_size = max(self._part_bytes, -(-size // MAX_PARTS))
+        digests = part_digests(path, part_size)
+        upload_id, stored = self._resumable(key, size, part_size, digests)
+        if upload_id is None:
+            created = self._client.create_multipart_upload(
+                Bucket=p.bucket, Key=key, ContentType=content_type, Metadata={PART_SIZE_METADATA: str(part_size)}
+            )
+            upload_id = created["UploadId"]
+        parts = []
+        with open(path, "rb") as f:
+            for number, digest in enumerate(digests, start=1):
+                etag = stored.get(number)
+                if etag is not None:
+                    self._counts["parts_reused"] += 1
+                else:
+                    f.seek((number - 1) * part_size)
+                    answer = self._client.upload_part(
+                        Bucket=p.bucket,
+                        Key=key,
+                        UploadId=upload_id,
+                        PartNumber=number,
+                        Body=f.read(part_size),
+                        ContentMD5=_b64(digest),
+                    )
+                    etag = answer["ETag"]
+                parts.append({"PartNumber": number, "ETag": etag})
+        self._client.complete_multipart_upload(
+            Bucket=p.bucket, Key=key, UploadId=upload_id, MultipartUpload={"Parts": parts}
+        )
+
+    def _resumable(
+        self, key: str, size: int, part_size: int, digests: list[bytes]
+    ) -> tuple[str | None, dict[int, str]]:
+        """An unfinished upload of ``key`` cut in the same parts, with the parts it holds with the file's
+        content (number -> ETag); others of the same key are aborted."""
+        p = self.params
+        try:
+            uploads = [
+                upload
+                for page in self._client.get_paginator("list_multipart_uploads").paginate(Bucket=p.bucket, Prefix=key)
+                for upload in page.get("Uploads", [])
+                if upload.get("Key") == key
+            ]
+        except botocore.exceptions.ClientError as exc:
+            if store_failure(exc, self.where, "").kind in ("credentials", "object"):
+                return None, {}  # not allowed to list uploads, or not implemented: upload afresh
+            raise
+        uploads.sort(key=lambda upload: str(upload.get("Initiated", "")), reverse=True)
+        chosen: str | None = None
+        kept: dict[int, str] = {}
+        last_size = size - (len(digests) - 1) * part_size
+        for upload in uploads:
+            parts = [
+                part
+                for page in self._client.get_paginator("list_parts").paginate(
+                    Bucket=p.bucket, Key=key, UploadId=upload["UploadId"]
+                )
+                for part in page.get("Parts", [])
+            ]
+            sizes_fit = all(
+                1 <= part["PartNumber"] <= len(digests)
+                and part["Size"] == (last_size if part["PartNumber"] == len(digests) else part_size)
+                for part in parts
+            )
+            if chosen is None and sizes_fit:
+                chosen = upload["UploadId"]
+                kept = {
+                    part["PartNumber"]: part["ETag"]
+                    for part in parts
+                    if part["ETag"].strip('"') == digests[part["PartNumber"] - 1].hex()
+                }
+                continue
+            # Cut in other parts (another part_size, another file), or a second upload of the key:
+            # never completed, its parts would be kept (and billed) until a lifecycle rule removes them.
+            with contextlib.suppress(botocore.exceptions.ClientError):
+                self._client.abort_multipart_upload(Bucket=p.bucket, Key=key, UploadId=upload["UploadId"])
+        return chosen, kept
+
+    def _delete(self, paths: list[str]) -> None:
+        for path in paths:
+            try:
+                os.remove(path)
+            except FileNotFoundError:
+                continue
+            except OSError as exc:
+                self._counts["delete_failures"] += 1
+                self.context.logger.warning(f"{path} is stored in {self.where} but cannot be deleted: {exc.strerror}")
+                continue
+            self._counts["files_deleted"] += 1
+
+    # -- messages ----------------------------------------------------------------------------------
+    def _fail(self, exc: Exception, doing: str) -> NoReturn:
+        failure = store_failure(exc, self.where, doing)
+        if failure.kind == "no-bucket":
+            self._bucket_ready = False  # deleted since it was looked up: create it again
+        if failure.whole_store:
+            raise StoreUnavailable(failure) from None
+        raise RetryableError(self._scrub(failure.message)) from None
+
+    def _problem(self, kind: str, message: str) -> None:
+        """Log a store failure once when it starts (the server logs the retries per burst)."""
+        if kind != self._last_problem:
+            self.context.logger.error(message)
+            self._last_problem = kind
+
+    def _scrub(self, text: str) -> str:
+        secret = self.params.secret_access_key
+        return text.replace(secret, "***") if secret else text
+
+
+def _age(seen: os.stat_result) -> float:
+    return (time.time_ns() - seen.st_mtime_ns) / 1e9
+
+
+def _same(before: os.stat_result, after: os.stat_result) -> bool:
+    return (before.st_ino, before.st_size, before.st_mtime_ns) == (after.st_ino, after.st_size, after.st_mtime_ns)
+
+
+def _b64(digest: bytes) -> str:
+    return base64.b64encode(digest).decode("ascii")

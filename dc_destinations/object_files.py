@@ -1,0 +1,409 @@
+"""Files named in records, as objects of an S3-compatible store: which file goes to which key, and
+whether the store holds it intact.
+
+Shared by the destinations that deal with files rather than records: MinIO (it uploads them) and
+FilesMetrics (it tracks them and deletes them once every storage has them). A record names its
+files by dotted paths (``src_fields``: ``local_paths.pgm``) and their object keys the same way
+(``upload_fields``: ``remote_paths.minio.pgm``), as the original's Go plugins did.
+
+"Intact" means the stored object has the local file's size and checksum. S3 reports the checksum
+as the object's ETag: the MD5 of the content for a single upload, or for a multipart upload the MD5
+of the parts' MD5 digests followed by ``-<number of parts>`` — which depends on the part size, so
+DC's uploader records it in the object's metadata (``x-amz-meta-dc-part-size``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, NoReturn
+
+from dc_core.destination import RetryableError
+from dc_core.errors import ConfigError
+from dc_core.params import param
+from dc_destinations.aws import (
+    CREDENTIAL_CODES,
+    CREDENTIALS_MISSING,
+    aws_session,
+    check_credentials,
+    region_problem,
+)
+
+try:
+    import botocore.config
+    import botocore.exceptions
+except ImportError as exc:  # an optional dependency: say which extra brings it
+    raise ImportError(f"the file destinations need boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
+
+PART_SIZE_METADATA = "dc-part-size"
+"""Metadata key (``x-amz-meta-dc-part-size``) holding the part size of a multipart upload."""
+
+_MIB = 1024 * 1024
+_READ_CHUNK = _MIB
+_BUCKET = re.compile(r"[a-z0-9][a-z0-9.-]{1,61}[a-z0-9]")
+_ETAG = re.compile(r"[0-9a-f]{32}(-(\d+))?")
+# S3 names a wrong key ID its own way, on top of the codes every AWS service uses.
+_CREDENTIAL_CODES = CREDENTIAL_CODES | {"InvalidAccessKeyId", "InvalidToken", "TokenRefreshRequired", "403"}
+_BUSY_CODES = frozenset({"SlowDown", "Throttling", "ThrottlingException", "RequestTimeout", "RequestTimeTooSkewed"})
+_ABSENT_CODES = frozenset({"404", "NoSuchKey", "NotFound"})
+# Part sizes other tools use, tried first when an object's ETag has parts of an unknown size.
+_USUAL_PART_SIZES = (8 * _MIB, 16 * _MIB, 5 * _MIB, 64 * _MIB, 32 * _MIB, 128 * _MIB)
+_MOST_CANDIDATES = 6
+
+
+def _bucket_problem(bucket: str) -> str | None:
+    if _BUCKET.fullmatch(bucket) and ".." not in bucket:
+        return None
+    if bucket == "dc_bucket":
+        return 'a bucket name: the original\'s default "dc_bucket" is not one (no "_" in bucket names), use "dc-bucket"'
+    return "a bucket name (3 to 63 lowercase letters, digits, '.', '-')"
+
+
+@dataclass(frozen=True, kw_only=True, repr=False)
+class ObjectStoreParams:
+    """One storage of files: the original's ``minio.*`` / ``s3.*`` keys."""
+
+    endpoint: str = param(
+        "127.0.0.1:9000",
+        doc="Store address: host:port (http or https by use_ssl) or a URL; empty: AWS's endpoint of region",
+    )
+    access_key_id: str = param("", doc="Access key ID; empty: boto3's default chain (env, profile, instance role)")
+    secret_access_key: str = param("", secret=True, doc="Secret access key with access_key_id (never logged)")
+    use_ssl: bool = param(True, doc="HTTPS to an endpoint given without a scheme (false: plain HTTP)")
+    bucket: str = param(
+        "dc-bucket",
+        check=_bucket_problem,
+        doc='Bucket of the objects (the original\'s default "dc_bucket" is not a valid bucket name)',
+    )
+    region: str = param("us-east-1", check=region_problem, doc="Region of the bucket (signs the requests)")
+    src_fields: list[str] = param([], doc="Dotted paths to the local file paths in a record (local_paths.pgm)")
+    upload_fields: list[str] = param(
+        [], doc="Dotted paths to the object keys, one per src_fields entry (remote_paths.minio.pgm)"
+    )
+
+    def __post_init__(self) -> None:
+        try:
+            check_credentials(self.access_key_id, self.secret_access_key, "", "", "")
+        except ConfigError as exc:  # aws.py names the S3 destination's keys: name these
+            path = "secret_access_key" if self.access_key_id else "access_key_id"
+            raise ConfigError(path, "set access_key_id and secret_access_key together (or neither)") from exc
+        for name in ("src_fields", "upload_fields"):
+            for i, dotted in enumerate(getattr(self, name)):
+                if not dotted.strip("."):
+                    raise ConfigError(
+                        f"{name}[{i}]", f'expected a dotted path such as "local_paths.pgm", got "{dotted}"'
+                    )
+        if len(self.src_fields) != len(self.upload_fields):
+            raise ConfigError(
+                "upload_fields",
+                f"expected one entry per src_fields entry: {len(self.upload_fields)} upload_fields "
+                f"for {len(self.src_fields)} src_fields",
+            )
+
+    def __repr__(self) -> str:
+        shown = (f for f in dataclasses.fields(self) if not f.metadata.get("secret"))
+        return f"{type(self).__name__}({', '.join(f'{f.name}={getattr(self, f.name)!r}' for f in shown)})"
+
+
+def endpoint_url(params: ObjectStoreParams) -> str | None:
+    """The URL of ``params.endpoint``: a URL as it is, host:port with the scheme ``use_ssl`` says."""
+    if not params.endpoint:
+        return None
+    if "://" in params.endpoint:
+        return params.endpoint
+    return f"{'https' if params.use_ssl else 'http'}://{params.endpoint}"
+
+
+def store_client(params: ObjectStoreParams, name: str, timeout: float = 30.0) -> Any:
+    """A boto3 S3 client of the storage; building it reads configuration only, nothing is sent."""
+    url = endpoint_url(params)
+    config = botocore.config.Config(
+        region_name=params.region,
+        connect_timeout=timeout,
+        read_timeout=timeout,
+        # One immediate retry of a failed request; the destination server's backoff does the rest.
+        retries={"total_max_attempts": 2, "mode": "standard"},
+        # MinIO, SeaweedFS and Ceph rarely resolve bucket.host names: path-style unless it is AWS.
+        s3={"addressing_style": "path" if url and ".amazonaws.com" not in url else "auto"},
+        user_agent_extra="dc-destinations",
+    )
+    session = aws_session(
+        name=name,
+        region=params.region,
+        access_key=params.access_key_id,
+        secret_key=params.secret_access_key,
+        timeout=timeout,
+    )
+    return session.client("s3", endpoint_url=url, config=config)
+
+
+# -- where the files are named ---------------------------------------------------------------------
+
+
+def _walk(node: Any, parts: Sequence[str]) -> Any:
+    for part in parts:
+        if isinstance(node, Mapping) and part in node:
+            node = node[part]
+        elif isinstance(node, list) and part.isdigit() and int(part) < len(node):
+            node = node[int(part)]
+        else:
+            return None
+    return node
+
+
+def field_value(data: Mapping[str, Any], dotted: str) -> Any:
+    """The value at ``dotted`` (``local_paths.pgm``) in a record; None when it has none.
+
+    Also found in the shapes a measurement's ``nested`` and ``flatten`` give the record:
+    ``{"map": {"local_paths": …}}``, ``{"/local_paths/pgm": …}`` and ``{"/map/local_paths/pgm": …}``
+    (the original's nested and flattened records), the measurement's name taken from ``name``.
+    """
+    parts = [part for part in dotted.split(".") if part]
+    found = _walk(data, parts)
+    if found is not None:
+        return found
+    pointer = "/" + "/".join(parts)
+    if pointer in data:
+        return data[pointer]
+    name = data.get("name")
+    if isinstance(name, str) and name:
+        if f"/{name}{pointer}" in data:
+            return data[f"/{name}{pointer}"]
+        return _walk(data.get(name), parts)
+    return None
+
+
+@dataclass(frozen=True)
+class FilePair:
+    """One file of a record and the object it goes to.
+
+    ``local_path`` is empty when the value at ``src_field`` is not a path (a number, an object);
+    ``key`` is None when the record has no usable key at ``upload_field``.
+    """
+
+    src_field: str
+    upload_field: str
+    local_path: str
+    key: str | None
+
+
+def file_pairs(data: Mapping[str, Any], params: ObjectStoreParams) -> list[FilePair]:
+    """The record's files, in ``src_fields`` order; a src field the record lacks names no file."""
+    pairs = []
+    for src_field, upload_field in zip(params.src_fields, params.upload_fields, strict=True):
+        local = field_value(data, src_field)
+        if local is None:
+            continue
+        key = field_value(data, upload_field)
+        # An S3 key has no leading slash: "/robot/…" would make an empty first folder.
+        key_text = key.lstrip("/") if isinstance(key, str) else ""
+        pairs.append(FilePair(src_field, upload_field, local if isinstance(local, str) else "", key_text or None))
+    return pairs
+
+
+# -- checksums ---------------------------------------------------------------------------------------
+
+
+class _PartHasher:
+    """MD5 digests of a content's consecutive parts (one part when ``part_size`` is None), fed in chunks."""
+
+    def __init__(self, part_size: int | None) -> None:
+        self.part_size = part_size
+        self.digests: list[bytes] = []
+        self._part = hashlib.md5(usedforsecurity=False)
+        self._in_part = 0
+
+    def update(self, chunk: bytes) -> None:
+        view = memoryview(chunk)
+        while view:
+            take = len(view) if self.part_size is None else min(len(view), self.part_size - self._in_part)
+            self._part.update(view[:take])
+            self._in_part += take
+            view = view[take:]
+            if self._in_part == self.part_size:
+                self.digests.append(self._part.digest())
+                self._part = hashlib.md5(usedforsecurity=False)
+                self._in_part = 0
+
+    def finish(self) -> list[bytes]:
+        if self._in_part or not self.digests:
+            self.digests.append(self._part.digest())
+            self._in_part = 0
+        return self.digests
+
+    def etag(self) -> str:
+        digests = self.finish()
+        if self.part_size is None:
+            return digests[0].hex()
+        return f"{hashlib.md5(b''.join(digests), usedforsecurity=False).hexdigest()}-{len(digests)}"
+
+
+def _hash_file(path: str, hashers: Sequence[_PartHasher]) -> None:
+    with open(path, "rb") as f:
+        while chunk := f.read(_READ_CHUNK):
+            for hasher in hashers:
+                hasher.update(chunk)
+
+
+def local_etag(path: str, part_size: int | None) -> str:
+    """The ETag S3 gives this file's content: uploaded in one request (``part_size`` None) or in parts."""
+    hasher = _PartHasher(part_size)
+    _hash_file(path, [hasher])
+    return hasher.etag()
+
+
+def part_digests(path: str, part_size: int | None) -> list[bytes]:
+    """MD5 digest of each part of the file (of the whole file when ``part_size`` is None)."""
+    hasher = _PartHasher(part_size)
+    _hash_file(path, [hasher])
+    return hasher.finish()
+
+
+def _implied_part_sizes(size: int, parts: int) -> list[int]:
+    """Part sizes that cut ``size`` bytes into ``parts`` parts, the likeliest first (at most a few)."""
+    if parts <= 1:
+        return [max(size, 1)]  # any part size from the content's size up gives the same ETag
+    smallest = -(-size // parts)
+    largest = -(-size // (parts - 1)) - 1
+    if smallest > largest:
+        return []
+    whole_mib = range(-(-smallest // _MIB), largest // _MIB + 1)
+    usual = [s for s in _USUAL_PART_SIZES if smallest <= s <= largest]
+    candidates = [*usual, *(m * _MIB for m in whole_mib if m * _MIB not in usual), smallest]
+    return list(dict.fromkeys(candidates))[:_MOST_CANDIDATES]
+
+
+# -- the store's answers -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StoreFailure:
+    """What a failed request means: ``whole_store`` failures stop a batch, the others concern one object."""
+
+    kind: str  # "network", "credentials", "no-bucket", "busy" or "object": one log line per kind
+    message: str
+    whole_store: bool
+
+
+class StoreUnavailable(RetryableError):
+    """The store cannot take or show anything now (unreachable, refused credentials, no bucket)."""
+
+    def __init__(self, failure: StoreFailure) -> None:
+        super().__init__(failure.message)
+        self.failure = failure
+
+
+def store_where(bucket: str, client: Any) -> str:
+    """'bucket <name> at <endpoint>': named in every message, so an operator sees what to fix."""
+    return f"bucket {bucket} at {client.meta.endpoint_url}"
+
+
+def store_failure(exc: Exception, where: str, doing: str) -> StoreFailure:
+    """What to tell the operator about ``exc``, raised while ``doing`` something in ``where``."""
+    if isinstance(exc, botocore.exceptions.ClientError):
+        error = exc.response.get("Error", {})
+        code, text = str(error.get("Code", "")), str(error.get("Message", ""))
+        status = int(exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0) or 0)
+        if code in _CREDENTIAL_CODES or status == 403:
+            return StoreFailure(
+                "credentials",
+                f"the store refused the credentials for {where}: {code or status}: {text} "
+                "(check access_key_id, secret_access_key and the bucket's policy)",
+                whole_store=True,
+            )
+        if code == "NoSuchBucket":
+            return StoreFailure(
+                "no-bucket", f"no {where}: create it (create_bucket) or correct bucket / endpoint", whole_store=True
+            )
+        if code in _BUSY_CODES or status >= 500:
+            return StoreFailure("busy", f"the store of {where} cannot {doing} now: {code or status}: {text}", True)
+        return StoreFailure("object", f"cannot {doing} in {where}: {code or status}: {text}", whole_store=False)
+    if isinstance(exc, CREDENTIALS_MISSING):
+        return StoreFailure(
+            "credentials",
+            f"no credentials for {where}: set access_key_id and secret_access_key, or give them to boto3's "
+            "default chain (AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY, a profile, an instance role)",
+            whole_store=True,
+        )
+    return StoreFailure("network", f"cannot reach {where}: {exc}", whole_store=True)
+
+
+def stored_object(client: Any, bucket: str, key: str) -> dict[str, Any] | None:
+    """The object's HEAD answer, None when there is no such object; :class:`StoreUnavailable` (or
+    :class:`RetryableError` about this object) when the store cannot say."""
+    try:
+        head: dict[str, Any] = client.head_object(Bucket=bucket, Key=key)
+    except botocore.exceptions.ClientError as exc:
+        if str(exc.response.get("Error", {}).get("Code", "")) in _ABSENT_CODES:
+            return None
+        _raise_failure(exc, store_where(bucket, client), f"look up {key}")
+    except botocore.exceptions.BotoCoreError as exc:
+        _raise_failure(exc, store_where(bucket, client), f"look up {key}")
+    return head
+
+
+def _raise_failure(exc: Exception, where: str, doing: str) -> NoReturn:
+    failure = store_failure(exc, where, doing)
+    if failure.whole_store:
+        raise StoreUnavailable(failure) from None
+    raise RetryableError(failure.message) from None
+
+
+@dataclass(frozen=True)
+class Verification:
+    """Whether the store holds ``key`` as the local file is; ``size`` and ``etag`` are the object's."""
+
+    verified: bool
+    reason: str
+    size: int | None
+    etag: str
+
+
+def verify_stored(client: Any, bucket: str, key: str, local_path: str) -> Verification:
+    """Compare the stored object with the local file: size, then ETag (see the module documentation).
+
+    A local file that is gone cannot be compared: the object counts as verified when it exists
+    (an earlier upload verified it before the file was deleted). Raises :class:`StoreUnavailable`
+    when the store cannot be asked, :class:`RetryableError` when it cannot answer about this object.
+    """
+    head = stored_object(client, bucket, key)
+    if head is None:
+        return Verification(False, f"no object {key}", None, "")
+    size = int(head.get("ContentLength", -1))
+    etag = str(head.get("ETag", "")).strip('"')
+    try:
+        local_size = os.stat(local_path).st_size
+    except FileNotFoundError:
+        return Verification(True, f"{key} is stored; {local_path} is gone, so its content is not compared", size, etag)
+    if size != local_size:
+        return Verification(False, f"{key} holds {size} bytes, {local_path} {local_size}", size, etag)
+    match = _ETAG.fullmatch(etag)
+    if match is None:
+        return Verification(
+            True, f"{key} has the file's size; its ETag {etag!r} is not an MD5, not compared", size, etag
+        )
+    guessed = False
+    candidates: list[int | None] = [None]
+    if match.group(2) is not None:
+        recorded = str(head.get("Metadata", {}).get(PART_SIZE_METADATA, ""))
+        if recorded.isdigit() and int(recorded) > 0:
+            candidates = [int(recorded)]
+        else:  # uploaded by another tool: the part sizes that give this many parts
+            guessed = True
+            candidates = list(_implied_part_sizes(size, int(match.group(2))))
+    if not candidates:
+        return Verification(True, f"{key} has the file's size; parts of unknown size, ETag not compared", size, etag)
+    hashers = [_PartHasher(part_size) for part_size in candidates]
+    _hash_file(local_path, hashers)
+    local = [hasher.etag() for hasher in hashers]
+    if etag in local:
+        return Verification(True, f"{key} matches {local_path}: {size} bytes, ETag {etag}", size, etag)
+    if guessed:
+        return Verification(
+            False, f"{key} has the file's size, not its ETag with the likely part sizes ({etag})", size, etag
+        )
+    return Verification(False, f"{key} differs from {local_path}: ETag {etag}, the file's {local[0]}", size, etag)

@@ -1,0 +1,226 @@
+"""One kept connection to PostgreSQL, shared by the destinations that write to it (PgSQL, FilesMetrics).
+
+What they have in common: how to connect (libpq options, keepalives so a vanished server is noticed),
+how to tell a lost connection from a refused statement, and how to word a failure so that it names
+the server and never the password. What they write, and how their table is prepared, stays theirs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from dc_core.destination import RetryableError
+from dc_core.errors import ConfigError
+from dc_core.logs import Logger
+
+T = TypeVar("T")
+
+SSLMODES = ("", "disable", "allow", "prefer", "require", "verify-ca", "verify-full")
+# PostgreSQL truncates identifiers longer than this (NAMEDATALEN - 1).
+MAX_IDENTIFIER = 63
+# SQLSTATE classes that mean "this connection is gone": connection exception, and the server
+# shutting down (admin_shutdown, crash_shutdown, cannot_connect_now).
+_LOST_STATES = ("08", "57P01", "57P02", "57P03")
+_AUTH_HINTS = ("password authentication failed", "no password supplied", "authentication failed")
+# Whatever the server answers, the message stays readable in `dc buffer list` and logs.
+MESSAGE_CHARS = 500
+
+
+def port_problem(port: int) -> str | None:
+    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
+
+
+def table_problem(table: str) -> str | None:
+    parts = table.split(".")
+    if not table or len(parts) > 2 or any(not p or len(p.encode()) > MAX_IDENTIFIER or "\0" in p for p in parts):
+        return f'a table name or "schema.table", each part 1 to {MAX_IDENTIFIER} bytes'
+    return None
+
+
+def check_server(host: str, ssl: bool, sslmode: str, sslrootcert: str) -> None:
+    """The checks of a server section that a single parameter cannot make; ConfigError naming the key."""
+    if not host or any(c.isspace() or c in "/?#" for c in host):
+        raise ConfigError("host", f'expected a host name or IP address, got "{host}"')
+    if ssl and sslmode in ("disable", "allow", "prefer"):
+        raise ConfigError("sslmode", f'"{sslmode}" contradicts ssl: true (use require, verify-ca or verify-full)')
+    if sslrootcert and effective_sslmode(ssl, sslmode) not in ("verify-ca", "verify-full", "require"):
+        raise ConfigError("sslrootcert", "set sslmode to verify-full (or verify-ca) to use it")
+
+
+def effective_sslmode(ssl: bool, sslmode: str) -> str:
+    return sslmode or ("require" if ssl else "prefer")
+
+
+@dataclass(frozen=True, kw_only=True, repr=False)
+class ServerSettings:
+    """Where and how to log in; empty ``user``/``database`` are libpq's defaults."""
+
+    host: str
+    port: int
+    user: str
+    password: str
+    database: str
+    sslmode: str
+    sslrootcert: str
+    connect_timeout: int
+
+    @property
+    def address(self) -> str:
+        """``postgresql://user@host:port/database``, for messages: no password in it."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        user = f"{self.user}@" if self.user else ""
+        return f"postgresql://{user}{host}:{self.port}/{self.database}"
+
+    def __repr__(self) -> str:
+        return f"ServerSettings({self.address!r}, sslmode={self.sslmode!r})"
+
+
+class KeptConnection:
+    """A connection opened at first use, kept between batches and opened again once it is lost.
+
+    ``prepare(connection)`` runs on every new connection before any work (checking or creating a
+    table); a psycopg error there is reported as "cannot prepare <what>", and a RetryableError it
+    raises passes as it is. Thread-safe: one piece of work at a time.
+    """
+
+    def __init__(
+        self,
+        settings: ServerSettings,
+        *,
+        application_name: str,
+        logger: Logger,
+        prepare: Callable[[Any], None],
+        prepared: str,
+    ) -> None:
+        self.settings = settings
+        self._application_name = application_name[:MAX_IDENTIFIER]
+        self._logger = logger
+        self._prepare = prepare
+        self._prepared = prepared
+        self._connection: Any = None  # psycopg.Connection
+        self._lock = threading.Lock()
+
+    @property
+    def address(self) -> str:
+        return self.settings.address
+
+    def __repr__(self) -> str:
+        return f"KeptConnection({self.address!r})"
+
+    def run(self, work: Callable[[Any], T]) -> T:
+        """``work(connection)``; a psycopg error it lets through becomes a scrubbed RetryableError."""
+        import psycopg
+
+        with self._lock:
+            first = True
+            while True:
+                reused = self._connection is not None
+                try:
+                    return work(self._connect())
+                except psycopg.Error as exc:
+                    lost = self._lost(exc)
+                    self._close()  # the next attempt starts afresh, preparation included
+                    if first and reused and lost:
+                        # A kept connection that the server closed while idle (a restart) fails at
+                        # its first use: not a failure of this work, so once more on a new one.
+                        first = False
+                        continue
+                    raise RetryableError(self.describe(exc)) from None
+
+    def close(self) -> None:
+        with self._lock:
+            self._close()
+
+    # -- messages ----------------------------------------------------------------------------------
+    def describe(self, exc: BaseException) -> str:
+        state = getattr(exc, "sqlstate", None)
+        code = f" (SQLSTATE {state})" if state else ""
+        return self.scrub(f"PostgreSQL {self.address}: {one_line(str(exc))}{code}")
+
+    def refusal(self, exc: BaseException, what: str = "the record") -> str:
+        """The server's reason for refusing a row, as a dead letter says it."""
+        diag = getattr(exc, "diag", None)
+        primary = getattr(diag, "message_primary", None) or one_line(str(exc))
+        detail = getattr(diag, "message_detail", None)
+        state = getattr(exc, "sqlstate", None)
+        text = f"PostgreSQL refused {what}: {primary}" + (f"; {detail}" if detail else "")
+        text += f" (SQLSTATE {state})" if state else ""
+        return self.scrub(text[:MESSAGE_CHARS])
+
+    def scrub(self, text: str) -> str:
+        """The password masked, should a message ever carry it."""
+        password = self.settings.password
+        return text.replace(password, "***") if password else text
+
+    # -- connection --------------------------------------------------------------------------------
+    def _connect(self) -> Any:
+        import psycopg
+
+        if self._connection is not None and not self._connection.closed:
+            return self._connection
+        s = self.settings
+        options: dict[str, Any] = {
+            "host": s.host,
+            "port": s.port,
+            "connect_timeout": s.connect_timeout,
+            "sslmode": s.sslmode,
+            "application_name": self._application_name,
+            # A server that vanished without closing the connection is noticed in about 30 s.
+            "keepalives": 1,
+            "keepalives_idle": 10,
+            "keepalives_interval": 5,
+            "keepalives_count": 3,
+            "tcp_user_timeout": 30_000,
+        }
+        for key, value in (("user", s.user), ("password", s.password), ("dbname", s.database)):
+            if value:
+                options[key] = value
+        if s.sslrootcert:
+            options["sslrootcert"] = s.sslrootcert
+        try:
+            connection = psycopg.connect(autocommit=True, **options)
+        except psycopg.Error as exc:
+            detail = one_line(str(exc))
+            hint = " (check `user` and `password`)" if any(h in detail for h in _AUTH_HINTS) else ""
+            raise RetryableError(self.scrub(f"cannot connect to PostgreSQL {self.address}: {detail}{hint}")) from None
+        try:
+            self._prepare(connection)
+        except psycopg.Error as exc:
+            connection.close()
+            detail = one_line(str(exc))
+            raise RetryableError(self.scrub(f"cannot prepare {self._prepared} in {self.address}: {detail}")) from None
+        except BaseException:
+            connection.close()
+            raise
+        self._connection = connection
+        self._logger.info(f"connected to {self.address}")
+        return connection
+
+    def _close(self) -> None:
+        if self._connection is not None:
+            connection, self._connection = self._connection, None
+            # A broken connection may fail to close; it is dropped anyway.
+            with contextlib.suppress(Exception):
+                connection.close()
+
+    def _lost(self, exc: BaseException) -> bool:
+        state = getattr(exc, "sqlstate", None) or ""
+        broken = self._connection is None or self._connection.broken or self._connection.closed
+        return bool(broken) or state.startswith(_LOST_STATES)
+
+
+def is_record_error(exc: BaseException) -> bool:
+    """Refused because of a row's values: a data exception (22), a constraint (23), a size limit (54)."""
+    import psycopg
+
+    state = getattr(exc, "sqlstate", None) or ""
+    return isinstance(exc, (psycopg.DataError, psycopg.IntegrityError)) or state.startswith("54")
+
+
+def one_line(text: str) -> str:
+    text = " ".join(text.split())
+    return text if len(text) <= MESSAGE_CHARS else text[: MESSAGE_CHARS - 1] + "…"

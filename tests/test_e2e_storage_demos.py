@@ -1,0 +1,130 @@
+"""The storage demos (params/demos/tb3_*.yaml) run as docs/demos.md says: `dc sim`, the local servers'
+settings in the environment (what `. var/dc/servers/servers.env` gives), dc-bringup with sim time; then
+what a backend engineer would query is there."""
+
+from __future__ import annotations
+
+import secrets
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dc_bringup.local_servers.run import environment
+from tests.bringup_util import BIN, REPO, Bringup
+
+pytestmark = pytest.mark.e2e
+
+DEMOS = REPO / "params" / "demos"
+
+
+@pytest.fixture
+def simulated_robot() -> Iterator[Any]:
+    """Starts `dc sim --clock` in a run's environment; stopped at the end of the test."""
+    started: list[subprocess.Popen[bytes]] = []
+
+    def start(run: Bringup) -> None:
+        command = [str(BIN / "dc"), "sim", "--clock", "--rate", "4", "--duration", "120"]
+        started.append(subprocess.Popen(command, env=run.env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
+
+    yield start
+    for sim in started:
+        sim.terminate()
+        sim.wait(10)
+
+
+def test_the_influxdb_demo_writes_robot_and_system_points(
+    tmp_path: Path, simulated_robot: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dc_bringup.local_servers.influxdb import InfluxServer, missing_reason
+
+    if missing_reason() is not None:
+        pytest.skip(str(missing_reason()))
+    with InfluxServer(tmp_path / "influxdb", database="dc") as influx:
+        for name, value in environment({"influxdb": influx.settings()}).items():
+            monkeypatch.setenv(name, value)
+        with Bringup(DEMOS / "tb3_influxdb.yaml", tmp_path / "home", args=["--use-sim-time"]) as run:
+            run.wait_ready()
+            simulated_robot(run)
+
+            def points(measurement: str) -> list[dict[str, Any]]:
+                (result,) = influx.query(f'SELECT * FROM "{measurement}"', database="dc")
+                series = result.get("series", [])
+                assert isinstance(series, list)
+                return [dict(zip(s["columns"], v, strict=True)) for s in series for v in s["values"]]
+
+            run.wait_until(lambda: len(points("distance_traveled")) >= 3, 90, "3 distance_traveled points")
+            run.wait_until(lambda: bool(points("position") and points("cpu")), 60, "position and cpu points")
+        distance = points("distance_traveled")
+        position = points("position")[-1]
+    # Nested and flattened as in the original: fields named by the record's JSON pointers; tags kept.
+    assert distance[-1]["/distance_traveled/distance_traveled"] > 0
+    assert {"/position/x", "/position/y", "/position/yaw"} <= set(position)
+    assert position["robot_name"] == "C3PO" and position["run_id"]
+
+
+def test_the_postgresql_and_minio_demo_stores_rows_files_and_their_status(
+    tmp_path: Path, simulated_robot: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import psycopg
+
+    from dc_bringup.local_servers import postgres, seaweedfs
+
+    for missing in (postgres.missing_reason(), seaweedfs.missing_reason()):
+        if missing is not None:
+            pytest.skip(missing)
+    # Not under tmp_path: as root, PostgreSQL runs as user postgres, who cannot enter it.
+    pg_folder = Path(tempfile.mkdtemp(prefix="dc-pg-demo-"))
+    pg = postgres.PostgresServer(pg_folder, password=secrets.token_urlsafe(12))
+    s3 = seaweedfs.SeaweedS3Server(tmp_path / "s3")
+    try:
+        pg.start()
+        s3.start()
+        for name, value in environment({"postgres": pg.settings(), "s3": s3.settings()}).items():
+            monkeypatch.setenv(name, value)
+        dsn = f"host=127.0.0.1 port={pg.port} user={pg.user} password={pg.password} dbname={pg.database}"
+
+        def query(sql: str) -> list[tuple[Any, ...]]:
+            try:
+                with psycopg.connect(dsn) as connection:
+                    return connection.execute(sql).fetchall()
+            except psycopg.errors.UndefinedTable:
+                return []  # DC creates its tables with its first batch
+
+        with Bringup(DEMOS / "tb3_pgsql_minio.yaml", tmp_path / "home", args=["--use-sim-time"]) as run:
+            run.wait_ready()
+            simulated_robot(run)
+            wanted = {"robot", "system", "map", "distance_traveled", "front_camera"}
+
+            def names() -> set[str]:
+                return {row[0] for row in query("select distinct data->>'name' from dc")}
+
+            run.wait_until(lambda: wanted <= names(), 120, f"rows of {sorted(wanted)} in table dc")
+            run.wait_until(
+                lambda: bool(query("select 1 from files_metrics where deleted and local_path like '%.jpg'")),
+                60,
+                "an inspected image uploaded, verified and deleted",
+            )
+        files = query(
+            "select local_path, remote_path, uploaded, deleted, on_filesystem, size, group_name, robot_name "
+            "from files_metrics"
+        )
+        objects = s3.objects()
+    finally:
+        s3.stop()
+        pg.stop()
+        shutil.rmtree(pg_folder, ignore_errors=True)
+    done = [f for f in files if f[3]]
+    assert done, files
+    for local_path, remote_path, uploaded, _deleted, on_filesystem, size, group_name, robot_name in done:
+        # Deleted only once verified in the bucket, and the bucket has those bytes.
+        assert uploaded and not on_filesystem and not (tmp_path / "home" / local_path).exists()
+        key = remote_path.removeprefix(f"minio://{s3.bucket}/")
+        assert len(objects[key]) == size
+        assert key.startswith("C3PO/2023/11/14/") and group_name in ("map", "front_camera")
+        assert robot_name == "C3PO"
+    assert any(k.endswith(".png") for k in objects) and any(k.endswith(".jpg") for k in objects)
