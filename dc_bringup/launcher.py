@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from dc_bringup.validate import SERVER_MODULES, check
+from dc_core.signals import wake_on_signals
 
 LOG_LEVELS = ("debug", "info", "warn", "error", "fatal")
 
@@ -91,6 +92,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if name in report.servers
     ]
     manager = LifecycleManager(servers, bond_timeout=args.bond_timeout, namespace=namespace)
+    # A signal, or a server process exiting, wakes the watch at once rather than at its next period.
+    signal.signal(signal.SIGCHLD, lambda signum, frame: None)
+    wake_on_signals(manager.wake)
     if args.no_autostart:
         manager.target_state = "unconfigured"
     code = 0
@@ -105,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             else:
                 manager.get_logger().info("DC is up: " + ", ".join(s.name for s in servers))
             while not stop.is_set() and not manager.shutdown_requested:
-                manager.spin_for(0.2)
+                manager.wait_for_work()
                 manager.run_commands()
                 manager.check_bonds()
     finally:

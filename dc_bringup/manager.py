@@ -36,6 +36,11 @@ PROBES_PER_CLIENT = 4
 MAX_RETRY_DELAY_S = 60.0
 # Longest a manage_nodes request waits for the main loop to carry it out.
 COMMAND_TIMEOUT_S = 300.0
+# How often the watch looks at the servers when nothing wakes it: heartbeats (every second each),
+# commands, signals and a child's exit (SIGCHLD) do; this bounds how late a silent server is seen.
+WATCH_PERIOD_S = 1.0
+# The services thread sleeps until a request comes or destroy_node wakes it; this only bounds a wait.
+IDLE_WAIT_S = 5.0
 
 
 # What each manage_nodes command brings the servers to: (transitions in order, reversed order?, target state).
@@ -99,7 +104,8 @@ class LifecycleManager(Node):
     def _serve(self) -> None:
         while not self._services_stop.is_set():
             try:
-                self._services_executor.spin_once(timeout_sec=0.1)
+                # Woken by a request, or by destroy_node: no periodic wake-up while nothing happens.
+                self._services_executor.spin_once(timeout_sec=IDLE_WAIT_S)
             except Exception as exc:  # the context ended under it: dc-bringup is stopping
                 if not self._services_stop.is_set():
                     self.get_logger().error(f"lifecycle services stopped: {exc!r}")
@@ -108,6 +114,7 @@ class LifecycleManager(Node):
     def destroy_node(self) -> None:
         # The services' thread lets go of its node before the node goes.
         self._services_stop.set()
+        self._services_executor.wake()
         self._services_thread.join(timeout=5.0)
         self._services_executor.shutdown(timeout_sec=1.0)
         self._services_node.destroy_node()
@@ -127,6 +134,7 @@ class LifecycleManager(Node):
             return response
         done: Future[bool] = Future()
         self._commands.append((request.command, done))
+        self.executor_.wake()  # the main loop carries it out now, not at its next wake-up
         try:
             response.success = done.result(timeout=COMMAND_TIMEOUT_S)
         except TimeoutError:
@@ -181,6 +189,14 @@ class LifecycleManager(Node):
                 self.create_client(GetState, f"{self._fqn[server]}/get_state"),
             )
         return self._lifecycle_clients[server]
+
+    def wait_for_work(self, timeout: float = WATCH_PERIOD_S) -> None:
+        """Handle one callback (a heartbeat, an answer); return when woken (command, signal) or after ``timeout``."""
+        self.executor_.spin_once(timeout_sec=timeout)
+
+    def wake(self) -> None:
+        """Make :meth:`wait_for_work` return (thread-safe)."""
+        self.executor_.wake()
 
     def spin_for(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds

@@ -4,8 +4,10 @@ rclpy's ``SingleThreadedExecutor`` gathers every entity of its nodes, enters eac
 new wait set at every wake-up. A lifecycle node has about a dozen services and a few timers, and at
 robot rates records arrive one per wake-up, so that per-wake Python work was most of
 destination_server's CPU (docs/performance.md). An :class:`Intake` waits on its subscriptions alone,
-takes every message already queued on a ready one, and leaves services and timers to the executor,
-which ``run_server`` gives a non-blocking turn at least every :data:`EXECUTOR_TURN_S`.
+takes every message already queued on a ready one, and leaves services and timers to the executor.
+:meth:`Intake.take_or_notice` waits on the executor's entities in the same wait set without handling
+them, so that a server sleeps until a record, a request, a timer or a finished job needs it, and the
+executor gets a non-blocking turn only then.
 
 Both run on the server's main thread, one after the other: a transition never runs while a record
 is being handled, exactly as when the executor ran everything.
@@ -13,21 +15,18 @@ is being handled, exactly as when the executor ran everything.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.exceptions import InvalidHandle
 from rclpy.executors import ExternalShutdownException
+from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.subscription import Subscription
 
-# How long the executor (services, timers) may wait while the intake waits for records. It bounds
-# the latency of a lifecycle transition and the jitter of the heartbeat; at 20 turns per second
-# the executor's own cost is a few ms of CPU per second.
-EXECUTOR_TURN_S = 0.05
 # Messages taken from one subscription per wake-up: under a flood, a single busy topic must not
 # keep the executor's turn or the other topics waiting for long.
 DRAIN_MAX = 256
@@ -104,6 +103,70 @@ class Intake:
             if subscription.handle.pointer in ready:
                 taken += self._drain(subscription)
         return taken
+
+    def take_or_notice(self, timeout_s: float, nodes: Sequence[Node], wake: GuardCondition) -> bool:
+        """Wait up to ``timeout_s`` for a record or for work of the executor serving ``nodes``.
+
+        Records are handed to their callbacks here. Returns True when the executor has something to
+        do (a request, a due timer, a message of another subscription, a QoS event, ``wake``) or the
+        wait timed out: the caller then gives the executor a turn. Nothing but records is taken, so
+        the executor finds the rest still ready; guard conditions, which a wait consumes, are
+        triggered again for it.
+        """
+        mine = {s.handle.pointer: s for s in self._callback_of}
+        subscriptions: list[Any] = []
+        timers: list[Any] = []
+        clients: list[Any] = []
+        services: list[Any] = []
+        guards: list[GuardCondition] = [wake]
+        waitables: list[Any] = []
+        for node in nodes:
+            subscriptions.extend(node.subscriptions)
+            timers.extend(node.timers)
+            clients.extend(node.clients)
+            services.extend(node.services)
+            guards.extend(node.guards)
+            waitables.extend(node.waitables)
+        counts = [len(subscriptions), len(guards), len(timers), len(clients), len(services), 0]
+        for waitable in waitables:
+            n = waitable.get_num_entities()
+            for i, more in enumerate((n.num_subscriptions, n.num_guard_conditions, n.num_timers,
+                                      n.num_clients, n.num_services, n.num_events)):  # fmt: skip
+                counts[i] += more
+        wait_set = _rclpy.WaitSet(*counts, self._node.context.handle)
+        for subscription in subscriptions:
+            wait_set.add_subscription(subscription.handle)
+        for guard in guards:
+            wait_set.add_guard_condition(guard.handle)
+        for timer in timers:
+            wait_set.add_timer(timer.handle)
+        for client in clients:
+            wait_set.add_client(client.handle)
+        for service in services:
+            wait_set.add_service(service.handle)
+        for waitable in waitables:
+            waitable.add_to_wait_set(wait_set)
+        wait_set.wait(int(timeout_s * 1e9))
+        if not self._node.context.ok():
+            raise ExternalShutdownException()
+        ready = wait_set.get_ready_entities("subscription")
+        for pointer in ready:
+            subscription = mine.get(pointer)
+            if subscription is not None:
+                self._drain(subscription)
+        ready_guards = set(wait_set.get_ready_entities("guard_condition"))
+        for guard in guards[1:]:
+            if guard.handle.pointer in ready_guards:
+                guard.trigger()  # consumed by this wait: the executor's own wait must see it too
+        return (
+            any(pointer not in mine for pointer in ready)
+            or bool(ready_guards)
+            or bool(wait_set.get_ready_entities("timer"))
+            or bool(wait_set.get_ready_entities("client"))
+            or bool(wait_set.get_ready_entities("service"))
+            or any(waitable.is_ready(wait_set) for waitable in waitables)
+            or not ready
+        )
 
     def _drain(self, subscription: Subscription) -> int:
         callback = self._callback_of.get(subscription)

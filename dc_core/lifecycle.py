@@ -31,6 +31,7 @@ from rclpy.executors import (
     SingleThreadedExecutor,
     TimeoutException,
 )
+from rclpy.guard_condition import GuardCondition
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -38,12 +39,12 @@ from rclpy.signals import SignalHandlerOptions
 
 from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, DcError
-from dc_core.executors import SPIN_PERIOD_S
 from dc_core.http_status import StatusServer, start_status_server
-from dc_core.intake import EXECUTOR_TURN_S, Intake
+from dc_core.intake import Intake
 from dc_core.logs import Logger
 from dc_core.node_params import DEFAULT_HEARTBEAT_PERIOD_S, MetricsHttpParams, ServerNodeParams
 from dc_core.plugin import MessageCallback
+from dc_core.signals import wake_on_signals
 from dc_core.worker import Worker
 from dc_interfaces.msg import Heartbeat
 
@@ -52,7 +53,9 @@ HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # Most executor callbacks run in one turn while the intake is active; the rest wait for the next turn.
 EXECUTOR_TURN_MAX_CALLBACKS = 256
 # The shortest wait between two executor turns while the intake is active.
-TIMER_SLACK_S = 0.001
+# The longest a server's loop sleeps when nothing happens: signals and work wake it at once, this
+# only bounds a wait should a wake-up ever be missed.
+IDLE_WAIT_S = 5.0
 
 
 @dataclass
@@ -301,6 +304,8 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
     node = node_class(args.params_file)  # type: ignore[call-arg]
     executor = SingleThreadedExecutor()
     executor.add_node(node)
+    loop = ServerLoop(executor, node.intake)
+    wake_on_signals(loop.wake)
     code = 0
     try:
         if args.autostart:
@@ -308,7 +313,7 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
                 return 1
             if node.trigger_activate() != TransitionCallbackReturn.SUCCESS:
                 return 1
-        ServerLoop(executor, node.intake).run(stop, node.get_logger())
+        loop.run(stop, node.get_logger())
         state = node.lifecycle_state
         if state in ("active", "inactive", "unconfigured"):
             node.trigger_shutdown()
@@ -324,40 +329,30 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
 class ServerLoop:
     """A server's main loop: records through its intake while it has subscriptions, the rest through the executor.
 
-    While the intake is active the executor gets a non-blocking turn when a timer is due and at least
-    every EXECUTOR_TURN_S (services); otherwise the executor waits on its own, as rclpy's spin would.
+    It sleeps until something needs it — a record, a request, a due timer, a finished job, a signal
+    (:meth:`wake`) — and no fixed-period turn wakes it meanwhile: an idle robot pays for nothing
+    but its timers. ``idle_wait_s`` only bounds how long a wait may last.
     """
 
-    def __init__(self, executor: Executor, intake: Intake) -> None:
+    def __init__(self, executor: Executor, intake: Intake, idle_wait_s: float = IDLE_WAIT_S) -> None:
         self.executor = executor
         self.intake = intake
-        self._next_turn = 0.0
+        self.idle_wait_s = idle_wait_s
+        self._wake = GuardCondition(None, None, context=executor.context)
 
-    def spin_once(self, timeout_sec: float = SPIN_PERIOD_S) -> None:
-        """Handle what is ready, waiting up to ``timeout_sec`` for something to be."""
+    def wake(self) -> None:
+        """Make the current wait return (thread-safe): the loop then looks at its stop event."""
+        self._wake.trigger()
+        self.executor.wake()
+
+    def spin_once(self, timeout_sec: float | None = None) -> None:
+        """Handle what is ready, waiting up to ``timeout_sec`` (``idle_wait_s``) for something to be."""
+        timeout = self.idle_wait_s if timeout_sec is None else timeout_sec
         if not self.intake.active:
-            self.executor.spin_once(timeout_sec=timeout_sec)
+            self.executor.spin_once(timeout_sec=timeout)
             return
-        now = time.monotonic()
-        if now >= self._next_turn:
+        if self.intake.take_or_notice(timeout, self.executor.get_nodes(), self._wake):
             run_ready_callbacks(self.executor, EXECUTOR_TURN_MAX_CALLBACKS)
-            # The next turn comes when the next timer is due: a measurement's collection is not
-            # delayed by up to a turn's period because its server also takes records.
-            self._next_turn = time.monotonic() + self._until_next_timer()
-            return
-        self.intake.take(min(timeout_sec, self._next_turn - now))
-
-    def _until_next_timer(self) -> float:
-        """Seconds until the executor's next timer is due, within [TIMER_SLACK_S, EXECUTOR_TURN_S]."""
-        nearest = EXECUTOR_TURN_S
-        for node in self.executor.get_nodes():
-            for timer in node.timers:
-                until_ns = timer.time_until_next_call()
-                if until_ns is not None:  # None: cancelled
-                    nearest = min(nearest, until_ns / 1e9)
-        # A timer already due whose callback did not run this turn (the turn's limit) must not make
-        # the loop spin without waiting.
-        return max(nearest, TIMER_SLACK_S)
 
     def run(self, stop: threading.Event, logger: Any) -> None:
         """Spin until ``stop`` is set or the context shuts down; a failing callback is logged, not fatal."""

@@ -308,7 +308,7 @@ def test_timers_fire_at_their_period_while_the_intake_is_active(
     peer.bring_up(server.get_name())
     assert wait_for(lambda: peer.publisher.get_subscription_count() == 1, peer.spin)
     assert server.intake.active
-    # rcl skips the periods a timer missed: with a turn every EXECUTOR_TURN_S (50 ms) instead of one
+    # rcl skips the periods a timer missed: with a turn every 50 ms (the loop before it slept) instead of one
     # when the timer is due, 400 ticks of a 5 ms timer would take 20 s, beyond wait_for's deadline.
     ticks_before = server.ticks
     assert wait_for(lambda: server.ticks >= ticks_before + 400, peer.spin), server.ticks - ticks_before
