@@ -642,10 +642,8 @@ def test_configuration_errors_name_the_key(section: dict[str, Any], message: str
 # -- end to end through dc-bringup --------------------------------------------------------------------
 
 
-@pytest.mark.e2e
-def test_e2e_minio_uploads_files_metrics_records_and_deletes(
-    tmp_path: Path, pg: PostgresServer, s3: SeaweedS3Server
-) -> None:
+def uploader_and_metrics_params(tmp_path: Path, pg: PostgresServer, s3: SeaweedS3Server, table: str) -> Path:
+    """dc-bringup parameters: records of /map-files to MinIO and FilesMetrics (table ``table``)."""
     if "dc_destinations/MinIO" not in {info.name for info in list_plugins("destinations")}:
         pytest.skip("the MinIO destination is not installed")
     store = storage(s3, s3.bucket)
@@ -659,14 +657,25 @@ def test_e2e_minio_uploads_files_metrics_records_and_deletes(
         "inputs": ["/dc/measurement/map"],
         "file_storage": ["minio"],
         "minio": store,
-        "pgsql": {**pg.settings(), "table": "e2e", "connect_timeout": 2},
+        "pgsql": {**pg.settings(), "table": table, "connect_timeout": 2},
     }
     document["measurement_server"]["ros__parameters"]["map"]["tags"] = ["flb_minio", "flb_files_metrics"]
     params.write_text(yaml.safe_dump(document, sort_keys=False))
+    return params
 
-    path = a_file(tmp_path, "e2e-map.pgm", os.urandom(3000))
+
+def map_record(path: Path, key: str) -> str:
+    """A record as `dc pub` takes it: a map file at ``path`` going to ``key``."""
     body = f'{{"robot_name": "C3PO", "id": "r1", "local_paths": {{"pgm": "{path}"}},'
-    body += ' "remote_paths": {"minio": {"pgm": "e2e/map.pgm"}}}'
+    return body + f' "remote_paths": {{"minio": {{"pgm": "{key}"}}}}}}'
+
+
+@pytest.mark.e2e
+def test_e2e_minio_uploads_files_metrics_records_and_deletes(
+    tmp_path: Path, pg: PostgresServer, s3: SeaweedS3Server
+) -> None:
+    params = uploader_and_metrics_params(tmp_path, pg, s3, "e2e")
+    path = a_file(tmp_path, "e2e-map.pgm", os.urandom(3000))
     content = path.read_bytes()
 
     def settled() -> bool:
@@ -678,7 +687,7 @@ def test_e2e_minio_uploads_files_metrics_records_and_deletes(
 
     with Bringup(params, tmp_path / "home") as run:
         run.wait_ready()
-        published = dc("pub", "/map-files", body, "--count", "1", env=run.env)
+        published = dc("pub", "/map-files", map_record(path, "e2e/map.pgm"), "--count", "1", env=run.env)
         assert published.returncode == 0, published.stderr
         run.wait_until(settled, 30, "the file's row uploaded and deleted")
         stderr = "\n".join(run.stderr)
@@ -688,3 +697,50 @@ def test_e2e_minio_uploads_files_metrics_records_and_deletes(
     assert (row["group_name"], row["robot_name"], row["size"]) == ("map", "C3PO", 3000)
     assert not path.exists()
     assert PASSWORD not in stderr and s3.secret_key not in stderr
+
+
+OUTAGE_S = 30.0
+
+
+@pytest.mark.e2e
+def test_e2e_a_30_s_database_outage_loses_no_row_and_deletes_nothing_unrecorded(
+    tmp_path: Path, s3: SeaweedS3Server
+) -> None:
+    folder = Path(tempfile.mkdtemp(prefix="dc-fm-outage-"))  # not under tmp_path: see the pg fixture
+    pg = PostgresServer(folder, password=PASSWORD)
+    pg.start()
+    files = [a_file(tmp_path, f"outage-{i:02d}.pgm", os.urandom(2000 + i)) for i in range(10)]
+
+    def recorded() -> list[dict[str, Any]]:
+        try:
+            return [row for row in rows(pg, "outage") if row["deleted"]]
+        except psycopg.Error:
+            return []
+
+    def publish(path: Path) -> None:
+        published = dc("pub", "/map-files", map_record(path, f"outage/{path.name}"), "--count", "1", env=run.env)
+        assert published.returncode == 0, published.stderr
+
+    try:
+        with Bringup(uploader_and_metrics_params(tmp_path, pg, s3, "outage"), tmp_path / "home") as run:
+            run.wait_ready()
+            for path in files[:3]:
+                publish(path)
+            run.wait_until(lambda: len(recorded()) == 3, 30, "the first files recorded and deleted")
+            pg.stop()
+            down_at = time.monotonic()
+            for path in files[3:]:  # stored by MinIO meanwhile, but neither recorded nor deleted
+                publish(path)
+            run.wait_until(lambda: s3.objects("outage/").keys() >= {f"outage/{p.name}" for p in files}, 30,
+                           "every file in the bucket during the outage")  # fmt: skip
+            assert all(path.exists() for path in files[3:]), "a file deleted while its row could not be written"
+            time.sleep(max(0.0, OUTAGE_S - (time.monotonic() - down_at)))  # the outage lasts 30 s
+            pg.start()  # the same data folder, port and password
+            run.wait_until(lambda: len(recorded()) == len(files), 60, f"all {len(files)} files after the outage")
+        stored = rows(pg, "outage")
+    finally:
+        pg.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+    assert sorted(row["local_path"] for row in stored) == sorted(str(p) for p in files), "one row per file"
+    assert all(row["uploaded"] and row["deleted"] and not row["on_filesystem"] for row in stored)
+    assert not any(path.exists() for path in files)
