@@ -80,6 +80,7 @@ class LifecycleManager(Node):
         self.service_timeout = service_timeout
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
+        self._wake = self.create_guard_condition(_nothing)
         self._last_heartbeat: dict[str, float] = {}
         self._watch_since: dict[str, float] = {}
         # Servers whose last bring-up failed, with the seconds to wait before the next attempt:
@@ -98,6 +99,8 @@ class LifecycleManager(Node):
         self._services_executor = SingleThreadedExecutor(context=self.context)
         self._services_executor.add_node(self._services_node)
         self._services_stop = threading.Event()
+        # Guard conditions with a callback: rclpy's spin_once returns only for work to do.
+        self._services_wake = self._services_node.create_guard_condition(_nothing)
         self._services_thread = threading.Thread(target=self._serve, name="manager-services", daemon=True)
         self._services_thread.start()
 
@@ -114,7 +117,7 @@ class LifecycleManager(Node):
     def destroy_node(self) -> None:
         # The services' thread lets go of its node before the node goes.
         self._services_stop.set()
-        self._services_executor.wake()
+        self._services_wake.trigger()
         self._services_thread.join(timeout=5.0)
         self._services_executor.shutdown(timeout_sec=1.0)
         self._services_node.destroy_node()
@@ -134,7 +137,7 @@ class LifecycleManager(Node):
             return response
         done: Future[bool] = Future()
         self._commands.append((request.command, done))
-        self.executor_.wake()  # the main loop carries it out now, not at its next wake-up
+        self._wake.trigger()  # the main loop carries it out now, not at its next wake-up
         try:
             response.success = done.result(timeout=COMMAND_TIMEOUT_S)
         except TimeoutError:
@@ -196,7 +199,7 @@ class LifecycleManager(Node):
 
     def wake(self) -> None:
         """Make :meth:`wait_for_work` return (thread-safe)."""
-        self.executor_.wake()
+        self._wake.trigger()
 
     def spin_for(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
@@ -335,3 +338,7 @@ class LifecycleManager(Node):
             if proc.running():
                 code = proc.stop(timeout)
                 self.get_logger().info(f"{proc.name} stopped (exit code {code})")
+
+
+def _nothing() -> None:
+    """A wake guard's callback: being run is what makes spin_once return."""

@@ -104,11 +104,15 @@ class Intake:
                 taken += self._drain(subscription)
         return taken
 
-    def take_or_notice(self, timeout_s: float, nodes: Sequence[Node], wake: GuardCondition) -> bool:
+    @property
+    def node(self) -> Node:
+        return self._node
+
+    def take_or_notice(self, timeout_s: float, nodes: Sequence[Node]) -> bool:
         """Wait up to ``timeout_s`` for a record or for work of the executor serving ``nodes``.
 
         Records are handed to their callbacks here. Returns True when the executor has something to
-        do (a request, a due timer, a message of another subscription, a QoS event, ``wake``) or the
+        do (a request, a due timer, a message of another subscription, a QoS event, a guard condition) or the
         wait timed out: the caller then gives the executor a turn. Nothing but records is taken, so
         the executor finds the rest still ready; guard conditions, which a wait consumes, are
         triggered again for it.
@@ -118,7 +122,7 @@ class Intake:
         timers: list[Any] = []
         clients: list[Any] = []
         services: list[Any] = []
-        guards: list[GuardCondition] = [wake]
+        guards: list[GuardCondition] = []
         waitables: list[Any] = []
         for node in nodes:
             subscriptions.extend(node.subscriptions)
@@ -155,7 +159,7 @@ class Intake:
             if subscription is not None:
                 self._drain(subscription)
         ready_guards = set(wait_set.get_ready_entities("guard_condition"))
-        for guard in guards[1:]:
+        for guard in guards:
             if guard.handle.pointer in ready_guards:
                 guard.trigger()  # consumed by this wait: the executor's own wait must see it too
         return (

@@ -31,7 +31,6 @@ from rclpy.executors import (
     SingleThreadedExecutor,
     TimeoutException,
 )
-from rclpy.guard_condition import GuardCondition
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -338,12 +337,13 @@ class ServerLoop:
         self.executor = executor
         self.intake = intake
         self.idle_wait_s = idle_wait_s
-        self._wake = GuardCondition(None, None, context=executor.context)
+        # A guard condition with a callback: rclpy's executor returns from spin_once only for work to
+        # do (executor.wake() alone makes it wait again for the rest of the timeout).
+        self._wake = intake.node.create_guard_condition(_nothing)
 
     def wake(self) -> None:
         """Make the current wait return (thread-safe): the loop then looks at its stop event."""
         self._wake.trigger()
-        self.executor.wake()
 
     def spin_once(self, timeout_sec: float | None = None) -> None:
         """Handle what is ready, waiting up to ``timeout_sec`` (``idle_wait_s``) for something to be."""
@@ -351,7 +351,7 @@ class ServerLoop:
         if not self.intake.active:
             self.executor.spin_once(timeout_sec=timeout)
             return
-        if self.intake.take_or_notice(timeout, self.executor.get_nodes(), self._wake):
+        if self.intake.take_or_notice(timeout, self.executor.get_nodes()):
             run_ready_callbacks(self.executor, EXECUTOR_TURN_MAX_CALLBACKS)
 
     def run(self, stop: threading.Event, logger: Any) -> None:
@@ -363,6 +363,10 @@ class ServerLoop:
                 break
             except Exception as exc:  # keep serving: one bad callback must not stop collection
                 logger.error(f"callback failed: {exc!r}\n{traceback.format_exc()}")
+
+
+def _nothing() -> None:
+    """The wake guard's callback: being run is what makes the executor's wait return."""
 
 
 def run_ready_callbacks(executor: Executor, limit: int) -> int:
