@@ -10,9 +10,10 @@ measures, in this process and the same run:
   down, then drained by the delivery layer (buffer, sender, PgSQL destination, as destination_server
   runs them) into a fresh table. Baseline on the same server: psycopg's ``COPY … FROM STDIN`` of the
   same rows, in one transaction, into a table of the same shape and unique index. To tell apart
-  what costs what, also: the destination's own ``INSERT … ON CONFLICT`` in batches without the
-  buffer; per batch, COPY into a temporary table then ``INSERT … SELECT … ON CONFLICT`` (what a
-  COPY-based destination could reach); the buffer drained into a destination that discards.
+  what costs what, also, without the buffer: per batch, COPY into a temporary table then
+  ``INSERT … SELECT … ON CONFLICT`` (the destination's statements: the most its send() can
+  reach); the pipelined ``INSERT … ON CONFLICT`` it used before; and the buffer drained into a
+  destination that discards.
 - s3: the same kind of buffer drained by the S3 destination: objects/s and MB/s of JSON lines;
   baseline: boto3 ``put_object`` of the same bytes cut into the same objects.
 - files: files uploaded by the MinIO destination's ``send()`` against boto3's ``upload_file`` of
@@ -386,7 +387,7 @@ def pg_copy(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, str
 
 
 def pg_insert(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, str, str]], batch_size: int) -> Figure:
-    """The destination's statement and transaction per batch, from rows in memory: no buffer, no sender."""
+    """The statement PgSQL used before COPY (still its fallback), one transaction per batch, from rows in memory."""
     insert = (
         f"INSERT INTO {table} (tag, time, data, record_id) VALUES (%s, %s, %s::jsonb, %s)"
         " ON CONFLICT (record_id) DO NOTHING"
@@ -405,8 +406,8 @@ def pg_insert(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, s
 
 
 def pg_staged(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, str, str]], batch_size: int) -> Figure:
-    """What a COPY-based destination could reach: per batch, COPY into a temporary table emptied at
-    commit, then INSERT … SELECT … ON CONFLICT DO NOTHING (keeps exactly-once on record_id)."""
+    """The PgSQL destination's statements from memory: per batch, COPY into a temporary table emptied
+    at commit, then INSERT … SELECT … ON CONFLICT DO NOTHING (keeps exactly-once on record_id)."""
     with pg.connect() as connection:
         pg.create_table(connection, table)
         connection.execute(f"CREATE TEMP TABLE staging (LIKE {table}) ON COMMIT DELETE ROWS")

@@ -11,13 +11,14 @@ destination's own worker thread, never on the ROS executor, so it may block on I
 from __future__ import annotations
 
 import abc
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from dc_core.errors import DcError
 from dc_core.plugin import ParamsT, Plugin, PluginContext
-from dc_core.records import dump_record
+from dc_core.records import dump_record, parse_record
 
 
 class RetryableError(DcError):
@@ -47,8 +48,9 @@ class OutgoingRecord:
     topic: str
     stamp_ns: int
     data: dict[str, Any]
-    # The JSON text of ``data`` as the buffer holds it, when the record comes from the buffer:
-    # to_json() returns it instead of serialising again (``data`` is read-only for destinations).
+    # The JSON text of ``data``, when something has it already (routing serialises each record
+    # once; the buffer holds it): to_json() returns it instead of serialising again (``data`` is
+    # read-only for destinations).
     json_text: str | None = field(default=None, compare=False, repr=False)
 
     def to_json(self) -> str:
@@ -56,6 +58,70 @@ class OutgoingRecord:
         if self.json_text is not None:
             return self.json_text
         return dump_record(self.data)
+
+    @classmethod
+    def serialised(cls, record_id: str, topic: str, stamp_ns: int, data: dict[str, Any]) -> OutgoingRecord:
+        """A record with its JSON text written now by dump_record (MalformedRecord if ``data`` cannot be).
+
+        The buffer stores its text as DC JSON for certain, and delivery does not parse it again
+        (:attr:`text_follows_rule`); a ``json_text`` given to the constructor is not trusted so.
+        """
+        record = cls(record_id, topic, stamp_ns, data, dump_record(data))
+        object.__setattr__(record, "_text_follows_rule", True)
+        return record
+
+    @property
+    def text_follows_rule(self) -> bool:
+        """Whether ``to_json()`` is DC JSON for certain: written by dump_record, now or in :meth:`serialised`."""
+        return self.json_text is None or bool(self.__dict__.get("_text_follows_rule", False))
+
+    def __eq__(self, other: object) -> bool:
+        # Written out so that a StoredRecord equals the OutgoingRecord it was sent as.
+        if not isinstance(other, OutgoingRecord):
+            return NotImplemented
+        return (self.record_id, self.topic, self.stamp_ns, self.data) == (
+            other.record_id,
+            other.topic,
+            other.stamp_ns,
+            other.data,
+        )
+
+
+class StoredRecord(OutgoingRecord):
+    """A record read back from the buffer whose text is known to be DC JSON: ``data`` parsed on first read.
+
+    Most destinations send ``to_json()`` and never read ``data``: parsing every record anyway was
+    more than half of the sender's own cost (docs/performance.md). Only for a text that passed
+    the record rule (dc_destinations.buffer.BufferedRow.as_appended), so that the parse cannot
+    fail; were it to fail, the ``MalformedRecord`` raised in ``send()`` makes the batch retried.
+    """
+
+    def __init__(
+        self,
+        record_id: str,
+        topic: str,
+        stamp_ns: int,
+        data: dict[str, Any] | None = None,
+        json_text: str | None = None,
+    ) -> None:
+        # OutgoingRecord's parameters, so that dataclasses.replace() works on it too; the dataclass
+        # is frozen: fields are set as its own __init__ sets them.
+        if json_text is None:
+            raise TypeError("StoredRecord needs json_text")
+        object.__setattr__(self, "record_id", record_id)
+        object.__setattr__(self, "topic", topic)
+        object.__setattr__(self, "stamp_ns", stamp_ns)
+        object.__setattr__(self, "json_text", json_text)
+        if data is not None:
+            self.__dict__["data"] = data
+
+    @functools.cached_property
+    def data(self) -> dict[str, Any]:
+        assert self.json_text is not None
+        return parse_record(self.json_text)
+
+    def __repr__(self) -> str:
+        return f"StoredRecord(record_id={self.record_id!r}, topic={self.topic!r}, stamp_ns={self.stamp_ns!r})"
 
 
 DestinationContext = PluginContext

@@ -251,7 +251,9 @@ class GroupCommitter:
                 batch.seen.append(handoff.seen)
             for route, record in handoff.records:
                 try:
-                    pending = PendingRecord(record.record_id, record.topic, record.stamp_ns, record.to_json())
+                    pending = PendingRecord(
+                        record.record_id, record.topic, record.stamp_ns, record.to_json(), record.text_follows_rule
+                    )
                     pending.size  # noqa: B018 - encodes the payload: a lone surrogate fails here, not in append
                 except (MalformedRecord, UnicodeError, ValueError, TypeError, RecursionError) as exc:
                     self._not_storable(route, record.record_id, f"{type(exc).__name__}: {exc}")

@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dc_core.destination import OutgoingRecord
-from dc_core.records import dump_record
 from dc_core.timefmt import format_stamp
 from dc_destinations.config import DestinationConfig
 from dc_destinations.record_ids import new_record_id
@@ -117,5 +116,5 @@ class RoutingTable:
                 data = {target.time_key: format_stamp(stamp_ns, target.time_format), **data}
             # Serialised here, once: what cannot be written back as JSON (an infinite number, a lone
             # surrogate) raises MalformedRecord before any copy reaches the buffer.
-            deliveries.append((target.name, OutgoingRecord(record_id, topic, stamp_ns, data, dump_record(data))))
+            deliveries.append((target.name, OutgoingRecord.serialised(record_id, topic, stamp_ns, data)))
         return Routed(deliveries)

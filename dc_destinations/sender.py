@@ -5,8 +5,9 @@ For a destination plugin's author, this is the whole story of delivery:
 1. Records wait in the destination's queue in the durable buffer (dc_destinations.buffer), in
    the order they arrived.
 2. The sender reads the oldest ``batch_size`` of them and calls ``send(batch)`` on its own thread,
-   never on the server's main loop: ``send`` may block on the network. It wakes up when
-   ``batch_size`` records wait or ``flb.flush`` seconds passed.
+   never on the server's main loop: ``send`` may block on the network (meanwhile the next batch
+   is read, to be sent once this one is confirmed). It wakes up when ``batch_size`` records wait
+   or ``flb.flush`` seconds passed.
 3. ``send`` returns ``None``: every record is confirmed and deleted from the queue. It returns a
    :class:`~dc_core.destination.SendOutcome`: the indexes in ``reject`` go to the dead letters with
    their reason, those in ``retry`` stay in the queue with one more attempt counted, the others are
@@ -31,10 +32,18 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.destination import (
+    Destination,
+    OutgoingRecord,
+    RejectedError,
+    RetryableError,
+    SendOutcome,
+    StoredRecord,
+)
 from dc_core.logs import BurstLog, Logger
 from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.backoff import Backoff
@@ -134,47 +143,87 @@ class Sender:
         self._backoff = Backoff(settings.scheduler_base, settings.scheduler_cap, uniform)
 
     def run(self) -> None:
+        # While send() waits on the destination, a reader thread reads and prepares the next batch:
+        # the sender's own work (SQLite, building the records) and the destination's server then
+        # use the machine at the same time instead of one after the other (docs/performance.md).
+        with ThreadPoolExecutor(1, thread_name_prefix=f"dc-read-{self.route.name}") as reader:
+            self._run(reader)
+
+    def _run(self, reader: ThreadPoolExecutor) -> None:
         route, buffer = self.route, self.buffer
         batch_size = route.params.batch_size
+        ahead: Future[_Batch] | None = None
         while True:
             closing = self.closing.event.is_set()
             if closing and self._clock() >= self.closing.deadline:
                 return
             try:
-                rows = buffer.read_batch(route.name, batch_size)
+                batch = self._still_next(ahead) if ahead is not None else None
+                ahead = None
+                if batch is None:
+                    batch = self._prepare(buffer.read_batch(route.name, batch_size))
             except BufferCorrupted:
+                ahead = None
                 continue
             except BufferClosed:
                 return
             except Exception as exc:  # disk full, I/O error: the sender waits and tries again, never dies
+                ahead = None
                 if self._buffer_trouble(f"reading the buffer: {type(exc).__name__}: {exc}"):
                     return
                 continue
+            rows = batch.rows
             if not rows:
                 if closing:
                     return
                 self._idle()
                 route.tick_logs()
                 continue
+            if len(rows) == batch_size:  # a short batch emptied the queue: nothing to read ahead
+                ahead = reader.submit(self._read_after, rows[-1].row_id)
             try:
-                must_retry = self.deliver(rows)
+                must_retry = self.deliver(rows, batch)
             except BufferClosed:
                 return
             except BufferCorrupted:
+                ahead = None
                 continue
             except Exception as exc:
+                ahead = None
                 # The destination may have taken the batch before the buffer failed to record it
                 # (deleting needs disk space too): those records are sent again, as after a crash.
                 if self._buffer_trouble(f"updating the buffer: {type(exc).__name__}: {exc}"):
                     return
                 continue
             if must_retry:
+                ahead = None  # the retried records come first again: read from the head
                 if self._wait_backoff(self._backoff.next_delay()):
                     return
             else:
                 self._backoff.reset()
                 if len(rows) < batch_size and not closing:
                     self._idle()
+
+    def _read_after(self, row_id: int) -> _Batch:
+        """In the reader thread: the batch after ``row_id``, prepared."""
+        return self._prepare(self.buffer.read_batch(self.route.name, self.route.params.batch_size, after_id=row_id))
+
+    def _still_next(self, ahead: Future[_Batch]) -> _Batch | None:
+        """The batch read ahead, if it is still what a read from the head would return; else None.
+
+        It is when it is full and its first row is the queue's head. Rows leave a queue from its
+        head (sent, dead-lettered, dropped by the size limit), so none of its rows left since the
+        read, and a row committed since took an id above them all: the batch is still the first
+        ``batch_size`` rows. Otherwise (a short read, a size limit that dropped its first rows)
+        the head is read again: rare, and a read costs far less than a send.
+        """
+        batch = ahead.result()
+        if len(batch.rows) < self.route.params.batch_size:
+            return None
+        head = self.buffer.read_batch(self.route.name, 1)
+        if not head or head[0].row_id != batch.rows[0].row_id:
+            return None
+        return batch
 
     def _idle(self) -> None:
         """Wait for batch_size records to be committed, or flush seconds."""
@@ -194,13 +243,15 @@ class Sender:
             return self._wait(delay) or self.closing.event.is_set()
         return self.closing.event.wait(delay)
 
-    def deliver(self, rows: list[BufferedRow]) -> bool:
-        """One send() of ``rows``; returns True when some of them must be retried."""
-        route, buffer = self.route, self.buffer
-        records: list[OutgoingRecord] = []
-        sent_rows: list[BufferedRow] = []
-        unreadable: list[tuple[BufferedRow, str]] = []
+    def _prepare(self, rows: list[BufferedRow]) -> _Batch:
+        """The records to send of ``rows``, and those that must not be sent; no I/O."""
+        batch = _Batch(rows)
+        records, sent_rows, unreadable = batch.records, batch.sent_rows, batch.unreadable
         for row in rows:
+            if row.as_appended():
+                records.append(StoredRecord(row.record_id, row.topic, row.stamp_ns, json_text=row.payload))
+                sent_rows.append(row)
+                continue
             try:
                 data = parse_record(row.payload)
             except MalformedRecord as exc:
@@ -209,6 +260,13 @@ class Sender:
                 continue
             records.append(OutgoingRecord(row.record_id, row.topic, row.stamp_ns, data, json_text=row.payload))
             sent_rows.append(row)
+        return batch
+
+    def deliver(self, rows: list[BufferedRow], prepared: _Batch | None = None) -> bool:
+        """One send() of ``rows`` (``prepared``: as :meth:`_prepare` made them); True when some must be retried."""
+        route, buffer = self.route, self.buffer
+        batch = prepared if prepared is not None else self._prepare(rows)
+        records, sent_rows, unreadable = batch.records, batch.sent_rows, batch.unreadable
         if unreadable:
             route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))
             self.bound_dead_letters()
@@ -254,6 +312,16 @@ class Sender:
         if deleted:
             route.metrics.add("dead_letters_dropped", deleted)
             route.dead_letter_drop_log.event(deleted, "the newest are kept; see `dc buffer list`")
+
+
+@dataclass
+class _Batch:
+    """Rows read from the queue and what is to be done with them."""
+
+    rows: list[BufferedRow]
+    records: list[OutgoingRecord] = field(default_factory=list)
+    sent_rows: list[BufferedRow] = field(default_factory=list)  # the rows of ``records``, in order
+    unreadable: list[tuple[BufferedRow, str]] = field(default_factory=list)
 
 
 def _outcome_of(destination: Destination[Any], records: list[OutgoingRecord]) -> tuple[dict[int, str], dict[int, str]]:

@@ -151,8 +151,65 @@ def test_a_buffer_of_schema_1_is_migrated_with_its_dead_letters_counted(tmp_path
     finally:
         migrated.close()
     conn = sqlite3.connect(path)
-    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == ("2",)
+    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == ("3",)
     conn.close()
+
+
+def test_read_batch_after_a_row(buffer: Buffer) -> None:
+    buffer.append({"a": [pending(i) for i in range(10)]})
+    first = buffer.read_batch("a", 4)
+    after = buffer.read_batch("a", 4, after_id=first[-1].row_id)
+    assert [r.record_id for r in after] == [f"id-{i:08d}" for i in range(4, 8)]
+    assert buffer.read_batch("a", 4, after_id=after[-1].row_id + 100) == []
+
+
+def test_only_a_checked_payload_unchanged_since_is_known_as_appended(buffer: Buffer) -> None:
+    checked = PendingRecord("id-c", "/t", 1, '{"n":1}', checked=True)
+    buffer.append({"a": [checked, pending(2)]})
+    first, second = buffer.read_batch("a", 10)
+    assert first.as_appended(), "a payload appended as DC JSON for certain"
+    assert not second.as_appended(), "nobody checked it"
+    buffer.dead_letter("a", [(first, "rejected")])
+    buffer.replay_dead_letters("a")
+    (replayed,) = [r for r in buffer.read_batch("a", 10) if r.record_id == "id-c"]
+    assert not replayed.as_appended(), "a dead letter comes back unchecked: it may be why it died"
+
+
+def test_a_payload_changed_by_hand_is_no_longer_known_as_appended(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    buffer = SqliteBuffer(path)
+    buffer.append({"a": [PendingRecord("id-1", "/t", 1, '{"v":1.5}', checked=True)]})
+    conn = sqlite3.connect(path)
+    conn.execute("""UPDATE q_1 SET payload = '{"v":NaN}'""")
+    conn.commit()
+    conn.close()
+    try:
+        (row,) = buffer.read_batch("a", 1)
+        assert row.payload == '{"v":NaN}' and row.payload_crc is not None
+        assert not row.as_appended()
+    finally:
+        buffer.close()
+
+
+def test_queues_of_schema_2_get_the_crc_column_and_their_rows_none(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    old = SqliteBuffer(path)
+    old.append({"a": [PendingRecord("id-1", "/t", 1, '{"v":NaN}')]})
+    old.close()
+    # What DC wrote before payload_crc existed, the queue table included.
+    conn = sqlite3.connect(path)
+    conn.executescript(
+        "ALTER TABLE q_1 DROP COLUMN payload_crc; UPDATE meta SET value = '2' WHERE key = 'schema_version';"
+    )
+    conn.close()
+    migrated = SqliteBuffer(path)
+    try:
+        (row,) = migrated.read_batch("a", 10)
+        assert row.payload_crc is None and not row.as_appended()
+        migrated.append({"a": [PendingRecord("id-2", "/t", 2, '{"v":2}', checked=True)]})
+        assert [r.as_appended() for r in migrated.read_batch("a", 10)] == [False, True]
+    finally:
+        migrated.close()
 
 
 def test_size_limit_drop_newest_keeps_the_oldest(buffer: Buffer) -> None:

@@ -6,6 +6,7 @@ import errno
 import json
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -19,6 +20,7 @@ from typing import Any
 import pytest
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.records import parse_record
 from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.buffer import FILE_NAME, PendingRecord, SqliteBuffer
 from dc_destinations.delivery import DeliveryPipeline
@@ -234,6 +236,98 @@ def test_retryable_failures_back_off_exponentially_then_deliver(tmp_path: Path) 
         pipeline.stop(grace=1.0)
 
 
+def _prefilled(tmp_path: Path, count: int) -> None:
+    """Queue "sink" holding records n = 0 … count - 1, committed before any sender runs."""
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    texts = [f'{{"n":"{n:03d}"}}' for n in range(count)]  # 11 bytes each
+    buffer.append({"sink": [PendingRecord(f"r{n}", "/t", n, text, checked=True) for n, text in enumerate(texts)]})
+    buffer.close()
+
+
+def _numbers(batch: Sequence[OutgoingRecord]) -> list[int]:
+    return [int(r.data["n"]) for r in batch]
+
+
+def test_the_next_batch_is_read_while_send_runs_and_order_is_kept(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _prefilled(tmp_path, 23)
+    read_ahead = threading.Event()
+    read_batch = SqliteBuffer.read_batch
+
+    def spied(self: SqliteBuffer, destination: str, limit: int, *, after_id: int = 0) -> Any:
+        rows = read_batch(self, destination, limit, after_id=after_id)
+        if after_id:
+            read_ahead.set()
+        return rows
+
+    monkeypatch.setattr(SqliteBuffer, "read_batch", spied)
+    batches: list[list[int]] = []
+
+    def send(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        if call == 1:
+            assert read_ahead.wait(5.0), "the next batch is read during send(), not after it"
+        batches.append(_numbers(batch))
+
+    sink = Recorder(behaviour=send)
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(batch_size=5))}, LOG)
+    pipeline.start()
+    try:
+        sink.wait_for(23)
+        wait_until(lambda: pipeline.metrics()["sink"]["buffered"] == 0, what="empty buffer")
+    finally:
+        pipeline.stop(grace=1.0)
+    assert batches == [list(range(n, min(n + 5, 23))) for n in range(0, 23, 5)]
+    assert pipeline.metrics()["sink"]["sent"] == 23
+
+
+def test_a_retried_record_goes_again_before_the_batch_read_ahead(tmp_path: Path) -> None:
+    _prefilled(tmp_path, 20)
+    batches: list[list[int]] = []
+
+    def busy_once(call: int, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        batches.append(_numbers(batch))
+        return SendOutcome(retry={2: "busy"}) if call == 1 else None
+
+    sink = Recorder(behaviour=busy_once)
+    pipeline = DeliveryPipeline(
+        settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(batch_size=5))}, LOG, wait=RecordedWaits()
+    )
+    pipeline.start()
+    try:
+        sink.wait_for(20)
+    finally:
+        pipeline.stop(grace=1.0)
+    assert batches[:2] == [[0, 1, 2, 3, 4], [2, 5, 6, 7, 8]], "the queue's head first, not what was read ahead"
+    assert sorted(n for batch in batches for n in batch) == sorted([*range(20), 2])
+
+
+def test_rows_dropped_by_the_size_limit_during_send_are_not_sent_from_the_batch_read_ahead(tmp_path: Path) -> None:
+    _prefilled(tmp_path, 10)  # 110 bytes
+    batches: list[list[int]] = []
+    pipeline: DeliveryPipeline
+
+    def crowd_out_during_first_send(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        batches.append(_numbers(batch))
+        if call == 1:
+            # Two records of 60 bytes into a queue limited to 135: the oldest 9 rows make room.
+            for n in (100, 101):
+                pipeline.submit("sink", OutgoingRecord(f"new{n}", "/t", n, {"n": n, "record_id": new_record_id()}))
+            assert pipeline.flush_intake(5.0)
+
+    sink = Recorder(behaviour=crowd_out_during_first_send)
+    params = DestinationDeliveryParams(batch_size=5, storage_total_limit_size="135", when_full="drop_oldest")
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, params)}, LOG)
+    pipeline.start()
+    try:
+        sink.wait_for(8)
+        wait_until(lambda: pipeline.metrics()["sink"]["buffered"] == 0, what="empty buffer")
+    finally:
+        pipeline.stop(grace=1.0)
+    assert pipeline.metrics()["sink"]["dropped"] == 9
+    assert batches == [[0, 1, 2, 3, 4], [9, 100, 101]], "rows 5 to 8 were dropped before they were sent"
+
+
 def test_jitter_is_full(tmp_path: Path) -> None:
     draws: list[tuple[float, float]] = []
 
@@ -281,6 +375,92 @@ def test_permanent_rejection_goes_to_dead_letters_with_the_error(tmp_path: Path)
         assert all("400 Bad Request" in d.error for d in letters)
     finally:
         buffer.close()
+
+
+def test_a_record_from_the_intake_is_sent_without_being_parsed_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import dc_core.destination
+    import dc_destinations.sender
+
+    parsed: list[str] = []
+
+    def counting_parse(text: str) -> dict[str, Any]:
+        parsed.append(text)
+        return parse_record(text)
+
+    monkeypatch.setattr(dc_destinations.sender, "parse_record", counting_parse)
+    monkeypatch.setattr(dc_core.destination, "parse_record", counting_parse)
+    texts: list[str] = []
+    sink = Recorder(behaviour=lambda call, batch: texts.extend(r.to_json() for r in batch))
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
+    pipeline.start()
+    try:
+        sent = [record(n) for n in range(20)]
+        for r in sent:
+            pipeline.submit("sink", r)
+        delivered = sink.wait_for(20)
+    finally:
+        pipeline.stop(grace=1.0)
+    assert texts == [r.to_json() for r in sent]
+    assert parsed == [], "to_json() is the stored text: nothing parsed"
+    assert delivered[3].data == sent[3].data and delivered[3].data is delivered[3].data
+    assert parsed == [sent[3].to_json()], "data: parsed when read, once"
+    assert delivered == sent
+
+
+def _buffer_with_nan_rows(path: Path, how: str) -> None:
+    """A buffer of queue "sink" holding 0, an unreadable {"n": NaN} and 2, as ``how`` left it."""
+    buffer = SqliteBuffer(path)
+    texts = ['{"n":0}', '{"n":NaN}' if how == "unchecked" else '{"n":1}', '{"n":2}']
+    checked = how != "unchecked"
+    buffer.append({"sink": [PendingRecord(f"r{n}", "/t", n, text, checked) for n, text in enumerate(texts)]})
+    buffer.close()
+    conn = sqlite3.connect(path)
+    if how == "older_dc":  # written before payload_crc existed
+        conn.executescript(
+            """ALTER TABLE q_1 DROP COLUMN payload_crc; UPDATE q_1 SET payload = '{"n":NaN}' WHERE record_id = 'r1';
+               UPDATE meta SET value = '2' WHERE key = 'schema_version';"""
+        )
+    elif how == "edited":
+        conn.execute("""UPDATE q_1 SET payload = '{"n":NaN}' WHERE record_id = 'r1'""")
+        conn.commit()
+    conn.close()
+
+
+@pytest.mark.parametrize("how", ["older_dc", "edited", "unchecked"])
+def test_an_unreadable_payload_in_the_buffer_is_dead_lettered_never_sent(tmp_path: Path, how: str) -> None:
+    _buffer_with_nan_rows(tmp_path / FILE_NAME, how)
+    sink = Recorder()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
+    pipeline.start()
+    try:
+        delivered = sink.wait_for(2)
+        wait_until(lambda: pipeline.metrics()["sink"]["dead_lettered"] == 1, what="the dead letter")
+    finally:
+        pipeline.stop(grace=1.0)
+    assert [r.to_json() for r in delivered] == ['{"n":0}', '{"n":2}']
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        (letter,) = buffer.list_dead_letters("sink")
+    finally:
+        buffer.close()
+    assert letter.record_id == "r1" and letter.payload == '{"n":NaN}'
+    assert letter.error.startswith("unreadable payload in the buffer: NaN is not a JSON number")
+
+
+def test_a_json_text_given_as_is_is_checked_before_it_is_sent(tmp_path: Path) -> None:
+    sink = Recorder()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
+    pipeline.start()
+    try:
+        pipeline.submit("sink", OutgoingRecord("poison", "/t", 1, {"n": 1.0}, json_text='{"n":NaN}'))
+        pipeline.submit("sink", record(2))
+        (delivered,) = sink.wait_for(1)
+        wait_until(lambda: pipeline.metrics()["sink"]["dead_lettered"] == 1, what="the dead letter")
+    finally:
+        pipeline.stop(grace=1.0)
+    assert delivered.data["n"] == 2
 
 
 def test_dead_letters_are_bounded_the_oldest_deleted_counted_and_logged_once(tmp_path: Path) -> None:

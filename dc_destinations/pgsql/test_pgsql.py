@@ -151,6 +151,99 @@ def test_a_constraint_refuses_only_the_rows_that_break_it(server: PostgresServer
     assert sorted(r[2]["level"] for r in rows(server, "checked")) == [1, 5, 7]
 
 
+def admin(server: PostgresServer) -> Any:
+    s = server.settings()
+    return psycopg.connect(
+        host="127.0.0.1", port=int(s["port"]), user="dc", password=PASSWORD, dbname="dc", autocommit=True
+    )
+
+
+def test_a_batch_goes_through_the_staging_table(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="staged")
+    batch = [record(i, name="seq") for i in range(500)]
+    assert dest.send(batch) is None
+    assert dest._staging, "COPY into the session's staging table, not INSERT … VALUES"
+    with admin(server) as connection:
+        got = connection.execute("SELECT data, record_id FROM staged ORDER BY (data->>'seq')::int").fetchall()
+    assert [(r[0], r[1]) for r in got] == [(r.data, r.record_id) for r in batch]
+
+
+def test_a_refused_row_in_a_large_batch_holds_up_no_other(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="refused_large")
+    batch = [record(i, text="fine") for i in range(500)]
+    batch[250] = record(250, text="nul \u0000 inside")
+    outcome = dest.send(batch)
+    assert outcome is not None and list(outcome.reject) == [250] and not outcome.retry
+    assert "SQLSTATE 22P05" in outcome.reject[250]
+    assert sorted(r[2]["seq"] for r in rows(server, "refused_large")) == [i for i in range(500) if i != 250]
+    assert dest.send([record(500)]) is None, "the staging table is empty again and usable after the rollback"
+    assert len(rows(server, "refused_large")) == 500
+
+
+def test_a_record_twice_in_one_batch_is_one_row(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    # A dead letter replayed while its first copy still waits in the queue: both can meet in a batch.
+    dest = make(server, destinations, table="twice_in_batch")
+    first, second = record(0), record(1)
+    assert dest.send([first, second, first]) is None
+    assert dest.send([second, first]) is None
+    assert sorted(r[3] for r in rows(server, "twice_in_batch")) == sorted([first.record_id, second.record_id])
+
+
+def test_a_connection_lost_during_copy_is_retried_without_duplicates(
+    server: PostgresServer, destinations: list[PgSQL], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    logger = RecordingLogger()
+    dest = make(server, destinations, logger=logger, table="lost_in_copy", connect_timeout=2)
+    assert dest.send([record(0)]) is None
+    assert dest._database is not None and dest._database._connection is not None
+    backend = dest._database._connection.info.backend_pid
+    write_row = psycopg.Copy.write_row
+    written = 0
+
+    def write_then_lose(copy: Any, row: Any) -> None:
+        nonlocal written
+        written += 1
+        if written == 100:  # mid-COPY: the server ends the session that is sending it rows
+            with admin(server) as connection:
+                connection.execute("SELECT pg_terminate_backend(%s)", (backend,))
+        write_row(copy, row)
+
+    monkeypatch.setattr(psycopg.Copy, "write_row", write_then_lose)
+    batch = [record(i) for i in range(1, 301)]
+    assert dest.send(batch) is None, "the kept connection died: the batch again at once, on a new one"
+    assert written > 300, "the batch was copied a second time"
+    assert dest.send(batch) is None, "sent again after an unknown outcome"
+    got = rows(server, "lost_in_copy")
+    assert sorted(r[2]["seq"] for r in got) == list(range(301))
+    assert len([m for m in logger.at("info") if m.startswith("connected to")]) == 2
+
+
+def test_a_table_named_like_the_staging_table(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="dc_staging")
+    assert dest.send([record(0), record(1)]) is None and dest.send([record(2)]) is None
+    assert [r[2]["seq"] for r in rows(server, "dc_staging")] == [0, 1, 2]
+
+
+def test_without_the_right_to_temporary_tables_rows_still_arrive(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    logger = RecordingLogger()
+    with admin(server) as connection:
+        connection.execute("REVOKE TEMPORARY ON DATABASE dc FROM PUBLIC, dc")
+    try:
+        dest = make(server, destinations, logger=logger, table="no_temp")
+        batch = [record(0), record(1, text="nul \u0000 inside"), record(2)]
+        outcome = dest.send(batch)
+        assert not dest._staging
+        assert outcome is not None and list(outcome.reject) == [1]
+        assert dest.send(batch[::2]) is None
+    finally:
+        with admin(server) as connection:
+            connection.execute("GRANT TEMPORARY ON DATABASE dc TO PUBLIC, dc")
+    assert [r[2]["seq"] for r in rows(server, "no_temp")] == [0, 2]
+    assert any("no temporary table allowed" in m for m in logger.at("warning"))
+
+
 def test_a_table_made_by_the_original_gets_record_id(server: PostgresServer, destinations: list[PgSQL]) -> None:
     s = server.settings()
     with psycopg.connect(
