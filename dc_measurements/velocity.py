@@ -57,6 +57,7 @@ def twist_record(twist: Any, age_s: float) -> dict[str, Any]:
 class _Received:
     twist: Any
     received_ns: int
+    stamp_ns: int | None  # the message's header stamp, when it has one
 
 
 class LatestTwist:
@@ -69,20 +70,26 @@ class LatestTwist:
         self._reported = True
         self.received = 0
 
-    def update(self, twist: Any, received_ns: int) -> None:
+    def update(self, twist: Any, received_ns: int, stamp_ns: int | None = None) -> None:
         with self._lock:
-            self._latest = _Received(twist, received_ns)
+            self._latest = _Received(twist, received_ns, stamp_ns)
             self._reported = False
             self.received += 1
 
     def take(self, now_ns: int, repeat_last: bool) -> dict[str, Any] | None:
         """The record a poll at ``now_ns`` reports, or None (see the module documentation)."""
+        return self.take_stamped(now_ns, repeat_last)[0]
+
+    def take_stamped(self, now_ns: int, repeat_last: bool) -> tuple[dict[str, Any] | None, int | None]:
+        """:meth:`take`, and the stamp of the message when it is reported for the first time (else None)."""
         with self._lock:
             latest = self._latest
             if latest is None or (self._reported and not repeat_last):
-                return None
+                return None, None
+            fresh = not self._reported
             self._reported = True
-        return twist_record(latest.twist, (now_ns - latest.received_ns) / 1e9)
+        # A message repeated (repeat_last) is dated by the poll: its `age` says how old it is.
+        return twist_record(latest.twist, (now_ns - latest.received_ns) / 1e9), latest.stamp_ns if fresh else None
 
     def reset(self) -> None:
         with self._lock:
@@ -118,6 +125,11 @@ class LatestTwistMeasurement(Measurement[TwistParamsT]):
         """The geometry_msgs/Twist a message carries."""
         return message
 
+    @staticmethod
+    def stamp_of(message: Any) -> int | None:
+        """The time the message describes (its header stamp), if it has one: the record is dated with it."""
+        return None
+
     def on_configure(self) -> None:
         self.on_cleanup()
         self._subscription = self.context.subscribe(self.message_type, self.topic, self._on_message, SENSOR_QOS)
@@ -129,10 +141,14 @@ class LatestTwistMeasurement(Measurement[TwistParamsT]):
         self._latest.reset()
 
     def _on_message(self, message: Any, info: Any = None) -> None:
-        self._latest.update(self.twist_of(message), now_ns(self.context.node))
+        self._latest.update(self.twist_of(message), now_ns(self.context.node), self.stamp_of(message))
+
+    def collect_stamped(self) -> tuple[dict[str, Any] | None, int | None, str | None]:
+        sample, stamp = self._latest.take_stamped(now_ns(self.context.node), self.params.repeat_last)
+        return sample, stamp, None
 
     def collect(self) -> dict[str, Any] | None:
-        return self._latest.take(now_ns(self.context.node), self.params.repeat_last)
+        return self.collect_stamped()[0]
 
     def counters(self) -> dict[str, int]:
         return {"received": self._latest.received}

@@ -538,9 +538,11 @@ def test_e2e_a_30_s_store_outage_loses_no_file(tmp_path: Path) -> None:
                 env=run.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             )  # fmt: skip
             run.wait_stderr(f"cannot reach bucket {store.bucket} at {store.endpoint}", OUTAGE_S)
-            output, _ = publisher.communicate(timeout=OUTAGE_S)
+            # Nine `dc pub` processes one after the other: on a loaded machine (the suite's workers) that
+            # can outlast the 30 s, and the outage then lasts as long.
+            output, _ = publisher.communicate(timeout=4 * OUTAGE_S)
             assert publisher.returncode == 0, output
-            time.sleep(max(0.0, OUTAGE_S - (time.monotonic() - down_at)))  # the outage lasts 30 s
+            time.sleep(max(0.0, OUTAGE_S - (time.monotonic() - down_at)))  # the outage lasts at least 30 s
             kept = [i for i in range(3, total) if files[i].exists()]
             assert kept == list(range(3, total)), "no file deleted while the store could not verify it"
             store.start()  # the same data folder, ports and keys

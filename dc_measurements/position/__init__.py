@@ -64,16 +64,28 @@ class Position(Measurement[PositionParams]):
         self._listener.stop()
         self.buffer.clear()
 
-    def collect(self) -> dict[str, Any] | None:
+    def collect_stamped(self) -> tuple[dict[str, Any] | None, int | None, str | None]:
         p = self.params
         pose, reason = wait_for_transform(self.buffer, p.global_frame, p.robot_base_frame, p.transform_timeout)
         self._no_transform_log.tick()
         if pose is None:
             self.no_transform += 1
             self._no_transform_log.event(1, f"{reason} (waited {p.transform_timeout:g} s)")
-            return None
+            return None, None, None
+        # Dated with the time of the transforms it comes from, not the poll's: the newest pose the
+        # chain gives lags the clock by the transforms' delivery (more under load), and a record
+        # "the robot was there at <date>" must hold.
+        stamp = self.buffer.latest_time(p.global_frame, p.robot_base_frame)
+        if stamp:
+            try:
+                pose = self.buffer.lookup(p.global_frame, p.robot_base_frame, stamp)
+            except TransformError:
+                stamp = 0  # the history moved on between the two calls: the pose found, dated by the poll
         x, y, _ = pose.translation
-        return {"x": x, "y": y, "yaw": pose.yaw}
+        return {"x": x, "y": y, "yaw": pose.yaw}, stamp or None, None
+
+    def collect(self) -> dict[str, Any] | None:
+        return self.collect_stamped()[0]
 
     def counters(self) -> dict[str, int]:
         return {"no_transform": self.no_transform, "tf_time_jumps": self._listener.time_jumps}

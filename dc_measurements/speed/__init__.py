@@ -7,6 +7,7 @@ from typing import Any
 
 from nav_msgs.msg import Odometry
 
+from dc_core.rostime import stamp_ns
 from dc_measurements.velocity import LatestTwistMeasurement, repeat_last_param, topic_param
 
 
@@ -28,3 +29,7 @@ class Speed(LatestTwistMeasurement[SpeedParams]):
     @staticmethod
     def twist_of(message: Any) -> Any:
         return message.twist.twist
+
+    @staticmethod
+    def stamp_of(message: Any) -> int | None:
+        return stamp_ns(message.header.stamp) or None
