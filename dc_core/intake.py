@@ -62,6 +62,8 @@ class Intake:
         self._callback_of: dict[Subscription, MessageCallback] = {}
         self._wait_set: Any = None
         self._wait_set_size = -1
+        self._combined: Any = None
+        self._combined_counts: tuple[int, ...] = ()
 
     @property
     def active(self) -> bool:
@@ -137,7 +139,7 @@ class Intake:
             for i, more in enumerate((n.num_subscriptions, n.num_guard_conditions, n.num_timers,
                                       n.num_clients, n.num_services, n.num_events)):  # fmt: skip
                 counts[i] += more
-        wait_set = _rclpy.WaitSet(*counts, self._node.context.handle)
+        wait_set = self._combined_wait_set(tuple(counts))
         for subscription in subscriptions:
             wait_set.add_subscription(subscription.handle)
         for guard in guards:
@@ -187,6 +189,14 @@ class Intake:
             callback(message_and_info[0], message_and_info[1])
             callback = self._callback_of.get(subscription)
         return taken
+
+    def _combined_wait_set(self, counts: tuple[int, ...]) -> Any:
+        # Made again only when the entities change (a transition, a plugin's subscription): not per record.
+        if counts != self._combined_counts:
+            self._combined = _rclpy.WaitSet(*counts, self._node.context.handle)
+            self._combined_counts = counts
+        self._combined.clear_entities()
+        return self._combined
 
     def _wait_set_for(self, size: int) -> Any:
         # rclpy's own wait_for_message builds its wait set the same way; the executor has no API

@@ -9,9 +9,11 @@ temporary credentials are refreshed before they expire.
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from typing import Any
 
 from dc_core.errors import ConfigError
+from dc_core.params import param
 
 try:
     import boto3
@@ -69,6 +71,35 @@ def check_credentials(access_key: str, secret_key: str, role_arn: str, external_
         raise ConfigError("external_id", "expected 2 to 1224 characters among letters, digits and +=,.@:/-")
     if sts_endpoint and not role_arn:
         raise ConfigError("sts_endpoint", "set role_arn too (STS is only called to assume a role)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class AwsCredentialsParams:
+    """The credentials parameters every AWS destination takes (Fluent Bit's names), checked together."""
+
+    sts_endpoint: str = param("", doc="STS endpoint for role_arn (host name or URL); empty: the region's")
+    role_arn: str = param("", doc="IAM role to assume; empty: use the credentials as they are")
+    external_id: str = param("", doc="External ID required by the role's trust policy (with role_arn)")
+    aws_access_key_id: str = param("", doc="Access key ID; empty: boto3's default chain (env, profile, instance role)")
+    aws_secret_access_key: str = param("", secret=True, doc="Secret access key with aws_access_key_id (never logged)")
+
+    def __post_init__(self) -> None:
+        check_credentials(
+            self.aws_access_key_id, self.aws_secret_access_key, self.role_arn, self.external_id, self.sts_endpoint
+        )
+
+    def session(self, name: str, region: str, timeout: float) -> Any:
+        """A boto3 session with these credentials (see :func:`aws_session`)."""
+        return aws_session(
+            name=name,
+            region=region,
+            access_key=self.aws_access_key_id,
+            secret_key=self.aws_secret_access_key,
+            role_arn=self.role_arn,
+            external_id=self.external_id,
+            sts_endpoint=self.sts_endpoint,
+            timeout=timeout,
+        )
 
 
 def region_problem(region: str) -> str | None:

@@ -21,7 +21,7 @@ import urllib.request
 from pathlib import Path
 
 from dc_bringup.local_servers import ServerError
-from dc_bringup.local_servers.processes import free_port, log_tail, pid_from_file, terminate
+from dc_bringup.local_servers.processes import free_port, log_tail, pid_from_file, stop_server
 
 INSTALL_HINT = "InfluxDB is not installed (apt install influxdb)"
 
@@ -84,15 +84,8 @@ class InfluxServer:
         self._create_user_and_database()
 
     def stop(self, timeout: float = 10.0) -> None:
-        pid = self._pid()
-        if pid is None:
-            return
-        terminate(pid, timeout)
-        if self._process is not None:
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._process.wait(1.0)  # reaps the child: no zombie left behind
-            self._process = None
-        (self.state_dir / "influxd.pid").unlink(missing_ok=True)
+        stop_server(self.state_dir / "influxd.pid", self._process, timeout)
+        self._process = None
 
     def running(self) -> bool:
         return self._pid() is not None

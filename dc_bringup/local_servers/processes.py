@@ -6,6 +6,7 @@ import contextlib
 import os
 import signal
 import socket
+import subprocess
 import time
 from pathlib import Path
 
@@ -53,6 +54,22 @@ def terminate(pid: int, timeout: float) -> None:
         os.kill(pid, signal.SIGTERM)
     wait_gone(pid, timeout)
     kill(pid)
+
+
+def stop_server(pid_file: Path, process: subprocess.Popen[bytes] | None, timeout: float) -> None:
+    """Stop the server whose pid ``pid_file`` holds (see :func:`terminate`) and forget the file.
+
+    ``process``: the Popen of this Python process that started it, if it did; it is reaped so that
+    no zombie is left behind (a server started by another `dc servers` run has none here).
+    """
+    pid = pid_from_file(pid_file)
+    if pid is None:
+        return
+    terminate(pid, timeout)
+    if process is not None:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(1.0)
+    pid_file.unlink(missing_ok=True)
 
 
 def pid_from_file(path: Path) -> int | None:

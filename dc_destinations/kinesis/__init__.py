@@ -36,8 +36,7 @@ from dc_destinations.aws import (
     CREDENTIAL_CODES,
     CREDENTIALS_MISSING,
     NETWORK_ERRORS,
-    aws_session,
-    check_credentials,
+    AwsCredentialsParams,
     endpoint_url,
     region_problem,
 )
@@ -83,7 +82,7 @@ def _template_problem(template: str) -> str | None:
 
 
 @dataclass(frozen=True, kw_only=True)
-class KinesisParams:
+class KinesisParams(AwsCredentialsParams):
     region: str = param("us-east-1", check=region_problem, doc="AWS region of the stream")
     stream: str = param(check=_stream_problem, doc="Name (or ARN) of the Kinesis data stream")
     partition_key: str = param(
@@ -101,18 +100,8 @@ class KinesisParams:
         "", doc="strftime format (UTC; %3N, %6N, %9N, %L for fractions) of the time key; empty: time_format"
     )
     endpoint: str = param("", doc="Kinesis endpoint (host name or URL); empty: the region's")
-    sts_endpoint: str = param("", doc="STS endpoint for role_arn (host name or URL); empty: the region's")
-    role_arn: str = param("", doc="IAM role to assume for the puts; empty: use the credentials as they are")
-    external_id: str = param("", doc="External ID required by the role's trust policy (with role_arn)")
-    aws_access_key_id: str = param("", doc="Access key ID; empty: boto3's default chain (env, profile, instance role)")
-    aws_secret_access_key: str = param("", secret=True, doc="Secret access key with aws_access_key_id (never logged)")
     auto_retry_requests: bool = param(True, doc="Retry a failed request once at once, before the backoff")
     timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
-
-    def __post_init__(self) -> None:
-        check_credentials(
-            self.aws_access_key_id, self.aws_secret_access_key, self.role_arn, self.external_id, self.sts_endpoint
-        )
 
 
 class _Unsendable(Exception):
@@ -159,16 +148,7 @@ class KinesisStreams(Destination[KinesisParams]):
 
     def _session(self) -> Any:
         p = self.params
-        return aws_session(
-            name=self.context.name,
-            region=p.region,
-            access_key=p.aws_access_key_id,
-            secret_key=p.aws_secret_access_key,
-            role_arn=p.role_arn,
-            external_id=p.external_id,
-            sts_endpoint=p.sts_endpoint,
-            timeout=p.timeout,
-        )
+        return p.session(self.context.name, p.region, p.timeout)
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:

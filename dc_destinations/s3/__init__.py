@@ -45,8 +45,7 @@ from dc_destinations.aws import (
     CREDENTIAL_CODES,
     CREDENTIALS_MISSING,
     NETWORK_ERRORS,
-    aws_session,
-    check_credentials,
+    AwsCredentialsParams,
     endpoint_url,
     region_problem,
 )
@@ -109,7 +108,7 @@ def _key_format_problem(text: str) -> str | None:
 
 
 @dataclass(frozen=True, kw_only=True)
-class S3Params:
+class S3Params(AwsCredentialsParams):
     bucket: str = param(check=_bucket_problem, doc="Bucket the objects are written to (it must exist)")
     region: str = param("us-east-1", check=region_problem, doc="AWS region of the bucket")
     s3_key_format: str = param(
@@ -135,18 +134,11 @@ class S3Params:
     send_content_md5: bool = param(False, doc="Send Content-MD5 with each request (buckets with object lock)")
     log_key: str = param("", doc="Write only this key's value on each line instead of the whole record")
     endpoint: str = param("", doc="S3 endpoint (host name or URL; path-style requests); empty: the region's")
-    sts_endpoint: str = param("", doc="STS endpoint for role_arn (host name or URL); empty: the region's")
-    role_arn: str = param("", doc="IAM role to assume for the uploads; empty: use the credentials as they are")
-    external_id: str = param("", doc="External ID required by the role's trust policy (with role_arn)")
-    aws_access_key_id: str = param("", doc="Access key ID; empty: boto3's default chain (env, profile, instance role)")
-    aws_secret_access_key: str = param("", secret=True, doc="Secret access key with aws_access_key_id (never logged)")
     auto_retry_requests: bool = param(True, doc="Retry a failed request once at once, before the backoff")
     timeout: float = param(30.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
 
     def __post_init__(self) -> None:
-        check_credentials(
-            self.aws_access_key_id, self.aws_secret_access_key, self.role_arn, self.external_id, self.sts_endpoint
-        )
+        super().__post_init__()
         chunk = parse_size(self.upload_chunk_size) or 0
         if not MIN_PART_BYTES <= chunk <= MAX_PART_BYTES:
             raise ConfigError(
@@ -199,16 +191,7 @@ class S3(Destination[S3Params]):
             s3={"addressing_style": "path" if endpoint else "auto"},
             user_agent_extra="dc-destinations",
         )
-        session = aws_session(
-            name=self.context.name,
-            region=p.region,
-            access_key=p.aws_access_key_id,
-            secret_key=p.aws_secret_access_key,
-            role_arn=p.role_arn,
-            external_id=p.external_id,
-            sts_endpoint=p.sts_endpoint,
-            timeout=p.timeout,
-        )
+        session = p.session(self.context.name, p.region, p.timeout)
         # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
         self._client = session.client("s3", endpoint_url=endpoint, config=config)
 
