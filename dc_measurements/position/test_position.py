@@ -43,6 +43,11 @@ def test_position_follows_the_chain_of_frames(ros: Ros) -> None:
     assert_valid(Position, record)
     # base_link is 0.1 m ahead of base_footprint, which faces +y at (1, 2).
     assert record == {"x": pytest.approx(1.0), "y": pytest.approx(2.1), "yaw": pytest.approx(math.pi / 2)}
+    # Dated with the transforms' time (the newest dynamic link), not the poll's: where the robot was, when.
+    dynamic.publish(tf_message(transform(odom, footprint, 3.0, 2.0, math.pi / 2, stamp_ns=2_500_000_000)))
+    assert ros.spin_until(lambda: plugin.buffer.latest_time(odom, base) == 2_500_000_000)
+    record, stamp, _ = plugin.collect_stamped()
+    assert record is not None and record["x"] == pytest.approx(3.0) and stamp == 2_500_000_000
     ros.harness.stop(plugin)
 
 
