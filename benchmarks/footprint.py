@@ -17,7 +17,8 @@ passed, it reads /proc for dc-bringup and all its descendants at the start and e
   summed over /proc/<pid>/task/*/status, since /proc/<pid>/status counts the main thread alone.
 
 Each process is named by its command line (dc-bringup, destination_server, measurement_server,
-group_server, image_services, dc sim, or its executable). With --sim, ``dc sim`` runs in the same
+group_server, image_services, "servers (one process)" under ``--single-process``, dc sim, or its
+executable). With --sim, ``dc sim`` runs in the same
 environment during the whole measurement; its own cost is reported apart and not in DC's total.
 ``--use-sim-time`` makes every server take the simulator's 50 Hz /clock, which a robot does not
 publish: with the simulator, measure both (two modes) and read the one without it as the robot's.
@@ -70,6 +71,7 @@ REPO = e2e.REPO
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 UP_LINE = "DC is up"
 SERVER_NAMES = {module: name for name, module in SERVER_MODULES.items()}
+SERVER_NAMES["dc_bringup.single_process"] = "servers (one process)"
 # Options whose value is itself a command line: "--bringup-args --use-sim-time" must not be read
 # by argparse as two options.
 COMMAND_LINE_OPTIONS = ("--bringup-args", "--extra-args", "--sim-args")

@@ -50,6 +50,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="start the server processes but configure and activate them only on `dc lifecycle startup`",
     )
+    parser.add_argument(
+        "--single-process",
+        action="store_true",
+        help="run every server in one process with one loop (less memory and CPU, less isolation; docs/bringup.md)",
+    )
     parser.add_argument("--validate-only", action="store_true", help="check the configuration and exit")
     return parser
 
@@ -66,6 +71,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.validate_only:
         return 0
     os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+    if args.single_process:
+        from dc_bringup.single_process import supervise
+
+        return supervise(args, params_file, len(report.servers))
 
     stop = threading.Event()
 

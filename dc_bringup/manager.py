@@ -14,6 +14,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from concurrent.futures import Future
 from typing import Any
 
@@ -23,7 +24,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from dc_bringup.processes import ServerProcess
+from dc_bringup.processes import ManagedServerHandle
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC
 from dc_interfaces.msg import Heartbeat
 from dc_interfaces.srv import ManageLifecycleNodes
@@ -61,7 +62,7 @@ _SOURCE_STATE = {"configure": "unconfigured", "activate": "inactive", "deactivat
 class LifecycleManager(Node):
     def __init__(
         self,
-        servers: list[ServerProcess],
+        servers: Sequence[ManagedServerHandle],
         bond_timeout: float,
         service_timeout: float = 30.0,
         namespace: str = "",
@@ -217,7 +218,7 @@ class LifecycleManager(Node):
             return None
         return future.result()
 
-    def _not_ready(self, proc: ServerProcess, started: float) -> str | None:
+    def _not_ready(self, proc: ManagedServerHandle, started: float) -> str | None:
         """None once the new process sent a heartbeat and answers on its lifecycle services, else why not."""
         deadline = time.monotonic() + self.service_timeout
         while self._last_heartbeat.get(proc.name, 0.0) < started:
@@ -277,7 +278,7 @@ class LifecycleManager(Node):
         response = self._call(get, GetState.Request(), 5.0)
         return None if response is None else str(response.current_state.label)
 
-    def bring_up(self, proc: ServerProcess, started: float) -> bool:
+    def bring_up(self, proc: ManagedServerHandle, started: float) -> bool:
         log = self.get_logger()
         reason = self._not_ready(proc, started)
         if reason is not None:

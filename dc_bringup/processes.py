@@ -8,11 +8,31 @@ import os
 import signal
 import subprocess
 import sys
+from typing import Protocol
 
 _PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:
+class ManagedServerHandle(Protocol):
+    """What the lifecycle manager needs of a server it starts, watches and restarts."""
+
+    name: str
+
+    @property
+    def pid(self) -> int | None: ...
+
+    def start(self) -> None: ...
+
+    def running(self) -> bool: ...
+
+    def exit_code(self) -> int | None: ...
+
+    def kill(self) -> None: ...
+
+    def stop(self, timeout: float) -> int | None: ...
+
+
+def die_with_parent() -> None:
     # If dc-bringup is killed with -9, its servers must not live on as orphans.
     with contextlib.suppress(OSError):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -44,7 +64,7 @@ class ServerProcess:
         if self.use_sim_time:
             cmd.append("--use-sim-time")
         # Own process group: a terminal's Ctrl-C reaches dc-bringup only, which stops servers in order.
-        self.process = subprocess.Popen(cmd, preexec_fn=_die_with_parent, process_group=0, env=os.environ.copy())
+        self.process = subprocess.Popen(cmd, preexec_fn=die_with_parent, process_group=0, env=os.environ.copy())
         self.starts += 1
 
     @property

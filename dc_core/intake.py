@@ -110,16 +110,17 @@ class Intake:
     def node(self) -> Node:
         return self._node
 
-    def take_or_notice(self, timeout_s: float, nodes: Sequence[Node]) -> bool:
+    def take_or_notice(self, timeout_s: float, nodes: Sequence[Node], also: Sequence[Intake] = ()) -> bool:
         """Wait up to ``timeout_s`` for a record or for work of the executor serving ``nodes``.
 
-        Records are handed to their callbacks here. Returns True when the executor has something to
-        do (a request, a due timer, a message of another subscription, a QoS event, a guard condition) or the
-        wait timed out: the caller then gives the executor a turn. Nothing but records is taken, so
-        the executor finds the rest still ready; guard conditions, which a wait consumes, are
-        triggered again for it.
+        Records are handed to their callbacks here, those of the intakes ``also`` too (other nodes
+        served by the same loop, as in dc-bringup's single-process mode). Returns True when the
+        executor has something to do (a request, a due timer, a message of another subscription, a
+        QoS event, a guard condition) or the wait timed out: the caller then gives the executor a turn.
+        Nothing but records is taken, so the executor finds the rest still ready; guard conditions,
+        which a wait consumes, are triggered again for it.
         """
-        mine = {s.handle.pointer: s for s in self._callback_of}
+        mine = {s.handle.pointer: (intake, s) for intake in (self, *also) for s in intake._callback_of}
         subscriptions: list[Any] = []
         timers: list[Any] = []
         clients: list[Any] = []
@@ -157,9 +158,9 @@ class Intake:
             raise ExternalShutdownException()
         ready = wait_set.get_ready_entities("subscription")
         for pointer in ready:
-            subscription = mine.get(pointer)
-            if subscription is not None:
-                self._drain(subscription)
+            taker = mine.get(pointer)
+            if taker is not None:
+                taker[0]._drain(taker[1])
         ready_guards = set(wait_set.get_ready_entities("guard_condition"))
         for guard in guards:
             if guard.handle.pointer in ready_guards:

@@ -333,13 +333,16 @@ class ServerLoop:
     but its timers. ``idle_wait_s`` only bounds how long a wait may last.
     """
 
-    def __init__(self, executor: Executor, intake: Intake, idle_wait_s: float = IDLE_WAIT_S) -> None:
+    def __init__(
+        self, executor: Executor, intakes: Intake | Sequence[Intake], idle_wait_s: float = IDLE_WAIT_S
+    ) -> None:
+        # Several intakes when one loop serves several servers (dc-bringup --single-process).
+        self.intakes = (intakes,) if isinstance(intakes, Intake) else tuple(intakes)
         self.executor = executor
-        self.intake = intake
         self.idle_wait_s = idle_wait_s
         # A guard condition with a callback: rclpy's executor returns from spin_once only for work to
         # do (executor.wake() alone makes it wait again for the rest of the timeout).
-        self._wake = intake.node.create_guard_condition(_nothing)
+        self._wake = self.intakes[0].node.create_guard_condition(_nothing)
 
     def wake(self) -> None:
         """Make the current wait return (thread-safe): the loop then looks at its stop event."""
@@ -348,10 +351,11 @@ class ServerLoop:
     def spin_once(self, timeout_sec: float | None = None) -> None:
         """Handle what is ready, waiting up to ``timeout_sec`` (``idle_wait_s``) for something to be."""
         timeout = self.idle_wait_s if timeout_sec is None else timeout_sec
-        if not self.intake.active:
+        first, *others = self.intakes
+        if not any(intake.active for intake in self.intakes):
             self.executor.spin_once(timeout_sec=timeout)
             return
-        if self.intake.take_or_notice(timeout, self.executor.get_nodes()):
+        if first.take_or_notice(timeout, self.executor.get_nodes(), others):
             run_ready_callbacks(self.executor, EXECUTOR_TURN_MAX_CALLBACKS)
 
     def run(self, stop: threading.Event, logger: Any) -> None:
