@@ -23,6 +23,20 @@ os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="dc-test-roslog-"))
 os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
 
 
+# -- dc-bringup's two modes ---------------------------------------------------------------------
+
+
+@pytest.fixture(params=["processes", "single-process"])
+def bringup_mode(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Run a test (``@pytest.mark.usefixtures("bringup_mode")``) with a process per server, then with
+    every server in one process (``dc-bringup --single-process``)."""
+    from tests.bringup_util import Bringup
+
+    if request.param == "single-process":
+        monkeypatch.setattr(Bringup, "mode_args", ["--single-process"])
+    return str(request.param)
+
+
 # -- sockets for the tests of measurements that probe the network (Network, TCPHealth) --------
 
 

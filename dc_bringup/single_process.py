@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import importlib
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -31,10 +32,14 @@ from dc_bringup.validate import SERVER_MODULES, check
 
 # The process asks its supervisor for a restart (EX_TEMPFAIL): a server stopped beating.
 EXIT_RESTART = 75
-# What the process writes on the supervisor's pipe once every server is up.
-READY = b"up\n"
-# Waits between restarts of a process that keeps failing: doubling from the first, up to the last.
-FIRST_RETRY_DELAY_S = 1.0
+# What the process writes on its status pipe to the supervisor: once when every server is up, then
+# about every BEAT_PERIOD_S while its manager runs.
+UP = b"u"
+BEAT = b"."
+BEAT_PERIOD_S = 1.0
+# A process that fails is started again at once; if it keeps failing, after waits doubling from
+# RETRY_DELAY_S up to MAX_RETRY_DELAY_S.
+RETRY_DELAY_S = 1.0
 MAX_RETRY_DELAY_S = 60.0
 # A process that stayed up this long is healthy again: its next failure restarts it at once.
 HEALTHY_AFTER_S = 60.0
@@ -84,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--namespace", default="")
     parser.add_argument("--use-sim-time", action="store_true")
     parser.add_argument("--no-autostart", action="store_true")
-    parser.add_argument("--ready-fd", type=int, default=-1, help="pipe on which to say that every server is up")
+    parser.add_argument("--status-fd", type=int, default=-1, help="pipe to the supervisor: up, then beats")
     return parser
 
 
@@ -143,7 +148,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     wake_on_signals(wake)
     outcome = {"code": 0}
     manager_thread = threading.Thread(
-        target=_manage, args=(manager, names, stop, wake, args.ready_fd, outcome), name="lifecycle-manager"
+        target=_manage, args=(manager, names, stop, wake, args.status_fd, outcome), name="lifecycle-manager"
     )
     manager_thread.start()
     try:
@@ -168,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _manage(
-    manager: Any, names: list[str], stop: threading.Event, wake: Any, ready_fd: int, outcome: dict[str, int]
+    manager: Any, names: list[str], stop: threading.Event, wake: Any, status_fd: int, outcome: dict[str, int]
 ) -> None:
     """The manager's loop, on its thread: bring the servers up, then serve commands and watch heartbeats."""
     try:
@@ -179,14 +184,13 @@ def _manage(
             manager.get_logger().info("DC is waiting for startup (dc lifecycle startup): " + ", ".join(names))
         else:
             manager.get_logger().info(f"DC is up in one process (pid {os.getpid()}): " + ", ".join(names))
-        if ready_fd >= 0:
-            with contextlib.suppress(OSError):
-                os.write(ready_fd, READY)
-                os.close(ready_fd)
+        status = _StatusPipe(status_fd)
+        status.send(UP)
         while not stop.is_set() and not manager.shutdown_requested:
             manager.wait_for_work()
             manager.run_commands()
             manager.check_bonds()
+            status.beat()
     except Exception as exc:  # the manager must not die silently while the servers run on
         manager.get_logger().fatal(f"lifecycle manager failed: {exc!r}")
         outcome["code"] = 1
@@ -195,16 +199,40 @@ def _manage(
         wake()
 
 
+class _StatusPipe:
+    """The process' end of the supervisor's status pipe (none when run by hand)."""
+
+    def __init__(self, fd: int) -> None:
+        self._fd = fd
+        self._last = time.monotonic()
+        if fd >= 0:
+            os.set_blocking(fd, False)  # a supervisor that stopped reading must not stop the manager
+
+    def send(self, what: bytes) -> None:
+        if self._fd >= 0:
+            # A supervisor that is gone is no reason to stop collecting.
+            with contextlib.suppress(OSError):
+                os.write(self._fd, what)
+            self._last = time.monotonic()
+
+    def beat(self) -> None:
+        # The manager turns at every heartbeat of every server: a beat a second is enough.
+        if time.monotonic() - self._last >= BEAT_PERIOD_S:
+            self.send(BEAT)
+
+
 class _Interrupted(Exception):
     """Raised by the supervisor's signal handler to end a blocking wait."""
 
 
 def supervise(args: argparse.Namespace, params_file: str, server_count: int) -> int:
-    """dc-bringup --single-process: run the servers' process, restart it when it dies, stop it on a signal.
+    """dc-bringup --single-process: run the servers' process, restart it when it dies or freezes, stop it on a signal.
 
     A process that fails before it ever came up is not restarted (a configuration or start-up
     error would only repeat): its exit code is dc-bringup's. Once up, any exit but a requested
-    stop or shutdown is a failure, restarted after a delay that doubles while failures repeat.
+    stop or shutdown is a failure, and so is a process whose status pipe stays silent for
+    ``--bond-timeout`` (stopped, or frozen so hard that its own manager cannot act): it is
+    restarted, at once the first time, then after waits that double while failures repeat.
     """
     cmd = [sys.executable, "-m", "dc_bringup.single_process", params_file, "--log-level", args.log_level]
     cmd += ["--bond-timeout", str(args.bond_timeout)]
@@ -225,25 +253,28 @@ def supervise(args: argparse.Namespace, params_file: str, server_count: int) -> 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     was_up = False
-    delay = FIRST_RETRY_DELAY_S
+    delay = 0.0
     while True:
         read_end, write_end = os.pipe()
         started = time.monotonic()
         # Own process group: a terminal's Ctrl-C reaches dc-bringup only, which stops the servers in order.
         process = subprocess.Popen(
-            [*cmd, "--ready-fd", str(write_end)], pass_fds=(write_end,), preexec_fn=die_with_parent, process_group=0
+            [*cmd, "--status-fd", str(write_end)], pass_fds=(write_end,), preexec_fn=die_with_parent, process_group=0
         )
         os.close(write_end)
-        code = _wait(process, read_end, stopping, interruptible, args.stop_timeout * server_count)
-        up = _read_ready(read_end)
-        os.close(read_end)
+        try:
+            code, up = _watch(process, read_end, stopping, interruptible, args.bond_timeout)
+        finally:
+            os.close(read_end)
+        if stopping.is_set():
+            code = _stop(process, args.stop_timeout * server_count)
         was_up = was_up or up
         if stopping.is_set() or code == 0 or not was_up:
             return code if code >= 0 else 1
         if time.monotonic() - started > HEALTHY_AFTER_S:
-            delay = FIRST_RETRY_DELAY_S
+            delay = 0.0
         how = f"was killed by signal {-code}" if code < 0 else f"exited with code {code}"
-        _say(f"the servers' process {how}: restarting it in {delay:g} s")
+        _say(f"the servers' process {how}: restarting it" + (f" in {delay:g} s" if delay else ""))
         try:
             interruptible.set()
             if stopping.is_set() or stopping.wait(delay):
@@ -252,40 +283,55 @@ def supervise(args: argparse.Namespace, params_file: str, server_count: int) -> 
             return 0
         finally:
             interruptible.clear()
-        delay = min(2 * delay, MAX_RETRY_DELAY_S)
+        delay = min(max(2 * delay, RETRY_DELAY_S), MAX_RETRY_DELAY_S)
 
 
-def _wait(
+def _watch(
     process: subprocess.Popen[bytes],
-    ready: int,
+    status: int,
     stopping: threading.Event,
     interruptible: threading.Event,
-    stop_timeout: float,
-) -> int:
-    """The process' exit code; on a signal, stop it (SIGTERM, then SIGKILL after ``stop_timeout``)."""
+    bond_timeout: float,
+) -> tuple[int, bool]:
+    """Until the process exits, is killed for its silence, or a signal asks to stop: (exit code, came up).
+
+    The process writes :data:`UP` on its status pipe once its servers are up, then :data:`BEAT`
+    about every second; the pipe's end of file is its exit.
+    """
+    up = False
+    last = time.monotonic()
+    while True:
+        try:
+            interruptible.set()
+            if stopping.is_set():
+                return -1, up
+            timeout = max(0.0, last + bond_timeout - time.monotonic()) if up else None
+            readable, _, _ = select.select([status], [], [], timeout)
+        except _Interrupted:
+            return -1, up
+        finally:
+            interruptible.clear()
+        if not readable:
+            _say(f"the servers' process sent nothing for {bond_timeout:g} s (bond_timeout): killing it")
+            process.kill()
+            return process.wait(), up
+        data = os.read(status, 64)
+        if not data:
+            return process.wait(), up
+        up = up or UP in data
+        last = time.monotonic()
+
+
+def _stop(process: subprocess.Popen[bytes], timeout: float) -> int:
+    """SIGTERM (the servers stop in order), then SIGKILL after ``timeout`` seconds."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
     try:
-        interruptible.set()
-        if not stopping.is_set():
-            return process.wait()
-    except _Interrupted:
-        pass
-    finally:
-        interruptible.clear()
-    process.send_signal(signal.SIGTERM)
-    try:
-        return process.wait(stop_timeout)
+        return process.wait(timeout)
     except subprocess.TimeoutExpired:
-        _say(f"the servers' process did not stop in {stop_timeout:g} s: killing it")
+        _say(f"the servers' process did not stop in {timeout:g} s: killing it")
         process.kill()
         return process.wait()
-
-
-def _read_ready(read_end: int) -> bool:
-    os.set_blocking(read_end, False)
-    try:
-        return os.read(read_end, len(READY)) == READY
-    except BlockingIOError:
-        return False
 
 
 def _say(message: str) -> None:

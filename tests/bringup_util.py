@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, ClassVar
 
 from tests.domains import fresh_domain_id
 
@@ -21,11 +21,15 @@ BIN = Path(sys.executable).parent
 
 
 class Bringup:
+    # Arguments every dc-bringup of a test gets: the bringup_mode fixture (conftest.py) sets
+    # ["--single-process"] to run a test in both modes.
+    mode_args: ClassVar[list[str]] = []
+
     def __init__(
         self, params: Path | str, home: Path, *, args: Sequence[str] = (), env: dict[str, str] | None = None
     ) -> None:
         self.params = Path(params)
-        self.args = list(args)
+        self.args = [*self.mode_args, *args]
         self.domain_id = fresh_domain_id()
         self.env = dict(os.environ)
         self.env["ROS_DOMAIN_ID"] = str(self.domain_id)
