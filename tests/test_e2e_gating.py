@@ -182,6 +182,7 @@ STATES: list[tuple[dict[str, Any], bool, bool, bool]] = [
 ]
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_only_records_satisfying_if_all_if_any_if_none_arrive(tmp_path: Path) -> None:
     expected = {
         "all_of": {r["seq"] for r, busy, _, docked in STATES if busy and docked},
@@ -296,6 +297,7 @@ def odometry(speed: float) -> Odometry:
     return message
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_moving_robot_stops_give_one_record_per_stop(tmp_path: Path) -> None:
     params = write_params(tmp_path, ONE_RECORD_PER_STOP, ["/dc/measurement/stop_snapshot"])
     with Bringup(params, tmp_path / "home") as run:

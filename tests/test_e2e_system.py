@@ -69,6 +69,7 @@ def test_example_4_cpu_and_memory_every_five_seconds(tmp_path: Path) -> None:
     assert 0.0 < by_name(records, "memory")[0]["used"] < 100.0
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_default_job_delivers_every_system_measurement_to_stdout_and_file(tmp_path: Path) -> None:
     home = tmp_path / "home"
     jsonl = home / "var" / "dc" / "records" / "system.jsonl"

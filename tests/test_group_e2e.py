@@ -71,6 +71,7 @@ def gaps(records: list[dict[str, Any]]) -> list[float]:
     return [b - a for a, b in pairwise(dates)]
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_example_5_cpu_and_memory_as_a_group(tmp_path: Path) -> None:
     with Bringup(REPO / "params" / "examples" / "example_5_fixed.yaml", tmp_path / "home") as run:
         records = run.wait_records(2, timeout=60)
@@ -84,6 +85,7 @@ def test_example_5_cpu_and_memory_as_a_group(tmp_path: Path) -> None:
     assert 4.5 < gaps(records[:2])[0] < 5.5
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_group_demo_memory_and_uptime(tmp_path: Path) -> None:
     with Bringup(REPO / "params" / "demos" / "group_memory_uptime_stdout.yaml", tmp_path / "home") as run:
         records = run.wait_records(3, timeout=60)
@@ -179,6 +181,7 @@ def test_partial_records_when_one_input_stops(tmp_path: Path) -> None:
     assert all(0.8 < g < 1.2 for g in gaps(partial[:3])), gaps(partial[:3])
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_a_group_is_the_input_of_another(tmp_path: Path) -> None:
     params = write_config(
         tmp_path,
