@@ -1,6 +1,7 @@
 # DC — developer entry points.
 #
 #   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, tf2_msgs (cmake) + DC (editable, with the test, camera and destination extras)
+#                    + the example plugin package examples/dc_uptime_custom
 #   make test-deps   Debian packages the tests need (installed only if missing)
 #   make test        ruff, mypy, pytest
 #   make run         dc-bringup with params/default.yaml (PARAMS=... to change)
@@ -95,9 +96,12 @@ $(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
 	fi
 	touch $@
 
-# 3. DC itself, editable, with the test tools.
-$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml
+# 3. DC itself, editable, with the test tools; then the example plugin package of the custom uptime
+#    demo, installed as any third-party plugin package would be (after DC, into its environment).
+EXAMPLE_PLUGIN := examples/dc_uptime_custom
+$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml $(EXAMPLE_PLUGIN)/pyproject.toml
 	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql]'
+	$(PIP) install -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
 	touch $@
 
 test-deps:

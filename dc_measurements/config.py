@@ -12,6 +12,7 @@ from typing import Any, cast
 from dc_core.errors import ConfigError, PluginError
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
+from dc_core.paths import expand_values
 from dc_core.plugins import load_plugin
 
 
@@ -125,6 +126,48 @@ def _plugin_section(section: dict[str, Any], name: str, path: str) -> dict[str, 
     return body
 
 
+def _listed_custom_params(
+    ids: list[Any], section: dict[str, Any], path: str, warnings: list[str]
+) -> dict[str, CustomStrParam]:
+    """The older spelling of custom string parameters, which the seed's robot demos still write:
+    ``custom_str_params: ["robot_name"]`` lists ids, and each id's value is the string parameter of
+    that name beside it (``robot_name: "C3PO"``), added to records under the id itself."""
+    custom: dict[str, CustomStrParam] = {}
+    for index, cid in enumerate(ids):
+        if not isinstance(cid, str) or not cid:
+            raise ConfigError(
+                f"{path}.custom_str_params[{index}]", f"expected the id of a string parameter, got {cid!r}"
+            )
+        value = section.get(cid)
+        if value is None:
+            raise ConfigError(
+                f"{path}.{cid}", "missing: listed in custom_str_params (older form), which takes its value from here"
+            )
+        if not isinstance(value, str) or not value:
+            raise ConfigError(
+                f"{path}.{cid}", f"expected a non-empty string (listed in custom_str_params), got {value!r}"
+            )
+        custom[cid] = CustomStrParam(name=cid, value=value)
+    if custom:
+        warnings.append(
+            f"{path}.custom_str_params: a list of ids is the older spelling, read as custom_str_params_list: "
+            f"{list(custom)} with custom_str_params.<id>: {{name: <id>, value: <{path}.<id>>}}"
+        )
+    return custom
+
+
+def _value_names(text: str) -> set[str]:
+    """The names a path refers to as ``=name`` (dc_core.paths.expand_values' syntax)."""
+    names: set[str] = set()
+
+    def note(name: str) -> str:
+        names.add(name)
+        return ""
+
+    expand_values(text, note)
+    return names
+
+
 def _load(kind: str, type_name: str, path: str) -> type:
     try:
         return load_plugin(kind, type_name)
@@ -155,12 +198,19 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
     if node_params.run_id.enabled and node_params.run_id.counter and node_params.run_id.uuid:
         raise ConfigError(f"{path}.run_id", "choose one source for the run id: counter or uuid, not both")
 
+    warnings: list[str] = []
     dynamic: set[str] = {"custom_str_params"}
     custom: dict[str, CustomStrParam] = {}
     raw_custom = section.get("custom_str_params", {}) or {}
-    if not isinstance(raw_custom, dict):
-        raise ConfigError(f"{path}.custom_str_params", "expected a mapping")
+    if isinstance(raw_custom, list):
+        custom = _listed_custom_params(raw_custom, section, path, warnings)
+        dynamic.update(custom)
+        raw_custom = {}
+    elif not isinstance(raw_custom, dict):
+        raise ConfigError(f"{path}.custom_str_params", "expected a mapping (or the older list of ids)")
     for cid in node_params.custom_str_params_list:
+        if cid in custom:
+            continue  # given by the older list form already
         cpath = f"{path}.custom_str_params.{cid}"
         if cid not in raw_custom:
             raise ConfigError(cpath, "section missing (listed in custom_str_params_list)")
@@ -215,8 +265,30 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         outputs[config.output_topic] = mid
         measurements.append(config)
 
-    unknown = set(section) - field_names(MeasurementServerParams) - dynamic
+    named_by_save_path = _value_names(node_params.save_local_base_path)
+    for name in sorted(named_by_save_path):
+        if not isinstance(section.get(name), str):
+            raise ConfigError(
+                f"{path}.save_local_base_path",
+                f"'={name}' names no string parameter of {path} (write {name}: <value> beside it)",
+            )
+    unknown = set(section) - field_names(MeasurementServerParams) - dynamic - named_by_save_path
     for key in sorted(unknown):
+        if key == "destinations":
+            # The seed's QR demo writes destinations.minio.bucket here; the original read it (in
+            # Camera) and never used it. Refusing it would refuse the demo for a key without effect.
+            warnings.append(
+                f"{path}.destinations: ignored, as in the original (the bucket is the MinIO or S3 destination's)"
+            )
+            continue
+        if key in custom and isinstance(section[key], str):
+            # The older spelling's value (robot_name: "C3PO") left beside the newer sections, as in the
+            # seed's QR demo: the value that counts is custom_str_params.<id>'s.
+            warnings.append(
+                f"{path}.{key}: ignored; only the older list form of custom_str_params takes its value from here, "
+                f"{path}.custom_str_params.{key} gives it"
+            )
+            continue
         options = field_names(MeasurementServerParams) | set(node_params.measurement_plugins)
         raise ConfigError(
             f"{path}.{key}",
@@ -224,7 +296,6 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
             + did_you_mean(key, options),
         )
 
-    warnings: list[str] = []
     users: dict[str, list[str]] = {}
     for m in measurements:
         for cid in dict.fromkeys(m.conditions):

@@ -70,6 +70,34 @@ def test_run_id_increments_between_starts(tmp_path: Path) -> None:
         assert records[0]["run_id"] == expected
 
 
+def test_the_uptime_demo_prints_uptime_every_5_s_with_the_robot_name_and_machine_id(tmp_path: Path) -> None:
+    with Bringup(REPO / "params" / "demos" / "uptime_stdout.yaml", tmp_path) as run:
+        records = run.wait_records(2, timeout=60)
+    first, second = records[:2]
+    assert first["robot_name"] == "C3PO" and first["id"] == Path("/etc/machine-id").read_text().strip()
+    assert first["name"] == "uptime" and first["run_id"] == "1"
+    assert 4.5 < second["date"] - first["date"] < 5.5 and abs(first["time"] - uptime_now()) < 60
+    # debug: true logs each published record too.
+    assert any("measurement uptime published:" in line for line in run.stderr)
+
+
+def test_the_custom_uptime_demo_publishes_records_that_fail_its_schema_and_calls_the_hook(tmp_path: Path) -> None:
+    # The plugin comes from the separate package examples/dc_uptime_custom (make install installs it).
+    with Bringup(REPO / "params" / "demos" / "uptime_custom_stdout.yaml", tmp_path) as run:
+        records = run.wait_records(2, timeout=60)
+        run.wait_until(
+            lambda: sum("on_failed_validation called" in line for line in run.stderr) >= 2, 15, "the hook's second call"
+        )
+    assert [r["name"] for r in records[:2]] == ["uptime_custom", "uptime_custom"]
+    assert records[0]["robot_name"] == "C3PO" and abs(records[0]["time"] - uptime_now()) < 60
+    # Each record: DC's validation error, then the plugin's hook, which counts.
+    logged = [line for line in run.stderr if "validation failed" in line or "on_failed_validation" in line]
+    assert "uptime_custom: validation failed (published anyway)" in logged[0]
+    assert "is greater than the maximum of 0" in logged[0]
+    assert f"on_failed_validation called for time={records[0]['time']} (1 so far)" in logged[1]
+    assert "(2 so far)" in logged[3]
+
+
 @pytest.mark.parametrize("example", ["example_6_fixed.yaml", "example_7_fixed.yaml"])
 def test_examples_6_and_7_deliver_what_dc_pub_publishes(tmp_path: Path, example: str) -> None:
     with Bringup(EXAMPLES / example, tmp_path) as run:

@@ -9,17 +9,63 @@ import shutil
 import subprocess
 import tempfile
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from dc_bringup.local_servers import postgres, seaweedfs
 from dc_bringup.local_servers.run import environment
 from tests.bringup_util import BIN, REPO, Bringup
 
 pytestmark = pytest.mark.e2e
 
 DEMOS = REPO / "params" / "demos"
+
+
+@dataclass
+class StorageServers:
+    """PostgreSQL and S3 as `dc servers run` starts them, their settings in the environment."""
+
+    pg: postgres.PostgresServer
+    s3: seaweedfs.SeaweedS3Server
+
+    def query(self, sql: str) -> list[tuple[Any, ...]]:
+        import psycopg
+
+        dsn = (
+            f"host=127.0.0.1 port={self.pg.port} user={self.pg.user} password={self.pg.password} "
+            f"dbname={self.pg.database}"
+        )
+        try:
+            with psycopg.connect(dsn) as connection:
+                return connection.execute(sql).fetchall()
+        except psycopg.errors.UndefinedTable:
+            return []  # DC creates its tables with its first batch
+
+
+@pytest.fixture
+def storage_servers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[StorageServers]:
+    for missing in (postgres.missing_reason(), seaweedfs.missing_reason()):
+        if missing is not None:
+            pytest.skip(missing)
+    # Not under tmp_path: as root, PostgreSQL runs as user postgres, who cannot enter it.
+    pg_folder = Path(tempfile.mkdtemp(prefix="dc-pg-demo-"))
+    servers = StorageServers(
+        postgres.PostgresServer(pg_folder, password=secrets.token_urlsafe(12)),
+        seaweedfs.SeaweedS3Server(tmp_path / "s3"),
+    )
+    try:
+        servers.pg.start()
+        servers.s3.start()
+        for name, value in environment({"postgres": servers.pg.settings(), "s3": servers.s3.settings()}).items():
+            monkeypatch.setenv(name, value)
+        yield servers
+    finally:
+        servers.s3.stop()
+        servers.pg.stop()
+        shutil.rmtree(pg_folder, ignore_errors=True)
 
 
 @pytest.fixture
@@ -68,56 +114,28 @@ def test_the_influxdb_demo_writes_robot_and_system_points(
 
 
 def test_the_postgresql_and_minio_demo_stores_rows_files_and_their_status(
-    tmp_path: Path, simulated_robot: Any, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, simulated_robot: Any, storage_servers: StorageServers
 ) -> None:
-    import psycopg
+    query, s3 = storage_servers.query, storage_servers.s3
+    with Bringup(DEMOS / "tb3_pgsql_minio.yaml", tmp_path / "home", args=["--use-sim-time"]) as run:
+        run.wait_ready()
+        simulated_robot(run)
+        wanted = {"robot", "system", "map", "distance_traveled", "front_camera"}
 
-    from dc_bringup.local_servers import postgres, seaweedfs
+        def names() -> set[str]:
+            return {row[0] for row in query("select distinct data->>'name' from dc")}
 
-    for missing in (postgres.missing_reason(), seaweedfs.missing_reason()):
-        if missing is not None:
-            pytest.skip(missing)
-    # Not under tmp_path: as root, PostgreSQL runs as user postgres, who cannot enter it.
-    pg_folder = Path(tempfile.mkdtemp(prefix="dc-pg-demo-"))
-    pg = postgres.PostgresServer(pg_folder, password=secrets.token_urlsafe(12))
-    s3 = seaweedfs.SeaweedS3Server(tmp_path / "s3")
-    try:
-        pg.start()
-        s3.start()
-        for name, value in environment({"postgres": pg.settings(), "s3": s3.settings()}).items():
-            monkeypatch.setenv(name, value)
-        dsn = f"host=127.0.0.1 port={pg.port} user={pg.user} password={pg.password} dbname={pg.database}"
-
-        def query(sql: str) -> list[tuple[Any, ...]]:
-            try:
-                with psycopg.connect(dsn) as connection:
-                    return connection.execute(sql).fetchall()
-            except psycopg.errors.UndefinedTable:
-                return []  # DC creates its tables with its first batch
-
-        with Bringup(DEMOS / "tb3_pgsql_minio.yaml", tmp_path / "home", args=["--use-sim-time"]) as run:
-            run.wait_ready()
-            simulated_robot(run)
-            wanted = {"robot", "system", "map", "distance_traveled", "front_camera"}
-
-            def names() -> set[str]:
-                return {row[0] for row in query("select distinct data->>'name' from dc")}
-
-            run.wait_until(lambda: wanted <= names(), 120, f"rows of {sorted(wanted)} in table dc")
-            run.wait_until(
-                lambda: bool(query("select 1 from files_metrics where deleted and local_path like '%.jpg'")),
-                60,
-                "an inspected image uploaded, verified and deleted",
-            )
-        files = query(
-            "select local_path, remote_path, uploaded, deleted, on_filesystem, size, group_name, robot_name "
-            "from files_metrics"
+        run.wait_until(lambda: wanted <= names(), 120, f"rows of {sorted(wanted)} in table dc")
+        run.wait_until(
+            lambda: bool(query("select 1 from files_metrics where deleted and local_path like '%.jpg'")),
+            60,
+            "an inspected image uploaded, verified and deleted",
         )
-        objects = s3.objects()
-    finally:
-        s3.stop()
-        pg.stop()
-        shutil.rmtree(pg_folder, ignore_errors=True)
+    files = query(
+        "select local_path, remote_path, uploaded, deleted, on_filesystem, size, group_name, robot_name "
+        "from files_metrics"
+    )
+    objects = s3.objects()
     done = [f for f in files if f[3]]
     assert done, files
     for local_path, remote_path, uploaded, _deleted, on_filesystem, size, group_name, robot_name in done:
@@ -128,3 +146,35 @@ def test_the_postgresql_and_minio_demo_stores_rows_files_and_their_status(
         assert key.startswith("C3PO/2023/11/14/") and group_name in ("map", "front_camera")
         assert robot_name == "C3PO"
     assert any(k.endswith(".png") for k in objects) and any(k.endswith(".jpg") for k in objects)
+
+
+def test_the_qr_codes_demo_keeps_codes_in_postgresql_and_inspected_images_in_the_bucket(
+    tmp_path: Path, simulated_robot: Any, storage_servers: StorageServers
+) -> None:
+    query, s3 = storage_servers.query, storage_servers.s3
+    with Bringup(DEMOS / "tb3_qrcodes_minio_pgsql.yaml", tmp_path / "home", args=["--use-sim-time"]) as run:
+        run.wait_ready()
+        simulated_robot(run)
+
+        def verified_images() -> list[tuple[Any, ...]]:
+            return query(
+                "select local_path, remote_path, uploaded, deleted, on_filesystem, size, robot_name from files_metrics "
+                "where group_name = 'front_camera' and deleted"
+            )
+
+        # The first shelf's stop, at the simulator's 4x: its record, and its image verified and deleted.
+        run.wait_until(lambda: bool(verified_images()), 90, "an inspected image uploaded, verified and deleted")
+        run.wait_until(lambda: bool(query("select 1 from dc where data->>'name' = 'robot'")), 30, "a robot row")
+    codes = [
+        row[0] for row in query("select data->'inspected'->'barcode' from dc where data->>'name' = 'front_camera'")
+    ]
+    images = verified_images()
+    objects = s3.objects()
+    # A record per stop, with the codes read there; the shelf labels' QR codes among them.
+    assert codes and all(read for read in codes), codes
+    assert any(code["type"] == "QRCODE" and code["data"] for read in codes for code in read), codes
+    for local_path, remote_path, uploaded, _deleted, on_filesystem, size, robot_name in images:
+        key = remote_path.removeprefix(f"minio://{s3.bucket}/")
+        assert key.startswith("C3PO/") and key.endswith(".jpg"), key
+        assert uploaded and not on_filesystem and not (tmp_path / "home" / local_path).exists()
+        assert len(objects[key]) == size and robot_name == "C3PO"
