@@ -23,6 +23,8 @@ from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, 
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
 _OBSOLETE_NODE_KEYS = ("ros2_plugin_path", "ros2_plugin_spin_time_ms")
+# Written in destination_server by the seed's TurtleBot3 stdout demo; the original ignored them there.
+_MEASUREMENT_SERVER_KEYS = ("custom_str_params_list", "custom_str_params")
 # Spellings of `flb` keys found in the seed's examples, with the key DC reads instead.
 _FLB_RENAMED = {"flb_grace": "grace", "metrics": "http_server"}
 
@@ -166,6 +168,9 @@ def parse_destination_server(section: dict[str, Any], path: str = "destination_s
             continue
         if key in _OBSOLETE_NODE_KEYS:
             warnings.append(f"{path}.{key} has no effect in DC (it set up the original's Fluent Bit input)")
+            continue
+        if key in _MEASUREMENT_SERVER_KEYS:
+            warnings.append(f"{path}.{key}: ignored, it is a measurement_server parameter (its records carry them)")
             continue
         body = section[key]
         if isinstance(body, dict) and "plugin" in body:

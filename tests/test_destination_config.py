@@ -244,6 +244,20 @@ def test_original_fluent_bit_input_keys_are_accepted_with_a_warning() -> None:
     assert any("ros2_plugin_spin_time_ms has no effect" in w for w in config.warnings)
 
 
+def test_the_seed_tb3_demos_custom_str_params_in_destination_server_are_ignored_with_a_warning() -> None:
+    section = {
+        **stdout_section(),
+        "custom_str_params_list": ["robot_name"],
+        "custom_str_params": {"robot_name": {"name": "robot_name", "value": "C3PO"}},
+    }
+    config = parse_destination_server(section)
+    assert config.names == ["flb_stdout"]
+    assert config.warnings == [
+        f"destination_server.{key}: ignored, it is a measurement_server parameter (its records carry them)"
+        for key in ("custom_str_params_list", "custom_str_params")
+    ]
+
+
 def test_no_destination_is_valid_but_warned() -> None:
     config = parse_destination_server({})
     assert config.destinations == []
