@@ -36,8 +36,9 @@ ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces \
 	ros-jazzy-ament-cmake-pytest ros-jazzy-python-cmake-module
 
 # Debian packages needed by the tests: the zbar library the Camera's 1D-code reader loads, ffmpeg for
-# IpCamera, the servers the destinations deliver to (mosquitto, PostgreSQL, InfluxDB 1.x).
-TEST_DEBS := libzbar0 ffmpeg mosquitto postgresql influxdb
+# IpCamera, the servers the destinations deliver to (mosquitto, PostgreSQL, InfluxDB 1.x), the
+# headless browser and its driver that test the dashboard as a user sees it.
+TEST_DEBS := libzbar0 ffmpeg mosquitto postgresql influxdb chromium chromium-driver
 
 IFACE_SRCS := dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
 	$(wildcard dc_interfaces/msg/*.msg dc_interfaces/srv/*.srv dc_interfaces/action/*.action)

@@ -361,6 +361,12 @@ def cmd_servers(args: argparse.Namespace) -> int:
     return main(args)
 
 
+def cmd_dashboard(args: argparse.Namespace) -> int:
+    from dc_dashboard.cli import run
+
+    return run(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dc", description="DC robot data collection: tools")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -443,6 +449,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("names", nargs="*", metavar="server", help="postgres, s3, influxdb (default: all three)")
     p.add_argument("--state-dir", default="var/dc/servers", help="their data, logs and settings.yaml")
     p.set_defaults(func=cmd_servers)
+
+    p = sub.add_parser("dashboard", help="what DC stored in PostgreSQL and S3, and its health, in a browser")
+    from dc_dashboard.cli import add_arguments
+
+    add_arguments(p)
+    p.set_defaults(func=cmd_dashboard)
 
     # Listed for `dc --help`; main() hands `dc sim ...` to the simulator's own parser.
     sub.add_parser("sim", help="a simulated robot: odometry, TF, /map, /cmd_vel (dc sim --help)", add_help=False)

@@ -1,0 +1,66 @@
+"""``dc dashboard``'s options and what it runs: the web server, or the index builder."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from dc_core.errors import DcError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback only)")
+    p.add_argument("--port", type=int, default=8088, help="port to listen on (default 8088; 0: any free one)")
+    pg = p.add_argument_group("PostgreSQL (default: the DC_POSTGRES_* variables of servers.env)")
+    pg.add_argument("--pg-host", help="$DC_POSTGRES_HOST, else 127.0.0.1")
+    pg.add_argument("--pg-port", type=int, help="$DC_POSTGRES_PORT, else 5432")
+    pg.add_argument("--pg-user", help="$DC_POSTGRES_USER")
+    pg.add_argument(
+        "--pg-password", help="$DC_POSTGRES_PASSWORD (better in the environment: a command line is visible to all)"
+    )
+    pg.add_argument("--pg-database", help="$DC_POSTGRES_DATABASE")
+    pg.add_argument("--table", default="dc", help="the PgSQL destination's table (default dc)")
+    pg.add_argument("--files-table", default="files_metrics", help="the FilesMetrics table (default files_metrics)")
+    s3 = p.add_argument_group("S3, for the images (default: the DC_S3_* variables of servers.env)")
+    s3.add_argument("--s3-endpoint", help="$DC_S3_ENDPOINT; empty: AWS")
+    s3.add_argument("--s3-region", help="$DC_S3_REGION, else us-east-1")
+    s3.add_argument("--s3-access-key-id", help="$DC_S3_AWS_ACCESS_KEY_ID")
+    s3.add_argument("--s3-secret-access-key", help="$DC_S3_AWS_SECRET_ACCESS_KEY (better in the environment)")
+    s3.add_argument("--s3-bucket", help="$DC_S3_BUCKET")
+    health = p.add_argument_group("DC's health")
+    health.add_argument(
+        "--metrics",
+        action="append",
+        metavar="URL",
+        help="a server's metrics, e.g. http://127.0.0.1:2020/api/v1/metrics",
+    )
+    health.add_argument("--params", help="read the metrics URLs from this parameter file (as dc status --params)")
+    p.add_argument(
+        "--create-indexes",
+        action="store_true",
+        help="create the indexes the dashboard needs (CREATE INDEX CONCURRENTLY) and exit",
+    )
+    p.add_argument("--print-index-sql", action="store_true", help="print those CREATE INDEX statements and exit")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        import psycopg  # noqa: F401
+    except ImportError:
+        print('dc dashboard: psycopg is not installed (pip install "ros2-dc[pgsql,aws]")', file=sys.stderr)
+        return 2
+    from dc_dashboard import indexes, server
+    from dc_dashboard.settings import from_sources
+
+    try:
+        settings = from_sources(args)
+    except (DcError, ValueError) as exc:
+        print(f"dc dashboard: {exc}", file=sys.stderr)
+        return 2
+    if args.print_index_sql:
+        for statement in indexes.statements(settings.postgres):
+            print(statement.as_string(None) + ";")
+        return 0
+    if args.create_indexes:
+        return indexes.create(settings.postgres)
+    return server.serve(settings, args.host, args.port)

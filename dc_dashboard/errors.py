@@ -1,0 +1,9 @@
+"""The dashboard's one error root: whatever a page cannot show, said in a sentence, never as a traceback."""
+
+from __future__ import annotations
+
+from dc_core.errors import DcError
+
+
+class DashboardError(DcError):
+    """A source (PostgreSQL, S3, a metrics URL) could not give what a page needs; the message says which."""

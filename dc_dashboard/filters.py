@@ -1,0 +1,80 @@
+"""The filters of a view, read from and written to its query string: the URL is the whole state of a page."""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass, field, replace
+from urllib.parse import parse_qs, urlencode
+
+# What a datetime-local input sends (seconds when its step allows them); times are UTC, as stored.
+_TIME_FORMATS = ("%Y-%m-%dT%H:%M:%S", "%Y-%m-%dT%H:%M", "%Y-%m-%d %H:%M:%S", "%Y-%m-%d")
+FILE_STATES = ("", "uploaded", "verified", "deleted", "pending")
+
+
+@dataclass(frozen=True)
+class Filters:
+    robot: str = ""
+    run: str = ""
+    start: dt.datetime | None = None
+    end: dt.datetime | None = None
+    # Files page: one state or all; camera page: newest first, older pages by keyset.
+    state: str = ""
+    before: dt.datetime | None = None
+    problems: tuple[str, ...] = field(default=(), compare=False)
+
+    @classmethod
+    def parse(cls, query: str) -> Filters:
+        values = {k: v[-1].strip() for k, v in parse_qs(query, keep_blank_values=True).items()}
+        problems: list[str] = []
+
+        def when(key: str) -> dt.datetime | None:
+            text = values.get(key, "")
+            if not text:
+                return None
+            for form in _TIME_FORMATS:
+                try:
+                    return dt.datetime.strptime(text, form)
+                except ValueError:
+                    continue
+            problems.append(f"{key}: {text!r} is not a date and time (YYYY-MM-DDTHH:MM:SS, UTC); ignored")
+            return None
+
+        state = values.get("state", "")
+        if state not in FILE_STATES:
+            problems.append(f"state: {state!r} is not one of {', '.join(s for s in FILE_STATES if s)}; ignored")
+            state = ""
+        start, end = when("start"), when("end")
+        if start and end and end < start:
+            problems.append("the end is before the start: both ignored")
+            start = end = None
+        return cls(
+            robot=values.get("robot", "")[:200],
+            run=values.get("run", "")[:200],
+            start=start,
+            end=end,
+            state=state,
+            before=when("before"),
+            problems=tuple(problems),
+        )
+
+    def query(self, **changes: object) -> str:
+        """This view's query string, with ``changes`` applied (None or "" drops a key)."""
+        changed = replace(self, **changes) if changes else self  # type: ignore[arg-type]
+        pairs = {
+            "robot": changed.robot,
+            "run": changed.run,
+            "start": format_time(changed.start),
+            "end": format_time(changed.end),
+            "state": changed.state,
+            "before": format_time(changed.before),
+        }
+        text = urlencode({k: v for k, v in pairs.items() if v})
+        return "?" + text if text else ""
+
+    def scope(self) -> Filters:
+        """Only the filters every page shares (what the navigation carries from page to page)."""
+        return Filters(robot=self.robot, run=self.run, start=self.start, end=self.end)
+
+
+def format_time(value: dt.datetime | None) -> str:
+    return value.strftime("%Y-%m-%dT%H:%M:%S") if value else ""

@@ -1,0 +1,129 @@
+"""The indexes the dashboard's queries need, how to tell they are there, and ``dc dashboard --create-indexes``.
+
+The robot and the run of a row are where DC puts them: top-level ``robot_name`` and ``run_id`` in a
+measurement's record, one level down in a group's (each member carries them). The expressions below
+say exactly that, and the queries use them verbatim, so PostgreSQL matches them to the expression
+indexes. ``jsonb_path_query_first`` is immutable, as an index expression must be.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from psycopg import sql
+
+from dc_dashboard.settings import PostgresSettings
+
+_MAX_IDENTIFIER = 63
+
+
+def _expression(key: str, alias: str = "") -> sql.SQL:
+    data = f"{alias}.data" if alias else "data"
+    return sql.SQL(f"COALESCE({data}->>'{key}', jsonb_path_query_first({data}, '$.*.{key}') #>> '{{}}')")
+
+
+ROBOT = _expression("robot_name")
+RUN = _expression("run_id")
+
+
+def RUN_OF(alias: str) -> sql.SQL:
+    return _expression("run_id", alias)
+
+
+@dataclass(frozen=True)
+class Index:
+    suffix: str
+    on_files: bool
+    columns: sql.Composable
+    why: str
+
+
+INDEXES = (
+    Index(
+        "dash_name_time", False, sql.SQL("((data->>'name'), time)"), "record names, newest rows of a name, time ranges"
+    ),
+    Index(
+        "dash_robot_name_time",
+        False,
+        sql.SQL("(({}), (data->>'name'), time)").format(ROBOT),
+        "the robot filter, the list of robots",
+    ),
+    Index(
+        "dash_robot_run_name_time",
+        False,
+        sql.SQL("(({}), ({}), (data->>'name'), time)").format(ROBOT, RUN),
+        "the run filter, the list of a robot's runs",
+    ),
+    Index("dash_tag_time", False, sql.SQL("(tag, time)"), "newest row per destination (health page)"),
+    Index("dash_robot_timestamp", True, sql.SQL("(robot_name, timestamp)"), "files of a robot in a time range"),
+    Index("dash_timestamp", True, sql.SQL("(timestamp)"), "newest files, all robots"),
+)
+
+
+def _table_and_name(settings: PostgresSettings, index: Index) -> tuple[str, str]:
+    table = settings.files_table if index.on_files else settings.table
+    return table, f"{table.rsplit('.', 1)[-1]}_{index.suffix}"[:_MAX_IDENTIFIER]
+
+
+def statements(settings: PostgresSettings) -> list[sql.Composed]:
+    """CREATE INDEX CONCURRENTLY: DC keeps inserting while they are built."""
+    out = []
+    for index in INDEXES:
+        table, name = _table_and_name(settings, index)
+        out.append(
+            sql.SQL("CREATE INDEX CONCURRENTLY IF NOT EXISTS {} ON {} {}").format(
+                sql.Identifier(name), sql.Identifier(*table.split(".")), index.columns
+            )
+        )
+    return out
+
+
+def missing(connection: Any, settings: PostgresSettings) -> list[str]:
+    """Names of the dashboard's indexes not (validly) built on the existing tables."""
+    wanted = []
+    for index in INDEXES:
+        table, name = _table_and_name(settings, index)
+        wanted.append((table, name))
+    rows = connection.execute(
+        "SELECT c.relname, i.indisvalid FROM pg_index i JOIN pg_class c ON c.oid = i.indexrelid"
+        " WHERE i.indrelid = ANY(ARRAY[to_regclass(%s), to_regclass(%s)])",
+        (settings.table, settings.files_table),
+    ).fetchall()
+    present = {name for name, valid in rows if valid}
+    tables = {
+        t
+        for t, exists in connection.execute(
+            "SELECT t, to_regclass(t) IS NOT NULL FROM unnest(ARRAY[%s, %s]) AS t",
+            (settings.table, settings.files_table),
+        ).fetchall()
+        if exists
+    }
+    return [name for table, name in wanted if table in tables and name not in present]
+
+
+def create(settings: PostgresSettings, say: Any = print) -> int:
+    """Build the missing indexes (each table that exists); 0 when all are there afterwards."""
+    import psycopg
+
+    from dc_dashboard.queries import _first_line
+
+    try:
+        with psycopg.connect(**{**settings.connect_kwargs(), "options": ""}, autocommit=True) as connection:
+            todo = set(missing(connection, settings))
+            for index, statement in zip(INDEXES, statements(settings), strict=True):
+                table, name = _table_and_name(settings, index)
+                if name not in todo:
+                    continue
+                # An earlier, interrupted CONCURRENTLY build leaves an invalid index that IF NOT EXISTS would keep.
+                connection.execute(
+                    sql.SQL("DROP INDEX CONCURRENTLY IF EXISTS {}").format(sql.Identifier(*table.split(".")[:-1], name))
+                )
+                say(f"creating index {name} on {table} ({index.why}) ...")
+                connection.execute(statement)
+            left = missing(connection, settings)
+    except psycopg.Error as exc:
+        say(f"dc dashboard: PostgreSQL {settings.address()}: {_first_line(exc)}")
+        return 2
+    say("indexes: all present" if not left else f"indexes still missing: {', '.join(left)}")
+    return 0 if not left else 1

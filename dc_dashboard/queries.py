@@ -1,0 +1,482 @@
+"""Every question the pages ask PostgreSQL: parameterised, bounded, and served by the indexes in indexes.py.
+
+Bounded means a page costs the same with a thousand rows or a million: plots are averaged into at
+most ``POINTS`` time buckets per series (``width_bucket``), lists have a ``LIMIT``, distinct values are
+read by skipping through an index rather than by scanning the table.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+from dc_dashboard import indexes
+from dc_dashboard.catalog import Sources, sources_of
+from dc_dashboard.errors import DashboardError
+from dc_dashboard.filters import Filters
+from dc_dashboard.settings import PostgresSettings
+
+POINTS = 600  # per series of a chart: more than an SVG of 900 px wide can show apart
+CAMERA_PAGE = 12
+FILES_PAGE = 200
+CATALOG_TTL_S = 30.0
+
+
+@dataclass
+class Series:
+    label: str
+    points: list[tuple[float, float]]  # (seconds since the epoch, value) or (x, y) for a trajectory
+
+
+@dataclass
+class Trajectory:
+    series: list[Series]
+    map: dict[str, Any] | None = None  # the map record, with "key": its PNG in S3, when there is one
+    positions: int = 0
+
+
+@dataclass
+class Distance:
+    total_m: float
+    per_run: list[tuple[str, str, float]]  # robot, run, metres in the range
+    series: list[Series]
+
+
+@dataclass
+class SystemStats:
+    cpu: list[Series]
+    memory: list[Series]
+    cpu_average: float | None
+    cpu_max: float | None
+    memory_average: float | None
+    memory_max: float | None
+    samples: int
+
+
+@dataclass
+class Inspection:
+    time: dt.datetime
+    robot: str
+    run: str
+    camera: str
+    key: str  # the inspected image's key in the bucket, "" when it was not uploaded
+    codes: list[dict[str, Any]]
+
+
+@dataclass
+class FilesPage:
+    rows: list[dict[str, Any]]
+    counts: dict[str, int]
+    total_bytes: int
+    more: bool
+
+
+@dataclass
+class Catalog:
+    sources: Sources
+    missing_indexes: list[str]
+    row_estimate: int
+    read_at: float = field(default_factory=time.monotonic)
+
+
+class Store:
+    """The dashboard's reader of DC's tables; opens a connection per page (closed when the page is done)."""
+
+    def __init__(self, settings: PostgresSettings) -> None:
+        from psycopg import sql
+
+        self.settings = settings
+        self.table = sql.Identifier(*settings.table.split("."))
+        self.files_table = sql.Identifier(*settings.files_table.split("."))
+        self._catalog: Catalog | None = None
+
+    @contextmanager
+    def connection(self) -> Iterator[Any]:
+        import psycopg
+
+        try:
+            with psycopg.connect(**self.settings.connect_kwargs(), autocommit=True) as connection:
+                yield connection
+        except psycopg.errors.UndefinedTable as exc:
+            raise DashboardError(f"no such table in {self.settings.address()}: {_first_line(exc)}") from None
+        except psycopg.errors.QueryCanceled:
+            raise DashboardError(
+                f"PostgreSQL {self.settings.address()} took longer than {self.settings.statement_timeout_ms} ms;"
+                " are the dashboard's indexes there? (dc dashboard --create-indexes)"
+            ) from None
+        except psycopg.Error as exc:
+            raise DashboardError(f"PostgreSQL {self.settings.address()}: {_first_line(exc)}") from None
+
+    # -- what is there -------------------------------------------------------------------------
+    def catalog(self, connection: Any) -> Catalog:
+        """Record names and where each kind of measurement sits in them; read again after CATALOG_TTL_S."""
+        cached = self._catalog
+        if cached is not None and time.monotonic() - cached.read_at < CATALOG_TTL_S:
+            return cached
+        from psycopg import sql
+
+        names = [row[0] for row in connection.execute(sql.SQL(_DISTINCT_NAMES).format(t=self.table)).fetchall()]
+        latest: dict[str, list[Mapping[str, Any]]] = {}
+        for name in names:
+            rows = connection.execute(
+                sql.SQL("SELECT data FROM {t} WHERE (data->>'name') = %s ORDER BY time DESC LIMIT 3").format(
+                    t=self.table
+                ),
+                (name,),
+            ).fetchall()
+            latest[name] = [row[0] for row in rows if isinstance(row[0], dict)]
+        estimate = connection.execute(
+            "SELECT greatest(reltuples, 0)::bigint FROM pg_class WHERE oid = to_regclass(%s)", (self.settings.table,)
+        ).fetchone()
+        rows = int(estimate[0]) if estimate else 0
+        if rows < 100_000:  # not analysed yet (a new table says 0): a count that stops at 100,000 rows
+            bounded = sql.SQL("SELECT count(*) FROM (SELECT 1 FROM {t} LIMIT 100000) AS first_rows").format(
+                t=self.table
+            )
+            counted = connection.execute(bounded).fetchone()
+            rows = max(rows, int(counted[0]) if counted else 0)
+        catalog = Catalog(
+            sources=sources_of(latest), missing_indexes=indexes.missing(connection, self.settings), row_estimate=rows
+        )
+        self._catalog = catalog
+        return catalog
+
+    def robots(self, connection: Any) -> list[str]:
+        from psycopg import sql
+
+        query = sql.SQL(_DISTINCT_ROBOTS).format(t=self.table, robot=indexes.ROBOT)
+        return [row[0] for row in connection.execute(query).fetchall()]
+
+    def runs(self, connection: Any, robot: str) -> list[str]:
+        """The robot's runs (every robot's without one), newest run number first, at most 200."""
+        from psycopg import sql
+
+        if robot:
+            query = sql.SQL(_DISTINCT_RUNS).format(t=self.table, robot=indexes.ROBOT, run=indexes.RUN)
+            runs = [row[0] for row in connection.execute(query, {"robot": robot}).fetchall()]
+        else:
+            query = sql.SQL(
+                "SELECT DISTINCT {run} FROM (SELECT data FROM {t} ORDER BY time DESC LIMIT 5000) AS newest"
+            ).format(t=self.table, run=indexes.RUN)
+            runs = [row[0] for row in connection.execute(query).fetchall() if row[0] is not None]
+        return sorted(runs, key=lambda r: (len(r), r), reverse=True)[:200]
+
+    # -- pages ---------------------------------------------------------------------------------
+    def trajectory(self, connection: Any, filters: Filters) -> Trajectory:
+        catalog = self.catalog(connection)
+        series: dict[str, list[tuple[float, float, float]]] = {}
+        positions = 0
+        for name, path in catalog.sources["position"]:
+            for label, _, x, y, count in self._bucketed(
+                connection, filters, name, [(*path, "x"), (*path, "y")], series_by_run=True
+            ):
+                series.setdefault(label, []).append((_, x, y))
+                positions += count
+        lines = [Series(label, [(x, y) for _, x, y in sorted(points)]) for label, points in sorted(series.items())]
+        last = max((max(t for t, _, _ in points) for points in series.values()), default=None)
+        return Trajectory(lines, self._map(connection, filters, catalog, last), positions)
+
+    def distance(self, connection: Any, filters: Filters) -> Distance:
+        from psycopg import sql
+
+        catalog = self.catalog(connection)
+        per_run: list[tuple[str, str, float]] = []
+        series: list[Series] = []
+        for name, path in catalog.sources["distance_traveled"]:
+            where, params = self._where(filters, name)
+            params["d"] = [*path, "distance_traveled"]
+            value = sql.SQL("(data #>> %(d)s)::float8")
+            query = sql.SQL(
+                "SELECT {robot}, {run}, max({v}) - min({v}) FROM {t} WHERE {where} GROUP BY 1, 2"
+                " ORDER BY max(time) DESC LIMIT 500"
+            ).format(robot=indexes.ROBOT, run=indexes.RUN, v=value, t=self.table, where=where)
+            per_run += [(r or "", u or "", float(m or 0)) for r, u, m in connection.execute(query, params).fetchall()]
+            for label, t, d, _, _ in self._bucketed(connection, filters, name, [(*path, "distance_traveled")]):
+                _append(series, label, (t, d))
+        return Distance(sum(m for _, _, m in per_run), per_run, series)
+
+    def system(self, connection: Any, filters: Filters) -> SystemStats:
+        from psycopg import sql
+
+        catalog = self.catalog(connection)
+        stats: dict[str, list[Series]] = {"cpu": [], "memory": []}
+        summary: dict[str, list[tuple[float, float, int]]] = {"cpu": [], "memory": []}
+        for kind, field_name in (("cpu", "average"), ("memory", "used")):
+            for name, path in catalog.sources[kind]:
+                where, params = self._where(filters, name)
+                params["v"] = [*path, field_name]
+                query = sql.SQL(
+                    "SELECT avg((data #>> %(v)s)::float8), max((data #>> %(v)s)::float8), count(*) FROM {t} WHERE {w}"
+                ).format(t=self.table, w=where)
+                average, top, count = connection.execute(query, params).fetchone()
+                if count:
+                    summary[kind].append((float(average), float(top), int(count)))
+                for label, t, v, _, _ in self._bucketed(connection, filters, name, [(*path, field_name)]):
+                    _append(stats[kind], label, (t, v))
+
+        def weighted(kind: str) -> tuple[float | None, float | None, int]:
+            rows = summary[kind]
+            n = sum(c for _, _, c in rows)
+            if not n:
+                return None, None, 0
+            return sum(a * c for a, _, c in rows) / n, max(m for _, m, _ in rows), n
+
+        cpu_avg, cpu_max, cpu_n = weighted("cpu")
+        mem_avg, mem_max, mem_n = weighted("memory")
+        return SystemStats(stats["cpu"], stats["memory"], cpu_avg, cpu_max, mem_avg, mem_max, max(cpu_n, mem_n))
+
+    def inspections(self, connection: Any, filters: Filters) -> tuple[list[Inspection], bool]:
+        """The newest camera records of the filters (before ``filters.before``), CAMERA_PAGE of them."""
+        from psycopg import sql
+
+        catalog = self.catalog(connection)
+        found: list[Inspection] = []
+        for name, path in catalog.sources["camera"]:
+            where, params = self._where(filters, name)
+            if filters.before:
+                where = sql.SQL("{} AND time < %(before)s").format(where)
+                params["before"] = filters.before
+            params["p"] = list(path)
+            query = sql.SQL(
+                "SELECT time, {robot}, {run}, data #> %(p)s FROM {t} WHERE {w} ORDER BY time DESC LIMIT %(n)s"
+            ).format(robot=indexes.ROBOT, run=indexes.RUN, t=self.table, w=where)
+            params["n"] = CAMERA_PAGE + 1
+            for when, robot, run, record in connection.execute(query, params).fetchall():
+                if isinstance(record, dict):
+                    found.append(_inspection(when, robot or "", run or "", record))
+        found.sort(key=lambda i: i.time, reverse=True)
+        return found[:CAMERA_PAGE], len(found) > CAMERA_PAGE
+
+    def files(self, connection: Any, filters: Filters) -> FilesPage:
+        from psycopg import sql
+
+        conditions: list[sql.Composable] = [sql.SQL("true")]
+        params: dict[str, Any] = {}
+        if filters.robot:
+            conditions.append(sql.SQL("robot_name = %(robot)s"))
+            params["robot"] = filters.robot
+        if filters.start:
+            conditions.append(sql.SQL("timestamp >= %(start)s"))
+            params["start"] = filters.start
+        if filters.end:
+            conditions.append(sql.SQL("timestamp <= %(end)s"))
+            params["end"] = filters.end
+        if filters.run:
+            # files_metrics has no run: the record that brought the file has (unique index on record_id).
+            conditions.append(
+                sql.SQL("EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s)").format(
+                    t=self.table, run=indexes.RUN_OF("r")
+                )
+            )
+            params["run"] = filters.run
+        scope = sql.SQL(" AND ").join(conditions)
+        counts_query = sql.SQL(
+            "SELECT count(*), count(*) FILTER (WHERE uploaded), count(*) FILTER (WHERE verified_at IS NOT NULL),"
+            " count(*) FILTER (WHERE deleted), count(*) FILTER (WHERE NOT uploaded), coalesce(sum(size), 0)"
+            " FROM {f} f WHERE {scope}"
+        ).format(f=self.files_table, scope=scope)
+        total, uploaded, verified, deleted, pending, size = connection.execute(counts_query, params).fetchone()
+        state = {
+            "uploaded": "uploaded",
+            "verified": "verified_at IS NOT NULL",
+            "deleted": "deleted",
+            "pending": "NOT uploaded",
+        }.get(filters.state)
+        if state:
+            scope = sql.SQL("{} AND {}").format(scope, sql.SQL(state))
+        rows_query = sql.SQL(
+            "SELECT timestamp, robot_name, group_name, local_path, remote_path, storage_type, content_type, size,"
+            " uploaded, verified_at, deleted, on_filesystem FROM {f} f WHERE {scope}"
+            " ORDER BY timestamp DESC, id DESC LIMIT %(n)s"
+        ).format(f=self.files_table, scope=scope)
+        cursor = connection.execute(rows_query, {**params, "n": FILES_PAGE + 1})
+        columns = [c.name for c in cursor.description]
+        rows = [dict(zip(columns, row, strict=True)) for row in cursor.fetchall()]
+        counts = {"all": total, "uploaded": uploaded, "verified": verified, "deleted": deleted, "pending": pending}
+        return FilesPage(rows[:FILES_PAGE], counts, int(size), len(rows) > FILES_PAGE)
+
+    def last_stored(self, connection: Any) -> dict[str, dt.datetime | None]:
+        """Per destination (the ``tag`` column): the time of its newest row."""
+        from psycopg import sql
+
+        query = sql.SQL(_LAST_PER_TAG).format(t=self.table)
+        return {tag: when for tag, when in connection.execute(query).fetchall()}
+
+    def files_by_storage(self, connection: Any) -> list[dict[str, Any]]:
+        from psycopg import sql
+
+        query = sql.SQL(
+            "SELECT storage_type, max(verified_at) AS last_verified, max(updated_at) AS last_update,"
+            " count(*) FILTER (WHERE NOT uploaded) AS pending, count(*) FILTER (WHERE deleted) AS deleted"
+            " FROM {f} GROUP BY storage_type ORDER BY 1 LIMIT 20"
+        ).format(f=self.files_table)
+        cursor = connection.execute(query)
+        columns = [c.name for c in cursor.description]
+        return [dict(zip(columns, row, strict=True)) for row in cursor.fetchall()]
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _where(self, filters: Filters, name: str) -> tuple[Any, dict[str, Any]]:
+        from psycopg import sql
+
+        parts: list[sql.Composable] = [sql.SQL("(data->>'name') = %(name)s")]
+        params: dict[str, Any] = {"name": name}
+        if filters.robot:
+            parts.append(sql.SQL("{} = %(robot)s").format(indexes.ROBOT))
+            params["robot"] = filters.robot
+        if filters.run:
+            parts.append(sql.SQL("{} = %(run)s").format(indexes.RUN))
+            params["run"] = filters.run
+        if filters.start:
+            parts.append(sql.SQL("time >= %(start)s"))
+            params["start"] = filters.start
+        if filters.end:
+            parts.append(sql.SQL("time <= %(end)s"))
+            params["end"] = filters.end
+        return sql.SQL(" AND ").join(parts), params
+
+    def _bucketed(
+        self,
+        connection: Any,
+        filters: Filters,
+        name: str,
+        paths: list[tuple[str, ...]],
+        series_by_run: bool = True,
+    ) -> list[tuple[str, float, float, float, int]]:
+        """(series label, epoch seconds, value, second value, rows) averaged over at most POINTS buckets of time."""
+        from psycopg import sql
+
+        where, params = self._where(filters, name)
+        span = connection.execute(
+            sql.SQL("SELECT min(time), max(time) FROM {t} WHERE {w}").format(t=self.table, w=where), params
+        ).fetchone()
+        if not span or span[0] is None:
+            return []
+        low, high = (_epoch(t) for t in span)
+        values: list[sql.Composable] = []
+        for i, path in enumerate(paths[:2]):
+            values.append(sql.SQL("avg((data #>> {})::float8)").format(sql.Placeholder(f"p{i}")))
+            params[f"p{i}"] = list(path)
+        while len(values) < 2:
+            values.append(sql.SQL("NULL::float8"))
+        params.update(low=low, high=high + 0.001, buckets=POINTS)
+        query = sql.SQL(
+            "SELECT {robot}, {run}, width_bucket(extract(epoch FROM time)::float8, %(low)s, %(high)s, %(buckets)s),"
+            " avg(extract(epoch FROM time))::float8, {a}, {b}, count(*)"
+            " FROM {t} WHERE {w} GROUP BY 1, 2, 3 ORDER BY 1, 2, 3 LIMIT 20000"
+        ).format(robot=indexes.ROBOT, run=indexes.RUN, a=values[0], b=values[1], t=self.table, w=where)
+        out = []
+        for robot, run, _, when, a, b, count in connection.execute(query, params).fetchall():
+            if a is None:
+                continue
+            label = f"{robot or '?'} run {run or '?'}" if series_by_run else (robot or "?")
+            out.append((label, float(when), float(a), float(b) if b is not None else 0.0, int(count)))
+        return out
+
+    def _map(self, connection: Any, filters: Filters, catalog: Catalog, last: float | None) -> dict[str, Any] | None:
+        """The newest map of the robot saved before the last point drawn (or before the range's end)."""
+        from psycopg import sql
+
+        for name, path in catalog.sources["map"]:
+            where, params = self._where(Filters(robot=filters.robot), name)
+            until = filters.end or (dt.datetime.fromtimestamp(last, dt.UTC).replace(tzinfo=None) if last else None)
+            if until:
+                where = sql.SQL("{} AND time <= %(until)s").format(where)
+                params["until"] = until
+            params["p"] = list(path)
+            query = sql.SQL("SELECT data #> %(p)s FROM {t} WHERE {w} ORDER BY time DESC LIMIT 1").format(
+                t=self.table, w=where
+            )
+            row = connection.execute(query, params).fetchone()
+            if row is None and until:  # the first map came after the range: better than none
+                params.pop("until")
+                where, _ = self._where(Filters(robot=filters.robot), name)
+                query = sql.SQL("SELECT data #> %(p)s FROM {t} WHERE {w} ORDER BY time DESC LIMIT 1").format(
+                    t=self.table, w=where
+                )
+                row = connection.execute(query, params).fetchone()
+            if row and isinstance(row[0], dict):
+                record = dict(row[0])
+                record["key"] = _remote_key(record, "png")
+                return record
+        return None
+
+
+def _append(series: list[Series], label: str, point: tuple[float, float]) -> None:
+    for s in series:
+        if s.label == label:
+            s.points.append(point)
+            return
+    series.append(Series(label, [point]))
+
+
+def _inspection(when: dt.datetime, robot: str, run: str, record: dict[str, Any]) -> Inspection:
+    inspected = record.get("inspected")
+    codes = inspected.get("barcode", []) if isinstance(inspected, dict) else []
+    return Inspection(
+        time=when,
+        robot=robot or str(record.get("robot_name", "")),
+        run=run or str(record.get("run_id", "")),
+        camera=str(record.get("camera_name", "")),
+        key=_remote_key(record, "inspected"),
+        codes=[c for c in codes if isinstance(c, dict)][:50],
+    )
+
+
+def _remote_key(record: dict[str, Any], file_key: str) -> str:
+    """The file's key in the bucket, from ``remote_paths.<remote key>.<file key>`` (first remote key that has it)."""
+    remote = record.get("remote_paths")
+    if isinstance(remote, dict):
+        for paths in remote.values():
+            if isinstance(paths, dict) and isinstance(paths.get(file_key), str):
+                return str(paths[file_key])
+    return ""
+
+
+def _epoch(value: dt.datetime) -> float:
+    return value.replace(tzinfo=dt.UTC).timestamp() if value.tzinfo is None else value.timestamp()
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+# Distinct values by skipping through an index: one index probe per value, not a scan of the table.
+_DISTINCT_NAMES = """
+WITH RECURSIVE names(name) AS (
+    (SELECT (data->>'name') FROM {t} WHERE (data->>'name') IS NOT NULL ORDER BY 1 LIMIT 1)
+    UNION ALL
+    SELECT (SELECT (data->>'name') FROM {t} WHERE (data->>'name') > names.name ORDER BY 1 LIMIT 1)
+    FROM names WHERE names.name IS NOT NULL
+)
+SELECT name FROM names WHERE name IS NOT NULL LIMIT 100"""
+
+_DISTINCT_ROBOTS = """
+WITH RECURSIVE robots(robot) AS (
+    (SELECT {robot} FROM {t} WHERE {robot} IS NOT NULL ORDER BY 1 LIMIT 1)
+    UNION ALL
+    SELECT (SELECT {robot} FROM {t} WHERE {robot} > robots.robot ORDER BY 1 LIMIT 1)
+    FROM robots WHERE robots.robot IS NOT NULL
+)
+SELECT robot FROM robots WHERE robot IS NOT NULL LIMIT 500"""
+
+_DISTINCT_RUNS = """
+WITH RECURSIVE runs(run) AS (
+    (SELECT {run} FROM {t} WHERE {robot} = %(robot)s AND {run} IS NOT NULL ORDER BY {run} LIMIT 1)
+    UNION ALL
+    SELECT (SELECT {run} FROM {t} WHERE {robot} = %(robot)s AND {run} > runs.run ORDER BY {run} LIMIT 1)
+    FROM runs WHERE runs.run IS NOT NULL
+)
+SELECT run FROM runs WHERE run IS NOT NULL LIMIT 1000"""
+
+_LAST_PER_TAG = """
+WITH RECURSIVE tags(tag) AS (
+    (SELECT tag FROM {t} WHERE tag IS NOT NULL ORDER BY tag LIMIT 1)
+    UNION ALL
+    SELECT (SELECT tag FROM {t} WHERE tag > tags.tag ORDER BY tag LIMIT 1) FROM tags WHERE tags.tag IS NOT NULL
+)
+SELECT tag, (SELECT max(time) FROM {t} WHERE tag = tags.tag) FROM tags WHERE tag IS NOT NULL LIMIT 50"""

@@ -1,0 +1,188 @@
+"""The dashboard's HTTP server: the standard library's ThreadingHTTPServer, one thread per request.
+
+Each page opens one PostgreSQL connection, asks its bounded questions, renders, and closes it.
+Anything a source cannot give becomes a sentence on the page (status 503), never a traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+from dc_dashboard import health, pages
+from dc_dashboard.errors import DashboardError
+from dc_dashboard.filters import Filters
+from dc_dashboard.objects import ImageStore
+from dc_dashboard.queries import Store
+from dc_dashboard.settings import DashboardSettings
+
+_SECURITY_HEADERS = {
+    # Inline style and the two onchange handlers of the filters are the page's only code.
+    "Content-Security-Policy": "default-src 'none'; img-src 'self'; style-src 'unsafe-inline'; "
+    "script-src 'unsafe-inline'; form-action 'self'; frame-ancestors 'none'",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+}
+
+
+class Dashboard:
+    """What every request shares: the settings and the readers built from them."""
+
+    def __init__(self, settings: DashboardSettings) -> None:
+        self.settings = settings
+        self.store = Store(settings.postgres)
+        self.images = ImageStore(settings.s3)
+
+    def source(self) -> str:
+        pg = self.settings.postgres
+        bucket = f" · S3 bucket {self.settings.s3.bucket}" if self.settings.s3.bucket else ""
+        return f"PostgreSQL {pg.address()}, tables {pg.table} and {pg.files_table}{bucket}"
+
+    def render(self, path: str, query: str) -> tuple[int, str]:
+        """(HTTP status, HTML) of a page."""
+        filters = Filters.parse(query)
+        views: dict[str, tuple[str, Callable[[Any, Filters], str]]] = {
+            "/": ("Overview: where the robot went", self._overview),
+            "/system": ("System: CPU and memory", self._system),
+            "/camera": ("Camera: inspected images and the codes read", self._camera),
+            "/files": ("Files: uploaded, verified, deleted", self._files),
+            "/health": ("Health: DC's delivery", self._health),
+        }
+        if path not in views:
+            body = pages.error_body(f"no page {path}: see the navigation above")
+            return 404, pages.layout(
+                title="Not found", path=path, filters=filters, robots=[], runs=[], body=body, show_filters=False
+            )
+        title, view = views[path]
+        robots: list[str] = []
+        runs: list[str] = []
+        try:
+            with self.store.connection() as connection:
+                robots = self.store.robots(connection)
+                runs = self.store.runs(connection, filters.robot)
+                body = view(connection, filters)
+            status = 200
+        except DashboardError as exc:
+            body, status = pages.error_body(str(exc)), 503
+            if path == "/health":  # the servers' metrics do not need PostgreSQL
+                body += self._health(None, filters)
+        return status, pages.layout(
+            title=title,
+            path=path,
+            filters=filters,
+            robots=robots,
+            runs=runs,
+            body=body,
+            source=self.source(),
+            show_filters=path != "/health",
+        )
+
+    def _overview(self, connection: Any, filters: Filters) -> str:
+        trajectory = self.store.trajectory(connection, filters)
+        distance = self.store.distance(connection, filters)
+        body = pages.overview(trajectory, distance, self.store.catalog(connection).row_estimate)
+        if trajectory.map and trajectory.map.get("key"):
+            problem = self.images.check_bucket()
+            if problem:
+                body = pages.notice(problem) + body
+        return body
+
+    def _system(self, connection: Any, filters: Filters) -> str:
+        return pages.system(self.store.system(connection, filters))
+
+    def _camera(self, connection: Any, filters: Filters) -> str:
+        inspections, more = self.store.inspections(connection, filters)
+        body = pages.camera(inspections, more, filters)
+        problem = self.images.check_bucket() if inspections else None
+        return (pages.notice(problem, element_id="s3-error") if problem else "") + body
+
+    def _files(self, connection: Any, filters: Filters) -> str:
+        return pages.files(self.store.files(connection, filters), filters)
+
+    def _health(self, connection: Any | None, filters: Filters) -> str:
+        servers = [health.read(label, url) for label, url in self.settings.metrics]
+        problems: list[str] = []
+        last_stored: dict[str, Any] = {}
+        storages: list[dict[str, Any]] = []
+        missing: list[str] = []
+        if connection is not None:
+            last_stored = self.store.last_stored(connection)
+            missing = self.store.catalog(connection).missing_indexes
+            try:
+                storages = self.store.files_by_storage(connection)
+            except DashboardError as exc:  # no files table: DC delivers no files here
+                problems.append(str(exc))
+        return pages.health(servers, last_stored, storages, missing, problems)
+
+    def image(self, query: str) -> tuple[int, bytes, str]:
+        key = parse_qs(query).get("key", [""])[-1]
+        try:
+            body, content_type = self.images.image(key)
+        except DashboardError as exc:
+            return 404, f"{exc}\n".encode(), "text/plain; charset=utf-8"
+        return 200, body, content_type
+
+
+class Handler(BaseHTTPRequestHandler):
+    server_version = "dc-dashboard"
+    dashboard: Dashboard  # set on the subclass made by make_server
+    quiet = False
+
+    def do_GET(self) -> None:
+        started = time.monotonic()
+        url = urlsplit(self.path)
+        try:
+            if url.path == "/image":
+                status, body, content_type = self.dashboard.image(url.query)
+                extra = {"Cache-Control": "private, max-age=3600"} if status == 200 else {}
+            elif url.path == "/favicon.ico":
+                status, body, content_type, extra = 204, b"", "text/plain", {}
+            else:
+                status, html = self.dashboard.render(url.path, url.query)
+                body, content_type, extra = html.encode(), "text/html; charset=utf-8", {"Cache-Control": "no-store"}
+        except Exception as exc:  # a bug must not kill the thread silently nor show a traceback
+            print(f"dc dashboard: {self.path}: {type(exc).__name__}: {exc}", file=sys.stderr)
+            status, body, content_type, extra = 500, b"internal error (see the dashboard's log)\n", "text/plain", {}
+        self.send_response(status)
+        for name, value in {**_SECURITY_HEADERS, **extra}.items():
+            self.send_header(name, value)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+        if not self.quiet or status >= 500:
+            self.log_message('"GET %s" %d %.0f ms', url.path, status, (time.monotonic() - started) * 1000)
+
+    def log_request(self, code: int | str = "-", size: int | str = "-") -> None:
+        pass  # do_GET logs once, with the time taken
+
+    def log_message(self, format: str, *args: Any) -> None:
+        print(f"dc dashboard: {format % args}", file=sys.stderr)
+
+
+def make_server(settings: DashboardSettings, host: str, port: int, quiet: bool = False) -> ThreadingHTTPServer:
+    """``quiet``: log failed requests only."""
+    handler = type("DashboardHandler", (Handler,), {"dashboard": Dashboard(settings), "quiet": quiet})
+    server = ThreadingHTTPServer((host, port), handler)
+    server.daemon_threads = True
+    return server
+
+
+def serve(settings: DashboardSettings, host: str, port: int) -> int:
+    try:
+        server = make_server(settings, host, port)
+    except OSError as exc:
+        print(f"dc dashboard: cannot listen on {host}:{port}: {exc}", file=sys.stderr)
+        return 2
+    print(f"dc dashboard: http://{host}:{server.server_address[1]}/ (Ctrl-C stops it)", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()
+    return 0

@@ -1,0 +1,443 @@
+"""`dc dashboard`: its queries against a real PostgreSQL with known rows, its pages, and the whole thing in
+headless Chromium over what the tb3_pgsql_minio demo stored, as a user sees it."""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+import json
+import os
+import secrets
+import shutil
+import subprocess
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from dc_bringup.local_servers import postgres, seaweedfs
+from dc_bringup.local_servers.processes import free_port
+from dc_bringup.local_servers.run import environment
+from dc_dashboard import catalog, charts, indexes
+from dc_dashboard.filters import Filters
+from dc_dashboard.objects import image_type
+from dc_dashboard.queries import Store
+from dc_dashboard.server import Dashboard
+from dc_dashboard.settings import DashboardSettings, PostgresSettings, S3Settings
+from tests.bringup_util import BIN, REPO, Bringup
+
+T0 = dt.datetime(2026, 3, 1, 12, 0, 0)
+ARTIFACTS = REPO / "test-artifacts" / "dashboard"
+
+
+# -- pure --------------------------------------------------------------------------------------------
+
+
+def test_filters_round_trip_through_the_query_string_and_bad_values_are_said() -> None:
+    filters = Filters.parse("robot=C3PO&run=2&start=2026-03-01T12:00&end=2026-03-01T13:00:30&state=deleted")
+    assert (filters.robot, filters.run, filters.state) == ("C3PO", "2", "deleted")
+    assert Filters.parse(filters.query().lstrip("?")) == filters
+    assert filters.scope().query() == "?robot=C3PO&run=2&start=2026-03-01T12%3A00%3A00&end=2026-03-01T13%3A00%3A30"
+    bad = Filters.parse("start=yesterday&end=2026-01-01&state=lost")
+    assert bad.start is None and bad.state == "" and len(bad.problems) == 2
+
+
+def test_measurements_are_found_by_their_shape_alone_or_in_groups() -> None:
+    robot_group = {"name": "robot", "position": {"x": 1.0, "y": 2.0, "yaw": 0.1}, "speed": {"computed": 0.0}}
+    system_group = {"name": "system", "cpu": {"average": 3.0, "processes": 9}, "memory": {"used": 40.0}}
+    map_record = {"name": "map", "resolution": 0.05, "origin": {"x": 0, "y": 0, "yaw": 0}, "width": 2, "height": 2}
+    found = catalog.sources_of({"robot": [robot_group], "system": [system_group], "map": [map_record]})
+    assert found["position"] == [("robot", ("position",))]
+    assert found["cpu"] == [("system", ("cpu",))] and found["memory"] == [("system", ("memory",))]
+    assert found["map"] == [("map", ())]  # its origin is not a position
+
+
+def test_charts_draw_every_series_and_say_when_there_is_nothing() -> None:
+    from dc_dashboard.queries import Series
+
+    svg = charts.time_chart([Series("a", [(0.0, 1.0), (60.0, 2.0)])], chart_id="c", unit="%")
+    assert svg.count('class="series"') == 1 and 'data-points="2"' in svg
+    assert "nothing stored" in charts.time_chart([], chart_id="c", unit="%")
+    assert charts.nice_ticks(0, 100) == [0, 20, 40, 60, 80, 100]
+    assert image_type(b"\x89PNG\r\n\x1a\n...") == "image/png" and image_type(b"<svg") is None
+
+
+# -- queries against a real PostgreSQL -------------------------------------------------------------------
+
+
+def _run_rows(robot: str, run: str, start: dt.datetime, seconds: int, cpu: float) -> list[tuple[Any, ...]]:
+    """One row per second of each kind the demo stores, shaped as DC stores them (groups carry robot and run below)."""
+    meta = {"robot_name": robot, "run_id": run}
+    rows: list[dict[str, Any]] = []
+    for i in range(seconds):
+        position: dict[str, Any] = {"x": float(i), "y": 1.0, "yaw": 0.0, "name": "position", **meta}
+        rows.append({"name": "robot", "position": position, "speed": {"computed": 1.0, "name": "speed", **meta}})
+        rows.append(
+            {
+                "name": "system",
+                "cpu": {"average": cpu, "processes": 5, "sorted": [], **meta},
+                "memory": {"used": 30.0, **meta},
+            }
+        )
+        rows.append({"name": "distance_traveled", "distance_traveled": float(i), **meta})
+    rows = [{**r, "date": 0} for r in rows]
+    timed: list[tuple[dt.datetime, dict[str, Any]]] = [
+        (start + dt.timedelta(seconds=i // 3), r) for i, r in enumerate(rows)
+    ]
+    key = f"{robot}/inspected/{run}.jpg"
+    camera: dict[str, Any] = {"name": "front_camera", "camera_name": "front_camera", **meta, "remote_paths": {"minio": {"inspected": key}},
+              "inspected": {"barcode": [{"data": f"PAL-{robot}-{run}", "type": "CODE128", "top": 0, "left": 0, "width": 5, "height": 5}]}}  # fmt: skip
+    timed.append((start + dt.timedelta(seconds=2), camera))
+    map_record: dict[str, Any] = {"name": "map", "resolution": 0.5, "origin": {"x": -1.0, "y": -1.0, "yaw": 0.0}, "width": 40, "height": 10,
+                  **meta, "remote_paths": {"minio": {"png": f"{robot}/map.png"}}}  # fmt: skip
+    timed.append((start, map_record))
+    return [("flb_pgsql", when, json.dumps(r), f"{robot}-{run}-{n}") for n, (when, r) in enumerate(timed)]
+
+
+@pytest.fixture(scope="module")
+def database() -> Iterator[PostgresSettings]:
+    import psycopg
+
+    from dc_destinations.files_metrics.table import FilesTable
+
+    reason = postgres.missing_reason()
+    if reason is not None:
+        pytest.fail(reason)  # make test-deps installs it: a skip would hide a missing dependency
+    folder = Path(tempfile.mkdtemp(prefix="dc-pg-dash-"))  # not under tmp_path: user postgres enters it
+    server = postgres.PostgresServer(folder, password=secrets.token_urlsafe(12))
+    try:
+        server.start()
+        settings = PostgresSettings(
+            port=server.port, user=server.user, password=server.password, database=server.database
+        )
+        rows = (
+            _run_rows("C3PO", "1", T0, 10, cpu=10.0)  # 9 m
+            + _run_rows("C3PO", "2", T0 + dt.timedelta(hours=1), 5, cpu=50.0)  # 4 m
+            + _run_rows("R2D2", "1", T0, 20, cpu=30.0)  # 19 m
+        )
+        with psycopg.connect(**settings.connect_kwargs(), autocommit=True) as connection:
+            connection.execute("CREATE TABLE dc (tag varchar, time timestamp, data jsonb, record_id text)")
+            connection.execute("CREATE UNIQUE INDEX dc_record_id ON dc (record_id)")
+            with connection.cursor() as cursor:
+                cursor.executemany("INSERT INTO dc VALUES (%s, %s, %s::jsonb, %s)", rows)
+            FilesTable("files_metrics").prepare(connection)
+            files = [
+                # robot, record_id (its run's camera row), uploaded, verified, deleted
+                ("C3PO", "C3PO-1-30", True, True, True),
+                ("C3PO", "C3PO-2-15", True, True, False),
+                ("C3PO", "C3PO-2-16", False, False, False),
+                ("R2D2", "R2D2-1-60", True, True, True),
+            ]
+            for i, (robot, record_id, uploaded, verified, deleted) in enumerate(files):
+                connection.execute(
+                    "INSERT INTO files_metrics (timestamp, robot_name, robot_id, group_name, local_path, remote_path,"
+                    " uploaded, on_filesystem, deleted, storage_type, content_type, size, updated_at, record_id,"
+                    " bucket, verified_at) VALUES (%s, %s, '', 'front_camera', %s, %s, %s, %s, %s, 'minio',"
+                    " 'image/jpeg', 100, now(), %s, 'b', %s)",
+                    (T0 + dt.timedelta(minutes=i), robot, f"/d/{i}.jpg", f"minio://b/{i}.jpg", uploaded,
+                     not deleted, deleted, record_id, T0 if verified else None),
+                )  # fmt: skip
+        yield settings
+    finally:
+        server.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_the_numbers_follow_the_robot_run_and_time_filters(database: PostgresSettings) -> None:
+    store = Store(database)
+    with store.connection() as connection:
+        assert store.robots(connection) == ["C3PO", "R2D2"]
+        assert store.runs(connection, "C3PO") == ["2", "1"]
+
+        def metres(**filters: Any) -> float:
+            return round(store.distance(connection, Filters(**filters)).total_m, 6)
+
+        assert metres() == 32.0
+        assert metres(robot="C3PO") == 13.0
+        assert metres(robot="C3PO", run="2") == 4.0
+        assert metres(robot="R2D2", start=T0, end=T0 + dt.timedelta(seconds=5)) == 5.0
+
+        def cpu(**filters: Any) -> float | None:
+            return store.system(connection, Filters(**filters)).cpu_average
+
+        assert cpu(robot="C3PO", run="1") == 10.0 and cpu(robot="C3PO", run="2") == 50.0
+        assert cpu(robot="C3PO") == pytest.approx((10 * 10 + 50 * 5) / 15)
+
+        trajectory = store.trajectory(connection, Filters(robot="R2D2"))
+        assert trajectory.positions == 20 and [len(s.points) for s in trajectory.series] == [20]
+        assert trajectory.map is not None and trajectory.map["key"] == "R2D2/map.png"
+        assert store.trajectory(connection, Filters(robot="C3PO")).positions == 15
+
+        inspections, more = store.inspections(connection, Filters(robot="C3PO"))
+        assert [i.codes[0]["data"] for i in inspections] == ["PAL-C3PO-2", "PAL-C3PO-1"] and not more
+        assert inspections[0].key == "C3PO/inspected/2.jpg"
+
+        assert store.files(connection, Filters()).counts == {
+            "all": 4,
+            "uploaded": 3,
+            "verified": 3,
+            "deleted": 2,
+            "pending": 1,
+        }
+        assert store.files(connection, Filters(robot="C3PO")).counts["all"] == 3
+        assert store.files(connection, Filters(robot="C3PO", run="2")).counts["all"] == 2
+        page = store.files(connection, Filters(robot="C3PO", state="deleted"))
+        assert [r["local_path"] for r in page.rows] == ["/d/0.jpg"]
+
+
+def test_the_queries_use_the_indexes_it_creates(database: PostgresSettings) -> None:
+    import psycopg
+
+    assert indexes.create(database, say=lambda text: None) == 0
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        assert indexes.missing(connection, database) == []
+        # The table is tiny: forbid the sequential scan to see whether the expressions match the indexes'.
+        connection.execute("SET enable_seqscan = off")
+        store = Store(database)
+        where, params = store._where(Filters(robot="C3PO", run="2"), "system")
+        from psycopg import sql
+
+        plan = connection.execute(sql.SQL("EXPLAIN SELECT count(*) FROM dc WHERE {}").format(where), params).fetchall()
+    assert "dc_dash_robot_run_name_time" in str(plan), plan
+
+
+def test_pages_render_the_numbers_and_say_what_is_wrong(database: PostgresSettings) -> None:
+    dead_port = free_port()
+    dashboard = Dashboard(
+        DashboardSettings(
+            database, S3Settings(), metrics=(("destination_server", f"http://127.0.0.1:{dead_port}/api/v1/metrics"),)
+        )
+    )
+    status, html = dashboard.render("/", "robot=C3PO&run=2")
+    assert status == 200 and 'id="stat-distance"><span class="value">4.0 m' in html
+    assert database.password not in html
+    status, html = dashboard.render("/health", "")
+    assert status == 200 and f"cannot read http://127.0.0.1:{dead_port}/api/v1/metrics" in html
+    status, html = dashboard.render("/files", "state=pending")
+    assert status == 200 and html.count("<tr class=file>") == 1
+
+    down = Dashboard(DashboardSettings(PostgresSettings(port=dead_port, password="secret-pw"), S3Settings()))
+    status, html = down.render("/system", "")
+    assert status == 503 and f"PostgreSQL postgresql://127.0.0.1:{dead_port}/" in html and "Traceback" not in html
+    assert "secret-pw" not in html
+
+
+# -- in a browser, over what the demo stored --------------------------------------------------------------
+
+
+def _browser() -> Any:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    chromium, driver = shutil.which("chromium"), shutil.which("chromedriver")
+    if not chromium or not driver:
+        pytest.fail("chromium and chromium-driver are not installed (make test-deps)")
+    options = webdriver.ChromeOptions()
+    options.binary_location = chromium
+    for argument in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-dev-shm-usage",
+        "--window-size=1366,900",
+        "--hide-scrollbars",
+    ):
+        options.add_argument(argument)
+    return webdriver.Chrome(options=options, service=Service(driver))
+
+
+def _screenshot(browser: Any, folder: Path, name: str) -> None:
+    height = browser.execute_script("return document.documentElement.scrollHeight")
+    browser.set_window_size(1366, max(700, min(int(height) + 20, 3000)))
+    folder.mkdir(parents=True, exist_ok=True)
+    browser.save_screenshot(str(folder / f"dashboard-{name}.png"))
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    shutil.copy(folder / f"dashboard-{name}.png", ARTIFACTS)
+    browser.set_window_size(1366, 900)
+
+
+def _insert_inspection(dsn: dict[str, Any], s3: Any, robot: str, run: str) -> None:
+    """A camera record and its uploaded image, as the demo stores them, for a run too short to inspect a shelf."""
+    import cv2
+    import numpy as np
+    import psycopg
+
+    image = np.full((240, 320, 3), 235, np.uint8)
+    cv2.putText(image, "PAL-1000", (60, 130), cv2.FONT_HERSHEY_SIMPLEX, 1.2, (0, 0, 0), 3)
+    ok, jpeg = cv2.imencode(".jpg", image)
+    assert ok
+    key = f"{robot}/inserted/front_camera/inspected/test.jpg"
+    s3.client().upload_fileobj(io.BytesIO(jpeg.tobytes()), s3.bucket, key)
+    record = {"name": "front_camera", "camera_name": "front_camera", "robot_name": robot, "run_id": run,
+              "remote_paths": {"minio": {"inspected": key}},
+              "inspected": {"barcode": [{"data": "PAL-1000", "type": "CODE128", "top": 90, "left": 50, "width": 200, "height": 60}]}}  # fmt: skip
+    with psycopg.connect(**dsn, autocommit=True) as connection:
+        connection.execute(
+            "INSERT INTO dc (tag, time, data, record_id) SELECT 'flb_pgsql', max(time), %s::jsonb, 'inserted-by-test' FROM dc",
+            (json.dumps(record),),
+        )
+
+
+@pytest.mark.e2e
+def test_the_dashboard_in_a_browser_over_the_pgsql_minio_demo(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import psycopg
+    from selenium.webdriver.common.by import By
+
+    for missing in (postgres.missing_reason(), seaweedfs.missing_reason()):
+        if missing is not None:
+            pytest.fail(missing)
+    pg_folder = Path(tempfile.mkdtemp(prefix="dc-pg-dash-e2e-"))
+    pg = postgres.PostgresServer(pg_folder, password=secrets.token_urlsafe(12))
+    s3 = seaweedfs.SeaweedS3Server(tmp_path / "s3")
+    # The demo as docs/demos.md runs it, plus the destination server's metrics for the health page.
+    params = yaml.safe_load((REPO / "params" / "demos" / "tb3_pgsql_minio.yaml").read_text())
+    metrics_port = free_port()
+    params["destination_server"]["ros__parameters"]["flb"].update(http_server=True, http_port=metrics_port)
+    params_file = tmp_path / "tb3_pgsql_minio.yaml"
+    params_file.write_text(yaml.safe_dump(params))
+    sim: subprocess.Popen[bytes] | None = None
+    dashboard: subprocess.Popen[bytes] | None = None
+    browser = None
+    try:
+        pg.start()
+        s3.start()
+        for name, value in environment({"postgres": pg.settings(), "s3": s3.settings()}).items():
+            monkeypatch.setenv(name, value)
+        dsn = PostgresSettings(port=pg.port, user=pg.user, password=pg.password, database=pg.database).connect_kwargs()
+
+        def count(query: str) -> int:
+            try:
+                with psycopg.connect(**dsn) as connection:
+                    row = connection.execute(query).fetchone()
+                    return int(row[0]) if row else 0
+            except psycopg.errors.UndefinedTable:
+                return 0  # DC creates its tables with its first batch
+
+        with Bringup(params_file, tmp_path / "home", args=["--use-sim-time"]) as run:
+            run.wait_ready()
+            sim = subprocess.Popen(
+                [str(BIN / "dc"), "sim", "--clock", "--rate", "4", "--duration", "120"],
+                env=run.env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            )  # fmt: skip
+            run.wait_until(
+                lambda: count("select count(distinct data->>'name') from dc where data->>'name' in"
+                              " ('robot', 'system', 'distance_traveled', 'map')") == 4
+                and count("select count(*) from dc where data->>'name' = 'robot'") >= 20,
+                90, "robot, system, distance_traveled and map rows",
+            )  # fmt: skip
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not count(
+                "select count(*) from files_metrics where deleted and local_path like '%.jpg'"
+            ):
+                time.sleep(1)
+            inspected_by_demo = bool(
+                count("select count(*) from files_metrics where deleted and local_path like '%.jpg'")
+            )
+            if not inspected_by_demo:
+                _insert_inspection(dsn, s3, "C3PO", "1")
+
+            port = free_port()
+            dashboard = subprocess.Popen(
+                [str(BIN / "dc"), "dashboard", "--port", str(port), "--metrics", f"http://127.0.0.1:{metrics_port}/api/v1/metrics"],
+                env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            )  # fmt: skip
+            base = f"http://127.0.0.1:{port}"
+            run.wait_until(lambda: _answers(base), 20, "the dashboard to answer")
+            browser = _browser()
+            shots = tmp_path / "dashboard"
+
+            browser.get(base + "/")
+            lines = browser.find_elements(By.CSS_SELECTOR, "#trajectory polyline.series")
+            assert lines and sum(int(line.get_attribute("data-points")) for line in lines) > 0
+            assert browser.find_elements(By.CSS_SELECTOR, "#trajectory image#map-image"), (
+                "the saved map under the trajectory"
+            )
+            positions_all = browser.find_element(By.CSS_SELECTOR, "#stat-positions .value").text
+            _screenshot(browser, shots, "overview")
+            # A narrower time range, set as a user does: the numbers change.
+            first, last = _span(dsn)
+            browser.execute_script(
+                "document.getElementById('filter-start').value = arguments[0];"
+                "document.getElementById('filter-end').value = arguments[1];",
+                first, last,
+            )  # fmt: skip
+            browser.find_element(By.ID, "filter-apply").click()
+            run.wait_until(lambda: "start=" in browser.current_url, 10, "the filtered page")
+            assert browser.find_element(By.CSS_SELECTOR, "#stat-positions .value").text != positions_all
+
+            browser.get(base + "/system?robot=C3PO")
+            assert browser.find_elements(By.CSS_SELECTOR, "#cpu-chart polyline.series")
+            assert browser.find_elements(By.CSS_SELECTOR, "#memory-chart polyline.series")
+            assert browser.find_element(By.CSS_SELECTOR, "#filter-robot option[selected]").text == "C3PO"
+            _screenshot(browser, shots, "system")
+
+            browser.get(base + "/camera")
+            images = browser.find_elements(By.CSS_SELECTOR, "img.inspected")
+            assert images
+            run.wait_until(
+                lambda: browser.execute_script(
+                    "return Array.from(document.querySelectorAll('img.inspected')).some(i => i.complete && i.naturalWidth > 0)"
+                ),
+                10, "an inspected image shown",
+            )  # fmt: skip
+            assert browser.find_elements(By.CSS_SELECTOR, "figcaption .code")
+            _screenshot(browser, shots, "camera")
+
+            browser.get(base + "/files")
+            assert len(browser.find_elements(By.CSS_SELECTOR, "#files-table tr")) > 1
+            assert int(browser.find_element(By.CSS_SELECTOR, "#stat-deleted .value").text.replace(",", "")) > 0
+            _screenshot(browser, shots, "files")
+
+            browser.get(base + "/health")
+            table = browser.find_element(By.CSS_SELECTOR, "table.destinations").text
+            assert "flb_pgsql" in table and "flb_minio" in table
+            assert browser.find_element(By.CSS_SELECTOR, "#stat-servers .value").text == "1 of 1"
+            _screenshot(browser, shots, "health")
+        # The demo stopped: its metrics are gone, and the page says so instead of failing.
+        browser.get(base + "/health")
+        assert "cannot read" in browser.find_element(By.TAG_NAME, "main").text
+        # The image proxy passes images only, and never an S3 error page as an image.
+        with pytest.raises(urllib.error.HTTPError) as missing_image:
+            urllib.request.urlopen(base + "/image?key=nothing/here.png", timeout=5)
+        assert missing_image.value.code == 404
+    finally:
+        if browser is not None:
+            browser.quit()
+        for process in (dashboard, sim):
+            if process is not None:
+                process.terminate()
+                process.wait(10)
+        s3.stop()
+        pg.stop()
+        shutil.rmtree(pg_folder, ignore_errors=True)
+    assert dashboard is not None and dashboard.stderr is not None
+    log = dashboard.stderr.read().decode()
+    assert pg.password not in log and s3.secret_key not in log
+    print(
+        f"camera inspection {'from the demo' if inspected_by_demo else 'inserted by the test'}; screenshots in {ARTIFACTS}"
+    )
+
+
+def _answers(base: str) -> bool:
+    try:
+        with urllib.request.urlopen(base + "/favicon.ico", timeout=2):
+            return True
+    except OSError:
+        return False
+
+
+def _span(dsn: dict[str, Any]) -> tuple[str, str]:
+    """The middle third of the robot's stored time, as datetime-local values."""
+    import psycopg
+
+    with psycopg.connect(**dsn) as connection:
+        row = connection.execute("select min(time), max(time) from dc where data->>'name' = 'robot'").fetchone()
+    assert row is not None
+    low, high = row
+    third = (high - low) / 3
+    return ((low + third).strftime("%Y-%m-%dT%H:%M:%S"), (high - third).strftime("%Y-%m-%dT%H:%M:%S"))
