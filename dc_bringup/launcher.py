@@ -62,6 +62,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     params_file = str(Path(args.params_file).resolve())
+    if args.single_process and not args.validate_only:
+        # The servers' process checks the file: parsing it imports every configured plugin's module,
+        # which the supervisor, meant to stay small, must not.
+        os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+        from dc_bringup.single_process import supervise
+
+        return supervise(args, params_file)
     report, error = check(params_file)
     if report is None:
         print(f"dc-bringup: invalid configuration: {error}", file=sys.stderr)
@@ -71,10 +78,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.validate_only:
         return 0
     os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
-    if args.single_process:
-        from dc_bringup.single_process import supervise
-
-        return supervise(args, params_file, len(report.servers))
 
     stop = threading.Event()
 

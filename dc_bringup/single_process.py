@@ -89,6 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--namespace", default="")
     parser.add_argument("--use-sim-time", action="store_true")
     parser.add_argument("--no-autostart", action="store_true")
+    parser.add_argument("--restarted", action="store_true", help="not the first start: the warnings were printed")
     parser.add_argument("--status-fd", type=int, default=-1, help="pipe to the supervisor: up, then beats")
     return parser
 
@@ -99,6 +100,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if report is None:
         print(f"dc-bringup: invalid configuration: {error}", file=sys.stderr)
         return 2
+    if not args.restarted:
+        for warning in report.warnings:
+            print(f"dc-bringup: warning: {warning}", file=sys.stderr)
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -225,7 +229,7 @@ class _Interrupted(Exception):
     """Raised by the supervisor's signal handler to end a blocking wait."""
 
 
-def supervise(args: argparse.Namespace, params_file: str, server_count: int) -> int:
+def supervise(args: argparse.Namespace, params_file: str) -> int:
     """dc-bringup --single-process: run the servers' process, restart it when it dies or freezes, stop it on a signal.
 
     A process that fails before it ever came up is not restarted (a configuration or start-up
@@ -259,7 +263,10 @@ def supervise(args: argparse.Namespace, params_file: str, server_count: int) -> 
         started = time.monotonic()
         # Own process group: a terminal's Ctrl-C reaches dc-bringup only, which stops the servers in order.
         process = subprocess.Popen(
-            [*cmd, "--status-fd", str(write_end)], pass_fds=(write_end,), preexec_fn=die_with_parent, process_group=0
+            [*cmd, "--status-fd", str(write_end), *(["--restarted"] if was_up else [])],
+            pass_fds=(write_end,),
+            preexec_fn=die_with_parent,
+            process_group=0,
         )
         os.close(write_end)
         try:
@@ -267,7 +274,8 @@ def supervise(args: argparse.Namespace, params_file: str, server_count: int) -> 
         finally:
             os.close(read_end)
         if stopping.is_set():
-            code = _stop(process, args.stop_timeout * server_count)
+            # --stop-timeout is per server, and the file was not parsed here: allow for every kind.
+            code = _stop(process, args.stop_timeout * len(SERVER_MODULES))
         was_up = was_up or up
         if stopping.is_set() or code == 0 or not was_up:
             return code if code >= 0 else 1

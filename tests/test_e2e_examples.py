@@ -27,6 +27,7 @@ def uptime_now() -> float:
     return float(Path("/proc/uptime").read_text().split()[0])
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_example_1_uptime_every_second(tmp_path: Path) -> None:
     with Bringup(EXAMPLES / "example_1.yaml", tmp_path) as run:
         records = run.wait_records(4, timeout=60)
@@ -52,6 +53,7 @@ def test_example_2_flush_every_three_seconds_delivers_in_batches(tmp_path: Path)
     assert bursts >= 2, arrivals
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_example_3_only_three_records(tmp_path: Path) -> None:
     with Bringup(EXAMPLES / "example_3.yaml", tmp_path) as run:
         run.wait_records(3, timeout=60)
@@ -99,6 +101,7 @@ def test_the_custom_uptime_demo_publishes_records_that_fail_its_schema_and_calls
 
 
 @pytest.mark.parametrize("example", ["example_6_fixed.yaml", "example_7_fixed.yaml"])
+@pytest.mark.usefixtures("bringup_mode")
 def test_examples_6_and_7_deliver_what_dc_pub_publishes(tmp_path: Path, example: str) -> None:
     with Bringup(EXAMPLES / example, tmp_path) as run:
         run.wait_ready()
@@ -190,6 +193,7 @@ destination_server:
     ],
     ids=["invalid-yaml", "unknown-plugin", "wrong-type"],
 )
+@pytest.mark.usefixtures("bringup_mode")
 def test_invalid_configuration_stops_before_anything_starts(tmp_path: Path, text: str, message: str) -> None:
     params = tmp_path / "p.yaml"
     params.write_text(text)
