@@ -9,11 +9,12 @@ measures, in this process and the same run:
 - pgsql: --records records of ~200 bytes of JSON written into a DC buffer while the destination is
   down, then drained by the delivery layer (buffer, sender, PgSQL destination, as destination_server
   runs them) into a fresh table. Baseline on the same server: psycopg's ``COPY … FROM STDIN`` of the
-  same rows, in one transaction, into a table of the same shape and unique index. To tell apart
-  what costs what, also, without the buffer: per batch, COPY into a temporary table then
-  ``INSERT … SELECT … ON CONFLICT`` (the destination's statements: the most its send() can
-  reach); the pipelined ``INSERT … ON CONFLICT`` it used before; and the buffer drained into a
-  destination that discards.
+  same rows, in one transaction, into a table of the same shape and unique index (text; the same
+  in binary is measured too). To tell apart what costs what, also, without the buffer: per batch,
+  one binary COPY straight into the table (the destination's statement: the most its send() can
+  reach); per batch, COPY into a temporary table then ``INSERT … SELECT … ON CONFLICT`` (its way
+  when a record of the batch is in the table already); the pipelined ``INSERT … ON CONFLICT`` it
+  used before; and the buffer drained into a destination that discards.
 - s3: the same kind of buffer drained by the S3 destination: objects/s and MB/s of JSON lines;
   baseline: boto3 ``put_object`` of the same bytes cut into the same objects.
 - files: files uploaded by the MinIO destination's ``send()`` against boto3's ``upload_file`` of
@@ -368,7 +369,7 @@ def _data_bytes(rows: Sequence[tuple[str, dt.datetime, str, str]]) -> int:
     return sum(len(row[2].encode("utf-8")) + 1 for row in rows)
 
 
-def pg_copy(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, str, str]]) -> Figure:
+def pg_copy(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, str, str]], *, binary: bool) -> Figure:
     nbytes = _data_bytes(rows)
     with pg.connect() as connection:
         pg.create_table(connection, table)
@@ -377,11 +378,45 @@ def pg_copy(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, str
         with (
             connection.transaction(),
             connection.cursor() as cursor,
-            cursor.copy(f"COPY {table} (tag, time, data, record_id) FROM STDIN") as copy,
+            cursor.copy(_copy_statement(connection, table, binary=binary)) as copy,
         ):
+            if binary:
+                copy.set_types(_BINARY_TYPES)
             for row in rows:
                 copy.write_row(row)
         window.mark(len(rows), nbytes)
+        pg.count_and_drop(connection, table, len(rows))
+    return window.figure
+
+
+_BINARY_TYPES = ["varchar", "timestamp", "jsonb", "text"]
+
+
+def _copy_statement(connection: Any, table: str, *, binary: bool) -> str:
+    """COPY of the four columns; binary with the dumper the PgSQL destination registers for ``data``."""
+    from dc_destinations.pgsql import json_text_binary_dumper
+
+    if not binary:
+        return f"COPY {table} (tag, time, data, record_id) FROM STDIN"
+    connection.adapters.register_dumper(None, json_text_binary_dumper())
+    return f"COPY {table} (tag, time, data, record_id) FROM STDIN (FORMAT BINARY)"
+
+
+def pg_direct(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, str, str]], batch_size: int) -> Figure:
+    """The PgSQL destination's statement from memory: per batch, one binary COPY straight into the table,
+    outside a transaction block (the COPY is its own transaction)."""
+    with pg.connect() as connection:
+        pg.create_table(connection, table)
+        statement = _copy_statement(connection, table, binary=True)
+        batches = [rows[start : start + batch_size] for start in range(0, len(rows), batch_size)]
+        sizes = [_data_bytes(batch) for batch in batches]
+        window = Window(len(rows), pg.cpu)
+        for batch, nbytes in zip(batches, sizes, strict=True):
+            with connection.cursor() as cursor, cursor.copy(statement) as copy:
+                copy.set_types(_BINARY_TYPES)
+                for row in batch:
+                    copy.write_row(row)
+            window.mark(len(batch), nbytes)
         pg.count_and_drop(connection, table, len(rows))
     return window.figure
 
@@ -406,8 +441,9 @@ def pg_insert(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, s
 
 
 def pg_staged(pg: Postgres, table: str, rows: Sequence[tuple[str, dt.datetime, str, str]], batch_size: int) -> Figure:
-    """The PgSQL destination's statements from memory: per batch, COPY into a temporary table emptied
-    at commit, then INSERT … SELECT … ON CONFLICT DO NOTHING (keeps exactly-once on record_id)."""
+    """The PgSQL destination's statements from memory when a record of the batch is in the table already:
+    per batch, COPY into a temporary table emptied at commit, then INSERT … SELECT … ON CONFLICT DO
+    NOTHING."""
     with pg.connect() as connection:
         pg.create_table(connection, table)
         connection.execute(f"CREATE TEMP TABLE staging (LIKE {table}) ON COMMIT DELETE ROWS")
@@ -465,9 +501,14 @@ def run_pgsql(
     pg: Postgres, scratch: Path, run: int, records: Sequence[OutgoingRecord], batch_sizes: Sequence[int], profile: bool
 ) -> dict[str, Figure]:
     rows = pg_rows("bench", records)
-    out = {"copy": pg_copy(pg, f"copy_{run}", rows)}
+    out = {"copy": pg_copy(pg, f"copy_{run}", rows, binary=False)}
     _say(run, LABELS["copy"], out["copy"], "rows")
+    out["copybinary"] = pg_copy(pg, f"copybinary_{run}", rows, binary=True)
+    _say(run, LABELS["copybinary"], out["copybinary"], "rows")
     for size in batch_sizes:
+        key = f"direct_{size}"
+        out[key] = pg_direct(pg, f"{key}_{run}", rows, size)
+        _say(run, _label(key), out[key], "rows")
         key = f"insert_{size}"
         out[key] = pg_insert(pg, f"{key}_{run}", rows, size)
         _say(run, _label(key), out[key], "rows")
@@ -680,6 +721,8 @@ def run_files(s3: Seaweed, run: int, sets: Sequence[FileSet], batch_size: int) -
 
 LABELS = {
     "copy": "COPY FROM STDIN, one transaction (baseline)",
+    "copybinary": "COPY FROM STDIN binary, one transaction",
+    "direct": "binary COPY straight into the table, {n}/transaction",
     "insert": "INSERT … ON CONFLICT, {n} rows/transaction, no buffer",
     "staged": "COPY to temp table + INSERT … SELECT, {n}/transaction",
     "discard": "DC buffer → destination that discards, batch_size {n}",
@@ -785,10 +828,11 @@ def _code_state() -> dict[str, Any]:
 
     def git(*argv: str) -> str:
         done = subprocess.run(["git", *argv], cwd=REPO, capture_output=True, text=True, check=False)
-        return done.stdout.strip()
+        return done.stdout
 
+    # Not stripped: a porcelain line starts with its two status columns, the first often a space.
     changed = git("status", "--porcelain", "--", "dc_destinations", "dc_core").splitlines()
-    return {"commit": git("rev-parse", "HEAD"), "changed": [line[3:] for line in changed]}
+    return {"commit": git("rev-parse", "HEAD").strip(), "changed": [line[3:] for line in changed]}
 
 
 def report(

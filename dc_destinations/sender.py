@@ -6,8 +6,8 @@ For a destination plugin's author, this is the whole story of delivery:
    the order they arrived.
 2. The sender reads the oldest ``batch_size`` of them and calls ``send(batch)`` on its own thread,
    never on the server's main loop: ``send`` may block on the network (meanwhile the next batch
-   is read, to be sent once this one is confirmed). It wakes up when ``batch_size`` records wait
-   or ``flb.flush`` seconds passed.
+   is read, to be sent once this one is confirmed, and the batch confirmed before is deleted from
+   the queue). It wakes up when ``batch_size`` records wait or ``flb.flush`` seconds passed.
 3. ``send`` returns ``None``: every record is confirmed and deleted from the queue. It returns a
    :class:`~dc_core.destination.SendOutcome`: the indexes in ``reject`` go to the dead letters with
    their reason, those in ``retry`` stay in the queue with one more attempt counted, the others are
@@ -141,27 +141,42 @@ class Sender:
         self._clock = clock
         self._wait = wait
         self._backoff = Backoff(settings.scheduler_base, settings.scheduler_cap, uniform)
+        # Row ids of the last batch the destination confirmed whole, not yet deleted from the queue,
+        # and the delete of the batch before, running in the reader thread (see _run).
+        self._confirmed: list[int] = []
+        self._acknowledging: Future[None] | None = None
 
     def run(self) -> None:
-        # While send() waits on the destination, a reader thread reads and prepares the next batch:
-        # the sender's own work (SQLite, building the records) and the destination's server then
-        # use the machine at the same time instead of one after the other (docs/performance.md).
+        # While send() waits on the destination, a reader thread reads and prepares the next batch
+        # and deletes the batch confirmed before it: the sender's own work (SQLite, building the
+        # records) and the destination's server then use the machine at the same time instead of
+        # one after the other (docs/performance.md).
         with ThreadPoolExecutor(1, thread_name_prefix=f"dc-read-{self.route.name}") as reader:
-            self._run(reader)
+            try:
+                self._run(reader)
+            finally:
+                self._settle_on_exit()
 
     def _run(self, reader: ThreadPoolExecutor) -> None:
         route, buffer = self.route, self.buffer
         batch_size = route.params.batch_size
+        # The batch after the one in flight, being read; and the row id it was read after.
         ahead: Future[_Batch] | None = None
+        ahead_after = 0
         while True:
             closing = self.closing.event.is_set()
             if closing and self._clock() >= self.closing.deadline:
                 return
             try:
-                batch = self._still_next(ahead) if ahead is not None else None
+                batch = self._still_next(ahead, ahead_after) if ahead is not None else None
                 ahead = None
                 if batch is None:
+                    self._settle()  # a queue read from its head holds no confirmed row
                     batch = self._prepare(buffer.read_batch(route.name, batch_size))
+                else:
+                    # Submitted before the next read ahead, so that once that read is done, this
+                    # delete is too: the reader thread is idle when the read's result is checked.
+                    self._acknowledge_behind(reader)
             except BufferCorrupted:
                 ahead = None
                 continue
@@ -180,9 +195,10 @@ class Sender:
                 route.tick_logs()
                 continue
             if len(rows) == batch_size:  # a short batch emptied the queue: nothing to read ahead
-                ahead = reader.submit(self._read_after, rows[-1].row_id)
+                ahead_after = rows[-1].row_id
+                ahead = reader.submit(self._read_after, ahead_after)
             try:
-                must_retry = self.deliver(rows, batch)
+                must_retry = self.deliver(rows, batch, defer_delete=True)
             except BufferClosed:
                 return
             except BufferCorrupted:
@@ -202,26 +218,77 @@ class Sender:
             else:
                 self._backoff.reset()
                 if len(rows) < batch_size and not closing:
+                    try:
+                        self._settle()  # the queue as it is, for whoever looks, while the sender waits
+                    except BufferClosed:
+                        return
+                    except Exception as exc:
+                        if self._buffer_trouble(f"updating the buffer: {type(exc).__name__}: {exc}"):
+                            return
+                        continue
                     self._idle()
+
+    def _acknowledge(self, row_ids: list[int]) -> None:
+        """Forget rows the destination confirmed, and count them sent."""
+        self.buffer.delete(self.route.name, row_ids)
+        self.route.metrics.add("sent", len(row_ids))
+
+    def _acknowledge_behind(self, reader: ThreadPoolExecutor) -> None:
+        """The delete of the last batch confirmed handed to the reader thread, once the one before it is done.
+
+        A delete that failed raises here (its rows are sent again, as after a crash); the rows of
+        the last batch then stay in ``_confirmed``, for :meth:`_settle`.
+        """
+        if self._acknowledging is not None:
+            done, self._acknowledging = self._acknowledging, None
+            done.result()
+        if self._confirmed:
+            confirmed, self._confirmed = self._confirmed, []
+            self._acknowledging = reader.submit(self._acknowledge, confirmed)
+
+    def _settle(self) -> None:
+        """Every confirmed row deleted from the queue, the deletes in flight waited for; raises what they raised.
+
+        Rows whose delete failed are forgotten here, and sent again (at least once, as after a crash).
+        """
+        acknowledging, self._acknowledging = self._acknowledging, None
+        confirmed, self._confirmed = self._confirmed, []
+        if acknowledging is not None:
+            acknowledging.result()
+        if confirmed:
+            self._acknowledge(confirmed)
+
+    def _settle_on_exit(self) -> None:
+        try:
+            self._settle()
+        except BufferClosed:
+            pass  # the pipeline closed the buffer: the rows are sent again at the next start
+        except Exception as exc:
+            what = f"updating the buffer: {type(exc).__name__}: {exc}"
+            self.route.metrics.add("failed")
+            self.route.metrics.set_error(what)
+            self.route.failure_log.event(1, what)
 
     def _read_after(self, row_id: int) -> _Batch:
         """In the reader thread: the batch after ``row_id``, prepared."""
         return self._prepare(self.buffer.read_batch(self.route.name, self.route.params.batch_size, after_id=row_id))
 
-    def _still_next(self, ahead: Future[_Batch]) -> _Batch | None:
-        """The batch read ahead, if it is still what a read from the head would return; else None.
+    def _still_next(self, ahead: Future[_Batch], after_id: int) -> _Batch | None:
+        """The batch read ahead after row ``after_id``, if it is still what a read from the head would give; else None.
 
-        It is when it is full and its first row is the queue's head. Rows leave a queue from its
-        head (sent, dead-lettered, dropped by the size limit), so none of its rows left since the
-        read, and a row committed since took an id above them all: the batch is still the first
+        Called once the batch up to ``after_id`` left the queue, or is confirmed and waits for its
+        delete (no record of it retried). The read ahead is still the head's then when it is full
+        and its first row is still the first after ``after_id``. Rows leave a queue from its head
+        (sent, dead-lettered, dropped by the size limit), so none of its rows left since the read,
+        and a row committed since took an id above them all: the batch is still the first
         ``batch_size`` rows. Otherwise (a short read, a size limit that dropped its first rows)
         the head is read again: rare, and a read costs far less than a send.
         """
         batch = ahead.result()
         if len(batch.rows) < self.route.params.batch_size:
             return None
-        head = self.buffer.read_batch(self.route.name, 1)
-        if not head or head[0].row_id != batch.rows[0].row_id:
+        first = self.buffer.read_batch(self.route.name, 1, after_id=after_id)
+        if not first or first[0].row_id != batch.rows[0].row_id:
             return None
         return batch
 
@@ -262,8 +329,12 @@ class Sender:
             sent_rows.append(row)
         return batch
 
-    def deliver(self, rows: list[BufferedRow], prepared: _Batch | None = None) -> bool:
-        """One send() of ``rows`` (``prepared``: as :meth:`_prepare` made them); True when some must be retried."""
+    def deliver(self, rows: list[BufferedRow], prepared: _Batch | None = None, *, defer_delete: bool = False) -> bool:
+        """One send() of ``rows`` (``prepared``: as :meth:`_prepare` made them); True when some must be retried.
+
+        ``defer_delete``: a batch confirmed whole is left in ``_confirmed``, to be deleted from the
+        queue while the next batch is sent (:meth:`_run`).
+        """
         route, buffer = self.route, self.buffer
         batch = prepared if prepared is not None else self._prepare(rows)
         records, sent_rows, unreadable = batch.records, batch.sent_rows, batch.unreadable
@@ -274,6 +345,9 @@ class Sender:
             return False
         retry, reject = _outcome_of(route.destination, records)
         confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
+        if defer_delete and not retry and not reject:
+            self._confirmed += confirmed
+            return False
         if confirmed:
             buffer.delete(route.name, confirmed)
             route.metrics.add("sent", len(confirmed))

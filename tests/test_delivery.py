@@ -136,6 +136,7 @@ def test_record_ids_are_uuid7_and_increase() -> None:
 def test_records_are_delivered_in_order_and_removed_from_the_buffer(tmp_path: Path) -> None:
     sink = Recorder()
     pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(batch_size=7))}, LOG)
+    started = time.time()
     pipeline.start()
     try:
         sent = [record(i) for i in range(100)]
@@ -149,6 +150,7 @@ def test_records_are_delivered_in_order_and_removed_from_the_buffer(tmp_path: Pa
         metrics = pipeline.metrics()["sink"]
         assert metrics["received"] == 100 and metrics["sent"] == 100
         assert metrics["dropped"] == metrics["failed"] == metrics["dead_lettered"] == 0
+        assert started <= metrics["last_delivery"] <= time.time() and metrics["last_error_time"] is None
     finally:
         pipeline.stop(grace=1.0)
 
@@ -231,7 +233,7 @@ def test_retryable_failures_back_off_exponentially_then_deliver(tmp_path: Path) 
         assert metrics["failed"] >= 3
         assert metrics["retried"] >= 3
         assert metrics["dead_lettered"] == 0
-        assert "503" in metrics["last_error"]
+        assert "503" in metrics["last_error"] and metrics["last_error_time"] <= metrics["last_delivery"]
     finally:
         pipeline.stop(grace=1.0)
 
@@ -279,6 +281,38 @@ def test_the_next_batch_is_read_while_send_runs_and_order_is_kept(
         pipeline.stop(grace=1.0)
     assert batches == [list(range(n, min(n + 5, 23))) for n in range(0, 23, 5)]
     assert pipeline.metrics()["sink"]["sent"] == 23
+
+
+def test_a_confirmed_batch_is_deleted_while_the_next_is_sent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    _prefilled(tmp_path, 15)
+    deletes: list[tuple[str, int]] = []  # (thread, rows)
+    delete = SqliteBuffer.delete
+
+    def spied(self: SqliteBuffer, destination: str, row_ids: Sequence[int]) -> int:
+        deletes.append((threading.current_thread().name, len(row_ids)))
+        return delete(self, destination, row_ids)
+
+    monkeypatch.setattr(SqliteBuffer, "delete", spied)
+    batches: list[list[int]] = []
+
+    def send(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        if call == 2:
+            wait_until(lambda: len(deletes) == 1, 5.0, "the first batch deleted during the second send()")
+        batches.append(_numbers(batch))
+
+    sink = Recorder(behaviour=send)
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(batch_size=5))}, LOG)
+    pipeline.start()
+    try:
+        sink.wait_for(15)
+        # The last batch is deleted before the sender waits for more: the queue shows it gone.
+        wait_until(lambda: pipeline.metrics()["sink"]["buffered"] == 0, what="empty buffer")
+        assert pipeline.metrics()["sink"]["sent"] == 15
+    finally:
+        pipeline.stop(grace=1.0)
+    assert batches == [list(range(n, n + 5)) for n in range(0, 15, 5)]
+    assert [thread.startswith("dc-read-sink") for thread, _ in deletes] == [True, True, False], deletes
+    assert [rows for _, rows in deletes] == [5, 5, 5]
 
 
 def test_a_retried_record_goes_again_before_the_batch_read_ahead(tmp_path: Path) -> None:

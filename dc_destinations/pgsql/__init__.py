@@ -5,22 +5,28 @@ The table is the original's (Fluent Bit's ``pgsql`` output: ``tag``, ``time``, `
 unknown (the connection died during COMMIT) adds nothing twice (``ON CONFLICT DO NOTHING``), so the
 buffer's at-least-once delivery becomes exactly one row per record.
 
-A batch is one transaction: ``COPY`` of its rows into a temporary table of the session (emptied at
-each commit), then one ``INSERT … SELECT … ON CONFLICT DO NOTHING`` from it into the table. COPY
-costs the client a fifth of the CPU of a pipelined multi-row INSERT (docs/performance.md), and the
-server does the deduplication as before. When the server refuses the batch because of its data (a
-JSON jsonb cannot hold, a value a constraint forbids), the batch is inserted again row by row, each
-row in its own savepoint: the refused rows go to the dead letters with the server's message, the
-others are committed. A role that may not create temporary tables inserts with psycopg's pipelined
-``executemany`` instead. Lost or refused connections, a server shutting down, wrong credentials
-and anything else are retried: they are about the server, not the records. The password is never
-logged nor part of an error message. Connecting, keeping the connection and wording its failures
-live in ``connection.py``, which the FilesMetrics destination shares.
+A batch is one ``COPY`` of its rows straight into the table, outside any transaction block: the
+statement is its own transaction, committed before the server answers it, so a batch is all in
+or all out, and it costs the server what a plain COPY does. It fails on the unique index when a
+record of it is there already (a batch sent again after the connection died during its commit, or
+a record twice in the batch): the batch is then inserted the careful way, in one transaction:
+``COPY`` into a temporary table of the session (emptied at each commit), then ``INSERT … SELECT …
+ON CONFLICT DO NOTHING`` from it, which adds only the rows not there yet. When the server refuses
+the batch because of its data (a JSON jsonb cannot hold, a value a constraint forbids), the batch
+is inserted again row by row, each row in its own savepoint: the refused rows go to the dead
+letters with the server's message, the others are committed. A role that may not create temporary
+tables uses psycopg's pipelined ``executemany`` for the careful way, and a table COPY may not load
+(row-level security) gets the careful way for every batch. Lost or refused connections, a server
+shutting down, wrong credentials and anything else are retried: they are about the server, not the
+records. The password is never logged nor part of an error message. Connecting, keeping the
+connection and wording its failures live in ``connection.py``, which the FilesMetrics destination
+shares.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -43,6 +49,17 @@ from dc_destinations.pgsql.connection import (
 )
 
 _EPOCH = dt.datetime(1970, 1, 1)
+_COLUMNS = ("tag", "time", "data", "record_id")
+# The column types of a table DC creates (a `tag` of type text too): a COPY into such a table can be
+# binary, which costs the client and the server about half the CPU of text (docs/performance.md).
+# Any other types (a table made by hand: json, timestamptz, varchar(n)) get text, converted by the
+# server as an INSERT's values would be.
+_BINARY_TYPES = (
+    ("character varying", "text"),
+    ("timestamp without time zone",),
+    ("jsonb",),
+    ("text",),
+)
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
@@ -99,11 +116,17 @@ class PgSQL(Destination[PgSQLParams]):
         super().__init__(context, params)
         self._database: KeptConnection | None = None  # made by on_configure, connected by the first batch
         self._insert: Any = None
+        self._load: Any = None  # COPY straight into the table, as text
+        self._load_binary: Any = None  # the same, binary
         self._stage: Any = None  # COPY into the staging table, then the INSERT … SELECT from it
         self._move: Any = None
         # Whether the current connection has its staging table (a temporary table lives as long as
         # its session, so it is made again with every new connection).
         self._staging = False
+        # Whether the table takes a COPY: tried again on every new connection (a table's row-level
+        # security may have been switched off meanwhile); and whether it may be binary.
+        self._direct = False
+        self._binary = False
         self.address = ""
 
     def __repr__(self) -> str:
@@ -130,6 +153,10 @@ class PgSQL(Destination[PgSQLParams]):
             "INSERT INTO {} (tag, time, data, record_id) VALUES (%s, %s, %s::jsonb, %s)"
             " ON CONFLICT (record_id) DO NOTHING"
         ).format(self._table())
+        self._load = sql.SQL("COPY {} (tag, time, data, record_id) FROM STDIN").format(self._table())
+        self._load_binary = sql.SQL("COPY {} (tag, time, data, record_id) FROM STDIN (FORMAT BINARY)").format(
+            self._table()
+        )
         staging = self._staging_table()
         self._stage = sql.SQL("COPY {} (tag, time, data, record_id) FROM STDIN").format(staging)
         self._move = sql.SQL(
@@ -175,6 +202,32 @@ class PgSQL(Destination[PgSQLParams]):
     ) -> dict[int, str]:
         import psycopg
 
+        if self._direct:
+            try:
+                # The connection is in autocommit: this COPY commits alone, before its answer.
+                with (
+                    connection.cursor() as cursor,
+                    cursor.copy(self._load_binary if self._binary else self._load) as copy,
+                ):
+                    if self._binary:
+                        copy.set_types(["varchar", "timestamp", "jsonb", "text"])
+                    for _, values in rows:
+                        copy.write_row(values)
+                return {}
+            except psycopg.errors.UniqueViolation:
+                pass  # some rows are there already: the way that skips them
+            except psycopg.errors.FeatureNotSupported as exc:
+                self._direct = False
+                self.context.logger.warning(
+                    f"table {self.params.table} of {self.address} takes no COPY ({one_line(str(exc))}): "
+                    "inserting with INSERT … ON CONFLICT, which costs the server more CPU"
+                )
+            except psycopg.Error as exc:
+                if not is_record_error(exc):
+                    raise
+                if len(rows) == 1:
+                    return {rows[0][0]: database.refusal(exc)}
+                return self._insert_one_by_one(database, connection, rows)
         try:
             with connection.transaction(), connection.cursor() as cursor:
                 if self._staging:
@@ -190,7 +243,17 @@ class PgSQL(Destination[PgSQLParams]):
                 raise
             if len(rows) == 1:
                 return {rows[0][0]: database.refusal(exc)}
-        # Which rows did the server refuse? Each again in its own savepoint, in one transaction.
+        return self._insert_one_by_one(database, connection, rows)
+
+    def _insert_one_by_one(
+        self,
+        database: KeptConnection,
+        connection: Any,
+        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]],
+    ) -> dict[int, str]:
+        """Which rows does the server refuse? Each again in its own savepoint, in one transaction."""
+        import psycopg
+
         rejected: dict[int, str] = {}
         with connection.transaction():
             for index, values in rows:
@@ -205,9 +268,16 @@ class PgSQL(Destination[PgSQLParams]):
 
     # -- table -------------------------------------------------------------------------------------
     def _prepare_table(self, connection: Any) -> None:
-        self._staging = False
+        self._staging = self._direct = self._binary = False
         self._ensure_table(connection)
-        self._staging = self._make_staging_table(connection)
+        types = self._column_types(connection)
+        self._staging = self._make_staging_table(connection, types)
+        self._direct = True
+        self._binary = len(types) == len(_COLUMNS) and all(
+            types[column] in allowed for column, allowed in zip(_COLUMNS, _BINARY_TYPES, strict=True)
+        )
+        if self._binary:
+            connection.adapters.register_dumper(None, json_text_binary_dumper())
 
     def _ensure_table(self, connection: Any) -> None:
         """The table, its record_id column and their unique index, created when missing.
@@ -241,7 +311,18 @@ class PgSQL(Destination[PgSQLParams]):
             connection.execute(sql.SQL("CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (record_id)").format(index, table))
         self.context.logger.info(f"table {name} ready in {self.address} (tag, time, data, record_id)")
 
-    def _make_staging_table(self, connection: Any) -> bool:
+    def _column_types(self, connection: Any) -> dict[str, str]:
+        """The types of the table's four columns (those it has), as ``format_type`` writes them."""
+        return dict(
+            connection.execute(
+                """SELECT attname, format_type(atttypid, atttypmod) FROM pg_attribute
+                    WHERE attrelid = to_regclass(%s) AND attnum > 0 AND NOT attisdropped
+                      AND attname IN ('tag', 'time', 'data', 'record_id')""",
+                (self._table().as_string(connection),),
+            ).fetchall()
+        )
+
+    def _make_staging_table(self, connection: Any, found: dict[str, str]) -> bool:
         """This session's staging table, with the types of the table's four columns; False if not allowed.
 
         The types come from the catalog rather than ``CREATE TABLE … AS SELECT`` from the table,
@@ -252,19 +333,10 @@ class PgSQL(Destination[PgSQLParams]):
         import psycopg
         from psycopg import sql
 
-        found = dict(
-            connection.execute(
-                """SELECT attname, format_type(atttypid, atttypmod) FROM pg_attribute
-                    WHERE attrelid = to_regclass(%s) AND attnum > 0 AND NOT attisdropped
-                      AND attname IN ('tag', 'time', 'data', 'record_id')""",
-                (self._table().as_string(connection),),
-            ).fetchall()
-        )
-        columns = ("tag", "time", "data", "record_id")
-        if any(column not in found for column in columns):
+        if any(column not in found for column in _COLUMNS):
             return False  # a table without them: the INSERT says what is wrong, as it always did
         definition = sql.SQL(", ").join(
-            sql.SQL("{} {}").format(sql.Identifier(column), sql.SQL(found[column])) for column in columns
+            sql.SQL("{} {}").format(sql.Identifier(column), sql.SQL(found[column])) for column in _COLUMNS
         )
         try:
             connection.execute(
@@ -292,6 +364,27 @@ class PgSQL(Destination[PgSQLParams]):
         # the name of the table it feeds.
         name = "dc_staging" if self.params.table.rsplit(".", 1)[-1] != "dc_staging" else "dc_staging_2"
         return sql.Identifier("pg_temp", name)
+
+
+@functools.cache
+def json_text_binary_dumper() -> type:
+    """psycopg dumper of JSON text (a str) as jsonb's binary form: a version byte, then the text.
+
+    Made at first use: psycopg is an optional dependency. Registered for jsonb's oid only, it is
+    what ``set_types`` picks for the data column, and nothing else uses it.
+    """
+    from psycopg import postgres
+    from psycopg.adapt import Dumper
+    from psycopg.pq import Format
+
+    class JsonTextBinaryDumper(Dumper):
+        format = Format.BINARY
+        oid = postgres.types["jsonb"].oid
+
+        def dump(self, obj: Any) -> bytes:
+            return b"\x01" + str(obj).encode("utf-8")
+
+    return JsonTextBinaryDumper
 
 
 def record_time(record: OutgoingRecord, timestamp_key: str = "") -> dt.datetime:

@@ -7,6 +7,7 @@ The last two tests go through `dc-bringup` with real processes, the last one acr
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import logging
 import shutil
@@ -158,10 +159,10 @@ def admin(server: PostgresServer) -> Any:
     )
 
 
-def test_a_batch_goes_through_the_staging_table(server: PostgresServer, destinations: list[PgSQL]) -> None:
+def test_a_batch_sent_again_goes_through_the_staging_table(server: PostgresServer, destinations: list[PgSQL]) -> None:
     dest = make(server, destinations, table="staged")
     batch = [record(i, name="seq") for i in range(500)]
-    assert dest.send(batch) is None
+    assert dest.send(batch) is None and dest.send(batch) is None
     assert dest._staging, "COPY into the session's staging table, not INSERT … VALUES"
     with admin(server) as connection:
         got = connection.execute("SELECT data, record_id FROM staged ORDER BY (data->>'seq')::int").fetchall()
@@ -178,6 +179,110 @@ def test_a_refused_row_in_a_large_batch_holds_up_no_other(server: PostgresServer
     assert sorted(r[2]["seq"] for r in rows(server, "refused_large")) == [i for i in range(500) if i != 250]
     assert dest.send([record(500)]) is None, "the staging table is empty again and usable after the rollback"
     assert len(rows(server, "refused_large")) == 500
+
+
+class CopySpy:
+    """The COPY statements a destination's connection ran, as text, and how each ended."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.statements: list[tuple[str, str]] = []
+        copy = psycopg.Cursor.copy
+        spy = self
+
+        @contextlib.contextmanager
+        def spied(cursor: Any, statement: Any, *args: Any, **kwargs: Any) -> Iterator[Any]:
+            text = statement.as_string(cursor.connection) if hasattr(statement, "as_string") else str(statement)
+            try:
+                with copy(cursor, statement, *args, **kwargs) as running:
+                    yield running
+            except psycopg.Error as exc:
+                spy.statements.append((text, type(exc).__name__))
+                raise
+            spy.statements.append((text, "ok"))
+
+        monkeypatch.setattr(psycopg.Cursor, "copy", spied)
+
+    def into(self, table: str) -> list[str]:
+        """How each COPY straight into ``table`` ended: "ok" or the error's class."""
+        return [outcome for text, outcome in self.statements if text.startswith(f'COPY "{table}"')]
+
+    def staged(self) -> int:
+        return sum(1 for text, _ in self.statements if "dc_staging" in text)
+
+
+def test_a_batch_is_one_binary_copy_into_the_table(
+    server: PostgresServer, destinations: list[PgSQL], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    spy = CopySpy(monkeypatch)
+    dest = make(server, destinations, table="direct")
+    batch = [record(i, name="seq", note="üñí \\ \t") for i in range(300)]
+    assert dest.send(batch) is None
+    assert spy.into("direct") == ["ok"] and spy.staged() == 0, spy.statements
+    assert "FORMAT BINARY" in spy.statements[0][0], "the table DC made takes binary"
+    got = rows(server, "direct")
+    assert [(r[0], r[2], r[3]) for r in got] == [("warehouse", r.data, r.record_id) for r in batch]
+    assert got[0][1] == dt.datetime(2023, 11, 14, 22, 13, 20, 123456)
+
+
+def test_a_batch_with_a_row_already_there_takes_the_staging_table(
+    server: PostgresServer, destinations: list[PgSQL], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    dest = make(server, destinations, table="partly_there")
+    first = [record(i) for i in range(10)]
+    assert dest.send(first) is None
+    spy = CopySpy(monkeypatch)
+    assert dest.send([*first[5:], record(10), record(11)]) is None
+    assert spy.into("partly_there") == ["UniqueViolation"] and spy.staged() == 1, spy.statements
+    assert sorted(r[2]["seq"] for r in rows(server, "partly_there")) == list(range(12))
+    assert dest.send([record(12)]) is None
+    assert spy.into("partly_there") == ["UniqueViolation", "ok"], "the next batch is copied straight again"
+
+
+def test_a_refused_row_and_a_row_already_there_in_one_batch(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    dest = make(server, destinations, table="refused_and_there")
+    there = record(0)
+    assert dest.send([there]) is None
+    outcome = dest.send([record(1), there, record(2, text="nul \u0000 inside"), record(3)])
+    assert outcome is not None and list(outcome.reject) == [2] and not outcome.retry
+    assert "SQLSTATE 22P05" in outcome.reject[2]
+    assert sorted(r[2]["seq"] for r in rows(server, "refused_and_there")) == [0, 1, 3]
+
+
+def test_a_table_made_by_hand_with_other_types_gets_text(
+    server: PostgresServer, destinations: list[PgSQL], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with admin(server) as connection:
+        connection.execute(
+            "CREATE TABLE handmade (tag varchar(20), time timestamptz, data json, record_id text UNIQUE)"
+        )
+    spy = CopySpy(monkeypatch)
+    dest = make(server, destinations, table="handmade")
+    batch = [record(0, name="uptime"), record(1, name="memory")]
+    assert dest.send(batch) is None and dest.send(batch) is None
+    assert spy.into("handmade") == ["ok", "UniqueViolation"]
+    assert "BINARY" not in spy.statements[0][0]
+    assert [(r[2], r[3]) for r in rows(server, "handmade")] == [(r.data, r.record_id) for r in batch]
+    refused = make(server, destinations, table="handmade", name="a_tag_longer_than_twenty_characters")
+    outcome = refused.send([record(2)])
+    assert outcome is not None and "value too long" in outcome.reject[0]
+
+
+def test_a_table_with_row_level_security_takes_the_staging_table(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    logger = RecordingLogger()
+    dest = make(server, destinations, logger=logger, table="guarded")
+    assert dest.send([record(0)]) is None  # creates the table
+    with admin(server) as connection:
+        connection.execute("ALTER TABLE guarded ENABLE ROW LEVEL SECURITY")
+        connection.execute("ALTER TABLE guarded FORCE ROW LEVEL SECURITY")
+        connection.execute("CREATE POLICY everything ON guarded USING (true) WITH CHECK (true)")
+    dest.on_deactivate()  # a new connection, as after a restart
+    assert dest.send([record(1), record(2)]) is None
+    assert dest.send([record(3)]) is None
+    assert not dest._direct
+    assert [r[2]["seq"] for r in rows(server, "guarded")] == [0, 1, 2, 3]
+    assert len([m for m in logger.at("warning") if "takes no COPY" in m]) == 1
 
 
 def test_a_record_twice_in_one_batch_is_one_row(server: PostgresServer, destinations: list[PgSQL]) -> None:
