@@ -107,24 +107,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
-    from rclpy.signals import SignalHandlerOptions
 
     from dc_bringup.manager import LifecycleManager
-    from dc_core.lifecycle import ServerLoop, ros_namespace
+    from dc_core.lifecycle import ServerLoop, init_server_process, ros_namespace
     from dc_core.signals import wake_on_signals
 
+    stop = init_server_process(args.log_level, args.namespace)
     namespace = ros_namespace(args.namespace) if args.namespace.strip("/") else ""
-    ros_args = ["--ros-args", "--log-level", args.log_level]
-    if namespace:
-        ros_args += ["-r", f"__ns:={namespace}"]
-    rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
 
     names = [name for name in SERVER_MODULES if name in report.servers]
     nodes = []

@@ -276,6 +276,23 @@ def ros_namespace(namespace: str) -> str:
     return "/" + namespace.strip("/")
 
 
+def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequence[str] = ()) -> threading.Event:
+    """rclpy for a process of servers, and the event SIGINT and SIGTERM set: its loop stops, its servers shut down."""
+    ros_args = ["--ros-args", "--log-level", log_level]
+    if namespace.strip("/"):
+        ros_args += ["-r", f"__ns:={ros_namespace(namespace)}"]
+    # rclpy's own handlers would shut the context down under the servers before they could stop in order.
+    rclpy.init(args=[*ros_args, *more_ros_args], signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    return stop
+
+
 def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = None) -> int:
     """Process entry point of a server: ``python -m <module> PARAMS [--autostart]``."""
     parser = argparse.ArgumentParser(prog=node_class.__name__)
@@ -286,20 +303,8 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
     parser.add_argument("--use-sim-time", action="store_true", help="follow /clock (a bag, a simulator)")
     args = parser.parse_args(argv)
 
-    ros_args = ["--ros-args", "--log-level", args.log_level]
-    if args.namespace:
-        ros_args += ["-r", f"__ns:={ros_namespace(args.namespace)}"]
-    if args.use_sim_time:
-        ros_args += ["-p", "use_sim_time:=true"]
-    rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-
+    sim_time = ["-p", "use_sim_time:=true"] if args.use_sim_time else []
+    stop = init_server_process(args.log_level, args.namespace, sim_time)
     node = node_class(args.params_file)  # type: ignore[call-arg]
     executor = SingleThreadedExecutor()
     executor.add_node(node)

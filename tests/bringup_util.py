@@ -154,3 +154,19 @@ class Bringup:
 def dc(*args: str, env: dict[str, str] | None = None, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
     """Run the `dc` command-line tool."""
     return subprocess.run([str(BIN / "dc"), *args], capture_output=True, text=True, env=env, timeout=timeout)
+
+
+def example_1_with_robot_name_from(robot_file: Path, params: Path) -> Path:
+    """The seed's example 1 whose records carry a robot_name read from ``robot_file`` at configure
+    time: a server that cannot configure once the file is gone."""
+    params.write_text(
+        (REPO / "params" / "examples" / "example_1.yaml").read_text()
+        + f"""
+    custom_str_params_list: ["robot_name"]
+    custom_str_params:
+      robot_name:
+        name: "robot_name"
+        value_from_file: "{robot_file}"
+"""
+    )
+    return params

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.bringup_util import REPO, Bringup, dc
+from tests.bringup_util import REPO, Bringup, dc, example_1_with_robot_name_from
 
 EXAMPLES = REPO / "params" / "examples"
 pytestmark = pytest.mark.e2e
@@ -220,17 +220,7 @@ def test_killed_server_is_restarted_and_collection_resumes(tmp_path: Path) -> No
 def test_a_server_that_does_not_come_back_is_restarted_again_until_it_does(tmp_path: Path) -> None:
     robot_file = tmp_path / "robot_name"
     robot_file.write_text("C3PO\n")
-    params = tmp_path / "params.yaml"
-    params.write_text(
-        (EXAMPLES / "example_1.yaml").read_text()
-        + f"""
-    custom_str_params_list: ["robot_name"]
-    custom_str_params:
-      robot_name:
-        name: "robot_name"
-        value_from_file: "{robot_file}"
-"""
-    )
+    params = example_1_with_robot_name_from(robot_file, tmp_path / "params.yaml")
     with Bringup(params, tmp_path / "home", args=["--bond-timeout", "2"]) as run:
         run.wait_records(1, timeout=60)
         line = next(s for s in run.stderr if "measurement_server active (pid" in s)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.bringup_util import Bringup, dc
+from tests.bringup_util import Bringup, dc, example_1_with_robot_name_from
 
 pytestmark = pytest.mark.e2e
 
@@ -161,17 +161,7 @@ def test_a_stuck_loop_is_noticed_by_the_heartbeats_and_the_process_restarted(tmp
 
 def test_a_process_that_never_came_up_is_not_restarted(tmp_path: Path) -> None:
     robot_file = tmp_path / "missing_robot_name"
-    params = tmp_path / "params.yaml"
-    params.write_text(
-        (EXAMPLES / "example_1.yaml").read_text()
-        + f"""
-    custom_str_params_list: ["robot_name"]
-    custom_str_params:
-      robot_name:
-        name: "robot_name"
-        value_from_file: "{robot_file}"
-"""
-    )
+    params = example_1_with_robot_name_from(robot_file, tmp_path / "params.yaml")
     with Bringup(params, tmp_path / "home", args=MODE) as run:
         code = run.wait_exit(60)
     assert code == 1, run.stderr
