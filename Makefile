@@ -6,6 +6,7 @@
 #   make test        ruff, mypy, pytest
 #   make run         dc-bringup with params/default.yaml (PARAMS=... to change)
 #   make servers     the local PostgreSQL, S3 and InfluxDB the storage destinations and demos use
+#   make demo        see it: the QR-code demo into PostgreSQL and S3 with the dashboard on http://127.0.0.1:8088/
 #   make clean       remove build/ and the install stamps (keeps the venv)
 #   make distclean   clean + remove the venv
 #
@@ -56,7 +57,7 @@ unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
 SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
 
-.PHONY: install test-deps run test servers clean distclean
+.PHONY: install test-deps run test servers demo clean distclean
 
 install: $(VENV)/.stamp-dc
 
@@ -125,6 +126,11 @@ run: install
 # The local PostgreSQL, S3 (SeaweedFS) and InfluxDB of the storage demos, until Ctrl-C.
 servers: install test-deps
 	$(VENV)/bin/dc servers run
+
+# The servers, the simulated robot, dc-bringup with the QR-code storage demo and the dashboard, until Ctrl-C.
+demo: install test-deps
+	@mkdir -p $(ROS_LOG_DIR)
+	ROS_AUTOMATIC_DISCOVERY_RANGE=$(RUN_DISCOVERY_RANGE) ROS_LOG_DIR=$(ROS_LOG_DIR) $(VENV)/bin/dc demo
 
 test: install test-deps
 	$(VENV)/bin/ruff check .

@@ -27,6 +27,12 @@ class ServerHealth:
     def dead_letters(self) -> int:
         return sum(int(d.get("dead_letters") or 0) for d in self.destinations.values())
 
+    @property
+    def last_delivery(self) -> float | None:
+        """The newest ``last_delivery`` of its destinations (Unix time), None before any."""
+        times = [float(t) for d in self.destinations.values() if isinstance(t := d.get("last_delivery"), int | float)]
+        return max(times, default=None)
+
 
 def read(label: str, url: str, timeout: float = 3.0) -> ServerHealth:
     health = ServerHealth(label, url)

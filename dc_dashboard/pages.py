@@ -302,13 +302,18 @@ def health(
     storages: Sequence[dict[str, Any]],
     missing_indexes: Sequence[str],
     problems: Sequence[str],
+    now: float,
 ) -> str:
+    """``last_stored``: per tag, the time of its newest row, which is the record's own time (its
+    stamp, simulated time under a simulator), not when it was stored; ``now``: Unix time, for ages."""
     pending = sum(s.pending for s in servers if not s.error)
     dead = sum(s.dead_letters for s in servers if not s.error)
     reachable = sum(1 for s in servers if not s.error)
+    delivered = max((t for s in servers if not s.error and (t := s.last_delivery) is not None), default=None)
     cards = (
         stat("pending", f"{pending:,}" if reachable else NONE, "records waiting in the buffer")
         + stat("dead-letters", f"{dead:,}" if reachable else NONE, "dead letters")
+        + stat("last-delivery", _ago(delivered, now), "since the last delivery, any destination")
         + stat("servers", f"{reachable} of {len(servers)}", "metrics servers answering")
     )
     parts = [f'<div class="cards">{cards}</div>']
@@ -327,15 +332,17 @@ def health(
             f"<td class=num>{_int(d.get('sent'))}</td>"
             f"<td class=num>{_int(d.get('buffered'))}</td><td class=num>{_age(d.get('oldest_pending_age_s'))}</td>"
             f"<td class=num>{_int(d.get('retried'))}</td><td class=num>{_int(d.get('failed'))}</td>"
-            f"<td class=num>{_dead(d.get('dead_letters'))}</td><td>{when(last_stored.get(name))}</td>"
-            f"<td>{escape(str(d.get('last_error') or ''))[:300]}</td></tr>"
+            f"<td class=num>{_dead(d.get('dead_letters'))}</td><td class=delivered>{_utc(d.get('last_delivery'))}</td>"
+            f"<td>{when(last_stored.get(name))}</td>"
+            f"<td>{_error(d)}</td></tr>"
             for name, d in sorted(server.destinations.items())
         )
         parts.append(
             f'<div class="panel"><h2>{escape(server.label)}</h2><table class="destinations">'
             "<tr><th>destination</th><th class=num>received</th><th class=num>sent</th><th class=num>pending</th>"
             "<th class=num>oldest pending</th><th class=num>retried</th><th class=num>failed</th>"
-            "<th class=num>dead letters</th><th>newest row stored</th><th>last error</th></tr>"
+            "<th class=num>dead letters</th><th>last delivery</th><th>newest row's record time</th>"
+            "<th>last error</th></tr>"
             f"{rows}</table></div>"
         )
     stored = "".join(f"<tr><td>{escape(tag)}</td><td>{when(t)}</td></tr>" for tag, t in sorted(last_stored.items()))
@@ -345,8 +352,8 @@ def health(
         for s in storages
     )
     parts.append(
-        '<div class="two"><div class="panel"><h2>Last delivery to PostgreSQL, per destination</h2>'
-        "<table id=last-stored><tr><th>destination (tag)</th><th>newest record stored</th></tr>"
+        '<div class="two"><div class="panel"><h2>Newest rows in PostgreSQL, per destination</h2>'
+        "<table id=last-stored><tr><th>destination (tag)</th><th>newest row's record time</th></tr>"
         f"{stored or '<tr><td colspan=2 class=no>no rows</td></tr>'}</table></div>"
         '<div class="panel"><h2>Last delivery of files, per storage</h2>'
         "<table id=last-files><tr><th>storage</th><th>last verified</th><th>last update</th>"
@@ -381,6 +388,23 @@ def _dead(value: Any) -> str:
 
 def _age(value: Any) -> str:
     return f"{float(value):.1f} s" if isinstance(value, int | float) and value else NONE
+
+
+def _utc(value: Any) -> str:
+    """A Unix time of the metrics as the page's other times: UTC, to the second."""
+    if not isinstance(value, int | float):
+        return NONE
+    return when(dt.datetime.fromtimestamp(value, dt.UTC).replace(tzinfo=None))
+
+
+def _ago(value: float | None, now: float) -> str:
+    return f"{max(now - value, 0.0):,.0f} s ago" if value is not None else NONE
+
+
+def _error(values: dict[str, Any]) -> str:
+    error = escape(str(values.get("last_error") or ""))[:300]
+    at = values.get("last_error_time")
+    return f"{_utc(at)}: {error}" if error and isinstance(at, int | float) else error
 
 
 def _size(value: int) -> str:

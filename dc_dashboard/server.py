@@ -116,7 +116,7 @@ class Dashboard:
                 storages = self.store.files_by_storage(connection)
             except DashboardError as exc:  # no files table: DC delivers no files here
                 problems.append(str(exc))
-        return pages.health(servers, last_stored, storages, missing, problems)
+        return pages.health(servers, last_stored, storages, missing, problems, time.time())
 
     def image(self, query: str) -> tuple[int, bytes, str]:
         key = parse_qs(query).get("key", [""])[-1]

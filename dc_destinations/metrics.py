@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,23 +32,33 @@ class _Counts:
 
 
 class DestinationMetrics:
-    """Thread-safe counters of one destination."""
+    """Thread-safe counters of one destination, and when it last delivered and last failed.
 
-    def __init__(self) -> None:
+    Times are wall-clock epoch seconds (UTC), None until the first: a dashboard compares them with
+    other machines' clocks, which a monotonic clock could not be.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.time) -> None:
         self._lock = threading.Lock()
+        self._clock = clock
         self._counts = _Counts()
         self.last_error = ""
         self.last_error_time: float | None = None
+        self.last_delivery: float | None = None
 
     def add(self, counter: str, n: int = 1) -> None:
         if n:
             with self._lock:
                 setattr(self._counts, counter, getattr(self._counts, counter) + n)
+                # Records are counted sent once the destination confirmed them, wherever the sender
+                # counts them: stamping here keeps `sent` and `last_delivery` from ever disagreeing.
+                if counter == "sent":
+                    self.last_delivery = self._clock()
 
     def set_error(self, error: str) -> None:
         with self._lock:
             self.last_error = error
-            self.last_error_time = time.time()
+            self.last_error_time = self._clock()
 
     def get(self, counter: str) -> int:
         with self._lock:
@@ -57,6 +68,8 @@ class DestinationMetrics:
         with self._lock:
             out: dict[str, Any] = {name: getattr(self._counts, name) for name in COUNTERS}
             out["last_error"] = self.last_error
+            out["last_error_time"] = self.last_error_time
+            out["last_delivery"] = self.last_delivery
         return out
 
 
@@ -83,6 +96,16 @@ _QUEUE_GAUGES = (
     ),
 )
 
+# (metric name, key in DeliveryPipeline.metrics(), help text): no sample for a destination without one yet.
+_TIME_GAUGES = (
+    (
+        "dc_delivery_last_success_timestamp_seconds",
+        "last_delivery",
+        "When records were last confirmed by the destination (Unix time)",
+    ),
+    ("dc_delivery_last_error_timestamp_seconds", "last_error_time", "When delivery last failed (Unix time)"),
+)
+
 
 def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, Any]) -> str:
     """Prometheus text exposition (format 0.0.4) of :meth:`DeliveryPipeline.metrics`."""
@@ -101,6 +124,15 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         samples = [(prometheus_labels(destination=d), values[key]) for d, values in sorted(destinations.items())]
         if key == "oldest_pending_age_s":
             samples = [(labels, float(value or 0.0)) for labels, value in samples]
+        text.family(name, "gauge", doc, samples)
+    for name, key, doc in _TIME_GAUGES:
+        # Whole seconds: PrometheusText writes floats with 6 significant digits, which would round
+        # a Unix time to about 20 minutes.
+        samples = [
+            (prometheus_labels(destination=d), int(values[key]))
+            for d, values in sorted(destinations.items())
+            if values.get(key) is not None
+        ]
         text.family(name, "gauge", doc, samples)
     text.family(
         "dc_delivery_buffer_quarantined_total",

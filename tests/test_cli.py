@@ -8,10 +8,12 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
 
+from dc_bringup.cli import STATUS_COLUMNS
 from tests.bringup_util import BIN, REPO, dc
 from tests.domains import fresh_domain_id
 
@@ -221,6 +223,8 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
                 "dead_letters": 1,
                 "oldest_pending_age_s": 12.5,
                 "last_error": "HTTP 503 Service Unavailable",
+                "last_error_time": time.time() - 60,
+                "last_delivery": time.time() - 3,
                 "plugin": {"reconnects": 4},
             },
         },
@@ -263,7 +267,9 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert titles[:3] == ["destination", "received", "buffered"] and "dead-lettered" in titles
     cells = row.split()
     assert cells[:4] == ["pg", "10", "3", "600"] and "12.5" in cells
-    assert row.endswith("HTTP 503 Service Unavailable")
+    assert titles[-5:] == ["sent", "s", "ago", "last", "error"]
+    assert 3.0 <= float(cells[len(STATUS_COLUMNS)]) < 30.0, row  # seconds since last_delivery, the last column
+    assert row.endswith("60 s ago: HTTP 503 Service Unavailable")
     assert any("corrupt files set aside 1" in line for line in rest)
     assert any("COMMITS FAILING for 42.0 s" in line and "disk is full" in line for line in rest), rest
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)

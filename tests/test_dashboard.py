@@ -68,6 +68,26 @@ def test_charts_draw_every_series_and_say_when_there_is_nothing() -> None:
     assert image_type(b"\x89PNG\r\n\x1a\n...") == "image/png" and image_type(b"<svg") is None
 
 
+def test_the_health_page_shows_each_destinations_last_delivery_from_the_metrics() -> None:
+    from dc_dashboard.health import ServerHealth
+    from dc_dashboard.pages import health
+
+    delivered = dt.datetime(2026, 11, 25, 10, 0, 5, tzinfo=dt.UTC).timestamp()
+    server = ServerHealth("destination_server", "http://x/api/v1/metrics")
+    server.destinations = {
+        "pg": {"sent": 4, "last_delivery": delivered, "last_error": "timeout", "last_error_time": delivered - 5},
+        "s3": {"sent": 0, "last_delivery": None, "last_error": ""},
+    }
+    # The newest row's time is the record's own (simulated time, here): shown apart, labelled as such.
+    page = health([server], {"pg": dt.datetime(2023, 11, 14, 22, 0)}, [], [], [], now=delivered + 12)
+    pg, s3 = page.split("<tr><td>pg</td>")[1], page.split("<tr><td>s3</td>")[1]
+    assert "<td class=delivered>2026-11-25 10:00:05</td><td>2023-11-14 22:00:00</td>" in pg
+    assert "<td>2026-11-25 10:00:00: timeout</td>" in pg
+    assert s3.startswith("<td class=num>") and "<td class=delivered>\u2013</td>" in s3
+    assert 'id="stat-last-delivery"><span class="value">12 s ago' in page
+    assert "last delivery" in page and "newest row's record time" in page
+
+
 # -- queries against a real PostgreSQL -------------------------------------------------------------------
 
 
@@ -396,6 +416,7 @@ def test_the_dashboard_in_a_browser_over_the_pgsql_minio_demo(tmp_path: Path, mo
             browser.get(base + "/health")
             table = browser.find_element(By.CSS_SELECTOR, "table.destinations").text
             assert "flb_pgsql" in table and "flb_minio" in table
+            assert browser.find_element(By.CSS_SELECTOR, "#stat-last-delivery .value").text.endswith("s ago")
             assert browser.find_element(By.CSS_SELECTOR, "#stat-servers .value").text == "1 of 1"
             _screenshot(browser, shots, "health")
         # The demo stopped: its metrics are gone, and the page says so instead of failing.

@@ -13,7 +13,7 @@ import pytest
 
 from dc_core.http_status import StatusServer
 from dc_core.logs import BurstLog
-from dc_destinations.metrics import prometheus_text
+from dc_destinations.metrics import DestinationMetrics, prometheus_text
 
 
 class State:
@@ -99,7 +99,10 @@ def test_prometheus_text_format() -> None:
         "oldest_pending_age_s": 2.5,
         "last_error": "x",
     }
-    text = prometheus_text({'we"ird': row, "b": row}, {"quarantined": 1, "intake_pending": 0, "commit_failing_s": 12.5})
+    delivered = {**row, "last_delivery": 1795326396.643, "last_error_time": None}
+    text = prometheus_text(
+        {'we"ird': row, "b": delivered}, {"quarantined": 1, "intake_pending": 0, "commit_failing_s": 12.5}
+    )
     assert "# TYPE dc_delivery_sent_total counter" in text
     assert 'dc_delivery_sent_total{destination="b"} 4' in text
     assert 'dc_delivery_received_total{destination="we\\"ird"} 5' in text
@@ -108,7 +111,29 @@ def test_prometheus_text_format() -> None:
     assert "dc_delivery_buffer_quarantined_total 1" in text
     assert 'dc_delivery_malformed_total{destination="b"} 3' in text
     assert "dc_delivery_commit_failing_seconds 12.5" in text
+    # Whole seconds, not 1.79533e+09; no sample for a destination that has none yet.
+    assert 'dc_delivery_last_success_timestamp_seconds{destination="b"} 1795326396\n' in text
+    assert "# TYPE dc_delivery_last_error_timestamp_seconds gauge" in text
+    assert 'timestamp_seconds{destination="we' not in text
     assert text.endswith("\n")
+
+
+def test_destination_metrics_stamp_the_last_delivery_and_the_last_error() -> None:
+    now = [1795326396.5]
+    metrics = DestinationMetrics(clock=lambda: now[0])
+    metrics.add("received", 3)
+    metrics.add("sent", 0)  # nothing confirmed: no delivery
+    assert metrics.snapshot()["last_delivery"] is None and metrics.snapshot()["last_error_time"] is None
+    metrics.add("sent", 2)
+    now[0] += 10.0
+    metrics.set_error("HTTP 503")
+    metrics.add("failed")
+    snapshot = metrics.snapshot()
+    assert snapshot["last_delivery"] == 1795326396.5 and snapshot["last_error_time"] == 1795326406.5
+    assert snapshot["sent"] == 2 and snapshot["last_error"] == "HTTP 503"
+    now[0] += 5.0
+    metrics.add("sent")
+    assert metrics.snapshot()["last_delivery"] == 1795326411.5
 
 
 def test_burst_log_is_one_line_then_a_summary() -> None:
