@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import abc
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,13 +60,21 @@ class OutgoingRecord:
         return dump_record(self.data)
 
     @classmethod
-    def serialised(cls, record_id: str, topic: str, stamp_ns: int, data: dict[str, Any]) -> OutgoingRecord:
+    def serialised(
+        cls,
+        record_id: str,
+        topic: str,
+        stamp_ns: int,
+        data: dict[str, Any],
+        dump: Callable[[dict[str, Any]], str] = dump_record,
+    ) -> OutgoingRecord:
         """A record with its JSON text written now by dump_record (MalformedRecord if ``data`` cannot be).
 
         The buffer stores its text as DC JSON for certain, and delivery does not parse it again
         (:attr:`text_follows_rule`); a ``json_text`` given to the constructor is not trusted so.
+        ``dump``: :func:`dc_core.records.dump_parsed` for data made of a parsed record (routing).
         """
-        record = cls(record_id, topic, stamp_ns, data, dump_record(data))
+        record = cls(record_id, topic, stamp_ns, data, dump(data))
         object.__setattr__(record, "_text_follows_rule", True)
         return record
 

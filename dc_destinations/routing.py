@@ -4,7 +4,7 @@ A record that arrived on topic T reaches destination D only if D lists T in its 
 name is one of the record's ``tags`` — compared whole: the original matched tags as substrings, so
 a destination ``flb_pg`` also caught records tagged ``flb_pgsql``. Each delivery is a copy of the
 record without ``tags``, with the destination's time key first (the header stamp in its
-``time_format``) and a fresh ``record_id``, serialised (:func:`dc_core.records.dump_record`, which
+``time_format``) and a fresh ``record_id``, serialised (:func:`dc_core.records.dump_parsed`, which
 raises ``MalformedRecord`` for a record that is not valid UTF-8 JSON). Pure: no ROS, no I/O.
 """
 
@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dc_core.destination import OutgoingRecord
+from dc_core.records import dump_parsed
 from dc_core.timefmt import format_stamp
 from dc_destinations.config import DestinationConfig
 from dc_destinations.record_ids import new_record_id
@@ -108,13 +109,24 @@ class RoutingTable:
         record_id = new_record_id()
         body[RECORD_ID_KEY] = record_id
         deliveries = []
+        stamps: dict[str, float | str] = {}
         for target in targets:
-            data = dict(body)
-            if target.time_key:
-                data.pop(target.time_key, None)
-                # First, as the original's output showed it: {"date": ..., <record>}.
-                data = {target.time_key: format_stamp(stamp_ns, target.time_format), **data}
+            time_key = target.time_key
+            if time_key:
+                stamp = stamps.get(target.time_format)
+                if stamp is None:
+                    stamp = stamps[target.time_format] = format_stamp(stamp_ns, target.time_format)
+                # First, as the original's output showed it: {"date": ..., <record>}, and in place
+                # of a key of the record so named.
+                data: dict[str, Any] = {time_key: stamp}
+                data.update(body)
+                data[time_key] = stamp
+            else:
+                # The last destination may have the body itself: nothing else keeps or changes it.
+                data = body if target is targets[-1] else dict(body)
             # Serialised here, once: what cannot be written back as JSON (an infinite number, a lone
             # surrogate) raises MalformedRecord before any copy reaches the buffer.
-            deliveries.append((target.name, OutgoingRecord.serialised(record_id, topic, stamp_ns, data)))
+            deliveries.append(
+                (target.name, OutgoingRecord.serialised(record_id, topic, stamp_ns, data, dump=dump_parsed))
+            )
         return Routed(deliveries)

@@ -27,6 +27,7 @@ from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
+from dc_core.stamped_cdr import read_string_stamped
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.hop import HopIntake, HopKey, hop_key
@@ -163,8 +164,12 @@ class DestinationServer(ManagedServer):
         with_history = []
         for topic in self.routing.topics:
             qos = _with_room_for_a_replay(subscription_qos(topic, self._internal_topics))
-            on_message = functools.partial(self._on_message, topic)
-            self._subscription_of[topic] = self.intake.subscribe(StringStamped, topic, on_message, qos)
+            on_serialised = functools.partial(self._on_serialised, topic)
+            subscription = self.intake.subscribe(StringStamped, topic, on_serialised, qos)
+            # Taken as the bytes DDS delivered: the stamp and the text are read from them directly,
+            # without building the message's Python objects (dc_core.stamped_cdr).
+            subscription.raw = True
+            self._subscription_of[topic] = subscription
             if topic in self._internal_topics:
                 with_history.append(topic)
         self.get_logger().info(
@@ -197,8 +202,16 @@ class DestinationServer(ManagedServer):
         self._tick_logs()
 
     # -- intake (the main loop's intake, on the main thread) --------------------------------------------
+    def _on_serialised(self, topic: str, serialised: bytes, info: Any = None) -> None:
+        stamp_ns, text = read_string_stamped(serialised)
+        self._on_record(topic, text, stamp_ns, info)
+
     def _on_message(self, topic: str, msg: Any, info: Any = None) -> None:
-        assert self.hop is not None and self.pipeline is not None
+        """A record as a ``StringStamped`` message."""
+        self._on_record(topic, msg.data, msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, info)
+
+    def _on_record(self, topic: str, text: str, stamp_ns: int, info: Any) -> None:
+        assert self.hop is not None and self.pipeline is not None and self.routing is not None
         key = hop_key(topic, info)
         verdict = self.hop.check(topic, key)
         if verdict.duplicate:
@@ -211,12 +224,9 @@ class DestinationServer(ManagedServer):
                 f"{topic}: publication sequence numbers {verdict.first_skipped}..{last} never arrived",
             )
         self.stats.received += 1
-        text: str = msg.data
-        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if stamp_ns == 0:
             # An unstamped message (a bare `ros2 topic pub`) would otherwise be dated 1970.
             stamp_ns = self.get_clock().now().nanoseconds
-        assert self.routing is not None
         try:
             record = parse_record(text)
             routed = self.routing.route(topic, record, stamp_ns, new_record_id)
@@ -229,9 +239,10 @@ class DestinationServer(ManagedServer):
             self._hand_over([], key)
             return
         self.stats.routed += 1
-        for name, outgoing in routed.deliveries:
-            if name in self._debug:
-                self.get_logger().info(f"{name} <- {outgoing.to_json()}")
+        if self._debug:
+            for name, outgoing in routed.deliveries:
+                if name in self._debug:
+                    self.get_logger().info(f"{name} <- {outgoing.to_json()}")
         self._hand_over(routed.deliveries, key)
 
     def _tick_logs(self) -> None:

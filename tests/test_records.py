@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from dc_core.records import MalformedRecord, dump_record, parse_record
+from dc_core.records import MalformedRecord, dump_parsed, dump_record, parse_record
 
 
 @pytest.mark.parametrize(
@@ -53,3 +53,40 @@ def test_dump_refuses_what_a_plugin_may_produce() -> None:
         dump_record({"file": "caf\udce9.txt"})  # a file name that is not UTF-8, as os.listdir gives it
     with pytest.raises(MalformedRecord, match="not JSON-serialisable"):
         dump_record({"when": object()})
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        '{"big": 18446744073709551616, "neg": -9223372036854775809}',  # beyond 64 bits: exact, as json reads them
+        '{"long": 1234567890123456789012.5}',
+        '{"small": [1e-05, 1.5e-09, 7.000749751940372e-05, 0.0001, 2.2e-308]}',  # json's way of writing them
+        '{"looks": "0.00001 and 1e-7"}',
+        '{"pair": "\\ud83d\\ude00", "escaped": "\\u00e9\\n"}',
+        '{"a": 1, "a": 2}',
+    ],
+    ids=["beyond-64-bits", "long-float", "small-floats", "string-like-small-float", "escapes", "duplicate-key"],
+)
+def test_fast_path_reads_and_writes_as_json_does(text: str) -> None:
+    record = parse_record(text)
+    assert record == json.loads(text)
+    assert [type(v) for v in record.values()] == [type(v) for v in json.loads(text).values()]
+    expected = json.dumps(record, ensure_ascii=False, separators=(",", ":"), allow_nan=False)
+    assert dump_parsed(record) == dump_record(record) == expected
+
+
+def test_fast_path_refuses_with_json_reasons() -> None:
+    """What orjson refuses, json reads and the rule refuses: the reason is the rule's, not orjson's."""
+    for text, reason in (('{"a": NaN}', "NaN is not a JSON number"), ('{"t": "\\udcff"}', "lone surrogate")):
+        with pytest.raises(MalformedRecord) as refused:
+            parse_record(text)
+        assert reason in str(refused.value)
+
+
+def test_dump_parsed_writes_what_orjson_cannot() -> None:
+    deep: dict[str, Any] = {}
+    inner = deep
+    for _ in range(300):  # deeper than orjson writes
+        inner["a"] = inner = {}
+    record = {"big": 10**30, "deep": deep}
+    assert dump_parsed(record) == dump_record(record)
