@@ -57,19 +57,45 @@ class Camera:
         # A keyframe a second: a client that connects any time starts decoding quickly.
         source = ["-re", "-f", "lavfi", "-i", "testsrc=size=320x240:rate=10"]
         encoding = ["-c:v", "libx264", "-preset", "ultrafast", "-g", "10"]
-        self.process = subprocess.Popen(
-            ["ffmpeg", "-nostdin", "-loglevel", "error", *source, *encoding, "-f", "mpegts", "-listen", "1", self.url],
-            stdin=subprocess.DEVNULL,
-        )
-        # Ready once it listens; a test connection would take the one client it serves.
-        process = psutil.Process(self.process.pid)
-        wait_for(
-            "the camera listening",
-            lambda: any(
-                c.status == psutil.CONN_LISTEN and c.laddr.port == self.port for c in process.net_connections()
-            ),
-            10,
-        )
+        for attempt in range(3):
+            self.process = subprocess.Popen(
+                [
+                    "ffmpeg",
+                    "-nostdin",
+                    "-loglevel",
+                    "error",
+                    *source,
+                    *encoding,
+                    "-f",
+                    "mpegts",
+                    "-listen",
+                    "1",
+                    self.url,
+                ],
+                stdin=subprocess.DEVNULL,
+            )
+            # Ready once it listens (or serves); a test connection would take the one client it serves.
+            process = self.process
+            wait_for(
+                "the camera listening, or exiting",
+                lambda p=process: p.poll() is not None or self._listens(p.pid),  # type: ignore[misc]
+                30,
+            )
+            if process.poll() is None:
+                return
+            # Started again on the port of a camera just killed, ffmpeg may find it still taken.
+            time.sleep(0.5 * (attempt + 1))
+        raise AssertionError(f"the camera's ffmpeg kept exiting (code {process.returncode})")
+
+    def _listens(self, pid: int) -> bool:
+        try:
+            connections = psutil.Process(pid).net_connections()
+        except psutil.Error:  # exited between the poll and this look
+            return False
+        # With -listen 1 ffmpeg closes its listening socket once a client is in: a recorder that
+        # reconnects the moment it listens leaves only the established connection to see.
+        serving = (psutil.CONN_LISTEN, psutil.CONN_ESTABLISHED)
+        return any(c.status in serving and c.laddr.port == self.port for c in connections)
 
     def stop(self) -> None:
         if self.process is not None and self.process.poll() is None:
