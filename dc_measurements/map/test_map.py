@@ -172,6 +172,33 @@ def test_map_saves_pgm_yaml_and_png_of_a_non_square_grid_once(ros: Ros, tmp_path
     ros.harness.stop(plugin)
 
 
+def test_a_map_that_cannot_be_saved_is_counted_logged_and_saved_at_the_next_poll(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/map")
+    publisher = ros.node.create_publisher(OccupancyGrid, topic, MAP_QOS)
+    publisher.publish(grid(8, 5, seed=3))
+    # A file where the map's folder should be: no folder can be made there, even by root.
+    blocker = tmp_path / "robot1"
+    blocker.write_text("not a folder")
+    plugin = ros.harness.make(Map, {"topic": topic, "save_path": "maps/map", "save_map_timeout": 0.0})
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path), "robot1")
+    plugin.on_configure()
+    plugin.on_activate()
+    first = collected(ros, plugin)
+    publish_record(ros, plugin, first)
+    assert plugin.counters()["save_errors"] == 1 and plugin.counters()["saved"] == 0
+    (error,) = ros.harness.context(plugin).logger.at("error")
+    assert "map files not saved" in error
+    assert not Path(first["local_paths"]["pgm"]).exists()
+
+    # The same map is not taken as saved: once the folder can be made, the next poll saves it.
+    blocker.unlink()
+    again = collected(ros, plugin)
+    publish_record(ros, plugin, again)
+    assert plugin.counters()["saved"] == 1
+    assert (read_pgm(Path(again["local_paths"]["pgm"])).shape) == (5, 8)
+    ros.harness.stop(plugin)
+
+
 def test_no_map_reports_nothing_after_save_map_timeout(ros: Ros, tmp_path: Path) -> None:
     plugin = ros.harness.make(Map, {"topic": unique("/map"), "save_map_timeout": 0.2})
     ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
