@@ -173,6 +173,29 @@ def test_codes_are_read_and_the_inspected_image_written_only_once_published(ros:
     ros.harness.stop(plugin)
 
 
+def test_an_image_that_cannot_be_written_is_counted_and_logged_and_the_next_one_is(ros: Ros, tmp_path: Path) -> None:
+    # A file where the camera's folder should be: no folder can be made there, even by root.
+    blocker = tmp_path / "robot1"
+    blocker.write_text("not a folder")
+    plugin, topic = started(ros, tmp_path, detection_modules=["barcode"])
+    publisher = ros.publisher(Image, topic, QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    frame = label_frame(LABEL, 640, 480)
+    record = collected(ros, plugin, lambda: publisher.publish(frame_message(frame)))
+    plugin.on_published(record)
+    ros.harness.run_finished_work(plugin)
+    assert (plugin.counters()["save_errors"], plugin.counters()["saved_images"]) == (1, 0)
+    (error,) = ros.harness.context(plugin).logger.at("error")
+    assert "images not saved" in error and record["local_paths"]["inspected"] in error
+    # The camera goes on: a later frame's image is written once the folder can be made.
+    blocker.unlink()
+    second = collected(ros, plugin, lambda: publisher.publish(frame_message(frame, 1_700_000_001)))
+    plugin.on_published(second)
+    ros.harness.run_finished_work(plugin)
+    assert plugin.counters()["saved_images"] == 1
+    assert cv2.imread(second["local_paths"]["inspected"]) is not None
+    ros.harness.stop(plugin)
+
+
 def test_a_frame_without_codes_gives_no_record_and_a_dropped_record_no_file(ros: Ros, tmp_path: Path) -> None:
     plugin, topic = started(ros, tmp_path, detection_modules=["qr"], save_raw_img=True, save_raw_base64=True)
     publisher = ros.publisher(Image, topic, QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
