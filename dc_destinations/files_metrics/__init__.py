@@ -45,6 +45,7 @@ from dc_destinations.pgsql.connection import (
     check_server,
     effective_sslmode,
     is_record_error,
+    require_psycopg,
     table_problem,
 )
 
@@ -204,13 +205,7 @@ class FilesMetrics(Destination[FilesMetricsParams]):
 
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
-        try:
-            import psycopg  # noqa: F401
-        except ImportError as exc:
-            raise ConfigError(
-                f"destination_server.{self.context.name}.plugin",
-                'the FilesMetrics destination needs psycopg (pip install "ros2-dc[pgsql]")',
-            ) from exc
+        require_psycopg(self.context.name, "FilesMetrics")
         table = FilesTable(self.params.pgsql.table)
         self._table = table
         self._database = KeptConnection(

@@ -32,7 +32,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, SendOutcome
-from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_core.records import MalformedRecord
 from dc_destinations.pgsql.connection import (
@@ -45,6 +44,7 @@ from dc_destinations.pgsql.connection import (
     is_record_error,
     one_line,
     port_problem,
+    require_psycopg,
     table_problem,
 )
 
@@ -134,13 +134,9 @@ class PgSQL(Destination[PgSQLParams]):
 
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
-        try:
-            from psycopg import sql
-        except ImportError as exc:
-            raise ConfigError(
-                f"destination_server.{self.context.name}.plugin",
-                'the PgSQL destination needs psycopg (pip install "ros2-dc[pgsql]")',
-            ) from exc
+        require_psycopg(self.context.name, "PgSQL")
+        from psycopg import sql
+
         self._database = KeptConnection(
             self.params.server(),
             application_name=f"dc {self.context.name}",
@@ -225,9 +221,7 @@ class PgSQL(Destination[PgSQLParams]):
             except psycopg.Error as exc:
                 if not is_record_error(exc):
                     raise
-                if len(rows) == 1:
-                    return {rows[0][0]: database.refusal(exc)}
-                return self._insert_one_by_one(database, connection, rows)
+                return self._refused(database, connection, rows, exc)
         try:
             with connection.transaction(), connection.cursor() as cursor:
                 if self._staging:
@@ -241,8 +235,18 @@ class PgSQL(Destination[PgSQLParams]):
         except psycopg.Error as exc:
             if not is_record_error(exc):
                 raise
-            if len(rows) == 1:
-                return {rows[0][0]: database.refusal(exc)}
+            return self._refused(database, connection, rows, exc)
+
+    def _refused(
+        self,
+        database: KeptConnection,
+        connection: Any,
+        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]],
+        exc: Exception,
+    ) -> dict[int, str]:
+        """The server refused a record of the batch: which one, when it is alone; else each row on its own."""
+        if len(rows) == 1:
+            return {rows[0][0]: database.refusal(exc)}
         return self._insert_one_by_one(database, connection, rows)
 
     def _insert_one_by_one(

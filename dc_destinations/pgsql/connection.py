@@ -30,6 +30,16 @@ _AUTH_HINTS = ("password authentication failed", "no password supplied", "authen
 MESSAGE_CHARS = 500
 
 
+def require_psycopg(name: str, kind: str) -> None:
+    """A ConfigError naming the destination ``name`` (of plugin ``kind``) when psycopg is not installed."""
+    try:
+        import psycopg  # noqa: F401
+    except ImportError as exc:
+        raise ConfigError(
+            f"destination_server.{name}.plugin", f'the {kind} destination needs psycopg (pip install "ros2-dc[pgsql]")'
+        ) from exc
+
+
 def port_problem(port: int) -> str | None:
     return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
 

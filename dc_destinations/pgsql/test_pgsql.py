@@ -12,6 +12,7 @@ import datetime as dt
 import logging
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -89,6 +90,29 @@ def rows(server: PostgresServer, table: str) -> list[tuple[Any, ...]]:
     ) as connection:
         query = f'SELECT tag, time, data, record_id FROM "{table}" ORDER BY time'
         return list(connection.execute(query).fetchall())
+
+
+@pytest.mark.parametrize("plugin", ["PgSQL", "FilesMetrics"])
+def test_without_psycopg_configure_says_what_to_install(plugin: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    from dc_destinations.files_metrics import FilesMetrics
+    from tests.destination_helpers import make as make_destination
+
+    destination = (
+        make_destination(PgSQL, name="db")
+        if plugin == "PgSQL"
+        else make_destination(
+            FilesMetrics,
+            name="db",
+            file_storage=["minio"],
+            minio={"bucket": "dc-bucket", "src_fields": ["local_path"], "upload_fields": ["remote_path"]},
+        )
+    )
+    monkeypatch.setitem(sys.modules, "psycopg", None)  # what an install without the pgsql extra gives
+    with pytest.raises(ConfigError) as error:
+        destination.on_configure()
+    assert str(error.value) == (
+        f'destination_server.db.plugin: the {plugin} destination needs psycopg (pip install "ros2-dc[pgsql]")'
+    )
 
 
 def test_rows_arrive_with_tag_time_data_and_record_id(server: PostgresServer, destinations: list[PgSQL]) -> None:
