@@ -1,12 +1,18 @@
-"""What the tests of several destination plugins share: sample records, a configured plugin."""
+"""What the tests of several destination plugins share: sample records, a configured plugin, a PostgreSQL."""
 
 from __future__ import annotations
 
+import contextlib
+import secrets
+import shutil
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from dc_bringup.local_servers.postgres import PostgresServer
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext
@@ -71,3 +77,20 @@ def forwarding_params(
     params = tmp_path / "params.yaml"
     params.write_text(yaml.safe_dump(document, sort_keys=False))
     return params
+
+
+@contextlib.contextmanager
+def running_postgres(prefix: str, password: str | None = None) -> Iterator[PostgresServer]:
+    """A PostgreSQL of the test's own on loopback, running inside the block, its data removed after.
+
+    Its folder is not under pytest's tmp_path: as root, PostgreSQL runs as user postgres, who
+    cannot enter that.
+    """
+    folder = Path(tempfile.mkdtemp(prefix=prefix))
+    server = PostgresServer(folder, password=password or secrets.token_urlsafe(12))
+    try:
+        server.start()
+        yield server
+    finally:
+        server.stop()
+        shutil.rmtree(folder, ignore_errors=True)

@@ -31,6 +31,7 @@ from dc_dashboard.queries import Store
 from dc_dashboard.server import Dashboard
 from dc_dashboard.settings import DashboardSettings, PostgresSettings, S3Settings
 from tests.bringup_util import BIN, REPO, Bringup
+from tests.destination_helpers import running_postgres
 
 T0 = dt.datetime(2026, 3, 1, 12, 0, 0)
 ARTIFACTS = REPO / "test-artifacts" / "dashboard"
@@ -129,10 +130,7 @@ def database() -> Iterator[PostgresSettings]:
     reason = postgres.missing_reason()
     if reason is not None:
         pytest.fail(reason)  # make test-deps installs it: a skip would hide a missing dependency
-    folder = Path(tempfile.mkdtemp(prefix="dc-pg-dash-"))  # not under tmp_path: user postgres enters it
-    server = postgres.PostgresServer(folder, password=secrets.token_urlsafe(12))
-    try:
-        server.start()
+    with running_postgres("dc-pg-dash-") as server:
         settings = PostgresSettings(
             port=server.port, user=server.user, password=server.password, database=server.database
         )
@@ -164,9 +162,6 @@ def database() -> Iterator[PostgresSettings]:
                      not deleted, deleted, record_id, T0 if verified else None),
                 )  # fmt: skip
         yield settings
-    finally:
-        server.stop()
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 def test_the_numbers_follow_the_robot_run_and_time_filters(database: PostgresSettings) -> None:

@@ -4,10 +4,7 @@ what a backend engineer would query is there."""
 
 from __future__ import annotations
 
-import secrets
-import shutil
 import subprocess
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +15,7 @@ import pytest
 from dc_bringup.local_servers import postgres, seaweedfs
 from dc_bringup.local_servers.run import environment
 from tests.bringup_util import BIN, REPO, Bringup
+from tests.destination_helpers import running_postgres
 
 pytestmark = pytest.mark.e2e
 
@@ -50,22 +48,15 @@ def storage_servers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator
     for missing in (postgres.missing_reason(), seaweedfs.missing_reason()):
         if missing is not None:
             pytest.skip(missing)
-    # Not under tmp_path: as root, PostgreSQL runs as user postgres, who cannot enter it.
-    pg_folder = Path(tempfile.mkdtemp(prefix="dc-pg-demo-"))
-    servers = StorageServers(
-        postgres.PostgresServer(pg_folder, password=secrets.token_urlsafe(12)),
-        seaweedfs.SeaweedS3Server(tmp_path / "s3"),
-    )
-    try:
-        servers.pg.start()
-        servers.s3.start()
-        for name, value in environment({"postgres": servers.pg.settings(), "s3": servers.s3.settings()}).items():
-            monkeypatch.setenv(name, value)
-        yield servers
-    finally:
-        servers.s3.stop()
-        servers.pg.stop()
-        shutil.rmtree(pg_folder, ignore_errors=True)
+    with running_postgres("dc-pg-demo-") as pg:
+        servers = StorageServers(pg, seaweedfs.SeaweedS3Server(tmp_path / "s3"))
+        try:
+            servers.s3.start()
+            for name, value in environment({"postgres": pg.settings(), "s3": servers.s3.settings()}).items():
+                monkeypatch.setenv(name, value)
+            yield servers
+        finally:
+            servers.s3.stop()
 
 
 @pytest.fixture

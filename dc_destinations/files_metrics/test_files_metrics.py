@@ -12,7 +12,6 @@ import logging
 import os
 import shutil
 import subprocess
-import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -34,7 +33,7 @@ from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.config import parse_destination_server
 from dc_destinations.record_ids import new_record_id
 from tests.bringup_util import Bringup, dc
-from tests.destination_helpers import forwarding_params
+from tests.destination_helpers import forwarding_params, running_postgres
 from tests.http_receiver import free_port
 
 if postgres_missing() or seaweed_missing():
@@ -59,15 +58,8 @@ ORIGINAL_DDL = """CREATE TABLE {} (id SERIAL PRIMARY KEY, timestamp TIMESTAMP NO
 
 @pytest.fixture(scope="module")
 def pg() -> Iterator[PostgresServer]:
-    # Not under pytest's tmp_path: as root, PostgreSQL runs as user postgres, who cannot enter it.
-    folder = Path(tempfile.mkdtemp(prefix="dc-fm-pg-"))
-    server = PostgresServer(folder, password=PASSWORD)
-    try:
-        server.start()
+    with running_postgres("dc-fm-pg-", PASSWORD) as server:
         yield server
-    finally:
-        server.stop()
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
@@ -706,22 +698,19 @@ OUTAGE_S = 30.0
 def test_e2e_a_30_s_database_outage_loses_no_row_and_deletes_nothing_unrecorded(
     tmp_path: Path, s3: SeaweedS3Server
 ) -> None:
-    folder = Path(tempfile.mkdtemp(prefix="dc-fm-outage-"))  # not under tmp_path: see the pg fixture
-    pg = PostgresServer(folder, password=PASSWORD)
-    pg.start()
-    files = [a_file(tmp_path, f"outage-{i:02d}.pgm", os.urandom(2000 + i)) for i in range(10)]
+    with running_postgres("dc-fm-outage-", PASSWORD) as pg:
+        files = [a_file(tmp_path, f"outage-{i:02d}.pgm", os.urandom(2000 + i)) for i in range(10)]
 
-    def recorded() -> list[dict[str, Any]]:
-        try:
-            return [row for row in rows(pg, "outage") if row["deleted"]]
-        except psycopg.Error:
-            return []
+        def recorded() -> list[dict[str, Any]]:
+            try:
+                return [row for row in rows(pg, "outage") if row["deleted"]]
+            except psycopg.Error:
+                return []
 
-    def publish(path: Path) -> None:
-        published = dc("pub", "/map-files", map_record(path, f"outage/{path.name}"), "--count", "1", env=run.env)
-        assert published.returncode == 0, published.stderr
+        def publish(path: Path) -> None:
+            published = dc("pub", "/map-files", map_record(path, f"outage/{path.name}"), "--count", "1", env=run.env)
+            assert published.returncode == 0, published.stderr
 
-    try:
         with Bringup(uploader_and_metrics_params(tmp_path, pg, s3, "outage"), tmp_path / "home") as run:
             run.wait_ready()
             for path in files[:3]:
@@ -738,9 +727,7 @@ def test_e2e_a_30_s_database_outage_loses_no_row_and_deletes_nothing_unrecorded(
             pg.start()  # the same data folder, port and password
             run.wait_until(lambda: len(recorded()) == len(files), 60, f"all {len(files)} files after the outage")
         stored = rows(pg, "outage")
-    finally:
-        pg.stop()
-        shutil.rmtree(folder, ignore_errors=True)
+
     assert sorted(row["local_path"] for row in stored) == sorted(str(p) for p in files), "one row per file"
     assert all(row["uploaded"] and row["deleted"] and not row["on_filesystem"] for row in stored)
     assert not any(path.exists() for path in files)

@@ -10,10 +10,8 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import logging
-import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,7 +28,7 @@ from dc_destinations.config import parse_destination_server
 from dc_destinations.pgsql import PgSQL, PgSQLParams
 from dc_destinations.record_ids import new_record_id
 from tests.bringup_util import BIN, Bringup, dc
-from tests.destination_helpers import forwarding_params
+from tests.destination_helpers import forwarding_params, running_postgres
 from tests.http_receiver import free_port
 
 if missing_reason() is not None:
@@ -44,15 +42,8 @@ STAMP_NS = 1_700_000_000_123_456_789
 
 @pytest.fixture(scope="module")
 def server() -> Iterator[PostgresServer]:
-    # Not under pytest's tmp_path: as root, PostgreSQL runs as user postgres, who cannot enter it.
-    folder = Path(tempfile.mkdtemp(prefix="dc-pg-"))
-    pg = PostgresServer(folder, password=PASSWORD)
-    try:
-        pg.start()
+    with running_postgres("dc-pg-", PASSWORD) as pg:
         yield pg
-    finally:
-        pg.stop()
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture
