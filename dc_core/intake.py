@@ -16,7 +16,7 @@ is being handled, exactly as when the executor ran everything.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.exceptions import InvalidHandle
@@ -33,6 +33,20 @@ DRAIN_MAX = 256
 
 MessageCallback = Callable[[Any, Any], None]
 """Called with the message and its ``MessageInfo`` (source timestamp, publication sequence number)."""
+
+BatchCallback = Callable[[list[tuple[Any, Any]]], None]
+"""Called with every ``(message, MessageInfo)`` one drain took from a subscription, oldest first."""
+
+
+class Wake(NamedTuple):
+    """What one :meth:`Intake.take_or_notice` found."""
+
+    executor_work: bool
+    """The executor has something to do (or the wait timed out): give it a turn."""
+    records: int
+    """Records handed to their callbacks."""
+    more_queued: bool
+    """A subscription still had records when its drain stopped at ``drain_max``."""
 
 
 class _TakenByIntake(CallbackGroup):
@@ -59,7 +73,8 @@ class Intake:
         self._node = node
         self._group = _TakenByIntake()
         self._drain_max = drain_max
-        self._callback_of: dict[Subscription, MessageCallback] = {}
+        self._callback_of: dict[Subscription, Callable[..., None]] = {}
+        self._batched: set[Subscription] = set()
         self._wait_set: Any = None
         self._wait_set_size = -1
         self._combined: Any = None
@@ -72,13 +87,28 @@ class Intake:
 
     def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile) -> Subscription:
         """A subscription of the node (``ros2 node info`` lists it there) served by this intake."""
+        return self._subscribe(msg_type, topic, callback, qos)
+
+    def _subscribe(self, msg_type: Any, topic: str, callback: Callable[..., None], qos: QoSProfile) -> Subscription:
         # rclpy would call the callback itself only through an executor, which never runs this group.
         subscription = self._node.create_subscription(msg_type, topic, _never_called, qos, callback_group=self._group)
         self._callback_of[subscription] = callback
         return subscription
 
+    def subscribe_batches(self, msg_type: Any, topic: str, callback: BatchCallback, qos: QoSProfile) -> Subscription:
+        """:meth:`subscribe`, with ``callback`` called once per drain with all the messages it took.
+
+        For a server that handles records in bulk: per record, it saves a call and lets the work
+        of a batch (a hand-off to another thread, say) be done once. A callback that raises loses
+        the rest of its batch, so it must handle each message's errors itself.
+        """
+        subscription = self._subscribe(msg_type, topic, callback, qos)
+        self._batched.add(subscription)
+        return subscription
+
     def unsubscribe(self, subscription: Subscription) -> None:
         self._callback_of.pop(subscription, None)
+        self._batched.discard(subscription)
         self._node.destroy_subscription(subscription)
 
     def take(self, timeout_s: float) -> int:
@@ -110,15 +140,15 @@ class Intake:
     def node(self) -> Node:
         return self._node
 
-    def take_or_notice(self, timeout_s: float, nodes: Sequence[Node], also: Sequence[Intake] = ()) -> bool:
+    def take_or_notice(self, timeout_s: float, nodes: Sequence[Node], also: Sequence[Intake] = ()) -> Wake:
         """Wait up to ``timeout_s`` for a record or for work of the executor serving ``nodes``.
 
         Records are handed to their callbacks here, those of the intakes ``also`` too (other nodes
-        served by the same loop, as in dc-bringup's single-process mode). Returns True when the
-        executor has something to do (a request, a due timer, a message of another subscription, a
-        QoS event, a guard condition) or the wait timed out: the caller then gives the executor a turn.
-        Nothing but records is taken, so the executor finds the rest still ready; guard conditions,
-        which a wait consumes, are triggered again for it.
+        served by the same loop, as in dc-bringup's single-process mode). ``executor_work`` is True
+        when the executor has something to do (a request, a due timer, a message of another
+        subscription, a QoS event, a guard condition) or the wait timed out: the caller then gives
+        the executor a turn. Nothing but records is taken, so the executor finds the rest still
+        ready; guard conditions, which a wait consumes, are triggered again for it.
         """
         mine = {s.handle.pointer: (intake, s) for intake in (self, *also) for s in intake._callback_of}
         subscriptions: list[Any] = []
@@ -157,15 +187,19 @@ class Intake:
         if not self._node.context.ok():
             raise ExternalShutdownException()
         ready = wait_set.get_ready_entities("subscription")
+        records = 0
+        more_queued = False
         for pointer in ready:
             taker = mine.get(pointer)
             if taker is not None:
-                taker[0]._drain(taker[1])
+                taken = taker[0]._drain(taker[1])
+                records += taken
+                more_queued = more_queued or taken >= taker[0]._drain_max
         ready_guards = set(wait_set.get_ready_entities("guard_condition"))
         for guard in guards:
             if guard.handle.pointer in ready_guards:
                 guard.trigger()  # consumed by this wait: the executor's own wait must see it too
-        return (
+        executor_work = (
             any(pointer not in mine for pointer in ready)
             or bool(ready_guards)
             or bool(wait_set.get_ready_entities("timer"))
@@ -174,8 +208,11 @@ class Intake:
             or any(waitable.is_ready(wait_set) for waitable in waitables)
             or not ready
         )
+        return Wake(executor_work, records, more_queued)
 
     def _drain(self, subscription: Subscription) -> int:
+        if subscription in self._batched:
+            return self._drain_batch(subscription)
         callback = self._callback_of.get(subscription)
         taken = 0
         while callback is not None and taken < self._drain_max:
@@ -190,6 +227,25 @@ class Intake:
             callback(message_and_info[0], message_and_info[1])
             callback = self._callback_of.get(subscription)
         return taken
+
+    def _drain_batch(self, subscription: Subscription) -> int:
+        callback = self._callback_of.get(subscription)
+        if callback is None:
+            return 0
+        taken: list[tuple[Any, Any]] = []
+        handle = subscription.handle
+        try:
+            with handle:
+                while len(taken) < self._drain_max:
+                    message_and_info = handle.take_message(subscription.msg_type, subscription.raw)
+                    if message_and_info is None:
+                        break
+                    taken.append(message_and_info)
+        except InvalidHandle:  # destroyed by an earlier callback of this wake-up
+            pass
+        if taken:
+            callback(taken)
+        return len(taken)
 
     def _combined_wait_set(self, counts: tuple[int, ...]) -> Any:
         # Made again only when the entities change (a transition, a plugin's subscription): not per record.

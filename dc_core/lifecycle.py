@@ -41,7 +41,12 @@ from dc_core.errors import ConfigError, DcError
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import Intake
 from dc_core.logs import Logger
-from dc_core.node_params import DEFAULT_HEARTBEAT_PERIOD_S, MetricsHttpParams, ServerNodeParams
+from dc_core.node_params import (
+    DEFAULT_HEARTBEAT_PERIOD_S,
+    DEFAULT_RECORD_LINGER_S,
+    MetricsHttpParams,
+    ServerNodeParams,
+)
 from dc_core.plugin import MessageCallback
 from dc_core.signals import wake_on_signals
 from dc_core.worker import Worker
@@ -98,6 +103,8 @@ class ManagedServer(LifecycleNode):
         self.params_file = params_file
         # Subscriptions for records: the main loop takes them itself (dc_core.intake).
         self.intake = Intake(self)
+        # The record_linger parameter (ServerLoop), set at configure.
+        self.record_linger_s = DEFAULT_RECORD_LINGER_S
         self._heartbeat_seq = 0
         self._heartbeat_pub = self.create_publisher(Heartbeat, HEARTBEAT_TOPIC, HEARTBEAT_QOS)
         # The heartbeat runs in every state: it tells the manager the process is alive. On the steady
@@ -123,6 +130,7 @@ class ManagedServer(LifecycleNode):
         for warning in warnings:
             self.get_logger().warning(warning)
         self.set_heartbeat_period(node.heartbeat_period)
+        self.record_linger_s = node.record_linger
         if node.use_sim_time and not self.get_parameter("use_sim_time").value:
             # rclpy's time source starts following /clock when the parameter changes.
             self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
@@ -339,7 +347,10 @@ class ServerLoop:
     """
 
     def __init__(
-        self, executor: Executor, intakes: Intake | Sequence[Intake], idle_wait_s: float = IDLE_WAIT_S
+        self,
+        executor: Executor,
+        intakes: Intake | Sequence[Intake],
+        idle_wait_s: float = IDLE_WAIT_S,
     ) -> None:
         # Several intakes when one loop serves several servers (dc-bringup --single-process).
         self.intakes = (intakes,) if isinstance(intakes, Intake) else tuple(intakes)
@@ -360,8 +371,18 @@ class ServerLoop:
         if not any(intake.active for intake in self.intakes):
             self.executor.spin_once(timeout_sec=timeout)
             return
-        if first.take_or_notice(timeout, self.executor.get_nodes(), others):
+        wake = first.take_or_notice(timeout, self.executor.get_nodes(), others)
+        if wake.executor_work:
             run_ready_callbacks(self.executor, EXECUTOR_TURN_MAX_CALLBACKS)
+        elif wake.records and not wake.more_queued:
+            # Records only, and none left queued: let the next ones gather (record_linger). At
+            # 1,000 records/s one wake-up then takes dozens instead of one; per record, the wait
+            # set, and the interpreter's caches going cold while it sleeps between records, cost
+            # more than handling the record (docs/performance.md). The next wait returns at once
+            # if anything, a record or the executor's work, came meanwhile.
+            linger = min(_record_linger(intake.node) for intake in self.intakes)
+            if linger > 0:
+                time.sleep(linger)
 
     def run(self, stop: threading.Event, logger: Any) -> None:
         """Spin until ``stop`` is set or the context shuts down; a failing callback is logged, not fatal."""
@@ -372,6 +393,10 @@ class ServerLoop:
                 break
             except Exception as exc:  # keep serving: one bad callback must not stop collection
                 logger.error(f"callback failed: {exc!r}\n{traceback.format_exc()}")
+
+
+def _record_linger(node: Any) -> float:
+    return float(getattr(node, "record_linger_s", DEFAULT_RECORD_LINGER_S))
 
 
 def _nothing() -> None:

@@ -8,6 +8,18 @@ from typing import Any
 from dc_core.params import param
 
 DEFAULT_HEARTBEAT_PERIOD_S = 1.0
+DEFAULT_RECORD_LINGER_S = 0.01
+
+
+def record_linger_param(default: float) -> Any:
+    """The ``record_linger`` parameter, ``default`` seconds unless the server says otherwise."""
+    return param(
+        default,
+        minimum=0.0,
+        maximum=0.5,
+        doc="While messages flow, seconds the server lets them gather after taking some, so that one wake-up "
+        "takes many (0: wake for each); it delays records and, meanwhile, timers and requests by that much at most",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -21,6 +33,7 @@ class ServerNodeParams:
     heartbeat_period: float = param(
         DEFAULT_HEARTBEAT_PERIOD_S, minimum=0.05, doc="Seconds between heartbeats to the lifecycle manager"
     )
+    record_linger: float = record_linger_param(DEFAULT_RECORD_LINGER_S)
 
 
 def http_port_param(default: int) -> Any:

@@ -1,8 +1,9 @@
 """From the server's intake to the disk: a hand-off queue and a writer thread doing group commits.
 
-``submit_record`` runs on the server's main thread: it only puts the record on an in-memory
-hand-off queue. The writer thread takes everything waiting there (up to ``commit_batch_size``)
-and writes it in one transaction — a group commit — so the cost of a commit is shared by all the
+``submit_records`` runs on the server's main thread: it only puts the records its intake took
+at one wake-up on an in-memory hand-off queue, in one piece. The writer thread takes everything
+waiting there (up to ``commit_batch_size`` records, and the rest of the last piece: a piece is
+never split) and writes it in one transaction — a group commit — so the cost of a commit is shared by all the
 records that arrived meanwhile. A record is durable once its group commit is done (see
 :meth:`GroupCommitter.flush` and docs/delivery.md for the loss window of each ``storage_sync``).
 
@@ -33,6 +34,9 @@ HopKey = tuple[str, int, int]
 CommitListener = Callable[[Sequence[tuple[str, str]]], None]
 
 _STOP = object()
+
+Received = tuple[Sequence[tuple[str, OutgoingRecord]], "HopKey | None"]
+"""One received record as routing gave it: its copies by destination name, and its hop key."""
 
 
 @dataclass(frozen=True)
@@ -91,6 +95,11 @@ class GroupCommitter:
         self._clock = clock
         self._tick_logs = tick_logs
         self._intake: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        # Records submitted and taken by the writer, each counted by one side: their difference is
+        # what waits in memory (intake_queue_limit).
+        self._submitted = 0
+        self._taken = 0
+        self._submit_lock = threading.Lock()
         self._accepting = False
         self._writer: threading.Thread | None = None
         self._listeners: list[CommitListener] = []
@@ -103,6 +112,7 @@ class GroupCommitter:
 
     def start(self) -> None:
         self._intake = queue.SimpleQueue()
+        self._submitted = self._taken = 0
         self._accepting = True
         self._writer = threading.Thread(target=self._write_loop, name="dc-delivery-writer", daemon=True)
         self._writer.start()
@@ -122,8 +132,8 @@ class GroupCommitter:
 
     @property
     def waiting(self) -> int:
-        """Records handed over and not committed yet."""
-        return self._intake.qsize()
+        """Records handed over and not taken by the writer yet."""
+        return self._submitted - self._taken
 
     def submit_record(self, deliveries: Sequence[tuple[str, OutgoingRecord]], seen: HopKey | None = None) -> bool:
         """Hand over the copies of one record, and its hop key, to be committed in one transaction.
@@ -132,20 +142,35 @@ class GroupCommitter:
         its key is then not written either, so a replay of the record is delivered. With no
         deliveries, only the key is written (a record that reaches no destination was handled too).
         """
-        routes = [(self._routes[name], record) for name, record in deliveries]
+        return self.submit_records([(deliveries, seen)])
+
+    def submit_records(self, received: Sequence[Received]) -> bool:
+        """:meth:`submit_record` for several records at once, all kept or all dropped: one hand-off.
+
+        Each record's copies and key are still committed together, and all of these records in the
+        same group commit.
+        """
+        routes = self._routes
+        handoffs = [_Handoff([(routes[name], record) for name, record in copies], seen) for copies, seen in received]
         reason = None
         if not self._accepting:
             reason = "the delivery pipeline is not running"
-        elif self._intake.qsize() >= self.settings.intake_queue_limit:
+        elif self.waiting >= self.settings.intake_queue_limit:
             reason = f"{self.settings.intake_queue_limit} records already wait for the disk (intake_queue_limit)"
         if reason is not None:
-            for route, _ in routes:
-                route.metrics.add("received")
-                route.metrics.add("dropped")
-            if routes:
-                self.intake_drop_log.event(len(routes), reason)
+            dropped = 0
+            for handoff in handoffs:
+                for route, _ in handoff.records:
+                    route.metrics.add("received")
+                    route.metrics.add("dropped")
+                    dropped += 1
+            if dropped:
+                self.intake_drop_log.event(dropped, reason)
             return False
-        self._intake.put(_Handoff(routes, seen))
+        if handoffs:
+            with self._submit_lock:  # several threads may submit
+                self._submitted += len(handoffs)
+            self._intake.put(handoffs)
         return True
 
     def flush(self, timeout: float | None = None) -> bool:
@@ -171,8 +196,7 @@ class GroupCommitter:
                 self._tick_logs()
                 continue
             items = [first]
-            self._take_waiting(items, limit)
-            if len(items) < limit and self.settings.commit_interval > 0 and first is not _STOP:
+            if self._take_waiting(items, limit) < limit and self.settings.commit_interval > 0 and first is not _STOP:
                 # Let a trickle of records gather into one commit: at robot rates this turns a
                 # commit (and, with storage_sync full, an fsync) per record into a few per second.
                 time.sleep(self.settings.commit_interval)
@@ -186,7 +210,8 @@ class GroupCommitter:
                 elif isinstance(item, threading.Event):
                     markers.append(item)
                 else:
-                    handoffs.append(item)
+                    handoffs.extend(item)
+            self._taken += len(handoffs)
             if handoffs:
                 self._commit(handoffs)
             self._tick_logs()
@@ -197,12 +222,18 @@ class GroupCommitter:
                 self._drain_after_stop()
                 return
 
-    def _take_waiting(self, items: list[Any], limit: int) -> None:
-        while len(items) < limit:
+    def _take_waiting(self, items: list[Any], limit: int) -> int:
+        """Add what waits on the queue to ``items`` until they hold ``limit`` records; returns how many they hold."""
+        records = sum(len(item) for item in items if isinstance(item, list))
+        while records < limit:
             try:
-                items.append(self._intake.get_nowait())
+                item = self._intake.get_nowait()
             except queue.Empty:
-                return
+                break
+            items.append(item)
+            if isinstance(item, list):
+                records += len(item)
+        return records
 
     def _drain_after_stop(self) -> None:
         while True:
@@ -213,7 +244,8 @@ class GroupCommitter:
             if isinstance(item, threading.Event):
                 item.set()
             elif item is not _STOP:
-                self._commit([item])
+                self._taken += len(item)
+                self._commit(item)
 
     def _commit(self, handoffs: list[_Handoff]) -> None:
         """One group commit of received records."""

@@ -25,7 +25,7 @@ from dc_core.destination import Destination, OutgoingRecord
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.logs import Logger
 from dc_destinations.buffer import FILE_NAME, BufferClosed, BufferCorrupted, Quarantine, SqliteBuffer
-from dc_destinations.commit import CommitListener, GroupCommitter, HopKey
+from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
 from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.sender import Closing, Route, Sender
@@ -214,12 +214,17 @@ class DeliveryPipeline:
 
     def submit_record(self, deliveries: Sequence[tuple[str, OutgoingRecord]], seen: HopKey | None = None) -> bool:
         """See :meth:`dc_destinations.commit.GroupCommitter.submit_record`."""
+        return self.submit_records([(deliveries, seen)])
+
+    def submit_records(self, received: Sequence[Received]) -> bool:
+        """See :meth:`dc_destinations.commit.GroupCommitter.submit_records`."""
         if self._committer is None:
-            for name, _ in deliveries:
-                self._routes[name].metrics.add("received")
-                self._routes[name].metrics.add("dropped")
+            for deliveries, _ in received:
+                for name, _ in deliveries:
+                    self._routes[name].metrics.add("received")
+                    self._routes[name].metrics.add("dropped")
             return False
-        return self._committer.submit_record(deliveries, seen)
+        return self._committer.submit_records(received)
 
     def hop_keys(self) -> list[HopKey]:
         """The hop keys kept in the buffer, oldest first (empty before :meth:`start`)."""

@@ -135,6 +135,12 @@ class HopIntake:
         stats.gaps += 1
         return Verdict(skipped=skipped, first_skipped=key.seq - skipped)
 
+    def count_duplicate(self, topic: str) -> None:
+        """Count a record received and dropped as a duplicate without :meth:`check` (a copy its caller saw)."""
+        stats = self._topic(topic).stats
+        stats.received += 1
+        stats.duplicates += 1
+
     def handled(self, key: HopKey | None) -> None:
         """Remember ``key``: a later copy of the record is a duplicate."""
         if key is not None:

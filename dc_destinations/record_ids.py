@@ -43,6 +43,10 @@ class _Uuid7Source:
         return word >> (64 - bits)
 
     def next(self) -> uuid.UUID:
+        return uuid.UUID(int=self.next_int())
+
+    def next_int(self) -> int:
+        """The next UUIDv7 as its 128-bit integer."""
         with self._lock:
             ms = time.time_ns() // 1_000_000
             if ms > self._last_ms:
@@ -55,8 +59,7 @@ class _Uuid7Source:
                     self._counter = 0
             ms, counter = self._last_ms, self._counter
             random62 = self._random_bits(62)
-        value = (ms & 0xFFFF_FFFF_FFFF) << 80 | 0x7 << 76 | counter << 64 | 0b10 << 62 | random62
-        return uuid.UUID(int=value)
+        return (ms & 0xFFFF_FFFF_FFFF) << 80 | 0x7 << 76 | counter << 64 | 0b10 << 62 | random62
 
 
 _UUID7 = _Uuid7Source()
@@ -68,4 +71,6 @@ def uuid7() -> uuid.UUID:
 
 def new_record_id() -> str:
     """A fresh ``record_id``: a UUIDv7 string, time-ordered, for sinks to deduplicate on."""
-    return str(_UUID7.next())
+    # The text str(uuid.UUID) gives, without building the UUID object (a quarter of the time, per record).
+    digits = f"{_UUID7.next_int():032x}"
+    return f"{digits[:8]}-{digits[8:12]}-{digits[12:16]}-{digits[16:20]}-{digits[20:]}"

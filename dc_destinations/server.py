@@ -20,7 +20,7 @@ from typing import Any
 
 from rclpy.qos import QoSProfile
 
-from dc_core.destination import Destination
+from dc_core.destination import Destination, OutgoingRecord
 from dc_core.errors import ConfigError, PluginError
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
@@ -42,6 +42,9 @@ PREVIEW_CHARS = 200
 HOP_WINDOW_HISTORIES = 4
 # Malformed records logged one by one at the start of a burst; the rest are counted in a summary.
 MALFORMED_LINES_PER_BURST = 10
+
+_Received = tuple[list[tuple[str, OutgoingRecord]], HopKey | None]
+"""One received record as the pipeline takes it: its copies by destination name, and its hop key."""
 
 
 @dataclass
@@ -164,8 +167,8 @@ class DestinationServer(ManagedServer):
         with_history = []
         for topic in self.routing.topics:
             qos = _with_room_for_a_replay(subscription_qos(topic, self._internal_topics))
-            on_serialised = functools.partial(self._on_serialised, topic)
-            subscription = self.intake.subscribe(StringStamped, topic, on_serialised, qos)
+            on_batch = functools.partial(self._on_batch, topic)
+            subscription = self.intake.subscribe_batches(StringStamped, topic, on_batch, qos)
             # Taken as the bytes DDS delivered: the stamp and the text are read from them directly,
             # without building the message's Python objects (dc_core.stamped_cdr).
             subscription.raw = True
@@ -202,20 +205,30 @@ class DestinationServer(ManagedServer):
         self._tick_logs()
 
     # -- intake (the main loop's intake, on the main thread) --------------------------------------------
-    def _on_serialised(self, topic: str, serialised: bytes, info: Any = None) -> None:
-        stamp_ns, text = read_string_stamped(serialised)
-        self._on_record(topic, text, stamp_ns, info)
+    def _on_batch(self, topic: str, taken: list[tuple[bytes, Any]]) -> None:
+        """The records one drain took from ``topic``, in one hand-off to the pipeline."""
+        assert self.hop is not None
+        received: list[_Received] = []
+        keys: set[HopKey] = set()
+        for serialised, info in taken:
+            key = hop_key(topic, info)
+            if key is not None:
+                if key in keys:  # twice in one batch: the hop has not been told of the first yet
+                    self.hop.count_duplicate(topic)
+                    continue
+                keys.add(key)
+            stamp_ns, text = read_string_stamped(serialised)
+            one = self._receive(topic, text, stamp_ns, key)
+            if one is not None:
+                received.append(one)
+        self._hand_over(received)
 
-    def _on_message(self, topic: str, msg: Any, info: Any = None) -> None:
-        """A record as a ``StringStamped`` message."""
-        self._on_record(topic, msg.data, msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, info)
-
-    def _on_record(self, topic: str, text: str, stamp_ns: int, info: Any) -> None:
-        assert self.hop is not None and self.pipeline is not None and self.routing is not None
-        key = hop_key(topic, info)
+    def _receive(self, topic: str, text: str, stamp_ns: int, key: HopKey | None) -> _Received | None:
+        """What the pipeline takes of one record: its copies and its key; None for a duplicate."""
+        assert self.hop is not None and self.routing is not None
         verdict = self.hop.check(topic, key)
         if verdict.duplicate:
-            return
+            return None
         if verdict.skipped:
             assert self._hop_loss_log is not None
             last = verdict.first_skipped + verdict.skipped - 1
@@ -232,36 +245,34 @@ class DestinationServer(ManagedServer):
             routed = self.routing.route(topic, record, stamp_ns, new_record_id)
         except MalformedRecord as exc:
             self._malformed(topic, text, str(exc))
-            self._hand_over([], key)
-            return
+            return [], key
         if routed.unrouted_reason is not None:
             self._unrouted(topic, routed.unrouted_reason, record)
-            self._hand_over([], key)
-            return
+            return [], key
         self.stats.routed += 1
         if self._debug:
             for name, outgoing in routed.deliveries:
                 if name in self._debug:
                     self.get_logger().info(f"{name} <- {outgoing.to_json()}")
-        self._hand_over(routed.deliveries, key)
+        return routed.deliveries, key
 
     def _tick_logs(self) -> None:
         if self._hop_loss_log is not None:
             self._hop_loss_log.tick()
         self._malformed_log.tick()
 
-    def _hand_over(self, deliveries: list[tuple[str, Any]], key: HopKey | None) -> None:
-        """Submit the copies of one record with its key, which is remembered once the pipeline took them.
+    def _hand_over(self, received: list[_Received]) -> None:
+        """Submit records with their copies and keys; the keys are remembered once the pipeline took them.
 
-        All copies and the key go into one commit: a crash cannot leave a destination without its
-        copy of a record that is known as seen. A record that reaches no destination is handled
+        A record's copies and key go into one commit: a crash cannot leave a destination without its
+        copy of a record that is known as seen. A record that reaches no destination is handed over
         too: its key alone is written, so a replay of it is not reported again.
         """
         assert self.pipeline is not None and self.hop is not None
-        if not deliveries and key is None:
-            return
-        if self.pipeline.submit_record(deliveries, key):
-            self.hop.handled(key)
+        received = [(copies, key) for copies, key in received if copies or key is not None]
+        if received and self.pipeline.submit_records(received):
+            for _, key in received:
+                self.hop.handled(key)
 
     def _malformed(self, topic: str, text: str, reason: str) -> None:
         self.stats.malformed += 1

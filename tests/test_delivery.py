@@ -127,6 +127,7 @@ def test_record_ids_are_uuid7_and_increase() -> None:
     ids = [new_record_id() for _ in range(5000)]
     assert len(set(ids)) == len(ids)
     assert ids == sorted(ids)
+    assert all(str(uuid.UUID(i)) == i for i in ids), "not the text of the UUID it stands for"
     parsed = uuid.UUID(ids[0])
     assert parsed.version == 7
     assert parsed.variant == uuid.RFC_4122
@@ -920,6 +921,35 @@ def test_a_full_intake_queue_drops_and_counts(tmp_path: Path) -> None:
         assert metrics["received"] == 50
         assert metrics["dropped"] >= 40
         assert sum("intake_queue_limit" in line for _level, line in logger.lines) == 1
+    finally:
+        pipeline.stop(grace=0.5)
+
+
+def test_records_submitted_together_are_kept_or_dropped_together_and_committed_in_one_piece(tmp_path: Path) -> None:
+    logger = RecordingLogger()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, intake_queue_limit=5, commit_interval=0.5),
+        {"a": (Recorder(), DestinationDeliveryParams()), "b": (Recorder(), DestinationDeliveryParams())},
+        logger,
+    )
+    heard: list[list[tuple[str, str]]] = []
+    pipeline.add_commit_listener(lambda committed: heard.append(list(committed)))
+    pipeline.start()
+    try:
+        first = [record(i) for i in range(4)]
+        # Under the limit: taken whole, even though it leaves the limit behind (4 records, 8 copies).
+        assert pipeline.submit_records([([("a", r), ("b", r)], ("/t", 100 + i, i + 1)) for i, r in enumerate(first)])
+        # The limit (5 records waiting) counts records, not hand-offs: 4 wait, so 2 more are taken...
+        assert pipeline.submit_records([([("a", record(4))], None), ([("a", record(5))], None)])
+        # ...and then nothing, all of a submission dropped and counted.
+        assert not pipeline.submit_records([([("a", record(6)), ("b", record(6))], None), ([("a", record(7))], None)])
+        assert pipeline.flush_intake(5)
+        committed = [pair for commit in heard for pair in commit]
+        assert committed[:8] == [(name, r.record_id) for r in first for name in ("a", "b")]
+        assert len(committed) == 10
+        assert pipeline.metrics()["a"]["dropped"] == 2 and pipeline.metrics()["b"]["dropped"] == 1
+        assert sum("intake_queue_limit" in line for _level, line in logger.lines) == 1
+        assert pipeline.hop_keys() == [("/t", 100 + i, i + 1) for i in range(4)]
     finally:
         pipeline.stop(grace=0.5)
 

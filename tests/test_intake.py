@@ -13,6 +13,7 @@ import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any, cast
 
 import pytest
@@ -24,7 +25,8 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from dc_core.intake import DRAIN_MAX, Intake
+from dc_core import lifecycle
+from dc_core.intake import DRAIN_MAX, Intake, Wake
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ManagedServer, ServerLoop
 from dc_core.testing import RecordingLogger
 from dc_interfaces.msg import Heartbeat
@@ -171,6 +173,90 @@ def test_unsubscribing_from_a_callback_stops_the_drain(contexts: tuple[Context, 
     finally:
         peer.close()
         node.destroy_node()
+
+
+def test_a_batch_subscription_gets_each_drain_in_one_call(contexts: tuple[Context, Context]) -> None:
+    server_context, other_context = contexts
+    topic = f"/dc_test/intake_{uuid.uuid4().hex[:8]}"
+    node = Node(f"dc_intake_{uuid.uuid4().hex[:8]}", context=server_context)
+    intake = Intake(node, drain_max=4)
+    batches: list[list[tuple[str, Any]]] = []
+    intake.subscribe_batches(String, topic, lambda taken: batches.append([(m.data, i) for m, i in taken]), RECORD_QOS)
+    witnessed: list[str] = []
+    node.create_subscription(String, topic, lambda msg: witnessed.append(cast(Any, msg).data), RECORD_QOS)
+    executor = SingleThreadedExecutor(context=server_context)
+    executor.add_node(node)
+    peer = Peer(topic, other_context)
+    try:
+        texts = [str(i) for i in range(10)]
+        Witnessed(intake, [], witnessed, peer, executor).publish_and_witness(texts)
+        assert [intake.take(1.0) for _ in range(3)] == [4, 4, 2]
+        assert [len(batch) for batch in batches] == [4, 4, 2]
+        assert [text for batch in batches for text, _ in batch] == texts
+        sequence_numbers = [info["publication_sequence_number"] for batch in batches for _, info in batch]
+        assert sequence_numbers == sorted(sequence_numbers) and len(set(sequence_numbers)) == 10
+        assert intake.take(0.0) == 0
+        assert len(batches) == 3, "an empty drain called the callback"
+    finally:
+        peer.close()
+        executor.shutdown()
+        node.destroy_node()
+
+
+class _FakeIntake:
+    """What ServerLoop asks of an intake, answering each wait with the next of ``wakes``."""
+
+    active = True
+
+    def __init__(self, wakes: list[Wake], linger_s: float) -> None:
+        self.wakes = wakes
+        self.node = _FakeNode(linger_s)
+
+    def take_or_notice(self, timeout_s: float, nodes: Any, also: Any = ()) -> Wake:
+        return self.wakes.pop(0)
+
+
+@dataclass
+class _FakeNode:
+    record_linger_s: float
+
+    def create_guard_condition(self, callback: Any) -> Any:
+        return None
+
+
+class _NoExecutor:
+    def get_nodes(self) -> list[Any]:
+        return []
+
+
+@pytest.mark.parametrize(
+    ("wake", "linger_s", "lingers"),
+    [
+        (Wake(executor_work=False, records=3, more_queued=False), 0.05, True),
+        (Wake(executor_work=True, records=3, more_queued=False), 0.05, False),  # the executor's turn first
+        (Wake(executor_work=False, records=256, more_queued=True), 0.05, False),  # a flood: take the rest now
+        (Wake(executor_work=False, records=3, more_queued=False), 0.0, False),  # record_linger 0
+    ],
+    ids=["records", "executor-work", "more-queued", "linger-0"],
+)
+def test_the_loop_lets_records_gather_only_while_they_flow_and_nothing_else_waits(
+    monkeypatch: pytest.MonkeyPatch, wake: Wake, linger_s: float, lingers: bool
+) -> None:
+    slept: list[float] = []
+    monkeypatch.setattr("dc_core.lifecycle.time", SimpleNamespace(sleep=slept.append))
+    monkeypatch.setattr(lifecycle, "run_ready_callbacks", lambda executor, limit: 0)
+    loop = ServerLoop(cast(Any, _NoExecutor()), cast(Any, [_FakeIntake([wake], linger_s)]))
+    loop.spin_once(1.0)
+    assert slept == ([linger_s] if lingers else [])
+
+
+def test_one_loop_for_several_servers_lingers_as_long_as_the_shortest_asks(monkeypatch: pytest.MonkeyPatch) -> None:
+    slept: list[float] = []
+    monkeypatch.setattr("dc_core.lifecycle.time", SimpleNamespace(sleep=slept.append))
+    records = Wake(executor_work=False, records=1, more_queued=False)
+    intakes = [_FakeIntake([records], 0.05), _FakeIntake([], 0.01)]
+    ServerLoop(cast(Any, _NoExecutor()), cast(Any, intakes)).spin_once(1.0)
+    assert slept == [0.01]
 
 
 TICK_PERIOD_S = 0.005
