@@ -53,10 +53,13 @@ def record_tags(record: Mapping[str, Any]) -> list[str] | None:
     turned the list into one before matching.
     """
     tags = record.get(TAGS_KEY)
+    if isinstance(tags, list):
+        for tag in tags:  # a loop, not all(generator): this runs for every record
+            if not isinstance(tag, str):
+                return None
+        return tags
     if isinstance(tags, str):
         return [t.strip() for t in tags.split(",") if t.strip()]
-    if isinstance(tags, list) and all(isinstance(t, str) for t in tags):
-        return list(tags)
     return None
 
 
@@ -103,27 +106,35 @@ class RoutingTable:
         targets = [listening[name] for name in dict.fromkeys(tags) if name in listening]
         if not targets:
             return Routed(unrouted_reason=NO_LISTENER)
-        body = {k: v for k, v in record.items() if k != TAGS_KEY}
         # One id per received record, shared by its destinations and kept in the delivered JSON so
         # that sinks can deduplicate what at-least-once delivery may send twice.
         record_id = new_record_id()
-        body[RECORD_ID_KEY] = record_id
+        shared: dict[str, Any] | None = None
+        body: Mapping[str, Any] = record  # one destination: its one copy below takes the time key and the id
+        if len(targets) > 1 or targets[0].time_key == TAGS_KEY:
+            body = shared = {k: v for k, v in record.items() if k != TAGS_KEY}
+            shared[RECORD_ID_KEY] = record_id
         deliveries = []
         stamps: dict[str, float | str] = {}
         for target in targets:
             time_key = target.time_key
+            stamp: float | str | None = None
             if time_key:
                 stamp = stamps.get(target.time_format)
                 if stamp is None:
                     stamp = stamps[target.time_format] = format_stamp(stamp_ns, target.time_format)
                 # First, as the original's output showed it: {"date": ..., <record>}, and in place
                 # of a key of the record so named.
-                data: dict[str, Any] = {time_key: stamp}
-                data.update(body)
-                data[time_key] = stamp
+                data: dict[str, Any] = {time_key: stamp, **body}
+            elif shared is not None and target is targets[-1]:
+                data = shared  # the last destination may have the body itself: nothing else keeps it
             else:
-                # The last destination may have the body itself: nothing else keeps or changes it.
-                data = body if target is targets[-1] else dict(body)
+                data = dict(body)
+            if shared is None:
+                del data[TAGS_KEY]
+                data[RECORD_ID_KEY] = record_id
+            if time_key:
+                data[time_key] = stamp
             # Serialised here, once: what cannot be written back as JSON (an infinite number, a lone
             # surrogate) raises MalformedRecord before any copy reaches the buffer.
             deliveries.append(

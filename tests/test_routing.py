@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import json
 from typing import Any
 
 import pytest
@@ -141,6 +142,38 @@ def test_default_record_ids_are_unique() -> None:
     t = table(a=["/up"])
     ids = {t.route("/up", {"tags": ["a"]}, STAMP_NS).deliveries[0][1].record_id for _ in range(100)}
     assert len(ids) == 100
+
+
+KEY_ORDER_RECORDS = [
+    {"tags": ["a"], "x": 1},
+    {"x": 1, "tags": ["a", "b"], "date": "old", "record_id": "theirs"},
+    {"record_id": "theirs", "tags": ["b", "a"], "y": [1, {"z": 2}]},
+    {"date": 0, "@t": 1, "tags": "a, b"},
+]
+
+
+@pytest.mark.parametrize(
+    "time_keys", [("date",), ("",), ("tags",), ("record_id",), ("date", "@t"), ("", ""), ("tags", "")]
+)
+@pytest.mark.parametrize("record", KEY_ORDER_RECORDS)
+def test_what_each_destination_receives_key_by_key_in_order(time_keys: tuple[str, ...], record: dict[str, Any]) -> None:
+    """Whatever the time key is called, even after a key of the record: the tags go, the id comes in
+    place of a record_id (or last), the time key first or in place of a value of its name, and it wins."""
+    names = ["a", "b"][: len(time_keys)]
+    t = RoutingTable({"/up": [RouteTarget(n, k, "double") for n, k in zip(names, time_keys, strict=True)]})
+    routed = t.route("/up", record, STAMP_NS, new_record_id=lambda: "ours")
+    tags = [tag.strip() for tag in record["tags"].split(",")] if isinstance(record["tags"], str) else record["tags"]
+    wanted = [n for n in tags if n in names]
+    assert [name for name, _ in routed.deliveries] == wanted
+    for name, out in routed.deliveries:
+        time_key = time_keys[names.index(name)]
+        expected: dict[str, Any] = {time_key: None} if time_key else {}
+        expected.update((k, v) for k, v in record.items() if k != "tags")
+        expected["record_id"] = "ours"
+        if time_key:
+            expected[time_key] = format_stamp(STAMP_NS, "double")
+        assert list(out.data.items()) == list(expected.items())
+        assert out.to_json() == json.dumps(expected, separators=(",", ":"))
 
 
 def test_input_record_is_not_modified() -> None:
