@@ -347,10 +347,7 @@ class ServerLoop:
     """
 
     def __init__(
-        self,
-        executor: Executor,
-        intakes: Intake | Sequence[Intake],
-        idle_wait_s: float = IDLE_WAIT_S,
+        self, executor: Executor, intakes: Intake | Sequence[Intake], idle_wait_s: float = IDLE_WAIT_S
     ) -> None:
         # Several intakes when one loop serves several servers (dc-bringup --single-process).
         self.intakes = (intakes,) if isinstance(intakes, Intake) else tuple(intakes)
