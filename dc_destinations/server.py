@@ -221,6 +221,8 @@ class DestinationServer(ManagedServer):
             one = self._receive(topic, text, stamp_ns, key)
             if one is not None:
                 received.append(one)
+        if topic not in self._internal_topics:
+            received = _publisher_positions_only(received)
         self._hand_over(received)
 
     def _receive(self, topic: str, text: str, stamp_ns: int, key: HopKey | None) -> _Received | None:
@@ -305,6 +307,23 @@ class DestinationServer(ManagedServer):
     def hop_metrics(self) -> dict[str, Any]:
         """Per input topic: received, duplicates dropped, records known lost (missing) and more."""
         return self.hop.stats() if self.hop is not None else {}
+
+
+def _publisher_positions_only(received: list[_Received]) -> list[_Received]:
+    """``received`` keeping only the keys that end a run of one publisher's numbers.
+
+    A volatile subscription is never replayed, so the keys of its records cannot deduplicate
+    anything: what they are kept for is where each publisher was, so that a restarted server counts
+    what it missed meanwhile (docs/delivery.md, "Accounting"). The last key of each run of
+    consecutive numbers tells that; the others would only cost a row each in the commit.
+    """
+    kept: list[_Received] = []
+    for i, (copies, key) in enumerate(received):
+        following = received[i + 1][1] if i + 1 < len(received) else None
+        if key is not None and following is not None and following.seq == key.seq + 1:
+            key = None  # the next record continues this publisher
+        kept.append((copies, key))
+    return kept
 
 
 def _with_room_for_a_replay(qos: QoSProfile) -> QoSProfile:

@@ -7,6 +7,7 @@ context (its own DDS participant), as another process' node would.
 from __future__ import annotations
 
 import json
+import sqlite3
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -22,6 +23,7 @@ from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from dc_core.lifecycle import ServerLoop
+from dc_destinations.buffer import FILE_NAME
 from dc_destinations.server import DestinationServer
 from dc_interfaces.msg import StringStamped
 from tests.hostile_records import hostile_stream
@@ -145,6 +147,46 @@ def test_published_records_reach_the_file_destination(running: Running) -> None:
     assert server.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
     assert running.lines()[-1]["time"] == 4  # nothing duplicated or lost by the stop
     assert len(running.lines()) == 5
+
+
+def test_a_volatile_topic_keeps_each_publishers_position_and_a_restart_counts_what_it_missed(
+    running: Running,
+) -> None:
+    """Records of your own nodes are never replayed, so their keys only tell where each publisher was:
+    the buffer keeps the last of each run, and a server started on it counts the records published
+    while none was listening."""
+    server = running.server
+    assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    running.wait_for_subscription()
+    for i in range(30):  # published before the loop takes any: they arrive together
+        running.publish(json.dumps({"n": i, "tags": ["disk"]}))
+    assert running.spin_until(lambda: len(running.lines()) == 30)
+    assert server.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    kept = [seq for topic, _, seq in _hop_keys(running) if topic == running.topic]
+    assert kept and max(kept) == 30 and len(kept) < 30, kept
+    assert server.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+
+    for i in range(30, 40):  # nobody listens: lost, as for any volatile subscriber
+        running.publish(json.dumps({"n": i, "tags": ["disk"]}))
+    assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS  # the buffer read again
+    assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    running.wait_for_subscription()
+    for i in range(40, 45):
+        running.publish(json.dumps({"n": i, "tags": ["disk"]}))
+    assert running.spin_until(lambda: len(running.lines()) == 35)
+    assert [line["n"] for line in running.lines()] == [*range(30), *range(40, 45)]
+    hop = server.hop_metrics()[running.topic]
+    assert (hop["missing"], hop["gaps"], hop["duplicates"]) == (10, 1, 0), hop
+
+
+def _hop_keys(running: Running) -> list[tuple[str, int, int]]:
+    """The hop keys in the server's buffer, read as `dc buffer` would (another connection)."""
+    folder = Path(running.out_file).parent.parent / "buffer"
+    with sqlite3.connect(folder / FILE_NAME) as conn:
+        return [
+            (str(t), int(ns), int(seq)) for t, ns, seq in conn.execute("SELECT topic, source_ns, seq FROM hop_seen")
+        ]
 
 
 def test_a_lone_surrogate_record_does_not_stall_the_records_after_it(running: Running) -> None:
