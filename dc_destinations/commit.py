@@ -3,9 +3,10 @@
 ``submit_records`` runs on the server's main thread: it only puts the records its intake took
 at one wake-up on an in-memory hand-off queue, in one piece. The writer thread takes everything
 waiting there (up to ``commit_batch_size`` records, and the rest of the last piece: a piece is
-never split) and writes it in one transaction — a group commit — so the cost of a commit is shared by all the
-records that arrived meanwhile. A record is durable once its group commit is done (see
-:meth:`GroupCommitter.flush` and docs/delivery.md for the loss window of each ``storage_sync``).
+never split) and writes it in one transaction — a group commit — so the cost of a commit is
+shared by all the records that arrived meanwhile. A record is durable once its group commit is
+done (see :meth:`GroupCommitter.flush` and docs/delivery.md for the loss window of each
+``storage_sync``).
 
 One record never stops the others: a record that is not valid UTF-8 JSON is counted apart, and a
 commit that fails because of what is in its records is split per received record. A commit that
@@ -35,7 +36,7 @@ CommitListener = Callable[[Sequence[tuple[str, str]]], None]
 
 _STOP = object()
 
-Received = tuple[Sequence[tuple[str, OutgoingRecord]], "HopKey | None"]
+Received = tuple[Sequence[tuple[str, OutgoingRecord]], HopKey | None]
 """One received record as routing gave it: its copies by destination name, and its hop key."""
 
 

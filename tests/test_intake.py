@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import threading
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any, cast
@@ -90,7 +91,7 @@ class Witnessed:
     """
 
     intake: Intake
-    taken: list[tuple[str, Any]]
+    taken: list[Any]  # what the intake's callback was given
     witnessed: list[str]
     peer: Peer
     executor: SingleThreadedExecutor
@@ -105,14 +106,16 @@ class Witnessed:
         assert wait_for(lambda: len(self.witnessed) == len(texts), self.spin_executor), self.witnessed
 
 
-@pytest.fixture(params=[DRAIN_MAX, 4], ids=["drain_max", "drain_4"])
-def witnessed(request: pytest.FixtureRequest, contexts: tuple[Context, Context]) -> Iterator[Witnessed]:
+@contextmanager
+def witnessed_intake(
+    contexts: tuple[Context, Context], drain_max: int, subscribe: Callable[[Intake, str], list[Any]]
+) -> Iterator[Witnessed]:
+    """A node whose intake ``subscribe`` subscribes (returning the list its callback fills), its witness and a peer."""
     server_context, other_context = contexts
     topic = f"/dc_test/intake_{uuid.uuid4().hex[:8]}"
     node = Node(f"dc_intake_{uuid.uuid4().hex[:8]}", context=server_context)
-    intake = Intake(node, drain_max=request.param)
-    taken: list[tuple[str, Any]] = []
-    intake.subscribe(String, topic, lambda msg, info: taken.append((msg.data, info)), RECORD_QOS)
+    intake = Intake(node, drain_max=drain_max)
+    taken = subscribe(intake, topic)
     witnessed: list[str] = []
     node.create_subscription(String, topic, lambda msg: witnessed.append(cast(Any, msg).data), RECORD_QOS)
     executor = SingleThreadedExecutor(context=server_context)
@@ -124,6 +127,24 @@ def witnessed(request: pytest.FixtureRequest, contexts: tuple[Context, Context])
         peer.close()
         executor.shutdown()
         node.destroy_node()
+
+
+def _each_message(intake: Intake, topic: str) -> list[Any]:
+    taken: list[tuple[str, Any]] = []
+    intake.subscribe(String, topic, lambda msg, info: taken.append((msg.data, info)), RECORD_QOS)
+    return taken
+
+
+def _batches(intake: Intake, topic: str) -> list[Any]:
+    batches: list[list[tuple[str, Any]]] = []
+    intake.subscribe_batches(String, topic, lambda taken: batches.append([(m.data, i) for m, i in taken]), RECORD_QOS)
+    return batches
+
+
+@pytest.fixture(params=[DRAIN_MAX, 4], ids=["drain_max", "drain_4"])
+def witnessed(request: pytest.FixtureRequest, contexts: tuple[Context, Context]) -> Iterator[Witnessed]:
+    with witnessed_intake(contexts, request.param, _each_message) as it:
+        yield it
 
 
 def test_records_reach_the_intake_with_their_message_info_and_never_the_executor(witnessed: Witnessed) -> None:
@@ -176,20 +197,10 @@ def test_unsubscribing_from_a_callback_stops_the_drain(contexts: tuple[Context, 
 
 
 def test_a_batch_subscription_gets_each_drain_in_one_call(contexts: tuple[Context, Context]) -> None:
-    server_context, other_context = contexts
-    topic = f"/dc_test/intake_{uuid.uuid4().hex[:8]}"
-    node = Node(f"dc_intake_{uuid.uuid4().hex[:8]}", context=server_context)
-    intake = Intake(node, drain_max=4)
-    batches: list[list[tuple[str, Any]]] = []
-    intake.subscribe_batches(String, topic, lambda taken: batches.append([(m.data, i) for m, i in taken]), RECORD_QOS)
-    witnessed: list[str] = []
-    node.create_subscription(String, topic, lambda msg: witnessed.append(cast(Any, msg).data), RECORD_QOS)
-    executor = SingleThreadedExecutor(context=server_context)
-    executor.add_node(node)
-    peer = Peer(topic, other_context)
-    try:
+    with witnessed_intake(contexts, 4, _batches) as it:
+        batches, intake = it.taken, it.intake
         texts = [str(i) for i in range(10)]
-        Witnessed(intake, [], witnessed, peer, executor).publish_and_witness(texts)
+        it.publish_and_witness(texts)
         assert [intake.take(1.0) for _ in range(3)] == [4, 4, 2]
         assert [len(batch) for batch in batches] == [4, 4, 2]
         assert [text for batch in batches for text, _ in batch] == texts
@@ -197,10 +208,6 @@ def test_a_batch_subscription_gets_each_drain_in_one_call(contexts: tuple[Contex
         assert sequence_numbers == sorted(sequence_numbers) and len(set(sequence_numbers)) == 10
         assert intake.take(0.0) == 0
         assert len(batches) == 3, "an empty drain called the callback"
-    finally:
-        peer.close()
-        executor.shutdown()
-        node.destroy_node()
 
 
 class _FakeIntake:
