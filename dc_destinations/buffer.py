@@ -20,7 +20,6 @@ meets the corruption: collection goes on and the file is kept for inspection.
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import sqlite3
@@ -32,7 +31,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 from dc_core.errors import DcError
 
@@ -106,37 +105,39 @@ class BufferClosed(DeliveryBufferError):
     """The buffer was closed (the pipeline stopped) while an operation was pending."""
 
 
-@dataclass(frozen=True)
 class PendingRecord:
-    """A record on its way into a queue: serialised once, by the writer thread.
+    """A record on its way into a queue: its text, encoded once.
 
     ``checked``: the payload is DC JSON for certain (dc_core.records' rule); it is stored with its
-    CRC and sent without being parsed again (:meth:`BufferedRow.as_appended`).
+    CRC and sent without being parsed again (:meth:`BufferedRow.as_appended`). A payload that is
+    not valid Unicode (a lone surrogate) raises ``UnicodeEncodeError`` here, before any commit.
+
+    A slotted class computing everything at construction, not a frozen dataclass with cached
+    properties: the writer thread builds one per record (0.5 us against 1.3). Read-only by use.
     """
 
-    record_id: str
-    topic: str
-    stamp_ns: int
-    payload: str
-    checked: bool = False
+    __slots__ = ("checked", "crc", "encoded", "payload", "record_id", "size", "stamp_ns", "topic")
 
-    @functools.cached_property
-    def encoded(self) -> bytes:
-        # Encoded once: the writer checks it before the commit (a lone surrogate fails there) and
-        # the commit stores its size and CRC.
-        return self.payload.encode("utf-8")
+    def __init__(self, record_id: str, topic: str, stamp_ns: int, payload: str, checked: bool = False) -> None:
+        self.record_id = record_id
+        self.topic = topic
+        self.stamp_ns = stamp_ns
+        self.payload = payload
+        self.checked = checked
+        self.encoded = encoded = payload.encode("utf-8")
+        self.size = len(encoded)
+        self.crc = zlib.crc32(encoded) if checked else None
 
-    @property
-    def size(self) -> int:
-        return len(self.encoded)
-
-    @property
-    def crc(self) -> int | None:
-        return zlib.crc32(self.encoded) if self.checked else None
+    def __repr__(self) -> str:
+        return f"PendingRecord(record_id={self.record_id!r}, topic={self.topic!r}, size={self.size})"
 
 
-@dataclass(frozen=True)
-class BufferedRow:
+class BufferedRow(NamedTuple):
+    """One row of a destination's queue, as read back.
+
+    A named tuple, not a frozen dataclass: the sender reads one per record (0.13 us against 0.65).
+    """
+
     row_id: int
     record_id: str
     topic: str
@@ -573,7 +574,7 @@ class SqliteBuffer:
             rows = conn.execute(
                 f"SELECT {_QUEUE_COLUMNS} FROM q_{qid} WHERE id > ? ORDER BY id LIMIT ?", (after_id, limit)
             ).fetchall()
-        return [BufferedRow(*row) for row in rows]
+        return list(map(BufferedRow._make, rows))
 
     def delete(self, destination: str, row_ids: Sequence[int]) -> int:
         """Delete confirmed rows; returns how many were still there (the size limit may have dropped some)."""

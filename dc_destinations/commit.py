@@ -22,7 +22,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 from dc_core.destination import OutgoingRecord
 from dc_core.logs import BurstLog, Logger
@@ -40,16 +40,6 @@ Received = tuple[Sequence[tuple[str, OutgoingRecord]], HopKey | None]
 """One received record as routing gave it: its copies by destination name, and its hop key."""
 
 
-class _Handoff(NamedTuple):
-    """One received record: its copies for each destination and its hop key, committed together.
-
-    A named tuple: one is made per record on the intake's thread, where a dataclass costs more.
-    """
-
-    records: list[tuple[Route, OutgoingRecord]]
-    seen: HopKey | None
-
-
 @dataclass
 class _CommitBatch:
     """The records of one group commit by destination, with their hop keys."""
@@ -60,8 +50,11 @@ class _CommitBatch:
     committed: list[tuple[str, str]] = field(default_factory=list)  # (destination, record_id), as they came
 
     def add(self, route: Route, record: PendingRecord) -> None:
-        self.by_destination.setdefault(route.name, []).append(record)
-        self.limits[route.name] = route.limit
+        records = self.by_destination.get(route.name)
+        if records is None:
+            records = self.by_destination[route.name] = []
+            self.limits[route.name] = route.limit
+        records.append(record)
         self.committed.append((route.name, record.record_id))
 
     @property
@@ -153,8 +146,6 @@ class GroupCommitter:
         Each record's copies and key are still committed together, and all of these records in the
         same group commit.
         """
-        routes = self._routes
-        handoffs = [_Handoff([(routes[name], record) for name, record in copies], seen) for copies, seen in received]
         reason = None
         if not self._accepting:
             reason = "the delivery pipeline is not running"
@@ -162,15 +153,19 @@ class GroupCommitter:
             reason = f"{self.settings.intake_queue_limit} records already wait for the disk (intake_queue_limit)"
         if reason is not None:
             dropped = 0
-            for handoff in handoffs:
-                for route, _ in handoff.records:
-                    route.metrics.add("received")
-                    route.metrics.add("dropped")
-                    dropped += 1
+            for copies, _ in received:
+                for name, _ in copies:
+                    route = self._routes.get(name)
+                    if route is not None:
+                        route.metrics.add("received")
+                        route.metrics.add("dropped")
+                        dropped += 1
             if dropped:
                 self.intake_drop_log.event(dropped, reason)
             return False
-        if handoffs:
+        if received:
+            # Taken as they are: the destinations are looked up by the writer thread, not here.
+            handoffs = list(received)
             with self._submit_lock:  # several threads may submit
                 self._submitted += len(handoffs)
             self._intake.put(handoffs)
@@ -205,7 +200,7 @@ class GroupCommitter:
                 time.sleep(self.settings.commit_interval)
                 self._take_waiting(items, limit)
             stop = False
-            handoffs: list[_Handoff] = []
+            handoffs: list[Received] = []
             markers: list[threading.Event] = []
             for item in items:
                 if item is _STOP:
@@ -250,7 +245,7 @@ class GroupCommitter:
                 self._taken += len(item)
                 self._commit(item)
 
-    def _commit(self, handoffs: list[_Handoff]) -> None:
+    def _commit(self, handoffs: list[Received]) -> None:
         """One group commit of received records."""
         batch = self._storable(handoffs)
         while True:
@@ -278,35 +273,47 @@ class GroupCommitter:
         self.failing = None
         self._account(batch, result)
 
-    def _storable(self, handoffs: list[_Handoff]) -> _CommitBatch:
+    def _storable(self, handoffs: list[Received]) -> _CommitBatch:
         """What of ``handoffs`` the buffer can hold; a record that is not valid UTF-8 JSON is counted apart."""
         batch = _CommitBatch()
-        for handoff in handoffs:
-            if handoff.seen is not None:
-                batch.seen.append(handoff.seen)
-            for route, record in handoff.records:
+        routes = self._routes
+        for copies, seen in handoffs:
+            if seen is not None:
+                batch.seen.append(seen)
+            for name, record in copies:
+                route = routes.get(name)
+                if route is None:
+                    self._unknown_destination(name, record.record_id)
+                    continue
                 try:
+                    # Encodes the payload: a lone surrogate fails here, not in the commit.
                     pending = PendingRecord(
                         record.record_id, record.topic, record.stamp_ns, record.to_json(), record.text_follows_rule
                     )
-                    pending.size  # noqa: B018 - encodes the payload: a lone surrogate fails here, not in append
                 except (MalformedRecord, UnicodeError, ValueError, TypeError, RecursionError) as exc:
                     self._not_storable(route, record.record_id, f"{type(exc).__name__}: {exc}")
                     continue
                 batch.add(route, pending)
         return batch
 
-    def _commit_apart(self, handoffs: list[_Handoff], exc: Exception) -> None:
+    def _commit_apart(self, handoffs: list[Received], exc: Exception) -> None:
         """Commit each received record alone after ``exc`` failed their group commit."""
         if len(handoffs) > 1:
             for handoff in handoffs:
                 self._commit([handoff])
             return
-        (handoff,) = handoffs
-        for route, record in handoff.records:
-            self._not_storable(route, record.record_id, f"the buffer refused it: {type(exc).__name__}: {exc}")
-        if handoff.seen is not None:
-            self._commit([_Handoff([], handoff.seen)])  # handled: a replay of it is not reported as new
+        ((copies, seen),) = handoffs
+        for name, record in copies:
+            route = self._routes.get(name)
+            if route is not None:
+                self._not_storable(route, record.record_id, f"the buffer refused it: {type(exc).__name__}: {exc}")
+        if seen is not None:
+            self._commit([([], seen)])  # handled: a replay of it is not reported as new
+
+    def _unknown_destination(self, name: str, record_id: str) -> None:
+        # A caller's mistake (the server routes only to its destinations), never a reason to stop
+        # the writer: said, and the record's other copies are committed.
+        self.logger.error(f"delivery intake: record {record_id} submitted for {name!r}, not a destination here")
 
     def _not_storable(self, route: Route, record_id: str, reason: str) -> None:
         route.metrics.add("received")

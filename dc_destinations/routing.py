@@ -102,8 +102,12 @@ class RoutingTable:
         if not tags:
             return Routed(unrouted_reason=NO_TAGS)
         listening = self._by_topic.get(topic, {})
-        # dict.fromkeys: a destination tagged twice still receives the record once, in tag order.
-        targets = [listening[name] for name in dict.fromkeys(tags) if name in listening]
+        if len(tags) == 1:  # most records: one tag, no list of names to build
+            only = listening.get(tags[0])
+            targets = [only] if only is not None else []
+        else:
+            # dict.fromkeys: a destination tagged twice still receives the record once, in tag order.
+            targets = [listening[name] for name in dict.fromkeys(tags) if name in listening]
         if not targets:
             return Routed(unrouted_reason=NO_LISTENER)
         # One id per received record, shared by its destinations and kept in the delivered JSON so

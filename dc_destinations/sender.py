@@ -344,7 +344,10 @@ class Sender:
         if not records:
             return False
         retry, reject = _outcome_of(route.destination, records)
-        confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
+        if retry or reject:
+            confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
+        else:
+            confirmed = [row.row_id for row in sent_rows]
         if defer_delete and not retry and not reject:
             self._confirmed += confirmed
             return False

@@ -16,6 +16,7 @@ from typing import Any
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
 from dc_core.records import MalformedRecord
+from dc_core.stamped_cdr import write_string_stamped
 from dc_group.config import GroupServerConfig, parse_group_server
 from dc_group.merge import parse_input
 from dc_group.metrics import group_prometheus_text
@@ -139,11 +140,7 @@ class GroupServer(ManagedServer):
         if publisher is None:
             return
         for output in outputs:
-            msg = StringStamped()
-            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(output.stamp_ns, 1_000_000_000)
-            msg.data = output.data
-            msg.group_key = output.group_key
-            publisher.publish(msg)
+            publisher.publish(write_string_stamped(output.stamp_ns, output.data, output.group_key))
 
     def _count_malformed(self, topic: str, exc: MalformedRecord, now: float) -> None:
         count = self.malformed.get(topic, 0) + 1

@@ -17,6 +17,7 @@ from dc_core.paths import expand_env, expand_values
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
 from dc_core.rostime import now_ns
+from dc_core.stamped_cdr import write_string_stamped
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
@@ -160,14 +161,11 @@ class MeasurementServer(ManagedServer):
 
     def _publish_fn(self, publisher: Any) -> Any:
         def publish(text: str, group_key: str, stamp_ns: int | None) -> None:
-            msg = StringStamped()
             if stamp_ns is None:
-                msg.header.stamp = self.get_clock().now().to_msg()
-            else:
-                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-            msg.data = text
-            msg.group_key = group_key
-            publisher.publish(msg)
+                stamp_ns = self.get_clock().now().nanoseconds
+            # Serialised here and published raw: rclpy's conversion of a message object cost more
+            # than twice as much, for every record (dc_core.stamped_cdr).
+            publisher.publish(write_string_stamped(stamp_ns, text, group_key))
 
         return publish
 

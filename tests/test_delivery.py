@@ -954,6 +954,24 @@ def test_records_submitted_together_are_kept_or_dropped_together_and_committed_i
         pipeline.stop(grace=0.5)
 
 
+def test_a_copy_for_no_destination_here_is_said_and_the_writer_commits_the_rest(tmp_path: Path) -> None:
+    # The writer looks destinations up: a caller's wrong name must not stop it, nor lose the other copies.
+    logger = RecordingLogger()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"a": (Recorder(), DestinationDeliveryParams())}, logger)
+    pipeline.start()
+    try:
+        stray, kept = record(1), record(2)
+        assert pipeline.submit_records([([("nowhere", stray), ("a", stray)], ("/t", 7, 1)), ([("a", kept)], None)])
+        assert pipeline.flush_intake(5)
+        assert pipeline.metrics()["a"]["received"] == 2
+        assert pipeline.hop_keys() == [("/t", 7, 1)]
+        assert [line for level, line in logger.lines if "'nowhere'" in line and level == "error"] == [
+            f"delivery intake: record {stray.record_id} submitted for 'nowhere', not a destination here"
+        ]
+    finally:
+        pipeline.stop(grace=0.5)
+
+
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A real file system of 2 MB (tmpfs), so that the buffer meets a real ENOSPC."""

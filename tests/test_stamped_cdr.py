@@ -8,7 +8,7 @@ from collections.abc import Callable
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 
-from dc_core.stamped_cdr import read_string_stamped
+from dc_core.stamped_cdr import read_stamped_record, read_string_stamped, write_string_stamped
 from dc_interfaces.msg import StringStamped
 
 
@@ -72,3 +72,52 @@ def test_what_it_does_not_read_itself_is_rclpy_s_to_read(case: str) -> None:
     else:
         serialised = b"\x00\x00" + serialised[2:]  # the same bytes read big-endian: lengths out of range
     assert _outcome(read_string_stamped, serialised) == _outcome(_as_rclpy_reads, serialised)
+
+
+def test_the_group_key_reads_as_rclpy_reads_it() -> None:
+    rng = random.Random(11)
+    for _ in range(500):
+        msg = _message(
+            _text(rng, rng.randint(0, 30)), _text(rng, rng.randint(0, 7)), _text(rng, rng.randint(0, 9)), 3, 4
+        )
+        serialised = serialize_message(msg)
+        stamp_ns, data = _as_rclpy_reads(serialised)
+        assert read_stamped_record(serialised) == (stamp_ns, data, msg.group_key)
+    truncated = serialize_message(_message("abc", group_key="group"))[:-3]
+    assert _outcome(read_stamped_record, truncated) == _outcome(
+        lambda b: (*_as_rclpy_reads(b), deserialize_message(b, StringStamped).group_key), truncated
+    )
+
+
+def test_written_messages_are_what_rclpy_serialises() -> None:
+    rng = random.Random(5)
+    for _ in range(2000):
+        stamp_ns = rng.randint(-(2**31) * 10**9, (2**31 - 1) * 10**9 + 999_999_999)
+        data, group_key = _text(rng, rng.randint(0, 40)), _text(rng, rng.randint(0, 9))
+        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+        expected = serialize_message(_message(data, group_key=group_key, sec=sec, nanosec=nanosec))
+        written = write_string_stamped(stamp_ns, data, group_key)
+        # Byte for byte but the padding, which DDS leaves undefined (zeros here).
+        assert len(written) == len(expected)
+        back = deserialize_message(written, StringStamped)
+        assert (back.header.stamp.sec, back.header.stamp.nanosec, back.header.frame_id) == (sec, nanosec, "")
+        assert (back.data, back.group_key) == (data, group_key)
+
+
+def test_what_rclpy_would_write_its_own_way_it_writes() -> None:
+    # A NUL cuts the string; a lone surrogate cannot be published; nor a stamp beyond int32 seconds.
+    assert deserialize_message(write_string_stamped(0, "a\0b", "k\0"), StringStamped).data == "a"
+    with pytest.raises(UnicodeEncodeError):
+        write_string_stamped(0, "\udcff")
+    too_late = 2**31 * 1_000_000_000
+
+    def fields(write: Callable[[], bytes]) -> object:
+        try:
+            msg = deserialize_message(write(), StringStamped)
+        except Exception as exc:  # the failure itself is what is compared
+            return type(exc)
+        return msg.header.stamp.sec, msg.header.stamp.nanosec, msg.data
+
+    assert fields(lambda: write_string_stamped(too_late, "{}")) == fields(
+        lambda: serialize_message(_message("{}", sec=2**31))
+    )

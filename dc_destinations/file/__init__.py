@@ -95,8 +95,11 @@ class File(Destination[FileParams]):
         with self._lock:
             try:
                 fd = self._open()
-                if self.params.format == "csv":
+                fmt = self.params.format
+                if fmt == "csv":
                     text, rejected = self._render_csv(fd, batch)
+                elif fmt in ("json", "plain"):  # the default, a line per record: without a call per line
+                    text, rejected = "".join([f"{r.to_json()}\n" for r in batch]), {}
                 else:
                     text, rejected = "".join(self._line(r) for r in batch), {}
                 self._append(fd, text.encode())

@@ -12,6 +12,7 @@ from dc_core.measurement import Measurement
 from dc_core.params import param
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.sequence_numbers import TopicWriters
+from dc_core.stamped_cdr import read_stamped_record
 from dc_core.topics import ros_topic, topic_problem
 
 _LOGGED_TEXT = 2000
@@ -92,6 +93,8 @@ class StringStampedInput(Measurement[StringStampedParams]):
         self._subscription = self.context.subscribe(
             StringStamped, topic, self._on_message, QoSProfile(depth=self.params.qos_depth)
         )
+        # Taken as the bytes DDS delivered, read without building the message's Python objects.
+        self._subscription.raw = True
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:
@@ -106,7 +109,7 @@ class StringStampedInput(Measurement[StringStampedParams]):
             if log is not None:
                 log.tick()
 
-    def _on_message(self, msg: Any, info: Any) -> None:
+    def _on_message(self, serialised: bytes, info: Any) -> None:
         seq = info.get("publication_sequence_number") if info else None
         if isinstance(seq, int) and seq > 0:
             skipped = self._writers.observe(seq)
@@ -118,21 +121,20 @@ class StringStampedInput(Measurement[StringStampedParams]):
                     f"{self._topic}: publication sequence numbers {seq - skipped}..{seq - 1} never arrived;"
                     f" the queues, qos_depth {self.params.qos_depth} and the publisher's depth, overflowed",
                 )
+        stamp_ns, text, group_key = read_stamped_record(serialised)
         try:
-            record = parse_record(msg.data)
+            record = parse_record(text)
         except MalformedRecord as exc:
             self.malformed += 1
             assert self._malformed_log is not None
-            self._malformed_log.event(1, f"{exc}; record: {msg.data[:_LOGGED_TEXT]!r}")
+            self._malformed_log.event(1, f"{exc}; record: {text[:_LOGGED_TEXT]!r}")
             return
-        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        group_key = msg.group_key or None
         if not self.timer_driven:
-            self.context.emit(record, stamp_ns=stamp_ns or None, group_key=group_key)
+            self.context.emit(record, stamp_ns=stamp_ns or None, group_key=group_key or None)
             return
         with self._lock:
             replaced = self._latest is not None
-            self._latest = (record, stamp_ns, msg.group_key)
+            self._latest = (record, stamp_ns, group_key)
         if replaced:
             self.replaced += 1
             assert self._replaced_log is not None
