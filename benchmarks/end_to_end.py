@@ -53,6 +53,7 @@ from typing import IO, Any
 
 REPO = Path(__file__).resolve().parent.parent
 TOPIC = "/bench/records"
+FORWARDED = "/bench/forwarded"  # where the bare forwarder publishes again what it takes
 DESTINATION = "bench"
 SETTLE_S = 2.0  # CPU window ends this long after the last publish, for the bare subscriber and the server
 START_DEADLINE_S = 30.0
@@ -124,14 +125,18 @@ def role_publisher(count: int, rate: float) -> None:
 
 
 def role_subscriber(kind: str, topic: str = TOPIC) -> None:
-    """A bare subscriber: counts records; ``intake`` with run_server's loop, else an executor's spin_once loop."""
+    """A bare subscriber: counts records; ``intake`` with run_server's loop, else an executor's spin_once loop.
+
+    ``forward``: the cheapest forwarder, on the intake loop too: each record taken as its bytes and
+    published again as they are on ``FORWARDED`` (with DC's record QoS, as measurement_server does).
+    """
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
     from dc_core.executors import make_executor, spin_until
     from dc_core.intake import Intake
     from dc_core.lifecycle import ServerLoop
-    from dc_core.qos import VOLATILE_RECORD_QOS
+    from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
     from dc_interfaces.msg import StringStamped
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -144,10 +149,19 @@ def role_subscriber(kind: str, topic: str = TOPIC) -> None:
         state["count"] += 1
         state["last"] = time.time()
 
-    executor = make_executor("single" if kind == "intake" else kind)
+    on_intake = kind in ("intake", "forward")
+    executor = make_executor("single" if on_intake else kind)
     executor.add_node(node)
     intake = Intake(node)
-    if kind == "intake":
+    if kind == "forward":
+        forwarded = node.create_publisher(StringStamped, FORWARDED, RECORD_QOS)
+
+        def forward(serialised: Any, info: Any) -> None:
+            forwarded.publish(serialised)
+            on_message(serialised)
+
+        intake.subscribe(StringStamped, topic, forward, VOLATILE_RECORD_QOS).raw = True
+    elif kind == "intake":
         intake.subscribe(StringStamped, topic, lambda msg, info: on_message(msg), VOLATILE_RECORD_QOS)
     else:
         node.create_subscription(StringStamped, topic, on_message, VOLATILE_RECORD_QOS)
@@ -160,7 +174,7 @@ def role_subscriber(kind: str, topic: str = TOPIC) -> None:
 
     node.create_timer(0.2, report)
     print("ready", flush=True)
-    if kind == "intake":
+    if on_intake:
         ServerLoop(executor, intake).run(stop, _StderrLog())
     else:
         spin_until(executor, stop, lambda exc: print(f"error {exc!r}", file=sys.stderr, flush=True))

@@ -2,9 +2,13 @@
 
 CPU of measurement_server per 1,000 records at a paced 1,000/s, beside bare subscribers of the
 same run (rclpy's default executor, DC's intake loop): what taking a record costs, against what
-DC adds (JSON parsing, metadata, the output record, publishing it again).
+DC adds (JSON parsing, metadata, the output record, publishing it again); and beside a bare
+forwarder on DC's intake loop, which publishes each record's bytes again as it took them: the
+cheapest way to do the job, without reading the record.
 
     .venv/bin/python benchmarks/measurement_forwarding.py --runs 3
+    git worktree add /tmp/before HEAD~1
+    .venv/bin/python benchmarks/measurement_forwarding.py --runs 3 before=/tmp/before after=.
 
 Processes, domain and temporary folder as in end_to_end.py (whose children this script reuses).
 The forwarded records are counted by a bare intake subscriber on the output topic, so a
@@ -25,9 +29,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import end_to_end as e2e  # a sibling script, not a package
 
-OUTPUT = "/bench/forwarded"
+OUTPUT = e2e.FORWARDED
 RATE = 1000.0
-KINDS = ("single", "intake")
+# Bare receivers, and the cheapest way to do the same job: a forwarder publishing each record's bytes again.
+KINDS = ("single", "intake", "forward")
 
 
 def server_params(folder: Path) -> Path:
@@ -53,9 +58,18 @@ def server_params(folder: Path) -> Path:
 def forwarding(bench: e2e.Bench, folder: Path, count: int) -> tuple[float, int]:
     """measurement_server's CPU ms per 1,000 records, and how many the counter on its output got."""
     argv = [sys.executable, "-m", "dc_measurements.server", str(server_params(folder)), "--autostart"]
+    return forwarded_by(bench, e2e.Child(argv, bench.env, folder / "measurement_server.log"), count)
+
+
+def forwarded_by(bench: e2e.Bench, forwarder: e2e.Child, count: int) -> tuple[float, int]:
+    """CPU ms per 1,000 records of ``forwarder`` (publishing on OUTPUT), and how many the counter there got.
+
+    The same for measurement_server and the bare forwarder: a subscriber on the output makes DDS
+    deliver what is published, as in a real job.
+    """
     with (
         e2e.running(bench.subscriber("intake", OUTPUT)) as counter,
-        e2e.running(e2e.Child(argv, bench.env, folder / "measurement_server.log")) as server,
+        e2e.running(forwarder) as server,
         e2e.running(bench.publisher(count, RATE)) as publisher,
     ):
         if counter.wait_line(lambda line: line == "ready", e2e.START_DEADLINE_S) is None:
@@ -72,37 +86,62 @@ def forwarding(bench: e2e.Bench, folder: Path, count: int) -> tuple[float, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "trees",
+        nargs="*",
+        default=["measurement_server=."],
+        help="NAME=PATH of checkouts whose measurement_server is measured, in turns (default: this one)",
+    )
     parser.add_argument("--seconds", type=float, default=10.0, help="length of each paced run")
     parser.add_argument("--runs", type=int, default=1, help="repeat; medians are reported")
     parser.add_argument("--domain", type=int, default=random.randint(150, 230), help="ROS_DOMAIN_ID")
     parser.add_argument("--json", default=str(e2e.REPO / "benchmarks" / "results" / "measurement_forwarding.json"))
     args = parser.parse_args()
+    trees = {}
+    for spec in args.trees:
+        name, _, path = spec.partition("=")
+        if not path or not (Path(path) / "dc_measurements").is_dir():
+            parser.error(f"{spec!r}: expected NAME=PATH of a DC checkout")
+        trees[name] = Path(path).resolve()
     count = int(args.seconds * RATE)
-    cpu: dict[str, list[float]] = {kind: [] for kind in (*KINDS, "measurement_server")}
-    lost: list[int] = []
+    cpu: dict[str, list[float]] = {kind: [] for kind in (*KINDS, *trees)}
+    lost: dict[str, list[int]] = {name: [] for name in ("forward", *trees)}
     with tempfile.TemporaryDirectory(prefix="dc-bench-") as tmp:
         bench = e2e.Bench(Path(tmp), args.domain)
         bench.env["HOME"] = tmp
         for run in range(args.runs):
             for kind in KINDS:
-                flow = e2e.transport(bench, kind, count, RATE)
-                cpu[kind].append(flow.cpu_ms_per_1000)
-                print(f"run {run + 1}: bare {kind:<7} {flow.cpu_ms_per_1000:5.0f} ms CPU/1000", flush=True)
-            folder = Path(tmp) / f"run-{run}"
-            folder.mkdir()
-            ms, delivered = forwarding(bench, folder, count)
-            cpu["measurement_server"].append(ms)
-            lost.append(count - delivered)
-            print(f"run {run + 1}: measurement_server {ms:5.0f} ms CPU/1000, {count - delivered} lost", flush=True)
+                if kind == "forward":
+                    ms, delivered = forwarded_by(bench, bench.subscriber("forward"), count)
+                    lost["forward"].append(count - delivered)
+                else:
+                    ms = e2e.transport(bench, kind, count, RATE).cpu_ms_per_1000
+                cpu[kind].append(ms)
+                print(f"run {run + 1}: bare {kind:<7} {ms:5.0f} ms CPU/1000", flush=True)
+            for name in list(trees) if run % 2 == 0 else list(reversed(trees)):
+                folder = Path(tmp) / f"run-{run}-{name}"
+                folder.mkdir()
+                e2e.REPO = trees[name]  # the server child's working directory: its packages are imported
+                ms, delivered = forwarding(bench, folder, count)
+                cpu[name].append(ms)
+                lost[name].append(count - delivered)
+                print(f"run {run + 1}: {name} {ms:5.0f} ms CPU/1000, {count - delivered} lost", flush=True)
     medians = {name: statistics.median(values) for name, values in cpu.items()}
     print(f"\nmedians of {args.runs} run(s), paced {RATE:,.0f} records/s, CPU ms per 1,000 records:")
     for name, value in medians.items():
         print(f"  {name:<20} {value:6.0f}")
-    server = medians["measurement_server"]
-    for kind in KINDS:
-        print(f"  measurement_server / bare {kind:<7} {server / medians[kind]:5.2f}x")
+    for name in trees:
+        for kind in KINDS:
+            print(f"  {name} / bare {kind:<7} {medians[name] / medians[kind]:5.2f}x")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps({"runs": args.runs, "cpu_ms_per_1000": cpu, "lost": lost}, indent=2) + "\n")
+    document = {
+        "runs": args.runs,
+        "trees": {name: str(path) for name, path in trees.items()},
+        "cpu_ms_per_1000": cpu,
+        "medians": medians,
+        "lost": lost,
+    }
+    Path(args.json).write_text(json.dumps(document, indent=2) + "\n")
     print(f"\nJSON: {args.json}")
 
 

@@ -126,8 +126,8 @@ def dump_record(record: Any) -> str:
 
 
 def dump_parsed(record: dict[str, Any]) -> str:
-    """:func:`dump_record` of a record made only of what :func:`parse_record` returns, and of str and
-    finite float values added to it.
+    """:func:`dump_record` of a record made only of what :func:`parse_record` returns, and of str,
+    bool and finite float values (and lists of them) added to it.
 
     orjson would write a NaN as ``null`` and a UUID or an Enum as a string, where json refuses them:
     only values of JSON's own types, as a parse gives them, may take this path.

@@ -15,7 +15,7 @@ from dc_core.gating import Gate
 from dc_core.jsonpath import flatten as flatten_record
 from dc_core.logs import BurstLog, Logger
 from dc_core.measurement import Measurement
-from dc_core.records import MalformedRecord, dump_record
+from dc_core.records import MalformedRecord, dump_parsed, dump_record
 from dc_core.worker import Outcome, Worker
 from dc_measurements.condition_runtime import ConditionRuntime, already_unmet, conditions_met
 from dc_measurements.config import MeasurementConfig
@@ -68,6 +68,7 @@ class MeasurementRunner:
         self._run_id = run_id
         self._custom = custom
         self._publish = publish
+        self._dump = dump_parsed if plugin.samples_are_parsed_json else dump_record
         self._logger = logger
         # The node's clock (simulated time under use_sim_time): stamps of samples collected on the worker.
         self._clock_ns = clock_ns
@@ -250,7 +251,7 @@ class MeasurementRunner:
         if record is None:
             return
         try:
-            text = dump_record(record)
+            text = self._dump(record)
         except MalformedRecord as exc:  # a plugin's sample with NaN, a lone surrogate (a file name), ...
             self.stats.errors += 1
             self._logger.error(f"measurement {self.config.name}: record not published: {exc}")

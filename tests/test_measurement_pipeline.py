@@ -10,11 +10,13 @@ import pytest
 
 from dc_core.errors import ConfigError
 from dc_core.paths import expand_env, expand_time, expand_values
+from dc_core.records import parse_record
 from dc_core.testing import FakeContext, RecordingLogger
 from dc_measurements.condition_runtime import ConditionRuntime, conditions_met
 from dc_measurements.config import RunIdParams, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
 from dc_measurements.runner import MeasurementRunner
+from dc_measurements.uptime import Uptime
 from dc_measurements.validation import RecordValidator
 
 LOG = RecordingLogger("test")
@@ -80,6 +82,31 @@ def test_uptime_record_has_metadata_and_no_flags() -> None:
     assert set(record) == {"time", "run_id", "tags", "name"}
     assert record["run_id"] == "7" and record["tags"] == ["flb_stdout"] and record["name"] == "m"
     assert abs(record["time"] - float(Path("/proc/uptime").read_text().split()[0])) < 2
+
+
+@pytest.mark.parametrize("shape", [{}, {"nested": True}, {"flatten": True}])
+def test_samples_parsed_from_json_are_written_as_json_writes_them(
+    monkeypatch: pytest.MonkeyPatch, shape: dict[str, Any]
+) -> None:
+    # samples_are_parsed_json lets orjson write the record: the texts must be json's, to the byte.
+    texts = [
+        '{"small":1e-05,"tiny":1.5e-09,"plain":0.1,"whole":2.0,"neg":-0.0}',
+        '{"big":18446744073709551616,"u64":18446744073709551615,"exp":1e300}',
+        r'{"text":"\u00e9\u4e2d\ud83d\ude00 \\ \" \u0001 \u007f \u2028","e-":"1e-5","zeros":"0.00001"}',
+        r'{"deep":{"list":[1,[2,{"x":null}],true,false],"empty":{}},"k\u00e9y":[]}',
+    ]
+    written = []
+    for parsed in (False, True):
+        monkeypatch.setattr(Uptime, "samples_are_parsed_json", parsed)
+        runner, published = make_runner(
+            {"plugin": "dc_measurements/Uptime", "tags": ["t"], "enable_validator": False, **shape},
+            samples=[parse_record(t) for t in texts],
+        )
+        for _ in texts:
+            runner.tick()
+        written.append([text for text, _, _ in published])
+    assert len(written[0]) == len(texts)
+    assert written[1] == written[0]
 
 
 def test_nested_flatten_plugin_and_custom_params() -> None:

@@ -38,6 +38,7 @@ class StringStampedInput(Measurement[StringStampedParams]):
     """Forwards JSON records that your own nodes publish as dc_interfaces/StringStamped."""
 
     schema_file = None  # the records are your nodes': give them a schema with json_schema_path
+    samples_are_parsed_json = True  # each sample is parse_record's
 
     def __init__(self, context: Any, params: Any) -> None:
         super().__init__(context, params)
