@@ -184,6 +184,17 @@ def role_subscriber(kind: str, topic: str = TOPIC) -> None:
     rclpy.shutdown()
 
 
+def checkouts(parser: argparse.ArgumentParser, specs: list[str]) -> dict[str, Path]:
+    """``NAME=PATH`` arguments as DC checkouts by name (for benchmarks that compare code trees in turns)."""
+    trees = {}
+    for spec in specs:
+        name, _, path = spec.partition("=")
+        if not path or not (Path(path) / "dc_core").is_dir():
+            parser.error(f"{spec!r}: expected NAME=PATH of a DC checkout")
+        trees[name] = Path(path).resolve()
+    return trees
+
+
 class _StderrLog:
     def error(self, message: str) -> None:
         print(f"error {message}", file=sys.stderr, flush=True)

@@ -97,12 +97,7 @@ def main() -> None:
     parser.add_argument("--domain", type=int, default=random.randint(150, 230), help="ROS_DOMAIN_ID")
     parser.add_argument("--json", default=str(e2e.REPO / "benchmarks" / "results" / "measurement_forwarding.json"))
     args = parser.parse_args()
-    trees = {}
-    for spec in args.trees:
-        name, _, path = spec.partition("=")
-        if not path or not (Path(path) / "dc_measurements").is_dir():
-            parser.error(f"{spec!r}: expected NAME=PATH of a DC checkout")
-        trees[name] = Path(path).resolve()
+    trees = e2e.checkouts(parser, args.trees)
     count = int(args.seconds * RATE)
     cpu: dict[str, list[float]] = {kind: [] for kind in (*KINDS, *trees)}
     lost: dict[str, list[int]] = {name: [] for name in ("forward", *trees)}
