@@ -8,7 +8,9 @@ from typing import Any
 from dc_core.params import param
 
 DEFAULT_HEARTBEAT_PERIOD_S = 1.0
-DEFAULT_RECORD_LINGER_S = 0.01
+# measurement, group and image servers: at 1,000 forwarded records/s 0.03 s cost a sixth less CPU per
+# record than 0.01 s, while a timer due meanwhile waits 30 ms at most (docs/performance.md).
+DEFAULT_RECORD_LINGER_S = 0.03
 
 
 def record_linger_param(default: float) -> Any:
