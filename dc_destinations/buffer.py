@@ -113,7 +113,7 @@ class PendingRecord:
     not valid Unicode (a lone surrogate) raises ``UnicodeEncodeError`` here, before any commit.
 
     A slotted class computing everything at construction, not a frozen dataclass with cached
-    properties: the writer thread builds one per record (0.5 us against 1.3). Read-only by use.
+    properties: the writer thread builds one per record (0.35 us with its row, against 1.3). Read-only by use.
     """
 
     __slots__ = ("checked", "crc", "encoded", "payload", "record_id", "size", "stamp_ns", "topic")
