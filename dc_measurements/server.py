@@ -162,7 +162,7 @@ class MeasurementServer(ManagedServer):
     def _publish_fn(self, publisher: Any) -> Any:
         def publish(text: str, group_key: str, stamp_ns: int | None) -> None:
             if stamp_ns is None:
-                stamp_ns = self.get_clock().now().nanoseconds
+                stamp_ns = now_ns(self)
             # Serialised here and published raw: rclpy's conversion of a message object cost more
             # than twice as much, for every record (dc_core.stamped_cdr).
             publisher.publish(write_string_stamped(stamp_ns, text, group_key))
