@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import statistics
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -59,8 +60,10 @@ def test_a_bag_is_published_at_its_pace_with_clock_and_its_custom_types_skipped(
     assert stamps == sorted(stamps)
     assert clock == sorted(clock)
     assert abs(clock[0] - stamps[0]) < 10**8 and abs(clock[-1] - stamps[-1]) < 10**8  # headers ~ bag time
-    # At 8x, clock ticks every 10 ms of wall time: 80 ms of bag time at most between two.
-    assert max(b - a for a, b in itertools.pairwise(clock)) < 0.25 * 10**9
+    # At 8x, clock ticks every 10 ms of wall time: 80 ms of bag time between two, where the bag's own
+    # messages are ~200 ms apart. The median, not the largest gap: a loaded machine that stalls the
+    # player's thread for 100 ms (seen under the 2-worker suite: 0.82 s of bag time) stretches a few.
+    assert statistics.median(b - a for a, b in itertools.pairwise(clock)) < 0.15 * 10**9
     player.close()
 
 
