@@ -19,6 +19,11 @@ RUN_DOMAINS = range(21, 233)  # one per dc-bringup run, server process or isolat
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
 WORKER = int(_worker[2:]) if _worker[2:].isdigit() else 0
 WORKERS = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+# Several test sessions at once on one machine (e.g. two checkouts): DC_TEST_DOMAIN_SLOT="k/n" gives
+# session k of n the domains its workers would get if there were n times as many workers.
+_slot, _, _slots = os.environ.get("DC_TEST_DOMAIN_SLOT", "0/1").partition("/")
+WORKER = WORKER * int(_slots) + int(_slot)
+WORKERS = WORKERS * int(_slots)
 
 
 def _mine(domains: range) -> list[int]:
