@@ -327,6 +327,38 @@ def test_what_a_record_names_that_is_not_a_file_is_rejected(
     assert 2 not in outcome.reject, "a record naming no file has nothing to track: confirmed"
 
 
+def test_a_file_outside_the_roots_or_linked_from_outside_is_refused_never_deleted(
+    pg: PostgresServer, s3: SeaweedS3Server, made: list[FilesMetrics], tmp_path: Path
+) -> None:
+    root = tmp_path / "data"
+    root.mkdir()
+    outside = a_file(tmp_path, "id_rsa", b"a private key")
+    outside.chmod(0o600)
+    os.link(outside, root / "hard.pgm")
+    inside = a_file(root, "map.pgm")
+    client = s3.client()
+    for path, key in ((outside, "loot/id_rsa"), (inside, "roots/map.pgm")):
+        client.upload_file(str(path), s3.bucket, key)  # stored intact: only the checks keep it on disk
+    dest = make(pg, s3, made, "roots", delete_when_sent=True, allowed_roots=[str(root)])
+    batch = [
+        record(outside, "loot/id_rsa", 0),
+        record(root / "hard.pgm", "loot/id_rsa", 1),
+        record(inside, "roots/map.pgm", 2),
+    ]
+    outcome = dest.send(batch)
+    assert outcome is not None and not outcome.retry
+    assert outcome.reject == {
+        0: f"refused: {outside} is outside allowed_roots ({root}) (local_paths.pgm)",
+        1: f"refused: {root / 'hard.pgm'} has 2 hard links: it may be a file from elsewhere (local_paths.pgm)",
+    }
+    assert outside.read_bytes() == b"a private key" and (root / "hard.pgm").exists()
+    assert not inside.exists(), "the file inside the roots: deleted once verified, as before"
+    assert [r["local_path"] for r in rows(pg, "roots")] == [str(inside)], "no row for what was refused"
+    counters = dest.counters()
+    assert counters == {"files_deleted": 1, "files_refused": 2}
+    assert (len(batch) - len(outcome.reject)) + counters["files_refused"] == len(batch)
+
+
 def test_absent_robot_fields_are_empty_and_timestamp_key_sets_the_time(
     pg: PostgresServer, s3: SeaweedS3Server, made: list[FilesMetrics], tmp_path: Path
 ) -> None:
