@@ -253,6 +253,10 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
     for topic, reasons in sorted(unrouted.items()) if isinstance(unrouted, dict) else []:
         for reason, count in sorted(reasons.items()):
             print(f"unrouted: {count} on {topic}: {reason}")
+    untrusted = metrics.get("intake", {}).get("untrusted_tags", {})
+    for topic, destinations in sorted(untrusted.items()) if isinstance(untrusted, dict) else []:
+        for name, count in sorted(destinations.items()):
+            print(f"untrusted tags: {count} on {topic} kept from {name} (a publisher there is not DC's)")
 
 
 def _with_ages(values: dict[str, Any], now: float) -> dict[str, Any]:

@@ -43,3 +43,14 @@ def expand_time(text: str, when: float | None = None, utc: bool = False) -> str:
     """strftime expansion (local time unless ``utc``)."""
     moment = time.time() if when is None else when
     return time.strftime(text, time.gmtime(moment) if utc else time.localtime(moment))
+
+
+def fixed_prefix(path: str) -> str:
+    """The folders of ``path`` before the first one with a strftime token: the same at every hour."""
+    kept: list[str] = []
+    for part in path.split("/"):
+        if "%" in part:
+            break
+        kept.append(part)
+    prefix = "/".join(kept)
+    return "/" if not prefix and path.startswith("/") else prefix

@@ -25,6 +25,7 @@ from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, 
 _OBSOLETE_NODE_KEYS = ("ros2_plugin_path", "ros2_plugin_spin_time_ms")
 # Written in destination_server by the seed's TurtleBot3 stdout demo; the original ignored them there.
 _MEASUREMENT_SERVER_KEYS = ("custom_str_params_list", "custom_str_params")
+TRUST_TAGS_FROM = ("dc_servers", "any")
 # Spellings of `flb` keys found in the seed's examples, with the key DC reads instead.
 _FLB_RENAMED = {"flb_grace": "grace", "metrics": "http_server"}
 
@@ -37,6 +38,12 @@ class DestinationServerParams(ServerNodeParams):
     record_linger: float = record_linger_param(0.05)
     destination_plugins: list[str] = param([], doc="Names of the destinations to load, each with its section")
     flb: DeliveryParams = param(default_factory=DeliveryParams, doc="Delivery settings (Fluent Bit's names)")
+    trust_tags_from: str = param(
+        "dc_servers",
+        choices=TRUST_TAGS_FROM,
+        doc="Whose records on /dc/measurement/* and /dc/group/* may reach file destinations by their tags "
+        "(dc_servers: DC's measurement and group servers only; any: every publisher)",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -32,6 +32,7 @@ from dc_destinations.aws import (
     check_credentials,
     region_problem,
 )
+from dc_destinations.confined_files import OpenedFile
 
 try:
     import botocore.config
@@ -199,8 +200,9 @@ def file_pairs(data: Mapping[str, Any], params: ObjectStoreParams) -> list[FileP
         if local is None:
             continue
         key = field_value(data, upload_field)
-        # An S3 key has no leading slash: "/robot/…" would make an empty first folder.
-        key_text = key.lstrip("/") if isinstance(key, str) else ""
+        # An S3 key has no leading slash: "/robot/…" would make an empty first folder. One is
+        # removed (the original's records had one); what is left is checked by the destination.
+        key_text = key.removeprefix("/") if isinstance(key, str) else ""
         pairs.append(FilePair(src_field, upload_field, local if isinstance(local, str) else "", key_text or None))
     return pairs
 
@@ -242,24 +244,45 @@ class _PartHasher:
         return f"{hashlib.md5(b''.join(digests), usedforsecurity=False).hexdigest()}-{len(digests)}"
 
 
-def _hash_file(path: str, hashers: Sequence[_PartHasher]) -> None:
-    with open(path, "rb") as f:
+@dataclass(frozen=True)
+class NoLocalFile:
+    """A file a record names that is not there: only the store can tell about it."""
+
+    path: str
+
+
+LocalFile = str | OpenedFile
+"""A local file by path, or opened by :class:`dc_destinations.confined_files.Confinement` (read through its
+descriptor, whatever its path names meanwhile)."""
+
+
+def _name(local: LocalFile | NoLocalFile) -> str:
+    return local if isinstance(local, str) else local.path
+
+
+def _hash_file(local: LocalFile, hashers: Sequence[_PartHasher]) -> None:
+    if isinstance(local, OpenedFile):
+        for chunk in local.reader():
+            for hasher in hashers:
+                hasher.update(chunk)
+        return
+    with open(local, "rb") as f:
         while chunk := f.read(_READ_CHUNK):
             for hasher in hashers:
                 hasher.update(chunk)
 
 
-def local_etag(path: str, part_size: int | None) -> str:
+def local_etag(local: LocalFile, part_size: int | None) -> str:
     """The ETag S3 gives this file's content: uploaded in one request (``part_size`` None) or in parts."""
     hasher = _PartHasher(part_size)
-    _hash_file(path, [hasher])
+    _hash_file(local, [hasher])
     return hasher.etag()
 
 
-def part_digests(path: str, part_size: int | None) -> list[bytes]:
+def part_digests(local: LocalFile, part_size: int | None) -> list[bytes]:
     """MD5 digest of each part of the file (of the whole file when ``part_size`` is None)."""
     hasher = _PartHasher(part_size)
-    _hash_file(path, [hasher])
+    _hash_file(local, [hasher])
     return hasher.finish()
 
 
@@ -363,7 +386,7 @@ class Verification:
     etag: str
 
 
-def verify_stored(client: Any, bucket: str, key: str, local_path: str) -> Verification:
+def verify_stored(client: Any, bucket: str, key: str, local: LocalFile | NoLocalFile) -> Verification:
     """Compare the stored object with the local file: size, then ETag (see the module documentation).
 
     A local file that is gone cannot be compared: the object counts as verified when it exists
@@ -375,8 +398,11 @@ def verify_stored(client: Any, bucket: str, key: str, local_path: str) -> Verifi
         return Verification(False, f"no object {key}", None, "")
     size = int(head.get("ContentLength", -1))
     etag = str(head.get("ETag", "")).strip('"')
+    local_path = _name(local)
     try:
-        local_size = os.stat(local_path).st_size
+        if isinstance(local, NoLocalFile):
+            raise FileNotFoundError(local_path)
+        local_size = os.fstat(local.fd).st_size if isinstance(local, OpenedFile) else os.stat(local).st_size
     except FileNotFoundError:
         return Verification(True, f"{key} is stored; {local_path} is gone, so its content is not compared", size, etag)
     if size != local_size:
@@ -398,12 +424,12 @@ def verify_stored(client: Any, bucket: str, key: str, local_path: str) -> Verifi
     if not candidates:
         return Verification(True, f"{key} has the file's size; parts of unknown size, ETag not compared", size, etag)
     hashers = [_PartHasher(part_size) for part_size in candidates]
-    _hash_file(local_path, hashers)
-    local = [hasher.etag() for hasher in hashers]
-    if etag in local:
+    _hash_file(local, hashers)
+    local_etags = [hasher.etag() for hasher in hashers]
+    if etag in local_etags:
         return Verification(True, f"{key} matches {local_path}: {size} bytes, ETag {etag}", size, etag)
     if guessed:
         return Verification(
             False, f"{key} has the file's size, not its ETag with the likely part sizes ({etag})", size, etag
         )
-    return Verification(False, f"{key} differs from {local_path}: ETag {etag}, the file's {local[0]}", size, etag)
+    return Verification(False, f"{key} differs from {local_path}: ETag {etag}, the file's {local_etags[0]}", size, etag)

@@ -6,6 +6,10 @@ a destination ``flb_pg`` also caught records tagged ``flb_pgsql``. Each delivery
 record without ``tags``, with the destination's time key first (the header stamp in its
 ``time_format``) and a fresh ``record_id``, serialised (:func:`dc_core.records.dump_parsed`, which
 raises ``MalformedRecord`` for a record that is not valid UTF-8 JSON). Pure: no ROS, no I/O.
+
+A record's tags are trusted only as far as its publisher is: destinations that read the files a
+record names (``trusted_only``) are not reached from a publisher the server does not trust
+(``route(..., trusted=False)``), and the routing says which ones it refused (docs/security.md).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from dc_core.destination import OutgoingRecord
 from dc_core.records import dump_parsed
 from dc_core.timefmt import format_stamp
 from dc_destinations.config import DestinationConfig
+from dc_destinations.confined_files import ConfinementParams
 from dc_destinations.record_ids import new_record_id
 
 RECORD_ID_KEY = "record_id"
@@ -27,6 +32,7 @@ TAGS_KEY = "tags"
 NO_TAGS = "no tags"
 BAD_TAGS = "tags is not a list of strings"
 NO_LISTENER = "its tags name no destination listening on this topic"
+UNTRUSTED = "its tags name only file destinations, and its publisher is not one of DC's servers"
 
 
 @dataclass(frozen=True)
@@ -36,6 +42,7 @@ class RouteTarget:
     name: str
     time_key: str
     time_format: str
+    trusted_only: bool = False  # reads the files records name: only records of trusted publishers
 
 
 @dataclass(frozen=True)
@@ -44,6 +51,7 @@ class Routed:
 
     deliveries: list[tuple[str, OutgoingRecord]] = field(default_factory=list)
     unrouted_reason: str | None = None
+    refused: list[str] = field(default_factory=list)  # trusted_only destinations the tags named, not reached
 
 
 def record_tags(record: Mapping[str, Any]) -> list[str] | None:
@@ -75,7 +83,9 @@ class RoutingTable:
     def from_destinations(cls, destinations: Iterable[DestinationConfig]) -> RoutingTable:
         by_topic: dict[str, list[RouteTarget]] = {}
         for d in destinations:
-            target = RouteTarget(d.name, d.common.time_key, d.common.time_format)
+            target = RouteTarget(
+                d.name, d.common.time_key, d.common.time_format, isinstance(d.plugin_params, ConfinementParams)
+            )
             for topic in dict.fromkeys(d.common.inputs):
                 by_topic.setdefault(topic, []).append(target)
         return cls(by_topic)
@@ -87,12 +97,17 @@ class RoutingTable:
     def listeners(self, topic: str) -> list[str]:
         return list(self._by_topic.get(topic, {}))
 
+    def has_trusted_only(self, topic: str) -> bool:
+        """Whether a destination that only trusted publishers reach listens on ``topic``."""
+        return any(t.trusted_only for t in self._by_topic.get(topic, {}).values())
+
     def route(
         self,
         topic: str,
         record: Mapping[str, Any],
         stamp_ns: int,
         new_record_id: Callable[[], str] = new_record_id,
+        trusted: bool = True,
     ) -> Routed:
         if TAGS_KEY not in record:
             return Routed(unrouted_reason=NO_TAGS)
@@ -108,6 +123,13 @@ class RoutingTable:
         else:
             # dict.fromkeys: a destination tagged twice still receives the record once, in tag order.
             targets = [listening[name] for name in dict.fromkeys(tags) if name in listening]
+        refused: list[str] = []
+        if not trusted:
+            refused = [t.name for t in targets if t.trusted_only]
+            if refused:
+                targets = [t for t in targets if not t.trusted_only]
+                if not targets:
+                    return Routed(unrouted_reason=UNTRUSTED, refused=refused)
         if not targets:
             return Routed(unrouted_reason=NO_LISTENER)
         # One id per received record, shared by its destinations and kept in the delivered JSON so
@@ -144,4 +166,4 @@ class RoutingTable:
             deliveries.append(
                 (target.name, OutgoingRecord.serialised(record_id, topic, stamp_ns, data, dump=dump_parsed))
             )
-        return Routed(deliveries)
+        return Routed(deliveries, refused=refused)

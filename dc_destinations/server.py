@@ -8,12 +8,19 @@ in-memory queue); writing to the buffer and sending run in the pipeline's thread
 Topics published by DC's own servers are subscribed transient-local: after a (re)start the server
 receives the publishers' history again, and the hop (dc_destinations.hop) drops what the buffer
 already holds and counts what was lost (docs/delivery.md, "The hop between servers").
+
+A record on DC's own topics (/dc/measurement/*, /dc/group/*) reaches a destination that reads the
+files records name only while every publisher of that topic is one of DC's servers
+(``trust_tags_from``, docs/security.md): a message does not say which publisher sent it, so one
+foreign publisher on the topic makes all its records untrusted for those destinations meanwhile.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import sys
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,6 +36,7 @@ from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.stamped_cdr import read_string_stamped
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
+from dc_destinations.confined_files import ConfinementParams, default_roots
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.hop import HopIntake, HopKey, hop_key
 from dc_destinations.record_ids import new_record_id
@@ -42,6 +50,15 @@ PREVIEW_CHARS = 200
 HOP_WINDOW_HISTORIES = 4
 # Malformed records logged one by one at the start of a burst; the rest are counted in a summary.
 MALFORMED_LINES_PER_BURST = 10
+# The nodes whose records may route themselves to file destinations, in this server's namespace.
+DC_PUBLISHERS = frozenset({"measurement_server", "group_server"})
+INTERNAL_PREFIXES = ("/dc/measurement/", "/dc/group/")
+# A foreign publisher seen on a topic keeps it untrusted this long after it left: its last records
+# may still wait in the subscription's queue, and a message does not say who sent it.
+FOREIGN_MEMORY_S = 10.0
+# How long a publisher whose node the graph does not know yet (discovery still under way) is
+# waited for, once per publisher, before it is taken as foreign.
+UNKNOWN_NODE_WAIT_S = 0.5
 
 _Received = tuple[list[tuple[str, OutgoingRecord]], HopKey | None]
 """One received record as the pipeline takes it: its copies by destination name, and its hop key."""
@@ -55,16 +72,22 @@ class IntakeStats:
     malformed: int = 0
     routed: int = 0
     unrouted: Counter[tuple[str, str]] = field(default_factory=Counter)
+    # Copies not made for a file destination: the record's publisher was not one of DC's servers.
+    untrusted_tags: Counter[tuple[str, str]] = field(default_factory=Counter)
 
     def as_dict(self) -> dict[str, Any]:
         unrouted: dict[str, dict[str, int]] = {}
         for (topic, reason), count in sorted(self.unrouted.items()):
             unrouted.setdefault(topic, {})[reason] = count
+        untrusted: dict[str, dict[str, int]] = {}
+        for (topic, destination), count in sorted(self.untrusted_tags.items()):
+            untrusted.setdefault(topic, {})[destination] = count
         return {
             "received": self.received,
             "malformed": self.malformed,
             "routed": self.routed,
             "unrouted": unrouted,
+            "untrusted_tags": untrusted,
         }
 
 
@@ -87,6 +110,12 @@ class DestinationServer(ManagedServer):
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
+        self._untrusted_log = BurstLog(
+            self.get_logger().warning, "records kept from file destinations, their publisher is not DC's"
+        )
+        self._guarded_topics: set[str] = set()
+        self._foreign_seen: dict[str, float] = {}  # topic -> when a foreign publisher was last seen on it
+        self._waited_for: set[bytes] = set()  # publishers of unknown node waited for once already
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -98,6 +127,8 @@ class DestinationServer(ManagedServer):
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
 
+        config = dataclasses.replace(config, destinations=self._with_default_roots(config, servers))
+        self.config = config
         for d in config.destinations:
             context = self.plugin_context(d.name)
             plugin: Destination[Any] = d.plugin_class(context, d.plugin_params)
@@ -109,6 +140,14 @@ class DestinationServer(ManagedServer):
             if c.debug:
                 self._debug.add(d.name)
         self.routing = RoutingTable.from_destinations(config.destinations)
+        self._guarded_topics = set()
+        if config.node.trust_tags_from == "dc_servers":
+            self._guarded_topics = {
+                topic
+                for topic in self.routing.topics
+                if (topic.startswith(INTERNAL_PREFIXES) or topic in self._internal_topics)
+                and self.routing.has_trusted_only(topic)
+            }
         self.pipeline = DeliveryPipeline(
             config.node.flb,
             {d.name: (self.plugins[d.name], d.delivery) for d in config.destinations},
@@ -119,6 +158,21 @@ class DestinationServer(ManagedServer):
         self.pipeline.claim_storage(self.get_namespace())
         self.pipeline.add_metrics_section("intake", self.intake_metrics)
         self.pipeline.add_metrics_section("hop", self.hop_metrics)
+
+    def _with_default_roots(self, config: DestinationServerConfig, servers: dict[str, Any]) -> list[Any]:
+        """The destinations, those reading files without ``allowed_roots`` given the measurement
+        server's save folder of this same file (dc_destinations.confined_files.default_roots)."""
+        destinations = []
+        roots: list[str] | None = None
+        for d in config.destinations:
+            params = d.plugin_params
+            if isinstance(params, ConfinementParams) and not params.allowed_roots:
+                if roots is None:
+                    roots = default_roots(servers.get("measurement_server"))
+                params = dataclasses.replace(params, allowed_roots=roots)
+                d = dataclasses.replace(d, plugin_params=params)
+            destinations.append(d)
+        return destinations
 
     def _published_by_dc(self, servers: dict[str, dict[str, Any]]) -> dict[str, int]:
         """Topics the measurement and group servers of this configuration publish, with their history depth.
@@ -210,6 +264,7 @@ class DestinationServer(ManagedServer):
         assert self.hop is not None
         received: list[_Received] = []
         keys: set[HopKey] = set()
+        trusted = topic not in self._guarded_topics or self._publishers_trusted(topic)
         for serialised, info in taken:
             key = hop_key(topic, info)
             if key is not None:
@@ -218,14 +273,16 @@ class DestinationServer(ManagedServer):
                     continue
                 keys.add(key)
             stamp_ns, text = read_string_stamped(serialised)
-            one = self._receive(topic, text, stamp_ns, key)
+            one = self._receive(topic, text, stamp_ns, key, trusted)
             if one is not None:
                 received.append(one)
         if topic not in self._internal_topics:
             received = _publisher_positions_only(received)
         self._hand_over(received)
 
-    def _receive(self, topic: str, text: str, stamp_ns: int, key: HopKey | None) -> _Received | None:
+    def _receive(
+        self, topic: str, text: str, stamp_ns: int, key: HopKey | None, trusted: bool = True
+    ) -> _Received | None:
         """What the pipeline takes of one record: its copies and its key; None for a duplicate."""
         assert self.hop is not None and self.routing is not None
         verdict = self.hop.check(topic, key)
@@ -244,10 +301,12 @@ class DestinationServer(ManagedServer):
             stamp_ns = self.get_clock().now().nanoseconds
         try:
             record = parse_record(text)
-            routed = self.routing.route(topic, record, stamp_ns, new_record_id)
+            routed = self.routing.route(topic, record, stamp_ns, new_record_id, trusted)
         except MalformedRecord as exc:
             self._malformed(topic, text, str(exc))
             return [], key
+        if routed.refused:
+            self._untrusted(topic, routed.refused)
         if routed.unrouted_reason is not None:
             self._unrouted(topic, routed.unrouted_reason, record)
             return [], key
@@ -262,6 +321,43 @@ class DestinationServer(ManagedServer):
         if self._hop_loss_log is not None:
             self._hop_loss_log.tick()
         self._malformed_log.tick()
+        self._untrusted_log.tick()
+        # Between records too: a publisher that sends and leaves at once is still seen here.
+        for topic in self._guarded_topics:
+            self._publishers_trusted(topic)
+
+    def _publishers_trusted(self, topic: str) -> bool:
+        """Whether every publisher of ``topic`` is one of DC's servers of this namespace, and has been for
+        FOREIGN_MEMORY_S. The graph's node names are what nodes claim: without SROS2 a node can claim
+        to be measurement_server (docs/security.md says so)."""
+        now = time.monotonic()
+        foreign, unknown = self._foreign_publishers(topic)
+        if unknown and not foreign:
+            deadline = now + UNKNOWN_NODE_WAIT_S
+            while unknown and not foreign and time.monotonic() < deadline:
+                time.sleep(0.02)  # discovery runs in the middleware's threads: nothing to await here
+                foreign, unknown = self._foreign_publishers(topic)
+            self._waited_for.update(unknown)
+        if foreign or unknown:
+            self._foreign_seen[topic] = time.monotonic()
+            return False
+        seen = self._foreign_seen.get(topic)
+        return seen is None or now - seen >= FOREIGN_MEMORY_S
+
+    def _foreign_publishers(self, topic: str) -> tuple[bool, list[bytes]]:
+        """Whether a publisher of ``topic`` is not DC's, and the gids of those whose node the graph does
+        not name yet (not waited for before; one already waited for counts as not DC's)."""
+        namespace = self.get_namespace()
+        unknown = []
+        for info in self.get_publishers_info_by_topic(topic):
+            if info.node_name in DC_PUBLISHERS and info.node_namespace == namespace:
+                continue
+            gid = bytes(info.endpoint_gid)
+            if info.node_name == "_NODE_NAME_UNKNOWN_" and gid not in self._waited_for:
+                unknown.append(gid)
+                continue
+            return True, unknown
+        return False, unknown
 
     def _hand_over(self, received: list[_Received]) -> None:
         """Submit records with their copies and keys; the keys are remembered once the pipeline took them.
@@ -284,6 +380,15 @@ class DestinationServer(ManagedServer):
             # The buffer has no place for a record it cannot parse: this line is its only copy. A
             # flood of them (a broken or hostile publisher) is counted, and kept at debug level.
             (log.error if own_line else log.debug)(f"whole record on {topic} not delivered: {text!r}")
+
+    def _untrusted(self, topic: str, destinations: list[str]) -> None:
+        for name in destinations:
+            self.stats.untrusted_tags[(topic, name)] += 1
+        self._untrusted_log.event(
+            len(destinations),
+            f"{topic}: tagged for {', '.join(destinations)}; a publisher of {topic} is not one of DC's servers "
+            "(trust_tags_from: dc_servers, see docs/security.md)",
+        )
 
     def _unrouted(self, topic: str, reason: str, record: dict[str, Any]) -> None:
         key = (topic, reason)

@@ -236,7 +236,12 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
             "commit_error": "committing to the buffer: OperationalError: database or disk is full",
             "commit_failing_s": 42.0,
         },
-        "intake": {"received": 10, "malformed": 2, "unrouted": {"/t": {"no tags": 3}}},
+        "intake": {
+            "received": 10,
+            "malformed": 2,
+            "unrouted": {"/t": {"no tags": 3}},
+            "untrusted_tags": {"/dc/measurement/map": {"flb_minio": 1}},
+        },
     }
 
     class Handler(http.server.BaseHTTPRequestHandler):
@@ -274,6 +279,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert any("COMMITS FAILING for 42.0 s" in line and "disk is full" in line for line in rest), rest
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
     assert "unrouted: 3 on /t: no tags" in rest
+    assert "untrusted tags: 1 on /dc/measurement/map kept from flb_minio (a publisher there is not DC's)" in rest
     assert "pg (its own counters): reconnects 4" in rest
     unreachable = dc("status", "--port", "1")
     assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr

@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from dc_core.timefmt import format_stamp
-from dc_destinations.routing import BAD_TAGS, NO_LISTENER, NO_TAGS, RouteTarget, RoutingTable
+from dc_destinations.routing import BAD_TAGS, NO_LISTENER, NO_TAGS, UNTRUSTED, RouteTarget, RoutingTable
 
 STAMP_NS = 1_677_668_906_045_817_000  # 2023-03-01T11:08:26.045817Z: a fraction with a leading zero
 STAMP_S = pytest.approx(1677668906.045817, abs=1e-6)
@@ -187,3 +187,18 @@ def test_topics_and_listeners() -> None:
     assert t.topics == ["/cpu", "/up"]
     assert t.listeners("/cpu") == ["a", "b"]
     assert t.listeners("/nothing") == []
+
+
+def test_an_untrusted_record_reaches_only_the_destinations_that_read_no_file() -> None:
+    files = RouteTarget("flb_minio", "date", "double", trusted_only=True)
+    rows = RouteTarget("flb_pgsql", "date", "double")
+    t = RoutingTable({"/dc/measurement/map": [files, rows]})
+    record = {"tags": ["flb_minio", "flb_pgsql"], "local_paths": {"pgm": "/root/.ssh/id_rsa"}}
+    trusted = t.route("/dc/measurement/map", record, STAMP_NS)
+    assert [name for name, _ in trusted.deliveries] == ["flb_minio", "flb_pgsql"] and not trusted.refused
+    untrusted = t.route("/dc/measurement/map", record, STAMP_NS, trusted=False)
+    assert [name for name, _ in untrusted.deliveries] == ["flb_pgsql"]
+    assert untrusted.refused == ["flb_minio"]
+    only_files = t.route("/dc/measurement/map", {"tags": ["flb_minio"]}, STAMP_NS, trusted=False)
+    assert (only_files.deliveries, only_files.refused, only_files.unrouted_reason) == ([], ["flb_minio"], UNTRUSTED)
+    assert t.has_trusted_only("/dc/measurement/map") and not t.has_trusted_only("/other")

@@ -15,10 +15,7 @@ rows are upserted on ``(local_path, storage_type)``, so retries add no duplicate
 
 from __future__ import annotations
 
-import errno
 import json
-import os
-import stat
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -26,11 +23,21 @@ from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
+from dc_core.logs import BurstLog
 from dc_core.params import param
+from dc_destinations.confined_files import (
+    Confinement,
+    ConfinementParams,
+    FileRefused,
+    OpenedFile,
+    confinement_of,
+    delete_opened,
+)
 from dc_destinations.files_metrics.media import DurationProbe, content_type, is_video
 from dc_destinations.files_metrics.table import FileRow, FilesTable
 from dc_destinations.object_files import (
     FilePair,
+    NoLocalFile,
     ObjectStoreParams,
     StoreUnavailable,
     file_pairs,
@@ -133,12 +140,12 @@ class FilesMetricsDatabaseParams:
 
 
 @dataclass(frozen=True, kw_only=True)
-class FilesMetricsParams:
+class FilesMetricsParams(ConfinementParams):
     file_storage: list[str] = param(
         check=_storages_problem, doc='Storages whose copies are checked: "minio", "s3" or both, each with its section'
     )
     db_type: str = param("pgsql", choices=DB_TYPES, doc="Database of the table: only pgsql")
-    delete_when_sent: bool = param(True, doc="Delete the local files once every storage holds them, verified")
+    delete_when_sent: bool = param(False, doc="Delete the local files once every storage holds them, verified")
     missing_wait: float = param(
         1.0,
         minimum=0.0,
@@ -186,6 +193,11 @@ class _Plan:
     waiting: list[str] = field(default_factory=list)  # may pass: retry the record
     missing: list[str] = field(default_factory=list)  # files neither on disk nor stored: reject, after a wait
     refused: list[str] = field(default_factory=list)  # what the record names is no file: reject at once
+    opened: dict[str, OpenedFile] = field(default_factory=dict)  # local path -> the file checked and open
+
+    def close(self) -> None:
+        for opened in self.opened.values():
+            opened.close()
 
 
 class FilesMetrics(Destination[FilesMetricsParams]):
@@ -198,6 +210,11 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         self._stores: list[_Store] = []
         self._probe = DurationProbe(context.logger)
         self._files_deleted = 0
+        self._files_refused = 0
+        self._confinement: Confinement | None = None
+        self._refused_log = BurstLog(
+            context.logger.warning, f"destination {context.name}: files or keys named by records refused"
+        )
         self.address = ""
 
     def __repr__(self) -> str:
@@ -206,6 +223,7 @@ class FilesMetrics(Destination[FilesMetricsParams]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         require_psycopg(self.context.name, "FilesMetrics")
+        self._confinement = confinement_of(self.params)
         table = FilesTable(self.params.pgsql.table)
         self._table = table
         self._database = KeptConnection(
@@ -240,24 +258,33 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         self._stores = []
 
     def counters(self) -> dict[str, int]:
-        return {"files_deleted": self._files_deleted}
+        return {"files_deleted": self._files_deleted, "files_refused": self._files_refused}
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        self._refused_log.tick()
+        plans: list[_Plan] = []
+        try:
+            return self._send(batch, plans)
+        finally:
+            for plan in plans:
+                plan.close()
+
+    def _send(self, batch: Sequence[OutgoingRecord], plans: list[_Plan]) -> SendOutcome | None:
         database = self._database
         assert database is not None, "send() before on_configure()"
         durations: dict[str, float | None] = {}
         # Every storage is asked before anything is written: one that cannot be reached retries the
         # whole batch (StoreUnavailable), leaving the table as it was.
         planned_at = time.monotonic()
-        plans = [self._plan(record, durations) for record in batch]
+        plans.extend(self._plan(record, durations) for record in batch)
         if any(plan.missing for plan in plans):
             # A measurement may write its file just after publishing the record: look once more.
             time.sleep(max(0.0, self.params.missing_wait - (time.monotonic() - planned_at)))
-            plans = [
-                self._plan(record, durations) if plan.missing else plan
-                for record, plan in zip(batch, plans, strict=True)
-            ]
+            for i, record in enumerate(batch):
+                if plans[i].missing:
+                    plans[i].close()
+                    plans[i] = self._plan(record, durations)
         outcome = SendOutcome()
         writes = [(i, plan.rows) for i, plan in enumerate(plans) if plan.rows]
         if writes:
@@ -295,14 +322,28 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         if not pair.local_path:
             plan.refused.append(f"{pair.src_field} holds no file path")
             return
+        assert self._confinement is not None
+        opened = plan.opened.get(pair.local_path)
         try:
-            size: int | None = _local_size(pair.local_path)
+            self._confinement.check_key(pair.key)
+            if opened is None:
+                opened = self._confinement.open(pair.local_path)
+        except FileRefused as exc:
+            self._files_refused += 1
+            reason = f"refused: {exc} ({pair.src_field})"
+            self._refused_log.event(1, reason)
+            plan.refused.append(reason)
+            return
         except OSError as exc:
             plan.refused.append(f"cannot read {pair.local_path} ({pair.src_field}): {exc.strerror or exc}")
             return
+        if opened is not None:
+            plan.opened[pair.local_path] = opened
+        size = opened.size if opened is not None else None
         on_filesystem = size is not None
         try:
-            verification = verify_stored(store.client, bucket, pair.key, pair.local_path)
+            local = opened if opened is not None else NoLocalFile(pair.local_path)
+            verification = verify_stored(store.client, bucket, pair.key, local)
         except StoreUnavailable:
             raise  # the whole store: every record of the batch waits for it
         except RetryableError as exc:
@@ -378,10 +419,12 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         """Delete the plan's local files; the rows of those now gone join ``gone``. Returns the failures."""
         kept: dict[str, str] = {}
         for path in dict.fromkeys(row.local_path for row in plan.rows):
+            opened = plan.opened.get(path)
+            if opened is None:
+                continue  # not there when planned: deleted by an earlier attempt whose rows could not be updated
             try:
-                os.remove(path)
-            except FileNotFoundError:
-                continue  # deleted by an earlier attempt whose rows could not be updated, or by hand
+                if not delete_opened(opened):
+                    continue  # gone since, or the name holds another file now: not the one verified
             except OSError as exc:
                 kept[path] = f"cannot delete {path}: {exc.strerror or exc}"
                 continue
@@ -402,17 +445,6 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         assert self._table is not None
         for change in self._table.prepare(connection):
             self.context.logger.info(f"{change} in {self.address}")
-
-
-def _local_size(path: str) -> int | None:
-    """The size of the file at ``path``, None when there is none; OSError when it cannot be looked at."""
-    try:
-        status = os.stat(path)
-    except (FileNotFoundError, NotADirectoryError):
-        return None
-    if not stat.S_ISREG(status.st_mode):
-        raise IsADirectoryError(errno.EISDIR, "not a regular file", path)
-    return status.st_size
 
 
 def _text(value: Any) -> str:

@@ -12,6 +12,7 @@ import logging
 import os
 import shutil
 import subprocess
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -107,6 +108,7 @@ def make(
         "file_storage": ["minio"],
         "minio": storage(s3, s3.bucket),
         "missing_wait": 0.0,
+        "allowed_roots": [tempfile.gettempdir()],  # pytest's temporary folders
         "pgsql": {**pg.settings(), "table": table, "connect_timeout": 2, **(pgsql or {})},
         **params,
     }
@@ -155,7 +157,7 @@ def rows(pg: PostgresServer, table: str) -> list[dict[str, Any]]:
 def test_a_file_waits_for_its_upload_then_one_row_says_uploaded_and_deleted(
     pg: PostgresServer, s3: SeaweedS3Server, made: list[FilesMetrics], tmp_path: Path
 ) -> None:
-    dest = make(pg, s3, made, "lifecycle")
+    dest = make(pg, s3, made, "lifecycle", delete_when_sent=True)
     path = a_file(tmp_path, "2024-05-01T12:00:00.pgm")  # a ':' in the name: the original stored year 1
     batch = [record(path, "C3PO/map/a.pgm")]
 
@@ -183,7 +185,7 @@ def test_a_file_waits_for_its_upload_then_one_row_says_uploaded_and_deleted(
     assert done["timestamp"].isoformat() == "2023-11-14T22:13:20.123456", "the record's time, UTC"
     assert done["record_id"] == batch[0].record_id
     assert done["etag"] and done["verified_at"] is not None and done["created_at"] <= done["updated_at"]
-    assert dest.counters() == {"files_deleted": 1}
+    assert dest.counters() == {"files_deleted": 1, "files_refused": 0}
 
     assert dest.send(batch) is None, "retried after the deletion: the object is there, confirmed"
     (again,) = rows(pg, "lifecycle")
@@ -199,6 +201,7 @@ def test_nothing_is_deleted_until_every_storage_verified_it(
         s3,
         made,
         "two_storages",
+        delete_when_sent=True,
         file_storage=["minio", "s3"],
         s3=storage(s3, SECOND_BUCKET, storage_type="s3"),
     )
@@ -225,7 +228,7 @@ def test_nothing_is_deleted_until_every_storage_verified_it(
 def test_a_tampered_object_is_not_uploaded(
     pg: PostgresServer, s3: SeaweedS3Server, made: list[FilesMetrics], tmp_path: Path
 ) -> None:
-    dest = make(pg, s3, made, "tampered")
+    dest = make(pg, s3, made, "tampered", delete_when_sent=True)
     content = b"the real map, 24 bytes.\n"
     path = a_file(tmp_path, "real.pgm", content)
     batch = [record(path, "tampered/real.pgm")]
@@ -279,7 +282,7 @@ def test_a_path_with_quotes_and_semicolons_is_stored_literally(
 def test_a_missing_file_is_rejected_alone_with_its_path(
     pg: PostgresServer, s3: SeaweedS3Server, made: list[FilesMetrics], tmp_path: Path
 ) -> None:
-    dest = make(pg, s3, made, "missing", missing_wait=0.3)
+    dest = make(pg, s3, made, "missing", missing_wait=0.3, delete_when_sent=True)
     gone = tmp_path / "never-written.pgm"
     present = a_file(tmp_path, "present.pgm")
     s3.client().upload_file(str(present), s3.bucket, "missing/present.pgm")
@@ -320,8 +323,40 @@ def test_what_a_record_names_that_is_not_a_file_is_rejected(
     outcome = dest.send([no_key, folder, nothing])
     assert outcome is not None and not outcome.retry
     assert outcome.reject[0] == f"no object key at remote_paths.minio.pgm for {tmp_path / 'x.pgm'}"
-    assert outcome.reject[1].startswith(f"cannot read {tmp_path} (local_paths.pgm): ")
+    assert outcome.reject[1] == f"refused: {tmp_path} is not a regular file (local_paths.pgm)"
     assert 2 not in outcome.reject, "a record naming no file has nothing to track: confirmed"
+
+
+def test_a_file_outside_the_roots_or_linked_from_outside_is_refused_never_deleted(
+    pg: PostgresServer, s3: SeaweedS3Server, made: list[FilesMetrics], tmp_path: Path
+) -> None:
+    root = tmp_path / "data"
+    root.mkdir()
+    outside = a_file(tmp_path, "id_rsa", b"a private key")
+    outside.chmod(0o600)
+    os.link(outside, root / "hard.pgm")
+    inside = a_file(root, "map.pgm")
+    client = s3.client()
+    for path, key in ((outside, "loot/id_rsa"), (inside, "roots/map.pgm")):
+        client.upload_file(str(path), s3.bucket, key)  # stored intact: only the checks keep it on disk
+    dest = make(pg, s3, made, "roots", delete_when_sent=True, allowed_roots=[str(root)])
+    batch = [
+        record(outside, "loot/id_rsa", 0),
+        record(root / "hard.pgm", "loot/id_rsa", 1),
+        record(inside, "roots/map.pgm", 2),
+    ]
+    outcome = dest.send(batch)
+    assert outcome is not None and not outcome.retry
+    assert outcome.reject == {
+        0: f"refused: {outside} is outside allowed_roots ({root}) (local_paths.pgm)",
+        1: f"refused: {root / 'hard.pgm'} has 2 hard links: it may be a file from elsewhere (local_paths.pgm)",
+    }
+    assert outside.read_bytes() == b"a private key" and (root / "hard.pgm").exists()
+    assert not inside.exists(), "the file inside the roots: deleted once verified, as before"
+    assert [r["local_path"] for r in rows(pg, "roots")] == [str(inside)], "no row for what was refused"
+    counters = dest.counters()
+    assert counters == {"files_deleted": 1, "files_refused": 2}
+    assert (len(batch) - len(outcome.reject)) + counters["files_refused"] == len(batch)
 
 
 def test_absent_robot_fields_are_empty_and_timestamp_key_sets_the_time(
@@ -352,7 +387,7 @@ def test_a_table_made_by_the_original_is_upgraded_and_used(
             " 'image/x-portable-graymap', 10, now())"
         )
     logger = RecordingLogger()
-    dest = make(pg, s3, made, "legacy", logger=logger)
+    dest = make(pg, s3, made, "legacy", logger=logger, delete_when_sent=True)
     path = a_file(tmp_path, "legacy.pgm")
     s3.client().upload_file(str(path), s3.bucket, "legacy/new.pgm")
     batch = [record(path, "legacy/new.pgm")]
@@ -576,7 +611,8 @@ def test_the_seed_configuration_is_accepted_as_it_is() -> None:
 def test_defaults() -> None:
     section = {"bucket": "files", "src_fields": ["local_paths.pgm"], "upload_fields": ["remote_paths.s3.pgm"]}
     p = parse_params(FilesMetricsParams, {"file_storage": ["s3"], "s3": section}, "x")
-    assert (p.db_type, p.delete_when_sent, p.missing_wait) == ("pgsql", True, 1.0)
+    assert (p.db_type, p.delete_when_sent, p.missing_wait) == ("pgsql", False, 1.0)
+    assert (p.allowed_roots, p.key_prefix) == ([], "")
     assert (p.pgsql.host, p.pgsql.port, p.pgsql.table, p.pgsql.user, p.pgsql.database) == (
         "127.0.0.1", 5432, "files_metrics", "", ""
     )  # fmt: skip
@@ -639,7 +675,8 @@ def uploader_and_metrics_params(tmp_path: Path, pg: PostgresServer, s3: SeaweedS
     if "dc_destinations/MinIO" not in {info.name for info in list_plugins("destinations")}:
         pytest.skip("the MinIO destination is not installed")
     store = storage(s3, s3.bucket)
-    uploader = {"plugin": "dc_destinations/MinIO", **store, "complete_after": 0.2}
+    roots = {"allowed_roots": [str(tmp_path)]}
+    uploader = {"plugin": "dc_destinations/MinIO", **store, **roots, "complete_after": 0.2}
     params = forwarding_params(tmp_path, "flb_minio", uploader, measurement="map", topic="/map-files")
     document = yaml.safe_load(params.read_text())
     destinations = document["destination_server"]["ros__parameters"]
@@ -648,6 +685,8 @@ def uploader_and_metrics_params(tmp_path: Path, pg: PostgresServer, s3: SeaweedS
         "plugin": "dc_destinations/FlbFilesMetrics",
         "inputs": ["/dc/measurement/map"],
         "file_storage": ["minio"],
+        "delete_when_sent": True,
+        **roots,
         "minio": store,
         "pgsql": {**pg.settings(), "table": table, "connect_timeout": 2},
     }

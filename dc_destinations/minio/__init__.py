@@ -25,7 +25,6 @@ import base64
 import contextlib
 import mimetypes
 import os
-import stat
 import threading
 import time
 from collections.abc import Sequence
@@ -34,7 +33,16 @@ from typing import Any, NoReturn
 
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
+from dc_core.logs import BurstLog
 from dc_core.params import param
+from dc_destinations.confined_files import (
+    Confinement,
+    ConfinementParams,
+    FileRefused,
+    OpenedFile,
+    confinement_of,
+    delete_opened,
+)
 from dc_destinations.object_files import (
     PART_SIZE_METADATA,
     FilePair,
@@ -77,7 +85,7 @@ def _size_problem(text: str) -> str | None:
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
-class MinIOParams(ObjectStoreParams):
+class MinIOParams(ObjectStoreParams, ConfinementParams):
     create_bucket: bool = param(True, doc="Create the bucket at the first upload if it does not exist")
     multipart_threshold: str = param(
         "64M", check=_size_problem, doc="Files larger than this are uploaded in parts, resumably (at most 5G)"
@@ -110,9 +118,13 @@ class MinIOParams(ObjectStoreParams):
 @dataclass
 class _File:
     pair: FilePair
-    seen: os.stat_result | None  # at the first look; None: there was no file
+    opened: OpenedFile | None  # checked and open (confined_files); None: there was no file
     ready: bool = False  # complete, or gone with its object stored
     gone_but_stored: bool = False
+
+    @property
+    def seen(self) -> os.stat_result | None:
+        return self.opened.status if self.opened is not None else None
 
     @property
     def path(self) -> str:
@@ -134,6 +146,11 @@ class _Record:
     @property
     def waiting(self) -> bool:
         return any(not f.ready for f in self.files)
+
+    def close(self) -> None:
+        for file in self.files:
+            if file.opened is not None:
+                file.opened.close()
 
 
 class MinIO(Destination[MinIOParams]):
@@ -157,14 +174,20 @@ class MinIO(Destination[MinIOParams]):
                 "files_missing",
                 "files_deleted",
                 "delete_failures",
+                "files_refused",
             ),
             0,
         )
         self.where = ""
+        self._confinement: Confinement | None = None
+        self._refused_log = BurstLog(
+            context.logger.warning, f"destination {context.name}: files or keys named by records refused"
+        )
 
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
+        self._confinement = confinement_of(self.params)
         self._client = store_client(self.params, self.context.name, self.params.timeout)
         self.where = store_where(self.params.bucket, self._client)
 
@@ -173,7 +196,10 @@ class MinIO(Destination[MinIOParams]):
         # The store is not probed here: an unreachable store must not hold up activation, and the
         # first batch says clearly what is wrong.
         fields = ", ".join(self.params.src_fields)
-        self.context.logger.info(f"uploading the files of {fields} to {self.where}")
+        assert self._confinement is not None
+        self.context.logger.info(
+            f"uploading the files of {fields} to {self.where}, from {self._confinement.describe()} only"
+        )
 
     def on_deactivate(self) -> None:
         self._stopping.set()  # a batch waiting for files to be complete stops waiting
@@ -192,12 +218,21 @@ class MinIO(Destination[MinIOParams]):
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        self._refused_log.tick()
+        records: list[_Record] = []
+        try:
+            return self._send(batch, records)
+        finally:
+            for record in records:
+                record.close()
+
+    def _send(self, batch: Sequence[OutgoingRecord], records: list[_Record]) -> SendOutcome | None:
         outcome = SendOutcome()
         confirmed: set[int] = set()
         try:
             self._ensure_bucket()
             looked_at = time.monotonic()
-            records = [self._look(i, record) for i, record in enumerate(batch)]
+            records.extend(self._look(i, outgoing) for i, outgoing in enumerate(batch))
             for record in records:
                 if not record.waiting:
                     self._deliver(record, outcome, confirmed)
@@ -251,6 +286,21 @@ class MinIO(Destination[MinIOParams]):
             self._fail(exc, "create the bucket")
         self.context.logger.info(f"created {self.where}")
 
+    def _open(self, pair: FilePair, record: _Record) -> tuple[bool, OpenedFile | None]:
+        """The pair's file opened if it passes the checks (confined_files); (False, None) when refused or unreadable."""
+        assert self._confinement is not None and pair.key is not None
+        try:
+            self._confinement.check_key(pair.key)
+            return True, self._confinement.open(pair.local_path)
+        except FileRefused as exc:
+            self._counts["files_refused"] += 1
+            reason = f"refused: {exc} ({pair.src_field})"
+            self._refused_log.event(1, reason)
+            record.rejects.append(reason)
+        except OSError as exc:
+            record.rejects.append(f"cannot read {pair.local_path} ({pair.src_field}): {exc.strerror or exc}")
+        return False, None
+
     def _look(self, index: int, record: OutgoingRecord) -> _Record:
         """The record's files as they are now; a missing file is looked up in the store."""
         looked = _Record(index)
@@ -261,24 +311,18 @@ class MinIO(Destination[MinIOParams]):
             if not pair.local_path:
                 looked.rejects.append(f"{pair.src_field} holds no file path")
                 continue
-            try:
-                seen: os.stat_result | None = os.stat(pair.local_path)
-            except FileNotFoundError:
-                seen = None
-            except OSError as exc:
-                looked.rejects.append(f"cannot read {pair.local_path} ({pair.src_field}): {exc.strerror}")
+            usable, opened = self._open(pair, looked)
+            if not usable:
                 continue
-            if seen is not None and not stat.S_ISREG(seen.st_mode):
-                looked.rejects.append(f"{pair.local_path} ({pair.src_field}) is not a file")
-                continue
-            file = _File(pair, seen)
+            file = _File(pair, opened)
+            looked.files.append(file)
+            seen = file.seen
             if seen is None:
                 file.ready = file.gone_but_stored = (
                     stored_object(self._client, self.params.bucket, file.key) is not None
                 )
             else:
                 file.ready = _age(seen) >= self.params.complete_after
-            looked.files.append(file)
         return looked
 
     def _wait_needed(self, waiting: list[_Record], looked_at: float) -> float:
@@ -299,15 +343,16 @@ class MinIO(Destination[MinIOParams]):
             if file.ready:
                 continue
             where = f"{file.path} ({file.pair.src_field})"
-            try:
-                now: os.stat_result | None = os.stat(file.path)
-            except FileNotFoundError:
-                now = None
-            except OSError as exc:
-                record.rejects.append(f"cannot read {where}: {exc.strerror}")
+            before = file.seen
+            usable, opened = self._open(file.pair, record)
+            if not usable:
                 continue
-            unchanged = file.seen is not None and now is not None and _same(file.seen, now)
-            if now is None and file.seen is None:
+            if file.opened is not None:
+                file.opened.close()
+            file.opened = opened  # what is uploaded is what was opened now, and checked now
+            now = opened.status if opened is not None else None
+            unchanged = before is not None and now is not None and _same(before, now)
+            if now is None and before is None:
                 self._counts["files_missing"] += 1
                 record.rejects.append(f"no file {where}")
             elif now is None:
@@ -321,6 +366,7 @@ class MinIO(Destination[MinIOParams]):
 
     def _deliver(self, record: _Record, outcome: SendOutcome, confirmed: set[int]) -> None:
         verified: dict[str, bool] = {}  # local path -> every object made from it verified
+        opened: dict[str, OpenedFile] = {}
         for file in record.files:
             if not file.ready:
                 continue
@@ -338,6 +384,8 @@ class MinIO(Destination[MinIOParams]):
                 record.rejects.append(f"cannot read {file.path} ({file.pair.src_field}): {exc.strerror or exc}")
                 ok = False
             verified[file.path] = verified.get(file.path, True) and ok
+            if file.opened is not None:
+                opened.setdefault(file.path, file.opened)
         if record.retries:
             outcome.retry[record.index] = self._scrub("; ".join(record.retries + record.rejects))
         elif record.rejects:
@@ -345,19 +393,21 @@ class MinIO(Destination[MinIOParams]):
         else:
             confirmed.add(record.index)
         if self.params.delete_when_sent:
-            self._delete([path for path, ok in verified.items() if ok])
+            # Only files that passed the checks were opened: nothing else can be deleted.
+            self._delete([opened[path] for path, ok in verified.items() if ok and path in opened])
 
     def _store(self, file: _File) -> bool:
         """Upload the file unless the store holds it intact already; True once verified."""
         if file.gone_but_stored:
             return True
         p = self.params
-        before = verify_stored(self._client, p.bucket, file.key, file.path)
+        assert file.opened is not None
+        before = verify_stored(self._client, p.bucket, file.key, file.opened)
         if before.verified:
             self._counts["files_already_stored"] += 1
             return True
-        size = self._upload(file.path, file.key)
-        after = verify_stored(self._client, p.bucket, file.key, file.path)
+        size = self._upload(file.opened, file.key)
+        after = verify_stored(self._client, p.bucket, file.key, file.opened)
         if not after.verified:
             self._counts["verification_failures"] += 1
             raise RetryableError(f"{file.key} not verified after the upload: {after.reason}")
@@ -365,28 +415,29 @@ class MinIO(Destination[MinIOParams]):
         self._counts["bytes_uploaded"] += size
         return True
 
-    def _upload(self, path: str, key: str) -> int:
-        size = os.stat(path).st_size
+    def _upload(self, opened: OpenedFile, key: str) -> int:
+        path = opened.path
+        size = os.fstat(opened.fd).st_size
         extension = os.path.splitext(path)[1].lower()
         content_type = _CONTENT_TYPES.get(extension) or mimetypes.guess_type(path)[0] or "application/octet-stream"
         try:
             if size <= self._threshold:
-                (digest,) = part_digests(path, None)
-                with open(path, "rb") as body:
+                (digest,) = part_digests(opened, None)
+                with _reopened(opened) as body:
                     self._client.put_object(
                         Bucket=self.params.bucket, Key=key, Body=body, ContentType=content_type, ContentMD5=_b64(digest)
                     )
             else:
-                self._multipart(path, key, size, content_type)
+                self._multipart(opened, key, size, content_type)
         except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
             self._fail(exc, f"upload {key}")
         return size
 
-    def _multipart(self, path: str, key: str, size: int, content_type: str) -> None:
+    def _multipart(self, opened: OpenedFile, key: str, size: int, content_type: str) -> None:
         p = self.params
         # Parts no smaller than part_size, larger only to stay within S3's 10000 parts.
         part_size = max(self._part_bytes, -(-size // MAX_PARTS))
-        digests = part_digests(path, part_size)
+        digests = part_digests(opened, part_size)
         upload_id, stored = self._resumable(key, size, part_size, digests)
         if upload_id is None:
             created = self._client.create_multipart_upload(
@@ -394,7 +445,7 @@ class MinIO(Destination[MinIOParams]):
             )
             upload_id = created["UploadId"]
         parts = []
-        with open(path, "rb") as f:
+        with _reopened(opened) as f:
             for number, digest in enumerate(digests, start=1):
                 etag = stored.get(number)
                 if etag is not None:
@@ -463,12 +514,12 @@ class MinIO(Destination[MinIOParams]):
                 self._client.abort_multipart_upload(Bucket=p.bucket, Key=key, UploadId=upload["UploadId"])
         return chosen, kept
 
-    def _delete(self, paths: list[str]) -> None:
-        for path in paths:
+    def _delete(self, files: list[OpenedFile]) -> None:
+        for opened in files:
+            path = opened.path
             try:
-                os.remove(path)
-            except FileNotFoundError:
-                continue
+                if not delete_opened(opened):
+                    continue  # gone, or the name now holds another file: not the one uploaded
             except OSError as exc:
                 self._counts["delete_failures"] += 1
                 self.context.logger.warning(f"{path} is stored in {self.where} but cannot be deleted: {exc.strerror}")
@@ -493,6 +544,13 @@ class MinIO(Destination[MinIOParams]):
     def _scrub(self, text: str) -> str:
         secret = self.params.secret_access_key
         return text.replace(secret, "***") if secret else text
+
+
+def _reopened(opened: OpenedFile) -> Any:
+    """A file object over (a duplicate of) the opened file's descriptor, at its start: boto3 reads and rewinds it."""
+    f = os.fdopen(os.dup(opened.fd), "rb")
+    f.seek(0)
+    return f
 
 
 def _age(seen: os.stat_result) -> float:

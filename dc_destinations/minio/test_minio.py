@@ -16,6 +16,7 @@ import logging
 import os
 import shlex
 import subprocess
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -70,7 +71,13 @@ FIELDS = {
 def minio(
     server: SeaweedS3Server | None = None, name: str = "flb_minio", logger: RecordingLogger | None = None, **params: Any
 ) -> MinIO:
-    settings: dict[str, Any] = {**FIELDS, **(store_settings(server) if server else {}), **params}
+    # The tests' files are in pytest's temporary folders: the roots a record's files may be in.
+    settings: dict[str, Any] = {
+        **FIELDS,
+        "allowed_roots": [tempfile.gettempdir()],
+        **(store_settings(server) if server else {}),
+        **params,
+    }
     context = FakeContext(name=name, logger=logger or RecordingLogger())
     plugin = MinIO(context, parse_params(MinIOParams, settings, f"destination_server.{name}"))
     plugin.on_configure()
@@ -497,7 +504,10 @@ def published(files: dict[str, Path], prefix: str) -> str:
 def test_e2e_files_named_in_records_published_with_dc_pub_land_in_the_bucket(
     tmp_path: Path, server: SeaweedS3Server
 ) -> None:
-    files = {"pgm": write(tmp_path / "map.pgm", b"P5\n1 1\n255\n\x00"), "yaml": write(tmp_path / "map.yaml", b"a: 1\n")}
+    # In the measurement server's default save folder ($HOME/ros2/data/%Y/…): the default allowed_roots.
+    saved = tmp_path / "home" / "ros2" / "data" / "2026"
+    saved.mkdir(parents=True)
+    files = {"pgm": write(saved / "map.pgm", b"P5\n1 1\n255\n\x00"), "yaml": write(saved / "map.yaml", b"a: 1\n")}
     with Bringup(bringup_params(tmp_path, server, delete_when_sent=True), tmp_path / "home") as run:
         run.wait_ready()
         result = dc("pub", "/map-files", published(files, "e2e"), env=run.env)
@@ -514,7 +524,9 @@ OUTAGE_S = 30.0
 def test_e2e_a_30_s_store_outage_loses_no_file(tmp_path: Path) -> None:
     total = 12
     contents = {i: os.urandom(1000 + i) for i in range(total)}
-    files = {i: write(tmp_path / f"map-{i:02d}.pgm", contents[i]) for i in range(total)}
+    saved = tmp_path / "home" / "ros2" / "data"
+    saved.mkdir(parents=True)
+    files = {i: write(saved / f"map-{i:02d}.pgm", contents[i]) for i in range(total)}
 
     def publish(i: int, env: dict[str, str]) -> None:
         result = dc("pub", "/map-files", published({"pgm": files[i]}, "outage"), env=env)
