@@ -47,6 +47,7 @@ from dc_destinations.object_files import (
     store_where,
     stored_object,
     verify_stored,
+    warn_if_store_in_clear,
 )
 from dc_destinations.settings import parse_size
 
@@ -166,6 +167,7 @@ class MinIO(Destination[MinIOParams]):
     def on_configure(self) -> None:
         # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
         self._client = store_client(self.params, self.context.name, self.params.timeout)
+        warn_if_store_in_clear(self.context.logger, self.context.name, self.params)
         self.where = store_where(self.params.bucket, self._client)
 
     def on_activate(self) -> None:
