@@ -198,7 +198,9 @@ class Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Length", str(len(body)))
         self.end_headers()
         self.wfile.write(body)
-        if not self.quiet or status >= 500:
+        if status == 421:  # said whatever `quiet` is: an operator with a new name must learn why
+            self.log_message('"GET %s" 421: Host %r not allowed (--allowed-host)', url.path, host[:100])
+        elif not self.quiet or status >= 500:
             self.log_message('"GET %s" %d %.0f ms', url.path, status, (time.monotonic() - started) * 1000)
 
     def log_request(self, code: int | str = "-", size: int | str = "-") -> None:
