@@ -13,18 +13,20 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
 from http.server import BaseHTTPRequestHandler
 from typing import Any
 
 from dc_core.http_limits import BoundedHTTPServer
-from dc_core.logs import BurstLog, Logger
+from dc_core.logs import Logger
 
 # A scraper, `dc status`, the supervisor's probe and an operator's curl at once, with room to spare;
 # each thread costs little, and the cap is what keeps a flood of connections from costing more.
 MAX_CONNECTIONS = 8
 # Seconds a connection may stay silent while its request is read or its answer written.
 REQUEST_TIMEOUT_S = 5.0
+REFUSALS_LOG_INTERVAL_S = 60.0
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -80,21 +82,24 @@ class _Server(BoundedHTTPServer):
         self.health = health
         self.metrics = metrics
         self.prometheus = prometheus
-        self._refusals = (
-            BurstLog(logger.warning, f"metrics HTTP server: connections refused ({max_connections} being served)")
-            if logger is not None
-            else None
-        )
+        self._logger = logger
+        self._max_connections = max_connections
+        self._refusals_logged_at: float | None = None
         super().__init__(address, _Handler, max_connections=max_connections, timeout=timeout, on_refused=self._refused)
 
     def _refused(self, total: int) -> None:
-        if self._refusals is not None:
-            self._refusals.event(1, f"{total} since start")
-
-    def service_actions(self) -> None:
-        # Called by serve_forever at every poll: the summary of a burst of refusals that ended.
-        if self._refusals is not None:
-            self._refusals.tick()
+        # A line of its own rather than a BurstLog: rclpy fixes one severity per call site and logger,
+        # and the server's logger already logs errors through BurstLog's.
+        now = time.monotonic()
+        if self._logger is None or (
+            self._refusals_logged_at is not None and now - self._refusals_logged_at < REFUSALS_LOG_INTERVAL_S
+        ):
+            return
+        self._refusals_logged_at = now
+        self._logger.warning(
+            f"metrics HTTP server: connection refused, {self._max_connections} being served "
+            f"({total} refused since start; said at most once a minute, counted in metrics_http)"
+        )
 
 
 class StatusServer:

@@ -110,7 +110,7 @@ def test_connections_beyond_the_cap_are_refused_counted_and_the_server_recovers(
             if status == 503:
                 assert "busy" in body
         assert server.refused >= 1
-        assert any("connections refused" in line for line in logger.at("warning"))
+        assert any("metrics HTTP server: connection refused" in line for line in logger.at("warning"))
         # The socket timeout frees the threads of the idle connections: served again, without closing them.
         deadline = time.monotonic() + 5.0
         while get(f"{base}/api/v1/health")[0] != 200:
