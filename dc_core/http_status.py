@@ -1,19 +1,32 @@
 """Health and metrics of a DC server over HTTP, the paths Fluent Bit users know (``/api/v1/...``).
 
-Standard library only; one daemon thread serving requests one at a time, which is plenty for a
-scraper and an operator. Bound to loopback unless ``http_listen`` says otherwise. Each server
-brings its own documents; :class:`PrometheusText` writes its counters in the text format.
+Standard library only. Each connection is served by its own daemon thread, at most
+:data:`MAX_CONNECTIONS` at once, each socket with a timeout (dc_core.http_limits): a client that
+connects and sends nothing no longer blocks ``/api/v1/health`` for the supervisor and the scraper.
+Connections beyond the cap get a 503 and are counted (``metrics_http.refused_connections`` in the
+JSON, ``dc_http_refused_connections_total``). Bound to loopback unless ``http_listen`` says
+otherwise. Each server brings its own documents; :class:`PrometheusText` writes its counters in the
+text format.
 """
 
 from __future__ import annotations
 
 import json
 import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
-from http.server import BaseHTTPRequestHandler, HTTPServer
+from http.server import BaseHTTPRequestHandler
 from typing import Any
 
+from dc_core.http_limits import BoundedHTTPServer
 from dc_core.logs import Logger
+
+# A scraper, `dc status`, the supervisor's probe and an operator's curl at once, with room to spare;
+# each thread costs little, and the cap is what keeps a flood of connections from costing more.
+MAX_CONNECTIONS = 8
+# Seconds a connection may stay silent while its request is read or its answer written.
+REQUEST_TIMEOUT_S = 5.0
+REFUSALS_LOG_INTERVAL_S = 60.0
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -26,9 +39,18 @@ class _Handler(BaseHTTPRequestHandler):
                 ok = self.server.health()
                 self._reply(200 if ok else 503, "application/json", json.dumps({"status": "ok" if ok else "error"}))
             elif path == "/api/v1/metrics":
-                self._reply(200, "application/json", json.dumps(self.server.metrics(), indent=2))
+                document = {**self.server.metrics(), "metrics_http": {"refused_connections": self.server.refused}}
+                self._reply(200, "application/json", json.dumps(document, indent=2))
             elif path == "/api/v1/metrics/prometheus":
-                self._reply(200, "text/plain; version=0.0.4; charset=utf-8", self.server.prometheus())
+                text = PrometheusText()
+                text.family(
+                    "dc_http_refused_connections_total",
+                    "counter",
+                    "Connections to this metrics server refused: as many as it serves at once were open",
+                    [("", self.server.refused)],
+                )
+                body = self.server.prometheus() + text.text()
+                self._reply(200, "text/plain; version=0.0.4; charset=utf-8", body)
             else:
                 self._reply(404, "application/json", json.dumps({"error": f"no such path: {path}"}))
         except Exception as exc:  # a broken metric must not take the server down
@@ -46,18 +68,38 @@ class _Handler(BaseHTTPRequestHandler):
         """Requests are not logged: a scraper every few seconds would flood the log."""
 
 
-class _Server(HTTPServer):
+class _Server(BoundedHTTPServer):
     def __init__(
         self,
         address: tuple[str, int],
         health: Callable[[], bool],
         metrics: Callable[[], dict[str, Any]],
         prometheus: Callable[[], str],
+        logger: Logger | None,
+        max_connections: int,
+        timeout: float,
     ) -> None:
         self.health = health
         self.metrics = metrics
         self.prometheus = prometheus
-        super().__init__(address, _Handler)
+        self._logger = logger
+        self._max_connections = max_connections
+        self._refusals_logged_at: float | None = None
+        super().__init__(address, _Handler, max_connections=max_connections, timeout=timeout, on_refused=self._refused)
+
+    def _refused(self, total: int) -> None:
+        # A line of its own rather than a BurstLog: rclpy fixes one severity per call site and logger,
+        # and the server's logger already logs errors through BurstLog's.
+        now = time.monotonic()
+        if self._logger is None or (
+            self._refusals_logged_at is not None and now - self._refusals_logged_at < REFUSALS_LOG_INTERVAL_S
+        ):
+            return
+        self._refusals_logged_at = now
+        self._logger.warning(
+            f"metrics HTTP server: connection refused, {self._max_connections} being served "
+            f"({total} refused since start; said at most once a minute, counted in metrics_http)"
+        )
 
 
 class StatusServer:
@@ -71,9 +113,12 @@ class StatusServer:
         health: Callable[[], bool],
         metrics: Callable[[], dict[str, Any]],
         prometheus: Callable[[], str],
+        logger: Logger | None = None,
+        max_connections: int = MAX_CONNECTIONS,
+        timeout: float = REQUEST_TIMEOUT_S,
     ) -> None:
         """Binds at once (raises OSError if the port is taken); port 0 picks a free one."""
-        self._server = _Server((listen, port), health, metrics, prometheus)
+        self._server = _Server((listen, port), health, metrics, prometheus, logger, max_connections, timeout)
         host, bound_port = self._server.server_address[:2]
         self.address: tuple[str, int] = (str(host), int(bound_port))
         self._thread = threading.Thread(
@@ -83,6 +128,11 @@ class StatusServer:
             daemon=True,
         )
         self._thread.start()
+
+    @property
+    def refused(self) -> int:
+        """Connections refused since start because ``max_connections`` were being served."""
+        return self._server.refused
 
     def stop(self) -> None:
         self._server.shutdown()
@@ -104,7 +154,7 @@ def start_status_server(
     Metrics are for operators: a taken port must not stop a server from doing its work.
     """
     try:
-        server = StatusServer(listen, port, health=health, metrics=metrics, prometheus=prometheus)
+        server = StatusServer(listen, port, health=health, metrics=metrics, prometheus=prometheus, logger=logger)
     except OSError as exc:
         logger.error(f"metrics HTTP server on {listen}:{port} not started: {exc}")
         return None

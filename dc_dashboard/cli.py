@@ -11,6 +11,23 @@ from dc_core.errors import DcError
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback only)")
     p.add_argument("--port", type=int, default=8088, help="port to listen on (default 8088; 0: any free one)")
+    p.add_argument(
+        "--allowed-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="a Host name the dashboard is reached by, besides the --host address and loopback's names "
+        "(repeatable); requests naming another host get 421 (DNS-rebinding defence)",
+    )
+    p.add_argument(
+        "--max-connections", type=int, default=16, help="connections served at once; more get 503 (default 16)"
+    )
+    p.add_argument(
+        "--request-timeout",
+        type=float,
+        default=10.0,
+        help="seconds a connection may stay silent while its request is read or answer written (default 10)",
+    )
     pg = p.add_argument_group("PostgreSQL (default: the DC_POSTGRES_* variables of servers.env)")
     pg.add_argument("--pg-host", help="$DC_POSTGRES_HOST, else 127.0.0.1")
     pg.add_argument("--pg-port", type=int, help="$DC_POSTGRES_PORT, else 5432")
@@ -63,4 +80,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.create_indexes:
         return indexes.create(settings.postgres)
-    return server.serve(settings, args.host, args.port)
+    if args.max_connections < 1 or args.request_timeout <= 0:
+        print("dc dashboard: --max-connections must be >= 1 and --request-timeout > 0", file=sys.stderr)
+        return 2
+    return server.serve(
+        settings,
+        args.host,
+        args.port,
+        extra_hosts=args.allowed_host,
+        max_connections=args.max_connections,
+        timeout=args.request_timeout,
+    )

@@ -1,18 +1,24 @@
-"""The dashboard's HTTP server: the standard library's ThreadingHTTPServer, one thread per request.
+"""The dashboard's HTTP server: one thread per connection, a bounded number of them, each socket timed out.
 
 Each page opens one PostgreSQL connection, asks its bounded questions, renders, and closes it.
 Anything a source cannot give becomes a sentence on the page (status 503), never a traceback.
+
+A request whose ``Host`` is not one the dashboard is reached by gets 421: a web page elsewhere that
+points its own host name at 127.0.0.1 (DNS rebinding) would otherwise read the dashboard, and
+through it the database and the bucket, from the operator's browser.
 """
 
 from __future__ import annotations
 
+import socket
 import sys
 import time
-from collections.abc import Callable
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from collections.abc import Callable, Iterable
+from http.server import BaseHTTPRequestHandler
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
+from dc_core.http_limits import BoundedHTTPServer
 from dc_dashboard import health, pages
 from dc_dashboard.errors import DashboardError
 from dc_dashboard.filters import Filters
@@ -127,16 +133,54 @@ class Dashboard:
         return 200, body, content_type
 
 
+# Connections served at once: a few browser tabs, each loading a page and its images in parallel.
+MAX_CONNECTIONS = 16
+# Seconds a connection may stay silent while its request is read or its answer written (a page's
+# queries are bounded apart, by the statement timeout).
+REQUEST_TIMEOUT_S = 10.0
+
+
+def allowed_hosts(listen: str, extra: Iterable[str] = ()) -> frozenset[str]:
+    """The Host names a request may carry: the listening address, loopback's names, and ``extra``.
+
+    Bound to every address (0.0.0.0, ::), the machine's own name is added too; any other name (a
+    DNS name of the robot, a reverse proxy's) must be given.
+    """
+    names = {listen, "localhost", "127.0.0.1", "::1", *extra}
+    if listen in ("0.0.0.0", "::", ""):
+        names.add(socket.gethostname())
+    return frozenset(normal_host(name) for name in names if name)
+
+
+def normal_host(host: str) -> str:
+    """A Host header (or a name) without its port and IPv6 brackets, lowercase, no trailing dot."""
+    host = host.strip().lower()
+    if host.startswith("["):  # [::1]:8088
+        host = host[1 : host.find("]")] if "]" in host else host[1:]
+    elif host.count(":") == 1:  # name:port; more colons: a bare IPv6 address
+        host = host.split(":", 1)[0]
+    return host.rstrip(".")
+
+
 class Handler(BaseHTTPRequestHandler):
     server_version = "dc-dashboard"
     dashboard: Dashboard  # set on the subclass made by make_server
+    hosts: frozenset[str] = frozenset()  # set on the subclass made by make_server
     quiet = False
 
     def do_GET(self) -> None:
         started = time.monotonic()
         url = urlsplit(self.path)
+        host = self.headers.get("Host", "")
         try:
-            if url.path == "/image":
+            if normal_host(host) not in self.hosts:
+                # Not rendered: a rebinding page must learn nothing, not even whether PostgreSQL is up.
+                status, content_type, extra = 421, "text/plain; charset=utf-8", {}
+                body = (
+                    f"421 this dashboard is not served as {host[:100]!r}: start it with --allowed-host NAME "
+                    "for each name it is reached by\n"
+                ).encode()
+            elif url.path == "/image":
                 status, body, content_type = self.dashboard.image(url.query)
                 extra = {"Cache-Control": "private, max-age=3600"} if status == 200 else {}
             elif url.path == "/favicon.ico":
@@ -154,7 +198,9 @@ class Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Length", str(len(body)))
         self.end_headers()
         self.wfile.write(body)
-        if not self.quiet or status >= 500:
+        if status == 421:  # said whatever `quiet` is: an operator with a new name must learn why
+            self.log_message('"GET %s" 421: Host %r not allowed (--allowed-host)', url.path, host[:100])
+        elif not self.quiet or status >= 500:
             self.log_message('"GET %s" %d %.0f ms', url.path, status, (time.monotonic() - started) * 1000)
 
     def log_request(self, code: int | str = "-", size: int | str = "-") -> None:
@@ -164,17 +210,45 @@ class Handler(BaseHTTPRequestHandler):
         print(f"dc dashboard: {format % args}", file=sys.stderr)
 
 
-def make_server(settings: DashboardSettings, host: str, port: int, quiet: bool = False) -> ThreadingHTTPServer:
-    """``quiet``: log failed requests only."""
-    handler = type("DashboardHandler", (Handler,), {"dashboard": Dashboard(settings), "quiet": quiet})
-    server = ThreadingHTTPServer((host, port), handler)
-    server.daemon_threads = True
-    return server
+def make_server(
+    settings: DashboardSettings,
+    host: str,
+    port: int,
+    quiet: bool = False,
+    *,
+    extra_hosts: Iterable[str] = (),
+    max_connections: int = MAX_CONNECTIONS,
+    timeout: float = REQUEST_TIMEOUT_S,
+) -> BoundedHTTPServer:
+    """``quiet``: log failed requests only; ``extra_hosts``: Host names allowed besides :func:`allowed_hosts`'."""
+    handler = type(
+        "DashboardHandler",
+        (Handler,),
+        {"dashboard": Dashboard(settings), "quiet": quiet, "hosts": allowed_hosts(host, extra_hosts)},
+    )
+
+    def refused(total: int) -> None:
+        if total == 1 or total % 100 == 0:  # said, and then counted, not a line per refusal
+            print(f"dc dashboard: {total} connections refused so far ({max_connections} being served)", file=sys.stderr)
+
+    return BoundedHTTPServer(
+        (host, port), handler, max_connections=max_connections, timeout=timeout, on_refused=refused
+    )
 
 
-def serve(settings: DashboardSettings, host: str, port: int) -> int:
+def serve(
+    settings: DashboardSettings,
+    host: str,
+    port: int,
+    *,
+    extra_hosts: Iterable[str] = (),
+    max_connections: int = MAX_CONNECTIONS,
+    timeout: float = REQUEST_TIMEOUT_S,
+) -> int:
     try:
-        server = make_server(settings, host, port)
+        server = make_server(
+            settings, host, port, extra_hosts=extra_hosts, max_connections=max_connections, timeout=timeout
+        )
     except OSError as exc:
         print(f"dc dashboard: cannot listen on {host}:{port}: {exc}", file=sys.stderr)
         return 2

@@ -13,7 +13,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.errors import ConfigError
+from dc_core.logs import Logger
 from dc_core.params import param
+from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
 
 try:
     import boto3
@@ -87,6 +89,24 @@ class AwsCredentialsParams:
         check_credentials(
             self.aws_access_key_id, self.aws_secret_access_key, self.role_arn, self.external_id, self.sts_endpoint
         )
+
+    def warn_if_in_clear(self, logger: Logger, destination: str, endpoint: str) -> None:
+        """The shared warning (dc_destinations.tls) for an endpoint override (or STS's) over plain HTTP.
+
+        Requests are signed, not carrying the secret key, but the access key, the signed requests and
+        the records travel readable (and STS's answer holds temporary credentials in clear).
+        """
+        key = self.aws_access_key_id or "(from boto3's chain)"
+        for url, what in ((endpoint_url(endpoint), "requests"), (endpoint_url(self.sts_endpoint), "STS requests")):
+            if url is not None:
+                warn_if_credentials_in_clear(
+                    logger,
+                    destination,
+                    url_host(url),
+                    credentials=f"{what} signed with access key {key}",
+                    verified_tls=url_is_verified_tls(url),
+                    fix="use an https:// endpoint (a host name without a scheme is https)",
+                )
 
     def session(self, name: str, region: str, timeout: float) -> Any:
         """A boto3 session with these credentials (see :func:`aws_session`)."""

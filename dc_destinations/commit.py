@@ -62,6 +62,45 @@ class _CommitBatch:
         return len(self.committed)
 
 
+class _Handoff(list[Received]):
+    """The records of one submit, as the writer takes them, with the bytes of their JSON."""
+
+    nbytes = 0
+
+
+class _IntakeQueue(queue.SimpleQueue[Any]):
+    """The hand-off queue, counting the bytes of the records taken off it (``intake_queue_limit_bytes``).
+
+    Counted where the writer takes them, whichever way it does: the writer loop stays as it is.
+    """
+
+    def __init__(self) -> None:
+        self.taken_bytes = 0
+
+    def get(self, block: bool = True, timeout: float | None = None) -> Any:
+        item = super().get(block, timeout)
+        self.taken_bytes += getattr(item, "nbytes", 0)
+        return item
+
+    def get_nowait(self) -> Any:
+        return self.get(False)
+
+
+def _received_bytes(received: Sequence[Received]) -> int:
+    """Bytes of the JSON text of every copy of these records (what they hold in memory, roughly)."""
+    total = 0
+    for copies, _ in received:
+        for _, record in copies:
+            text = record.json_text
+            if text is None:  # made by hand (tests, a plugin's own records): not serialised by routing
+                try:
+                    text = record.to_json()
+                except MalformedRecord:
+                    continue  # counted apart as malformed by the writer
+            total += len(text)
+    return total
+
+
 def _may_pass(exc: Exception) -> bool:
     """Whether a failed commit is the disk's or the system's (retry it) rather than its records' own."""
     return isinstance(exc, (sqlite3.OperationalError, OSError, MemoryError, BufferClosed))
@@ -90,7 +129,9 @@ class GroupCommitter:
         self._seen_window = seen_window
         self._clock = clock
         self._tick_logs = tick_logs
-        self._intake: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._intake = _IntakeQueue()
+        self._limit_bytes = settings.intake_limit_bytes
+        self._submitted_bytes = 0  # taken: counted by the queue
         # Records submitted and taken by the writer, each counted by one side: their difference is
         # what waits in memory (intake_queue_limit).
         self._submitted = 0
@@ -107,8 +148,8 @@ class GroupCommitter:
     # -- the server's side ------------------------------------------------------------------------
 
     def start(self) -> None:
-        self._intake = queue.SimpleQueue()
-        self._submitted = self._taken = 0
+        self._intake = _IntakeQueue()
+        self._submitted = self._taken = self._submitted_bytes = 0
         self._accepting = True
         self._writer = threading.Thread(target=self._write_loop, name="dc-delivery-writer", daemon=True)
         self._writer.start()
@@ -131,6 +172,11 @@ class GroupCommitter:
         """Records handed over and not taken by the writer yet."""
         return self._submitted - self._taken
 
+    @property
+    def waiting_bytes(self) -> int:
+        """Bytes of the records handed over and not taken by the writer yet."""
+        return self._submitted_bytes - self._intake.taken_bytes
+
     def submit_record(self, deliveries: Sequence[tuple[str, OutgoingRecord]], seen: HopKey | None = None) -> bool:
         """Hand over the copies of one record, and its hop key, to be committed in one transaction.
 
@@ -147,10 +193,16 @@ class GroupCommitter:
         same group commit.
         """
         reason = None
+        nbytes = _received_bytes(received) if self._limit_bytes is not None else 0
         if not self._accepting:
             reason = "the delivery pipeline is not running"
         elif self.waiting >= self.settings.intake_queue_limit:
             reason = f"{self.settings.intake_queue_limit} records already wait for the disk (intake_queue_limit)"
+        elif self._limit_bytes is not None and self.waiting_bytes + nbytes > self._limit_bytes:
+            reason = (
+                f"{self.waiting_bytes} bytes of records wait for the disk, {nbytes} more would pass "
+                f"intake_queue_limit_bytes ({self.settings.intake_queue_limit_bytes})"
+            )
         if reason is not None:
             dropped = 0
             for copies, _ in received:
@@ -165,9 +217,11 @@ class GroupCommitter:
             return False
         if received:
             # Taken as they are: the destinations are looked up by the writer thread, not here.
-            handoffs = list(received)
+            handoffs = _Handoff(received)
+            handoffs.nbytes = nbytes
             with self._submit_lock:  # several threads may submit
                 self._submitted += len(handoffs)
+                self._submitted_bytes += nbytes
             self._intake.put(handoffs)
         return True
 

@@ -306,6 +306,7 @@ class DeliveryPipeline:
             "storage_sync": self.settings.storage_sync,
             "quarantined": self._quarantined,
             "intake_pending": committer.waiting if committer is not None else 0,
+            "intake_pending_bytes": committer.waiting_bytes if committer is not None else 0,
             "running": committer is not None and committer.running,
             "commit_error": failing[1] if failing else "",
             "commit_failing_s": round(self._clock() - failing[0], 3) if failing else 0.0,

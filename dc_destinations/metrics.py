@@ -152,4 +152,10 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         "Records waiting for the next group commit",
         [("", buffer["intake_pending"])],
     )
+    text.family(
+        "dc_delivery_intake_pending_bytes",
+        "gauge",
+        "Bytes of the records waiting for the next group commit (intake_queue_limit_bytes)",
+        [("", buffer.get("intake_pending_bytes") or 0)],
+    )
     return text.text()

@@ -24,6 +24,7 @@ from typing import Any, NoReturn
 
 from dc_core.destination import RetryableError
 from dc_core.errors import ConfigError
+from dc_core.logs import Logger
 from dc_core.params import param
 from dc_destinations.aws import (
     CREDENTIAL_CODES,
@@ -33,6 +34,7 @@ from dc_destinations.aws import (
     region_problem,
 )
 from dc_destinations.confined_files import OpenedFile
+from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
 
 try:
     import botocore.config
@@ -117,6 +119,26 @@ def endpoint_url(params: ObjectStoreParams) -> str | None:
     if "://" in params.endpoint:
         return params.endpoint
     return f"{'https' if params.use_ssl else 'http'}://{params.endpoint}"
+
+
+def warn_if_store_in_clear(logger: Logger, destination: str, params: ObjectStoreParams) -> bool:
+    """The shared warning (dc_destinations.tls) for a remote store reached over plain HTTP.
+
+    S3 signs each request with the secret key rather than sending it, but the access key, the signed
+    requests and every file travel readable, and a signed request can be replayed within minutes.
+    """
+    url = endpoint_url(params)
+    if url is None:  # AWS's own endpoint: https, checked by boto3
+        return False
+    key = params.access_key_id or "(boto3's chain)"
+    return warn_if_credentials_in_clear(
+        logger,
+        destination,
+        url_host(url),
+        credentials=f"requests signed with access key {key} and the files",
+        verified_tls=url_is_verified_tls(url),
+        fix="use an https endpoint (use_ssl: true, or an https:// URL)",
+    )
 
 
 def store_client(params: ObjectStoreParams, name: str, timeout: float = 30.0) -> Any:

@@ -19,6 +19,10 @@ _SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)\s*$", re.IGNORECASE)
 _UNITS = {"": 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4}
 
 
+def _size_problem(text: str) -> str | None:
+    return None if text.strip() in ("", "0") or _SIZE.match(text) else 'a size such as "64M" or a number of bytes'
+
+
 @dataclass(frozen=True, kw_only=True)
 class DeliveryParams(MetricsHttpParams):
     flush: float = param(1.0, minimum=0.01, doc="Seconds between two delivery rounds of a destination's queue")
@@ -46,6 +50,12 @@ class DeliveryParams(MetricsHttpParams):
         minimum=1,
         doc="Records waiting in memory for the next group commit; beyond it new ones are dropped and counted",
     )
+    intake_queue_limit_bytes: str = param(
+        "64M",
+        check=_size_problem,
+        doc="Bytes of records (their JSON) waiting in memory for the next group commit; beyond it new ones are "
+        'dropped and counted, as beyond intake_queue_limit ("0" or "" = records counted only)',
+    )
     commit_batch_size: int = param(2000, minimum=1, doc="Most records written by one group commit")
     commit_interval: float = param(
         0.05,
@@ -53,6 +63,11 @@ class DeliveryParams(MetricsHttpParams):
         maximum=1.0,
         doc="Seconds a record may wait in memory so that records arriving together share one commit",
     )
+
+    @property
+    def intake_limit_bytes(self) -> int | None:
+        """``intake_queue_limit_bytes`` in bytes; None: no byte limit."""
+        return parse_size(self.intake_queue_limit_bytes, "intake_queue_limit_bytes")
 
 
 @dataclass(frozen=True, kw_only=True)

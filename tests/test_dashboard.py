@@ -4,13 +4,16 @@ headless Chromium over what the tb3_pgsql_minio demo stored, as a user sees it."
 from __future__ import annotations
 
 import datetime as dt
+import http.client
 import io
 import json
 import os
 import secrets
 import shutil
+import socket
 import subprocess
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -90,6 +93,91 @@ def test_the_health_page_shows_each_destinations_last_delivery_from_the_metrics(
 
 
 # -- queries against a real PostgreSQL -------------------------------------------------------------------
+
+
+# -- the HTTP server on its own: Host allow-list, timeouts, connection cap (no PostgreSQL needed) ----------
+
+
+@pytest.fixture
+def dashboard_server() -> Iterator[Any]:
+    from dc_dashboard.server import make_server
+
+    server = make_server(
+        DashboardSettings(PostgresSettings(), S3Settings()),
+        "127.0.0.1",
+        0,
+        quiet=True,
+        extra_hosts=["robot.example.org"],
+        max_connections=2,
+        timeout=1.0,
+    )
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True)
+    thread.start()
+    try:
+        yield server
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(5.0)
+
+
+def _status_for_host(server: Any, host: str | None, path: str = "/favicon.ico") -> tuple[int, str]:
+    """Status and body of GET ``path`` sent with this Host header (None: without one)."""
+    connection = http.client.HTTPConnection("127.0.0.1", server.server_address[1], timeout=5)
+    try:
+        connection.putrequest("GET", path, skip_host=True)
+        if host is not None:
+            connection.putheader("Host", host)
+        connection.endheaders()
+        reply = connection.getresponse()
+        return reply.status, reply.read().decode()
+    finally:
+        connection.close()
+
+
+def test_requests_for_another_host_are_refused_dns_rebinding(dashboard_server: Any) -> None:
+    port = dashboard_server.server_address[1]
+    for host in (f"127.0.0.1:{port}", f"localhost:{port}", "LOCALHOST", f"[::1]:{port}", "robot.example.org"):
+        assert _status_for_host(dashboard_server, host)[0] == 204, host
+    # A rebinding page's own name (pointed at 127.0.0.1 by its DNS), or none at all: nothing rendered.
+    refused: list[str | None] = [f"attacker.example:{port}", "127.0.0.1.attacker.example", "", None]
+    for name in refused:
+        status, body = _status_for_host(dashboard_server, name, "/")
+        assert status == 421, name
+        assert "--allowed-host" in body and "<html" not in body
+
+
+def test_an_idle_connection_does_not_hold_the_dashboard_and_excess_ones_are_refused(dashboard_server: Any) -> None:
+    port = dashboard_server.server_address[1]
+    with socket.create_connection(("127.0.0.1", port)):
+        started = time.monotonic()
+        assert _status_for_host(dashboard_server, "127.0.0.1")[0] == 204
+        assert time.monotonic() - started < 2.0
+    # As many silent connections as it serves at once: the next one is refused at once, and counted.
+    idle = [socket.create_connection(("127.0.0.1", port)) for _ in range(2)]
+    try:
+        deadline = time.monotonic() + 5.0
+        while dashboard_server.refused == 0:
+            assert time.monotonic() < deadline, "never refused beyond max_connections"
+            status, body = _status_for_host(dashboard_server, "127.0.0.1")
+            assert status in (204, 503) and (status == 204 or "busy" in body)
+        # The silent ones are timed out after 1 s: served again while they are still open.
+        deadline = time.monotonic() + 5.0
+        while _status_for_host(dashboard_server, "127.0.0.1")[0] != 204:
+            assert time.monotonic() < deadline, "the idle connections were never timed out"
+    finally:
+        for sock in idle:
+            sock.close()
+
+
+def test_allowed_hosts_default_to_the_listening_address_and_loopback() -> None:
+    from dc_dashboard.server import allowed_hosts
+
+    assert allowed_hosts("127.0.0.1") == {"127.0.0.1", "localhost", "::1"}
+    assert allowed_hosts("192.0.2.7", ["Robot.Example.org."]) == {
+        "192.0.2.7", "127.0.0.1", "localhost", "::1", "robot.example.org"
+    }  # fmt: skip
+    assert socket.gethostname().lower() in allowed_hosts("0.0.0.0")
 
 
 def _run_rows(robot: str, run: str, start: dt.datetime, seconds: int, cpu: float) -> list[tuple[Any, ...]]:

@@ -925,6 +925,37 @@ def test_a_full_intake_queue_drops_and_counts(tmp_path: Path) -> None:
         pipeline.stop(grace=0.5)
 
 
+def test_the_intake_queue_is_bounded_in_bytes_too_drops_counted(tmp_path: Path) -> None:
+    """Few records but large ones (a flood of big camera records) are held to intake_queue_limit_bytes."""
+    logger = RecordingLogger()
+    sink = Recorder()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, intake_queue_limit=1_000_000, intake_queue_limit_bytes="8K", commit_interval=0.5),
+        {"sink": (sink, DestinationDeliveryParams())},
+        logger,
+    )
+    pipeline.start()
+    try:
+        sent = [
+            OutgoingRecord.serialised(rid, "/dc/measurement/camera", i, {"n": i, "frame": "x" * 1000})
+            for i, rid in enumerate(new_record_id() for _ in range(100))
+        ]
+        kept = [pipeline.submit_record([("sink", r)]) for r in sent]
+        # The writer waits commit_interval before its first commit: 8 records of ~1 KB fill the 8 KB.
+        assert pipeline.buffer_metrics()["intake_pending_bytes"] <= 8 * 1024
+        assert pipeline.flush_intake(5)
+        assert pipeline.buffer_metrics()["intake_pending_bytes"] == 0
+        delivered = sink.wait_for(sum(kept))
+        metrics = pipeline.metrics()["sink"]
+        assert metrics["received"] == len(sent)
+        assert 0 < len(delivered) < len(sent) and metrics["dropped"] > 0
+        assert len(delivered) + metrics["dropped"] == len(sent)
+        assert {r.record_id for r in delivered} == {r.record_id for r, k in zip(sent, kept, strict=True) if k}
+        assert sum("intake_queue_limit_bytes (8K)" in line for level, line in logger.lines if level == "error") == 1
+    finally:
+        pipeline.stop(grace=0.5)
+
+
 def test_records_submitted_together_are_kept_or_dropped_together_and_committed_in_one_piece(tmp_path: Path) -> None:
     logger = RecordingLogger()
     pipeline = DeliveryPipeline(

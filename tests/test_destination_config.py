@@ -149,6 +149,11 @@ def test_fluent_bit_json_date_names_set_the_time_key() -> None:
         ),
         ({**stdout_section(), "flb": {"flsh": 1}}, "destination_server.flb.flsh", 'did you mean "flush"'),
         ({**stdout_section(), "flb": {"flush": "soon"}}, "destination_server.flb.flush", "expected a number"),
+        (
+            {**stdout_section(), "flb": {"intake_queue_limit_bytes": "lots"}},
+            "destination_server.flb.intake_queue_limit_bytes",
+            'expected a size such as "64M"',
+        ),
         ({**stdout_section(), "flb": "fast"}, "destination_server.flb", "expected a mapping"),
         (
             stdout_section(dead_letter_limit_size="lots"),
@@ -173,6 +178,7 @@ def test_fluent_bit_json_date_names_set_the_time_key() -> None:
         "unknown node key",
         "unknown flb key",
         "flb wrong type",
+        "intake byte limit not a size",
         "flb not a mapping",
         "dead letter limit not a size",
     ],

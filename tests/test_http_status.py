@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import socket
+import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -13,6 +14,7 @@ import pytest
 
 from dc_core.http_status import StatusServer
 from dc_core.logs import BurstLog
+from dc_core.testing import RecordingLogger
 from dc_destinations.metrics import DestinationMetrics, prometheus_text
 
 
@@ -61,7 +63,7 @@ def test_metrics_json_and_prometheus(served: tuple[State, str]) -> None:
     assert json.loads(body)["destinations"]["sink"]["sent"] == 3
     status, content_type, body = get(f"{base}/api/v1/metrics/prometheus/")
     assert status == 200 and content_type.startswith("text/plain; version=0.0.4")
-    assert body == "dc_x 1\n"
+    assert body.startswith("dc_x 1\n")  # the server's own text first, then the HTTP server's counter
 
 
 def test_unknown_path_and_failing_metrics(served: tuple[State, str]) -> None:
@@ -81,6 +83,46 @@ def test_a_taken_port_raises_oserror() -> None:
         port = taken.getsockname()[1]
         with pytest.raises(OSError):
             StatusServer("127.0.0.1", port, health=lambda: True, metrics=dict, prometheus=str)
+
+
+def test_an_idle_connection_does_not_block_health(served: tuple[State, str]) -> None:
+    """A client that connects and says nothing (a stuck scraper, a port scan) used to hold the only thread."""
+    _state, base = served
+    port = int(base.rsplit(":", 1)[1])
+    with socket.create_connection(("127.0.0.1", port)):
+        started = time.monotonic()
+        assert get(f"{base}/api/v1/health")[0] == 200
+        assert time.monotonic() - started < 2.0
+
+
+def test_connections_beyond_the_cap_are_refused_counted_and_the_server_recovers() -> None:
+    logger = RecordingLogger()
+    server = StatusServer(
+        "127.0.0.1", 0, health=lambda: True, metrics=dict, prometheus=str, logger=logger, max_connections=2, timeout=1.0
+    )
+    base = f"http://127.0.0.1:{server.address[1]}"
+    try:
+        idle = [socket.create_connection(server.address) for _ in range(2)]
+        # Each idle connection holds a handler thread once accepted: wait for both to be taken.
+        deadline = time.monotonic() + 5.0
+        while server.refused == 0 and time.monotonic() < deadline:
+            status, _type, body = get(f"{base}/api/v1/health")
+            if status == 503:
+                assert "busy" in body
+        assert server.refused >= 1
+        assert any("metrics HTTP server: connection refused" in line for line in logger.at("warning"))
+        # The socket timeout frees the threads of the idle connections: served again, without closing them.
+        deadline = time.monotonic() + 5.0
+        while get(f"{base}/api/v1/health")[0] != 200:
+            assert time.monotonic() < deadline, "the idle connections were never timed out"
+        for sock in idle:
+            sock.close()
+        status, _type, body = get(f"{base}/api/v1/metrics")
+        assert status == 200 and json.loads(body)["metrics_http"]["refused_connections"] == server.refused
+        _status, _type, text = get(f"{base}/api/v1/metrics/prometheus")
+        assert f"dc_http_refused_connections_total {server.refused}" in text
+    finally:
+        server.stop()
 
 
 def test_prometheus_text_format() -> None:

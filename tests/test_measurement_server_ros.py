@@ -471,7 +471,8 @@ def test_counters_are_served_over_http_while_active(harness: Harness) -> None:
                 "lost": 0,
                 "replaced": 0,
             }
-        }
+        },
+        "metrics_http": {"refused_connections": 0},  # the HTTP server's own (dc_core.http_status)
     }
     with urllib.request.urlopen(f"{base}/metrics/prometheus", timeout=5) as reply:
         lines = reply.read().decode().splitlines()

@@ -43,6 +43,7 @@ from dc_destinations.object_files import (
     file_pairs,
     store_client,
     verify_stored,
+    warn_if_store_in_clear,
 )
 from dc_destinations.pgsql import record_time
 from dc_destinations.pgsql.connection import (
@@ -51,9 +52,11 @@ from dc_destinations.pgsql.connection import (
     ServerSettings,
     check_server,
     effective_sslmode,
+    effective_sslrootcert,
     is_record_error,
     require_psycopg,
     table_problem,
+    warn_if_password_in_clear,
 )
 
 STORAGES = ("minio", "s3")
@@ -118,9 +121,16 @@ class FilesMetricsDatabaseParams:
     )
     time_format: str = param("double", doc="Found in the seed's files: accepted, no effect")
     time_key: str = param("date", doc="Found in the seed's files: accepted, no effect")
-    ssl: bool = param(False, doc="Require TLS (sslmode require); false: TLS when the server offers it (prefer)")
+    ssl: bool = param(
+        False,
+        doc="TLS that checks the server (sslmode verify-full, the system's CAs or sslrootcert); "
+        "false: TLS when the server offers it, unchecked (prefer)",
+    )
     sslmode: str = param("", choices=SSLMODES, doc="libpq's sslmode, overriding `ssl` (verify-full checks the host)")
-    sslrootcert: str = param("", doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full)")
+    sslrootcert: str = param(
+        "",
+        doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full); empty with ssl: the system's",
+    )
     connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
 
     def __post_init__(self) -> None:
@@ -134,7 +144,7 @@ class FilesMetricsDatabaseParams:
             password=self.password,
             database=self.database,
             sslmode=effective_sslmode(self.ssl, self.sslmode),
-            sslrootcert=self.sslrootcert,
+            sslrootcert=effective_sslrootcert(self.ssl, self.sslmode, self.sslrootcert),
             connect_timeout=self.connect_timeout,
         )
 
@@ -234,6 +244,12 @@ class FilesMetrics(Destination[FilesMetricsParams]):
             prepared=f"table {table.name}",
         )
         self.address = self._database.address
+        name = self.context.name
+        warn_if_password_in_clear(
+            self.context.logger, name, self._database.settings, f"destination_server.{name}.pgsql"
+        )
+        for storage in self.params.file_storage:
+            warn_if_store_in_clear(self.context.logger, f"{name}.{storage}", self.params.section(storage))
         self._stores = [
             _Store(
                 name, self.params.section(name), store_client(self.params.section(name), f"{self.context.name}-{name}")

@@ -20,10 +20,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
+from urllib.parse import parse_qsl
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
+from dc_destinations.tls import is_credential_name, warn_if_credentials_in_clear
 
 FORMATS = ("json", "json_lines", "json_stream", "msgpack")
 CONTENT_TYPES = {"json_lines": "application/x-ndjson", "msgpack": "application/msgpack"}
@@ -185,6 +187,33 @@ class Http(Destination[HttpParams]):
         self._headers = _merge_headers(headers, keep_duplicates=p.allow_duplicated_headers)
         self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_encoder(p.format)
         self._tls = self._tls_context() if p.tls else None
+        self._warn_if_credentials_in_clear()
+
+    def _warn_if_credentials_in_clear(self) -> None:
+        p = self.params
+        sent = []
+        if p.http_user:
+            # A user name without a password is still basic authentication, its header readable.
+            sent.append(f"the basic authentication of {p.http_user}")
+        if p.bearer_token:
+            sent.append("the bearer token")
+        said = {"authorization"} if sent else set()  # basic auth and the bearer token are that header
+        sent.extend(
+            f"header {name}" for name, _ in self._headers if is_credential_name(name) and name.lower() not in said
+        )
+        if any(is_credential_name(key) for key, _ in parse_qsl(p.uri.partition("?")[2], keep_blank_values=True)):
+            sent.append("the uri's query parameters")
+        fix = "set tls: true (tls_verify: true, tls_ca_file for a private CA)"
+        if p.tls and not p.tls_verify:
+            fix = "set tls_verify: true (tls_ca_file for a private CA)"
+        warn_if_credentials_in_clear(
+            self.context.logger,
+            self.context.name,
+            p.host,
+            credentials=", ".join(sent),
+            verified_tls=p.tls and p.tls_verify,
+            fix=fix,
+        )
 
     def on_activate(self) -> None:
         self._stopping.clear()

@@ -31,6 +31,7 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
+from dc_destinations.tls import warn_if_credentials_in_clear
 
 APIS = ("auto", "v1", "v2")
 _INT64 = (-(2**63), 2**63 - 1)
@@ -312,6 +313,15 @@ class InfluxDB(Destination[InfluxDBParams]):
             token = base64.b64encode(f"{p.http_user}:{p.http_passwd}".encode()).decode("ascii")
             self._headers.append(("Authorization", f"Basic {token}"))
             self._secrets = [s for s in (p.http_passwd, token) if s]
+        warn_if_credentials_in_clear(
+            self.context.logger,
+            self.context.name,
+            p.host,
+            credentials="the token" if p.http_token else (f"the password of {p.http_user}" if p.http_passwd else ""),
+            verified_tls=False,  # this destination speaks plain HTTP only
+            fix="reach InfluxDB through a TLS tunnel or proxy on this machine (host 127.0.0.1), "
+            "or over a network nobody else shares",
+        )
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a server that is down

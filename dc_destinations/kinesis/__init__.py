@@ -125,6 +125,7 @@ class KinesisStreams(Destination[KinesisParams]):
         endpoint = endpoint_url(p.endpoint)
         # Named in every message: which stream, where, so an operator sees what to fix.
         self.where = f"stream {p.stream} in {p.region}" + (f" at {endpoint}" if endpoint else "")
+        p.warn_if_in_clear(self.context.logger, self.context.name, p.endpoint)
         config = botocore.config.Config(
             region_name=p.region,
             connect_timeout=p.timeout,

@@ -55,6 +55,7 @@ from dc_destinations.object_files import (
     store_where,
     stored_object,
     verify_stored,
+    warn_if_store_in_clear,
 )
 from dc_destinations.settings import parse_size
 
@@ -189,6 +190,7 @@ class MinIO(Destination[MinIOParams]):
         # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
         self._confinement = confinement_of(self.params)
         self._client = store_client(self.params, self.context.name, self.params.timeout)
+        warn_if_store_in_clear(self.context.logger, self.context.name, self.params)
         self.where = store_where(self.params.bucket, self._client)
 
     def on_activate(self) -> None:

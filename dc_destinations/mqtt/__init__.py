@@ -30,6 +30,7 @@ from dc_core.destination import Destination, OutgoingRecord, RetryableError, Sen
 from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_core.records import MalformedRecord
+from dc_destinations.tls import warn_if_credentials_in_clear
 
 # MQTT topic names are UTF-8 strings of at most 65535 bytes, and a published one has no wildcard.
 _TOPIC_MAX_BYTES = 65535
@@ -182,6 +183,14 @@ class Mqtt(Destination[MqttParams]):
         self.address = f"{'mqtts' if p.tls else 'mqtt'}://{host}:{p.port}"
         self.client_id = p.client_id or default_client_id(self.context.name, p.host)
         self._tls = self._tls_context() if p.tls else None
+        warn_if_credentials_in_clear(
+            self.context.logger,
+            self.context.name,
+            p.host,
+            credentials=f"the password of {p.username}" if p.password else "",
+            verified_tls=p.tls and p.tls_verify,
+            fix="set tls: true with tls_verify: true (tls_ca_file for a private CA; port 8883 is usual)",
+        )
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a broker that is down

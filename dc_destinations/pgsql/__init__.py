@@ -41,11 +41,13 @@ from dc_destinations.pgsql.connection import (
     ServerSettings,
     check_server,
     effective_sslmode,
+    effective_sslrootcert,
     is_record_error,
     one_line,
     port_problem,
     require_psycopg,
     table_problem,
+    warn_if_password_in_clear,
 )
 
 _EPOCH = dt.datetime(1970, 1, 1)
@@ -75,9 +77,16 @@ class PgSQLParams:
         aliases=("timestamp_Key",),
         doc="Record key whose value (epoch seconds or ISO 8601 text) fills `time`; empty: the record's stamp",
     )
-    ssl: bool = param(False, doc="Require TLS (sslmode require); false: TLS when the server offers it (prefer)")
+    ssl: bool = param(
+        False,
+        doc="TLS that checks the server (sslmode verify-full, the system's CAs or sslrootcert); "
+        "false: TLS when the server offers it, unchecked (prefer)",
+    )
     sslmode: str = param("", choices=SSLMODES, doc="libpq's sslmode, overriding `ssl` (verify-full checks the host)")
-    sslrootcert: str = param("", doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full)")
+    sslrootcert: str = param(
+        "",
+        doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full); empty with ssl: the system's",
+    )
     connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
     async_: bool = param(False, aliases=("async",), doc="The original's `async`: accepted, no effect")
     min_pool_size: int | str = param("1", doc="Accepted for the original's files; no effect (one connection)")
@@ -99,7 +108,7 @@ class PgSQLParams:
             password=self.password,
             database=self.database,
             sslmode=self.effective_sslmode,
-            sslrootcert=self.sslrootcert,
+            sslrootcert=effective_sslrootcert(self.ssl, self.sslmode, self.sslrootcert),
             connect_timeout=self.connect_timeout,
         )
 
@@ -145,6 +154,9 @@ class PgSQL(Destination[PgSQLParams]):
             prepared=f"table {self.params.table}",
         )
         self.address = self._database.address
+        warn_if_password_in_clear(
+            self.context.logger, self.context.name, self._database.settings, f"destination_server.{self.context.name}"
+        )
         self._insert = sql.SQL(
             "INSERT INTO {} (tag, time, data, record_id) VALUES (%s, %s, %s::jsonb, %s)"
             " ON CONFLICT (record_id) DO NOTHING"

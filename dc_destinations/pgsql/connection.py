@@ -16,6 +16,7 @@ from typing import Any, TypeVar
 from dc_core.destination import RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
+from dc_destinations.tls import warn_if_credentials_in_clear
 
 T = TypeVar("T")
 
@@ -62,7 +63,52 @@ def check_server(host: str, ssl: bool, sslmode: str, sslrootcert: str) -> None:
 
 
 def effective_sslmode(ssl: bool, sslmode: str) -> str:
-    return sslmode or ("require" if ssl else "prefer")
+    """``sslmode`` when given; else ``ssl: true`` is verify-full and no ``ssl`` libpq's prefer.
+
+    ``ssl: true`` used to mean require, which encrypts but accepts any certificate: a man in the
+    middle got the password. prefer stays the default without ``ssl``: a local PostgreSQL (the demos',
+    a robot's own) rarely has a certificate, and a remote one with a password is warned about
+    (:func:`warn_if_password_in_clear`).
+    """
+    return sslmode or ("verify-full" if ssl else "prefer")
+
+
+def effective_sslrootcert(ssl: bool, sslmode: str, sslrootcert: str) -> str:
+    """``sslrootcert`` when given; for ``ssl: true`` alone, the system's CAs (libpq's ``system``).
+
+    An explicit ``sslmode: verify-full`` without it keeps libpq's own default, ~/.postgresql/root.crt.
+    """
+    if sslrootcert:
+        return sslrootcert
+    return "system" if ssl and not sslmode else ""
+
+
+def verifies_server(sslmode: str, sslrootcert: str) -> bool:
+    """Whether a connection with these settings checks who the server is before sending a password.
+
+    verify-full checks the chain and the host name. verify-ca checks the chain only: enough with a
+    private CA (``sslrootcert`` that signs only this team's servers), not with the system's CAs,
+    which sign certificates for anyone's host names.
+    """
+    return sslmode == "verify-full" or (sslmode == "verify-ca" and sslrootcert not in ("", "system"))
+
+
+def warn_if_password_in_clear(logger: Logger, destination: str, settings: ServerSettings, section: str) -> bool:
+    """The shared warning (dc_destinations.tls) for a password sent to a remote PostgreSQL unverified.
+
+    ``section`` is the YAML path of the keys (``destination_server.<name>``), for the fix.
+    """
+    return warn_if_credentials_in_clear(
+        logger,
+        destination,
+        settings.host,
+        credentials=f"the password of PostgreSQL user {settings.user or '(default)'} (sslmode {settings.sslmode})"
+        if settings.password
+        else "",
+        verified_tls=verifies_server(settings.sslmode, settings.sslrootcert),
+        fix=f"set {section}.ssl: true and no sslmode (verify-full against the system's CAs), "
+        f"with {section}.sslrootcert for a private CA",
+    )
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
@@ -172,6 +218,27 @@ class KeptConnection:
 
         if self._connection is not None and not self._connection.closed:
             return self._connection
+        try:
+            connection = psycopg.connect(autocommit=True, **self.connect_options())
+        except psycopg.Error as exc:
+            detail = one_line(str(exc))
+            hint = " (check `user` and `password`)" if any(h in detail for h in _AUTH_HINTS) else ""
+            raise RetryableError(self.scrub(f"cannot connect to PostgreSQL {self.address}: {detail}{hint}")) from None
+        try:
+            self._prepare(connection)
+        except psycopg.Error as exc:
+            connection.close()
+            detail = one_line(str(exc))
+            raise RetryableError(self.scrub(f"cannot prepare {self._prepared} in {self.address}: {detail}")) from None
+        except BaseException:
+            connection.close()
+            raise
+        self._connection = connection
+        self._logger.info(f"connected to {self.address}")
+        return connection
+
+    def connect_options(self) -> dict[str, Any]:
+        """libpq's connection parameters (password included: never log them)."""
         s = self.settings
         options: dict[str, Any] = {
             "host": s.host,
@@ -191,24 +258,7 @@ class KeptConnection:
                 options[key] = value
         if s.sslrootcert:
             options["sslrootcert"] = s.sslrootcert
-        try:
-            connection = psycopg.connect(autocommit=True, **options)
-        except psycopg.Error as exc:
-            detail = one_line(str(exc))
-            hint = " (check `user` and `password`)" if any(h in detail for h in _AUTH_HINTS) else ""
-            raise RetryableError(self.scrub(f"cannot connect to PostgreSQL {self.address}: {detail}{hint}")) from None
-        try:
-            self._prepare(connection)
-        except psycopg.Error as exc:
-            connection.close()
-            detail = one_line(str(exc))
-            raise RetryableError(self.scrub(f"cannot prepare {self._prepared} in {self.address}: {detail}")) from None
-        except BaseException:
-            connection.close()
-            raise
-        self._connection = connection
-        self._logger.info(f"connected to {self.address}")
-        return connection
+        return options
 
     def _close(self) -> None:
         if self._connection is not None:

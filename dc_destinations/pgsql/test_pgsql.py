@@ -443,7 +443,7 @@ def test_defaults() -> None:
     p = parse_params(PgSQLParams, {}, "x")
     assert (p.host, p.port, p.user, p.database, p.table, p.timestamp_key) == ("127.0.0.1", 5432, "", "", "dc", "")
     assert (p.ssl, p.effective_sslmode, p.connect_timeout) == (False, "prefer", 10)
-    assert parse_params(PgSQLParams, {"ssl": True}, "x").effective_sslmode == "require"
+    assert parse_params(PgSQLParams, {"ssl": True}, "x").effective_sslmode == "verify-full"
 
 
 @pytest.mark.parametrize(

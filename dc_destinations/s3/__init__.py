@@ -181,6 +181,7 @@ class S3(Destination[S3Params]):
         endpoint = endpoint_url(p.endpoint)
         # Named in every message: which bucket, where, so an operator sees what to fix.
         self.where = f"bucket {p.bucket} in {p.region}" + (f" at {endpoint}" if endpoint else "")
+        p.warn_if_in_clear(self.context.logger, self.context.name, p.endpoint)
         config = botocore.config.Config(
             region_name=p.region,
             connect_timeout=p.timeout,

@@ -29,6 +29,7 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
+from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
 
 # Longest wait inside one send(): longer would hold up the destination's stop and hide progress.
 SEND_BUDGET_S = 5.0
@@ -168,6 +169,14 @@ class Slack(Destination[SlackParams]):
         secret = self.params.webhook.split(parts.netloc, 1)[1]
         pieces = [p for p in secret.replace("?", "/").replace("&", "/").split("/") if len(p) >= 8]
         self._secrets = sorted({self.params.webhook, secret, *pieces} - {"", "/"}, key=len, reverse=True)
+        warn_if_credentials_in_clear(  # Slack's own webhooks are https; a relay of one may not be
+            self.context.logger,
+            self.context.name,
+            url_host(self.params.webhook),
+            credentials="the webhook URL",
+            verified_tls=url_is_verified_tls(self.params.webhook),
+            fix="use an https:// webhook URL",
+        )
 
     def on_activate(self) -> None:
         self._stopping.clear()
