@@ -57,12 +57,15 @@ NETWORK_PROTOCOLS = (
 # Query parameters that carry credentials in some cameras' URLs (?user=admin&pwd=…, ?token=…).
 _SECRET_QUERY_KEY = re.compile(r"pass|pwd|token|secret|key|auth|sig", re.IGNORECASE)
 # scheme://user:password@ in any text: the password part is masked even when it is not this
-# camera's (a redirect, another URL in a message).
-_USERINFO = re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.-]*://[^:/@\s'\"]*):(?P<password>[^@/\s'\"]*)@")
+# camera's (a redirect, another URL in a message). The scheme's length is bounded so that a long
+# run of letters costs linear time.
+_USERINFO = re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.-]{0,31}://[^:/@\s'\"]*):(?P<password>[^@/\s'\"]*)@")
 MASK = "***"
 # ffmpeg's av_log lines are at most 1 kB; a longer run without a newline is cut there, unscrubbed
 # bytes are never written.
 MAX_LINE = 64 * 1024
+# How long ffmpeg's messages are read after it exited: a process it started could keep its stderr open.
+DRAIN_S = 5.0
 
 _PR_SET_PDEATHSIG = 1
 # Loaded once here: a child between fork and exec must not load libraries (it may deadlock).
@@ -256,7 +259,8 @@ class ScrubbedLog:
         if self.closed:
             return
         readable, _, _ = select.select([self._fd], [], [], max(timeout, 0.0))
-        while readable:
+        # At most 1 MB a call: an ffmpeg at -loglevel trace must not keep its supervisor from watching it.
+        for _ in range(16 if readable else 0):
             try:
                 chunk = os.read(self._fd, 65536)
             except BlockingIOError:
@@ -268,9 +272,12 @@ class ScrubbedLog:
         self._log.flush()
 
     def drain(self) -> None:
-        """Everything up to ffmpeg's end of output (call once it exited)."""
-        while not self.closed:
-            self.pump(1.0)
+        """Everything up to ffmpeg's end of output (call once it exited), for at most DRAIN_S."""
+        deadline = time.monotonic() + DRAIN_S
+        while not self.closed and time.monotonic() < deadline:
+            self.pump(min(1.0, max(0.0, deadline - time.monotonic())))
+        if not self.closed:
+            self._end()
 
     def note(self, text: str) -> None:
         """A line of DC's own in the log (already free of secrets)."""
@@ -278,12 +285,13 @@ class ScrubbedLog:
         self._log.flush()
 
     def _take(self, chunk: bytes) -> None:
-        data = self._pending + chunk
-        *lines, self._pending = data.split(b"\n")
+        if self._cut:  # the rest of a line cut at MAX_LINE is dropped, up to its end
+            end = chunk.find(b"\n")
+            if end < 0:
+                return
+            chunk, self._cut = chunk[end + 1 :], False
+        *lines, self._pending = (self._pending + chunk).split(b"\n")
         for line in lines:
-            if self._cut:  # the rest of a line cut at MAX_LINE
-                self._cut = False
-                continue
             self._write(line)
         if len(self._pending) > MAX_LINE:
             self._write(self._pending[:MAX_LINE] + b" [line cut]")

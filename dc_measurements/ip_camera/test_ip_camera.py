@@ -428,3 +428,19 @@ def test_ffmpegs_log_is_0600_in_a_0700_folder_even_when_an_older_dc_left_it_open
         harness.stop(plugin)
     assert stat.S_IMODE(old_log.stat().st_mode) == 0o600
     assert stat.S_IMODE(os.stat(plugin.folder).st_mode) == 0o700
+
+
+def test_a_pipe_held_open_after_ffmpeg_exited_does_not_hold_its_supervisor(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ffmpeg, "DRAIN_S", 0.5)
+    # The shell exits at once; the sleep it started keeps the stderr pipe open for 30 s.
+    process = ffmpeg.start(["sh", "-c", "sleep 30 & echo 'failed: http://u:hunter2@cam/s' >&2; exit 3"], None)
+    assert process.stderr is not None
+    log = io.BytesIO()
+    messages = ScrubbedLog(process.stderr, log, Scrubber("http://u:hunter2@cam/s"))
+    started = time.monotonic()
+    try:
+        assert ffmpeg.wait(process, messages, 10) == 3
+        assert time.monotonic() - started < 3
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)  # the sleep, in ffmpeg's process group
+    assert messages.closed and messages.last_line == "failed: http://u:***@cam/s"
