@@ -190,8 +190,10 @@ measurement_server:
 """
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
+@pytest.fixture(scope="module", params=["processes", "single-process"])
+def run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
+    """One run per dc-bringup mode: the umask is set in the supervisor and in each server process."""
+    mode_args = ["--single-process"] if request.param == "single-process" else []
     home = tmp_path_factory.mktemp("secrets")
     roslog = home / "roslog"
     out = home / "out"
@@ -199,7 +201,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
     refused = f"rtsp://{USER}:{quote(REFUSED_PASSWORD, safe='')}@127.0.0.1:{free_port()}/stream"
     with AuthCamera(USER, PASSWORD) as camera:
         params.write_text(PARAMS.format(out=out, data=home / "data", camera=camera.url, refused=refused))
-        with Bringup(params, home, env={"ROS_LOG_DIR": str(roslog)}) as bringup:
+        with Bringup(params, home, args=mode_args, env={"ROS_LOG_DIR": str(roslog)}) as bringup:
             state = Run(home, roslog, out / "records.jsonl", bringup, camera)
             bringup.wait_ready(60)
             # Watch the processes while the recorders run and restart, until three segments are delivered.
