@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import shutil
 import subprocess
 import threading
@@ -150,7 +151,9 @@ class IpCamera(Measurement[IpCameraParams]):
             )
         self._executable = executable
         if "://" not in p.input and not os.path.exists(p.input):
-            raise PluginError(f"{name}: input {p.input!r} is neither a URL (scheme://…) nor an existing file")
+            # "admin:pass@camera/stream" (a URL without its scheme) must not print its password either.
+            shown = re.sub(r":[^@/]*@", ":***@", p.input)
+            raise PluginError(f"{name}: input {shown!r} is neither a URL (scheme://…) nor an existing file")
         base = fixed_prefix(self.context.paths.save_local_base_path)
         self.folder = os.path.join(base, "tmp", name)
         self.log_path = self.folder + ".ffmpeg.log"

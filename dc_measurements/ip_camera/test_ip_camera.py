@@ -411,6 +411,9 @@ def test_a_bad_url_is_refused_with_its_password_masked(harness: PluginHarness, t
     with pytest.raises(ConfigError, match=r"got \"rtsp://admin:\*\*\*@cam/a b\"") as raised:
         make(harness, tmp_path, input="rtsp://admin:hunter2@cam/a b")
     assert "hunter2" not in str(raised.value)
+    with pytest.raises(PluginError, match=r"'admin:\*\*\*@cam/stream' is neither a URL") as refused:
+        make(harness, tmp_path, input="admin:hunter2@cam/stream")
+    assert "hunter2" not in str(refused.value)
 
 
 def test_ffmpegs_log_is_0600_in_a_0700_folder_even_when_an_older_dc_left_it_open(
