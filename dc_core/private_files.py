@@ -16,6 +16,7 @@ tightens what an older DC left; a folder that exists is never changed (``storage
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import stat
 
@@ -35,7 +36,7 @@ def make_folders(path: str | os.PathLike[str], mode: int = PRIVATE_FOLDER) -> No
     """Create ``path`` and its missing parents, each with exactly ``mode`` (not reduced by the
     umask: a folder for group-readable files must be group-searchable). Folders that exist are
     left as they are."""
-    path = os.path.abspath(os.fspath(path))
+    target = path = os.path.abspath(os.fspath(path))
     missing: list[str] = []
     while not os.path.isdir(path):
         missing.append(path)
@@ -49,6 +50,8 @@ def make_folders(path: str | os.PathLike[str], mode: int = PRIVATE_FOLDER) -> No
         except FileExistsError:
             continue  # made meanwhile by another process: theirs, left alone
         os.chmod(folder, mode)
+    if not os.path.isdir(target):
+        raise NotADirectoryError(errno.ENOTDIR, "exists and is not a folder", target)
 
 
 def tighten(path: str | os.PathLike[str], mode: int = PRIVATE_FILE) -> None:

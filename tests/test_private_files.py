@@ -112,3 +112,11 @@ def test_a_mode_is_a_quoted_octal_string(value: str, expected: int) -> None:
 @pytest.mark.parametrize("value", [416, 640, "0800", "rw-r-----", "01777", ""])
 def test_a_mode_that_is_not_a_quoted_octal_string_of_permission_bits_is_refused(value: object) -> None:
     assert mode_problem(value) is not None
+
+
+def test_a_file_where_a_folder_is_wanted_is_an_error(tmp_path: Path) -> None:
+    (tmp_path / "taken").write_text("")
+    with pytest.raises(NotADirectoryError):
+        make_folders(tmp_path / "taken")
+    with pytest.raises(NotADirectoryError):
+        make_folders(tmp_path / "taken" / "below")
