@@ -155,7 +155,8 @@ def scan_processes(run: Run) -> None:
                 continue  # gone, or another user's environment
             if any(secret in content for secret in SECRETS):
                 run.seen_in_processes.append((int(entry.name), f"{what}: {content[:300]!r}"))
-            if what == "cmdline" and b"-hls_time" in content:  # a recorder of DC, not the camera's encoder
+            # A recorder of this run (other test sessions on the machine may record too).
+            if what == "cmdline" and b"-hls_time" in content and str(run.home).encode() in content:
                 run.ffmpeg_command_lines.append(content.replace(b"\0", b" ").decode(errors="replace"))
 
 
