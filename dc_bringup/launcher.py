@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from dc_bringup.validate import SERVER_MODULES, check
+from dc_core.private_files import use_private_umask
 from dc_core.signals import wake_on_signals
 
 LOG_LEVELS = ("debug", "info", "warn", "error", "fatal")
@@ -61,6 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # Before anything is written: the servers, ffmpeg and rclpy's log files inherit it (dc_core.private_files).
+    use_private_umask()
     params_file = str(Path(args.params_file).resolve())
     if args.single_process and not args.validate_only:
         # The servers' process checks the file: parsing it imports every configured plugin's module,

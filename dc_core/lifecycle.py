@@ -48,6 +48,7 @@ from dc_core.node_params import (
     ServerNodeParams,
 )
 from dc_core.plugin import MessageCallback
+from dc_core.private_files import use_private_umask
 from dc_core.signals import wake_on_signals
 from dc_core.worker import Worker
 from dc_interfaces.msg import Heartbeat
@@ -286,6 +287,7 @@ def ros_namespace(namespace: str) -> str:
 
 def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequence[str] = ()) -> threading.Event:
     """rclpy for a process of servers, and the event SIGINT and SIGTERM set: its loop stops, its servers shut down."""
+    use_private_umask()  # records, buffers and logs are this user's alone (dc_core.private_files)
     ros_args = ["--ros-args", "--log-level", log_level]
     if namespace.strip("/"):
         ros_args += ["-r", f"__ns:={ros_namespace(namespace)}"]

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import NamedTuple, Protocol
 
 from dc_core.errors import DcError
+from dc_core.private_files import make_folders, private_database
 
 FILE_NAME = "delivery.sqlite3"
 SCHEMA_VERSION = 3  # 2: queues.dead_bytes; 3: q_<n>.payload_crc
@@ -331,7 +332,8 @@ class SqliteBuffer:
     # -- connection ---------------------------------------------------------------------------
 
     def _connect(self) -> sqlite3.Connection:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        make_folders(self.path.parent)
+        private_database(self.path)
         conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=10.0)
         try:
             conn.execute("PRAGMA journal_mode=WAL").fetchone()

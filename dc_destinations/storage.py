@@ -13,6 +13,10 @@ it would send the first server's records to its own destinations (a File destina
 ``out`` in both got the other's records, silently). The lock is the kernel's (``flock``): a
 process killed with -9 releases it, so a restart is never blocked. ``dc buffer`` works on the
 file beside a running server without the lock, as SQLite's WAL allows.
+
+The records in the buffer are the robot's data: a folder DC creates for it is 0700, the lock 0600
+(the database: :mod:`dc_destinations.buffer`). A configured folder that exists is left as it is
+(it may be shared), with a warning when other accounts can list it.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from pathlib import Path
 from dc_core.errors import DcError
 from dc_core.logs import Logger
 from dc_core.paths import expand_env
+from dc_core.private_files import PRIVATE_FILE, create_private, make_folders
 from dc_destinations.settings import DeliveryParams
 
 # What each storage_sync promises, as the server says it at start.
@@ -59,18 +64,25 @@ def storage_dir(settings: DeliveryParams, logger: Logger, namespace: str = "/") 
     configured = settings.storage_path.strip()
     if not configured:
         directory = default_storage_dir(namespace)
-        directory.mkdir(parents=True, exist_ok=True)
+        make_folders(directory)
         return directory
     directory = Path(os.path.expanduser(expand_env(configured, "destination_server.flb.storage_path")))
     try:
-        directory.mkdir(parents=True, exist_ok=True)
+        existed = directory.is_dir()
+        make_folders(directory)
         if not os.access(directory, os.W_OK | os.X_OK):
             raise PermissionError(f"{directory} is not writable")
     except OSError as exc:
         fallback = default_storage_dir(namespace)
         logger.error(f"flb.storage_path {directory} cannot be used ({exc}); buffering in {fallback} instead")
-        fallback.mkdir(parents=True, exist_ok=True)
+        make_folders(fallback)
         return fallback
+    mode = directory.stat().st_mode & 0o777
+    if existed and mode & 0o077:
+        logger.warning(
+            f"flb.storage_path {directory} can be listed by other accounts (mode {mode:o}); "
+            f"the buffer's files are 0600, but DC leaves the modes of a folder it did not create alone: chmod 700 it"
+        )
     return directory
 
 
@@ -94,7 +106,7 @@ class BufferLock:
         """Take the lock or raise :class:`BufferInUse` naming the owner and the parameter that moves this one."""
         if self._fd is not None:
             return
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = create_private(self.path, os.O_RDWR, PRIVATE_FILE)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -1,4 +1,10 @@
-"""File destination: appends records to one local file, on disk (fsync) before confirming them."""
+"""File destination: appends records to one local file, on disk (fsync) before confirming them.
+
+The file holds the robot's records: DC creates it with ``file_mode`` (0600 unless a team wants
+group read) and the folders it creates for it so that those who may read the file can reach it.
+A file that exists already keeps its mode: it may have been made by logrotate or an operator with
+the mode they chose.
+"""
 
 from __future__ import annotations
 
@@ -17,6 +23,7 @@ from dc_core.destination import Destination, OutgoingRecord, RetryableError, Sen
 from dc_core.errors import PluginError
 from dc_core.params import param
 from dc_core.paths import expand_env
+from dc_core.private_files import folder_mode, make_folders, mode_problem, parse_mode
 
 FORMATS = ("json", "plain", "csv", "ltsv", "out_file", "template")
 _TEMPLATE_FIELD = re.compile(r"\{([^{}]+)\}")
@@ -31,7 +38,14 @@ class FileParams:
         choices=FORMATS,
         doc="json and plain: one JSON object per line; csv; ltsv; out_file: `<name>: [<time>, <record>]`",
     )
-    mkdir: bool = param(True, doc="Create `path` and its parents (mode 0755) when missing")
+    mkdir: bool = param(
+        True, doc="Create `path` and its parents when missing (0700, or readable as file_mode allows: 0750 for 0640)"
+    )
+    file_mode: int | str = param(
+        "0600",
+        doc='Mode of the file when DC creates it, a quoted octal string ("0640": group read)',
+        check=mode_problem,
+    )
     delimiter: str = param("", doc="Field separator of csv (default ',') and ltsv (default tab)")
     label_delimiter: str = param(":", doc="Separator of label and value in ltsv")
     template: str = param("{time} {message}", doc="Line of format template: {key} is a record value")
@@ -57,6 +71,7 @@ class File(Destination[FileParams]):
     def __init__(self, context: Any, params: FileParams) -> None:
         super().__init__(context, params)
         self.file_path = ""
+        self.file_mode = 0o600
         self.delimiter = ""
         self._fd: int | None = None
         self._columns: list[str] | None = None
@@ -70,6 +85,7 @@ class File(Destination[FileParams]):
         if "/" in name:
             raise PluginError(f"{self.context.name}.file: a file name without '/', got {name!r} (use `path`)")
         self.file_path = os.path.join(os.path.expanduser(folder), name)
+        self.file_mode = parse_mode(str(p.file_mode))
         self.delimiter = p.delimiter or {"csv": ",", "ltsv": "\t"}.get(p.format, "")
         if p.format == "csv" and len(self.delimiter) != 1:
             raise PluginError(f"{self.context.name}.delimiter: csv needs one character, got {p.delimiter!r}")
@@ -78,7 +94,7 @@ class File(Destination[FileParams]):
         folder = os.path.dirname(self.file_path)
         if self.params.mkdir and not os.path.isdir(folder):
             try:
-                os.makedirs(folder, mode=0o755, exist_ok=True)
+                make_folders(folder, folder_mode(self.file_mode))
             except OSError as exc:
                 # Not fatal: send() retries, and the folder may become writable (a disk mounted late).
                 self.context.logger.warning(f"cannot create {folder}: {exc.strerror}; records stay buffered")
@@ -162,9 +178,9 @@ class File(Destination[FileParams]):
         self._close()
         folder = os.path.dirname(self.file_path)
         if self.params.mkdir:
-            os.makedirs(folder, mode=0o755, exist_ok=True)
-        created = not os.path.exists(self.file_path)
-        self._fd = os.open(self.file_path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            make_folders(folder, folder_mode(self.file_mode))
+        fd, created = _open_append(self.file_path, self.file_mode)
+        self._fd = fd
         if created:
             # The new directory entry must be durable too, or a crash can lose the whole file.
             _fsync_dir(folder)
@@ -199,6 +215,26 @@ class File(Destination[FileParams]):
             self._columns = None
             with contextlib.suppress(OSError):
                 os.close(fd)
+
+
+def _open_append(path: str, mode: int) -> tuple[int, bool]:
+    """``path`` opened to append, and whether this call created it (then with exactly ``mode``:
+    the umask, 077 in DC's processes, would take a group's read away)."""
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CLOEXEC
+    while True:
+        try:
+            fd = os.open(path, flags | os.O_CREAT | os.O_EXCL, mode)
+        except FileExistsError:
+            try:
+                return os.open(path, flags), False
+            except FileNotFoundError:
+                continue  # rotated away between the two opens: create it
+        try:
+            os.fchmod(fd, mode)
+        except OSError:
+            os.close(fd)
+            raise
+        return fd, True
 
 
 def _fsync_dir(folder: str) -> None:

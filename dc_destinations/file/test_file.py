@@ -190,4 +190,52 @@ def test_file_rotated_away_starts_a_new_file(tmp_path: Path) -> None:
 
 def test_params_defaults() -> None:
     p = parse_params(FileParams, {}, "x")
-    assert (p.path, p.file, p.format, p.mkdir) == ("$HOME/data", "", "json", True)
+    assert (p.path, p.file, p.format, p.mkdir, p.file_mode) == ("$HOME/data", "", "json", True, "0600")
+
+
+@pytest.fixture
+def umask(request: pytest.FixtureRequest) -> Any:
+    previous = os.umask(request.param)
+    yield request.param
+    os.umask(previous)
+
+
+def mode(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077], indirect=True)
+def test_file_is_created_0600_in_0700_folders_whatever_the_umask(tmp_path: Path, umask: int) -> None:
+    dest = file_dest(tmp_path / "a" / "b", file="out")
+    dest.send(UPTIMES[:1])
+    assert mode(tmp_path / "a" / "b" / "out") == 0o600
+    assert mode(tmp_path / "a") == mode(tmp_path / "a" / "b") == 0o700
+    # A file rotated away is started again with the same mode.
+    (tmp_path / "a" / "b" / "out").rename(tmp_path / "a" / "b" / "out.1")
+    dest.send(UPTIMES[1:])
+    assert mode(tmp_path / "a" / "b" / "out") == 0o600
+
+
+@pytest.mark.parametrize("umask", [0o077], indirect=True)
+def test_file_mode_gives_a_group_read_and_its_folders_a_way_in(tmp_path: Path, umask: int) -> None:
+    dest = file_dest(tmp_path / "shared", file="out", file_mode="0640")
+    dest.send(UPTIMES[:1])
+    assert mode(tmp_path / "shared" / "out") == 0o640
+    assert mode(tmp_path / "shared") == 0o750
+
+
+def test_file_keeps_the_mode_of_a_file_it_did_not_create(tmp_path: Path) -> None:
+    # Made by logrotate or an operator, with the mode they chose: DC appends, it does not chmod.
+    (tmp_path / "out").write_text("")
+    (tmp_path / "out").chmod(0o644)
+    dest = file_dest(tmp_path, file="out")
+    dest.send(UPTIMES[:1])
+    assert mode(tmp_path / "out") == 0o644
+    assert (tmp_path / "out").read_text() == UPTIMES[0].to_json() + "\n"
+
+
+@pytest.mark.parametrize("value", [416, "rw-r-----", "0778"])
+def test_file_mode_that_is_not_a_quoted_octal_mode_fails_configure_with_the_yaml_path(value: Any) -> None:
+    with pytest.raises(ConfigError, match=r'quoted octal string, e\.g\. "0600"') as info:
+        make(File, "disk", path="/tmp", file_mode=value)
+    assert info.value.path == "destination_server.disk.file_mode"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import mimetypes
+import os
 import shutil
 import subprocess
 
@@ -11,6 +12,10 @@ from dc_core.logs import Logger
 OCTET_STREAM = "application/octet-stream"
 # A video ffprobe cannot read in this time is reported without a duration rather than holding the batch.
 PROBE_TIMEOUT_S = 20.0
+# The containers of the videos DC records or is given (IpCamera's MPEG-TS, MP4/MOV, Matroska/WebM,
+# AVI, FLV, MPEG-PS, Ogg). A file named .mp4 holding a concat or HLS playlist would otherwise make
+# ffprobe open the files or URLs it lists.
+PROBE_FORMATS = "mpegts,mov,matroska,avi,flv,mpeg,ogg"
 
 
 def content_type(path: str) -> str:
@@ -42,7 +47,25 @@ class DurationProbe:
                 self._missing_told = True
                 self._logger.warning("ffprobe not found (apt install ffmpeg): videos are recorded without duration")
             return None
-        command = [self._ffprobe, "-v", "error", "-show_entries", "format=duration", "-of", "csv=p=0", path]
+        if not os.path.isabs(path):
+            # FilesMetrics probes the resolved path of a file it confined to its allowed roots.
+            self._logger.warning(f"ffprobe not run on {path}: not an absolute path")
+            return None
+        # file: — a path is never read as a URL or an option, whatever its first characters.
+        command = [
+            self._ffprobe,
+            "-v",
+            "error",
+            "-format_whitelist",
+            PROBE_FORMATS,
+            "-protocol_whitelist",
+            "file",
+            "-show_entries",
+            "format=duration",
+            "-of",
+            "csv=p=0",
+            "file:" + path,
+        ]
         try:
             done = subprocess.run(
                 command, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S, stdin=subprocess.DEVNULL

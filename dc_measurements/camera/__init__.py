@@ -81,6 +81,12 @@ class CameraParams:
     save_rotated_base64: bool = param(False, doc="Put the turned image (JPEG, base64) in the record")
     save_inspected_base64: bool = param(False, doc="Put the inspected image (JPEG, base64) in the record")
     jpeg_quality: int = param(90, minimum=1, maximum=100, doc="JPEG quality of saved and base64 images")
+    max_decoded_pixels: int = param(
+        50_000_000,
+        minimum=1,
+        doc="A compressed frame whose header gives more pixels is refused without being decoded "
+        "(counted in frames_too_large); 50 MP decodes to 150 MB",
+    )
     node_name: str = param("", doc="Accepted for the original's configurations (it named a node); unused")
 
 
@@ -108,8 +114,12 @@ class Camera(Measurement[CameraParams]):
         self._reserved = ReservedPaths()
         self._bad_frame_log = BurstLog(context.logger.error, f"measurement {context.name}: frames not readable")
         self._save_log = BurstLog(context.logger.error, f"measurement {context.name}: images not saved")
+        self._too_large_log = BurstLog(
+            context.logger.warning, f"measurement {context.name}: frames too large to decode, refused"
+        )
         self.stale = 0
         self.bad_frames = 0
+        self.frames_too_large = 0
         self.saved_images = 0
         self.save_errors = 0
 
@@ -168,6 +178,7 @@ class Camera(Measurement[CameraParams]):
 
     def _inspect(self, message: Any) -> dict[str, Any] | None:
         from dc_measurements.camera.images import (
+            FrameTooLarge,
             ImageError,
             compressed_to_array,
             encode_jpeg,
@@ -177,8 +188,13 @@ class Camera(Measurement[CameraParams]):
 
         p = self.params
         self._bad_frame_log.tick()
+        self._too_large_log.tick()
         try:
-            raw = compressed_to_array(message) if self._compressed else image_to_array(message)
+            raw = compressed_to_array(message, p.max_decoded_pixels) if self._compressed else image_to_array(message)
+        except FrameTooLarge as exc:
+            self.frames_too_large += 1
+            self._too_large_log.event(1, str(exc))
+            return None
         except ImageError as exc:
             self.bad_frames += 1
             self._bad_frame_log.event(1, str(exc))
@@ -265,6 +281,7 @@ class Camera(Measurement[CameraParams]):
             "frames": self._frames_received,
             "stale": self.stale,
             "bad_frames": self.bad_frames,
+            "frames_too_large": self.frames_too_large,
             "saved_images": self.saved_images,
             "save_errors": self.save_errors,
         }

@@ -35,6 +35,53 @@ class ImageError(ValueError):
     """An image message that cannot be converted (its encoding, or data that does not match its size)."""
 
 
+class FrameTooLarge(ImageError):
+    """A compressed frame whose header promises more pixels than the camera may decode."""
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# JPEG start-of-frame markers (SOF0-SOF15 but DHT, JPG and DAC, which share the range): they carry the size.
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+# Markers without a length field (TEM, RST0-7), skipped when walking the segments.
+_JPEG_STANDALONE = frozenset([0x01, *range(0xD0, 0xD8)])
+
+
+def compressed_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a JPEG's or PNG's header, read without decoding anything.
+
+    OpenCV allocates what the header says before it decodes a pixel: a few hundred bytes of
+    JPEG can ask for gigabytes. Other formats OpenCV would decode (TIFF, WebP, BMP…) are refused
+    here, as they are not what ``sensor_msgs/CompressedImage`` carries."""
+    if data.startswith(_PNG_SIGNATURE):
+        if len(data) < 24 or data[12:16] != b"IHDR":
+            raise ImageError("PNG without its IHDR header")
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if not data.startswith(b"\xff\xd8"):
+        raise ImageError("compressed image is neither JPEG nor PNG")
+    at = 2
+    while at + 4 <= len(data):
+        if data[at] != 0xFF:
+            raise ImageError("JPEG with a damaged header")
+        marker = data[at + 1]
+        if marker == 0xFF:  # fill byte
+            at += 1
+            continue
+        if marker in _JPEG_STANDALONE:
+            at += 2
+            continue
+        length = int.from_bytes(data[at + 2 : at + 4], "big")
+        if marker in _JPEG_SOF:
+            if at + 9 > len(data):
+                break
+            height = int.from_bytes(data[at + 5 : at + 7], "big")
+            width = int.from_bytes(data[at + 7 : at + 9], "big")
+            return width, height
+        if marker == 0xDA or length < 2:  # image data before any size: not a frame we can judge
+            break
+        at += 2 + length
+    raise ImageError("JPEG without a frame header giving its size")
+
+
 def image_to_array(message: Any) -> Image:
     """A ``sensor_msgs/Image`` as a BGR (h, w, 3) or mono (h, w) uint8 array (a copy: the message may go)."""
     encoding = str(message.encoding)
@@ -64,11 +111,20 @@ def image_to_array(message: Any) -> Image:
     return np.array(pixels, copy=True)
 
 
-def compressed_to_array(message: Any) -> Image:
-    """A ``sensor_msgs/CompressedImage`` (JPEG or PNG) as a BGR or mono uint8 array."""
+def compressed_to_array(message: Any, max_pixels: int) -> Image:
+    """A ``sensor_msgs/CompressedImage`` (JPEG or PNG) as a BGR or mono uint8 array.
+
+    Raises :class:`FrameTooLarge` without decoding when its header gives more than ``max_pixels``."""
     import cv2
 
-    decoded = cv2.imdecode(np.frombuffer(bytes(message.data), dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    data = bytes(message.data)
+    width, height = compressed_size(data)
+    if width * height > max_pixels:
+        raise FrameTooLarge(
+            f"compressed image of {width}x{height} ({width * height / 1e6:.1f} MP) is larger than "
+            f"max_decoded_pixels ({max_pixels / 1e6:g} MP): not decoded"
+        )
+    decoded = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if decoded is None:
         raise ImageError(f"compressed image ({message.format or 'no format'}) could not be decoded")
     if decoded.dtype != np.uint8:

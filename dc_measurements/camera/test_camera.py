@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import base64
+import stat
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -17,7 +19,14 @@ from dc_core.errors import ConfigError
 from dc_core.measurement import BasePaths
 from dc_core.params import parse_params
 from dc_measurements.camera import Camera
-from dc_measurements.camera.images import ImageError, compressed_to_array, image_to_array, rotate
+from dc_measurements.camera.images import (
+    FrameTooLarge,
+    ImageError,
+    compressed_size,
+    compressed_to_array,
+    image_to_array,
+    rotate,
+)
 from dc_sim.camera import ShelfLabel, label_frame
 from tests.measurement_helpers import assert_valid
 from tests.robot_helpers import Ros, ros_session, unique
@@ -77,8 +86,12 @@ def test_unreadable_images_are_refused_with_the_reason() -> None:
     with pytest.raises(ImageError, match="cannot hold its pixels"):
         image_to_array(short)
     broken = CompressedImage(format="jpeg", data=b"not a jpeg")
+    with pytest.raises(ImageError, match="neither JPEG nor PNG"):
+        compressed_to_array(broken, 50_000_000)
+    _, jpeg = cv2.imencode(".jpg", BGR)
+    damaged = CompressedImage(format="jpeg", data=jpeg.tobytes()[:-40])
     with pytest.raises(ImageError, match="could not be decoded"):
-        compressed_to_array(broken)
+        compressed_to_array(damaged, 50_000_000)
 
 
 @pytest.mark.parametrize("extension", [".jpg", ".png"])
@@ -86,9 +99,46 @@ def test_compressed_images_are_decoded(extension: str) -> None:
     frame = label_frame(LABEL, 640, 480)
     ok, encoded = cv2.imencode(extension, frame)
     assert ok
-    decoded = compressed_to_array(CompressedImage(format=extension[1:], data=encoded.tobytes()))
+    decoded = compressed_to_array(CompressedImage(format=extension[1:], data=encoded.tobytes()), 640 * 480)
     assert decoded.shape == frame.shape
     assert np.abs(decoded.astype(int) - frame.astype(int)).mean() < 3
+
+
+def jpeg_claiming(width: int, height: int) -> bytes:
+    """A small real JPEG whose frame header says it is ``width`` x ``height``: what a hostile publisher sends."""
+    _, encoded = cv2.imencode(".jpg", np.full((48, 64, 3), 128, np.uint8))
+    data = bytearray(encoded.tobytes())
+    sof = data.index(b"\xff\xc0")
+    data[sof + 5 : sof + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
+    return bytes(data)
+
+
+@pytest.mark.parametrize("params", [[], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]])
+def test_the_size_of_a_compressed_frame_is_read_from_its_header(params: list[int]) -> None:
+    frame = label_frame(LABEL, 640, 480)
+    _, jpeg = cv2.imencode(".jpg", frame, params)
+    _, png = cv2.imencode(".png", frame[:, :, 0])
+    assert compressed_size(jpeg.tobytes()) == compressed_size(png.tobytes()) == (640, 480)
+    assert compressed_size(jpeg_claiming(60000, 50000)) == (60000, 50000)
+
+
+def test_a_frame_larger_than_max_decoded_pixels_is_refused_without_being_decoded(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 3 GP (9 GB decoded) promised by ~1 kB: OpenCV would allocate before finding the data short.
+    hostile = CompressedImage(format="jpeg", data=jpeg_claiming(60000, 50000))
+
+    def decoded(*args: Any) -> None:
+        raise AssertionError("the frame was decoded")
+
+    monkeypatch.setattr(cv2, "imdecode", decoded)
+    started = time.monotonic()
+    with pytest.raises(FrameTooLarge, match=r"60000x50000 \(3000.0 MP\) is larger than max_decoded_pixels \(50 MP\)"):
+        compressed_to_array(hostile, 50_000_000)
+    assert time.monotonic() - started < 0.1
+    _, png = cv2.imencode(".png", BGR)
+    with pytest.raises(FrameTooLarge):
+        compressed_to_array(CompressedImage(format="png", data=png.tobytes()), 3)
 
 
 def test_rotation_is_clockwise_in_quarter_turns() -> None:
@@ -165,6 +215,7 @@ def test_codes_are_read_and_the_inspected_image_written_only_once_published(ros:
     saved = cv2.imread(str(inspected))
     assert saved is not None
     assert saved.shape == frame.shape
+    assert stat.S_IMODE(inspected.stat().st_mode) == 0o600, "a saved image is the user's alone"
     assert (np.abs(saved.astype(int) - frame.astype(int)) > 100).any()  # the boxes were drawn
     assert plugin.counters()["saved_images"] == 1
     # The same frame is not collected (nor saved) twice.
@@ -247,4 +298,23 @@ def test_unreadable_frames_are_counted_and_logged(ros: Ros, tmp_path: Path) -> N
         lambda: publisher.publish(image_message(BGR, "yuv422")),
     )
     assert any("'yuv422' is not supported" in line for line in ros.harness.context(plugin).logger.at("error"))
+    ros.harness.stop(plugin)
+
+
+def test_an_oversized_compressed_frame_is_counted_and_logged_and_the_next_frame_read(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/camera") + "/compressed"
+    plugin, _ = started(ros, tmp_path, cam_topic=topic, detection_modules=["barcode"])
+    publisher = ros.publisher(CompressedImage, topic, QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    hostile = CompressedImage(format="jpeg", data=jpeg_claiming(12000, 8000))  # 96 MP against the default 50
+    assert ros.spin_until(
+        lambda: plugin.collect() is None and plugin.counters()["frames_too_large"] > 0,
+        lambda: publisher.publish(hostile),
+    )
+    (warning, *_) = ros.harness.context(plugin).logger.at("warning")
+    assert "frames too large to decode" in warning and "12000x8000" in warning
+    assert plugin.counters()["bad_frames"] == 0
+    _, jpeg = cv2.imencode(".jpg", label_frame(LABEL, 640, 480))
+    good = CompressedImage(format="jpeg", data=jpeg.tobytes())
+    record = collected(ros, plugin, lambda: publisher.publish(good))
+    assert {c["data"] for c in record["inspected"]["barcode"]} == {LABEL.qr, LABEL.linear}
     ros.harness.stop(plugin)

@@ -12,6 +12,10 @@ and ffmpeg exits (or stops writing), it is started again after 1 s, 2 s, 4 s… 
 is started from that thread with PR_SET_PDEATHSIG, so even a ``kill -9`` of the server leaves no
 ffmpeg behind (the signal fires when the thread that forked the child ends, hence never from a
 short-lived worker job). The original started ffmpeg detached, never restarted nor stopped it.
+
+The camera's password reaches neither ffmpeg's command line nor a log: the URL goes to ffmpeg on
+its stdin and everything ffmpeg writes is read by DC and scrubbed before it reaches the log file
+(:mod:`dc_measurements.ip_camera.ffmpeg`). That file is created 0600, its folder 0700.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import shutil
 import subprocess
 import threading
@@ -31,6 +36,7 @@ from dc_core.errors import ConfigError, PluginError
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
 from dc_core.paths import expand_time
+from dc_core.private_files import create_private, make_folders, tighten
 from dc_measurements.ip_camera import ffmpeg
 from dc_measurements.saved_files import ReservedPaths, file_locations
 
@@ -38,8 +44,6 @@ from dc_measurements.saved_files import ReservedPaths, file_locations
 def _input_problem(value: str) -> str | None:
     if not value.strip():
         return "a stream URL (scheme://host/…) or the path of a file"
-    if "://" in value and not ffmpeg.URL.match(value):
-        return "a URL as scheme://host/path, without spaces"
     return None
 
 
@@ -71,6 +75,10 @@ class IpCameraParams:
     )
 
     def __post_init__(self) -> None:
+        if ffmpeg.is_url(self.input) and not ffmpeg.URL.match(self.input):
+            # Checked here rather than by `check`: the message shows the URL with its password masked.
+            shown = ffmpeg.without_password(self.input)
+            raise ConfigError("input", f'expected a URL as scheme://host/path, without spaces, got "{shown}"')
         if not self.video and not self.audio:
             raise ConfigError("video", "video and audio are both false: there would be nothing to record")
 
@@ -128,6 +136,7 @@ class IpCamera(Measurement[IpCameraParams]):
         self._last_session = 0
         self._listed: dict[str, ffmpeg.Listed] = {}
         self._reserved = ReservedPaths()
+        self._scrubber = ffmpeg.Scrubber(params.input)
         self.restarts = 0
         self.segments = 0
 
@@ -142,16 +151,21 @@ class IpCamera(Measurement[IpCameraParams]):
             )
         self._executable = executable
         if "://" not in p.input and not os.path.exists(p.input):
-            raise PluginError(f"{name}: input {p.input!r} is neither a URL (scheme://…) nor an existing file")
+            # "admin:pass@camera/stream" (a URL without its scheme) must not print its password either.
+            shown = re.sub(r":[^@/]*@", ":***@", p.input)
+            raise PluginError(f"{name}: input {shown!r} is neither a URL (scheme://…) nor an existing file")
         base = fixed_prefix(self.context.paths.save_local_base_path)
         self.folder = os.path.join(base, "tmp", name)
         self.log_path = self.folder + ".ffmpeg.log"
 
     def on_activate(self) -> None:
         try:
-            os.makedirs(self.folder, exist_ok=True)
+            make_folders(self.folder)
         except OSError as exc:
             raise PluginError(f"{self.context.name}: cannot create the temporary folder {self.folder}: {exc}") from exc
+        # Written by an older DC 0644 with the password in it: the user's alone from now on.
+        for log in (self.log_path, self.log_path + ".1"):
+            tighten(log)
         self._stopping.clear()
         self.context.logger.info(
             f"{self.context.name}: recording {ffmpeg.without_password(self.params.input)} into {self.folder} "
@@ -224,52 +238,51 @@ class IpCamera(Measurement[IpCameraParams]):
         session = self._new_session()
         cmd = ffmpeg.command(self._executable, self._recording(), self.folder, session)
         try:
-            os.makedirs(self.folder, exist_ok=True)
+            make_folders(self.folder)
             self._rotate_log()
-            log = open(self.log_path, "ab")  # noqa: SIM115 - closed below, after ffmpeg ended
+            log = os.fdopen(create_private(self.log_path, os.O_WRONLY | os.O_APPEND), "ab")
         except OSError as exc:
             return "none", f"cannot open {self.log_path}: {exc}"
         with log:
-            offset = log.tell()
             stamp = datetime.now().astimezone().isoformat(timespec="seconds")
             log.write(f"\n=== {stamp} DC starts ffmpeg (session {session})\n".encode())
             log.flush()
             with self._lock:
                 self._session = session
+            stream_url = self.params.input if ffmpeg.is_url(self.params.input) else None
             try:
-                process = ffmpeg.start(cmd, log)
+                process = ffmpeg.start(cmd, stream_url)
             except OSError as exc:
                 with self._lock:
                     self._session = None
                 return "none", f"cannot start {self._executable}: {exc}"
+            assert process.stderr is not None
+            messages = ffmpeg.ScrubbedLog(process.stderr, log, self._scrubber)
             with self._lock:
                 self._process = process
             try:
-                code = self._watch(process, session)
+                code = self._watch(process, messages, session)
             finally:
-                ffmpeg.stop(process, self.STOP_GRACE_S)
+                ffmpeg.stop(process, messages, self.STOP_GRACE_S)
                 with self._lock:
                     self._process = None
                     self._session = None
-        lines = ffmpeg.last_lines(self.log_path, offset)
-        return code, lines[-1] if lines else ""
+        return code, messages.last_line
 
-    def _watch(self, process: subprocess.Popen[bytes], session: str) -> int:
+    def _watch(self, process: subprocess.Popen[bytes], messages: ffmpeg.ScrubbedLog, session: str) -> int:
         stall_s = max(self.STALL_MIN_S, 3.0 * self.params.segment_time)
         last_output = time.time()
         while True:
-            try:
-                return process.wait(0.5)
-            except subprocess.TimeoutExpired:
-                pass
+            code = ffmpeg.wait(process, messages, 0.5)
+            if code is not None:
+                return code
             if self._stopping.is_set():
-                return ffmpeg.stop(process, self.STOP_GRACE_S)
+                return ffmpeg.stop(process, messages, self.STOP_GRACE_S)
             last_output = max(last_output, self._newest_output(session))
             if time.time() - last_output > stall_s:
                 # A camera that vanishes without closing the connection leaves ffmpeg waiting forever.
-                with open(self.log_path, "ab") as log:
-                    log.write(f"=== DC: no output for {stall_s:g} s, stopping ffmpeg\n".encode())
-                return ffmpeg.stop(process, self.STOP_GRACE_S)
+                messages.note(f"=== DC: no output for {stall_s:g} s, stopping ffmpeg\n")
+                return ffmpeg.stop(process, messages, self.STOP_GRACE_S)
 
     def _newest_output(self, session: str) -> float:
         newest = 0.0

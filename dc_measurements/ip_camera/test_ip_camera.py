@@ -8,11 +8,15 @@ configure with the key named.
 
 from __future__ import annotations
 
+import base64
+import dataclasses
+import io
 import json
 import os
 import shutil
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import textwrap
@@ -27,8 +31,8 @@ import pytest
 from dc_core.errors import ConfigError, DcError, PluginError
 from dc_core.measurement import BasePaths
 from dc_core.testing import PluginHarness
-from dc_measurements.ip_camera import IpCamera, IpCameraParams
-from dc_measurements.ip_camera.ffmpeg import read_playlist, without_password
+from dc_measurements.ip_camera import IpCamera, IpCameraParams, ffmpeg
+from dc_measurements.ip_camera.ffmpeg import Recording, ScrubbedLog, Scrubber, read_playlist, without_password
 from tests.measurement_helpers import assert_valid
 
 if shutil.which("ffmpeg") is None or shutil.which("ffprobe") is None:
@@ -334,3 +338,112 @@ def test_a_colon_in_save_path_is_fine_and_the_playlist_is_read() -> None:
     assert listed["1_00000.ts"].duration_s == 1.0
     assert listed["1_00000.ts"].start_s == pytest.approx(1709284542.09)
     assert without_password("rtsp://admin:secret@10.0.0.5:554/s") == "rtsp://admin:***@10.0.0.5:554/s"
+
+
+SECRET_URL = "rtsp://admin:p%40ss%27word@10.0.0.5:554/live?channel=1&token=T0KEN-42"
+
+
+def test_the_stream_url_is_given_on_stdin_never_on_the_command_line() -> None:
+    recording = Recording(
+        input=SECRET_URL,
+        video=True,
+        audio=False,
+        bitrate_video="1M",
+        bitrate_audio="128k",
+        segment=True,
+        segment_time=1,
+        log_level="info",
+        banner=False,
+    )
+    command = ffmpeg.command("/usr/bin/ffmpeg", recording, "/data/tmp/cam", "1")
+    assert command[command.index("-i") + 1] == "pipe:0"
+    assert not [arg for arg in command if "10.0.0.5" in arg or "p%40ss" in arg]
+    # What ffmpeg reads there: the URL, its quote escaped as the concat script wants it.
+    script = ffmpeg.concat_script("rtsp://a:it's@cam/s").decode()
+    assert script == "ffconcat version 1.0\nfile 'rtsp://a:it'\\''s@cam/s'\n"
+    from_file = ffmpeg.command("/usr/bin/ffmpeg", dataclasses.replace(recording, input="/videos/test.ts"), "/t", "1")
+    assert from_file[from_file.index("-i") + 1] == "/videos/test.ts"
+
+
+def test_every_form_of_the_password_is_masked_in_what_ffmpeg_writes() -> None:
+    scrub = Scrubber(SECRET_URL).scrub
+    basic = base64.b64encode(b"admin:p@ss'word").decode()
+    lines = {
+        "[concat @ 0x5] Impossible to open 'rtsp://admin:p%40ss%27word@10.0.0.5:554/live?channel=1&token=T0KEN-42'": (
+            "[concat @ 0x5] Impossible to open 'rtsp://admin:***@10.0.0.5:554/live?channel=1&token=***'"
+        ),
+        f"Authorization: Basic {basic}": "Authorization: Basic ***",
+        "password p@ss'word in plain, p%40ss%27word encoded": "password *** in plain, *** encoded",
+        "redirected to http://someone:else@other/": "redirected to http://someone:***@other/",
+        "pipe:0: Connection refused": "rtsp://admin:***@10.0.0.5:554/live?channel=1&token=***: Connection refused",
+        "Input #0, concat, from 'pipe:0':": "Input #0, concat, from 'pipe:0':",
+    }
+    for line, masked in lines.items():
+        assert scrub(line) == masked
+    assert without_password(SECRET_URL) == "rtsp://admin:***@10.0.0.5:554/live?channel=1&token=***"
+
+
+def test_ffmpegs_messages_are_written_scrubbed_whole_lines_only() -> None:
+    read_end, write_end = os.pipe()
+    log = io.BytesIO()
+    messages = ScrubbedLog(os.fdopen(read_end, "rb"), log, Scrubber("http://u:hunter2@cam/s"))
+
+    def feed(data: bytes) -> None:
+        for start in range(0, len(data), 8192):  # within the pipe's buffer, read as it comes
+            os.write(write_end, data[start : start + 8192])
+            messages.pump(0.1)
+
+    # The password split between two writes is still masked: a line is scrubbed once complete.
+    feed(b"first line with hun")
+    assert log.getvalue() == b""
+    feed(b"ter2 inside\n" + b"x" * (ffmpeg.MAX_LINE + 20000) + b"hunter2 beyond the cut\nlast: hunter2")
+    os.close(write_end)
+    messages.drain()
+    lines = log.getvalue().split(b"\n")
+    assert lines[0] == b"first line with *** inside"
+    assert lines[1].endswith(b"x [line cut]") and len(lines[1]) < ffmpeg.MAX_LINE + 20
+    assert lines[2] == b"last: ***"
+    assert b"hunter2" not in log.getvalue()
+    assert messages.last_line == "last: ***"
+
+
+def test_a_bad_url_is_refused_with_its_password_masked(harness: PluginHarness, tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"got \"rtsp://admin:\*\*\*@cam/a b\"") as raised:
+        make(harness, tmp_path, input="rtsp://admin:hunter2@cam/a b")
+    assert "hunter2" not in str(raised.value)
+    with pytest.raises(PluginError, match=r"'admin:\*\*\*@cam/stream' is neither a URL") as refused:
+        make(harness, tmp_path, input="admin:hunter2@cam/stream")
+    assert "hunter2" not in str(refused.value)
+
+
+def test_ffmpegs_log_is_0600_in_a_0700_folder_even_when_an_older_dc_left_it_open(
+    camera: Camera, harness: PluginHarness, tmp_path: Path
+) -> None:
+    (tmp_path / "data" / "tmp").mkdir(parents=True)
+    old_log = tmp_path / "data" / "tmp" / "cam.ffmpeg.log"
+    old_log.write_text("rtsp://admin:hunter2@camera: Connection refused\n")
+    old_log.chmod(0o644)
+    plugin = make(harness, tmp_path, input=camera.url)
+    plugin.on_activate()
+    try:
+        wait_for("a first segment", plugin.collect, 40)
+    finally:
+        harness.stop(plugin)
+    assert stat.S_IMODE(old_log.stat().st_mode) == 0o600
+    assert stat.S_IMODE(os.stat(plugin.folder).st_mode) == 0o700
+
+
+def test_a_pipe_held_open_after_ffmpeg_exited_does_not_hold_its_supervisor(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ffmpeg, "DRAIN_S", 0.5)
+    # The shell exits at once; the sleep it started keeps the stderr pipe open for 30 s.
+    process = ffmpeg.start(["sh", "-c", "sleep 30 & echo 'failed: http://u:hunter2@cam/s' >&2; exit 3"], None)
+    assert process.stderr is not None
+    log = io.BytesIO()
+    messages = ScrubbedLog(process.stderr, log, Scrubber("http://u:hunter2@cam/s"))
+    started = time.monotonic()
+    try:
+        assert ffmpeg.wait(process, messages, 10) == 3
+        assert time.monotonic() - started < 3
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)  # the sleep, in ffmpeg's process group
+    assert messages.closed and messages.last_line == "failed: http://u:***@cam/s"

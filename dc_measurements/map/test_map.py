@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import stat
 import struct
 import zlib
 from collections.abc import Iterator
@@ -157,6 +158,8 @@ def test_map_saves_pgm_yaml_and_png_of_a_non_square_grid_once(ros: Ros, tmp_path
         "free_thresh": 0.25,
     }
     assert record["base64"]["yaml"] == Path(record["local_paths"]["yaml"]).read_text()
+    # The map's files are the user's alone, whatever the umask of the process.
+    assert {stat.S_IMODE(Path(path).stat().st_mode) for path in record["local_paths"].values()} == {0o600}
 
     # The same map again: not written, not published.
     assert plugin.collect() is None
