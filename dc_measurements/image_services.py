@@ -14,9 +14,11 @@ server when the parameter file has an ``image_services`` section::
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sys
+import tempfile
 from dataclasses import dataclass, fields
-from pathlib import Path
 from typing import Any
 
 from dc_core.errors import ConfigError
@@ -39,6 +41,10 @@ class ImageServicesParams(ServerNodeParams):
     service_namespace: str = param("/dc/service", doc="Where the services are (the original's /dc/service)")
     detection_modules: list[str] = param(
         ["barcode"], doc='What detect_barcodes reads: "qr" and/or "barcode" (as the Camera measurement)'
+    )
+    save_roots: list[str] = param(
+        [],
+        doc="Folders save_image may write in ($ENV); empty: measurement_server's save_local_base_path of the same file",
     )
 
 
@@ -83,11 +89,15 @@ class ImageServices(ManagedServer):
         super().__init__(NODE_NAME, params_file)
         self.config: ImageServicesConfig | None = None
         self._detector: Any = None
+        self._save_roots: Any = None
         self._offered_services: list[Any] = []
 
     def configure_server(self) -> None:
-        self.config = parse_image_services(self.read_params_file()[NODE_NAME])
+        sections = self.read_params_file()
+        self.config = parse_image_services(sections[NODE_NAME])
         self.apply_node_params(self.config.node, self.config.warnings)
+        self._save_roots = save_confinement(self.config.node, sections.get("measurement_server"))
+        self.get_logger().info(f"save_image writes only in {self._save_roots.describe()}")
         from dc_measurements.camera.detection import BarcodeDetector
 
         self._detector = BarcodeDetector(self.config.node.detection_modules)
@@ -186,16 +196,53 @@ class ImageServices(ManagedServer):
     def _save(self, request: Any, response: Any) -> Any:
         import cv2
 
+        from dc_destinations.confined_files import FileRefused
         from dc_measurements.camera.images import ImageError
 
         try:
+            # Any node on the graph can call the service: the path is confined like the files a record names.
+            real = self._save_roots.check_path(request.path)
             image = self._frame(request.frame)
-            Path(request.path).parent.mkdir(parents=True, exist_ok=True)
-            response.success = bool(cv2.imwrite(request.path, image))
+            encoded_ok, encoded = cv2.imencode(os.path.splitext(real)[1] or ".png", image)
+            if not encoded_ok:
+                raise ImageError(f"cannot encode the frame as {os.path.splitext(real)[1]!r}")
+            write_replacing(real, encoded.tobytes())
+            response.success = True
+        except FileRefused as exc:
+            self.get_logger().warning(f"save_image refused: {exc}")
+            response.success = False
         except (ImageError, OSError, cv2.error) as exc:
             self.get_logger().error(f"save_image {request.path!r}: {exc}")
             response.success = False
         return response
+
+
+def save_confinement(node: ImageServicesParams, measurement_server: dict[str, Any] | None) -> Any:
+    """Where save_image may write: ``save_roots`` ($ENV expanded), else the measurement server's save folder."""
+    from dc_core.paths import expand_env
+    from dc_destinations.confined_files import Confinement, default_roots
+
+    if node.save_roots:
+        roots = [expand_env(root, f"{NODE_NAME}.save_roots[{i}]") for i, root in enumerate(node.save_roots)]
+    else:
+        roots = default_roots(measurement_server)
+    return Confinement(roots)
+
+
+def write_replacing(path: str, data: bytes) -> None:
+    """Write ``data`` to a new file beside ``path`` and rename it over ``path``: a symbolic or hard link
+    already at ``path`` is replaced, never written through."""
+    folder = os.path.dirname(path)
+    os.makedirs(folder, mode=0o700, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(dir=folder, prefix=".save_image-")
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data)
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        raise
 
 
 def main() -> int:

@@ -28,9 +28,17 @@ LABEL = ShelfLabel("WH1/AISLE-2/SHELF-03", "4006381330015", "EAN13")
 
 
 @pytest.fixture(scope="module")
-def services(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, SingleThreadedExecutor]]:
+def save_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The one folder the module's server may save images in (its save_roots)."""
+    return tmp_path_factory.mktemp("saved")
+
+
+@pytest.fixture(scope="module")
+def services(tmp_path_factory: pytest.TempPathFactory, save_root: Path) -> Iterator[tuple[Any, SingleThreadedExecutor]]:
     params = tmp_path_factory.mktemp("image_services") / "params.yaml"
-    params.write_text("image_services:\n  ros__parameters:\n    detection_modules: [barcode]\n")
+    params.write_text(
+        f"image_services:\n  ros__parameters:\n    detection_modules: [barcode]\n    save_roots: [{str(save_root)!r}]\n"
+    )
     env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain_id()))
     server = subprocess.Popen(
         [sys.executable, "-m", "dc_measurements.image_services", str(params), "--autostart"],
@@ -93,9 +101,9 @@ def test_draw_image_draws_a_rectangle_and_refuses_other_shapes(services: tuple[A
     assert not call(services, DrawImage, "/dc/service/draw_image", circle).success
 
 
-def test_save_image_writes_the_frame(services: tuple[Any, SingleThreadedExecutor], tmp_path: Path) -> None:
+def test_save_image_writes_the_frame(services: tuple[Any, SingleThreadedExecutor], save_root: Path) -> None:
     frame = label_frame(LABEL, 640, 480)
-    path = tmp_path / "saved" / "label.png"
+    path = save_root / "new" / "label.png"
     response = call(
         services, SaveImage, "/dc/service/save_image", SaveImage.Request(frame=image_message(frame), path=str(path))
     )
@@ -103,8 +111,38 @@ def test_save_image_writes_the_frame(services: tuple[Any, SingleThreadedExecutor
     saved = cv2.imread(str(path))
     assert saved is not None
     assert (saved == frame).all()  # PNG: lossless
+    assert path.stat().st_mode & 0o777 == 0o600
     unwritable = SaveImage.Request(frame=image_message(frame), path="/proc/forbidden/label.png")
     assert not call(services, SaveImage, "/dc/service/save_image", unwritable).success
+
+
+def test_save_image_writes_only_inside_its_roots(
+    services: tuple[Any, SingleThreadedExecutor], save_root: Path, tmp_path: Path
+) -> None:
+    """Any node on the graph can call save_image: it must not choose a file outside save_roots, nor write
+    through a link inside them to a file outside."""
+    root = save_root
+    frame = np.full((48, 64, 3), 200, dtype=np.uint8)
+    outside = tmp_path / "authorized_keys"
+    outside.write_text("ssh-ed25519 AAAA... operator\n")
+    outside.chmod(0o600)
+    before = (outside.read_bytes(), outside.stat().st_mtime_ns)
+
+    def save(path: Path | str) -> bool:
+        request = SaveImage.Request(frame=image_message(frame), path=str(path))
+        return bool(call(services, SaveImage, "/dc/service/save_image", request).success)
+
+    assert not save(outside), "a path outside save_roots"
+    assert not save(root / ".." / outside.name), "a path that climbs out with .."
+    (root / "escape").symlink_to(tmp_path, target_is_directory=True)
+    assert not save(root / "escape" / outside.name), "a folder link inside the root that leads outside"
+    (root / "link.png").symlink_to(outside)
+    (root / "hard.png").hardlink_to(outside)
+    assert not save(root / "link.png"), "a link inside the root to a file outside"
+    assert save(root / "hard.png"), "a hard link inside the root: replaced by a new file, not written through"
+    assert (outside.read_bytes(), outside.stat().st_mtime_ns) == before, "the file outside is untouched"
+    assert (root / "hard.png").stat().st_nlink == 1 and cv2.imread(str(root / "hard.png")) is not None
+    assert save(root / "new.png") and (root / "new.png").stat().st_mode & 0o777 == 0o600
 
 
 def test_configuration_is_checked() -> None:
