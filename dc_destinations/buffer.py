@@ -14,26 +14,31 @@ arrived over DDS, written in the same transaction as the records: a record repla
 publisher's history after a restart is recognised as already buffered (dc_destinations.hop).
 
 A database that SQLite reports as corrupt or not a database is moved aside (renamed with a
-``.corrupt-<UTC time>`` suffix) and replaced by an empty one, at start-up or whenever an operation
-meets the corruption: collection goes on and the file is kept for inspection.
+``.corrupt-<UTC time>`` suffix) and replaced by a new one, at start-up or whenever an operation
+meets the corruption, and every row still readable in the old file (queued records with their
+``record_id``, dead letters, hop keys) is put back into the new one (dc_destinations.salvage):
+collection goes on, a record already delivered may be delivered again (at-least-once), what could
+not be read is counted, and the old file is kept for inspection and ``dc buffer salvage``.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import sqlite3
 import threading
 import time
 import zlib
 from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager, suppress
+from contextlib import closing, contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple, Protocol
 
 from dc_core.errors import DcError
+from dc_destinations.salvage import UNKNOWN, DamagedReader, SalvageReport, open_damaged
 
 FILE_NAME = "delivery.sqlite3"
 SCHEMA_VERSION = 3  # 2: queues.dead_bytes; 3: q_<n>.payload_crc
@@ -207,10 +212,16 @@ class QueueStats:
 
 @dataclass(frozen=True)
 class Quarantine:
-    """A database file set aside because SQLite found it corrupt."""
+    """A database file set aside because SQLite found it corrupt.
+
+    ``salvage``: what of it was put back into the new buffer and what was lost (partial when the
+    salvage failed, with ``salvage_error`` saying why).
+    """
 
     moved_to: Path
     reason: str
+    salvage: SalvageReport | None = None
+    salvage_error: str = ""
 
 
 def is_corruption(exc: BaseException) -> bool:
@@ -325,8 +336,7 @@ class SqliteBuffer:
                 raise
             if not repair:
                 raise BufferCorrupted(f"buffer {self.path} is corrupt ({exc})") from exc
-            self._quarantine(str(exc))
-            self._conn = self._connect()
+            self._set_aside(str(exc))
 
     # -- connection ---------------------------------------------------------------------------
 
@@ -350,7 +360,27 @@ class SqliteBuffer:
         self._qids = qids
         return conn
 
-    def _quarantine(self, reason: str) -> Quarantine:
+    def _set_aside(self, reason: str) -> Quarantine:
+        """Move the damaged file aside, open a new one and salvage the old one into it.
+
+        Called without a connection. A salvage that fails (disk full) leaves what it did and the
+        set-aside file; the new buffer is open either way: collection never waits for a salvage.
+        """
+        moved_to = self._move_aside()
+        self._conn = self._connect()
+        report = SalvageReport(moved_to)
+        error = ""
+        try:
+            self._salvage_into(self._conn, report, keep_ids=True)
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+        quarantine = Quarantine(moved_to=moved_to, reason=reason, salvage=report, salvage_error=error)
+        self.quarantines.append(quarantine)
+        if self._on_quarantine is not None:
+            self._on_quarantine(quarantine)
+        return quarantine
+
+    def _move_aside(self) -> Path:
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         target = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
         n = 1
@@ -361,11 +391,171 @@ class SqliteBuffer:
             source = Path(f"{self.path}{suffix}")
             if source.exists():
                 os.replace(source, Path(f"{target}{suffix}"))
-        quarantine = Quarantine(moved_to=target, reason=reason)
-        self.quarantines.append(quarantine)
-        if self._on_quarantine is not None:
-            self._on_quarantine(quarantine)
-        return quarantine
+        return target
+
+    def set_aside(self, reason: str) -> Quarantine:
+        """Set the file aside and salvage it now (the integrity check found damage)."""
+        with self._lock:
+            if self._conn is None:
+                raise BufferClosed(f"buffer {self.path} is closed")
+            with suppress(sqlite3.Error):
+                self._conn.close()
+            self._conn = None
+            return self._set_aside(reason)
+
+    def quick_check(self) -> str:
+        """``PRAGMA quick_check`` of the file on a connection of its own: "ok", or what is damaged.
+
+        Its own connection: under WAL the writer and the senders go on meanwhile, where the
+        buffer's connection would hold its lock for the whole check.
+        """
+        try:
+            with closing(open_damaged(self.path)) as conn:
+                found = [str(row[0]) for row in conn.execute("PRAGMA quick_check(5)")]
+        except sqlite3.DatabaseError as exc:
+            return f"{type(exc).__name__}: {exc}"
+        return "ok" if found == ["ok"] else "; ".join(found)
+
+    def salvage(self, source: Path) -> SalvageReport:
+        """Put every readable row of the (damaged) buffer file ``source`` into this buffer.
+
+        Queued records go to the end of their destination's queue with their ``record_id``, dead
+        letters to the dead letters; the source is only read.
+        """
+        if Path(source).resolve() == self.path.resolve():
+            raise DeliveryBufferError(f"{source} is this buffer itself")
+        report = SalvageReport(Path(source))
+        with self._locked() as conn:
+            self._salvage_into(conn, report, keep_ids=False)
+        return report
+
+    def _salvage_into(self, conn: sqlite3.Connection, report: SalvageReport, *, keep_ids: bool) -> None:
+        """Copy what ``report.source`` still holds, in transactions of a few thousand rows.
+
+        ``keep_ids`` (a new buffer): rows keep their ids, so a batch a sender had read from the
+        old file before it was set aside is still deleted once delivered, and hop keys are kept.
+        """
+        with closing(open_damaged(report.source)) as source:
+            reader = DamagedReader(source)
+            tables = reader.tables()
+            names: dict[int, str] = {}
+            expected: dict[str, int] = {}
+            totals: dict[str, tuple[int, int, int, int]] = {}
+            if "queues" in tables:
+                for row in reader.rows("queues", "name, qid, rows, received, sent, dropped, dead_lettered"):
+                    _rowid, name, qid, rows, *counts = row
+                    if isinstance(name, str) and isinstance(qid, int):
+                        names[qid] = name
+                        expected[name] = int(rows) if isinstance(rows, int) else 0
+                        totals[name] = tuple(int(c) if isinstance(c, int) else 0 for c in counts)  # type: ignore[assignment]
+            # Without a whole queues table, what was in the queues it lost cannot be counted.
+            report.lost_unknown_count = "queues" not in tables or reader.damaged_spots > 0
+            found: dict[str, int] = {}
+            for table in sorted(t for t in tables if re.fullmatch(r"q_\d+", t)):
+                name = names.get(int(table[2:]))
+                if name is None:
+                    unplaced = sum(1 for _ in reader.rows(table, "id"))
+                    if unplaced:
+                        report.lost[UNKNOWN] = report.lost.get(UNKNOWN, 0) + unplaced
+                    continue
+                found[name] = self._salvage_queue(conn, reader, table, name, report, keep_ids)
+            for name, rows in expected.items():
+                lost = rows - found.get(name, 0)
+                if lost > 0:
+                    report.lost[name] = report.lost.get(name, 0) + lost
+            for name, (received, sent, dropped, dead_lettered) in totals.items():
+                # The lifetime totals carry over, so that `dc buffer stats` keeps the history.
+                conn.execute(
+                    "UPDATE queues SET received = received + ?, sent = sent + ?, dropped = dropped + ?, "
+                    "dead_lettered = dead_lettered + ? WHERE qid = ?",
+                    (received, sent, dropped, dead_lettered, self._qid(conn, name)),
+                )
+            if "dead_letters" in tables:
+                self._salvage_dead_letters(conn, reader, report, keep_ids)
+            if keep_ids and "hop_seen" in tables:
+                keys = [row[1:] for row in reader.rows("hop_seen", "topic, source_ns, seq") if _is_hop_key(row[1:])]
+                with _plain_transaction(conn):
+                    conn.executemany("INSERT INTO hop_seen (topic, source_ns, seq) VALUES (?, ?, ?)", keys)
+            report.damaged_spots = reader.damaged_spots
+
+    def _salvage_queue(
+        self,
+        conn: sqlite3.Connection,
+        reader: DamagedReader,
+        table: str,
+        name: str,
+        report: SalvageReport,
+        keep_ids: bool,
+    ) -> int:
+        """Copy a queue's readable rows to ``name``'s queue; returns how many."""
+        qid = self._qid(conn, name)
+        keep_ids = keep_ids and conn.execute(f"SELECT 1 FROM q_{qid} LIMIT 1").fetchone() is None
+        has_crc = "payload_crc" in {column[1] for column in reader.conn.execute(f"PRAGMA table_info({table})")}
+        columns = _QUEUE_COLUMNS.removeprefix("id, ")
+        if not has_crc:
+            columns = columns.replace(", payload_crc", ", NULL")
+        insert = (
+            f"INSERT INTO q_{qid} ({'id, ' if keep_ids else ''}record_id, topic, stamp_ns, enqueued_ns, attempts, "
+            f"size, payload, payload_crc) VALUES ({'?, ' if keep_ids else ''}?, ?, ?, ?, ?, ?, ?, ?)"
+        )
+        recovered = 0
+        chunk: list[tuple[object, ...]] = []
+
+        def flush() -> None:
+            nonlocal recovered
+            if not chunk:
+                return
+            with _plain_transaction(conn):
+                conn.executemany(insert, chunk)
+                conn.execute(
+                    "UPDATE queues SET rows = rows + ?, bytes = bytes + ? WHERE qid = ?",
+                    (len(chunk), sum(int(row[-3]) for row in chunk), qid),  # type: ignore[call-overload]
+                )
+            recovered += len(chunk)
+            report.recovered[name] = report.recovered.get(name, 0) + len(chunk)
+            chunk.clear()
+
+        for row in reader.rows(table, columns):
+            salvaged = _salvaged_queue_row(row)
+            if salvaged is None:
+                continue  # read, but not a record any more: counted lost with the unreadable ones
+            chunk.append(salvaged if keep_ids else salvaged[1:])
+            if len(chunk) >= 2000:
+                flush()
+        flush()
+        return recovered
+
+    def _salvage_dead_letters(
+        self, conn: sqlite3.Connection, reader: DamagedReader, report: SalvageReport, keep_ids: bool
+    ) -> None:
+        keep_ids = keep_ids and conn.execute("SELECT 1 FROM dead_letters LIMIT 1").fetchone() is None
+        spots = reader.damaged_spots
+        columns = _DEAD_COLUMNS.removeprefix("id, ")
+        insert = (
+            f"INSERT INTO dead_letters ({'id, ' if keep_ids else ''}{columns}) "
+            f"VALUES ({'?, ' if keep_ids else ''}?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
+        )
+        chunk: list[tuple[object, ...]] = []
+
+        def flush() -> None:
+            with _plain_transaction(conn):
+                for row in chunk:
+                    self._qid(conn, str(row[1]))
+                    conn.execute(insert, row if keep_ids else row[1:])
+            report.dead_letters_recovered += len(chunk)
+            chunk.clear()
+
+        for row in reader.rows("dead_letters", columns):
+            if not _is_dead_letter(row):
+                report.dead_letters_damaged = True  # read, but no longer a dead letter
+                continue
+            chunk.append(row)
+            if len(chunk) >= 500:  # dead letters can be large (dead_letter_limit_size): few in memory
+                flush()
+        if chunk:
+            flush()
+        if reader.damaged_spots > spots:
+            report.dead_letters_damaged = True
 
     @contextmanager
     def _locked(self) -> Iterator[sqlite3.Connection]:
@@ -388,8 +578,7 @@ class SqliteBuffer:
         with suppress(sqlite3.Error):
             self._conn.close()
         self._conn = None
-        self._quarantine(reason)
-        self._conn = self._connect()
+        self._set_aside(reason)
 
     @contextmanager
     def _transaction(self) -> Iterator[sqlite3.Connection]:
@@ -744,6 +933,17 @@ class SqliteBuffer:
             return int(conn.execute(f"DELETE FROM dead_letters{where}", args).rowcount)
 
 
+@contextmanager
+def _plain_transaction(conn: sqlite3.Connection) -> Iterator[None]:
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        yield
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")
+
+
 def _migrate(conn: sqlite3.Connection) -> None:
     """Bring a buffer written by an older DC to SCHEMA_VERSION (in one transaction: a second
     process opening the file meanwhile finds it migrated)."""
@@ -795,3 +995,35 @@ def _ensure_queue_table(conn: sqlite3.Connection, qid: int) -> None:
         except sqlite3.OperationalError as exc:
             if "duplicate column" not in str(exc):  # another process added it meanwhile
                 raise
+
+
+def _salvaged_queue_row(row: tuple[object, ...]) -> tuple[object, ...] | None:
+    """A queue row read from a damaged file, ready to insert (id first), or None when it is no
+    longer a record (a damaged page can read as rows of the wrong types). Its size is computed
+    again from its payload, so that the queue's byte count stays exact."""
+    row_id, record_id, topic, stamp_ns, enqueued_ns, attempts, _size, payload, crc = row
+    if not (
+        isinstance(record_id, str)
+        and isinstance(topic, str)
+        and isinstance(payload, str)
+        and all(isinstance(v, int) for v in (row_id, stamp_ns, enqueued_ns, attempts))
+        and (crc is None or isinstance(crc, int))
+    ):
+        return None
+    try:
+        size = len(payload.encode("utf-8"))
+    except UnicodeEncodeError:
+        return None
+    return (row_id, record_id, topic, stamp_ns, enqueued_ns, attempts, size, payload, crc)
+
+
+def _is_dead_letter(row: tuple[object, ...]) -> bool:
+    _id, destination, record_id, topic, stamp_ns, enqueued_ns, failed_ns, attempts, error, size, payload = row
+    return all(isinstance(v, str) for v in (destination, record_id, topic, error, payload)) and all(
+        isinstance(v, int) for v in (stamp_ns, enqueued_ns, failed_ns, attempts, size)
+    )
+
+
+def _is_hop_key(key: tuple[object, ...]) -> bool:
+    topic, source_ns, seq = key
+    return isinstance(topic, str) and isinstance(source_ns, int) and isinstance(seq, int)

@@ -75,6 +75,12 @@ class DeliveryPipeline:
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
         self._quarantined = 0
+        self._lost_unknown = 0
+        # The last integrity check of the buffer file: (wall-clock time, "ok" or what it found), and
+        # whether the file in use is damaged (cleared when it is set aside).
+        self._check_lock = threading.Lock()
+        self._last_check: tuple[float, str] | None = None
+        self._damaged = False
         self._last_log_tick = 0.0
         self._status: StatusServer | None = None
         self._sections: dict[str, Callable[[], Any]] = {}
@@ -126,6 +132,8 @@ class DeliveryPipeline:
             self.storage_file, synchronous=self.settings.storage_sync, on_quarantine=self._on_quarantine
         )
         self._buffer = buffer
+        # Before the senders start: damage found now is salvaged before anything is read from it.
+        self.check_buffer(repair=True)
         buffer.ensure_queues(list(self._routes))
         self._closing.reset()
         senders = {
@@ -248,11 +256,57 @@ class DeliveryPipeline:
     # -- storage ------------------------------------------------------------------------------------
 
     def _on_quarantine(self, quarantine: Quarantine) -> None:
+        """Count what the salvage of a damaged file put back and lost, and say it in one line."""
         self._quarantined += 1
+        with self._check_lock:
+            self._damaged = False  # the file in use is a new one
+        report = quarantine.salvage
+        if report is not None:
+            for name, count in report.recovered.items():
+                if name in self._routes:
+                    self._routes[name].metrics.add("salvaged", count)
+            for name, count in report.lost.items():
+                if name in self._routes:
+                    self._routes[name].metrics.add("lost_to_damage", count)
+                else:
+                    self._lost_unknown += count
+        numbers = report.summary() if report is not None else "nothing salvaged"
+        failed = f"; salvage stopped: {quarantine.salvage_error}" if quarantine.salvage_error else ""
         self.logger.error(
-            f"delivery buffer was unreadable ({quarantine.reason}); moved aside to {quarantine.moved_to} "
-            "and replaced by an empty one — records in it were not delivered"
+            f"delivery buffer was damaged ({quarantine.reason}); moved aside to {quarantine.moved_to} and replaced; "
+            f"salvaged into the new buffer: {numbers}{failed} (records already delivered may be delivered again, "
+            f"with the same record_id; `dc buffer salvage {quarantine.moved_to}` reads the file again)"
         )
+
+    def check_buffer(self, *, repair: bool = False) -> str:
+        """``PRAGMA quick_check`` of the buffer file: "ok" or what is damaged, kept for health and metrics.
+
+        Runs on the caller's thread on a connection of its own (the server calls it from its worker
+        about hourly: ``buffer_check_interval``). Damage is logged once when found; with ``repair``
+        (at start, before anything is read from the file) the file is set aside and salvaged at once.
+        While running, a damaged file is set aside when an operation meets the damage or at the next
+        start; until then the health endpoint answers 503 and ``buffer_damaged`` is true.
+        """
+        buffer = self._buffer
+        if buffer is None or buffer.closed:
+            return "not open"
+        result = buffer.quick_check()
+        with self._check_lock:
+            self._last_check = (time.time(), result)
+            newly = result != "ok" and not self._damaged
+            self._damaged = result != "ok"
+        if result == "ok":
+            return result
+        if repair:  # _on_quarantine says it, with the numbers
+            with contextlib.suppress(BufferClosed):
+                buffer.set_aside(f"integrity check: {result}")
+        elif newly:
+            self.logger.error(
+                f"delivery buffer {buffer.path} is damaged: {result}. It is set aside and its readable records "
+                "salvaged when delivery meets the damage or at the next start: restart destination_server to do "
+                "it now"
+            )
+        return result
 
     def _tick_logs(self) -> None:
         """Let bursts of log-worthy events end with their summary line (the writer calls this)."""
@@ -301,10 +355,16 @@ class DeliveryPipeline:
         and while group commits fail, since how long and why."""
         committer = self._committer
         failing = committer.failing if committer is not None else None
+        with self._check_lock:
+            last_check, damaged = self._last_check, self._damaged
         return {
             "path": str(self.storage_file) if self.storage_file else None,
             "storage_sync": self.settings.storage_sync,
             "quarantined": self._quarantined,
+            "lost_to_damage_unknown": self._lost_unknown,
+            "buffer_damaged": damaged,
+            "last_check_time": last_check[0] if last_check else None,
+            "last_check_result": last_check[1] if last_check else "",
             "intake_pending": committer.waiting if committer is not None else 0,
             "running": committer is not None and committer.running,
             "commit_error": failing[1] if failing else "",
@@ -323,10 +383,10 @@ class DeliveryPipeline:
         return document
 
     def healthy(self) -> bool:
-        """Writer and senders alive, and records reaching the disk (a failing group commit keeps
-        every new record in memory only)."""
+        """Writer and senders alive, records reaching the disk (a failing group commit keeps
+        every new record in memory only), and the buffer file undamaged at its last check."""
         committer = self._committer
-        if committer is None or not committer.running or committer.failing is not None:
+        if committer is None or not committer.running or committer.failing is not None or self._damaged:
             return False
         return all(route.thread is not None and route.thread.is_alive() for route in self._routes.values())
 
