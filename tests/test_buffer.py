@@ -13,6 +13,7 @@ import gc
 import io
 import json
 import os
+import re
 import sqlite3
 import time
 import tracemalloc
@@ -426,3 +427,138 @@ def test_dc_buffer_leaves_a_corrupt_file_alone(tmp_path: Path, capsys: pytest.Ca
     assert _cli(tmp_path, "list")[0] == 1
     assert "corrupt" in capsys.readouterr().err
     assert (tmp_path / FILE_NAME).read_bytes().startswith(b"garbage")
+
+
+# -- a damaged file: salvage ---------------------------------------------------------------------
+
+
+def damage_pages(path: Path, count: int = 10, page_size: int = 4096) -> list[int]:
+    """Overwrite ``count`` pages spread evenly over the file with garbage (1-based page numbers).
+
+    Never page 1 nor the first pages after it, where SQLite put the schema and each table's root:
+    a damaged root costs its whole table (counted, see dc_destinations.salvage); here the damage
+    falls on the records' pages, as it mostly would on a large buffer.
+    """
+    pages = path.stat().st_size // page_size
+    chosen = [pages * (i + 1) // (count + 1) + 1 for i in range(count)]
+    assert min(chosen) > 16 and len(set(chosen)) == count, chosen
+    with path.open("r+b") as handle:
+        for page in chosen:
+            handle.seek((page - 1) * page_size)
+            handle.write(bytes((page * 7 + i * 31) % 256 for i in range(page_size)))
+    return chosen
+
+
+def _backlog(path: Path, count: int) -> None:
+    buffer = SqliteBuffer(path)
+    try:
+        for start in range(0, count, 1000):
+            batch = [pending(i, 150) for i in range(start, min(start + 1000, count))]
+            buffer.append({"a": batch, "b": batch[:10] if start == 0 else []})
+        buffer.dead_letter("b", [(row, "rejected: 400") for row in buffer.read_batch("b", 4)])
+    finally:
+        buffer.close()
+
+
+def test_damaged_pages_cost_only_their_rows_the_rest_is_salvaged(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    _backlog(path, 5000)
+    damage_pages(path)
+    seen: list[Quarantine] = []
+    buffer = SqliteBuffer(path, on_quarantine=seen.append)
+    try:
+        if not seen:  # the damage lies past the queues' heads: found by the integrity check
+            assert buffer.quick_check() != "ok"
+            buffer.set_aside("integrity check")
+        assert len(seen) == 1
+        report = seen[0].salvage
+        assert report is not None and not seen[0].salvage_error
+        assert report.recovered["a"] + report.lost.get("a", 0) == 5000
+        assert report.recovered["a"] >= 4750, report.summary()
+        assert report.recovered.get("b", 0) + report.lost.get("b", 0) == 6  # 10 queued, 4 dead-lettered
+        assert report.dead_letters_recovered == 4
+        assert not report.lost_unknown_count
+        rows: list[str] = []
+        after = 0
+        while batch := buffer.read_batch("a", 1000, after_id=after):
+            after = batch[-1].row_id
+            rows += [r.record_id for r in batch]
+            # Same record_id and same id as in the old file: a batch read before the set-aside is
+            # still deleted when delivered.
+            assert all(r.row_id == int(r.record_id[3:]) + 1 for r in batch)
+        assert len(rows) == report.recovered["a"] == buffer.stats("a").rows
+        assert rows == sorted(set(rows)), "in their order, once each"
+        assert buffer.stats("a").received_total == 5000, "lifetime totals carried over"
+        assert [d.error for d in buffer.list_dead_letters("b")] == ["rejected: 400"] * 4
+        assert "lost to the damage" in report.summary()
+        assert buffer.quick_check() == "ok"
+    finally:
+        buffer.close()
+    assert seen[0].moved_to.exists(), "the damaged file is kept"
+
+
+def test_salvage_counts_as_unknown_what_it_cannot_name(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    _backlog(path, 100)
+    conn = sqlite3.connect(path)
+    (queues_root,) = conn.execute("SELECT rootpage FROM sqlite_master WHERE name = 'queues'").fetchone()
+    conn.close()
+    with path.open("r+b") as handle:  # the table naming each queue's destination
+        handle.seek((queues_root - 1) * 4096)
+        handle.write(b"\xff" * 4096)
+    target = SqliteBuffer(tmp_path / "new" / FILE_NAME)
+    try:
+        report = target.salvage(path)
+    finally:
+        target.close()
+    assert report.recovered == {}
+    assert report.lost == {"(unknown)": 106} and report.lost_unknown_count  # 110 queued, 4 dead-lettered
+
+
+def test_quick_check_finds_damage_of_the_file_in_use(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    _backlog(path, 3000)
+    buffer = SqliteBuffer(path)
+    try:
+        assert buffer.quick_check() == "ok"
+        damage_pages(path, 3)
+        assert buffer.quick_check() != "ok"
+    finally:
+        buffer.close()
+
+
+def test_dc_buffer_salvage_puts_a_set_aside_file_into_a_buffer(tmp_path: Path) -> None:
+    damaged = tmp_path / "old" / f"{FILE_NAME}.corrupt-20260101T000000Z"
+    damaged.parent.mkdir()
+    _backlog(damaged, 5000)
+    damage_pages(damaged)
+    before = damaged.read_bytes()
+    live = SqliteBuffer(tmp_path / FILE_NAME)  # a buffer in use, with records of its own
+    live.append({"a": [pending(i) for i in range(90_000, 90_010)]})
+    live.close()
+    args = argparse.Namespace(
+        action="salvage",
+        ids=[str(damaged)],
+        storage_path="",
+        params="",
+        namespace="/",
+        destination="",
+        all=False,
+        into=str(tmp_path),
+    )
+    out = io.StringIO()
+    assert buffer_admin.run_cli(args, out) == 0
+    text = out.getvalue()
+    numbers = re.search(r"records recovered (\d+) \(a (\d+), b (\d+)\); lost to the damage (\d+) \(a (\d+)", text)
+    assert numbers, text
+    total, in_a, in_b, lost, lost_a = map(int, numbers.groups())
+    assert in_a + lost_a == 5000 and in_a >= 4750 and total == in_a + in_b and lost >= lost_a
+    assert "dead letters recovered 4" in text
+    assert damaged.read_bytes() == before, "the damaged file is only read"
+    stats = {s.destination: s for s in buffer_admin.queue_stats(tmp_path / FILE_NAME)}
+    assert stats["a"].rows == 10 + in_a
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        assert buffer.read_batch("a", 10)[0].record_id == "id-00090000", "the buffer's own records stay first"
+    finally:
+        buffer.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -11,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
 import urllib.request
 import uuid
 from collections.abc import Callable, Iterator, Sequence
@@ -745,6 +747,79 @@ def test_a_corrupt_buffer_at_start_is_set_aside_and_new_records_flow(tmp_path: P
         assert pipeline.buffer_metrics()["quarantined"] == 1
         assert any(level == "error" and "moved aside" in line for level, line in logger.lines)
         assert len(list(tmp_path.glob(f"{FILE_NAME}.corrupt-*"))) == 1
+    finally:
+        pipeline.stop(grace=0.5)
+
+
+def test_live_damage_shows_in_health_and_the_next_start_salvages_it(tmp_path: Path) -> None:
+    """5,000 records wait for a destination that is down; 10 pages of the file in use are damaged.
+
+    The integrity check makes it visible (health 503, ``buffer_damaged``); the next start sets the
+    file aside and puts back what is readable: delivered + lost_to_damage = sent, >= 95 % delivered.
+    """
+    from tests.test_buffer import damage_pages
+
+    total = 5000
+    up = threading.Event()
+
+    def down_until_up(call: int, batch: Sequence[OutgoingRecord]) -> None:
+        if not up.is_set():
+            raise RetryableError("connection refused")
+
+    logger = RecordingLogger()
+    sink = Recorder(behaviour=down_until_up)
+    # A long backoff: the sender does not read the file again while the test damages it.
+    config = settings(tmp_path, http_server=True, http_port=0, scheduler_base=60.0, scheduler_cap=60.0)
+    params = DestinationDeliveryParams(batch_size=500)
+    pipeline = DeliveryPipeline(config, {"sink": (sink, params)}, logger)
+    pipeline.start()
+    sent_ids = []
+    try:
+        for i in range(total):
+            rec = record(i)
+            rec.data["pad"] = "x" * 120
+            sent_ids.append(rec.record_id)
+            pipeline.submit("sink", rec)
+        assert pipeline.flush_intake(10)
+        wait_until(lambda: pipeline.metrics()["sink"]["retried"] >= 500, what="the first failed attempt recorded")
+        assert pipeline.check_buffer() == "ok" and pipeline.healthy()
+        with contextlib.closing(sqlite3.connect(tmp_path / FILE_NAME)) as other:  # what is committed, in the file
+            other.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+        damage_pages(tmp_path / FILE_NAME)
+        found = pipeline.check_buffer()
+        assert found != "ok"
+        address = pipeline.http_address
+        assert address is not None
+        base = f"http://{address[0]}:{address[1]}/api/v1"
+        with pytest.raises(urllib.error.HTTPError) as health:
+            urllib.request.urlopen(f"{base}/health", timeout=5)
+        assert health.value.code == 503
+        with urllib.request.urlopen(f"{base}/metrics", timeout=5) as reply:
+            state = json.load(reply)["buffer"]
+        assert state["buffer_damaged"] is True and state["last_check_result"] == found
+        assert abs(state["last_check_time"] - time.time()) < 60
+        with urllib.request.urlopen(f"{base}/metrics/prometheus", timeout=5) as reply:
+            assert "dc_delivery_buffer_damaged 1" in reply.read().decode()
+        assert [line for level, line in logger.lines if level == "error" and "is damaged" in line]
+    finally:
+        pipeline.stop(grace=0.1)
+
+    up.set()
+    pipeline = DeliveryPipeline(config, {"sink": (sink, params)}, logger)
+    pipeline.start()
+    try:
+        metrics = pipeline.metrics()["sink"]
+        lost = metrics["lost_to_damage"]
+        assert metrics["salvaged"] + lost == total
+        wait_until(lambda: len({r.record_id for r in sink.delivered}) + lost >= total, 30, "the salvaged records")
+        delivered = {r.record_id for r in sink.delivered}
+        assert delivered <= set(sent_ids)
+        assert len(delivered) + lost == total, "delivered + counted = sent"
+        assert len(delivered) >= 0.95 * total, f"{len(delivered)} of {total} delivered"
+        buffer_state = pipeline.buffer_metrics()
+        assert buffer_state["quarantined"] == 1 and buffer_state["buffer_damaged"] is False and pipeline.healthy()
+        said = [line for level, line in logger.lines if "moved aside" in line]
+        assert len(said) == 1 and f"lost to the damage {lost} (sink {lost})" in said[0], said
     finally:
         pipeline.stop(grace=0.5)
 
