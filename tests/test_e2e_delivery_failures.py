@@ -278,3 +278,54 @@ def test_corrupt_buffer_file_is_set_aside_and_new_records_are_delivered(tmp_path
     assert moved[0].read_bytes().startswith(b"this is not a SQLite database"), "kept for inspection, unchanged"
     assert document["buffer"]["quarantined"] == 1
     assert sorted(seqs(receiver)) == list(range(total))
+
+
+# -- (e) damaged pages in a waiting backlog -----------------------------------------------------------------
+
+
+def test_damaged_pages_of_a_waiting_backlog_cost_only_their_records(tmp_path: Path) -> None:
+    """5,000 records wait for a receiver that is down; 10 pages of the buffer file are damaged at rest.
+
+    At the next start the file is set aside and its readable records are put back: >= 95 % reach
+    the receiver, the rest are counted (`lost_to_damage`), and `dc buffer salvage` reads the
+    set-aside file again with the same numbers.
+    """
+    from tests.test_buffer import damage_pages
+
+    total = 5000
+    port = free_port()
+    params = write_params(tmp_path, port)
+    with Bringup(params, tmp_path / "home") as run:
+        run.wait_ready()
+        finish(publish(run, total, rate=500, padding=100))
+        wait_metric(run, lambda m: m["buffered"] == total, 30, f"all {total} records waiting")
+    buffer_file = tmp_path / "buffer" / "delivery.sqlite3"
+    assert not Path(f"{buffer_file}-wal").exists() or Path(f"{buffer_file}-wal").stat().st_size == 0
+    damage_pages(buffer_file)
+
+    with Receiver(port=port) as receiver, Bringup(params, tmp_path / "home") as run:
+        run.wait_ready()
+        said = run.wait_stderr("lost to the damage")
+        metrics = wait_metric(run, lambda m: m["salvaged"] > 0, 30, "the salvage counted")
+        lost = metrics["lost_to_damage"]
+        assert metrics["salvaged"] + lost == total, metrics
+        run.wait_until(lambda: len(seqs(receiver)) + lost >= total, 60, "the salvaged records at the receiver")
+        table = dc("status", "--port", re.findall(r"http://[^:/]+:(\d+)/", run.wait_stderr("metrics HTTP"))[0])
+        document = status(run)
+    delivered = set(seqs(receiver))
+    assert delivered <= set(range(total))
+    assert len(delivered) + lost == total, "delivered + counted = sent"
+    assert len(delivered) >= 0.95 * total, f"{len(delivered)} of {total} delivered"
+    assert f"lost to the damage {lost} (web {lost})" in said, said
+    assert document["buffer"]["quarantined"] == 1 and document["buffer"]["buffer_damaged"] is False
+    assert "lost dmg" in table.stdout and "last integrity check" in table.stdout, table.stdout
+
+    (set_aside,) = [
+        p for p in buffer_file.parent.iterdir() if re.fullmatch(r"delivery\.sqlite3\.corrupt-[\dTZ-]+", p.name)
+    ]
+    again = dc("buffer", "salvage", str(set_aside), "--into", str(tmp_path / "again"))
+    assert again.returncode == 0, again.stderr
+    assert (
+        f"records recovered {metrics['salvaged']} (web {metrics['salvaged']}); lost to the damage {lost}"
+        in again.stdout
+    )
