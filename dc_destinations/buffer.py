@@ -414,7 +414,7 @@ class SqliteBuffer:
                 found = [str(row[0]) for row in conn.execute("PRAGMA quick_check(5)")]
         except sqlite3.DatabaseError as exc:
             return f"{type(exc).__name__}: {exc}"
-        return "ok" if found == ["ok"] else "; ".join(found)
+        return "ok" if found == ["ok"] else " ".join(" ".join(found).split())  # one log line
 
     def salvage(self, source: Path) -> SalvageReport:
         """Put every readable row of the (damaged) buffer file ``source`` into this buffer.
