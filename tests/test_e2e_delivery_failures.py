@@ -12,12 +12,16 @@ The backoff settings are small (flb.scheduler_base 0.2 s, scheduler_cap 2 s) so 
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import re
+import sqlite3
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -329,3 +333,40 @@ def test_damaged_pages_of_a_waiting_backlog_cost_only_their_records(tmp_path: Pa
         f"records recovered {metrics['salvaged']} (web {metrics['salvaged']}); lost to the damage {lost}"
         in again.stdout
     )
+
+
+def test_damage_of_the_file_in_use_shows_in_health_and_dc_status(tmp_path: Path) -> None:
+    """The periodic integrity check (here every 0.5 s) finds pages damaged under the running server."""
+    from tests.test_buffer import damage_pages
+
+    total = 3000
+    params = write_params(tmp_path, free_port())
+    # A long backoff: after its first attempt the sender leaves the file alone while it is damaged.
+    params.write_text(
+        params.read_text()
+        .replace("      flush: 0.2\n", "      flush: 0.2\n      buffer_check_interval: 0.5\n")
+        .replace(f"scheduler_base: {SCHEDULER_BASE}", "scheduler_base: 120")
+        .replace(f"scheduler_cap: {SCHEDULER_CAP}", "scheduler_cap: 120")
+    )
+    buffer_file = tmp_path / "buffer" / "delivery.sqlite3"
+    with Bringup(params, tmp_path / "home") as run:
+        run.wait_ready()
+        finish(publish(run, total, rate=500, padding=100))
+        wait_metric(run, lambda m: m["buffered"] == total and m["retried"] > 0, 30, "the backlog, tried once")
+        assert status(run)["buffer"]["buffer_damaged"] is False
+        with contextlib.closing(sqlite3.connect(buffer_file)) as other:  # the committed records into the file
+            other.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+        damage_pages(buffer_file)
+        deadline = time.monotonic() + 20
+        while not (document := status(run))["buffer"]["buffer_damaged"]:
+            assert time.monotonic() < deadline, document["buffer"]
+            time.sleep(0.2)
+        port = re.findall(r"http://[^:/]+:(\d+)/", run.wait_stderr("metrics HTTP"))[0]
+        with pytest.raises(urllib.error.HTTPError) as health:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/api/v1/health", timeout=5)
+        table = dc("status", "--port", port, env=run.env)
+        said = run.wait_stderr("is damaged")
+    assert health.value.code == 503
+    assert document["buffer"]["last_check_result"] != "ok" and document["buffer"]["last_check_time"] > 0
+    assert "buffer: DAMAGED" in table.stdout, table.stdout
+    assert "restart destination_server" in said
