@@ -408,11 +408,16 @@ class SqliteBuffer:
 
         Its own connection: under WAL the writer and the senders go on meanwhile, where the
         buffer's connection would hold its lock for the whole check.
+
+        Raises :class:`sqlite3.Error` when the check could not run (a lock held too long, no file):
+        that says nothing of damage, and a sound file must never be set aside for it.
         """
         try:
             with closing(open_damaged(self.path)) as conn:
                 found = [str(row[0]) for row in conn.execute("PRAGMA quick_check(5)")]
         except sqlite3.DatabaseError as exc:
+            if not is_corruption(exc):
+                raise
             return f"{type(exc).__name__}: {exc}"
         return "ok" if found == ["ok"] else " ".join(" ".join(found).split())  # one log line
 

@@ -15,6 +15,7 @@ another.
 from __future__ import annotations
 
 import contextlib
+import sqlite3
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -290,7 +291,11 @@ class DeliveryPipeline:
         buffer = self._buffer
         if buffer is None or buffer.closed:
             return "not open"
-        result = buffer.quick_check()
+        try:
+            result = buffer.quick_check()
+        except sqlite3.Error as exc:
+            self.logger.warning(f"delivery buffer {buffer.path}: integrity check could not run: {exc}")
+            return f"not checked: {exc}"
         with self._check_lock:
             self._last_check = (time.time(), result)
             newly = result != "ok" and not self._damaged
