@@ -562,3 +562,20 @@ def test_dc_buffer_salvage_puts_a_set_aside_file_into_a_buffer(tmp_path: Path) -
         assert buffer.read_batch("a", 10)[0].record_id == "id-00090000", "the buffer's own records stay first"
     finally:
         buffer.close()
+
+
+def test_dc_buffer_salvage_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    def salvage(*files: str, into: str) -> int:
+        args = argparse.Namespace(
+            action="salvage", ids=list(files), storage_path="", params="", namespace="/", into=into
+        )
+        return buffer_admin.run_cli(args, io.StringIO())
+
+    assert salvage(str(tmp_path / "nothing"), into=str(tmp_path)) == 1
+    assert "no file" in capsys.readouterr().err
+    assert salvage(into=str(tmp_path)) == 1
+    assert "give the set-aside file" in capsys.readouterr().err
+    _backlog(tmp_path / FILE_NAME, 10)
+    assert salvage(str(tmp_path / FILE_NAME), into=str(tmp_path)) == 1
+    assert "is this buffer itself" in capsys.readouterr().err
+    assert buffer_admin.queue_stats(tmp_path / FILE_NAME)[0].rows == 10
