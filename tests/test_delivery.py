@@ -29,6 +29,7 @@ from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 from dc_destinations.storage import BufferInUse, default_storage_dir
+from tests.buffer_damage import damage_pages
 
 LOG = RecordingLogger("test_delivery")
 
@@ -757,8 +758,6 @@ def test_live_damage_shows_in_health_and_the_next_start_salvages_it(tmp_path: Pa
     The integrity check makes it visible (health 503, ``buffer_damaged``); the next start sets the
     file aside and puts back what is readable: delivered + lost_to_damage = sent, >= 95 % delivered.
     """
-    from tests.test_buffer import damage_pages
-
     total = 5000
     up = threading.Event()
 
@@ -827,8 +826,6 @@ def test_live_damage_shows_in_health_and_the_next_start_salvages_it(tmp_path: Pa
 def test_damage_met_during_delivery_is_salvaged_at_once(tmp_path: Path) -> None:
     """A sender meets damaged pages mid-backlog: the file is set aside and salvaged while running, and
     every record is delivered or counted in lost_to_damage."""
-    from tests.test_buffer import damage_pages
-
     total = 5000
     first = threading.Event()
     go_on = threading.Event()

@@ -29,6 +29,7 @@ from typing import Any
 import pytest
 
 from tests.bringup_util import Bringup, dc
+from tests.buffer_damage import damage_pages
 from tests.http_receiver import Receiver, Request, free_port
 
 pytestmark = pytest.mark.e2e
@@ -294,8 +295,6 @@ def test_damaged_pages_of_a_waiting_backlog_cost_only_their_records(tmp_path: Pa
     the receiver, the rest are counted (`lost_to_damage`), and `dc buffer salvage` reads the
     set-aside file again with the same numbers.
     """
-    from tests.test_buffer import damage_pages
-
     total = 5000
     port = free_port()
     params = write_params(tmp_path, port)
@@ -337,8 +336,6 @@ def test_damaged_pages_of_a_waiting_backlog_cost_only_their_records(tmp_path: Pa
 
 def test_damage_of_the_file_in_use_shows_in_health_and_dc_status(tmp_path: Path) -> None:
     """The periodic integrity check (here every 0.5 s) finds pages damaged under the running server."""
-    from tests.test_buffer import damage_pages
-
     total = 3000
     params = write_params(tmp_path, free_port())
     # A long backoff: after its first attempt the sender leaves the file alone while it is damaged.
