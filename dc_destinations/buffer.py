@@ -44,6 +44,7 @@ FILE_NAME = "delivery.sqlite3"
 SCHEMA_VERSION = 3  # 2: queues.dead_bytes; 3: q_<n>.payload_crc
 
 _SQLITE_CORRUPT = 11
+_SALVAGING = "salvaging"  # meta key: the set-aside file being salvaged into this buffer
 _SQLITE_NOTADB = 26
 
 _SCHEMA = """
@@ -313,6 +314,7 @@ class SqliteBuffer:
         *,
         synchronous: str = "normal",
         on_quarantine: Callable[[Quarantine], None] | None = None,
+        on_salvage_start: Callable[[Path, str], None] | None = None,
         repair: bool = True,
     ) -> None:
         """Open (creating it if needed) the database at ``path``.
@@ -324,6 +326,7 @@ class SqliteBuffer:
         self.repair = repair
         self.synchronous = synchronous.upper()
         self._on_quarantine = on_quarantine
+        self._on_salvage_start = on_salvage_start
         self._lock = threading.RLock()
         self._qids: dict[str, int] = {}
         self._seen_since_prune: Counter[str] = Counter()
@@ -367,11 +370,17 @@ class SqliteBuffer:
         set-aside file; the new buffer is open either way: collection never waits for a salvage.
         """
         moved_to = self._move_aside()
-        self._conn = self._connect()
+        self._conn = conn = self._connect()
+        # Kept until the salvage is done: a process stopped or killed meanwhile leaves records in
+        # the set-aside file that nothing counted, and its next start must say so.
+        conn.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (_SALVAGING, str(moved_to)))
+        if self._on_salvage_start is not None:
+            self._on_salvage_start(moved_to, reason)
         report = SalvageReport(moved_to)
         error = ""
         try:
-            self._salvage_into(self._conn, report, keep_ids=True)
+            self._salvage_into(conn, report, keep_ids=True)
+            conn.execute("DELETE FROM meta WHERE key = ?", (_SALVAGING,))
         except Exception as exc:
             error = f"{type(exc).__name__}: {exc}"
         quarantine = Quarantine(moved_to=moved_to, reason=reason, salvage=report, salvage_error=error)
@@ -392,6 +401,15 @@ class SqliteBuffer:
             if source.exists():
                 os.replace(source, Path(f"{target}{suffix}"))
         return target
+
+    def unfinished_salvage(self, *, forget: bool = False) -> Path | None:
+        """The set-aside file whose salvage into this buffer did not finish (the process stopped
+        during it, or it failed), if any; with ``forget``, no longer remembered."""
+        with self._locked() as conn:
+            row = conn.execute("SELECT value FROM meta WHERE key = ?", (_SALVAGING,)).fetchone()
+            if row is not None and forget:
+                conn.execute("DELETE FROM meta WHERE key = ?", (_SALVAGING,))
+        return Path(row[0]) if row is not None else None
 
     def set_aside(self, reason: str) -> Quarantine:
         """Set the file aside and salvage it now (the integrity check found damage)."""

@@ -130,9 +130,13 @@ class DeliveryPipeline:
             self._lock_taken_by_start = True
         assert self.storage_file is not None
         buffer = SqliteBuffer(
-            self.storage_file, synchronous=self.settings.storage_sync, on_quarantine=self._on_quarantine
+            self.storage_file,
+            synchronous=self.settings.storage_sync,
+            on_quarantine=self._on_quarantine,
+            on_salvage_start=self._on_salvage_start,
         )
         self._buffer = buffer
+        self._mention_unfinished_salvage(buffer)
         # Before the senders start: damage found now is salvaged before anything is read from it.
         self.check_buffer(repair=True)
         buffer.ensure_queues(list(self._routes))
@@ -256,6 +260,22 @@ class DeliveryPipeline:
 
     # -- storage ------------------------------------------------------------------------------------
 
+    def _on_salvage_start(self, moved_to: Path, reason: str) -> None:
+        self.logger.error(
+            f"delivery buffer is damaged ({reason}); moved aside to {moved_to}; salvaging its readable records "
+            "into a new buffer"
+        )
+
+    def _mention_unfinished_salvage(self, buffer: SqliteBuffer) -> None:
+        """Say once that a salvage was cut short: what it had not copied is in the set-aside file, uncounted."""
+        unfinished = buffer.unfinished_salvage(forget=True)
+        if unfinished is not None and all(q.moved_to != unfinished for q in buffer.quarantines):
+            self.logger.error(
+                f"the salvage of the damaged buffer {unfinished} did not finish (the server stopped during it, "
+                f"or it failed): records it had not copied are still there and were not counted; "
+                f"`dc buffer salvage {unfinished}` puts them back (with those already salvaged, again)"
+            )
+
     def _on_quarantine(self, quarantine: Quarantine) -> None:
         """Count what the salvage of a damaged file put back and lost, and say it in one line."""
         self._quarantined += 1
@@ -274,9 +294,9 @@ class DeliveryPipeline:
         numbers = report.summary() if report is not None else "nothing salvaged"
         failed = f"; salvage stopped: {quarantine.salvage_error}" if quarantine.salvage_error else ""
         self.logger.error(
-            f"delivery buffer was damaged ({quarantine.reason}); moved aside to {quarantine.moved_to} and replaced; "
-            f"salvaged into the new buffer: {numbers}{failed} (records already delivered may be delivered again, "
-            f"with the same record_id; `dc buffer salvage {quarantine.moved_to}` reads the file again)"
+            f"delivery buffer salvaged from {quarantine.moved_to} into the new buffer: {numbers}{failed} (records "
+            f"already delivered may be delivered again, with the same record_id; `dc buffer salvage "
+            f"{quarantine.moved_to}` reads the file again)"
         )
 
     def check_buffer(self, *, repair: bool = False) -> str:

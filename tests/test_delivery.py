@@ -817,7 +817,8 @@ def test_live_damage_shows_in_health_and_the_next_start_salvages_it(tmp_path: Pa
         assert len(delivered) >= 0.95 * total, f"{len(delivered)} of {total} delivered"
         buffer_state = pipeline.buffer_metrics()
         assert buffer_state["quarantined"] == 1 and buffer_state["buffer_damaged"] is False and pipeline.healthy()
-        said = [line for level, line in logger.lines if "moved aside" in line]
+        assert len([line for level, line in logger.lines if "moved aside" in line]) == 1
+        said = [line for level, line in logger.lines if "salvaged from" in line]
         assert len(said) == 1 and f"lost to the damage {lost} (sink {lost})" in said[0], said
     finally:
         pipeline.stop(grace=0.5)
@@ -868,6 +869,34 @@ def test_damage_met_during_delivery_is_salvaged_at_once(tmp_path: Path) -> None:
         assert len(delivered) >= 0.95 * total
     finally:
         pipeline.stop(grace=0.5)
+
+
+def test_a_salvage_cut_short_is_said_at_the_next_start(tmp_path: Path, monkeypatch: Any) -> None:
+    path = tmp_path / FILE_NAME
+    buffer = SqliteBuffer(path)
+    buffer.append({"sink": [PendingRecord(f"id-{i}", "/t", i, '{"pad":"' + "x" * 150 + '"}') for i in range(5000)]})
+    buffer.close()
+    damage_pages(path)
+
+    def disk_full(*args: Any, **kwargs: Any) -> int:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(SqliteBuffer, "_salvage_queue", disk_full)
+        seen: list[Any] = []
+        buffer = SqliteBuffer(path, on_quarantine=seen.append)
+        if not seen:
+            buffer.set_aside("integrity check")
+        buffer.close()
+    assert "No space left on device" in seen[0].salvage_error
+    logger = RecordingLogger()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (Recorder(), DestinationDeliveryParams())}, logger)
+    pipeline.start()
+    pipeline.stop(grace=0.1)
+    pipeline.start()  # said once
+    pipeline.stop(grace=0.1)
+    said = [line for level, line in logger.lines if level == "error" and "did not finish" in line]
+    assert len(said) == 1 and f"dc buffer salvage {seen[0].moved_to}" in said[0], said
 
 
 def test_an_unwritable_storage_path_falls_back_to_the_default(tmp_path: Path, monkeypatch: Any) -> None:
