@@ -514,9 +514,16 @@ class SqliteBuffer:
         qid = self._qid(conn, name)
         keep_ids = keep_ids and conn.execute(f"SELECT 1 FROM q_{qid} LIMIT 1").fetchone() is None
         has_crc = "payload_crc" in {column[1] for column in reader.conn.execute(f"PRAGMA table_info({table})")}
-        columns = _QUEUE_COLUMNS.removeprefix("id, ")
-        if not has_crc:
-            columns = columns.replace(", payload_crc", ", NULL")
+        crc = "payload_crc" if has_crc else "NULL"
+        # The size computed again from the payload, so that the queue's byte count stays exact; a
+        # damaged page can read as rows of the wrong types, which are no records any more (counted
+        # lost with the unreadable ones). Checked by SQLite rather than row by row in Python.
+        columns = f"record_id, topic, stamp_ns, enqueued_ns, attempts, length(CAST(payload AS BLOB)), payload, {crc}"
+        records_only = (
+            "typeof(record_id) = 'text' AND typeof(topic) = 'text' AND typeof(stamp_ns) = 'integer' "
+            "AND typeof(enqueued_ns) = 'integer' AND typeof(attempts) = 'integer' AND typeof(payload) = 'text' "
+            f"AND typeof({crc}) IN ('integer', 'null')"
+        )
         insert = (
             f"INSERT INTO q_{qid} ({'id, ' if keep_ids else ''}record_id, topic, stamp_ns, enqueued_ns, attempts, "
             f"size, payload, payload_crc) VALUES ({'?, ' if keep_ids else ''}?, ?, ?, ?, ?, ?, ?, ?)"
@@ -538,11 +545,8 @@ class SqliteBuffer:
             report.recovered[name] = report.recovered.get(name, 0) + len(chunk)
             chunk.clear()
 
-        for row in reader.rows(table, columns):
-            salvaged = _salvaged_queue_row(row)
-            if salvaged is None:
-                continue  # read, but not a record any more: counted lost with the unreadable ones
-            chunk.append(salvaged if keep_ids else salvaged[1:])
+        for row in reader.rows(table, columns, records_only):
+            chunk.append(row if keep_ids else row[1:])
             if len(chunk) >= 2000:
                 flush()
         flush()
@@ -1018,26 +1022,6 @@ def _ensure_queue_table(conn: sqlite3.Connection, qid: int) -> None:
         except sqlite3.OperationalError as exc:
             if "duplicate column" not in str(exc):  # another process added it meanwhile
                 raise
-
-
-def _salvaged_queue_row(row: tuple[object, ...]) -> tuple[object, ...] | None:
-    """A queue row read from a damaged file, ready to insert (id first), or None when it is no
-    longer a record (a damaged page can read as rows of the wrong types). Its size is computed
-    again from its payload, so that the queue's byte count stays exact."""
-    row_id, record_id, topic, stamp_ns, enqueued_ns, attempts, _size, payload, crc = row
-    if not (
-        isinstance(record_id, str)
-        and isinstance(topic, str)
-        and isinstance(payload, str)
-        and all(isinstance(v, int) for v in (row_id, stamp_ns, enqueued_ns, attempts))
-        and (crc is None or isinstance(crc, int))
-    ):
-        return None
-    try:
-        size = len(payload.encode("utf-8"))
-    except UnicodeEncodeError:
-        return None
-    return (row_id, record_id, topic, stamp_ns, enqueued_ns, attempts, size, payload, crc)
 
 
 def _is_dead_letter(row: tuple[object, ...]) -> bool:

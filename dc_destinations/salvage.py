@@ -89,9 +89,10 @@ class DamagedReader:
         self.conn = conn
         self.damaged_spots = 0
 
-    def rows(self, table: str, columns: str) -> Iterator[tuple[Any, ...]]:
-        """``(rowid, *columns)`` of every readable row of ``table``, in rowid order (a queue's ``id`` is its rowid)."""
-        query = f"SELECT rowid, {columns} FROM {table} WHERE rowid >= ? ORDER BY rowid"
+    def rows(self, table: str, columns: str, where: str = "1") -> Iterator[tuple[Any, ...]]:
+        """``(rowid, *columns)`` of every readable row of ``table`` that matches ``where``, in rowid order
+        (a queue's ``id`` is its rowid)."""
+        query = f"SELECT rowid, {columns} FROM {table} WHERE rowid >= ? AND ({where}) ORDER BY rowid"
         lower: int | None = _FIRST_ID
         while lower is not None:
             try:
