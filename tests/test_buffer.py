@@ -9,6 +9,7 @@ after them are SqliteBuffer's own (its file, WAL, corruption handling, `dc buffe
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import io
 import json
@@ -563,3 +564,20 @@ def test_dc_buffer_salvage_says_what_is_wrong(tmp_path: Path, capsys: pytest.Cap
     assert salvage(str(tmp_path / FILE_NAME), into=str(tmp_path)) == 1
     assert "is this buffer itself" in capsys.readouterr().err
     assert buffer_admin.queue_stats(tmp_path / FILE_NAME)[0].rows == 10
+
+
+def test_a_row_read_with_the_wrong_types_is_counted_not_queued(tmp_path: Path) -> None:
+    source = tmp_path / "old.sqlite3"
+    _backlog(source, 20)
+    with contextlib.closing(sqlite3.connect(source)) as conn:  # as a damaged page can read
+        conn.execute("UPDATE q_1 SET payload = x'00ff' WHERE id = 5")
+        conn.execute("UPDATE q_1 SET stamp_ns = x'01' WHERE id = 6")
+        conn.commit()
+    target = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        report = target.salvage(source)
+        assert (report.recovered["a"], report.lost["a"]) == (18, 2)
+        assert all(isinstance(r.payload, str) for r in target.read_batch("a", 100))
+        assert target.stats("a").bytes == sum(r.size for r in target.read_batch("a", 100))
+    finally:
+        target.close()
