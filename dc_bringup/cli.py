@@ -248,6 +248,8 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
         elif buffer.get("last_check_time") is not None:
             ago = time.time() - float(buffer["last_check_time"])
             print(f"buffer: last integrity check {ago:.0f} s ago: {buffer.get('last_check_result')}")
+        if buffer.get("salvaging"):
+            print(f"buffer: salvaging the damaged file {buffer['salvaging']} (its records join their queues)")
         if buffer.get("lost_to_damage_unknown"):
             print(f"buffer: {buffer['lost_to_damage_unknown']} records lost to damage, destination unreadable")
         if buffer.get("commit_error"):

@@ -32,10 +32,10 @@ import time
 import zlib
 from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import closing, contextmanager, suppress
+from contextlib import AbstractContextManager, closing, contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from dc_core.errors import DcError
 from dc_destinations.salvage import UNKNOWN, DamagedReader, SalvageReport, open_damaged
@@ -315,6 +315,7 @@ class SqliteBuffer:
         synchronous: str = "normal",
         on_quarantine: Callable[[Quarantine], None] | None = None,
         on_salvage_start: Callable[[Path, str], None] | None = None,
+        defer_salvage: bool = False,
         repair: bool = True,
     ) -> None:
         """Open (creating it if needed) the database at ``path``.
@@ -339,7 +340,7 @@ class SqliteBuffer:
                 raise
             if not repair:
                 raise BufferCorrupted(f"buffer {self.path} is corrupt ({exc})") from exc
-            self._set_aside(str(exc))
+            self._set_aside(str(exc), defer=defer_salvage)
 
     # -- connection ---------------------------------------------------------------------------
 
@@ -363,31 +364,32 @@ class SqliteBuffer:
         self._qids = qids
         return conn
 
-    def _set_aside(self, reason: str) -> Quarantine:
+    def _set_aside(self, reason: str, *, defer: bool = False) -> Quarantine | None:
         """Move the damaged file aside, open a new one and salvage the old one into it.
 
-        Called without a connection. A salvage that fails (disk full) leaves what it did and the
-        set-aside file; the new buffer is open either way: collection never waits for a salvage.
+        Called without a connection. With ``defer`` only the hop keys are copied now and the
+        records wait for :meth:`salvage_pending` (the server runs it beside delivery: a salvage
+        takes ~0.75 s per 100,000 records, too long for a lifecycle transition); without it (an
+        operation met the damage) everything is copied now, rows keeping their ids, so that a
+        batch a sender read from the old file is still deleted once delivered. A salvage that
+        fails or stops leaves its progress in the new buffer (meta ``salvaging``), where the next
+        :meth:`salvage_pending` goes on with it; the new buffer is open either way.
         """
         moved_to = self._move_aside()
         self._conn = conn = self._connect()
-        # Kept until the salvage is done: a process stopped or killed meanwhile leaves records in
-        # the set-aside file that nothing counted, and its next start must say so.
-        conn.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (_SALVAGING, str(moved_to)))
+        progress: dict[str, Any] = {"file": str(moved_to), "reason": reason, "done": {}, "found": {}, "dead": 0}
+        conn.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (_SALVAGING, json.dumps(progress)))
         if self._on_salvage_start is not None:
             self._on_salvage_start(moved_to, reason)
-        report = SalvageReport(moved_to)
-        error = ""
-        try:
-            self._salvage_into(conn, report, keep_ids=True)
-            conn.execute("DELETE FROM meta WHERE key = ?", (_SALVAGING,))
-        except Exception as exc:
-            error = f"{type(exc).__name__}: {exc}"
-        quarantine = Quarantine(moved_to=moved_to, reason=reason, salvage=report, salvage_error=error)
-        self.quarantines.append(quarantine)
-        if self._on_quarantine is not None:
-            self._on_quarantine(quarantine)
-        return quarantine
+
+        def writing() -> AbstractContextManager[sqlite3.Connection]:
+            return _plain_transaction(conn)
+
+        with suppress(Exception):  # the hop keys are a help against duplicates, never a condition
+            self._salvage_hop_keys(progress, writing)
+        if defer:
+            return None
+        return self._finish_salvage(progress, keep_ids=True, writing=writing)
 
     def _move_aside(self) -> Path:
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
@@ -402,24 +404,71 @@ class SqliteBuffer:
                 os.replace(source, Path(f"{target}{suffix}"))
         return target
 
-    def unfinished_salvage(self, *, forget: bool = False) -> Path | None:
-        """The set-aside file whose salvage into this buffer did not finish (the process stopped
-        during it, or it failed), if any; with ``forget``, no longer remembered."""
+    def pending_salvage(self) -> Path | None:
+        """The set-aside file whose salvage into this buffer is not done (deferred, stopped or failed)."""
+        progress = self._salvage_progress()
+        return Path(progress["file"]) if progress is not None else None
+
+    def _salvage_progress(self) -> dict[str, Any] | None:
         with self._locked() as conn:
             row = conn.execute("SELECT value FROM meta WHERE key = ?", (_SALVAGING,)).fetchone()
-            if row is not None and forget:
-                conn.execute("DELETE FROM meta WHERE key = ?", (_SALVAGING,))
-        return Path(row[0]) if row is not None else None
+        if row is None:
+            return None
+        try:
+            progress = json.loads(row[0])
+            if not isinstance(progress, dict) or not isinstance(progress.get("file"), str):
+                raise ValueError(row[0])
+        except ValueError:
+            return {"file": str(row[0]), "reason": "", "done": {}, "found": {}, "dead": 0}
+        return progress
 
-    def set_aside(self, reason: str) -> Quarantine:
-        """Set the file aside and salvage it now (the integrity check found damage)."""
+    def salvage_pending(self, stop: Callable[[], bool] | None = None) -> Quarantine | None:
+        """Go on with the salvage :meth:`pending_salvage` names, beside delivery; None when there is none.
+
+        Copies in transactions of a few thousand rows, each taking the buffer's lock only for its
+        write. ``stop`` is asked between them: a salvage stopped (the server stopping) raises
+        :class:`SalvageStopped` and goes on from there the next time. The new rows go to the end of
+        their queues (delivery may have added records meanwhile).
+        """
+        progress = self._salvage_progress()
+        if progress is None:
+            return None
+        return self._finish_salvage(progress, keep_ids=False, writing=self._transaction, stop=stop)
+
+    def _finish_salvage(
+        self,
+        progress: dict[str, Any],
+        *,
+        keep_ids: bool,
+        writing: Callable[[], AbstractContextManager[sqlite3.Connection]],
+        stop: Callable[[], bool] | None = None,
+    ) -> Quarantine:
+        moved_to = Path(progress["file"])
+        report = SalvageReport(moved_to)
+        error = ""
+        try:
+            self._salvage_into(report, progress, keep_ids=keep_ids, writing=writing, stop=stop)
+            with writing() as conn:
+                conn.execute("DELETE FROM meta WHERE key = ?", (_SALVAGING,))
+        except (SalvageStopped, BufferClosed):
+            raise
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+        quarantine = Quarantine(moved_to=moved_to, reason=progress["reason"], salvage=report, salvage_error=error)
+        self.quarantines.append(quarantine)
+        if self._on_quarantine is not None:
+            self._on_quarantine(quarantine)
+        return quarantine
+
+    def set_aside(self, reason: str, *, defer: bool = False) -> Quarantine | None:
+        """Set the file aside and salvage it (the integrity check found damage); see :meth:`_set_aside`."""
         with self._lock:
             if self._conn is None:
                 raise BufferClosed(f"buffer {self.path} is closed")
             with suppress(sqlite3.Error):
                 self._conn.close()
             self._conn = None
-            return self._set_aside(reason)
+            return self._set_aside(reason, defer=defer)
 
     def quick_check(self) -> str:
         """``PRAGMA quick_check`` of the file on a connection of its own: "ok", or what is damaged.
@@ -448,16 +497,35 @@ class SqliteBuffer:
         if Path(source).resolve() == self.path.resolve():
             raise DeliveryBufferError(f"{source} is this buffer itself")
         report = SalvageReport(Path(source))
-        with self._locked() as conn:
-            self._salvage_into(conn, report, keep_ids=False)
+        progress: dict[str, Any] = {"file": str(source), "reason": "", "done": {}, "found": {}, "dead": 0}
+        self._salvage_into(report, progress, keep_ids=False, writing=self._transaction, track=False)
         return report
 
-    def _salvage_into(self, conn: sqlite3.Connection, report: SalvageReport, *, keep_ids: bool) -> None:
-        """Copy what ``report.source`` still holds, in transactions of a few thousand rows.
+    def _salvage_hop_keys(
+        self, progress: dict[str, Any], writing: Callable[[], AbstractContextManager[sqlite3.Connection]]
+    ) -> None:
+        """The hop keys of the old file, in their order, before delivery starts: the records a
+        publisher replays from its history are then recognised."""
+        with closing(open_damaged(Path(progress["file"]))) as source:
+            reader = DamagedReader(source)
+            if "hop_seen" not in reader.tables():
+                return
+            keys = [row[1:] for row in reader.rows("hop_seen", "topic, source_ns, seq") if _is_hop_key(row[1:])]
+        with writing() as conn:
+            conn.executemany("INSERT INTO hop_seen (topic, source_ns, seq) VALUES (?, ?, ?)", keys)
 
-        ``keep_ids`` (a new buffer): rows keep their ids, so a batch a sender had read from the
-        old file before it was set aside is still deleted once delivered, and hop keys are kept.
-        """
+    def _salvage_into(
+        self,
+        report: SalvageReport,
+        progress: dict[str, Any],
+        *,
+        keep_ids: bool,
+        writing: Callable[[], AbstractContextManager[sqlite3.Connection]],
+        stop: Callable[[], bool] | None = None,
+        track: bool = True,
+    ) -> None:
+        """Copy what ``report.source`` still holds after ``progress``, in transactions of a few
+        thousand rows; with ``track``, each one records in meta how far it got."""
         with closing(open_damaged(report.source)) as source:
             reader = DamagedReader(source)
             tables = reader.tables()
@@ -473,7 +541,7 @@ class SqliteBuffer:
                         totals[name] = tuple(int(c) if isinstance(c, int) else 0 for c in counts)  # type: ignore[assignment]
             # Without a whole queues table, what was in the queues it lost cannot be counted.
             report.lost_unknown_count = "queues" not in tables or reader.damaged_spots > 0
-            found: dict[str, int] = {}
+            copy = _Copy(progress, writing, stop, track)
             for table in sorted(t for t in tables if re.fullmatch(r"q_\d+", t)):
                 name = names.get(int(table[2:]))
                 if name is None:
@@ -481,38 +549,34 @@ class SqliteBuffer:
                     if unplaced:
                         report.lost[UNKNOWN] = report.lost.get(UNKNOWN, 0) + unplaced
                     continue
-                found[name] = self._salvage_queue(conn, reader, table, name, report, keep_ids)
+                self._salvage_queue(reader, table, name, copy, keep_ids)
+            found: dict[str, int] = progress["found"]
+            report.recovered = {name: n for name, n in found.items() if n}
             for name, rows in expected.items():
                 lost = rows - found.get(name, 0)
                 if lost > 0:
                     report.lost[name] = report.lost.get(name, 0) + lost
-            for name, (received, sent, dropped, dead_lettered) in totals.items():
-                # The lifetime totals carry over, so that `dc buffer stats` keeps the history.
-                conn.execute(
-                    "UPDATE queues SET received = received + ?, sent = sent + ?, dropped = dropped + ?, "
-                    "dead_lettered = dead_lettered + ? WHERE qid = ?",
-                    (received, sent, dropped, dead_lettered, self._qid(conn, name)),
-                )
+            if not progress["done"].get("totals"):
+                with writing() as conn:
+                    for name, (received, sent, dropped, dead_lettered) in totals.items():
+                        # The lifetime totals carry over, so that `dc buffer stats` keeps the history.
+                        conn.execute(
+                            "UPDATE queues SET received = received + ?, sent = sent + ?, dropped = dropped + ?, "
+                            "dead_lettered = dead_lettered + ? WHERE qid = ?",
+                            (received, sent, dropped, dead_lettered, self._qid(conn, name)),
+                        )
+                    progress["done"]["totals"] = 1
+                    copy.record(conn)
             if "dead_letters" in tables:
-                self._salvage_dead_letters(conn, reader, report, keep_ids)
-            if keep_ids and "hop_seen" in tables:
-                keys = [row[1:] for row in reader.rows("hop_seen", "topic, source_ns, seq") if _is_hop_key(row[1:])]
-                with _plain_transaction(conn):
-                    conn.executemany("INSERT INTO hop_seen (topic, source_ns, seq) VALUES (?, ?, ?)", keys)
+                self._salvage_dead_letters(reader, report, copy, keep_ids)
+            report.dead_letters_recovered = int(progress["dead"])
             report.damaged_spots = reader.damaged_spots
 
-    def _salvage_queue(
-        self,
-        conn: sqlite3.Connection,
-        reader: DamagedReader,
-        table: str,
-        name: str,
-        report: SalvageReport,
-        keep_ids: bool,
-    ) -> int:
-        """Copy a queue's readable rows to ``name``'s queue; returns how many."""
-        qid = self._qid(conn, name)
-        keep_ids = keep_ids and conn.execute(f"SELECT 1 FROM q_{qid} LIMIT 1").fetchone() is None
+    def _salvage_queue(self, reader: DamagedReader, table: str, name: str, copy: _Copy, keep_ids: bool) -> None:
+        """Copy a queue's readable rows to ``name``'s queue, counted in ``copy.progress["found"]``."""
+        with copy.writing() as conn:
+            qid = self._qid(conn, name)
+            keep_ids = keep_ids and conn.execute(f"SELECT 1 FROM q_{qid} LIMIT 1").fetchone() is None
         has_crc = "payload_crc" in {column[1] for column in reader.conn.execute(f"PRAGMA table_info({table})")}
         crc = "payload_crc" if has_crc else "NULL"
         # The size computed again from the payload, so that the queue's byte count stays exact; a
@@ -528,51 +592,55 @@ class SqliteBuffer:
             f"INSERT INTO q_{qid} ({'id, ' if keep_ids else ''}record_id, topic, stamp_ns, enqueued_ns, attempts, "
             f"size, payload, payload_crc) VALUES ({'?, ' if keep_ids else ''}?, ?, ?, ?, ?, ?, ?, ?)"
         )
-        recovered = 0
-        chunk: list[tuple[object, ...]] = []
+        found = copy.progress["found"]
+        chunk: list[tuple[Any, ...]] = []
 
         def flush() -> None:
-            nonlocal recovered
             if not chunk:
                 return
-            with _plain_transaction(conn):
-                conn.executemany(insert, chunk)
+            with copy.writing() as conn:
+                conn.executemany(insert, [row if keep_ids else row[1:] for row in chunk])
                 conn.execute(
                     "UPDATE queues SET rows = rows + ?, bytes = bytes + ? WHERE qid = ?",
-                    (len(chunk), sum(int(row[-3]) for row in chunk), qid),  # type: ignore[call-overload]
+                    (len(chunk), sum(int(row[-3]) for row in chunk), qid),
                 )
-            recovered += len(chunk)
-            report.recovered[name] = report.recovered.get(name, 0) + len(chunk)
+                found[name] = found.get(name, 0) + len(chunk)
+                copy.progress["done"][table] = int(chunk[-1][0])
+                copy.record(conn)
             chunk.clear()
+            copy.check_stop()
 
-        for row in reader.rows(table, columns, records_only):
-            chunk.append(row if keep_ids else row[1:])
+        after = int(copy.progress["done"].get(table, _NO_ROWID))
+        for row in reader.rows(table, columns, records_only, after=after):
+            chunk.append(row)
             if len(chunk) >= 2000:
                 flush()
         flush()
-        return recovered
 
-    def _salvage_dead_letters(
-        self, conn: sqlite3.Connection, reader: DamagedReader, report: SalvageReport, keep_ids: bool
-    ) -> None:
-        keep_ids = keep_ids and conn.execute("SELECT 1 FROM dead_letters LIMIT 1").fetchone() is None
+    def _salvage_dead_letters(self, reader: DamagedReader, report: SalvageReport, copy: _Copy, keep_ids: bool) -> None:
+        with copy.writing() as conn:
+            keep_ids = keep_ids and conn.execute("SELECT 1 FROM dead_letters LIMIT 1").fetchone() is None
         spots = reader.damaged_spots
         columns = _DEAD_COLUMNS.removeprefix("id, ")
         insert = (
             f"INSERT INTO dead_letters ({'id, ' if keep_ids else ''}{columns}) "
             f"VALUES ({'?, ' if keep_ids else ''}?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
         )
-        chunk: list[tuple[object, ...]] = []
+        chunk: list[tuple[Any, ...]] = []
 
         def flush() -> None:
-            with _plain_transaction(conn):
+            with copy.writing() as conn:
                 for row in chunk:
                     self._qid(conn, str(row[1]))
                     conn.execute(insert, row if keep_ids else row[1:])
-            report.dead_letters_recovered += len(chunk)
+                copy.progress["dead"] += len(chunk)
+                copy.progress["done"]["dead_letters"] = int(chunk[-1][0])
+                copy.record(conn)
             chunk.clear()
+            copy.check_stop()
 
-        for row in reader.rows("dead_letters", columns):
+        after = int(copy.progress["done"].get("dead_letters", _NO_ROWID))
+        for row in reader.rows("dead_letters", columns, after=after):
             if not _is_dead_letter(row):
                 report.dead_letters_damaged = True  # read, but no longer a dead letter
                 continue
@@ -961,14 +1029,45 @@ class SqliteBuffer:
 
 
 @contextmanager
-def _plain_transaction(conn: sqlite3.Connection) -> Iterator[None]:
+def _plain_transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
     conn.execute("BEGIN IMMEDIATE")
     try:
-        yield
+        yield conn
     except BaseException:
         conn.execute("ROLLBACK")
         raise
     conn.execute("COMMIT")
+
+
+_NO_ROWID = -(2**63) - 1  # progress of a table not begun: every rowid is above it
+
+
+class SalvageStopped(DeliveryBufferError):
+    """A salvage asked to stop (the server stopping); the next one goes on from where it was."""
+
+
+class _Copy:
+    """How a salvage writes: its transactions, its progress (kept in meta with each one), when to stop."""
+
+    def __init__(
+        self,
+        progress: dict[str, Any],
+        writing: Callable[[], AbstractContextManager[sqlite3.Connection]],
+        stop: Callable[[], bool] | None,
+        track: bool,
+    ) -> None:
+        self.progress = progress
+        self.writing = writing
+        self._stop = stop
+        self._track = track
+
+    def record(self, conn: sqlite3.Connection) -> None:
+        if self._track:
+            conn.execute("UPDATE meta SET value = ? WHERE key = ?", (json.dumps(self.progress), _SALVAGING))
+
+    def check_stop(self) -> None:
+        if self._stop is not None and self._stop():
+            raise SalvageStopped("stopped before it was done")
 
 
 def _migrate(conn: sqlite3.Connection) -> None:

@@ -89,11 +89,15 @@ class DamagedReader:
         self.conn = conn
         self.damaged_spots = 0
 
-    def rows(self, table: str, columns: str, where: str = "1") -> Iterator[tuple[Any, ...]]:
-        """``(rowid, *columns)`` of every readable row of ``table`` that matches ``where``, in rowid order
-        (a queue's ``id`` is its rowid)."""
+    def rows(
+        self, table: str, columns: str, where: str = "1", *, after: int | None = None
+    ) -> Iterator[tuple[Any, ...]]:
+        """``(rowid, *columns)`` of every readable row of ``table`` that matches ``where`` (and whose
+        rowid is above ``after``), in rowid order (a queue's ``id`` is its rowid)."""
         query = f"SELECT rowid, {columns} FROM {table} WHERE rowid >= ? AND ({where}) ORDER BY rowid"
-        lower: int | None = _FIRST_ID
+        lower: int | None = _FIRST_ID if after is None or after < _FIRST_ID else after + 1
+        if lower is not None and lower > _LAST_ID:
+            return
         while lower is not None:
             try:
                 for row in self.conn.execute(query, (lower,)):
