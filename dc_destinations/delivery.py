@@ -148,7 +148,8 @@ class DeliveryPipeline:
             defer_salvage=True,
         )
         self._buffer = buffer
-        # Before the senders start: damage found now is salvaged before anything is read from it.
+        # Before the senders start: a file found damaged now is set aside before anything reads it
+        # (and salvaged beside delivery, below).
         self.check_buffer(repair=True)
         buffer.ensure_queues(list(self._routes))
         self._closing.reset()
@@ -336,7 +337,8 @@ class DeliveryPipeline:
 
         Runs on the caller's thread on a connection of its own (the server calls it from its worker
         about hourly: ``buffer_check_interval``). Damage is logged once when found; with ``repair``
-        (at start, before anything is read from the file) the file is set aside and salvaged at once.
+        (at start, before anything is read from the file) the file is set aside at once, to be
+        salvaged beside delivery.
         While running, a damaged file is set aside when an operation meets the damage or at the next
         start; until then the health endpoint answers 503 and ``buffer_damaged`` is true.
         """
