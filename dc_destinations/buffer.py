@@ -331,6 +331,12 @@ class SqliteBuffer:
         self._lock = threading.RLock()
         self._qids: dict[str, int] = {}
         self._seen_since_prune: Counter[str] = Counter()
+        # Per destination: the largest row id read_batch handed out, and after a set-aside, the id
+        # new rows must stay above. A sender may hold rows read from the old file; once it deletes
+        # them (delivered) or dead-letters them, those ids must name the same records or none: a
+        # record lost to the damage must never lend its id to a new one.
+        self._max_read: dict[str, int] = {}
+        self._id_floor: dict[str, int] = {}
         self.quarantines: list[Quarantine] = []
         self._conn: sqlite3.Connection | None = None
         try:
@@ -377,6 +383,7 @@ class SqliteBuffer:
         """
         moved_to = self._move_aside()
         self._conn = conn = self._connect()
+        self._id_floor.update(self._max_read)
         progress: dict[str, Any] = {"file": str(moved_to), "reason": reason, "done": {}, "found": {}, "dead": 0}
         conn.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (_SALVAGING, json.dumps(progress)))
         if self._on_salvage_start is not None:
@@ -751,11 +758,15 @@ class SqliteBuffer:
                 dropped_newest = dropped_oldest = 0
                 if limit.max_bytes is not None:
                     rows, dropped_newest, dropped_oldest = self._apply_limit(conn, qid, rows, limit)
-                conn.executemany(
+                insert = (
                     f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload, payload_crc) "
-                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    rows,
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)"
                 )
+                if rows and destination in self._id_floor:
+                    self._first_above_floor(conn, destination, qid, insert, rows[0])
+                    conn.executemany(insert, rows[1:])
+                else:
+                    conn.executemany(insert, rows)
                 added_bytes = sum(row[4] for row in rows)
                 conn.execute(
                     "UPDATE queues SET rows = rows + ?, bytes = bytes + ?, received = received + ?, "
@@ -768,6 +779,20 @@ class SqliteBuffer:
                 if dropped_oldest:
                     result.dropped_oldest[destination] = dropped_oldest
         return result
+
+    def _first_above_floor(
+        self, conn: sqlite3.Connection, destination: str, qid: int, insert: str, values: tuple[object, ...]
+    ) -> None:
+        """Insert one row with an id above the destination's floor (see ``_id_floor``): the rows
+        after it follow it. Once the queue's ids are above the floor it is forgotten."""
+        floor = self._id_floor[destination]
+        top = int(conn.execute(f"SELECT coalesce(max(id), 0) FROM q_{qid}").fetchone()[0])
+        if top >= floor:
+            del self._id_floor[destination]
+            conn.execute(insert, values)
+            return
+        with_id = insert.replace(" (record_id,", " (id, record_id,", 1).replace("VALUES (", "VALUES (?, ", 1)
+        conn.execute(with_id, (floor + 1, *values))
 
     def _remember_seen(
         self, conn: sqlite3.Connection, keys: Sequence[tuple[str, int, int]], window: int | None
@@ -858,6 +883,8 @@ class SqliteBuffer:
             rows = conn.execute(
                 f"SELECT {_QUEUE_COLUMNS} FROM q_{qid} WHERE id > ? ORDER BY id LIMIT ?", (after_id, limit)
             ).fetchall()
+        if rows and rows[-1][0] > self._max_read.get(destination, 0):
+            self._max_read[destination] = rows[-1][0]
         return list(map(BufferedRow._make, rows))
 
     def delete(self, destination: str, row_ids: Sequence[int]) -> int:
@@ -1012,11 +1039,15 @@ class SqliteBuffer:
             for row in rows:
                 letter = DeadLetter(*row)
                 qid = self._qid(conn, letter.destination)
-                conn.execute(
+                insert = (
                     f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload) "
-                    "VALUES (?, ?, ?, ?, ?, ?)",
-                    (letter.record_id, letter.topic, letter.stamp_ns, enqueued, letter.size, letter.payload),
+                    "VALUES (?, ?, ?, ?, ?, ?)"
                 )
+                values = (letter.record_id, letter.topic, letter.stamp_ns, enqueued, letter.size, letter.payload)
+                if letter.destination in self._id_floor:
+                    self._first_above_floor(conn, letter.destination, qid, insert, values)
+                else:
+                    conn.execute(insert, values)
                 conn.execute("UPDATE queues SET rows = rows + 1, bytes = bytes + ? WHERE qid = ?", (letter.size, qid))
                 conn.execute("DELETE FROM dead_letters WHERE id = ?", (letter.id,))
                 moved += 1

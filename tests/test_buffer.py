@@ -581,3 +581,26 @@ def test_a_row_read_with_the_wrong_types_is_counted_not_queued(tmp_path: Path) -
         assert target.stats("a").bytes == sum(r.size for r in target.read_batch("a", 100))
     finally:
         target.close()
+
+
+def test_a_record_lost_to_the_damage_never_lends_its_id_to_a_new_one(tmp_path: Path) -> None:
+    """A sender holds rows read before the file was set aside; the damage took them. Deleting them
+    once delivered must not delete the new records written since (the old ids are not reused)."""
+    path = tmp_path / FILE_NAME
+    buffer = SqliteBuffer(path)
+    try:
+        buffer.append({"a": [pending(i) for i in range(10)]})
+        in_flight = buffer.read_batch("a", 10)
+        with contextlib.closing(sqlite3.connect(path)) as other:
+            other.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+        with path.open("r+b") as handle:  # nothing of the file can be read any more
+            handle.write(b"\xff" * path.stat().st_size)
+        quarantine = buffer.set_aside("damaged under a sender")
+        assert quarantine is not None and quarantine.salvage is not None and quarantine.salvage.recovered == {}
+        buffer.append({"a": [pending(100), pending(101)]})
+        assert buffer.delete("a", [row.row_id for row in in_flight]) == 0
+        assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000100", "id-00000101"]
+        buffer.append({"a": [pending(102)]})
+        assert buffer.stats("a").rows == 3
+    finally:
+        buffer.close()
