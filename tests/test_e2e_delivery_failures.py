@@ -334,6 +334,7 @@ def test_damaged_pages_of_a_waiting_backlog_cost_only_their_records(tmp_path: Pa
     )
 
 
+@pytest.mark.usefixtures("bringup_mode")  # the check runs on the server's worker, in either mode
 def test_damage_of_the_file_in_use_shows_in_health_and_dc_status(tmp_path: Path) -> None:
     """The periodic integrity check (here every 0.5 s) finds pages damaged under the running server."""
     total = 3000
