@@ -151,6 +151,8 @@ STATUS_COLUMNS = [
     ("dead_lettered", "dead-lettered"),
     ("dead_letters", "dead now"),
     ("dead_letters_dropped", "dead dropped"),
+    ("salvaged", "salvaged"),  # read back from a damaged buffer file
+    ("lost_to_damage", "lost dmg"),
     ("oldest_pending_age_s", "oldest s"),
     ("last_delivery_age_s", "sent s ago"),  # from last_delivery, see _with_ages
 ]
@@ -241,6 +243,15 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
             f"buffer: {buffer.get('path')} (storage_sync {buffer.get('storage_sync')}), "
             f"awaiting commit {buffer.get('intake_pending')}, corrupt files set aside {buffer.get('quarantined')}"
         )
+        if buffer.get("buffer_damaged"):
+            print(f"buffer: DAMAGED (integrity check: {buffer.get('last_check_result')}); restart to salvage it")
+        elif buffer.get("last_check_time") is not None:
+            ago = time.time() - float(buffer["last_check_time"])
+            print(f"buffer: last integrity check {ago:.0f} s ago: {buffer.get('last_check_result')}")
+        if buffer.get("salvaging"):
+            print(f"buffer: salvaging the damaged file {buffer['salvaging']} (its records join their queues)")
+        if buffer.get("lost_to_damage_unknown"):
+            print(f"buffer: {buffer['lost_to_damage_unknown']} records lost to damage, destination unreadable")
         if buffer.get("commit_error"):
             print(
                 f"buffer: COMMITS FAILING for {_cell(buffer.get('commit_failing_s'))} s, records wait in memory: "
@@ -433,10 +444,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.set_defaults(func=cmd_status)
 
-    p = sub.add_parser("buffer", help="inspect the durable buffer: dead letters, replay, purge")
-    p.add_argument("action", choices=["list", "show", "replay", "purge", "stats"])
-    p.add_argument("ids", nargs="*", help="dead-letter ids (show, replay)")
+    p = sub.add_parser("buffer", help="inspect the durable buffer: dead letters, replay, purge, salvage a damaged file")
+    p.add_argument("action", choices=["list", "show", "replay", "purge", "stats", "salvage"])
+    p.add_argument("ids", nargs="*", help="dead-letter ids (show, replay); the set-aside damaged file (salvage)")
     p.add_argument("--storage-path", default="", help="buffer folder (flb.storage_path)")
+    p.add_argument("--into", default="", help="salvage: buffer folder to put the records in (else as --storage-path)")
     p.add_argument("--params", default="", help="read the storage path from this parameter file")
     p.add_argument(
         "--namespace",

@@ -14,32 +14,38 @@ arrived over DDS, written in the same transaction as the records: a record repla
 publisher's history after a restart is recognised as already buffered (dc_destinations.hop).
 
 A database that SQLite reports as corrupt or not a database is moved aside (renamed with a
-``.corrupt-<UTC time>`` suffix) and replaced by an empty one, at start-up or whenever an operation
-meets the corruption: collection goes on and the file is kept for inspection.
+``.corrupt-<UTC time>`` suffix) and replaced by a new one, at start-up or whenever an operation
+meets the corruption, and every row still readable in the old file (queued records with their
+``record_id``, dead letters, hop keys) is put back into the new one (dc_destinations.salvage):
+collection goes on, a record already delivered may be delivered again (at-least-once), what could
+not be read is counted, and the old file is kept for inspection and ``dc buffer salvage``.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import sqlite3
 import threading
 import time
 import zlib
 from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager, suppress
+from contextlib import AbstractContextManager, closing, contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from dc_core.errors import DcError
 from dc_core.private_files import make_folders, private_database
+from dc_destinations.salvage import UNKNOWN, DamagedReader, SalvageReport, open_damaged
 
 FILE_NAME = "delivery.sqlite3"
 SCHEMA_VERSION = 3  # 2: queues.dead_bytes; 3: q_<n>.payload_crc
 
 _SQLITE_CORRUPT = 11
+_SALVAGING = "salvaging"  # meta key: the set-aside file being salvaged into this buffer
 _SQLITE_NOTADB = 26
 
 _SCHEMA = """
@@ -208,10 +214,16 @@ class QueueStats:
 
 @dataclass(frozen=True)
 class Quarantine:
-    """A database file set aside because SQLite found it corrupt."""
+    """A database file set aside because SQLite found it corrupt.
+
+    ``salvage``: what of it was put back into the new buffer and what was lost (partial when the
+    salvage failed, with ``salvage_error`` saying why).
+    """
 
     moved_to: Path
     reason: str
+    salvage: SalvageReport | None = None
+    salvage_error: str = ""
 
 
 def is_corruption(exc: BaseException) -> bool:
@@ -303,6 +315,8 @@ class SqliteBuffer:
         *,
         synchronous: str = "normal",
         on_quarantine: Callable[[Quarantine], None] | None = None,
+        on_salvage_start: Callable[[Path, str], None] | None = None,
+        defer_salvage: bool = False,
         repair: bool = True,
     ) -> None:
         """Open (creating it if needed) the database at ``path``.
@@ -314,9 +328,16 @@ class SqliteBuffer:
         self.repair = repair
         self.synchronous = synchronous.upper()
         self._on_quarantine = on_quarantine
+        self._on_salvage_start = on_salvage_start
         self._lock = threading.RLock()
         self._qids: dict[str, int] = {}
         self._seen_since_prune: Counter[str] = Counter()
+        # Per destination: the largest row id read_batch handed out, and after a set-aside, the id
+        # new rows must stay above. A sender may hold rows read from the old file; once it deletes
+        # them (delivered) or dead-letters them, those ids must name the same records or none: a
+        # record lost to the damage must never lend its id to a new one.
+        self._max_read: dict[str, int] = {}
+        self._id_floor: dict[str, int] = {}
         self.quarantines: list[Quarantine] = []
         self._conn: sqlite3.Connection | None = None
         try:
@@ -326,8 +347,7 @@ class SqliteBuffer:
                 raise
             if not repair:
                 raise BufferCorrupted(f"buffer {self.path} is corrupt ({exc})") from exc
-            self._quarantine(str(exc))
-            self._conn = self._connect()
+            self._set_aside(str(exc), defer=defer_salvage)
 
     # -- connection ---------------------------------------------------------------------------
 
@@ -352,7 +372,35 @@ class SqliteBuffer:
         self._qids = qids
         return conn
 
-    def _quarantine(self, reason: str) -> Quarantine:
+    def _set_aside(self, reason: str, *, defer: bool = False) -> Quarantine | None:
+        """Move the damaged file aside, open a new one and salvage the old one into it.
+
+        Called without a connection. With ``defer`` only the hop keys are copied now and the
+        records wait for :meth:`salvage_pending` (the server runs it beside delivery: a salvage
+        takes ~0.75 s per 100,000 records, too long for a lifecycle transition); without it (an
+        operation met the damage) everything is copied now, rows keeping their ids, so that a
+        batch a sender read from the old file is still deleted once delivered. A salvage that
+        fails or stops leaves its progress in the new buffer (meta ``salvaging``), where the next
+        :meth:`salvage_pending` goes on with it; the new buffer is open either way.
+        """
+        moved_to = self._move_aside()
+        self._conn = conn = self._connect()
+        self._id_floor.update(self._max_read)
+        progress: dict[str, Any] = {"file": str(moved_to), "reason": reason, "done": {}, "found": {}, "dead": 0}
+        conn.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (_SALVAGING, json.dumps(progress)))
+        if self._on_salvage_start is not None:
+            self._on_salvage_start(moved_to, reason)
+
+        def writing() -> AbstractContextManager[sqlite3.Connection]:
+            return _plain_transaction(conn)
+
+        with suppress(Exception):  # the hop keys are a help against duplicates, never a condition
+            self._salvage_hop_keys(progress, writing)
+        if defer:
+            return None
+        return self._finish_salvage(progress, keep_ids=True, writing=writing)
+
+    def _move_aside(self) -> Path:
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         target = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
         n = 1
@@ -363,11 +411,255 @@ class SqliteBuffer:
             source = Path(f"{self.path}{suffix}")
             if source.exists():
                 os.replace(source, Path(f"{target}{suffix}"))
-        quarantine = Quarantine(moved_to=target, reason=reason)
+        return target
+
+    def pending_salvage(self) -> Path | None:
+        """The set-aside file whose salvage into this buffer is not done (deferred, stopped or failed)."""
+        progress = self._salvage_progress()
+        return Path(progress["file"]) if progress is not None else None
+
+    def _salvage_progress(self) -> dict[str, Any] | None:
+        with self._locked() as conn:
+            row = conn.execute("SELECT value FROM meta WHERE key = ?", (_SALVAGING,)).fetchone()
+        if row is None:
+            return None
+        try:
+            progress = json.loads(row[0])
+            if not isinstance(progress, dict) or not isinstance(progress.get("file"), str):
+                raise ValueError(row[0])
+        except ValueError:
+            return {"file": str(row[0]), "reason": "", "done": {}, "found": {}, "dead": 0}
+        return progress
+
+    def salvage_pending(self, stop: Callable[[], bool] | None = None) -> Quarantine | None:
+        """Go on with the salvage :meth:`pending_salvage` names, beside delivery; None when there is none.
+
+        Copies in transactions of a few thousand rows, each taking the buffer's lock only for its
+        write. ``stop`` is asked between them: a salvage stopped (the server stopping) raises
+        :class:`SalvageStopped` and goes on from there the next time. The new rows go to the end of
+        their queues (delivery may have added records meanwhile).
+        """
+        progress = self._salvage_progress()
+        if progress is None:
+            return None
+        return self._finish_salvage(progress, keep_ids=False, writing=self._transaction, stop=stop)
+
+    def _finish_salvage(
+        self,
+        progress: dict[str, Any],
+        *,
+        keep_ids: bool,
+        writing: Callable[[], AbstractContextManager[sqlite3.Connection]],
+        stop: Callable[[], bool] | None = None,
+    ) -> Quarantine:
+        moved_to = Path(progress["file"])
+        report = SalvageReport(moved_to)
+        error = ""
+        try:
+            self._salvage_into(report, progress, keep_ids=keep_ids, writing=writing, stop=stop)
+            with writing() as conn:
+                conn.execute("DELETE FROM meta WHERE key = ?", (_SALVAGING,))
+        except (SalvageStopped, BufferClosed):
+            raise
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+        quarantine = Quarantine(moved_to=moved_to, reason=progress["reason"], salvage=report, salvage_error=error)
         self.quarantines.append(quarantine)
         if self._on_quarantine is not None:
             self._on_quarantine(quarantine)
         return quarantine
+
+    def set_aside(self, reason: str, *, defer: bool = False) -> Quarantine | None:
+        """Set the file aside and salvage it (the integrity check found damage); see :meth:`_set_aside`."""
+        with self._lock:
+            if self._conn is None:
+                raise BufferClosed(f"buffer {self.path} is closed")
+            with suppress(sqlite3.Error):
+                self._conn.close()
+            self._conn = None
+            return self._set_aside(reason, defer=defer)
+
+    def quick_check(self) -> str:
+        """``PRAGMA quick_check`` of the file on a connection of its own: "ok", or what is damaged.
+
+        Its own connection: under WAL the writer and the senders go on meanwhile, where the
+        buffer's connection would hold its lock for the whole check.
+
+        Raises :class:`sqlite3.Error` when the check could not run (a lock held too long, no file):
+        that says nothing of damage, and a sound file must never be set aside for it.
+        """
+        try:
+            with closing(open_damaged(self.path)) as conn:
+                found = [str(row[0]) for row in conn.execute("PRAGMA quick_check(5)")]
+        except sqlite3.DatabaseError as exc:
+            if not is_corruption(exc):
+                raise
+            return f"{type(exc).__name__}: {exc}"
+        return "ok" if found == ["ok"] else " ".join(" ".join(found).split())  # one log line
+
+    def salvage(self, source: Path) -> SalvageReport:
+        """Put every readable row of the (damaged) buffer file ``source`` into this buffer.
+
+        Queued records go to the end of their destination's queue with their ``record_id``, dead
+        letters to the dead letters; the source is only read.
+        """
+        if Path(source).resolve() == self.path.resolve():
+            raise DeliveryBufferError(f"{source} is this buffer itself")
+        report = SalvageReport(Path(source))
+        progress: dict[str, Any] = {"file": str(source), "reason": "", "done": {}, "found": {}, "dead": 0}
+        self._salvage_into(report, progress, keep_ids=False, writing=self._transaction, track=False)
+        return report
+
+    def _salvage_hop_keys(
+        self, progress: dict[str, Any], writing: Callable[[], AbstractContextManager[sqlite3.Connection]]
+    ) -> None:
+        """The hop keys of the old file, in their order, before delivery starts: the records a
+        publisher replays from its history are then recognised."""
+        with closing(open_damaged(Path(progress["file"]))) as source:
+            reader = DamagedReader(source)
+            if "hop_seen" not in reader.tables():
+                return
+            keys = [row[1:] for row in reader.rows("hop_seen", "topic, source_ns, seq") if _is_hop_key(row[1:])]
+        with writing() as conn:
+            conn.executemany("INSERT INTO hop_seen (topic, source_ns, seq) VALUES (?, ?, ?)", keys)
+
+    def _salvage_into(
+        self,
+        report: SalvageReport,
+        progress: dict[str, Any],
+        *,
+        keep_ids: bool,
+        writing: Callable[[], AbstractContextManager[sqlite3.Connection]],
+        stop: Callable[[], bool] | None = None,
+        track: bool = True,
+    ) -> None:
+        """Copy what ``report.source`` still holds after ``progress``, in transactions of a few
+        thousand rows; with ``track``, each one records in meta how far it got."""
+        with closing(open_damaged(report.source)) as source:
+            reader = DamagedReader(source)
+            tables = reader.tables()
+            names: dict[int, str] = {}
+            expected: dict[str, int] = {}
+            totals: dict[str, tuple[int, int, int, int]] = {}
+            if "queues" in tables:
+                for row in reader.rows("queues", "name, qid, rows, received, sent, dropped, dead_lettered"):
+                    _rowid, name, qid, rows, *counts = row
+                    if isinstance(name, str) and isinstance(qid, int):
+                        names[qid] = name
+                        expected[name] = int(rows) if isinstance(rows, int) else 0
+                        totals[name] = tuple(int(c) if isinstance(c, int) else 0 for c in counts)  # type: ignore[assignment]
+            # Without a whole queues table, what was in the queues it lost cannot be counted.
+            report.lost_unknown_count = "queues" not in tables or reader.damaged_spots > 0
+            copy = _Copy(progress, writing, stop, track)
+            for table in sorted(t for t in tables if re.fullmatch(r"q_\d+", t)):
+                name = names.get(int(table[2:]))
+                if name is None:
+                    unplaced = sum(1 for _ in reader.rows(table, "id"))
+                    if unplaced:
+                        report.lost[UNKNOWN] = report.lost.get(UNKNOWN, 0) + unplaced
+                    continue
+                self._salvage_queue(reader, table, name, copy, keep_ids)
+            found: dict[str, int] = progress["found"]
+            report.recovered = {name: n for name, n in found.items() if n}
+            for name, rows in expected.items():
+                lost = rows - found.get(name, 0)
+                if lost > 0:
+                    report.lost[name] = report.lost.get(name, 0) + lost
+            if not progress["done"].get("totals"):
+                with writing() as conn:
+                    for name, (received, sent, dropped, dead_lettered) in totals.items():
+                        # The lifetime totals carry over, so that `dc buffer stats` keeps the history.
+                        conn.execute(
+                            "UPDATE queues SET received = received + ?, sent = sent + ?, dropped = dropped + ?, "
+                            "dead_lettered = dead_lettered + ? WHERE qid = ?",
+                            (received, sent, dropped, dead_lettered, self._qid(conn, name)),
+                        )
+                    progress["done"]["totals"] = 1
+                    copy.record(conn)
+            if "dead_letters" in tables:
+                self._salvage_dead_letters(reader, report, copy, keep_ids)
+            report.dead_letters_recovered = int(progress["dead"])
+            report.damaged_spots = reader.damaged_spots
+
+    def _salvage_queue(self, reader: DamagedReader, table: str, name: str, copy: _Copy, keep_ids: bool) -> None:
+        """Copy a queue's readable rows to ``name``'s queue, counted in ``copy.progress["found"]``."""
+        with copy.writing() as conn:
+            qid = self._qid(conn, name)
+            keep_ids = keep_ids and conn.execute(f"SELECT 1 FROM q_{qid} LIMIT 1").fetchone() is None
+        has_crc = "payload_crc" in {column[1] for column in reader.conn.execute(f"PRAGMA table_info({table})")}
+        crc = "payload_crc" if has_crc else "NULL"
+        # The size computed again from the payload, so that the queue's byte count stays exact; a
+        # damaged page can read as rows of the wrong types, which are no records any more (counted
+        # lost with the unreadable ones). Checked by SQLite rather than row by row in Python.
+        columns = f"record_id, topic, stamp_ns, enqueued_ns, attempts, length(CAST(payload AS BLOB)), payload, {crc}"
+        records_only = (
+            "typeof(record_id) = 'text' AND typeof(topic) = 'text' AND typeof(stamp_ns) = 'integer' "
+            "AND typeof(enqueued_ns) = 'integer' AND typeof(attempts) = 'integer' AND typeof(payload) = 'text' "
+            f"AND typeof({crc}) IN ('integer', 'null')"
+        )
+        insert = (
+            f"INSERT INTO q_{qid} ({'id, ' if keep_ids else ''}record_id, topic, stamp_ns, enqueued_ns, attempts, "
+            f"size, payload, payload_crc) VALUES ({'?, ' if keep_ids else ''}?, ?, ?, ?, ?, ?, ?, ?)"
+        )
+        found = copy.progress["found"]
+        chunk: list[tuple[Any, ...]] = []
+
+        def flush() -> None:
+            if not chunk:
+                return
+            with copy.writing() as conn:
+                conn.executemany(insert, [row if keep_ids else row[1:] for row in chunk])
+                conn.execute(
+                    "UPDATE queues SET rows = rows + ?, bytes = bytes + ? WHERE qid = ?",
+                    (len(chunk), sum(int(row[-3]) for row in chunk), qid),
+                )
+                found[name] = found.get(name, 0) + len(chunk)
+                copy.progress["done"][table] = int(chunk[-1][0])
+                copy.record(conn)
+            chunk.clear()
+            copy.check_stop()
+
+        after = int(copy.progress["done"].get(table, _NO_ROWID))
+        for row in reader.rows(table, columns, records_only, after=after):
+            chunk.append(row)
+            if len(chunk) >= 2000:
+                flush()
+        flush()
+
+    def _salvage_dead_letters(self, reader: DamagedReader, report: SalvageReport, copy: _Copy, keep_ids: bool) -> None:
+        with copy.writing() as conn:
+            keep_ids = keep_ids and conn.execute("SELECT 1 FROM dead_letters LIMIT 1").fetchone() is None
+        spots = reader.damaged_spots
+        columns = _DEAD_COLUMNS.removeprefix("id, ")
+        insert = (
+            f"INSERT INTO dead_letters ({'id, ' if keep_ids else ''}{columns}) "
+            f"VALUES ({'?, ' if keep_ids else ''}?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
+        )
+        chunk: list[tuple[Any, ...]] = []
+
+        def flush() -> None:
+            with copy.writing() as conn:
+                for row in chunk:
+                    self._qid(conn, str(row[1]))
+                    conn.execute(insert, row if keep_ids else row[1:])
+                copy.progress["dead"] += len(chunk)
+                copy.progress["done"]["dead_letters"] = int(chunk[-1][0])
+                copy.record(conn)
+            chunk.clear()
+            copy.check_stop()
+
+        after = int(copy.progress["done"].get("dead_letters", _NO_ROWID))
+        for row in reader.rows("dead_letters", columns, after=after):
+            if not _is_dead_letter(row):
+                report.dead_letters_damaged = True  # read, but no longer a dead letter
+                continue
+            chunk.append(row)
+            if len(chunk) >= 500:  # dead letters can be large (dead_letter_limit_size): few in memory
+                flush()
+        if chunk:
+            flush()
+        if reader.damaged_spots > spots:
+            report.dead_letters_damaged = True
 
     @contextmanager
     def _locked(self) -> Iterator[sqlite3.Connection]:
@@ -390,8 +682,7 @@ class SqliteBuffer:
         with suppress(sqlite3.Error):
             self._conn.close()
         self._conn = None
-        self._quarantine(reason)
-        self._conn = self._connect()
+        self._set_aside(reason)
 
     @contextmanager
     def _transaction(self) -> Iterator[sqlite3.Connection]:
@@ -469,11 +760,15 @@ class SqliteBuffer:
                 dropped_newest = dropped_oldest = 0
                 if limit.max_bytes is not None:
                     rows, dropped_newest, dropped_oldest = self._apply_limit(conn, qid, rows, limit)
-                conn.executemany(
+                insert = (
                     f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload, payload_crc) "
-                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    rows,
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)"
                 )
+                if rows and destination in self._id_floor:
+                    self._first_above_floor(conn, destination, qid, insert, rows[0])
+                    conn.executemany(insert, rows[1:])
+                else:
+                    conn.executemany(insert, rows)
                 added_bytes = sum(row[4] for row in rows)
                 conn.execute(
                     "UPDATE queues SET rows = rows + ?, bytes = bytes + ?, received = received + ?, "
@@ -486,6 +781,20 @@ class SqliteBuffer:
                 if dropped_oldest:
                     result.dropped_oldest[destination] = dropped_oldest
         return result
+
+    def _first_above_floor(
+        self, conn: sqlite3.Connection, destination: str, qid: int, insert: str, values: tuple[object, ...]
+    ) -> None:
+        """Insert one row with an id above the destination's floor (see ``_id_floor``): the rows
+        after it follow it. Once the queue's ids are above the floor it is forgotten."""
+        floor = self._id_floor[destination]
+        top = int(conn.execute(f"SELECT coalesce(max(id), 0) FROM q_{qid}").fetchone()[0])
+        if top >= floor:
+            del self._id_floor[destination]
+            conn.execute(insert, values)
+            return
+        with_id = insert.replace(" (record_id,", " (id, record_id,", 1).replace("VALUES (", "VALUES (?, ", 1)
+        conn.execute(with_id, (floor + 1, *values))
 
     def _remember_seen(
         self, conn: sqlite3.Connection, keys: Sequence[tuple[str, int, int]], window: int | None
@@ -576,6 +885,8 @@ class SqliteBuffer:
             rows = conn.execute(
                 f"SELECT {_QUEUE_COLUMNS} FROM q_{qid} WHERE id > ? ORDER BY id LIMIT ?", (after_id, limit)
             ).fetchall()
+        if rows and rows[-1][0] > self._max_read.get(destination, 0):
+            self._max_read[destination] = rows[-1][0]
         return list(map(BufferedRow._make, rows))
 
     def delete(self, destination: str, row_ids: Sequence[int]) -> int:
@@ -730,11 +1041,15 @@ class SqliteBuffer:
             for row in rows:
                 letter = DeadLetter(*row)
                 qid = self._qid(conn, letter.destination)
-                conn.execute(
+                insert = (
                     f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload) "
-                    "VALUES (?, ?, ?, ?, ?, ?)",
-                    (letter.record_id, letter.topic, letter.stamp_ns, enqueued, letter.size, letter.payload),
+                    "VALUES (?, ?, ?, ?, ?, ?)"
                 )
+                values = (letter.record_id, letter.topic, letter.stamp_ns, enqueued, letter.size, letter.payload)
+                if letter.destination in self._id_floor:
+                    self._first_above_floor(conn, letter.destination, qid, insert, values)
+                else:
+                    conn.execute(insert, values)
                 conn.execute("UPDATE queues SET rows = rows + 1, bytes = bytes + ? WHERE qid = ?", (letter.size, qid))
                 conn.execute("DELETE FROM dead_letters WHERE id = ?", (letter.id,))
                 moved += 1
@@ -744,6 +1059,48 @@ class SqliteBuffer:
         where, args = self._select_dead(destination, ids)
         with self._transaction() as conn:
             return int(conn.execute(f"DELETE FROM dead_letters{where}", args).rowcount)
+
+
+@contextmanager
+def _plain_transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        yield conn
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")
+
+
+_NO_ROWID = -(2**63) - 1  # progress of a table not begun: every rowid is above it
+
+
+class SalvageStopped(DeliveryBufferError):
+    """A salvage asked to stop (the server stopping); the next one goes on from where it was."""
+
+
+class _Copy:
+    """How a salvage writes: its transactions, its progress (kept in meta with each one), when to stop."""
+
+    def __init__(
+        self,
+        progress: dict[str, Any],
+        writing: Callable[[], AbstractContextManager[sqlite3.Connection]],
+        stop: Callable[[], bool] | None,
+        track: bool,
+    ) -> None:
+        self.progress = progress
+        self.writing = writing
+        self._stop = stop
+        self._track = track
+
+    def record(self, conn: sqlite3.Connection) -> None:
+        if self._track:
+            conn.execute("UPDATE meta SET value = ? WHERE key = ?", (json.dumps(self.progress), _SALVAGING))
+
+    def check_stop(self) -> None:
+        if self._stop is not None and self._stop():
+            raise SalvageStopped("stopped before it was done")
 
 
 def _migrate(conn: sqlite3.Connection) -> None:
@@ -797,3 +1154,15 @@ def _ensure_queue_table(conn: sqlite3.Connection, qid: int) -> None:
         except sqlite3.OperationalError as exc:
             if "duplicate column" not in str(exc):  # another process added it meanwhile
                 raise
+
+
+def _is_dead_letter(row: tuple[object, ...]) -> bool:
+    _id, destination, record_id, topic, stamp_ns, enqueued_ns, failed_ns, attempts, error, size, payload = row
+    return all(isinstance(v, str) for v in (destination, record_id, topic, error, payload)) and all(
+        isinstance(v, int) for v in (stamp_ns, enqueued_ns, failed_ns, attempts, size)
+    )
+
+
+def _is_hop_key(key: tuple[object, ...]) -> bool:
+    topic, source_ns, seq = key
+    return isinstance(topic, str) and isinstance(source_ns, int) and isinstance(seq, int)

@@ -1,10 +1,11 @@
-"""Operator tools on the buffer file (``dc buffer list|show|replay|purge|stats``).
+"""Operator tools on the buffer file (``dc buffer list|show|replay|purge|stats|salvage``).
 
 They open the SQLite file directly with their own connection, which WAL allows while
 ``destination_server`` runs: a replayed dead letter goes back to the end of its destination's
 queue and the running server's sender picks it up at its next round (after its current backoff,
 if the destination is failing). These tools never move or repair a damaged file; the server does
-that at its next start.
+that at its next start. ``salvage`` reads a damaged (set-aside) file and puts every row it can
+read into a buffer, the running server's included.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import yaml
 from dc_core.errors import DcError
 from dc_core.paths import expand_env
 from dc_destinations.buffer import FILE_NAME, DeadLetter, QueueStats, SqliteBuffer
+from dc_destinations.salvage import SalvageReport
 from dc_destinations.storage import default_storage_dir
 
 
@@ -100,6 +102,18 @@ def purge(path: Path, ids: Sequence[int] | None = None, destination: str | None 
         buffer.close()
 
 
+def salvage(source: Path, into: Path) -> SalvageReport:
+    """Put every readable record and dead letter of the buffer file ``source`` into the buffer ``into``
+    (created if needed); ``source`` is only read."""
+    if not source.is_file():
+        raise BufferAdminError(f"no file {source}")
+    buffer = SqliteBuffer(into, repair=False)
+    try:
+        return buffer.salvage(source)
+    finally:
+        buffer.close()
+
+
 def _utc(ns: int) -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(ns / 1e9))
 
@@ -112,6 +126,13 @@ def _short(text: str, width: int) -> str:
 def run_cli(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     """``dc buffer``: ``args`` has action, ids, storage_path, params, destination and all."""
     try:
+        if args.action == "salvage":
+            if len(args.ids) != 1:
+                raise BufferAdminError("dc buffer salvage: give the set-aside file (delivery.sqlite3.corrupt-...)")
+            into = storage_file(getattr(args, "into", "") or args.storage_path, args.params, args.namespace)
+            report = salvage(Path(args.ids[0]), into)
+            print(f"salvaged {args.ids[0]} into {into}: {report.summary()}", file=out)
+            return 0
         path = storage_file(args.storage_path, args.params, args.namespace)
         destination = args.destination or None
         ids = [int(i) for i in args.ids] if args.ids else None

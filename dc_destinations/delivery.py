@@ -15,8 +15,10 @@ another.
 from __future__ import annotations
 
 import contextlib
+import sqlite3
 import threading
 import time
+import traceback
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -24,7 +26,14 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.logs import Logger
-from dc_destinations.buffer import FILE_NAME, BufferClosed, BufferCorrupted, Quarantine, SqliteBuffer
+from dc_destinations.buffer import (
+    FILE_NAME,
+    BufferClosed,
+    BufferCorrupted,
+    Quarantine,
+    SalvageStopped,
+    SqliteBuffer,
+)
 from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
 from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
@@ -75,6 +84,15 @@ class DeliveryPipeline:
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
         self._quarantined = 0
+        self._salvage_thread: threading.Thread | None = None
+        self._salvaging: Path | None = None
+        self._salvage_started: set[str] = set()
+        self._lost_unknown = 0
+        # The last integrity check of the buffer file: (wall-clock time, "ok" or what it found), and
+        # whether the file in use is damaged (cleared when it is set aside).
+        self._check_lock = threading.Lock()
+        self._last_check: tuple[float, str] | None = None
+        self._damaged = False
         self._last_log_tick = 0.0
         self._status: StatusServer | None = None
         self._sections: dict[str, Callable[[], Any]] = {}
@@ -123,9 +141,16 @@ class DeliveryPipeline:
             self._lock_taken_by_start = True
         assert self.storage_file is not None
         buffer = SqliteBuffer(
-            self.storage_file, synchronous=self.settings.storage_sync, on_quarantine=self._on_quarantine
+            self.storage_file,
+            synchronous=self.settings.storage_sync,
+            on_quarantine=self._on_quarantine,
+            on_salvage_start=self._on_salvage_start,
+            defer_salvage=True,
         )
         self._buffer = buffer
+        # Before the senders start: a file found damaged now is set aside before anything reads it
+        # (and salvaged beside delivery, below).
+        self.check_buffer(repair=True)
         buffer.ensure_queues(list(self._routes))
         self._closing.reset()
         senders = {
@@ -161,6 +186,13 @@ class DeliveryPipeline:
             route.wakeup.clear()
             route.thread = threading.Thread(target=sender.run, name=f"dc-sender-{name}", daemon=True)
             route.thread.start()
+        pending = buffer.pending_salvage()
+        if pending is not None:
+            # Beside delivery, not in this transition: ~0.75 s per 100,000 records.
+            self._salvage_thread = threading.Thread(
+                target=self._salvage, args=(buffer, pending), name="dc-salvage", daemon=True
+            )
+            self._salvage_thread.start()
         if self.settings.http_server:
             self._start_status_server()
 
@@ -171,6 +203,9 @@ class DeliveryPipeline:
         self._committer.stop()
         self._closing.deadline = self._clock() + grace
         self._closing.event.set()
+        if self._salvage_thread is not None:  # it stops after its current transaction
+            self._salvage_thread.join(timeout=max(grace, 1.0) + 10.0)
+            self._salvage_thread = None
         for route in self._routes.values():
             route.wakeup.set()
         for route in self._routes.values():
@@ -247,12 +282,90 @@ class DeliveryPipeline:
 
     # -- storage ------------------------------------------------------------------------------------
 
-    def _on_quarantine(self, quarantine: Quarantine) -> None:
-        self._quarantined += 1
+    def _on_salvage_start(self, moved_to: Path, reason: str) -> None:
+        self._salvage_started.add(moved_to.name)
         self.logger.error(
-            f"delivery buffer was unreadable ({quarantine.reason}); moved aside to {quarantine.moved_to} "
-            "and replaced by an empty one — records in it were not delivered"
+            f"delivery buffer is damaged ({reason}); moved aside to {moved_to}; salvaging its readable records "
+            "into a new buffer"
         )
+
+    def _salvage(self, buffer: SqliteBuffer, source: Path) -> None:
+        """The salvage thread: a damaged file set aside at this start (or one an earlier run did not
+        finish) copied into the buffer while delivery runs; stopped with delivery, resumed at the next start."""
+        self._salvaging = source
+        if all(q.moved_to != source for q in buffer.quarantines) and source.name not in self._salvage_started:
+            self.logger.warning(f"delivery buffer: going on with the salvage of {source} (set aside earlier)")
+        try:
+            buffer.salvage_pending(stop=self._closing.event.is_set)
+        except (SalvageStopped, BufferClosed):
+            self.logger.warning(
+                f"delivery buffer: the salvage of {source} stops with delivery; the next start goes on with it"
+            )
+        except Exception as exc:
+            self.logger.error(
+                f"delivery buffer: the salvage of {source} failed ({type(exc).__name__}: {exc}); the next start "
+                f"tries again\n{traceback.format_exc()}"
+            )
+        finally:
+            self._salvaging = None
+
+    def _on_quarantine(self, quarantine: Quarantine) -> None:
+        """Count what the salvage of a damaged file put back and lost, and say it in one line."""
+        self._quarantined += 1
+        with self._check_lock:
+            self._damaged = False  # the file in use is a new one
+        report = quarantine.salvage
+        if report is not None:
+            for name, count in report.recovered.items():
+                if name in self._routes:
+                    self._routes[name].metrics.add("salvaged", count)
+            for name, count in report.lost.items():
+                if name in self._routes:
+                    self._routes[name].metrics.add("lost_to_damage", count)
+                else:
+                    self._lost_unknown += count
+        numbers = report.summary() if report is not None else "nothing salvaged"
+        failed = f"; salvage stopped: {quarantine.salvage_error}" if quarantine.salvage_error else ""
+        self.logger.error(
+            f"delivery buffer salvaged from {quarantine.moved_to} into the new buffer: {numbers}{failed} (records "
+            f"already delivered may be delivered again, with the same record_id; `dc buffer salvage "
+            f"{quarantine.moved_to}` reads the file again)"
+        )
+
+    def check_buffer(self, *, repair: bool = False) -> str:
+        """``PRAGMA quick_check`` of the buffer file: "ok" or what is damaged, kept for health and metrics.
+
+        Runs on the caller's thread on a connection of its own (the server calls it from its worker
+        about hourly: ``buffer_check_interval``). Damage is logged once when found; with ``repair``
+        (at start, before anything is read from the file) the file is set aside at once, to be
+        salvaged beside delivery.
+        While running, a damaged file is set aside when an operation meets the damage or at the next
+        start; until then the health endpoint answers 503 and ``buffer_damaged`` is true.
+        """
+        buffer = self._buffer
+        if buffer is None or buffer.closed:
+            return "not open"
+        try:
+            result = buffer.quick_check()
+        except sqlite3.Error as exc:
+            self.logger.warning(f"delivery buffer {buffer.path}: integrity check could not run: {exc}")
+            return f"not checked: {exc}"
+        with self._check_lock:
+            self._last_check = (time.time(), result)
+            newly = result != "ok" and not self._damaged
+            self._damaged = result != "ok"
+        if result == "ok":
+            return result
+        if repair:  # _on_quarantine says it, with the numbers
+            with contextlib.suppress(BufferClosed):
+                buffer.set_aside(f"integrity check: {result}", defer=True)
+        elif newly:
+            self.logger.error(
+                f"delivery buffer {buffer.path} is damaged: {result}. It is set aside and its readable records "
+                "salvaged when delivery meets the damage or at the next start: restart destination_server to do "
+                "it now"
+            )
+        return result
 
     def _tick_logs(self) -> None:
         """Let bursts of log-worthy events end with their summary line (the writer calls this)."""
@@ -301,10 +414,17 @@ class DeliveryPipeline:
         and while group commits fail, since how long and why."""
         committer = self._committer
         failing = committer.failing if committer is not None else None
+        with self._check_lock:
+            last_check, damaged = self._last_check, self._damaged
         return {
             "path": str(self.storage_file) if self.storage_file else None,
             "storage_sync": self.settings.storage_sync,
             "quarantined": self._quarantined,
+            "lost_to_damage_unknown": self._lost_unknown,
+            "buffer_damaged": damaged,
+            "salvaging": str(self._salvaging) if self._salvaging is not None else None,
+            "last_check_time": last_check[0] if last_check else None,
+            "last_check_result": last_check[1] if last_check else "",
             "intake_pending": committer.waiting if committer is not None else 0,
             "intake_pending_bytes": committer.waiting_bytes if committer is not None else 0,
             "running": committer is not None and committer.running,
@@ -324,10 +444,10 @@ class DeliveryPipeline:
         return document
 
     def healthy(self) -> bool:
-        """Writer and senders alive, and records reaching the disk (a failing group commit keeps
-        every new record in memory only)."""
+        """Writer and senders alive, records reaching the disk (a failing group commit keeps
+        every new record in memory only), and the buffer file undamaged at its last check."""
         committer = self._committer
-        if committer is None or not committer.running or committer.failing is not None:
+        if committer is None or not committer.running or committer.failing is not None or self._damaged:
             return False
         return all(route.thread is not None and route.thread.is_alive() for route in self._routes.values())
 

@@ -16,7 +16,18 @@ from typing import Any
 
 from dc_core.http_status import PrometheusText, prometheus_labels
 
-COUNTERS = ("received", "sent", "retried", "failed", "dropped", "malformed", "dead_lettered", "dead_letters_dropped")
+COUNTERS = (
+    "received",
+    "sent",
+    "retried",
+    "failed",
+    "dropped",
+    "malformed",
+    "dead_lettered",
+    "dead_letters_dropped",
+    "salvaged",
+    "lost_to_damage",
+)
 
 
 @dataclass
@@ -29,6 +40,8 @@ class _Counts:
     malformed: int = 0
     dead_lettered: int = 0
     dead_letters_dropped: int = 0
+    salvaged: int = 0
+    lost_to_damage: int = 0
 
 
 class DestinationMetrics:
@@ -83,6 +96,8 @@ DELIVERY_COUNTERS = (
     ("malformed", "counter", "Records the buffer could not store: not valid UTF-8 JSON (normally caught at intake)"),
     ("dead_lettered", "counter", "Records moved to the dead-letter table"),
     ("dead_letters_dropped", "counter", "Oldest dead letters deleted by dead_letter_limit_size"),
+    ("salvaged", "counter", "Records read back from a damaged buffer file into the new buffer"),
+    ("lost_to_damage", "counter", "Records of a damaged buffer file that could not be read"),
 )
 # (metric name, key in DeliveryPipeline.metrics(), help text)
 _QUEUE_GAUGES = (
@@ -140,6 +155,25 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         "Corrupt buffer files moved aside",
         [("", buffer["quarantined"])],
     )
+    text.family(
+        "dc_delivery_buffer_lost_to_damage_unknown_total",
+        "counter",
+        "Records of a damaged buffer file lost whose destination could not be read",
+        [("", int(buffer.get("lost_to_damage_unknown") or 0))],
+    )
+    text.family(
+        "dc_delivery_buffer_damaged",
+        "gauge",
+        "1 while the last integrity check (PRAGMA quick_check) of the buffer file found damage",
+        [("", int(bool(buffer.get("buffer_damaged"))))],
+    )
+    if buffer.get("last_check_time") is not None:
+        text.family(
+            "dc_delivery_buffer_last_check_timestamp_seconds",
+            "gauge",
+            "When the buffer file's integrity was last checked (Unix time)",
+            [("", int(buffer["last_check_time"]))],
+        )
     text.family(
         "dc_delivery_commit_failing_seconds",
         "gauge",

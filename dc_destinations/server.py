@@ -35,6 +35,7 @@ from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.stamped_cdr import read_string_stamped
+from dc_core.worker import Outcome
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.confined_files import ConfinementParams, default_roots
 from dc_destinations.delivery import DeliveryPipeline
@@ -59,6 +60,8 @@ FOREIGN_MEMORY_S = 10.0
 # How long a publisher whose node the graph does not know yet (discovery still under way) is
 # waited for, once per publisher, before it is taken as foreign.
 UNKNOWN_NODE_WAIT_S = 0.5
+# Seconds deactivate waits for a running integrity check of the buffer (it only reads the file).
+BUFFER_CHECK_DRAIN_S = 2.0
 
 _Received = tuple[list[tuple[str, OutgoingRecord]], HopKey | None]
 """One received record as the pipeline takes it: its copies by destination name, and its hop key."""
@@ -107,6 +110,8 @@ class DestinationServer(ManagedServer):
         self.hop: HopIntake | None = None
         self._hop_loss_log: BurstLog | None = None
         self._hop_log_timer: Any = None
+        self._buffer_check_timer: Any = None
+        self._buffer_checking = False
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
@@ -218,6 +223,9 @@ class DestinationServer(ManagedServer):
         self.hop = hop
         self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")
         self._hop_log_timer = self.create_steady_timer(1.0, self._tick_logs)
+        check_interval = self.config.node.flb.buffer_check_interval if self.config is not None else 0.0
+        if check_interval > 0:  # (the start's check ran in pipeline.start)
+            self._buffer_check_timer = self.create_steady_timer(check_interval, self._check_buffer)
         with_history = []
         for topic in self.routing.topics:
             qos = _with_room_for_a_replay(subscription_qos(topic, self._internal_topics))
@@ -237,6 +245,12 @@ class DestinationServer(ManagedServer):
     def deactivate_server(self) -> None:
         # Intake stops first, so everything received is committed before the senders stop.
         self._destroy_subscriptions()
+        if self._buffer_check_timer is not None:
+            self.destroy_timer(self._buffer_check_timer)
+            self._buffer_check_timer = None
+        # A check running now reads the file on its own connection: waited for briefly, never needed.
+        self.stop_worker(BUFFER_CHECK_DRAIN_S)
+        self._buffer_checking = False
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)
         errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
@@ -257,6 +271,20 @@ class DestinationServer(ManagedServer):
             self.destroy_timer(self._hop_log_timer)
             self._hop_log_timer = None
         self._tick_logs()
+
+    def _check_buffer(self) -> None:
+        """The periodic integrity check of the buffer file, on the worker: it reads the whole file."""
+        pipeline = self.pipeline
+        if pipeline is None or self._buffer_checking:
+            return
+        self._buffer_checking = True
+
+        def done(outcome: Outcome[str]) -> None:
+            self._buffer_checking = False
+            if outcome.error is not None:
+                self.get_logger().error(f"delivery buffer integrity check failed to run: {outcome.error!r}")
+
+        self.worker.submit(pipeline.check_buffer, done)
 
     # -- intake (the main loop's intake, on the main thread) --------------------------------------------
     def _on_batch(self, topic: str, taken: list[tuple[bytes, Any]]) -> None:

@@ -57,6 +57,12 @@ class DeliveryParams(MetricsHttpParams):
         'dropped and counted, as beyond intake_queue_limit ("0" or "" = records counted only)',
     )
     commit_batch_size: int = param(2000, minimum=1, doc="Most records written by one group commit")
+    buffer_check_interval: float = param(
+        3600.0,
+        minimum=0.0,
+        doc="Seconds between two integrity checks (PRAGMA quick_check) of the buffer file while running; "
+        "it is also checked at start. 0 = at start only",
+    )
     commit_interval: float = param(
         0.05,
         minimum=0.0,

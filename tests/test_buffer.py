@@ -9,10 +9,12 @@ after them are SqliteBuffer's own (its file, WAL, corruption handling, `dc buffe
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import io
 import json
 import os
+import re
 import sqlite3
 import time
 import tracemalloc
@@ -31,6 +33,7 @@ from dc_destinations.buffer import (
     QueueLimit,
     SqliteBuffer,
 )
+from tests.buffer_damage import damage_pages
 
 
 def pending(n: int, width: int = 0) -> PendingRecord:
@@ -426,3 +429,178 @@ def test_dc_buffer_leaves_a_corrupt_file_alone(tmp_path: Path, capsys: pytest.Ca
     assert _cli(tmp_path, "list")[0] == 1
     assert "corrupt" in capsys.readouterr().err
     assert (tmp_path / FILE_NAME).read_bytes().startswith(b"garbage")
+
+
+# -- a damaged file: salvage ---------------------------------------------------------------------
+
+
+def _backlog(path: Path, count: int) -> None:
+    buffer = SqliteBuffer(path)
+    try:
+        for start in range(0, count, 1000):
+            batch = [pending(i, 150) for i in range(start, min(start + 1000, count))]
+            buffer.append({"a": batch, "b": batch[:10] if start == 0 else []})
+        buffer.dead_letter("b", [(row, "rejected: 400") for row in buffer.read_batch("b", 4)])
+    finally:
+        buffer.close()
+
+
+def test_damaged_pages_cost_only_their_rows_the_rest_is_salvaged(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    _backlog(path, 5000)
+    damage_pages(path)
+    seen: list[Quarantine] = []
+    buffer = SqliteBuffer(path, on_quarantine=seen.append)
+    try:
+        if not seen:  # the damage lies past the queues' heads: found by the integrity check
+            assert buffer.quick_check() != "ok"
+            buffer.set_aside("integrity check")
+        assert len(seen) == 1
+        report = seen[0].salvage
+        assert report is not None and not seen[0].salvage_error
+        assert report.recovered["a"] + report.lost.get("a", 0) == 5000
+        assert report.recovered["a"] >= 4750, report.summary()
+        assert report.recovered.get("b", 0) + report.lost.get("b", 0) == 6  # 10 queued, 4 dead-lettered
+        assert report.dead_letters_recovered == 4
+        assert not report.lost_unknown_count
+        rows: list[str] = []
+        after = 0
+        while batch := buffer.read_batch("a", 1000, after_id=after):
+            after = batch[-1].row_id
+            rows += [r.record_id for r in batch]
+            # Same record_id and same id as in the old file: a batch read before the set-aside is
+            # still deleted when delivered.
+            assert all(r.row_id == int(r.record_id[3:]) + 1 for r in batch)
+        assert len(rows) == report.recovered["a"] == buffer.stats("a").rows
+        assert rows == sorted(set(rows)), "in their order, once each"
+        assert buffer.stats("a").received_total == 5000, "lifetime totals carried over"
+        assert [d.error for d in buffer.list_dead_letters("b")] == ["rejected: 400"] * 4
+        assert "lost to the damage" in report.summary()
+        assert buffer.quick_check() == "ok"
+    finally:
+        buffer.close()
+    assert seen[0].moved_to.exists(), "the damaged file is kept"
+
+
+def test_salvage_counts_as_unknown_what_it_cannot_name(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    _backlog(path, 100)
+    conn = sqlite3.connect(path)
+    (queues_root,) = conn.execute("SELECT rootpage FROM sqlite_master WHERE name = 'queues'").fetchone()
+    conn.close()
+    with path.open("r+b") as handle:  # the table naming each queue's destination
+        handle.seek((queues_root - 1) * 4096)
+        handle.write(b"\xff" * 4096)
+    target = SqliteBuffer(tmp_path / "new" / FILE_NAME)
+    try:
+        report = target.salvage(path)
+    finally:
+        target.close()
+    assert report.recovered == {}
+    assert report.lost == {"(unknown)": 106} and report.lost_unknown_count  # 110 queued, 4 dead-lettered
+
+
+def test_quick_check_finds_damage_of_the_file_in_use(tmp_path: Path) -> None:
+    path = tmp_path / FILE_NAME
+    _backlog(path, 3000)
+    buffer = SqliteBuffer(path)
+    try:
+        assert buffer.quick_check() == "ok"
+        damage_pages(path, 3)
+        assert buffer.quick_check() != "ok"
+    finally:
+        buffer.close()
+
+
+def test_dc_buffer_salvage_puts_a_set_aside_file_into_a_buffer(tmp_path: Path) -> None:
+    damaged = tmp_path / "old" / f"{FILE_NAME}.corrupt-20260101T000000Z"
+    damaged.parent.mkdir()
+    _backlog(damaged, 5000)
+    damage_pages(damaged)
+    before = damaged.read_bytes()
+    live = SqliteBuffer(tmp_path / FILE_NAME)  # a buffer in use, with records of its own
+    live.append({"a": [pending(i) for i in range(90_000, 90_010)]})
+    live.close()
+    args = argparse.Namespace(
+        action="salvage",
+        ids=[str(damaged)],
+        storage_path="",
+        params="",
+        namespace="/",
+        destination="",
+        all=False,
+        into=str(tmp_path),
+    )
+    out = io.StringIO()
+    assert buffer_admin.run_cli(args, out) == 0
+    text = out.getvalue()
+    numbers = re.search(r"records recovered (\d+) \(a (\d+), b (\d+)\); lost to the damage (\d+) \(a (\d+)", text)
+    assert numbers, text
+    total, in_a, in_b, lost, lost_a = map(int, numbers.groups())
+    assert in_a + lost_a == 5000 and in_a >= 4750 and total == in_a + in_b and lost >= lost_a
+    assert "dead letters recovered 4" in text
+    assert damaged.read_bytes() == before, "the damaged file is only read"
+    stats = {s.destination: s for s in buffer_admin.queue_stats(tmp_path / FILE_NAME)}
+    assert stats["a"].rows == 10 + in_a
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        assert buffer.read_batch("a", 10)[0].record_id == "id-00090000", "the buffer's own records stay first"
+    finally:
+        buffer.close()
+
+
+def test_dc_buffer_salvage_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    def salvage(*files: str, into: str) -> int:
+        args = argparse.Namespace(
+            action="salvage", ids=list(files), storage_path="", params="", namespace="/", into=into
+        )
+        return buffer_admin.run_cli(args, io.StringIO())
+
+    assert salvage(str(tmp_path / "nothing"), into=str(tmp_path)) == 1
+    assert "no file" in capsys.readouterr().err
+    assert salvage(into=str(tmp_path)) == 1
+    assert "give the set-aside file" in capsys.readouterr().err
+    _backlog(tmp_path / FILE_NAME, 10)
+    assert salvage(str(tmp_path / FILE_NAME), into=str(tmp_path)) == 1
+    assert "is this buffer itself" in capsys.readouterr().err
+    assert buffer_admin.queue_stats(tmp_path / FILE_NAME)[0].rows == 10
+
+
+def test_a_row_read_with_the_wrong_types_is_counted_not_queued(tmp_path: Path) -> None:
+    source = tmp_path / "old.sqlite3"
+    _backlog(source, 20)
+    with contextlib.closing(sqlite3.connect(source)) as conn:  # as a damaged page can read
+        conn.execute("UPDATE q_1 SET payload = x'00ff' WHERE id = 5")
+        conn.execute("UPDATE q_1 SET stamp_ns = x'01' WHERE id = 6")
+        conn.commit()
+    target = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        report = target.salvage(source)
+        assert (report.recovered["a"], report.lost["a"]) == (18, 2)
+        assert all(isinstance(r.payload, str) for r in target.read_batch("a", 100))
+        assert target.stats("a").bytes == sum(r.size for r in target.read_batch("a", 100))
+    finally:
+        target.close()
+
+
+def test_a_record_lost_to_the_damage_never_lends_its_id_to_a_new_one(tmp_path: Path) -> None:
+    """A sender holds rows read before the file was set aside; the damage took them. Deleting them
+    once delivered must not delete the new records written since (the old ids are not reused)."""
+    path = tmp_path / FILE_NAME
+    buffer = SqliteBuffer(path)
+    try:
+        buffer.append({"a": [pending(i) for i in range(10)]})
+        in_flight = buffer.read_batch("a", 10)
+        with contextlib.closing(sqlite3.connect(path)) as other:
+            other.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+        with path.open("r+b") as handle:  # nothing of the file can be read any more
+            handle.write(b"\xff" * path.stat().st_size)
+        quarantine = buffer.set_aside("damaged under a sender")
+        assert quarantine is not None and quarantine.salvage is not None and quarantine.salvage.recovered == {}
+        buffer.append({"a": [pending(100), pending(101)]})
+        assert buffer.delete("a", [row.row_id for row in in_flight]) == 0
+        assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000100", "id-00000101"]
+        buffer.append({"a": [pending(102)]})
+        assert buffer.stats("a").rows == 3
+    finally:
+        buffer.close()

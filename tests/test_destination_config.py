@@ -156,6 +156,11 @@ def test_fluent_bit_json_date_names_set_the_time_key() -> None:
         ),
         ({**stdout_section(), "flb": "fast"}, "destination_server.flb", "expected a mapping"),
         (
+            {**stdout_section(), "flb": {"buffer_check_interval": -1}},
+            "destination_server.flb.buffer_check_interval",
+            "expected a number >= 0",
+        ),
+        (
             stdout_section(dead_letter_limit_size="lots"),
             "destination_server.flb_stdout.dead_letter_limit_size",
             'expected a size such as "500M"',
@@ -180,6 +185,7 @@ def test_fluent_bit_json_date_names_set_the_time_key() -> None:
         "flb wrong type",
         "intake byte limit not a size",
         "flb not a mapping",
+        "check interval below 0",
         "dead letter limit not a size",
     ],
 )

@@ -12,12 +12,16 @@ The backoff settings are small (flb.scheduler_base 0.2 s, scheduler_cap 2 s) so 
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import re
+import sqlite3
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -25,6 +29,7 @@ from typing import Any
 import pytest
 
 from tests.bringup_util import Bringup, dc
+from tests.buffer_damage import damage_pages
 from tests.http_receiver import Receiver, Request, free_port
 
 pytestmark = pytest.mark.e2e
@@ -278,3 +283,88 @@ def test_corrupt_buffer_file_is_set_aside_and_new_records_are_delivered(tmp_path
     assert moved[0].read_bytes().startswith(b"this is not a SQLite database"), "kept for inspection, unchanged"
     assert document["buffer"]["quarantined"] == 1
     assert sorted(seqs(receiver)) == list(range(total))
+
+
+# -- (e) damaged pages in a waiting backlog -----------------------------------------------------------------
+
+
+def test_damaged_pages_of_a_waiting_backlog_cost_only_their_records(tmp_path: Path) -> None:
+    """5,000 records wait for a receiver that is down; 10 pages of the buffer file are damaged at rest.
+
+    At the next start the file is set aside and its readable records are put back: >= 95 % reach
+    the receiver, the rest are counted (`lost_to_damage`), and `dc buffer salvage` reads the
+    set-aside file again with the same numbers.
+    """
+    total = 5000
+    port = free_port()
+    params = write_params(tmp_path, port)
+    with Bringup(params, tmp_path / "home") as run:
+        run.wait_ready()
+        finish(publish(run, total, rate=500, padding=100))
+        wait_metric(run, lambda m: m["buffered"] == total, 30, f"all {total} records waiting")
+    buffer_file = tmp_path / "buffer" / "delivery.sqlite3"
+    assert not Path(f"{buffer_file}-wal").exists() or Path(f"{buffer_file}-wal").stat().st_size == 0
+    damage_pages(buffer_file)
+
+    with Receiver(port=port) as receiver, Bringup(params, tmp_path / "home") as run:
+        run.wait_ready()
+        said = run.wait_stderr("lost to the damage")
+        metrics = wait_metric(run, lambda m: m["salvaged"] > 0, 30, "the salvage counted")
+        lost = metrics["lost_to_damage"]
+        assert metrics["salvaged"] + lost == total, metrics
+        run.wait_until(lambda: len(seqs(receiver)) + lost >= total, 60, "the salvaged records at the receiver")
+        table = dc("status", "--port", re.findall(r"http://[^:/]+:(\d+)/", run.wait_stderr("metrics HTTP"))[0])
+        document = status(run)
+    delivered = set(seqs(receiver))
+    assert delivered <= set(range(total))
+    assert len(delivered) + lost == total, "delivered + counted = sent"
+    assert len(delivered) >= 0.95 * total, f"{len(delivered)} of {total} delivered"
+    assert f"lost to the damage {lost} (web {lost})" in said, said
+    assert document["buffer"]["quarantined"] == 1 and document["buffer"]["buffer_damaged"] is False
+    assert "lost dmg" in table.stdout and "last integrity check" in table.stdout, table.stdout
+
+    (set_aside,) = [
+        p for p in buffer_file.parent.iterdir() if re.fullmatch(r"delivery\.sqlite3\.corrupt-[\dTZ-]+", p.name)
+    ]
+    again = dc("buffer", "salvage", str(set_aside), "--into", str(tmp_path / "again"))
+    assert again.returncode == 0, again.stderr
+    assert (
+        f"records recovered {metrics['salvaged']} (web {metrics['salvaged']}); lost to the damage {lost}"
+        in again.stdout
+    )
+
+
+@pytest.mark.usefixtures("bringup_mode")  # the check runs on the server's worker, in either mode
+def test_damage_of_the_file_in_use_shows_in_health_and_dc_status(tmp_path: Path) -> None:
+    """The periodic integrity check (here every 0.5 s) finds pages damaged under the running server."""
+    total = 3000
+    params = write_params(tmp_path, free_port())
+    # A long backoff: after its first attempt the sender leaves the file alone while it is damaged.
+    params.write_text(
+        params.read_text()
+        .replace("      flush: 0.2\n", "      flush: 0.2\n      buffer_check_interval: 0.5\n")
+        .replace(f"scheduler_base: {SCHEDULER_BASE}", "scheduler_base: 120")
+        .replace(f"scheduler_cap: {SCHEDULER_CAP}", "scheduler_cap: 120")
+    )
+    buffer_file = tmp_path / "buffer" / "delivery.sqlite3"
+    with Bringup(params, tmp_path / "home") as run:
+        run.wait_ready()
+        finish(publish(run, total, rate=500, padding=100))
+        wait_metric(run, lambda m: m["buffered"] == total and m["retried"] > 0, 30, "the backlog, tried once")
+        assert status(run)["buffer"]["buffer_damaged"] is False
+        with contextlib.closing(sqlite3.connect(buffer_file)) as other:  # the committed records into the file
+            other.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+        damage_pages(buffer_file)
+        deadline = time.monotonic() + 20
+        while not (document := status(run))["buffer"]["buffer_damaged"]:
+            assert time.monotonic() < deadline, document["buffer"]
+            time.sleep(0.2)
+        port = re.findall(r"http://[^:/]+:(\d+)/", run.wait_stderr("metrics HTTP"))[0]
+        with pytest.raises(urllib.error.HTTPError) as health:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/api/v1/health", timeout=5)
+        table = dc("status", "--port", port, env=run.env)
+        said = run.wait_stderr("is damaged")
+    assert health.value.code == 503
+    assert document["buffer"]["last_check_result"] != "ok" and document["buffer"]["last_check_time"] > 0
+    assert "buffer: DAMAGED" in table.stdout, table.stdout
+    assert "restart destination_server" in said
