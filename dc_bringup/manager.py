@@ -26,6 +26,7 @@ from std_srvs.srv import Trigger
 
 from dc_bringup.processes import ManagedServerHandle
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC
+from dc_core.logs import SeverityLogger
 from dc_interfaces.msg import Heartbeat
 from dc_interfaces.srv import ManageLifecycleNodes
 
@@ -104,6 +105,13 @@ class LifecycleManager(Node):
         self._services_wake = self._services_node.create_guard_condition(_nothing)
         self._services_thread = threading.Thread(target=self._serve, name="manager-services", daemon=True)
         self._services_thread.start()
+
+    def get_logger(self) -> SeverityLogger:
+        """The node's logger, called from one line per severity (dc_core.logs)."""
+        logger: SeverityLogger | None = self.__dict__.get("_severity_logger")
+        if logger is None:
+            logger = self._severity_logger = SeverityLogger(super().get_logger())
+        return logger
 
     def _serve(self) -> None:
         while not self._services_stop.is_set():

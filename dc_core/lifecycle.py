@@ -40,7 +40,7 @@ from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, DcError
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import Intake
-from dc_core.logs import Logger
+from dc_core.logs import Logger, SeverityLogger
 from dc_core.node_params import (
     DEFAULT_HEARTBEAT_PERIOD_S,
     DEFAULT_RECORD_LINGER_S,
@@ -116,6 +116,14 @@ class ManagedServer(LifecycleNode):
         # condition, made with the worker (rclpy's EventsExecutor stops firing timers beside one).
         self._worker: Worker | None = None
         self._worker_done: Any = None
+
+    def get_logger(self) -> SeverityLogger:
+        """The node's logger, called from one line per severity (dc_core.logs): any helper may log
+        through it at any severity. Plugin contexts get its children."""
+        logger: SeverityLogger | None = self.__dict__.get("_severity_logger")
+        if logger is None:
+            logger = self._severity_logger = SeverityLogger(super().get_logger())
+        return logger
 
     # -- configuration -----------------------------------------------------------------------
     def read_params_file(self) -> dict[str, dict[str, Any]]:
