@@ -8,12 +8,16 @@ brings its own documents; :class:`PrometheusText` writes its counters in the tex
 from __future__ import annotations
 
 import json
-import threading
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from typing import Any
 
 from dc_core.logs import Logger
+from dc_core.supervision import Supervisor
+
+# Where a StatusServer made without a supervisor (tests) says its thread died.
+_STDERR_LOGGER = logging.getLogger("dc.status_http")
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -71,18 +75,17 @@ class StatusServer:
         health: Callable[[], bool],
         metrics: Callable[[], dict[str, Any]],
         prometheus: Callable[[], str],
+        supervisor: Supervisor | None = None,
     ) -> None:
-        """Binds at once (raises OSError if the port is taken); port 0 picks a free one."""
+        """Binds at once (raises OSError if the port is taken); port 0 picks a free one. The thread runs
+        under ``supervisor``'s rule (dc_core.supervision), a supervisor of its own when none is given."""
         self._server = _Server((listen, port), health, metrics, prometheus)
         host, bound_port = self._server.server_address[:2]
         self.address: tuple[str, int] = (str(host), int(bound_port))
-        self._thread = threading.Thread(
-            target=self._server.serve_forever,
-            kwargs={"poll_interval": 0.2},
-            name="dc-status-http",
-            daemon=True,
+        self.supervisor = supervisor if supervisor is not None else Supervisor(_STDERR_LOGGER)
+        self._thread = self.supervisor.start_thread(
+            lambda: self._server.serve_forever(poll_interval=0.2), name="dc-status-http"
         )
-        self._thread.start()
 
     def stop(self) -> None:
         self._server.shutdown()
@@ -98,13 +101,21 @@ def start_status_server(
     health: Callable[[], bool],
     metrics: Callable[[], dict[str, Any]],
     prometheus: Callable[[], str],
+    supervisor: Supervisor | None = None,
 ) -> StatusServer | None:
     """A :class:`StatusServer`, its address logged; ``None`` (and an error logged) if it cannot bind.
 
     Metrics are for operators: a taken port must not stop a server from doing its work.
     """
     try:
-        server = StatusServer(listen, port, health=health, metrics=metrics, prometheus=prometheus)
+        server = StatusServer(
+            listen,
+            port,
+            health=health,
+            metrics=metrics,
+            prometheus=prometheus,
+            supervisor=supervisor if supervisor is not None else Supervisor(logger),
+        )
     except OSError as exc:
         logger.error(f"metrics HTTP server on {listen}:{port} not started: {exc}")
         return None
