@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -94,6 +95,9 @@ class ServerPluginContext:
     @property
     def worker(self) -> Worker:
         return self.server.worker
+
+    def start_thread(self, target: Callable[[], Any], name: str) -> threading.Thread:
+        return self.server.supervisor.start_thread(target, name=name)
 
 
 class ManagedServer(LifecycleNode):

@@ -336,3 +336,16 @@ def test_records_that_cannot_be_committed_at_the_stop_are_counted_and_named_in_o
     metrics = pipeline.metrics()["sink"]
     assert metrics["dropped"] == 150
     assert len(sink.delivered) + metrics["dropped"] == 151, "delivered + counted = sent"
+
+
+def test_a_plugins_own_thread_runs_under_the_rule() -> None:
+    from dc_core.testing import FakeContext
+
+    context = FakeContext(name="camera")
+
+    def supervise_ffmpeg() -> None:
+        raise RuntimeError("injected into the plugin's thread")
+
+    context.start_thread(supervise_ffmpeg, name="camera-ffmpeg").join(5)
+    _assert_logged_with_traceback(context.logger, "camera-ffmpeg", "RuntimeError: injected into the plugin's thread")
+    assert context.supervisor.thread_failures == 1 and context.supervisor.unhealthy
