@@ -293,8 +293,6 @@ def cmd_buffer(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    import signal
-    import threading
 
     import rclpy
     from rclpy.signals import SignalHandlerOptions
@@ -304,9 +302,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.rate <= 0:
         print("dc replay: --rate must be above 0", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
-    signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    from dc_core.signals import stop_on_signals
+
+    stop = stop_on_signals()  # handlers that take no lock (dc_core.signals)
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
         options = ReplayOptions(

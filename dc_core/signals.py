@@ -33,12 +33,15 @@ class StopFlag(Protocol):
     def is_set(self) -> bool: ...
 
 
-class StopRequest:
-    """A stop asked by a signal (:meth:`on_signal`) or by code (:meth:`set`); see the module documentation."""
+class StopRequest(threading.Event):
+    """A stop asked by a signal (:meth:`on_signal`) or by code (:meth:`set`); see the module documentation.
+
+    An ``Event`` whose flag a signal handler may set: code written for an event takes it unchanged.
+    """
 
     def __init__(self) -> None:
+        super().__init__()
         self._requested = False
-        self._event = threading.Event()
         self._wake_fd: int | None = None
         self.signals = 0  # how many stop signals came: a plain counter, safe in a handler
 
@@ -60,19 +63,36 @@ class StopRequest:
     def set(self) -> None:
         """Ask for the stop from code (never from a signal handler: this takes a lock)."""
         self._requested = True
-        self._event.set()
+        super().set()
 
     def is_set(self) -> bool:
-        return self._requested
+        return self._requested or super().is_set()
+
+    def clear(self) -> None:
+        self._requested = False
+        super().clear()
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait until the stop is asked (a signal's is seen once the relay thread read its wake-up)."""
-        return self._event.wait(timeout) or self._requested
+        return super().wait(timeout) or self._requested
 
     def _relayed(self) -> None:
         """On the relay thread: a signal's flag becomes the event (ordinary code may take a lock)."""
-        if self._requested and not self._event.is_set():
-            self._event.set()
+        if self._requested and not super().is_set():
+            super().set()
+
+
+def stop_on_signals(signums: Iterable[int] = (signal.SIGINT, signal.SIGTERM)) -> StopRequest:
+    """A :class:`StopRequest` that ``signums`` ask, and whose waiters they wake (for a process
+    without a ROS loop to wake: a command-line tool; main thread only)."""
+    stop = StopRequest()
+    stop.install(signums)
+    wake_on_signals(_nothing, stop)
+    return stop
+
+
+def _nothing() -> None:
+    """No loop to wake: the relay only turns a signal's flag into the stop's event."""
 
 
 def wake_on_signals(
