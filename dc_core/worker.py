@@ -65,18 +65,22 @@ class Worker:
         future.add_done_callback(lambda f: self._finish(f, on_done))
 
     def _finish(self, future: Future[Any], on_done: Callable[[Outcome[Any]], None]) -> None:
+        """On the job's thread, once it ended: its outcome handed over, the loop woken."""
         with self._supervisor.guard(f"{self._name} (handing over a finished job)"):
             try:
-                if future.cancelled():  # cancelled by shutdown: its outcome is dropped, as documented
-                    return
-                error = future.exception()
-                outcome: Outcome[Any] = Outcome(error=error) if error is not None else Outcome(value=future.result())
-                self._finished.put((on_done, outcome))
+                self._hand_over(future, on_done)
             finally:
                 with self._lock:
                     self._running -= 1
                     self._idle.notify_all()
             self._wake()
+
+    def _hand_over(self, future: Future[Any], on_done: Callable[[Outcome[Any]], None]) -> None:
+        if future.cancelled():  # cancelled by shutdown: its outcome is dropped, as documented
+            return
+        error = future.exception()
+        outcome: Outcome[Any] = Outcome(error=error) if error is not None else Outcome(value=future.result())
+        self._finished.put((on_done, outcome))
 
     def run_finished(self) -> int:
         """On the main thread: call ``on_done`` of every finished job; returns how many ran.

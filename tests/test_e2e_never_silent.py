@@ -125,3 +125,55 @@ def test_a_stop_that_cannot_commit_names_the_number_of_records_lost(tmp_path: Pa
     delivered = {int(r["seq"]) for r in receiver.records() if len(r["pad"]) == 200}
     assert len(delivered) == 50 and not [r for r in receiver.records() if len(r["pad"]) == 201]
     assert len(delivered) + 200 == 250, "delivered + counted = sent"
+
+
+def test_the_status_servers_thread_dying_restarts_destination_server_without_loss(tmp_path: Path) -> None:
+    target = "dc_core.http_status:_Server.serve_forever"
+    with (
+        Receiver() as receiver,
+        Bringup(write_params(tmp_path, receiver.port), tmp_path / "home", env=_fault_env(tmp_path, target)) as run,
+    ):
+        run.wait_ready()
+        died = run.wait_stderr("thread dc-status-http: RuntimeError: injected by the test")
+        assert "the thread died (thread_failures 1)" in died
+        run.wait_stderr("destination_server reports itself unhealthy")
+        finish(publish(run, TOTAL, rate=1000))
+        run.wait_until(lambda: len({int(r["seq"]) for r in receiver.records()}) == TOTAL, 60, "every record")
+        after = _web_metrics_of_the_last_start(run)
+    assert sorted(Counter(int(r["seq"]) for r in receiver.records())) == list(range(TOTAL))
+    assert after["dropped"] == 0
+
+
+NETWORK_PARAMS = """
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["net"]
+    net:
+      plugin: "dc_measurements/Network"
+      polling_interval: 300
+      ping_address: "127.0.0.1"
+      ping_method: "tcp"
+      ping_tcp_port: 9
+      tags: ["out"]
+destination_server:
+  ros__parameters:
+    flb:
+      storage_path: "{buffer}"
+    destination_plugins: ["out"]
+    out:
+      plugin: "dc_destinations/Stdout"
+      inputs: ["/dc/measurement/net"]
+"""
+
+
+def test_a_measurement_servers_worker_failing_restarts_it_and_collection_resumes(tmp_path: Path) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text(NETWORK_PARAMS.format(buffer=tmp_path / "buffer"))
+    target = "dc_core.worker:Worker._hand_over"
+    with Bringup(params, tmp_path / "home", env=_fault_env(tmp_path, target)) as run:
+        run.wait_ready()
+        died = run.wait_stderr("thread measurement_server-worker (handing over a finished job): RuntimeError")
+        assert "the thread died (thread_failures 1)" in died
+        run.wait_stderr("measurement_server reports itself unhealthy")
+        before = len(run.records())
+        run.wait_records(before + 3, timeout=30)  # the restarted server collects again
