@@ -133,25 +133,28 @@ class GroupCommitter:
             self._write_loop, name="dc-delivery-writer", on_failure=self._writer_failed
         )
 
-    def stop(self, timeout: float | None = STOP_COMMIT_WAIT_S) -> int:
+    def stop(self, timeout: float | None = None) -> int:
         """Refuse new records, commit what was submitted, end the writer; returns how many records were lost.
 
-        Waits up to ``timeout`` seconds for the writer. If it died, what it held and what waits for
-        it are committed here. Records that cannot be committed (the disk is full, the writer did
-        not finish in time) are counted as ``dropped`` of their destinations and logged in one line
-        with their number.
+        Waits up to ``timeout`` seconds (:data:`STOP_COMMIT_WAIT_S` when None) for the writer. If it
+        died, what it held and what waits for it are committed here. Records that cannot be
+        committed (the disk is full, the writer did not finish in time) are counted as ``dropped``
+        of their destinations and logged in one line with their number.
         """
         writer = self._writer
         if writer is None:
             return 0
         self._accepting = False
         self._intake.put(_STOP)
-        writer.join(timeout)
+        wait = STOP_COMMIT_WAIT_S if timeout is None else timeout
+        writer.join(wait)
         self._writer = None
         if writer.is_alive():
             # Still committing (a disk that hangs): what it has not taken yet is counted lost here.
             # It may yet commit its batch in hand; that batch is then delivered, at least once.
-            self._lose(self._take_all(), f"the writer did not finish within {timeout:g} s")
+            left = self._take_all()
+            self._taken += len(left)
+            self._lose(left, f"the writer did not finish within {wait:g} s")
         else:
             # A writer that died left its batch and the queue: committed here if the disk allows.
             leftovers, self._orphaned = self._orphaned, []

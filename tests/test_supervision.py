@@ -349,3 +349,40 @@ def test_a_plugins_own_thread_runs_under_the_rule() -> None:
     context.start_thread(supervise_ffmpeg, name="camera-ffmpeg").join(5)
     _assert_logged_with_traceback(context.logger, "camera-ffmpeg", "RuntimeError: injected into the plugin's thread")
     assert context.supervisor.thread_failures == 1 and context.supervisor.unhealthy
+
+
+def test_a_writer_stuck_past_the_stop_wait_has_what_it_did_not_take_counted(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dc_destinations import commit
+
+    monkeypatch.setattr(commit, "STOP_COMMIT_WAIT_S", 0.5)
+    entered, release = threading.Event(), threading.Event()
+    original = GroupCommitter._commit
+
+    def stuck(self: GroupCommitter, handoffs: Any) -> None:
+        entered.set()
+        release.wait(10)  # a disk that hangs rather than fails
+        original(self, handoffs)
+
+    monkeypatch.setattr(GroupCommitter, "_commit", stuck)
+    logger = RecordingLogger()
+    sink = Recorder()
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, logger)
+    pipeline.start()
+    pipeline.submit("sink", record(0))
+    assert entered.wait(5)
+    for n in range(1, 100):
+        pipeline.submit("sink", record(n))
+    started = time.monotonic()
+    try:
+        pipeline.stop(grace=0.0)
+        assert time.monotonic() - started < 5.0, "a bounded wait"
+    finally:
+        release.set()
+    lost = [line for line in logger.at("error") if "could not be committed at the stop" in line]
+    assert len(lost) == 1 and lost[0].startswith("delivery buffer: 99 records held in memory"), logger.lines
+    assert "the writer did not finish within 0.5 s" in lost[0]
+    # The batch it held meets a closed buffer once the disk answers: counted too.
+    wait_until(lambda: pipeline.metrics()["sink"]["dropped"] == 100, what="the stuck batch counted")
+    assert len(sink.delivered) + pipeline.metrics()["sink"]["dropped"] == 100, "delivered + counted = sent"
