@@ -205,10 +205,13 @@ def cmd_status(args: argparse.Namespace) -> int:
         for metrics in documents.values():
             if "groups" in metrics:
                 _print_groups(metrics)
+                _print_threads(metrics)
             elif "measurements" in metrics:
                 _print_table("measurement", MEASUREMENT_COLUMNS, metrics["measurements"])
+                _print_threads(metrics)
             else:
                 _print_delivery(metrics)
+                _print_threads(metrics)
     return 1 if unreachable else 0
 
 
@@ -247,12 +250,19 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
                 f"{buffer['commit_error']}"
             )
     for section, values in sorted(metrics.items()):
-        if section not in ("destinations", "buffer") and isinstance(values, dict):
+        if section not in ("destinations", "buffer", "threads") and isinstance(values, dict):
             print(f"{section}: " + ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict)))
     unrouted = metrics.get("intake", {}).get("unrouted", {})
     for topic, reasons in sorted(unrouted.items()) if isinstance(unrouted, dict) else []:
         for reason, count in sorted(reasons.items()):
             print(f"unrouted: {count} on {topic}: {reason}")
+
+
+def _print_threads(metrics: dict[str, Any]) -> None:
+    """The server's thread failures (dc_core.supervision), when any thread died."""
+    threads = metrics.get("threads")
+    if isinstance(threads, dict) and threads.get("thread_failures"):
+        print(f"threads: {threads['thread_failures']} died, the server is unhealthy: {threads.get('unhealthy')}")
 
 
 def _with_ages(values: dict[str, Any], now: float) -> dict[str, Any]:

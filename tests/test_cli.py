@@ -237,6 +237,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
             "commit_failing_s": 42.0,
         },
         "intake": {"received": 10, "malformed": 2, "unrouted": {"/t": {"no tags": 3}}},
+        "threads": {"thread_failures": 1, "unhealthy": "thread dc-delivery-writer: RuntimeError: x"},
     }
 
     class Handler(http.server.BaseHTTPRequestHandler):
@@ -275,6 +276,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
     assert "unrouted: 3 on /t: no tags" in rest
     assert "pg (its own counters): reconnects 4" in rest
+    assert "threads: 1 died, the server is unhealthy: thread dc-delivery-writer: RuntimeError: x" in rest
     unreachable = dc("status", "--port", "1")
     assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr
 
