@@ -73,6 +73,8 @@ class SeverityLogger:
         return SeverityLogger(self.wrapped.get_child(name))
 
     def __getattr__(self, name: str) -> Any:
+        if name == "wrapped":  # not set yet (a copy being made): never recurse
+            raise AttributeError(name)
         return getattr(self.wrapped, name)
 
 
