@@ -207,10 +207,13 @@ def cmd_status(args: argparse.Namespace) -> int:
         for metrics in documents.values():
             if "groups" in metrics:
                 _print_groups(metrics)
+                _print_threads(metrics)
             elif "measurements" in metrics:
                 _print_table("measurement", MEASUREMENT_COLUMNS, metrics["measurements"])
+                _print_threads(metrics)
             else:
                 _print_delivery(metrics)
+                _print_threads(metrics)
     return 1 if unreachable else 0
 
 
@@ -258,7 +261,7 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
                 f"{buffer['commit_error']}"
             )
     for section, values in sorted(metrics.items()):
-        if section not in ("destinations", "buffer") and isinstance(values, dict):
+        if section not in ("destinations", "buffer", "threads") and isinstance(values, dict):
             print(f"{section}: " + ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict)))
     unrouted = metrics.get("intake", {}).get("unrouted", {})
     for topic, reasons in sorted(unrouted.items()) if isinstance(unrouted, dict) else []:
@@ -268,6 +271,13 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
     for topic, destinations in sorted(untrusted.items()) if isinstance(untrusted, dict) else []:
         for name, count in sorted(destinations.items()):
             print(f"untrusted tags: {count} on {topic} kept from {name} (a publisher there is not DC's)")
+
+
+def _print_threads(metrics: dict[str, Any]) -> None:
+    """The server's thread failures (dc_core.supervision), when any thread died."""
+    threads = metrics.get("threads")
+    if isinstance(threads, dict) and threads.get("thread_failures"):
+        print(f"threads: {threads['thread_failures']} died, the server is unhealthy: {threads.get('unhealthy')}")
 
 
 def _with_ages(values: dict[str, Any], now: float) -> dict[str, Any]:
@@ -308,8 +318,6 @@ def cmd_buffer(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    import signal
-    import threading
 
     import rclpy
     from rclpy.signals import SignalHandlerOptions
@@ -319,9 +327,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.rate <= 0:
         print("dc replay: --rate must be above 0", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
-    signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    from dc_core.signals import stop_on_signals
+
+    stop = stop_on_signals()  # handlers that take no lock (dc_core.signals)
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
         options = ReplayOptions(

@@ -32,6 +32,7 @@ from dc_bringup.local_servers.processes import free_port, log_tail
 from dc_bringup.local_servers.run import DEFAULT_PORTS, environment, environment_lines, make_server
 from dc_bringup.processes import die_with_parent
 from dc_core.errors import DcError
+from dc_core.signals import stop_on_signals
 
 # The demo files live in the checkout, beside the packages (an editable install, as `make install` does).
 DEMO_PARAMS = Path(__file__).resolve().parents[1] / "params" / "demos" / "tb3_qrcodes_minio_pgsql.yaml"
@@ -231,8 +232,6 @@ def _answers(url: str) -> bool:
 
 
 def main(args: Any) -> int:
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
-    signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    stop = stop_on_signals()  # handlers that take no lock (dc_core.signals)
     options = DemoOptions(port=args.port, duration=args.duration, state_dir=Path(args.state_dir), rate=args.rate)
     return Demo(options, stop).run()

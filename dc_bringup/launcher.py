@@ -6,14 +6,12 @@ import argparse
 import os
 import signal
 import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from dc_bringup.validate import SERVER_MODULES, check
 from dc_core.private_files import use_private_umask
-from dc_core.signals import wake_on_signals
+from dc_core.signals import StopRequest, wake_on_signals
 
 LOG_LEVELS = ("debug", "info", "warn", "error", "fatal")
 
@@ -82,13 +80,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
 
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    # The handler only sets a flag and writes the wake-up socket: safe however many signals come (dc_core.signals).
+    stop = StopRequest()
+    stop.install()
 
     # Imported late: validating a configuration must not need a ROS context.
     import rclpy
@@ -107,9 +101,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if name in report.servers
     ]
     manager = LifecycleManager(servers, bond_timeout=args.bond_timeout, namespace=namespace)
+    manager.stop_timeout = args.stop_timeout  # an unhealthy server is stopped in order before its restart
     # A signal, or a server process exiting, wakes the watch at once rather than at its next period.
     signal.signal(signal.SIGCHLD, lambda signum, frame: None)
-    wake_on_signals(manager.wake)
+    wake_on_signals(manager.wake, stop, manager.supervisor)
     if args.no_autostart:
         manager.target_state = "unconfigured"
     code = 0

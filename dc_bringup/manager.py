@@ -25,7 +25,9 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from dc_bringup.processes import ManagedServerHandle
-from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC
+from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_STATE_UNHEALTHY, HEARTBEAT_TOPIC
+from dc_core.logs import SeverityLogger
+from dc_core.supervision import Supervisor
 from dc_interfaces.msg import Heartbeat
 from dc_interfaces.srv import ManageLifecycleNodes
 
@@ -83,6 +85,10 @@ class LifecycleManager(Node):
         self.executor_.add_node(self)
         self._wake = self.create_guard_condition(_nothing)
         self._last_heartbeat: dict[str, float] = {}
+        # Servers whose heartbeat says a thread of theirs died (dc_core.supervision): restarted, after
+        # an orderly stop that commits what they hold in memory (up to stop_timeout seconds).
+        self._unhealthy: set[str] = set()
+        self.stop_timeout = 30.0
         self._watch_since: dict[str, float] = {}
         # Servers whose last bring-up failed, with the seconds to wait before the next attempt:
         # restarted then even if their heartbeat goes on (a process that sends heartbeats but never
@@ -102,18 +108,27 @@ class LifecycleManager(Node):
         self._services_stop = threading.Event()
         # Guard conditions with a callback: rclpy's spin_once returns only for work to do.
         self._services_wake = self._services_node.create_guard_condition(_nothing)
-        self._services_thread = threading.Thread(target=self._serve, name="manager-services", daemon=True)
-        self._services_thread.start()
+        # The services thread runs under the supervision rule (dc_core.supervision); one that died is
+        # started again by the watch (check_bonds), the manager being what restarts everything else.
+        self.supervisor = Supervisor(self.get_logger())
+        self._services_thread = self.supervisor.start_thread(self._serve, name="manager-services")
+
+    def get_logger(self) -> SeverityLogger:
+        """The node's logger, called from one line per severity (dc_core.logs)."""
+        logger: SeverityLogger | None = self.__dict__.get("_severity_logger")
+        if logger is None:
+            logger = self._severity_logger = SeverityLogger(super().get_logger())
+        return logger
 
     def _serve(self) -> None:
         while not self._services_stop.is_set():
             try:
                 # Woken by a request, or by destroy_node: no periodic wake-up while nothing happens.
                 self._services_executor.spin_once(timeout_sec=IDLE_WAIT_S)
-            except Exception as exc:  # the context ended under it: dc-bringup is stopping
-                if not self._services_stop.is_set():
-                    self.get_logger().error(f"lifecycle services stopped: {exc!r}")
-                return
+            except Exception:
+                if self._services_stop.is_set():
+                    return  # the context ended under it: dc-bringup is stopping
+                raise  # logged with its traceback and counted by the supervisor
 
     def destroy_node(self) -> None:
         # The services' thread lets go of its node before the node goes.
@@ -128,6 +143,9 @@ class LifecycleManager(Node):
         name = self._server_of.get(msg.node_name)
         if name is not None:
             self._last_heartbeat[name] = time.monotonic()
+            if msg.state == HEARTBEAT_STATE_UNHEALTHY and name not in self._unhealthy:
+                self._unhealthy.add(name)
+                self._wake.trigger()
 
     # -- services ------------------------------------------------------------------------------
     def _on_manage_nodes(self, request: Any, response: Any) -> Any:
@@ -302,7 +320,11 @@ class LifecycleManager(Node):
         return True
 
     def check_bonds(self) -> None:
-        """Restart a server whose process died or whose heartbeat stopped for bond_timeout."""
+        """Restart a server whose process died, whose heartbeat stopped for bond_timeout or says it is
+        unhealthy; and the manager's services thread if it died."""
+        if not self._services_thread.is_alive() and not self._services_stop.is_set():
+            self.get_logger().error("lifecycle services thread restarted")
+            self._services_thread = self.supervisor.start_thread(self._serve, name="manager-services")
         now = time.monotonic()
         for proc in self.servers:
             reason = None
@@ -312,6 +334,8 @@ class LifecycleManager(Node):
                 if now - self._watch_since[proc.name] < self._not_up[proc.name]:
                     continue
                 reason = "did not come up"
+            elif proc.name in self._unhealthy:
+                reason = "reports itself unhealthy (a thread of it died; its log above says which and why)"
             else:
                 last = max(self._last_heartbeat.get(proc.name, 0.0), self._watch_since.get(proc.name, now))
                 if now - last > self.bond_timeout:
@@ -319,13 +343,20 @@ class LifecycleManager(Node):
             if reason is None:
                 continue
             self.get_logger().fatal(f"{proc.name} {reason}: restarting it")
-            proc.kill()
+            if proc.name in self._unhealthy:
+                # Stopped in order: it commits the records it holds in memory before it goes.
+                proc.stop(self.stop_timeout)
+            else:
+                proc.kill()
+            self._unhealthy.discard(proc.name)
             self._last_heartbeat.pop(proc.name, None)
             self.restarts[proc.name] += 1
             started = time.monotonic()
             proc.start()
             if self.bring_up(proc, started):
                 self._not_up.pop(proc.name, None)
+                # A heartbeat the old process sent before it stopped is not the new one's word.
+                self._unhealthy.discard(proc.name)
             else:
                 previous = self._not_up.get(proc.name)
                 delay = min(2 * previous, MAX_RETRY_DELAY_S) if previous else self.bond_timeout

@@ -29,6 +29,7 @@ from typing import Any
 
 from dc_bringup.processes import die_with_parent
 from dc_bringup.validate import SERVER_MODULES, check
+from dc_core.signals import StopRequest
 
 # The process asks its supervisor for a restart (EX_TEMPFAIL): a server stopped beating.
 EXIT_RESTART = 75
@@ -78,7 +79,13 @@ class InProcessServer:
         os._exit(EXIT_RESTART)
 
     def stop(self, timeout: float) -> int | None:
-        return None
+        # Called before the restart of an unhealthy server (a thread of it died): only a new process
+        # brings its threads back, and this one stops in order first, committing what it holds.
+        raise ProcessRestart(self.name)
+
+
+class ProcessRestart(Exception):
+    """The manager asks for a restart of every server's process, after an orderly stop."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -111,6 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dc_bringup.manager import LifecycleManager
     from dc_core.lifecycle import ServerLoop, init_server_process, ros_namespace
     from dc_core.signals import wake_on_signals
+    from dc_core.supervision import Supervisor
 
     stop = init_server_process(args.log_level, args.namespace)
     namespace = ros_namespace(args.namespace) if args.namespace.strip("/") else ""
@@ -138,8 +146,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         loop.wake()
         manager.wake()
 
-    wake_on_signals(wake)
     outcome = {"code": 0}
+    # Without its signal relay the loop would not see a stop at once: the process is restarted, in order.
+    relay_supervisor = Supervisor(manager.get_logger())
+
+    def restart_process(reason: str) -> None:
+        outcome["code"] = EXIT_RESTART
+        stop.set()
+        wake()
+
+    relay_supervisor.add_listener(restart_process)
+    wake_on_signals(wake, stop, relay_supervisor)
     manager_thread = threading.Thread(
         target=_manage, args=(manager, names, stop, wake, args.status_fd, outcome), name="lifecycle-manager"
     )
@@ -166,7 +183,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _manage(
-    manager: Any, names: list[str], stop: threading.Event, wake: Any, status_fd: int, outcome: dict[str, int]
+    manager: Any, names: list[str], stop: StopRequest, wake: Any, status_fd: int, outcome: dict[str, int]
 ) -> None:
     """The manager's loop, on its thread: bring the servers up, then serve commands and watch heartbeats."""
     try:
@@ -184,8 +201,13 @@ def _manage(
             manager.run_commands()
             manager.check_bonds()
             status.beat()
+    except ProcessRestart as restart:
+        manager.get_logger().error(
+            f"{restart} must be restarted: stopping every server in order, then restarting their process"
+        )
+        outcome["code"] = EXIT_RESTART
     except Exception as exc:  # the manager must not die silently while the servers run on
-        manager.get_logger().fatal(f"lifecycle manager failed: {exc!r}")
+        manager.supervisor.failed("lifecycle-manager", exc)  # logged with its traceback, counted
         outcome["code"] = 1
     finally:
         stop.set()
@@ -235,11 +257,13 @@ def supervise(args: argparse.Namespace, params_file: str) -> int:
         cmd.append("--use-sim-time")
     if args.no_autostart:
         cmd.append("--no-autostart")
-    stopping = threading.Event()
+    # The handler sets a flag and, where the main thread waits for it, interrupts the wait: nothing
+    # that takes a lock (dc_core.signals), so a burst of signals cannot hang it.
+    stopping = StopRequest()
     interruptible = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
-        stopping.set()
+        stopping.on_signal(signum, frame)
         if interruptible.is_set():
             raise _Interrupted()
 
@@ -286,7 +310,7 @@ def supervise(args: argparse.Namespace, params_file: str) -> int:
 def _watch(
     process: subprocess.Popen[bytes],
     status: int,
-    stopping: threading.Event,
+    stopping: StopRequest,
     interruptible: threading.Event,
     bond_timeout: float,
 ) -> tuple[int, bool]:

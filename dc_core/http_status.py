@@ -12,7 +12,7 @@ text format.
 from __future__ import annotations
 
 import json
-import threading
+import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from http.server import BaseHTTPRequestHandler
@@ -20,6 +20,10 @@ from typing import Any
 
 from dc_core.http_limits import BoundedHTTPServer
 from dc_core.logs import Logger
+from dc_core.supervision import Supervisor
+
+# Where a StatusServer made without a supervisor (tests) says its thread died.
+_STDERR_LOGGER = logging.getLogger("dc.status_http")
 
 # A scraper, `dc status`, the supervisor's probe and an operator's curl at once, with room to spare;
 # each thread costs little, and the cap is what keeps a flood of connections from costing more.
@@ -116,18 +120,17 @@ class StatusServer:
         logger: Logger | None = None,
         max_connections: int = MAX_CONNECTIONS,
         timeout: float = REQUEST_TIMEOUT_S,
+        supervisor: Supervisor | None = None,
     ) -> None:
-        """Binds at once (raises OSError if the port is taken); port 0 picks a free one."""
+        """Binds at once (raises OSError if the port is taken); port 0 picks a free one. The thread runs
+        under ``supervisor``'s rule (dc_core.supervision), a supervisor of its own when none is given."""
         self._server = _Server((listen, port), health, metrics, prometheus, logger, max_connections, timeout)
         host, bound_port = self._server.server_address[:2]
         self.address: tuple[str, int] = (str(host), int(bound_port))
-        self._thread = threading.Thread(
-            target=self._server.serve_forever,
-            kwargs={"poll_interval": 0.2},
-            name="dc-status-http",
-            daemon=True,
+        self.supervisor = supervisor if supervisor is not None else Supervisor(_STDERR_LOGGER)
+        self._thread = self.supervisor.start_thread(
+            lambda: self._server.serve_forever(poll_interval=0.2), name="dc-status-http"
         )
-        self._thread.start()
 
     @property
     def refused(self) -> int:
@@ -148,13 +151,22 @@ def start_status_server(
     health: Callable[[], bool],
     metrics: Callable[[], dict[str, Any]],
     prometheus: Callable[[], str],
+    supervisor: Supervisor | None = None,
 ) -> StatusServer | None:
     """A :class:`StatusServer`, its address logged; ``None`` (and an error logged) if it cannot bind.
 
     Metrics are for operators: a taken port must not stop a server from doing its work.
     """
     try:
-        server = StatusServer(listen, port, health=health, metrics=metrics, prometheus=prometheus, logger=logger)
+        server = StatusServer(
+            listen,
+            port,
+            health=health,
+            metrics=metrics,
+            prometheus=prometheus,
+            logger=logger,
+            supervisor=supervisor if supervisor is not None else Supervisor(logger),
+        )
     except OSError as exc:
         logger.error(f"metrics HTTP server on {listen}:{port} not started: {exc}")
         return None

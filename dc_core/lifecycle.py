@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
 import threading
 import time
@@ -21,6 +20,7 @@ from typing import Any
 
 import rclpy
 import rclpy.utilities
+from lifecycle_msgs.msg import State
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 from rclpy.executors import (
@@ -40,7 +40,7 @@ from dc_core.config import load_params_file
 from dc_core.errors import ConfigError, DcError
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import Intake
-from dc_core.logs import Logger
+from dc_core.logs import Logger, SeverityLogger
 from dc_core.node_params import (
     DEFAULT_HEARTBEAT_PERIOD_S,
     DEFAULT_RECORD_LINGER_S,
@@ -49,12 +49,17 @@ from dc_core.node_params import (
 )
 from dc_core.plugin import MessageCallback
 from dc_core.private_files import use_private_umask
-from dc_core.signals import wake_on_signals
+from dc_core.signals import StopFlag, StopRequest, wake_on_signals
+from dc_core.supervision import Supervisor
 from dc_core.worker import Worker
 from dc_interfaces.msg import Heartbeat
 
 HEARTBEAT_TOPIC = "/dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# The heartbeat's state while a server is unhealthy (a thread of it died, dc_core.supervision): the
+# lifecycle's own "an error is being handled" state, so Heartbeat.msg needs no new field. The
+# lifecycle manager restarts a server that sends it.
+HEARTBEAT_STATE_UNHEALTHY = State.TRANSITION_STATE_ERRORPROCESSING
 # Most executor callbacks run in one turn while the intake is active; the rest wait for the next turn.
 EXECUTOR_TURN_MAX_CALLBACKS = 256
 # The shortest wait between two executor turns while the intake is active.
@@ -92,6 +97,9 @@ class ServerPluginContext:
     def worker(self) -> Worker:
         return self.server.worker
 
+    def start_thread(self, target: Callable[[], Any], name: str) -> threading.Thread:
+        return self.server.supervisor.start_thread(target, name=name)
+
 
 class ManagedServer(LifecycleNode):
     """A DC server process' node."""
@@ -102,6 +110,8 @@ class ManagedServer(LifecycleNode):
         # node_kwargs reach rclpy's LifecycleNode (e.g. context= for tests with a fresh context).
         super().__init__(node_name, **node_kwargs)
         self.params_file = params_file
+        # Every thread of this server runs under its rule: a thread that dies makes the server unhealthy.
+        self.supervisor = Supervisor(self.get_logger())
         # Subscriptions for records: the main loop takes them itself (dc_core.intake).
         self.intake = Intake(self)
         # The record_linger parameter (ServerLoop), set at configure.
@@ -117,6 +127,14 @@ class ManagedServer(LifecycleNode):
         # condition, made with the worker (rclpy's EventsExecutor stops firing timers beside one).
         self._worker: Worker | None = None
         self._worker_done: Any = None
+
+    def get_logger(self) -> SeverityLogger:
+        """The node's logger, called from one line per severity (dc_core.logs): any helper may log
+        through it at any severity. Plugin contexts get its children."""
+        logger: SeverityLogger | None = self.__dict__.get("_severity_logger")
+        if logger is None:
+            logger = self._severity_logger = SeverityLogger(super().get_logger())
+        return logger
 
     # -- configuration -----------------------------------------------------------------------
     def read_params_file(self) -> dict[str, dict[str, Any]]:
@@ -148,7 +166,7 @@ class ManagedServer(LifecycleNode):
         if self._worker is None:
             if self._worker_done is None:
                 self._worker_done = self.create_guard_condition(self._run_finished_work)
-            self._worker = Worker(f"{self.get_name()}-worker", self._worker_done.trigger)
+            self._worker = Worker(f"{self.get_name()}-worker", self._worker_done.trigger, supervisor=self.supervisor)
         return self._worker
 
     def wait_worker_idle(self, timeout: float) -> bool:
@@ -177,16 +195,17 @@ class ManagedServer(LifecycleNode):
         self, settings: MetricsHttpParams, document: Callable[[], dict[str, Any]], prometheus: Callable[[], str]
     ) -> None:
         """Serve ``document()`` (and its Prometheus text) while active, when ``settings.http_server``
-        is on; health is the lifecycle state."""
+        is on; healthy while active and no thread of the server died (``threads`` in the document)."""
         if not settings.http_server:
             return
         self._metrics_http = start_status_server(
             self.get_logger(),
             settings.http_listen,
             settings.http_port,
-            health=lambda: self.lifecycle_state == "active",
-            metrics=document,
-            prometheus=prometheus,
+            health=lambda: self.lifecycle_state == "active" and not self.supervisor.unhealthy,
+            metrics=lambda: {**document(), "threads": self.supervisor.metrics()},
+            prometheus=lambda: prometheus() + self.supervisor.prometheus(),
+            supervisor=self.supervisor,
         )
 
     def stop_metrics_http(self) -> None:
@@ -211,7 +230,7 @@ class ManagedServer(LifecycleNode):
         msg.node_name = self.get_fully_qualified_name()
         self._heartbeat_seq += 1
         msg.sequence = self._heartbeat_seq
-        msg.state = self._state_machine.current_state[0]
+        msg.state = HEARTBEAT_STATE_UNHEALTHY if self.supervisor.unhealthy else self._state_machine.current_state[0]
         self._heartbeat_pub.publish(msg)
 
     def set_heartbeat_period(self, period: float) -> None:
@@ -285,21 +304,18 @@ def ros_namespace(namespace: str) -> str:
     return "/" + namespace.strip("/")
 
 
-def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequence[str] = ()) -> threading.Event:
-    """rclpy for a process of servers, and the event SIGINT and SIGTERM set: its loop stops, its servers shut down."""
+def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequence[str] = ()) -> StopRequest:
+    """rclpy for a process of servers, and the stop SIGINT and SIGTERM ask: its loop stops, its servers shut
+    down. Give it to :func:`dc_core.signals.wake_on_signals` too, so that waiting threads see it at once."""
     use_private_umask()  # records, buffers and logs are this user's alone (dc_core.private_files)
     ros_args = ["--ros-args", "--log-level", log_level]
     if namespace.strip("/"):
         ros_args += ["-r", f"__ns:={ros_namespace(namespace)}"]
     # rclpy's own handlers would shut the context down under the servers before they could stop in order.
     rclpy.init(args=[*ros_args, *more_ros_args], signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    # The handler only sets a flag and writes the wake-up socket: safe however many signals come (dc_core.signals).
+    stop = StopRequest()
+    stop.install()
     return stop
 
 
@@ -319,7 +335,7 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     loop = ServerLoop(executor, node.intake)
-    wake_on_signals(loop.wake)
+    wake_on_signals(loop.wake, stop, node.supervisor)
     code = 0
     try:
         if args.autostart:
@@ -383,7 +399,7 @@ class ServerLoop:
             if linger > 0:
                 time.sleep(linger)
 
-    def run(self, stop: threading.Event, logger: Any) -> None:
+    def run(self, stop: StopFlag, logger: Any) -> None:
         """Spin until ``stop`` is set or the context shuts down; a failing callback is logged, not fatal."""
         while not stop.is_set():
             try:

@@ -15,6 +15,7 @@ this (``class Battery(Measurement): Params = BatteryParams``) works unchanged.
 from __future__ import annotations
 
 import abc
+import threading
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, Protocol, TypeVar, get_args, get_origin
 
@@ -68,6 +69,11 @@ class PluginContext(Protocol):
     def worker(self) -> Worker:
         """Threads for slow work: ``submit(job, on_done)`` runs ``job()`` on a thread and
         ``on_done(outcome)`` back on the main thread (dc_core.worker)."""
+
+    def start_thread(self, target: Callable[[], Any], name: str) -> threading.Thread:
+        """Start a daemon thread of the plugin's own under the server's supervision rule
+        (dc_core.supervision): an exception that escapes ``target`` is logged with its traceback,
+        counted, and makes the server unhealthy, so that it is restarted."""
 
 
 class Plugin(abc.ABC, Generic[ParamsT]):

@@ -27,6 +27,7 @@ from typing import Any, TypeVar
 from dc_core.measurement import BasePaths
 from dc_core.params import parse_params
 from dc_core.plugin import MessageCallback, Plugin
+from dc_core.supervision import Supervisor
 from dc_core.worker import Worker
 
 PluginT = TypeVar("PluginT", bound=Plugin[Any])
@@ -80,6 +81,7 @@ class FakeContext:
     emitted: list[Emitted] = field(default_factory=list)
     worker_woken: threading.Event = field(default_factory=threading.Event)
     _worker: Worker | None = None
+    _supervisor: Supervisor | None = None
 
     def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: Any) -> Any:
         node = self._require_node("subscribe")
@@ -101,6 +103,16 @@ class FakeContext:
         if self._worker is None:
             self._worker = Worker(f"{self.name}-worker", self.worker_woken.set, threads=2)
         return self._worker
+
+    def start_thread(self, target: Callable[[], Any], name: str) -> threading.Thread:
+        """A thread under a supervisor of this context's own: a failure is in ``logger``, ``supervisor`` counts it."""
+        return self.supervisor.start_thread(target, name=name)
+
+    @property
+    def supervisor(self) -> Supervisor:
+        if self._supervisor is None:
+            self._supervisor = Supervisor(self.logger)
+        return self._supervisor
 
     def stop_worker(self) -> None:
         """Stop the worker threads, if the plugin used them."""

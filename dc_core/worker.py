@@ -13,12 +13,15 @@ finishes; :meth:`Worker.run_finished` is what the loop then calls.
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
+
+from dc_core.supervision import Supervisor
 
 T = TypeVar("T")
 
@@ -40,9 +43,15 @@ class Outcome(Generic[T]):
 class Worker:
     """Threads for slow jobs of one server; see the module documentation."""
 
-    def __init__(self, name: str, wake: Callable[[], None], threads: int = 4) -> None:
+    def __init__(
+        self, name: str, wake: Callable[[], None], threads: int = 4, supervisor: Supervisor | None = None
+    ) -> None:
+        self._name = name
         self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix=name)
         self._wake = wake
+        # A job's exception is its outcome; what fails around it (handing the outcome over, waking
+        # the loop) would be lost in the pool's thread: it falls under the supervision rule.
+        self._supervisor = supervisor if supervisor is not None else Supervisor(logging.getLogger(name))
         self._finished: queue.SimpleQueue[tuple[Callable[[Outcome[Any]], None], Outcome[Any]]] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._running = 0
@@ -56,13 +65,22 @@ class Worker:
         future.add_done_callback(lambda f: self._finish(f, on_done))
 
     def _finish(self, future: Future[Any], on_done: Callable[[Outcome[Any]], None]) -> None:
+        """On the job's thread, once it ended: its outcome handed over, the loop woken."""
+        with self._supervisor.guard(f"{self._name} (handing over a finished job)"):
+            try:
+                self._hand_over(future, on_done)
+            finally:
+                with self._lock:
+                    self._running -= 1
+                    self._idle.notify_all()
+            self._wake()
+
+    def _hand_over(self, future: Future[Any], on_done: Callable[[Outcome[Any]], None]) -> None:
+        if future.cancelled():  # cancelled by shutdown: its outcome is dropped, as documented
+            return
         error = future.exception()
         outcome: Outcome[Any] = Outcome(error=error) if error is not None else Outcome(value=future.result())
         self._finished.put((on_done, outcome))
-        with self._lock:
-            self._running -= 1
-            self._idle.notify_all()
-        self._wake()
 
     def run_finished(self) -> int:
         """On the main thread: call ``on_done`` of every finished job; returns how many ran.

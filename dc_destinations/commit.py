@@ -12,6 +12,11 @@ One record never stops the others: a record that is not valid UTF-8 JSON is coun
 commit that fails because of what is in its records is split per received record. A commit that
 fails on the disk (full, I/O error) is retried every second, visibly (``failed``, ``last_error``,
 :attr:`GroupCommitter.failing`).
+
+What waits in memory is never lost without a count (:meth:`GroupCommitter.stop`): at a stop it is
+committed, by the writer or, if the writer died (dc_core.supervision), by the stopping thread, for
+up to :data:`STOP_COMMIT_WAIT_S`; what cannot be committed is counted as ``dropped`` of its
+destinations and logged in one line with its number.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from typing import Any
 from dc_core.destination import OutgoingRecord
 from dc_core.logs import BurstLog, Logger
 from dc_core.records import MalformedRecord
+from dc_core.supervision import Supervisor
 from dc_destinations.buffer import AppendResult, Buffer, BufferClosed, BufferCorrupted, PendingRecord, QueueLimit
 from dc_destinations.sender import Closing, Route
 from dc_destinations.settings import DeliveryParams
@@ -35,6 +41,9 @@ HopKey = tuple[str, int, int]
 CommitListener = Callable[[Sequence[tuple[str, str]]], None]
 
 _STOP = object()
+# The longest a stop waits for the writer to commit what waits in memory (a disk that hangs rather
+# than fails): what is still not committed then is counted as dropped and logged.
+STOP_COMMIT_WAIT_S = 10.0
 
 Received = tuple[Sequence[tuple[str, OutgoingRecord]], HopKey | None]
 """One received record as routing gave it: its copies by destination name, and its hop key."""
@@ -120,8 +129,10 @@ class GroupCommitter:
         seen_window: int | None = None,
         clock: Callable[[], float] = time.monotonic,
         tick_logs: Callable[[], None] = lambda: None,
+        supervisor: Supervisor | None = None,
     ) -> None:
         self._routes = routes
+        self._supervisor = supervisor if supervisor is not None else Supervisor(logger)
         self._buffer = buffer
         self.settings = settings
         self._closing = closing
@@ -144,6 +155,12 @@ class GroupCommitter:
         self.commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
         # (since, error) while group commits fail for a reason that may pass (disk full, I/O error).
         self.failing: tuple[float, str] | None = None
+        # The records of the commit being written (the writer's), and those a dead writer held then.
+        self._in_hand: list[Received] = []
+        self._orphaned: list[Received] = []
+        # Records that could not be committed at the stop, and why (one log line at the end of stop()).
+        self._lost_at_stop = 0
+        self._lost_reason = ""
 
     # -- the server's side ------------------------------------------------------------------------
 
@@ -151,17 +168,57 @@ class GroupCommitter:
         self._intake = _IntakeQueue()
         self._submitted = self._taken = self._submitted_bytes = 0
         self._accepting = True
-        self._writer = threading.Thread(target=self._write_loop, name="dc-delivery-writer", daemon=True)
-        self._writer.start()
+        self._in_hand, self._orphaned = [], []
+        self._lost_at_stop, self._lost_reason = 0, ""
+        self._writer = self._supervisor.start_thread(
+            self._write_loop, name="dc-delivery-writer", on_failure=self._writer_failed
+        )
 
-    def stop(self) -> None:
-        """Refuse new records, commit what was submitted, end the writer."""
-        if self._writer is None:
-            return
+    def stop(self, timeout: float | None = None) -> int:
+        """Refuse new records, commit what was submitted, end the writer; returns how many records were lost.
+
+        Waits up to ``timeout`` seconds (:data:`STOP_COMMIT_WAIT_S` when None) for the writer. If it
+        died, what it held and what waits for it are committed here. Records that cannot be
+        committed (the disk is full, the writer did not finish in time) are counted as ``dropped``
+        of their destinations and logged in one line with their number.
+        """
+        writer = self._writer
+        if writer is None:
+            return 0
         self._accepting = False
         self._intake.put(_STOP)
-        self._writer.join()
+        wait = STOP_COMMIT_WAIT_S if timeout is None else timeout
+        writer.join(wait)
         self._writer = None
+        if writer.is_alive():
+            # Still committing (a disk that hangs): what it has not taken yet is counted lost here.
+            # It may yet commit its batch in hand; that batch is then delivered, at least once.
+            left = self._take_all()
+            self._taken += len(left)
+            self._lose(left, f"the writer did not finish within {wait:g} s")
+        else:
+            # A writer that died left its batch and the queue: committed here if the disk allows.
+            leftovers, self._orphaned = self._orphaned, []
+            leftovers += self._take_all()
+            if leftovers:
+                self.logger.warning(f"delivery buffer: committing {len(leftovers)} records the writer left behind")
+                self._taken += len(leftovers)
+                try:
+                    self._commit(leftovers)
+                except Exception as exc:  # the writer's own failure again, most likely
+                    self._lose(leftovers, f"{type(exc).__name__}: {exc}")
+        lost = self._lost_at_stop
+        if lost:
+            self.logger.error(
+                f"delivery buffer: {lost} records held in memory could not be committed at the stop and are lost"
+                f" ({self._lost_reason}); counted as dropped"
+            )
+        return lost
+
+    @property
+    def started(self) -> bool:
+        """Started and not stopped yet (its writer may have died meanwhile)."""
+        return self._writer is not None
 
     @property
     def running(self) -> bool:
@@ -237,6 +294,43 @@ class GroupCommitter:
         """Call ``listener`` on the writer thread with ``(destination, record_id)`` of each group commit."""
         self._listeners.append(listener)
 
+    def _take_all(self) -> list[Received]:
+        """Every hand-off still on the queue (markers set, the stop marker skipped)."""
+        taken: list[Received] = []
+        while True:
+            try:
+                item = self._intake.get_nowait()
+            except queue.Empty:
+                return taken
+            if isinstance(item, threading.Event):
+                item.set()
+            elif item is not _STOP:
+                taken.extend(item)
+
+    def _writer_failed(self, exc: BaseException) -> None:
+        """On the dying writer (dc_core.supervision): its batch in hand waits for the stop with the queue."""
+        self._orphaned.extend(self._in_hand)
+        self._taken -= len(self._in_hand)  # waiting again: intake_pending shows it
+        self._in_hand = []
+
+    def _lose(self, handoffs: Sequence[Received], reason: str) -> None:
+        """Count the copies of ``handoffs`` as received and dropped; the stop logs their number once."""
+        lost = 0
+        for copies, _ in handoffs:
+            for name, _ in copies:
+                route = self._routes.get(name)
+                if route is not None:
+                    route.metrics.add("received")
+                    route.metrics.add("dropped")
+                    lost += 1
+        self._add_lost(lost, reason)
+
+    def _add_lost(self, count: int, reason: str) -> None:
+        # The writer and a stop that gave up waiting for it may both count.
+        with self._submit_lock:
+            self._lost_at_stop += count
+            self._lost_reason = self._lost_reason or reason
+
     # -- the writer thread ------------------------------------------------------------------------
 
     def _write_loop(self) -> None:
@@ -265,7 +359,9 @@ class GroupCommitter:
                     handoffs.extend(item)
             self._taken += len(handoffs)
             if handoffs:
+                self._in_hand = handoffs
                 self._commit(handoffs)
+                self._in_hand = []
             self._tick_logs()
             for marker in markers:
                 marker.set()
@@ -297,7 +393,9 @@ class GroupCommitter:
                 item.set()
             elif item is not _STOP:
                 self._taken += len(item)
+                self._in_hand = item
                 self._commit(item)
+                self._in_hand = []
 
     def _commit(self, handoffs: list[Received]) -> None:
         """One group commit of received records."""
@@ -318,11 +416,13 @@ class GroupCommitter:
                     return
                 # Disk full, I/O error: keep the batch and try again, visibly.
                 self._commit_failed(batch, exc)
-                if self._closing.event.wait(1.0) or not self._accepting:
+                # At a stop, one attempt: waiting for space would only make the stop wait.
+                if not self._accepting or self._closing.event.wait(1.0):
+                    # Stopping: counted here, logged once with the total by stop().
                     for name, records in batch.by_destination.items():
                         self._routes[name].metrics.add("received", len(records))
                         self._routes[name].metrics.add("dropped", len(records))
-                    self.logger.error(f"delivery buffer: {batch.count} records lost at shutdown: {exc}")
+                    self._add_lost(batch.count, f"{type(exc).__name__}: {exc}")
                     return
         self.failing = None
         self._account(batch, result)

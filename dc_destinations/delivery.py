@@ -26,6 +26,7 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.logs import Logger
+from dc_core.supervision import Supervisor
 from dc_destinations.buffer import (
     FILE_NAME,
     BufferClosed,
@@ -68,9 +69,12 @@ class DeliveryPipeline:
         clock: Callable[[], float] = time.monotonic,
         wait: Callable[[float], bool] | None = None,
         uniform: Callable[[float, float], float] | None = None,
+        supervisor: Supervisor | None = None,
     ) -> None:
         self.settings = settings
         self.logger = logger
+        # The writer, the senders and the status server run under its rule (dc_core.supervision).
+        self.supervisor = supervisor if supervisor is not None else Supervisor(logger)
         self._seen_window = seen_window
         self._clock = clock
         self._wait = wait
@@ -134,7 +138,7 @@ class DeliveryPipeline:
 
     def start(self) -> None:
         """Open (or recover) the buffer, start the writer and one sender per destination."""
-        if self._committer is not None and self._committer.running:
+        if self._committer is not None and self._committer.started:
             return
         if self._lock is None or not self._lock.held:
             self.claim_storage()
@@ -177,6 +181,7 @@ class DeliveryPipeline:
             seen_window=self._seen_window,
             clock=self._clock,
             tick_logs=self._tick_logs,
+            supervisor=self.supervisor,
         )
         for listener in self._listeners:
             self._committer.add_listener(listener)
@@ -184,21 +189,22 @@ class DeliveryPipeline:
         for name, sender in senders.items():
             route = self._routes[name]
             route.wakeup.clear()
-            route.thread = threading.Thread(target=sender.run, name=f"dc-sender-{name}", daemon=True)
-            route.thread.start()
+            route.thread = self.supervisor.start_thread(sender.run, name=f"dc-sender-{name}")
         pending = buffer.pending_salvage()
         if pending is not None:
             # Beside delivery, not in this transition: ~0.75 s per 100,000 records.
-            self._salvage_thread = threading.Thread(
-                target=self._salvage, args=(buffer, pending), name="dc-salvage", daemon=True
+            self._salvage_thread = self.supervisor.start_thread(
+                lambda: self._salvage(buffer, pending), name="dc-salvage"
             )
-            self._salvage_thread.start()
         if self.settings.http_server:
             self._start_status_server()
 
     def stop(self, grace: float) -> None:
-        """Stop intake, commit what was submitted, deliver for up to ``grace`` s, leave the rest on disk."""
-        if self._committer is None or not self._committer.running:
+        """Stop intake, commit what was submitted, deliver for up to ``grace`` s, leave the rest on disk.
+
+        What waits in memory is committed first, even if the writer died; what cannot be is counted
+        and logged with its number (dc_destinations.commit.GroupCommitter.stop)."""
+        if self._committer is None or not self._committer.started:
             return
         self._committer.stop()
         self._closing.deadline = self._clock() + grace
@@ -438,21 +444,27 @@ class DeliveryPipeline:
 
     def status_document(self) -> dict[str, Any]:
         """What ``/api/v1/metrics`` serves."""
-        document: dict[str, Any] = {"destinations": self.metrics(), "buffer": self.buffer_metrics()}
+        document: dict[str, Any] = {
+            "destinations": self.metrics(),
+            "buffer": self.buffer_metrics(),
+            "threads": self.supervisor.metrics(),
+        }
         for name, supplier in self._sections.items():
             document[name] = supplier()
         return document
 
     def healthy(self) -> bool:
-        """Writer and senders alive, records reaching the disk (a failing group commit keeps
-        every new record in memory only), and the buffer file undamaged at its last check."""
+        """Writer and senders alive, no thread of the server died, records reaching the disk (a failing
+        group commit keeps every new record in memory only), and the buffer file undamaged at its last check."""
         committer = self._committer
         if committer is None or not committer.running or committer.failing is not None or self._damaged:
+            return False
+        if self.supervisor.unhealthy:
             return False
         return all(route.thread is not None and route.thread.is_alive() for route in self._routes.values())
 
     def prometheus(self) -> str:
-        return prometheus_text(self.metrics(), self.buffer_metrics())
+        return prometheus_text(self.metrics(), self.buffer_metrics()) + self.supervisor.prometheus()
 
     @property
     def http_address(self) -> tuple[str, int] | None:
@@ -466,6 +478,7 @@ class DeliveryPipeline:
             health=self.healthy,
             metrics=self.status_document,
             prometheus=self.prometheus,
+            supervisor=self.supervisor,
         )
 
 

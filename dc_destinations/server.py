@@ -158,6 +158,7 @@ class DestinationServer(ManagedServer):
             {d.name: (self.plugins[d.name], d.delivery) for d in config.destinations},
             self.get_logger(),
             seen_window=self._hop_window,
+            supervisor=self.supervisor,
         )
         # At configure: a buffer another process owns fails configure, with the owner named.
         self.pipeline.claim_storage(self.get_namespace())

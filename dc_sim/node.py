@@ -46,6 +46,7 @@ from rosgraph_msgs.msg import Clock as ClockMessage
 from sensor_msgs.msg import Image
 from tf2_msgs.msg import TFMessage
 
+from dc_core.signals import StopRequest
 from dc_sim.camera import CameraView
 from dc_sim.kinematics import DiffDrive, Pose2D, RouteFollower
 from dc_sim.warehouse import Grid, warehouse_grid, warehouse_route, warehouse_start
@@ -410,10 +411,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         arguments, ros_arguments = arguments[:split], arguments[split:]
     options = parse_args(arguments)
 
-    stop = threading.Event()
+    stop = StopRequest()
 
     def request_stop(signum: int, frame: FrameType | None) -> None:
-        stop.set()
+        stop.on_signal(signum, frame)  # a flag, no lock: safe under a burst of signals (dc_core.signals)
 
     # Our own handlers rather than rclpy's: they only ask the loop to end, which then tears down
     # in order (truth file closed, node destroyed, context shut down) and exits 0.

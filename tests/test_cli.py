@@ -242,6 +242,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
             "unrouted": {"/t": {"no tags": 3}},
             "untrusted_tags": {"/dc/measurement/map": {"flb_minio": 1}},
         },
+        "threads": {"thread_failures": 1, "unhealthy": "thread dc-delivery-writer: RuntimeError: x"},
     }
 
     class Handler(http.server.BaseHTTPRequestHandler):
@@ -281,6 +282,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert "unrouted: 3 on /t: no tags" in rest
     assert "untrusted tags: 1 on /dc/measurement/map kept from flb_minio (a publisher there is not DC's)" in rest
     assert "pg (its own counters): reconnects 4" in rest
+    assert "threads: 1 died, the server is unhealthy: thread dc-delivery-writer: RuntimeError: x" in rest
     unreachable = dc("status", "--port", "1")
     assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr
 

@@ -473,9 +473,11 @@ def test_counters_are_served_over_http_while_active(harness: Harness) -> None:
             }
         },
         "metrics_http": {"refused_connections": 0},  # the HTTP server's own (dc_core.http_status)
+        "threads": {"thread_failures": 0, "unhealthy": ""},
     }
     with urllib.request.urlopen(f"{base}/metrics/prometheus", timeout=5) as reply:
         lines = reply.read().decode().splitlines()
+    assert "dc_thread_failures_total 0" in lines
     assert f'dc_measurement_published_total{{measurement="{measurement.name}"}} 1' in lines
     assert f'dc_measurement_malformed_total{{measurement="{measurement.name}"}} 1' in lines
     with urllib.request.urlopen(f"{base}/health", timeout=5) as reply:

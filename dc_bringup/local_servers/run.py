@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import secrets
 import shlex
-import signal
 import threading
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ from typing import Any
 import yaml
 
 from dc_bringup.local_servers import LocalServer, ServerError
+from dc_core.signals import stop_on_signals
 
 SERVER_NAMES = ("postgres", "s3", "influxdb")
 # Fixed ports (the usual ones plus 10000), so the demos' parameter files can name them.
@@ -88,7 +88,5 @@ def _write_private(path: Path, text: str) -> None:
 
 
 def main(args: Any) -> int:
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
-    signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    stop = stop_on_signals()  # handlers that take no lock (dc_core.signals)
     return run(list(args.names or SERVER_NAMES), Path(args.state_dir), stop)

@@ -171,8 +171,8 @@ class IpCamera(Measurement[IpCameraParams]):
             f"{self.context.name}: recording {ffmpeg.without_password(self.params.input)} into {self.folder} "
             f"(ffmpeg's messages: {self.log_path})"
         )
-        self._supervisor = threading.Thread(target=self._supervise, name=f"{self.context.name}-ffmpeg", daemon=True)
-        self._supervisor.start()
+        # Under the server's supervision rule: a bug here must not leave the camera silently unrecorded.
+        self._supervisor = self.context.start_thread(self._supervise, name=f"{self.context.name}-ffmpeg")
 
     def on_deactivate(self) -> None:
         self._stop_recording()

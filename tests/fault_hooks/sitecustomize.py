@@ -1,0 +1,32 @@
+"""Test-only fault injection into DC's own processes (tests/test_e2e_never_silent.py).
+
+Python imports ``sitecustomize`` at start when it is on the path: a test puts this folder on the
+PYTHONPATH of `dc-bringup`, whose server processes inherit it. With ``DC_TEST_FAULT`` set to
+``module:Class.method``, that method raises ``RuntimeError`` the first time it is called in any of
+those processes, once: the marker file ``DC_TEST_FAULT_ONCE`` is created atomically by the one that
+raises, so a restarted process runs normally. Nothing here is imported without ``DC_TEST_FAULT``.
+"""
+
+from __future__ import annotations
+
+import os
+
+_SPEC = os.environ.get("DC_TEST_FAULT")
+if _SPEC:
+    import importlib
+    from typing import Any
+
+    _module_name, _, _qualified = _SPEC.partition(":")
+    _class_name, _, _method_name = _qualified.partition(".")
+    _owner = getattr(importlib.import_module(_module_name), _class_name)
+    _original = getattr(_owner, _method_name)
+    _marker = os.environ["DC_TEST_FAULT_ONCE"]
+
+    def _raise_once(self: Any, *args: Any, **kwargs: Any) -> Any:
+        try:
+            os.close(os.open(_marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:
+            return _original(self, *args, **kwargs)
+        raise RuntimeError(f"injected by the test into {_SPEC}")
+
+    setattr(_owner, _method_name, _raise_once)
