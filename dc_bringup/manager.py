@@ -11,6 +11,7 @@ the transitions' answers and the heartbeats stopped arriving.)
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections import deque
@@ -26,10 +27,13 @@ from std_srvs.srv import Trigger
 
 from dc_bringup.processes import ManagedServerHandle
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC
-from dc_interfaces.msg import Heartbeat
+from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC, degraded_line
+from dc_interfaces.msg import Heartbeat, StringStamped
 from dc_interfaces.srv import ManageLifecycleNodes
 
 NODE_NAME = "lifecycle_manager_dc"
+# is_active's message when the servers are active but a destination is failing (dc_destinations.health).
+DEGRADED_PREFIX = "running, degraded: "
 # get_state answers at once from a live process: a probe unanswered this long was lost.
 GET_STATE_PROBE_S = 0.5
 PROBES_PER_CLIENT = 4
@@ -92,6 +96,9 @@ class LifecycleManager(Node):
         self._lifecycle_clients: dict[str, tuple[Any, Any]] = {}
         self.restarts: dict[str, int] = {s.name: 0 for s in servers}
         self.create_subscription(Heartbeat, HEARTBEAT_TOPIC, self._on_heartbeat, HEARTBEAT_QOS)
+        # The destinations' health as destination_server last told it (dc_destinations.health).
+        self._destination_health: dict[str, Any] = {}
+        self.create_subscription(StringStamped, HEALTH_TOPIC, self._on_destination_health, HEALTH_QOS)
         self._server_of = {fqn: name for name, fqn in self._fqn.items()}
         self._services_node = Node(f"{NODE_NAME}_services", namespace=namespace or None, context=self.context)
         me = self.get_fully_qualified_name()
@@ -129,6 +136,14 @@ class LifecycleManager(Node):
         if name is not None:
             self._last_heartbeat[name] = time.monotonic()
 
+    def _on_destination_health(self, msg: Any) -> None:
+        try:
+            states = json.loads(msg.data)
+        except ValueError:
+            return
+        if isinstance(states, dict):
+            self._destination_health = states
+
     # -- services ------------------------------------------------------------------------------
     def _on_manage_nodes(self, request: Any, response: Any) -> Any:
         """On the services thread: queue the command, answer once the main loop carried it out."""
@@ -149,6 +164,11 @@ class LifecycleManager(Node):
         down = sorted(self._not_up)
         response.success = self.target_state == "active" and not down
         response.message = f"servers {self.target_state}" + (f"; not up: {', '.join(down)}" if down else "")
+        failing = degraded_line(self._destination_health, time.time())
+        if response.success and failing:
+            # Still active (success stays true for Nav2-style callers); `dc lifecycle is-active` tells
+            # this apart by the prefix and exits with its own code.
+            response.message = f"{DEGRADED_PREFIX}{failing}"
         return response
 
     def run_commands(self) -> None:

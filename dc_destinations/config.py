@@ -10,6 +10,7 @@ key is reported once, with a suggestion taken from all of them.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import typing
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,6 +20,7 @@ from dc_core.node_params import ServerNodeParams, record_linger_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.plugins import load_plugin
 from dc_core.timefmt import TIME_FORMATS
+from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
@@ -37,6 +39,12 @@ class DestinationServerParams(ServerNodeParams):
     record_linger: float = record_linger_param(0.05)
     destination_plugins: list[str] = param([], doc="Names of the destinations to load, each with its section")
     flb: DeliveryParams = param(default_factory=DeliveryParams, doc="Delivery settings (Fluent Bit's names)")
+    unhealthy_after: float = param(
+        DEFAULT_UNHEALTHY_AFTER_S,
+        minimum=0.1,
+        doc="Seconds without a successful send before a destination is reported failing (each destination may"
+        " set its own)",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -166,6 +174,13 @@ def parse_destination_server(section: dict[str, Any], path: str = "destination_s
         warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
 
     destinations = [_parse_destination(name, section.get(name), f"{path}.{name}") for name in node.destination_plugins]
+    # A destination without its own unhealthy_after has the server's.
+    destinations = [
+        d
+        if d.delivery.unhealthy_after
+        else dataclasses.replace(d, delivery=dataclasses.replace(d.delivery, unhealthy_after=node.unhealthy_after))
+        for d in destinations
+    ]
 
     for key in section:
         if key in node_keys or key in seen or key == "flb_grace":

@@ -30,6 +30,8 @@ from dc_core.records import MalformedRecord, parse_record
 from dc_core.stamped_cdr import read_string_stamped
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC
+from dc_destinations.health import summary as health_summary
 from dc_destinations.hop import HopIntake, HopKey, hop_key
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
@@ -87,6 +89,10 @@ class DestinationServer(ManagedServer):
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
+        # Each destination's health for the lifecycle manager's is_active: sent when it changes, kept
+        # for a manager that (re)subscribes.
+        self._health_pub = self.create_publisher(StringStamped, HEALTH_TOPIC, HEALTH_QOS)
+        self._health_sent = ""
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -262,6 +268,20 @@ class DestinationServer(ManagedServer):
         if self._hop_loss_log is not None:
             self._hop_loss_log.tick()
         self._malformed_log.tick()
+        self._report_health()
+
+    def _report_health(self) -> None:
+        pipeline = self.pipeline
+        if pipeline is None:
+            return
+        pipeline.check_health()
+        text = health_summary(pipeline.destination_health())
+        if text != self._health_sent:
+            msg = StringStamped()
+            msg.header.stamp = self.get_clock().now().to_msg()
+            msg.data = text
+            self._health_pub.publish(msg)
+            self._health_sent = text
 
     def _hand_over(self, received: list[_Received]) -> None:
         """Submit records with their copies and keys; the keys are remembered once the pipeline took them.
