@@ -198,7 +198,9 @@ def test_a_wrong_postgresql_password_is_failing_at_once_and_is_active_says_degra
             assert "password authentication failed" in error and "PGPASSWORD" in error, error
             assert pg.password not in "\n".join(run.stderr)
             # Several attempts later (0.2 s doubling to 2 s), still one line.
-            run.wait_until(lambda: sum("destination pg: delivery failed" in line for line in run.stderr) >= 1, 20, "a retry")
+            run.wait_until(
+                lambda: sum("destination pg: delivery failed" in line for line in run.stderr) >= 1, 20, "a retry"
+            )
 
             def is_active() -> subprocess.CompletedProcess[str]:
                 return dc("lifecycle", "is-active", "--timeout", "10", env=run.env)
