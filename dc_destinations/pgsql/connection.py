@@ -186,6 +186,8 @@ class KeptConnection:
             return f"create the database {s.database or s.user or '(the user name)'} or set the database parameter"
         if state == "42501" or "permission denied" in text:
             return f"grant the user {s.user or '(the system user)'} what it needs on {self._prepared}"
+        if "certificate verify failed" in text or "does not match host name" in text:
+            return "check sslrootcert (the CA that signed the server's certificate) and host"
         if state.startswith(_SET_UP_STATES):
             return f"check {self._prepared} and the database parameter"
         return ""
