@@ -33,6 +33,7 @@ from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 from tests.bringup_util import Bringup, dc
 from tests.destination_helpers import forwarding_params, running_postgres
 from tests.http_receiver import Receiver, free_port
+from tests.mqtt_broker import MOSQUITTO_PASSWD, Broker
 
 
 class Clock:
@@ -229,3 +230,59 @@ def test_a_wrong_postgresql_password_is_failing_at_once_and_is_active_says_degra
             ), status.stdout
             errors = [text for text in run.stderr if "destination pg failing" in text]
             assert len(errors) == 1, errors
+
+
+# -- what the plugins raise, against real servers ----------------------------------------------------
+
+
+def _raised(plugin: Any) -> BaseException:
+    try:
+        plugin.send([OutgoingRecord(new_record_id(), "/t", 1, {"name": "cpu", "v": 1})])
+    except Exception as exc:
+        return exc
+    raise AssertionError("send() did not fail")
+
+
+def _plugin(cls: Any, params_cls: Any, **params: Any) -> Any:
+    plugin = cls(FakeContext(name="dest"), parse_params(params_cls, params, "destination_server.dest"))
+    plugin.on_configure()
+    plugin.on_activate()
+    return plugin
+
+
+def test_plugins_say_which_failures_retrying_cannot_mend() -> None:
+    from dc_destinations.influxdb import InfluxDB, InfluxDBParams
+    from dc_destinations.tcp import Tcp, TcpParams
+
+    answers = {"status": (401, b"unauthorized")}
+    with Receiver(lambda request: answers["status"]) as receiver:
+        web = _plugin(Http, HttpParams, host="127.0.0.1", port=receiver.port)
+        refused = _raised(web)
+        assert isinstance(refused, RejectedError) and attention_needed(refused) is not None, refused
+        answers["status"] = (503, b"busy")
+        assert attention_needed(_raised(web)) is None, "a busy server is for retrying"
+        influx = _plugin(InfluxDB, InfluxDBParams, host="127.0.0.1", port=receiver.port, database="ros")
+        answers["status"] = (401, b'{"error":"authorization failed"}')
+        assert isinstance(_raised(influx), ConfigurationProblem)
+        answers["status"] = (404, b'{"error":"database not found: \\"ros\\""}')
+        missing = _raised(influx)
+        assert isinstance(missing, ConfigurationProblem) and "CREATE DATABASE ros" in missing.fix
+    for plugin in (
+        _plugin(Http, HttpParams, host="no-such-host.invalid", port=80),
+        _plugin(Tcp, TcpParams, host="no-such-host.invalid", port=5170),
+    ):
+        unknown = attention_needed(_raised(plugin))
+        assert unknown is not None and "unknown host" in unknown[0], plugin
+
+
+@pytest.mark.skipif(MOSQUITTO_PASSWD is None, reason="mosquitto_passwd (package mosquitto) is not installed")
+def test_an_mqtt_broker_that_refuses_the_password_is_a_configuration_problem(tmp_path: Path) -> None:
+    from dc_destinations.mqtt import Mqtt, MqttParams
+
+    with Broker(tmp_path / "auth", users={"robot": "right-password"}) as broker:
+        wrong = _plugin(Mqtt, MqttParams, port=broker.port, username="robot", password="wrong", topic="dc/x")
+        try:
+            refused = _raised(wrong)
+        finally:
+            wrong.on_deactivate()
+    assert isinstance(refused, ConfigurationProblem) and "username and password" in refused.fix, refused
