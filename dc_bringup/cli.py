@@ -140,6 +140,7 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
 
 
 STATUS_COLUMNS = [
+    ("health_state", "health"),  # ok, retrying, failing: see _with_ages
     ("received", "received"),
     ("buffered", "buffered"),
     ("buffered_bytes", "bytes"),
@@ -237,6 +238,13 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
     }
     _print_table("destination", STATUS_COLUMNS, rows, text_column="last_error")
     for name, values in sorted(destinations.items()):
+        health = values.get("health") if isinstance(values, dict) else None
+        if isinstance(health, dict) and health.get("state") in ("failing", "retrying"):
+            lasted = health.get("for_s")
+            how_long = f" for {_cell(float(lasted))} s" if isinstance(lasted, int | float) else ""
+            fix = f" — {health['fix']}" if health.get("fix") else ""
+            print(f"destination {name} {str(health['state']).upper()}{how_long}: {health.get('reason')}{fix}")
+    for name, values in sorted(destinations.items()):
         own = values.get("plugin") if isinstance(values, dict) else None
         if own:
             print(f"{name} (its own counters): " + ", ".join(f"{k} {_cell(v)}" for k, v in sorted(own.items())))
@@ -283,6 +291,8 @@ def _print_threads(metrics: dict[str, Any]) -> None:
 def _with_ages(values: dict[str, Any], now: float) -> dict[str, Any]:
     """A destination's row with its wall-clock times as ages: at a glance, is delivery moving?"""
     row = dict(values)
+    health = row.get("health")
+    row["health_state"] = health.get("state") if isinstance(health, dict) else None
     delivered, failed = row.get("last_delivery"), row.get("last_error_time")
     if isinstance(delivered, int | float):
         row["last_delivery_age_s"] = max(now - delivered, 0.0)
@@ -349,6 +359,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+# `dc lifecycle is-active`: the servers are active but a destination is failing (0: active and
+# healthy, 1: not active, 2: no manager or no answer).
+EXIT_DEGRADED = 3
 LIFECYCLE_COMMANDS = ("startup", "pause", "resume", "reset", "shutdown", "is-active")
 
 
@@ -357,7 +370,7 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     import rclpy
     from std_srvs.srv import Trigger
 
-    from dc_bringup.manager import NODE_NAME
+    from dc_bringup.manager import DEGRADED_PREFIX, NODE_NAME
     from dc_interfaces.srv import ManageLifecycleNodes
 
     namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
@@ -384,6 +397,9 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
         node.destroy_node()
         rclpy.shutdown()
     if args.command_name == "is-active":
+        if response.success and response.message.startswith(DEGRADED_PREFIX):
+            print(response.message)
+            return EXIT_DEGRADED
         print(f"{'active' if response.success else 'not active'}: {response.message}")
     else:
         print(f"{args.command_name}: {'done' if response.success else 'failed (see dc-bringup log)'}")

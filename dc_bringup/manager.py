@@ -11,6 +11,8 @@ the transitions' answers and the heartbeats stopped arriving.)
 
 from __future__ import annotations
 
+import json
+import os
 import threading
 import time
 from collections import deque
@@ -24,14 +26,18 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
+from dc_bringup import instances
 from dc_bringup.processes import ManagedServerHandle
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_STATE_UNHEALTHY, HEARTBEAT_TOPIC
 from dc_core.logs import SeverityLogger
 from dc_core.supervision import Supervisor
-from dc_interfaces.msg import Heartbeat
+from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC, degraded_line
+from dc_interfaces.msg import Heartbeat, StringStamped
 from dc_interfaces.srv import ManageLifecycleNodes
 
 NODE_NAME = "lifecycle_manager_dc"
+# is_active's message when the servers are active but a destination is failing (dc_destinations.health).
+DEGRADED_PREFIX = "running, degraded: "
 # get_state answers at once from a live process: a probe unanswered this long was lost.
 GET_STATE_PROBE_S = 0.5
 PROBES_PER_CLIENT = 4
@@ -68,7 +74,9 @@ class LifecycleManager(Node):
         bond_timeout: float,
         service_timeout: float = 30.0,
         namespace: str = "",
+        discovery_from: float | None = None,
     ) -> None:
+        """``discovery_from``: when this process joined the ROS graph (time.monotonic()), if before now."""
         super().__init__(NODE_NAME, namespace=namespace or None)
         self.servers = servers
         # Servers are addressed by fully qualified name: two DC instances in other namespaces share the
@@ -97,7 +105,15 @@ class LifecycleManager(Node):
         self._not_up: dict[str, float] = {}
         self._lifecycle_clients: dict[str, tuple[Any, Any]] = {}
         self.restarts: dict[str, int] = {s.name: 0 for s in servers}
+        # One DC per domain and namespace (dc_bringup.instances): looked for before the first
+        # transition, once discovery had DISCOVERY_S from now; the reason this one stopped, if it did.
+        self._discovery_from = time.monotonic() if discovery_from is None else discovery_from
+        self._alone_checked = False
+        self.conflict: str | None = None
         self.create_subscription(Heartbeat, HEARTBEAT_TOPIC, self._on_heartbeat, HEARTBEAT_QOS)
+        # The destinations' health as destination_server last told it (dc_destinations.health).
+        self._destination_health: dict[str, Any] = {}
+        self.create_subscription(StringStamped, HEALTH_TOPIC, self._on_destination_health, HEALTH_QOS)
         self._server_of = {fqn: name for name, fqn in self._fqn.items()}
         self._services_node = Node(f"{NODE_NAME}_services", namespace=namespace or None, context=self.context)
         me = self.get_fully_qualified_name()
@@ -147,6 +163,14 @@ class LifecycleManager(Node):
                 self._unhealthy.add(name)
                 self._wake.trigger()
 
+    def _on_destination_health(self, msg: Any) -> None:
+        try:
+            states = json.loads(msg.data)
+        except ValueError:
+            return
+        if isinstance(states, dict):
+            self._destination_health = states
+
     # -- services ------------------------------------------------------------------------------
     def _on_manage_nodes(self, request: Any, response: Any) -> Any:
         """On the services thread: queue the command, answer once the main loop carried it out."""
@@ -167,6 +191,11 @@ class LifecycleManager(Node):
         down = sorted(self._not_up)
         response.success = self.target_state == "active" and not down
         response.message = f"servers {self.target_state}" + (f"; not up: {', '.join(down)}" if down else "")
+        failing = degraded_line(self._destination_health, time.time())
+        if response.success and failing:
+            # Still active (success stays true for Nav2-style callers); `dc lifecycle is-active` tells
+            # this apart by the prefix and exits with its own code.
+            response.message = f"{DEGRADED_PREFIX}{failing}"
         return response
 
     def run_commands(self) -> None:
@@ -273,12 +302,60 @@ class LifecycleManager(Node):
                 self._forget_clients(proc.name)
                 change, get = self._client(proc.name)
 
+    # -- one DC per domain and namespace -------------------------------------------------------------
+    def _own_pids(self) -> set[int]:
+        return {os.getpid()} | {pid for s in self.servers if (pid := s.pid) is not None}
+
+    def _seen_nodes(self) -> list[instances.SeenNode]:
+        names = instances.dc_node_names(NODE_NAME)
+        return instances.seen_nodes(self, self.get_namespace(), names, self._own_pids())
+
+    def another_instance(self) -> list[instances.SeenNode]:
+        """The nodes of another DC in this domain and namespace, graph discovery given DISCOVERY_S
+        from this manager's start (and, once one is seen, a little more for the others of that DC:
+        each of its processes is discovered on its own)."""
+        own_names = {NODE_NAME: 1, f"{NODE_NAME}_services": 1}
+        first_seen: float | None = None
+        while True:
+            # In the loop: a server started meanwhile is ours too.
+            own_names.update({s.name: 1 for s in self.servers if s.running()})
+            found = instances.others(self._seen_nodes(), own_names)
+            now = time.monotonic()
+            if found and first_seen is None:
+                first_seen = now
+            if (first_seen is None and now - self._discovery_from >= instances.DISCOVERY_S) or (
+                first_seen is not None and now - first_seen >= instances.MORE_NODES_S
+            ):
+                return found
+            self.spin_for(0.05)
+
+    def _check_alone(self) -> bool:
+        """Before the first transition: False, and the one line said, when another DC is there."""
+        if self._alone_checked:
+            return True
+        found = self.another_instance()
+        if found:
+            self.conflict = instances.refusal(found, self.context.get_domain_id(), self.get_namespace())
+            self.get_logger().error(self.conflict)
+            return False
+        self._alone_checked = True
+        return True
+
     def transition(self, server: str, label: str, target: str, attempts: int = 3) -> bool:
         """Send a transition by label (an id sent to a wrong state kills rclpy's service; see notes).
 
         A request lost in transit is retried; the state is checked first so a transition that did
-        happen is never sent twice.
+        happen is never sent twice. Never sent while a node of that name runs in another process
+        than this DC's: the request would reach it too.
         """
+        strangers = [n for n in instances.others(self._seen_nodes()) if n.name == server]
+        if strangers:
+            self.get_logger().error(
+                f"not sending {label} to {server}: "
+                + ", ".join(n.describe() for n in strangers)
+                + " is another DC's, and would receive it too"
+            )
+            return False
         for _ in range(attempts):
             change, _ = self._client(server)
             request = ChangeState.Request()
@@ -301,6 +378,8 @@ class LifecycleManager(Node):
         reason = self._not_ready(proc, started)
         if reason is not None:
             log.error(f"{proc.name} did not come up: {reason}")
+            return False
+        if not self._check_alone():
             return False
         steps = (("configure", "inactive"), ("activate", "active"))
         for label, target in steps[: {"unconfigured": 0, "inactive": 1}.get(self.target_state, 2)]:

@@ -121,6 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dc_core.supervision import Supervisor
 
     stop = init_server_process(args.log_level, args.namespace)
+    joined = time.monotonic()  # graph discovery runs from the first node on: the manager's wait counts from here
     namespace = ros_namespace(args.namespace) if args.namespace.strip("/") else ""
 
     names = [name for name in SERVER_MODULES if name in report.servers]
@@ -137,7 +138,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         executor.add_node(node)
     loop = ServerLoop(executor, [node.intake for node in nodes])
     manager = LifecycleManager(
-        [InProcessServer(name) for name in names], bond_timeout=args.bond_timeout, namespace=namespace
+        [InProcessServer(name) for name in names],
+        bond_timeout=args.bond_timeout,
+        namespace=namespace,
+        discovery_from=joined,
     )
     if args.no_autostart:
         manager.target_state = "unconfigured"

@@ -6,6 +6,12 @@ batch was confirmed, a :class:`SendOutcome` for per-record results, or raises
 :class:`RetryableError` (the whole batch is retried later) or :class:`RejectedError` (the whole
 batch is dead-lettered). Any other exception counts as retryable. ``send`` runs in the
 destination's own worker thread, never on the ROS executor, so it may block on I/O.
+
+A failure that retrying alone cannot mend (a wrong password, a missing bucket or table, a refused
+permission) is raised as :class:`ConfigurationProblem`, or as a :class:`RejectedError` with a
+``fix``: the records are handled as before (retried, or dead-lettered), and the destination is
+reported ``failing`` at once, its fix logged once at ERROR (dc_destinations.health). An unknown host
+and a failed TLS verification are recognised by the server itself in the exception's chain.
 """
 
 from __future__ import annotations
@@ -25,8 +31,31 @@ class RetryableError(DcError):
     """Delivery failed for a reason that may pass (network down, server busy, 5xx)."""
 
 
+class ConfigurationProblem(RetryableError):
+    """Delivery failed for a reason retrying alone will not mend: wrong credentials, a missing
+    bucket, table or database, a permission refused.
+
+    Still retried (someone may fix it while records wait), but the destination is reported
+    ``failing`` at once rather than after ``unhealthy_after``; ``fix`` says what to check, in the
+    user's words ("check the password parameter or PGPASSWORD"). Nothing secret in either text.
+    """
+
+    def __init__(self, message: str, *, fix: str = "") -> None:
+        super().__init__(message)
+        self.fix = fix
+
+
 class RejectedError(DcError):
-    """The destination refused the records for good (malformed, 4xx): do not retry."""
+    """The destination refused the records for good (malformed, 4xx): do not retry.
+
+    ``fix``: set when the refusal is about the destination's set-up rather than the records (an
+    HTTP 401 or 403): the records are dead-lettered as for any refusal, and the destination is
+    reported ``failing`` at once, as for a :class:`ConfigurationProblem`.
+    """
+
+    def __init__(self, message: str = "", *, fix: str = "") -> None:
+        super().__init__(message)
+        self.fix = fix
 
 
 @dataclass

@@ -40,8 +40,11 @@ class _Handler(BaseHTTPRequestHandler):
         path = self.path.split("?", 1)[0].rstrip("/")
         try:
             if path == "/api/v1/health":
-                ok = self.server.health()
-                self._reply(200 if ok else 503, "application/json", json.dumps({"status": "ok" if ok else "error"}))
+                health = self.server.health()
+                # A bool, or a document whose status says more (a destination server's "degraded").
+                document = health if isinstance(health, dict) else {"status": "ok" if health else "error"}
+                ok = document.get("status") == "ok"
+                self._reply(200 if ok else 503, "application/json", json.dumps(document))
             elif path == "/api/v1/metrics":
                 document = {**self.server.metrics(), "metrics_http": {"refused_connections": self.server.refused}}
                 self._reply(200, "application/json", json.dumps(document, indent=2))
@@ -76,7 +79,7 @@ class _Server(BoundedHTTPServer):
     def __init__(
         self,
         address: tuple[str, int],
-        health: Callable[[], bool],
+        health: Callable[[], bool | dict[str, Any]],
         metrics: Callable[[], dict[str, Any]],
         prometheus: Callable[[], str],
         logger: Logger | None,
@@ -114,7 +117,7 @@ class StatusServer:
         listen: str,
         port: int,
         *,
-        health: Callable[[], bool],
+        health: Callable[[], bool | dict[str, Any]],
         metrics: Callable[[], dict[str, Any]],
         prometheus: Callable[[], str],
         logger: Logger | None = None,
@@ -148,7 +151,7 @@ def start_status_server(
     listen: str,
     port: int,
     *,
-    health: Callable[[], bool],
+    health: Callable[[], bool | dict[str, Any]],
     metrics: Callable[[], dict[str, Any]],
     prometheus: Callable[[], str],
     supervisor: Supervisor | None = None,

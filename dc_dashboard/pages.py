@@ -22,6 +22,8 @@ STYLE = """
 :root { --ink:#1d2330; --muted:#5d6778; --line:#dde2ea; --bg:#f5f7fa; --card:#fff; --accent:#0072B2;
         --ok:#1a7f37; --warn:#9a6700; --bad:#cf222e; }
 * { box-sizing: border-box; }
+.health.ok { color:var(--ok); } .health.retrying { color:var(--warn); }
+.health.failing { color:var(--bad); font-weight:600; }
 body { margin:0; font: 15px/1.45 system-ui, -apple-system, "Segoe UI", Roboto, "DejaVu Sans", sans-serif;
        color: var(--ink); background: var(--bg); }
 header { background:#14213d; color:#fff; padding:0 24px; display:flex; align-items:center; gap:28px; height:54px; }
@@ -327,8 +329,16 @@ def health(
         if server.error:
             parts.append(f'<div class="notice error">{escape(server.label)}: {escape(server.error)}</div>')
             continue
+        parts += [
+            notice(
+                f"{server.label}: destination {name} failing: "
+                + " — ".join(str(part) for part in (d["health"].get("reason"), d["health"].get("fix")) if part)
+            )
+            for name, d in sorted(server.destinations.items())
+            if isinstance(d.get("health"), dict) and d["health"].get("state") == "failing"
+        ]
         rows = "".join(
-            f"<tr><td>{escape(name)}</td><td class=num>{_int(d.get('received'))}</td>"
+            f"<tr><td>{escape(name)}</td><td>{_health_state(d)}</td><td class=num>{_int(d.get('received'))}</td>"
             f"<td class=num>{_int(d.get('sent'))}</td>"
             f"<td class=num>{_int(d.get('buffered'))}</td><td class=num>{_age(d.get('oldest_pending_age_s'))}</td>"
             f"<td class=num>{_int(d.get('retried'))}</td><td class=num>{_int(d.get('failed'))}</td>"
@@ -339,7 +349,8 @@ def health(
         )
         parts.append(
             f'<div class="panel"><h2>{escape(server.label)}</h2><table class="destinations">'
-            "<tr><th>destination</th><th class=num>received</th><th class=num>sent</th><th class=num>pending</th>"
+            "<tr><th>destination</th><th>health</th><th class=num>received</th><th class=num>sent</th>"
+            "<th class=num>pending</th>"
             "<th class=num>oldest pending</th><th class=num>retried</th><th class=num>failed</th>"
             "<th class=num>dead letters</th><th>last delivery</th><th>newest row's record time</th>"
             "<th>last error</th></tr>"
@@ -366,6 +377,20 @@ def health(
             f"{escape(', '.join(missing_indexes))}. Run dc dashboard --create-indexes (docs/dashboard.md)</div>"
         )
     return "".join(parts)
+
+
+def _health_state(destination: dict[str, Any]) -> str:
+    """ok, retrying or failing (with for how long, why and the fix in its title); "-" from an older DC."""
+    health = destination.get("health")
+    if not isinstance(health, dict) or not isinstance(health.get("state"), str):
+        return NONE
+    state = health["state"]
+    if state == "ok":
+        return '<span class="health ok">ok</span>'
+    lasted = health.get("for_s")
+    shown = state + (f" {_age(lasted)}" if isinstance(lasted, int | float) else "")
+    why = " — ".join(str(part) for part in (health.get("reason"), health.get("fix")) if part)
+    return f'<span class="health {escape(state)}" title="{escape(why)}">{escape(shown)}</span>'
 
 
 def error_body(message: str) -> str:

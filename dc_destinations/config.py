@@ -10,6 +10,7 @@ key is reported once, with a suggestion taken from all of them.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import typing
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,6 +20,7 @@ from dc_core.node_params import ServerNodeParams, record_linger_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.plugins import load_plugin
 from dc_core.timefmt import TIME_FORMATS
+from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
@@ -43,6 +45,12 @@ class DestinationServerParams(ServerNodeParams):
         choices=TRUST_TAGS_FROM,
         doc="Whose records on /dc/measurement/* and /dc/group/* may reach file destinations by their tags "
         "(dc_servers: DC's measurement and group servers only; any: every publisher)",
+    )
+    unhealthy_after: float = param(
+        DEFAULT_UNHEALTHY_AFTER_S,
+        minimum=0.1,
+        doc="Seconds without a successful send before a destination is reported failing (each destination may"
+        " set its own)",
     )
 
 
@@ -173,6 +181,13 @@ def parse_destination_server(section: dict[str, Any], path: str = "destination_s
         warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
 
     destinations = [_parse_destination(name, section.get(name), f"{path}.{name}") for name in node.destination_plugins]
+    # A destination without its own unhealthy_after has the server's.
+    destinations = [
+        d
+        if d.delivery.unhealthy_after
+        else dataclasses.replace(d, delivery=dataclasses.replace(d.delivery, unhealthy_after=node.unhealthy_after))
+        for d in destinations
+    ]
 
     for key in section:
         if key in node_keys or key in seen or key == "flb_grace":

@@ -36,6 +36,7 @@ from dc_destinations.buffer import (
     SqliteBuffer,
 )
 from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
+from dc_destinations.health import FAILING
 from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.sender import Closing, Route, Sender
@@ -396,6 +397,7 @@ class DeliveryPipeline:
             values = route.metrics.snapshot()
             values.update(buffered=None, buffered_bytes=None, dead_letters=None, oldest_pending_age_s=None)
             values["plugin"] = _plugin_counters(route)
+            values["health"] = route.health.snapshot()
             if self._buffer is not None and not self._buffer.closed:
                 try:
                     stats = self._buffer.stats(name)
@@ -463,6 +465,27 @@ class DeliveryPipeline:
             return False
         return all(route.thread is not None and route.thread.is_alive() for route in self._routes.values())
 
+    def destination_health(self) -> dict[str, dict[str, Any]]:
+        """Per destination: ok, retrying or failing, and while not ok since when and why (dc_destinations.health)."""
+        return {name: route.health.snapshot() for name, route in self._routes.items()}
+
+    def check_health(self) -> None:
+        """Log a destination that became failing by time alone (its sender may be waiting out a long backoff)."""
+        for route in self._routes.values():
+            route.health.check()
+
+    def health_document(self) -> dict[str, Any]:
+        """What ``/api/v1/health`` serves: ``status`` ok, degraded (a destination failing) or error
+        (see :meth:`healthy`), and each destination's state."""
+        destinations = self.destination_health()
+        if not self.healthy():
+            status = "error"
+        elif any(state["state"] == FAILING for state in destinations.values()):
+            status = "degraded"
+        else:
+            status = "ok"
+        return {"status": status, "destinations": destinations}
+
     def prometheus(self) -> str:
         return prometheus_text(self.metrics(), self.buffer_metrics()) + self.supervisor.prometheus()
 
@@ -475,7 +498,7 @@ class DeliveryPipeline:
             self.logger,
             self.settings.http_listen,
             self.settings.http_port,
-            health=self.healthy,
+            health=self.health_document,
             metrics=self.status_document,
             prometheus=self.prometheus,
             supervisor=self.supervisor,

@@ -149,6 +149,17 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
             if values.get(key) is not None
         ]
         text.family(name, "gauge", doc, samples)
+    for state in ("retrying", "failing"):
+        samples = [
+            (prometheus_labels(destination=d), int((values.get("health") or {}).get("state") == state))
+            for d, values in sorted(destinations.items())
+        ]
+        text.family(
+            f"dc_delivery_{state}",
+            "gauge",
+            f"1 while the destination is {state} (dc_destinations.health), else 0",
+            samples,
+        )
     text.family(
         "dc_delivery_buffer_quarantined_total",
         "counter",

@@ -334,12 +334,24 @@ class StoreFailure:
     whole_store: bool
 
 
+# What to check when the store's failure is one retrying alone does not mend (dc_destinations.health).
+_FIXES = {
+    "credentials": "check access_key_id and secret_access_key (or boto3's credential chain) and the bucket's policy",
+    "no-bucket": "create the bucket, or correct bucket / endpoint",
+}
+
+
 class StoreUnavailable(RetryableError):
-    """The store cannot take or show anything now (unreachable, refused credentials, no bucket)."""
+    """The store cannot take or show anything now (unreachable, refused credentials, no bucket).
+
+    ``fix`` is set for refused credentials and a missing bucket: the destination is then reported
+    failing at once (dc_core.destination.ConfigurationProblem's meaning).
+    """
 
     def __init__(self, failure: StoreFailure) -> None:
         super().__init__(failure.message)
         self.failure = failure
+        self.fix = _FIXES.get(failure.kind, "")
 
 
 def store_where(bucket: str, client: Any) -> str:

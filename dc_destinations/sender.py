@@ -48,6 +48,7 @@ from dc_core.logs import BurstLog, Logger
 from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.backoff import Backoff
 from dc_destinations.buffer import Buffer, BufferClosed, BufferCorrupted, BufferedRow, QueueLimit
+from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S, DestinationHealth, attention_needed
 from dc_destinations.metrics import DestinationMetrics
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_size
 
@@ -67,6 +68,7 @@ class Route:
     dead_letter_log: BurstLog
     dead_letter_drop_log: BurstLog
     malformed_log: BurstLog
+    health: DestinationHealth
     wakeup: threading.Event = field(default_factory=threading.Event)
     # Records committed since the sender last found its queue empty: it wakes at batch_size.
     pending_hint: int = 0
@@ -94,6 +96,7 @@ class Route:
             malformed_log=BurstLog(
                 logger.error, f"destination {name}: records not stored, they are not valid UTF-8 JSON"
             ),
+            health=DestinationHealth(name, params.unhealthy_after or DEFAULT_UNHEALTHY_AFTER_S, logger),
         )
 
     def tick_logs(self) -> None:
@@ -343,11 +346,17 @@ class Sender:
             self.bound_dead_letters()
         if not records:
             return False
-        retry, reject = _outcome_of(route.destination, records)
+        retry, reject, problem = _outcome_of(route.destination, records)
         if retry or reject:
             confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
         else:
             confirmed = [row.row_id for row in sent_rows]
+        # The destination answered unless everything must be retried; a refusal that names a fix is a
+        # failure of the destination's set-up, whatever becomes of the records.
+        if problem is not None or (retry and not confirmed):
+            route.health.failed(next(iter(retry.values()), ""), problem)
+        else:
+            route.health.succeeded()
         if defer_delete and not retry and not reject:
             self._confirmed += confirmed
             return False
@@ -401,20 +410,23 @@ class _Batch:
     unreadable: list[tuple[BufferedRow, str]] = field(default_factory=list)
 
 
-def _outcome_of(destination: Destination[Any], records: list[OutgoingRecord]) -> tuple[dict[int, str], dict[int, str]]:
-    """``send(records)`` as (retry, reject): batch indexes with their reasons; the rest were confirmed."""
+def _outcome_of(
+    destination: Destination[Any], records: list[OutgoingRecord]
+) -> tuple[dict[int, str], dict[int, str], tuple[str, str] | None]:
+    """``send(records)`` as (retry, reject, problem): batch indexes with their reasons (the rest were
+    confirmed), and (what, fix) when the failure is one retrying cannot mend (dc_destinations.health)."""
     try:
         outcome = destination.send(records)
     except RejectedError as exc:
-        return {}, dict.fromkeys(range(len(records)), f"rejected: {exc}")
+        return {}, dict.fromkeys(range(len(records)), f"rejected: {exc}"), attention_needed(exc)
     except RetryableError as exc:
-        return dict.fromkeys(range(len(records)), str(exc)), {}
+        return dict.fromkeys(range(len(records)), str(exc)), {}, attention_needed(exc)
     except Exception as exc:
-        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}
+        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}, attention_needed(exc)
     if not isinstance(outcome, SendOutcome):
-        return {}, {}
+        return {}, {}, None
     retry = {i: reason for i, reason in outcome.retry.items() if 0 <= i < len(records)}
     reject = {
         i: f"rejected: {reason}" for i, reason in outcome.reject.items() if 0 <= i < len(records) and i not in retry
     }
-    return retry, reject
+    return retry, reject, None

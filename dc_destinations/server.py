@@ -39,6 +39,8 @@ from dc_core.worker import Outcome
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.confined_files import ConfinementParams, default_roots
 from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC
+from dc_destinations.health import summary as health_summary
 from dc_destinations.hop import HopIntake, HopKey, hop_key
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
@@ -121,6 +123,10 @@ class DestinationServer(ManagedServer):
         self._guarded_topics: set[str] = set()
         self._foreign_seen: dict[str, float] = {}  # topic -> when a foreign publisher was last seen on it
         self._waited_for: set[bytes] = set()  # publishers of unknown node waited for once already
+        # Each destination's health for the lifecycle manager's is_active: sent when it changes, kept
+        # for a manager that (re)subscribes.
+        self._health_pub = self.create_publisher(StringStamped, HEALTH_TOPIC, HEALTH_QOS)
+        self._health_sent = ""
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -354,6 +360,7 @@ class DestinationServer(ManagedServer):
         # Between records too: a publisher that sends and leaves at once is still seen here.
         for topic in self._guarded_topics:
             self._publishers_trusted(topic)
+        self._report_health()
 
     def _publishers_trusted(self, topic: str) -> bool:
         """Whether every publisher of ``topic`` is one of DC's servers of this namespace, and has been for
@@ -387,6 +394,19 @@ class DestinationServer(ManagedServer):
                 continue
             return True, unknown
         return False, unknown
+
+    def _report_health(self) -> None:
+        pipeline = self.pipeline
+        if pipeline is None:
+            return
+        pipeline.check_health()
+        text = health_summary(pipeline.destination_health())
+        if text != self._health_sent:
+            msg = StringStamped()
+            msg.header.stamp = self.get_clock().now().to_msg()
+            msg.data = text
+            self._health_pub.publish(msg)
+            self._health_sent = text
 
     def _hand_over(self, received: list[_Received]) -> None:
         """Submit records with their copies and keys; the keys are remembered once the pipeline took them.

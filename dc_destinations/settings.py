@@ -98,6 +98,12 @@ class DestinationDeliveryParams:
         doc="Most bytes of dead letters kept for this destination; beyond it the oldest are deleted and counted"
         ' ("0" or "" = no limit)',
     )
+    unhealthy_after: float = param(
+        0.0,
+        minimum=0.0,
+        doc="Seconds without a successful send before this destination is reported failing"
+        " (0 = destination_server's unhealthy_after)",
+    )
 
 
 def parse_size(text: str, path: str = "") -> int | None:

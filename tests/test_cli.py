@@ -226,6 +226,13 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
                 "last_error_time": time.time() - 60,
                 "last_delivery": time.time() - 3,
                 "plugin": {"reconnects": 4},
+                "health": {
+                    "state": "failing",
+                    "since": time.time() - 300,
+                    "for_s": 300.0,
+                    "reason": "password authentication failed for user dc",
+                    "fix": "check the password parameter",
+                },
             },
         },
         "buffer": {
@@ -270,9 +277,9 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert result.returncode == 0, result.stderr
     header, row, *rest = result.stdout.splitlines()
     titles = header.split()
-    assert titles[:3] == ["destination", "received", "buffered"] and "dead-lettered" in titles
+    assert titles[:4] == ["destination", "health", "received", "buffered"] and "dead-lettered" in titles
     cells = row.split()
-    assert cells[:4] == ["pg", "10", "3", "600"] and "12.5" in cells
+    assert cells[:5] == ["pg", "failing", "10", "3", "600"] and "12.5" in cells
     assert titles[-5:] == ["sent", "s", "ago", "last", "error"]
     assert 3.0 <= float(cells[len(STATUS_COLUMNS)]) < 30.0, row  # seconds since last_delivery, the last column
     assert row.endswith("60 s ago: HTTP 503 Service Unavailable")
@@ -283,6 +290,10 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert "untrusted tags: 1 on /dc/measurement/map kept from flb_minio (a publisher there is not DC's)" in rest
     assert "pg (its own counters): reconnects 4" in rest
     assert "threads: 1 died, the server is unhealthy: thread dc-delivery-writer: RuntimeError: x" in rest
+    assert (
+        "destination pg FAILING for 300.0 s: password authentication failed for user dc — check the password parameter"
+        in rest
+    ), rest
     unreachable = dc("status", "--port", "1")
     assert unreachable.returncode == 1 and "cannot reach" in unreachable.stderr
 

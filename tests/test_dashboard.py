@@ -79,15 +79,25 @@ def test_the_health_page_shows_each_destinations_last_delivery_from_the_metrics(
     delivered = dt.datetime(2026, 11, 25, 10, 0, 5, tzinfo=dt.UTC).timestamp()
     server = ServerHealth("destination_server", "http://x/api/v1/metrics")
     server.destinations = {
-        "pg": {"sent": 4, "last_delivery": delivered, "last_error": "timeout", "last_error_time": delivered - 5},
-        "s3": {"sent": 0, "last_delivery": None, "last_error": ""},
+        "pg": {
+            "sent": 4,
+            "last_delivery": delivered,
+            "last_error": "timeout",
+            "last_error_time": delivered - 5,
+            "health": {"state": "failing", "for_s": 300.0, "reason": "password authentication failed", "fix": "check"},
+        },
+        "s3": {"sent": 0, "last_delivery": None, "last_error": "", "health": {"state": "ok"}},
     }
     # The newest row's time is the record's own (simulated time, here): shown apart, labelled as such.
     page = health([server], {"pg": dt.datetime(2023, 11, 14, 22, 0)}, [], [], [], now=delivered + 12)
     pg, s3 = page.split("<tr><td>pg</td>")[1], page.split("<tr><td>s3</td>")[1]
     assert "<td class=delivered>2026-11-25 10:00:05</td><td>2023-11-14 22:00:00</td>" in pg
     assert "<td>2026-11-25 10:00:00: timeout</td>" in pg
-    assert s3.startswith("<td class=num>") and "<td class=delivered>\u2013</td>" in s3
+    assert s3.startswith('<td><span class="health ok">ok</span></td><td class=num>')
+    assert "<td class=delivered>\u2013</td>" in s3
+    # A failing destination: its state in the table, and a notice with the reason and the fix above it.
+    assert pg.startswith('<td><span class="health failing" title="password authentication failed — check">')
+    assert "destination_server: destination pg failing: password authentication failed — check" in page
     assert 'id="stat-last-delivery"><span class="value">12 s ago' in page
     assert "last delivery" in page and "newest row's record time" in page
 

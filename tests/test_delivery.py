@@ -658,7 +658,7 @@ def test_metrics_over_http(tmp_path: Path) -> None:
         assert address is not None and address[0] == "127.0.0.1"
         base = f"http://{address[0]}:{address[1]}/api/v1"
         with urllib.request.urlopen(f"{base}/health", timeout=5) as reply:
-            assert json.load(reply) == {"status": "ok"}
+            assert json.load(reply) == {"status": "ok", "destinations": {"sink": {"state": "ok"}}}
         with urllib.request.urlopen(f"{base}/metrics", timeout=5) as reply:
             body = json.load(reply)
         assert body["destinations"]["sink"]["sent"] == 1

@@ -263,6 +263,12 @@ class Http(Destination[HttpParams]):
                 self._not_before = time.monotonic() + wait
                 message += f"; Retry-After {wait:g} s"
             raise RetryableError(message)
+        if status in (401, 403):
+            # The records are refused as before (dead letters, `dc buffer replay` once fixed); the
+            # destination is failing at once, for the credentials are wrong for every record.
+            raise RejectedError(
+                message, fix="check http_user / http_passwd, bearer_token or the header carrying the credentials"
+            )
         raise RejectedError(message)
 
     def _body(self, batch: Sequence[OutgoingRecord]) -> bytes:

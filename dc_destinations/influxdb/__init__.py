@@ -28,7 +28,14 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.destination import (
+    ConfigurationProblem,
+    Destination,
+    OutgoingRecord,
+    RejectedError,
+    RetryableError,
+    SendOutcome,
+)
 from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_destinations.tls import warn_if_credentials_in_clear
@@ -414,15 +421,19 @@ class InfluxDB(Destination[InfluxDBParams]):
                 who = "sent no credentials"
             hint = "http_token" if p.api_version == "v2" else "http_user and http_passwd"
             # Retried: credentials are fixed on the server or in the parameters, and the records wait.
-            raise RetryableError(f"InfluxDB refused the credentials: {message} (check {hint}; {who})")
+            raise ConfigurationProblem(
+                f"InfluxDB refused the credentials: {message} (check {hint}; {who})", fix=f"check {hint}"
+            )
         if status == 404:
             if p.api_version == "v1":
-                raise RetryableError(
-                    f"InfluxDB database {p.database!r} not found: {message} (create it: CREATE DATABASE {p.database})"
+                raise ConfigurationProblem(
+                    f"InfluxDB database {p.database!r} not found: {message} (create it: CREATE DATABASE {p.database})",
+                    fix=f"create the database (CREATE DATABASE {p.database}) or correct `database`",
                 )
-            raise RetryableError(
+            raise ConfigurationProblem(
                 f"InfluxDB bucket {p.bucket!r} of org {p.org!r} not found, or no v2 API on this server "
-                f"(InfluxDB 1.x before 1.8: set api: v1): {message}"
+                f"(InfluxDB 1.x before 1.8: set api: v1): {message}",
+                fix="create the bucket, or correct bucket / org / api",
             )
         if status in _RETRYABLE_STATUSES or status >= 500:
             raise RetryableError(message)

@@ -26,7 +26,7 @@ try:
 except ImportError as exc:  # an optional dependency: say which extra brings it
     raise ImportError(f"the MQTT destination needs paho-mqtt: pip install 'ros2-dc[mqtt]' ({exc})") from exc
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import ConfigurationProblem, Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_core.records import MalformedRecord
@@ -314,7 +314,10 @@ class Mqtt(Destination[MqttParams]):
             connack, lost = connection.connack, connection.lost
         if connack is None or connack.is_failure:
             connection.close()
-            raise RetryableError(self._scrub(self._refusal(connack, lost)))
+            message = self._scrub(self._refusal(connack, lost))
+            if connack is not None and str(connack).lower() in _AUTH_REASONS:
+                raise ConfigurationProblem(message, fix="check username and password, and the broker's ACL")
+            raise RetryableError(message)
         self._connection = connection
         resumed = " (session resumed)" if connection.session_present else ""
         self.context.logger.info(f"connected to {self.address} as client {self.client_id!r}{resumed}")

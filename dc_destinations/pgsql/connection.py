@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from dc_core.destination import RetryableError
+from dc_core.destination import ConfigurationProblem, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
 from dc_destinations.tls import warn_if_credentials_in_clear
@@ -27,6 +27,9 @@ MAX_IDENTIFIER = 63
 # shutting down (admin_shutdown, crash_shutdown, cannot_connect_now).
 _LOST_STATES = ("08", "57P01", "57P02", "57P03")
 _AUTH_HINTS = ("password authentication failed", "no password supplied", "authentication failed")
+# Failures retrying alone does not mend (dc_destinations.health), by SQLSTATE: invalid authorization
+# (28), no such database (3D000), permission refused (42501), no such table or schema (42P01, 3F000).
+_SET_UP_STATES = ("28", "3D000", "42501", "42P01", "3F000")
 # Whatever the server answers, the message stays readable in `dc buffer list` and logs.
 MESSAGE_CHARS = 500
 
@@ -185,7 +188,11 @@ class KeptConnection:
                         # its first use: not a failure of this work, so once more on a new one.
                         first = False
                         continue
-                    raise RetryableError(self.describe(exc)) from None
+                    message = self.describe(exc)
+                    fix = self.fix_for(exc)
+                    if fix:
+                        raise ConfigurationProblem(message, fix=fix) from None
+                    raise RetryableError(message) from None
 
     def close(self) -> None:
         with self._lock:
@@ -207,6 +214,30 @@ class KeptConnection:
         text += f" (SQLSTATE {state})" if state else ""
         return self.scrub(text[:MESSAGE_CHARS])
 
+    def fix_for(self, exc: BaseException) -> str:
+        """What to check when ``exc`` is a failure retrying alone does not mend; "" otherwise.
+
+        A failed connection carries no SQLSTATE (libpq words it): its text is read then.
+        """
+        state = getattr(exc, "sqlstate", None) or ""
+        text = str(exc)
+        s = self.settings
+        if (
+            state.startswith("28")
+            or any(h in text for h in _AUTH_HINTS)
+            or ("role" in text and "does not exist" in text)
+        ):
+            return f"check the user ({s.user or 'the system user'}) and the password parameter (or PGPASSWORD)"
+        if state == "3D000" or ("database" in text and "does not exist" in text):
+            return f"create the database {s.database or s.user or '(the user name)'} or set the database parameter"
+        if state == "42501" or "permission denied" in text:
+            return f"grant the user {s.user or '(the system user)'} what it needs on {self._prepared}"
+        if "certificate verify failed" in text or "does not match host name" in text:
+            return "check sslrootcert (the CA that signed the server's certificate) and host"
+        if state.startswith(_SET_UP_STATES):
+            return f"check {self._prepared} and the database parameter"
+        return ""
+
     def scrub(self, text: str) -> str:
         """The password masked, should a message ever carry it."""
         password = self.settings.password
@@ -223,13 +254,21 @@ class KeptConnection:
         except psycopg.Error as exc:
             detail = one_line(str(exc))
             hint = " (check `user` and `password`)" if any(h in detail for h in _AUTH_HINTS) else ""
-            raise RetryableError(self.scrub(f"cannot connect to PostgreSQL {self.address}: {detail}{hint}")) from None
+            message = self.scrub(f"cannot connect to PostgreSQL {self.address}: {detail}{hint}")
+            fix = self.fix_for(exc)
+            if fix:
+                raise ConfigurationProblem(message, fix=fix) from None
+            raise RetryableError(message) from None
         try:
             self._prepare(connection)
         except psycopg.Error as exc:
             connection.close()
             detail = one_line(str(exc))
-            raise RetryableError(self.scrub(f"cannot prepare {self._prepared} in {self.address}: {detail}")) from None
+            message = self.scrub(f"cannot prepare {self._prepared} in {self.address}: {detail}")
+            fix = self.fix_for(exc)
+            if fix:
+                raise ConfigurationProblem(message, fix=fix) from None
+            raise RetryableError(message) from None
         except BaseException:
             connection.close()
             raise

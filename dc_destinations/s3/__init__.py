@@ -37,7 +37,7 @@ try:
 except ImportError as exc:  # an optional dependency: say which extra brings it
     raise ImportError(f"the S3 destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import ConfigurationProblem, Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_core.records import MalformedRecord, dump_record
@@ -291,6 +291,9 @@ class S3(Destination[S3Params]):
         except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
             message = self._describe(exc, key)
             self._problem(message)
+            fix = _fix_for(exc)
+            if fix:
+                raise ConfigurationProblem(message, fix=fix) from None
             raise RetryableError(message) from None
         if self._last_problem:
             self.context.logger.info(f"{self.where}: objects written again")
@@ -360,3 +363,17 @@ class S3(Destination[S3Params]):
     def _scrub(self, text: str) -> str:
         secret = self.params.aws_secret_access_key
         return text.replace(secret, "***") if secret else text
+
+
+def _fix_for(exc: Exception) -> str:
+    """What to check when a failed upload is one retrying alone does not mend (dc_destinations.health)."""
+    if isinstance(exc, CREDENTIALS_MISSING):
+        return "give credentials: access_key_id and secret_access_key, or boto3's default chain"
+    if not isinstance(exc, botocore.exceptions.ClientError):
+        return ""
+    code = str(exc.response.get("Error", {}).get("Code", ""))
+    if code == "NoSuchBucket":
+        return "create the bucket, or correct bucket / region / endpoint"
+    if code in _S3CREDENTIAL_CODES or code == "AccessDenied":
+        return "check the access key, secret key, role_arn and the policy's s3:PutObject"
+    return ""
