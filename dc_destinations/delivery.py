@@ -74,6 +74,8 @@ class DeliveryPipeline:
         self._buffer: SqliteBuffer | None = None
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
+        # Set before start: called on the writer thread with the hop keys of each successful commit.
+        self.on_seen_committed: Callable[[list[HopKey]], None] | None = None
         self._quarantined = 0
         self._last_log_tick = 0.0
         self._status: StatusServer | None = None
@@ -155,6 +157,7 @@ class DeliveryPipeline:
         )
         for listener in self._listeners:
             self._committer.add_listener(listener)
+        self._committer.on_seen_committed = self.on_seen_committed
         self._committer.start()
         for name, sender in senders.items():
             route = self._routes[name]

@@ -10,7 +10,12 @@ is there is a duplicate and is dropped before routing.
 Sequence numbers also show what never arrived: a jump from 5,000 to 7,001 means 2,000 records
 were lost between the publisher and this server (dropped by DDS under a flood, or published while
 the server was down, beyond the history); :class:`dc_core.sequence_numbers.TopicWriters` counts
-them. Pure: no ROS, no I/O.
+them.
+
+Records of DC's own publishers carry a hand-off key in ``header.frame_id`` (dc_core.handoff): their
+hop key is then ``(topic, -publisher id, the publisher's own number)``, which a record sent again
+keeps (DDS would number it anew), and what is lost is what the publisher dropped unacknowledged:
+numbers below its ``low`` that never arrived. Pure: no ROS, no I/O.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
+from dc_core.handoff import parse_frame_key
 from dc_core.sequence_numbers import MAX_WRITERS_PER_TOPIC, TopicWriters
 
 
@@ -49,6 +55,15 @@ def hop_key(topic: str, info: Mapping[str, Any] | None) -> HopKey | None:
     return HopKey(topic, source_ns, seq)
 
 
+def keyed_hop_key(topic: str, frame_id: str) -> tuple[HopKey, int] | None:
+    """The hop key of a record with a hand-off key, and its publisher's ``low``; None without one."""
+    parsed = parse_frame_key(frame_id) if frame_id else None
+    if parsed is None:
+        return None
+    writer, seq, low = parsed
+    return HopKey(topic, -writer, seq), low
+
+
 @dataclass(frozen=True)
 class Verdict:
     """What the hop says of one arriving record."""
@@ -76,8 +91,18 @@ class TopicHopStats:
 
 
 @dataclass
+class _Keyed:
+    """One hand-off publisher: every number below ``settled`` was handled or counted lost."""
+
+    settled: int
+    above: set[int] = field(default_factory=set)  # handled numbers at or above settled
+    used: int = 0
+
+
+@dataclass
 class _TopicState:
     writers: TopicWriters
+    keyed: dict[int, _Keyed] = field(default_factory=dict)
     seen: set[HopKey] = field(default_factory=set)
     order: deque[HopKey] = field(default_factory=deque)
     stats: TopicHopStats = field(default_factory=TopicHopStats)
@@ -96,6 +121,7 @@ class HopIntake:
             raise ValueError("the deduplication window must hold at least one key")
         self.window = window
         self._max_writers = max_writers
+        self._clock = 0
         self._topics: dict[str, _TopicState] = {}
 
     def _topic(self, topic: str) -> _TopicState:
@@ -112,10 +138,18 @@ class HopIntake:
         for key in keys:
             state = self._topic(key.topic)
             if key not in state.seen:
-                state.writers.observe(key.seq)
+                if key.source_ns < 0:
+                    # What came before the oldest key kept is not known: nothing below it is counted.
+                    writer = state.keyed.get(-key.source_ns)
+                    if writer is None:
+                        writer = state.keyed[-key.source_ns] = _Keyed(key.seq)
+                    self._keyed_handled(writer, key.seq)
+                else:
+                    state.writers.observe(key.seq)
                 self._remember(state, key)
 
-    def check(self, topic: str, key: HopKey | None) -> Verdict:
+    def check(self, topic: str, key: HopKey | None, low: int = 0) -> Verdict:
+        """What to do with an arriving record; ``low`` is its publisher's, with a hand-off key."""
         state = self._topic(topic)
         stats = state.stats
         stats.received += 1
@@ -125,6 +159,8 @@ class HopIntake:
         if key in state.seen:
             stats.duplicates += 1
             return _DUPLICATE
+        if key.source_ns < 0:
+            return self._check_keyed(state, -key.source_ns, key.seq, low)
         skipped = state.writers.observe(key.seq)
         if skipped is None:
             stats.writers += 1
@@ -134,6 +170,43 @@ class HopIntake:
         stats.missing += skipped
         stats.gaps += 1
         return Verdict(skipped=skipped, first_skipped=key.seq - skipped)
+
+    def _check_keyed(self, state: _TopicState, writer_id: int, seq: int, low: int) -> Verdict:
+        stats = state.stats
+        self._clock += 1
+        writer = state.keyed.get(writer_id)
+        if writer is None:
+            if len(state.keyed) >= self._max_writers:
+                del state.keyed[min(state.keyed, key=lambda w: state.keyed[w].used)]
+            # A publisher first heard of now: what it holds from ``low`` on is sent again if need be.
+            writer = state.keyed[writer_id] = _Keyed(min(low, seq) if low > 0 else seq, used=self._clock)
+            stats.writers += 1
+            self._keyed_handled(writer, seq)
+            return _NEW_WRITER
+        writer.used = self._clock
+        verdict = _NOTHING_TO_SAY
+        if low > writer.settled:
+            # The publisher holds nothing below low any more: what of it never arrived is lost.
+            handled = sum(1 for s in writer.above if s < low)
+            skipped = low - writer.settled - handled
+            first = writer.settled
+            writer.above = {s for s in writer.above if s >= low}
+            writer.settled = low
+            if skipped > 0:
+                stats.missing += skipped
+                stats.gaps += 1
+                verdict = Verdict(skipped=skipped, first_skipped=first)
+        self._keyed_handled(writer, seq)
+        return verdict
+
+    @staticmethod
+    def _keyed_handled(writer: _Keyed, seq: int) -> None:
+        if seq < writer.settled:
+            return
+        writer.above.add(seq)
+        while writer.settled in writer.above:
+            writer.above.discard(writer.settled)
+            writer.settled += 1
 
     def count_duplicate(self, topic: str) -> None:
         """Count a record received and dropped as a duplicate without :meth:`check` (a copy its caller saw)."""

@@ -22,15 +22,16 @@ from rclpy.qos import QoSProfile
 
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.errors import ConfigError, PluginError
+from dc_core.handoff import AckPublisher
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
-from dc_core.stamped_cdr import read_string_stamped
+from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
-from dc_destinations.hop import HopIntake, HopKey, hop_key
+from dc_destinations.hop import HopIntake, HopKey, hop_key, keyed_hop_key
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
 from dc_interfaces.msg import StringStamped
@@ -84,6 +85,7 @@ class DestinationServer(ManagedServer):
         self.hop: HopIntake | None = None
         self._hop_loss_log: BurstLog | None = None
         self._hop_log_timer: Any = None
+        self.acks: AckPublisher | None = None
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
@@ -157,10 +159,17 @@ class DestinationServer(ManagedServer):
         assert self.pipeline is not None and self.routing is not None
         for what, plugin in self._named_plugins():
             run_hook(what, plugin, "on_activate")
+        # Acks follow commits from the first one on: measurement_server and group_server keep each
+        # record they publish until it is acknowledged (dc_core.handoff).
+        acks = AckPublisher(self)
+        self.acks = acks
+        self.pipeline.on_seen_committed = acks.on_commit
         self.pipeline.start()
         # Before the first subscription: the history a publisher replays is checked against these keys.
         hop = HopIntake(self._hop_window)
-        hop.load(HopKey(*key) for key in self.pipeline.hop_keys())
+        loaded = [HopKey(*key) for key in self.pipeline.hop_keys()]
+        hop.load(loaded)
+        acks.tracker.committed(loaded)
         self.hop = hop
         self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")
         self._hop_log_timer = self.create_steady_timer(1.0, self._tick_logs)
@@ -179,6 +188,7 @@ class DestinationServer(ManagedServer):
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
         )
+        acks.send()  # a hello: the publishers send again what this server has not acknowledged
 
     def deactivate_server(self) -> None:
         # Intake stops first, so everything received is committed before the senders stop.
@@ -203,6 +213,11 @@ class DestinationServer(ManagedServer):
             self.destroy_timer(self._hop_log_timer)
             self._hop_log_timer = None
         self._tick_logs()
+        if self.acks is not None:
+            if self.pipeline is not None:
+                self.pipeline.on_seen_committed = None
+            self.acks.destroy()
+            self.acks = None
 
     # -- intake (the main loop's intake, on the main thread) --------------------------------------------
     def _on_batch(self, topic: str, taken: list[tuple[bytes, Any]]) -> None:
@@ -210,33 +225,51 @@ class DestinationServer(ManagedServer):
         assert self.hop is not None
         received: list[_Received] = []
         keys: set[HopKey] = set()
+        internal = topic in self._internal_topics
+        lows: dict[int, int] = {}
         for serialised, info in taken:
-            key = hop_key(topic, info)
+            low = 0
+            key: HopKey | None
+            if internal:
+                stamp_ns, text, frame_id = read_keyed_string_stamped(serialised)
+                keyed = keyed_hop_key(topic, frame_id)
+                if keyed is not None:
+                    key, low = keyed
+                    lows[key.source_ns] = max(low, lows.get(key.source_ns, 0))
+                else:
+                    key = hop_key(topic, info)
+            else:
+                key = hop_key(topic, info)
+                stamp_ns, text = read_string_stamped(serialised)
             if key is not None:
                 if key in keys:  # twice in one batch: the hop has not been told of the first yet
                     self.hop.count_duplicate(topic)
                     continue
                 keys.add(key)
-            stamp_ns, text = read_string_stamped(serialised)
-            one = self._receive(topic, text, stamp_ns, key)
+            one = self._receive(topic, text, stamp_ns, key, low)
             if one is not None:
                 received.append(one)
-        if topic not in self._internal_topics:
+        if not internal:
             received = _publisher_positions_only(received)
+        if lows and self.acks is not None:
+            for source_ns, low in lows.items():
+                self.acks.tracker.saw(topic, -source_ns, low)
         self._hand_over(received)
 
-    def _receive(self, topic: str, text: str, stamp_ns: int, key: HopKey | None) -> _Received | None:
+    def _receive(self, topic: str, text: str, stamp_ns: int, key: HopKey | None, low: int = 0) -> _Received | None:
         """What the pipeline takes of one record: its copies and its key; None for a duplicate."""
         assert self.hop is not None and self.routing is not None
-        verdict = self.hop.check(topic, key)
+        verdict = self.hop.check(topic, key, low)
         if verdict.duplicate:
             return None
         if verdict.skipped:
             assert self._hop_loss_log is not None
             last = verdict.first_skipped + verdict.skipped - 1
+            numbers = (
+                "its publisher's records" if key is not None and key.source_ns < 0 else "publication sequence numbers"
+            )
             self._hop_loss_log.event(
-                verdict.skipped,
-                f"{topic}: publication sequence numbers {verdict.first_skipped}..{last} never arrived",
+                verdict.skipped, f"{topic}: {numbers} {verdict.first_skipped}..{last} never arrived"
             )
         self.stats.received += 1
         if stamp_ns == 0:
@@ -259,6 +292,8 @@ class DestinationServer(ManagedServer):
         return routed.deliveries, key
 
     def _tick_logs(self) -> None:
+        if self.acks is not None:
+            self.acks.send()  # once a second besides the commits': also the hello of a publisher restarted
         if self._hop_loss_log is not None:
             self._hop_loss_log.tick()
         self._malformed_log.tick()

@@ -1,0 +1,141 @@
+"""The acknowledged hand-off measurement_server → destination_server across kill -9, with real processes.
+
+What a user relies on (docs/delivery.md, "The hand-off"): with default parameters, records published
+while destination_server is down reach the destinations once it is back, however long it took and
+however many records that was: measurement_server keeps each one until destination_server has
+committed it, and sends again what was not acknowledged.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.bringup_util import Bringup
+from tests.domains import fresh_domain_id
+from tests.test_e2e_delivery_restart import (
+    ServerProcess,
+    hop_metrics,
+    numbers_in,
+    publish,
+    ranges,
+    wait_for,
+    write_params,
+)
+
+pytestmark = pytest.mark.e2e
+
+TOTAL = 6_000
+RATE = 1_000.0
+KILL_AT = 2_000
+HELD_BACK_S = 30.0
+
+
+def handoff_metrics(lines: list[str]) -> dict[str, Any]:
+    """The `handoff` section of measurement_server's metrics (its HTTP server logged its address)."""
+    address = [
+        m.group(1) for line in lines if "measurement_server" in line and (m := re.search(r"on (http://\S+)", line))
+    ]
+    with urllib.request.urlopen(address[-1] + "metrics", timeout=5) as response:
+        document: dict[str, Any] = json.load(response)
+    return dict(document["handoff"]["/dc/measurement/numbers"])
+
+
+def with_metrics(params: Path) -> None:
+    """measurement_server's metrics HTTP server on a free port, to read its hand-off counters."""
+    text = params.read_text()
+    params.write_text(
+        text.replace(
+            'measurement_plugins: ["numbers"]',
+            'measurement_plugins: ["numbers"]\n    http_server: true\n    http_port: 0',
+        )
+    )
+
+
+def assert_every_record_once_or_more(output: Path, hop: dict[str, Any]) -> None:
+    counts = numbers_in(output)
+    absent = [n for n in range(TOTAL) if n not in counts]
+    assert not absent, f"{len(absent)} records lost: {ranges(absent)}; hop {hop}"
+    assert hop["missing"] == 0, hop
+
+
+def test_kill_9_of_destination_server_at_1000_records_per_s_loses_none(tmp_path: Path) -> None:
+    params, output = write_params(tmp_path)
+    with_metrics(params)
+    with Bringup(params, tmp_path / "home", args=["--bond-timeout", "5"]) as run:
+        run.wait_ready()
+        publisher = publish(run.env, 0, TOTAL, RATE)
+        run.wait_until(lambda: len(numbers_in(output)) >= KILL_AT, 60, f"{KILL_AT} records in the file")
+        pid = int(next(s for s in run.stderr if "destination_server active (pid" in s).rsplit("pid ", 1)[1].rstrip(")"))
+        os.kill(pid, signal.SIGKILL)
+        published, _ = publisher.communicate(timeout=TOTAL / RATE + 60)
+        assert publisher.returncode == 0, published
+        try:
+            run.wait_until(lambda: len(numbers_in(output)) >= TOTAL, 60, "every record in the file")
+        finally:
+            hop = hop_metrics(run.stderr)
+            handoff = handoff_metrics(run.stderr)
+            counts = numbers_in(output)
+            print(
+                f"\nkill -9 at {RATE:.0f}/s: {len(counts)} of {TOTAL} delivered, "
+                f"{sum(c - 1 for c in counts.values())} twice; hop {hop}; hand-off {handoff}"
+            )
+        assert_every_record_once_or_more(output, hop)
+        wait_for(lambda: handoff_metrics(run.stderr)["unacked"] == 0, 15, "every record acknowledged")
+        assert handoff_metrics(run.stderr)["dropped"] == 0
+
+
+def test_kill_9_of_destination_server_back_only_30_s_later_loses_none(tmp_path: Path) -> None:
+    params, output = write_params(tmp_path)
+    home = tmp_path / "home"
+    home.mkdir()
+    env = dict(
+        os.environ,
+        ROS_DOMAIN_ID=str(fresh_domain_id()),
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        PYTHONUNBUFFERED="1",
+        HOME=str(home),
+        XDG_DATA_HOME=str(home / "share"),
+    )
+    with_metrics(params)
+    # Started without dc-bringup, whose manager would restart destination_server at once.
+    measurement = ServerProcess("dc_measurements.server", params, env)
+    destination = ServerProcess("dc_destinations.server", params, env)
+    second: ServerProcess | None = None
+    try:
+        destination.wait_line("listening on")
+        publisher = publish(env, 0, TOTAL, RATE)
+        wait_for(lambda: len(numbers_in(output)) >= KILL_AT, 60, f"{KILL_AT} records in the file")
+        destination.process.send_signal(signal.SIGKILL)
+        killed_at = time.monotonic()
+        published, _ = publisher.communicate(timeout=TOTAL / RATE + 60)
+        assert publisher.returncode == 0, published
+        held = handoff_metrics(measurement.lines)
+        assert held["unacked"] > 1_000, f"more than the history waits for destination_server: {held}"
+        # The downtime under test: measurement_server must hold the records this long.
+        time.sleep(max(0.0, HELD_BACK_S - (time.monotonic() - killed_at)))
+        second = ServerProcess("dc_destinations.server", params, env)
+        second.wait_line("metrics HTTP server on")
+        wait_for(lambda: len(numbers_in(output)) >= TOTAL, 60, "every record in the file")
+        hop = hop_metrics(second.lines)
+        wait_for(lambda: handoff_metrics(measurement.lines)["unacked"] == 0, 15, "every record acknowledged")
+        handoff = handoff_metrics(measurement.lines)
+    finally:
+        for server in (second, destination, measurement):
+            if server is not None:
+                server.stop()
+    counts = numbers_in(output)
+    print(
+        f"\nkill -9, back {HELD_BACK_S:.0f} s later: {len(counts)} of {TOTAL} delivered, "
+        f"{sum(c - 1 for c in counts.values())} twice; held at the kill {held}; hop {hop}; hand-off {handoff}"
+    )
+    assert_every_record_once_or_more(output, hop)
+    assert handoff["dropped"] == 0 and handoff["resent"] > 0, handoff
