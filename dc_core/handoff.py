@@ -22,7 +22,8 @@ import secrets
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,6 +32,8 @@ from dc_core.params import param
 ACK_TOPIC = "dc/handoff_acks"
 """Relative: the acks of the destination_server of this namespace only (one DC per namespace)."""
 KEY_PREFIX = "dc:"
+SOURCE_SUFFIX = " <- source"
+"""Hop keys of this pseudo-topic keep, per publisher, the highest source number it forwarded."""
 ACK_PERIOD_S = 1.0
 # Records republished per turn of the sender's timer: a restarted destination_server takes a
 # backlog of minutes in slices, beside the live records, instead of all of it in one burst.
@@ -59,24 +62,51 @@ def new_writer_id() -> int:
     return secrets.randbits(62) or 1
 
 
-def frame_key(writer: int, seq: int, low: int) -> str:
-    return f"{KEY_PREFIX}{writer:x}:{seq}:{low}"
+def frame_key(writer: int, seq: int, low: int, source: int = 0) -> str:
+    key = f"{KEY_PREFIX}{writer:x}:{seq}:{low}"
+    return f"{key}:{source}" if source > 0 else key
 
 
-def parse_frame_key(frame_id: str) -> tuple[int, int, int] | None:
-    """``(writer, seq, low)`` of a key written by :func:`frame_key`; None for any other frame_id."""
+def parse_frame_key(frame_id: str) -> tuple[int, int, int, int] | None:
+    """``(writer, seq, low, source)`` of a key written by :func:`frame_key` (source 0 when it has none).
+
+    None for any other frame_id.
+    """
     if not frame_id.startswith(KEY_PREFIX):
         return None
     parts = frame_id[len(KEY_PREFIX) :].split(":")
-    if len(parts) != 3:
+    if len(parts) not in (3, 4):
         return None
     try:
         writer, seq, low = int(parts[0], 16), int(parts[1]), int(parts[2])
+        source = int(parts[3]) if len(parts) == 4 else 0
     except ValueError:
         return None
-    if writer <= 0 or seq <= 0 or low <= 0 or low > seq:
+    if writer <= 0 or seq <= 0 or low <= 0 or low > seq or source < 0:
         return None
-    return writer, seq, low
+    return writer, seq, low, source
+
+
+_forwarding = threading.local()
+
+
+@contextmanager
+def source_position(seq: int) -> Iterator[None]:
+    """Records published meanwhile on this thread forward the record numbered ``seq`` by its own publisher.
+
+    A StringStamped measurement passes its publisher's DDS sequence number on this way, so that
+    destination_server, which keeps it with the records it commits, counts what a restart of the
+    measurement_server in between lost (the records of your node it never forwarded).
+    """
+    _forwarding.seq = seq
+    try:
+        yield
+    finally:
+        _forwarding.seq = 0
+
+
+def _source_seq() -> int:
+    return getattr(_forwarding, "seq", 0)
 
 
 # -- the publisher's side -------------------------------------------------------------------------
@@ -207,9 +237,11 @@ class HandoffSender:
         drop_log = self._drop_log
 
         def publish(stamp_ns: int, text: str, group_key: str) -> None:
+            source = _source_seq()
             with lock:
                 seq, low = unacked.take_number()
-                serialised = write_string_stamped(stamp_ns, text, group_key, frame_key(unacked.writer, seq, low))
+                key = frame_key(unacked.writer, seq, low, source)
+                serialised = write_string_stamped(stamp_ns, text, group_key, key)
                 dropped = unacked.keep(seq, serialised, clock())
                 publisher.publish(serialised)
             if dropped:
@@ -390,7 +422,7 @@ class AckTracker:
         with self._lock:
             touched: set[tuple[str, int]] = set()
             for topic, source_ns, seq in keys:
-                if source_ns < 0:
+                if source_ns < 0 and not topic.endswith(SOURCE_SUFFIX):
                     state = self._writer(topic, -source_ns)
                     assert state.committed is not None
                     if seq > state.floor:

@@ -25,7 +25,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from dc_core.handoff import parse_frame_key
+from dc_core.handoff import SOURCE_SUFFIX, parse_frame_key
 from dc_core.sequence_numbers import MAX_WRITERS_PER_TOPIC, TopicWriters
 
 
@@ -55,13 +55,18 @@ def hop_key(topic: str, info: Mapping[str, Any] | None) -> HopKey | None:
     return HopKey(topic, source_ns, seq)
 
 
-def keyed_hop_key(topic: str, frame_id: str) -> tuple[HopKey, int] | None:
-    """The hop key of a record with a hand-off key, and its publisher's ``low``; None without one."""
+def keyed_hop_key(topic: str, frame_id: str) -> tuple[HopKey, int, int] | None:
+    """The hop key of a record with a hand-off key, its publisher's ``low`` and source number; None without one."""
     parsed = parse_frame_key(frame_id) if frame_id else None
     if parsed is None:
         return None
-    writer, seq, low = parsed
-    return HopKey(topic, -writer, seq), low
+    writer, seq, low, source = parsed
+    return HopKey(topic, -writer, seq), low, source
+
+
+def source_key(key: HopKey, source: int) -> HopKey:
+    """The key that keeps, in the buffer, the highest source number forwarded by ``key``'s publisher."""
+    return HopKey(key.topic + SOURCE_SUFFIX, key.source_ns, source)
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,7 @@ class Verdict:
     skipped: int = 0  # records of the same writer that never arrived just before this one
     first_skipped: int = 0  # sequence number of the first of them
     new_writer: bool = False
+    source: bool = False  # the skipped numbers are the source's (records a restarted publisher never forwarded)
 
 
 # The verdicts of most records, made once: a frozen dataclass costs ~1 us to build, per record.
@@ -103,6 +109,8 @@ class _Keyed:
 class _TopicState:
     writers: TopicWriters
     keyed: dict[int, _Keyed] = field(default_factory=dict)
+    # Per hand-off publisher the highest source number it forwarded (StringStamped: your node's).
+    source_max: dict[int, int] = field(default_factory=dict)
     seen: set[HopKey] = field(default_factory=set)
     order: deque[HopKey] = field(default_factory=deque)
     stats: TopicHopStats = field(default_factory=TopicHopStats)
@@ -136,6 +144,11 @@ class HopIntake:
         Gaps among them were counted by the run that received them, so they are not counted again.
         """
         for key in keys:
+            if key.topic.endswith(SOURCE_SUFFIX):
+                state = self._topic(key.topic[: -len(SOURCE_SUFFIX)])
+                writer_id = -key.source_ns
+                state.source_max[writer_id] = max(key.seq, state.source_max.get(writer_id, 0))
+                continue
             state = self._topic(key.topic)
             if key not in state.seen:
                 if key.source_ns < 0:
@@ -148,8 +161,8 @@ class HopIntake:
                     state.writers.observe(key.seq)
                 self._remember(state, key)
 
-    def check(self, topic: str, key: HopKey | None, low: int = 0) -> Verdict:
-        """What to do with an arriving record; ``low`` is its publisher's, with a hand-off key."""
+    def check(self, topic: str, key: HopKey | None, low: int = 0, source: int = 0) -> Verdict:
+        """What to do with an arriving record; ``low`` and ``source`` are from its hand-off key."""
         state = self._topic(topic)
         stats = state.stats
         stats.received += 1
@@ -160,7 +173,7 @@ class HopIntake:
             stats.duplicates += 1
             return _DUPLICATE
         if key.source_ns < 0:
-            return self._check_keyed(state, -key.source_ns, key.seq, low)
+            return self._check_keyed(state, -key.source_ns, key.seq, low, source)
         skipped = state.writers.observe(key.seq)
         if skipped is None:
             stats.writers += 1
@@ -171,7 +184,7 @@ class HopIntake:
         stats.gaps += 1
         return Verdict(skipped=skipped, first_skipped=key.seq - skipped)
 
-    def _check_keyed(self, state: _TopicState, writer_id: int, seq: int, low: int) -> Verdict:
+    def _check_keyed(self, state: _TopicState, writer_id: int, seq: int, low: int, source: int) -> Verdict:
         stats = state.stats
         self._clock += 1
         writer = state.keyed.get(writer_id)
@@ -182,7 +195,22 @@ class HopIntake:
             writer = state.keyed[writer_id] = _Keyed(min(low, seq) if low > 0 else seq, used=self._clock)
             stats.writers += 1
             self._keyed_handled(writer, seq)
-            return _NEW_WRITER
+            verdict = _NEW_WRITER
+            forwarded = max((n for w, n in state.source_max.items() if w != writer_id), default=0)
+            if seq == 1 and source > forwarded + 1 and forwarded:
+                # The first record of a restarted publisher (measurement_server) forwards the source's
+                # number ``source``; its predecessor forwarded up to ``forwarded``: what lies between
+                # never reached destination_server (received by the dead one and not acknowledged,
+                # or published while none ran).
+                skipped = source - forwarded - 1
+                stats.missing += skipped
+                stats.gaps += 1
+                verdict = Verdict(skipped=skipped, first_skipped=forwarded + 1, new_writer=True, source=True)
+            if source:
+                state.source_max[writer_id] = max(source, state.source_max.get(writer_id, 0))
+            return verdict
+        if source and source > state.source_max.get(writer_id, 0):
+            state.source_max[writer_id] = source
         writer.used = self._clock
         verdict = _NOTHING_TO_SAY
         if low > writer.settled:
@@ -216,7 +244,7 @@ class HopIntake:
 
     def handled(self, key: HopKey | None) -> None:
         """Remember ``key``: a later copy of the record is a duplicate."""
-        if key is not None:
+        if key is not None and not key.topic.endswith(SOURCE_SUFFIX):
             state = self._topic(key.topic)
             if key not in state.seen:
                 self._remember(state, key)

@@ -31,7 +31,7 @@ from dc_core.records import MalformedRecord, parse_record
 from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
-from dc_destinations.hop import HopIntake, HopKey, hop_key, keyed_hop_key
+from dc_destinations.hop import HopIntake, HopKey, hop_key, keyed_hop_key, source_key
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
 from dc_interfaces.msg import StringStamped
@@ -227,14 +227,15 @@ class DestinationServer(ManagedServer):
         keys: set[HopKey] = set()
         internal = topic in self._internal_topics
         lows: dict[int, int] = {}
+        sources: dict[HopKey, int] = {}
         for serialised, info in taken:
-            low = 0
+            low = source = 0
             key: HopKey | None
             if internal:
                 stamp_ns, text, frame_id = read_keyed_string_stamped(serialised)
                 keyed = keyed_hop_key(topic, frame_id)
                 if keyed is not None:
-                    key, low = keyed
+                    key, low, source = keyed
                     lows[key.source_ns] = max(low, lows.get(key.source_ns, 0))
                 else:
                     key = hop_key(topic, info)
@@ -246,28 +247,39 @@ class DestinationServer(ManagedServer):
                     self.hop.count_duplicate(topic)
                     continue
                 keys.add(key)
-            one = self._receive(topic, text, stamp_ns, key, low)
+            one = self._receive(topic, text, stamp_ns, key, low, source)
             if one is not None:
                 received.append(one)
+                if source and key is not None:
+                    position = source_key(key, 0)
+                    sources[position] = max(source, sources.get(position, 0))
         if not internal:
             received = _publisher_positions_only(received)
+        # Committed with the records: where the source of each publisher was, for the count after
+        # a restart of that publisher (dc_destinations.hop, "source").
+        received.extend(([], position._replace(seq=seq)) for position, seq in sources.items())
         if lows and self.acks is not None:
             for source_ns, low in lows.items():
                 self.acks.tracker.saw(topic, -source_ns, low)
         self._hand_over(received)
 
-    def _receive(self, topic: str, text: str, stamp_ns: int, key: HopKey | None, low: int = 0) -> _Received | None:
+    def _receive(
+        self, topic: str, text: str, stamp_ns: int, key: HopKey | None, low: int = 0, source: int = 0
+    ) -> _Received | None:
         """What the pipeline takes of one record: its copies and its key; None for a duplicate."""
         assert self.hop is not None and self.routing is not None
-        verdict = self.hop.check(topic, key, low)
+        verdict = self.hop.check(topic, key, low, source)
         if verdict.duplicate:
             return None
         if verdict.skipped:
             assert self._hop_loss_log is not None
             last = verdict.first_skipped + verdict.skipped - 1
-            numbers = (
-                "its publisher's records" if key is not None and key.source_ns < 0 else "publication sequence numbers"
-            )
+            if verdict.source:
+                numbers = "its source's records (across a restart of the publisher forwarding them), numbers"
+            elif key is not None and key.source_ns < 0:
+                numbers = "its publisher's records"
+            else:
+                numbers = "publication sequence numbers"
             self._hop_loss_log.event(
                 verdict.skipped, f"{topic}: {numbers} {verdict.first_skipped}..{last} never arrived"
             )

@@ -139,3 +139,38 @@ def test_kill_9_of_destination_server_back_only_30_s_later_loses_none(tmp_path: 
     )
     assert_every_record_once_or_more(output, hop)
     assert handoff["dropped"] == 0 and handoff["resent"] > 0, handoff
+
+
+SINGLE_TOTAL = 3_000
+SINGLE_RATE = 200.0
+
+
+def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_path: Path) -> None:
+    # Your node publishes on a volatile topic to a StringStamped measurement: what it publishes while
+    # the servers' process is down is lost, and the restarted process has only the buffer to know
+    # where your node was (its publisher continues its numbers).
+    params, output = write_params(tmp_path)
+    with Bringup(params, tmp_path / "home", args=["--single-process", "--bond-timeout", "3"]) as run:
+        run.wait_ready()
+        publisher = publish(run.env, 0, SINGLE_TOTAL, SINGLE_RATE)
+        run.wait_until(lambda: len(numbers_in(output)) >= 600, 60, "600 records in the file")
+        line = [s for s in run.stderr if "DC is up in one process (pid" in s][-1]
+        os.kill(int(line.split("(pid ", 1)[1].split(")", 1)[0]), signal.SIGKILL)
+        run.wait_until(lambda: sum("DC is up in one process" in s for s in run.stderr) == 2, 60, "the process up again")
+        published, _ = publisher.communicate(timeout=SINGLE_TOTAL / SINGLE_RATE + 60)
+        assert publisher.returncode == 0, published
+
+        def accounted() -> int:
+            return len(numbers_in(output)) + hop_metrics(run.stderr)["missing"]
+
+        try:
+            run.wait_until(lambda: accounted() >= SINGLE_TOTAL, 30, "every record delivered or counted")
+        finally:
+            counts = numbers_in(output)
+            hop = hop_metrics(run.stderr)
+            lost_lines = [s for s in run.stderr if "never arrived" in s]
+            print(f"\nsingle process, kill -9 at {SINGLE_RATE:.0f}/s: {len(counts)} delivered, hop {hop}; {lost_lines}")
+    absent = [n for n in range(SINGLE_TOTAL) if n not in counts]
+    assert absent, "the kill lost records: what this test is about"
+    assert hop["missing"] == len(absent), f"lost {ranges(absent)}, counted {hop['missing']}"
+    assert lost_lines, "the loss is logged"
