@@ -161,7 +161,7 @@ def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_pat
         assert publisher.returncode == 0, published
 
         def accounted() -> int:
-            return len(numbers_in(output)) + hop_metrics(run.stderr)["missing"]
+            return len(numbers_in(output)) + int(hop_metrics(run.stderr)["missing"])
 
         try:
             run.wait_until(lambda: accounted() >= SINGLE_TOTAL, 30, "every record delivered or counted")
