@@ -1,0 +1,125 @@
+"""The hand-off's pure parts: what a publisher keeps, what destination_server acknowledges and counts."""
+
+from __future__ import annotations
+
+from dc_core.handoff import (
+    AckTracker,
+    Unacked,
+    ack_document,
+    destination_inputs,
+    frame_key,
+    parse_ack,
+    parse_frame_key,
+)
+from dc_destinations.hop import HopIntake, HopKey, keyed_hop_key, source_key
+
+TOPIC = "/dc/measurement/numbers"
+
+
+def test_a_frame_key_reads_back_and_anything_else_is_no_key() -> None:
+    assert parse_frame_key(frame_key(0xABC, 7, 3)) == (0xABC, 7, 3, 0)
+    assert parse_frame_key(frame_key(0xABC, 7, 3, 99)) == (0xABC, 7, 3, 99)
+    for other in ("", "map", "dc:", "dc:zz:1:1", "dc:1:2", "dc:1:2:3", "dc:1:0:0", "dc:1:5:1:-1"):
+        assert parse_frame_key(other) is None, other
+
+
+def test_the_publisher_keeps_records_until_acknowledged_and_drops_the_oldest_beyond_its_limits() -> None:
+    unacked = Unacked(limit_records=3, limit_bytes=0)
+    for n in range(1, 6):
+        seq, _ = unacked.take_number()
+        assert seq == n
+        unacked.keep(seq, b"x" * 10, now=float(n))
+    assert len(unacked) == 3 and unacked.dropped == 2 and unacked.low == 3
+    assert unacked.ack(3) == 1 and unacked.low == 4 and unacked.bytes == 20
+    assert unacked.ack(2) == 0, "an older ack changes nothing"
+    by_bytes = Unacked(limit_records=100, limit_bytes=25)
+    for _ in range(3):
+        seq, _ = by_bytes.take_number()
+        by_bytes.keep(seq, b"y" * 10, now=0.0)
+    assert len(by_bytes) == 2 and by_bytes.dropped == 1
+
+
+def test_records_not_acknowledged_are_due_again_in_slices_oldest_first() -> None:
+    unacked = Unacked(limit_records=100, limit_bytes=0)
+    for n in range(1, 11):
+        seq, _ = unacked.take_number()
+        unacked.keep(seq, bytes([n]), now=float(n))
+    assert unacked.due(sent_before=5.0, now=20.0, limit=3) == [b"\x01", b"\x02", b"\x03"]
+    assert unacked.due(sent_before=5.0, now=20.0, limit=3) == [b"\x04", b"\x05"]
+    assert unacked.due(sent_before=5.0, now=21.0, limit=3) == []
+    assert unacked.resent == 5
+
+
+def test_acks_are_cumulative_from_the_publishers_oldest_record_and_only_of_committed_records() -> None:
+    tracker = AckTracker()
+    writer = 0x1234
+    tracker.committed([(TOPIC, -writer, 5), (TOPIC, -writer, 6)])
+    assert tracker.acks() == [], "where the publisher's records start is not known yet"
+    tracker.saw(TOPIC, writer, 5)
+    assert tracker.acks() == [(TOPIC, writer, 6)]
+    assert tracker.committed([(TOPIC, -writer, 8)]) is False, "7 is not committed: no progress"
+    assert tracker.committed([(TOPIC, -writer, 7)]) is True
+    assert tracker.acks() == [(TOPIC, writer, 8)]
+    # Positions of the source and DDS-keyed records are no publisher's acks.
+    tracker.committed([(TOPIC + " <- source", -writer, 100), (TOPIC, 1_700_000_000, 9)])
+    assert tracker.acks() == [(TOPIC, writer, 8)]
+    assert parse_ack(ack_document("abc", tracker.acks())) == {"instance": "abc", "acks": {(TOPIC, writer): 8}}
+    assert parse_ack("not json") is None and parse_ack('{"instance": "x"}') is None
+
+
+def test_the_hop_drops_a_record_sent_again_and_counts_only_what_the_publisher_dropped_unacknowledged() -> None:
+    hop = HopIntake(window=100)
+
+    def receive(seq: int, low: int) -> tuple[bool, int]:
+        keyed = keyed_hop_key(TOPIC, frame_key(7, seq, low))
+        assert keyed is not None
+        verdict = hop.check(TOPIC, keyed[0], keyed[1])
+        if not verdict.duplicate:
+            hop.handled(keyed[0])
+        return verdict.duplicate, verdict.skipped
+
+    assert receive(1, 1) == (False, 0)
+    assert receive(2, 1) == (False, 0)
+    assert receive(5, 1) == (False, 0), "3 and 4 may still come: sent again"
+    assert receive(2, 1) == (True, 0), "sent again after a restart: dropped"
+    assert receive(3, 1) == (False, 0)
+    # The publisher dropped 4 at its limit: its oldest held is now 6.
+    assert receive(6, 6) == (False, 1)
+    assert hop.stats()[TOPIC]["missing"] == 1
+
+
+def test_a_restarted_publisher_s_first_record_counts_the_source_records_in_between_even_after_a_restart() -> None:
+    first = HopIntake(window=100)
+    keys = []
+    for seq, source in ((1, 10), (2, 11), (3, 12)):
+        keyed = keyed_hop_key(TOPIC, frame_key(7, seq, 1, source))
+        assert keyed is not None
+        first.check(TOPIC, *keyed)
+        keys.append(keyed[0])
+    keys.append(source_key(keys[-1], 12))
+    # destination_server restarts too (one process): it has what it committed.
+    hop = HopIntake(window=100)
+    hop.load(HopKey(*k) for k in keys)
+    keyed = keyed_hop_key(TOPIC, frame_key(8, 1, 1, 20))
+    assert keyed is not None
+    verdict = hop.check(TOPIC, *keyed)
+    assert (verdict.skipped, verdict.first_skipped, verdict.source) == (7, 13, True)
+    assert hop.stats()[TOPIC]["missing"] == 7
+    # A source that started again (its numbers from 1) tells nothing.
+    keyed = keyed_hop_key(TOPIC, frame_key(9, 1, 1, 1))
+    assert keyed is not None
+    assert hop.check(TOPIC, *keyed).skipped == 0
+
+
+def test_only_topics_destination_server_reads_are_kept() -> None:
+    servers = {
+        "destination_server": {
+            "ros__parameters": {
+                "destination_plugins": ["file", "pg"],
+                "file": {"inputs": ["/dc/measurement/a", "/dc/group/g"]},
+                "pg": {"inputs": ["/dc/measurement/b"]},
+            }
+        }
+    }
+    assert destination_inputs(servers) == {"/dc/measurement/a", "/dc/measurement/b", "/dc/group/g"}
+    assert destination_inputs({}) == set()
