@@ -39,6 +39,10 @@ ACK_PERIOD_S = 1.0
 # backlog of minutes in slices, beside the live records, instead of all of it in one burst.
 RESEND_SLICE = 500
 RESEND_TICK_S = 0.05
+# Records sent again and not yet acknowledged, at most: destination_server's queue on a record topic
+# holds two histories (2,000), one of which a restart's replay can fill; more at once overflowed it
+# (DDS overwrote records it had not taken, which were then sent a third time).
+RESEND_WINDOW = 1000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -186,6 +190,8 @@ class _Output:
     publisher: Any
     unacked: Unacked | None  # None: no destination_server reads the topic, nothing is kept
     resend_before: float = float("-inf")
+    in_flight: int = 0  # sent again since the acknowledged number last moved
+    progress_at: float = 0.0
 
 
 class HandoffSender:
@@ -300,8 +306,12 @@ class HandoffSender:
                 if unacked is None:
                     continue
                 floor = acks.get((output.topic, unacked.writer))
-                if floor is not None:
-                    unacked.ack(floor)
+                if (floor is not None and unacked.ack(floor)) or hello:
+                    output.in_flight = 0
+                    output.progress_at = now
+                elif now - output.progress_at > self._params.resend_after:
+                    output.in_flight = 0  # what was sent again got lost too: the window opens again
+                    output.progress_at = now
                 # A new destination_server has none of what is held; a known one is sent again
                 # what it has not acknowledged for resend_after seconds.
                 cutoff = now if hello else now - self._params.resend_after
@@ -315,9 +325,12 @@ class HandoffSender:
         now = self._clock()
         with self._lock:
             for output in self._outputs.values():
-                if output.unacked is None or output.resend_before == float("-inf"):
+                room = min(RESEND_SLICE, RESEND_WINDOW - output.in_flight)
+                if output.unacked is None or output.resend_before == float("-inf") or room <= 0:
                     continue
-                for serialised in output.unacked.due(output.resend_before, now, RESEND_SLICE):
+                due = output.unacked.due(output.resend_before, now, room)
+                output.in_flight += len(due)
+                for serialised in due:
                     output.publisher.publish(serialised)
 
     def metrics(self) -> dict[str, dict[str, int]]:
