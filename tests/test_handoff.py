@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from dc_core.handoff import (
     AckTracker,
+    HandoffParams,
+    HandoffSender,
     Unacked,
     ack_document,
     destination_inputs,
+    forwarding,
     frame_key,
     parse_ack,
     parse_frame_key,
@@ -123,3 +126,53 @@ def test_only_topics_destination_server_reads_are_kept() -> None:
     }
     assert destination_inputs(servers) == {"/dc/measurement/a", "/dc/measurement/b", "/dc/group/g"}
     assert destination_inputs({}) == set()
+
+
+class _Logger:
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def get_child(self, name: str) -> _Logger:
+        return self
+
+    def error(self, line: str) -> None:
+        self.lines.append(line)
+
+
+class _Node:
+    def __init__(self) -> None:
+        self.logger = _Logger()
+
+    def get_logger(self) -> _Logger:
+        return self.logger
+
+
+class _Publisher:
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def publish(self, serialised: bytes) -> None:
+        self.sent.append(serialised)
+
+
+def test_a_publisher_beyond_its_limit_drops_the_oldest_counts_and_logs_them_and_says_so_in_its_keys() -> None:
+    from dc_core.stamped_cdr import read_keyed_string_stamped
+
+    node = _Node()
+    sender = HandoffSender(node, HandoffParams(unacked_limit_records=2), [TOPIC])
+    ros_publisher = _Publisher()
+    publish = sender.output(TOPIC, ros_publisher)
+    forwarding(41)
+    try:
+        publish(1, '{"n": 0}', "")
+    finally:
+        forwarding(0)
+    for n in range(1, 4):
+        publish(1 + n, f'{{"n": {n}}}', "")
+    keys = [parse_frame_key(read_keyed_string_stamped(b)[2]) for b in ros_publisher.sent]
+    assert [k[1:] if k else None for k in keys] == [(1, 1, 41), (2, 1, 0), (3, 1, 0), (4, 2, 0)]
+    assert sender.metrics()[TOPIC]["dropped"] == 2 and sender.metrics()[TOPIC]["unacked"] == 2
+    assert any("unacked_limit_records 2" in line for line in node.logger.lines), node.logger.lines
+    other = sender.output("/not/read", _Publisher())
+    other(1, "{}", "")
+    assert "/not/read" not in sender.metrics(), "nothing is kept for a topic no destination_server reads"

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.errors import PluginError
-from dc_core.handoff import source_position
+from dc_core.handoff import forwarding
 from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement
 from dc_core.params import param
@@ -134,8 +134,11 @@ class StringStampedInput(Measurement[StringStampedParams]):
             self._malformed_log.event(1, f"{exc}; record: {text[:_LOGGED_TEXT]!r}")
             return
         if not self.timer_driven:
-            with source_position(seq):  # a restart of measurement_server in between is counted downstream
+            forwarding(seq)  # a restart of measurement_server in between is counted downstream
+            try:
                 self.context.emit(record, stamp_ns=stamp_ns or None, group_key=group_key or None)
+            finally:
+                forwarding(0)
             return
         with self._lock:
             replaced = self._latest is not None
