@@ -30,6 +30,9 @@ from dc_core.params import param
 
 ACK_TOPIC = "dc/handoff_acks"
 """Relative: the acks of the destination_server of this namespace only (one DC per namespace)."""
+RESEND_TOPIC = "dc/handoff_resent"
+"""Records sent again go here, their topic after ``@`` in the key, for destination_server alone: on
+the record topic every subscriber (a condition, group_server) would take old records for new ones."""
 KEY_PREFIX = "dc:"
 SOURCE_SUFFIX = " <- source"
 """Hop keys of this pseudo-topic keep, per publisher, the highest source number it forwarded."""
@@ -68,6 +71,13 @@ def new_writer_id() -> int:
     return secrets.randbits(62) or 1
 
 
+def resent_topic(frame_id: str) -> str | None:
+    """The topic a record received on :data:`RESEND_TOPIC` was published on; None without one."""
+    if not frame_id.startswith(KEY_PREFIX) or "@" not in frame_id:
+        return None
+    return frame_id.split("@", 1)[1] or None
+
+
 def frame_key(writer: int, seq: int, low: int, source: int = 0) -> str:
     key = f"{KEY_PREFIX}{writer:x}:{seq}:{low}"
     return f"{key}:{source}" if source > 0 else key
@@ -80,7 +90,7 @@ def parse_frame_key(frame_id: str) -> tuple[int, int, int, int] | None:
     """
     if not frame_id.startswith(KEY_PREFIX):
         return None
-    parts = frame_id[len(KEY_PREFIX) :].split(":")
+    parts = frame_id[len(KEY_PREFIX) :].split("@", 1)[0].split(":")
     if len(parts) not in (3, 4):
         return None
     try:
@@ -231,6 +241,7 @@ class HandoffSender:
         self._outputs: dict[str, _Output] = {}
         self._destination: str | None = None
         self._subscription: Any = None
+        self._resend_publisher: Any = None
         self._timer: Any = None
         self._last_ack = float("-inf")
         self._log = node.get_logger().get_child("handoff")
@@ -288,6 +299,7 @@ class HandoffSender:
 
         if not any(o.unacked is not None for o in self._outputs.values()) or self._subscription is not None:
             return
+        self._resend_publisher = self._node.create_publisher(StringStamped, RESEND_TOPIC, resend_qos())
         self._subscription = self._node.create_subscription(StringStamped, ACK_TOPIC, self._on_ack, ack_qos())
         self._timer = self._node.create_timer(TICK_S, self._resend_slice)
 
@@ -295,6 +307,10 @@ class HandoffSender:
         if self._subscription is not None:
             self._node.destroy_subscription(self._subscription)
             self._subscription = None
+        with self._lock:
+            if self._resend_publisher is not None:
+                self._node.destroy_publisher(self._resend_publisher)
+                self._resend_publisher = None
         if self._timer is not None:
             self._node.destroy_timer(self._timer)
             self._timer = None
@@ -347,6 +363,9 @@ class HandoffSender:
         self._drop_log.tick()
         now = self._clock()
         with self._lock:
+            resend = self._resend_publisher
+            if resend is None:
+                return
             for output in self._outputs.values():
                 room = min(RESEND_SLICE, RESEND_WINDOW - output.in_flight)
                 if output.unacked is None or output.resend_before == float("-inf") or room <= 0:
@@ -354,7 +373,7 @@ class HandoffSender:
                 due = output.unacked.due(output.resend_before, now, room)
                 output.in_flight += len(due)
                 for serialised in due:
-                    output.publisher.publish(serialised)
+                    resend.publish(_addressed(serialised, output.topic))
 
     def metrics(self) -> dict[str, dict[str, int]]:
         """Per topic: records held, their bytes, dropped at the limit, sent again (the ``handoff`` section)."""
@@ -369,6 +388,26 @@ class HandoffSender:
                 for o in self._outputs.values()
                 if o.unacked is not None
             }
+
+
+def _addressed(serialised: bytes, topic: str) -> bytes:
+    """The record with its topic after ``@`` in its key, for :data:`RESEND_TOPIC`."""
+    from dc_core.stamped_cdr import read_keyed_string_stamped, read_stamped_record, write_string_stamped
+
+    stamp_ns, data, frame_id = read_keyed_string_stamped(serialised)
+    return write_string_stamped(stamp_ns, data, read_stamped_record(serialised)[2], f"{frame_id}@{topic}")
+
+
+def resend_qos() -> Any:
+    """Deep enough for a whole window of records sent again."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=2 * RESEND_WINDOW,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 def ack_qos() -> Any:

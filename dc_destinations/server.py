@@ -22,7 +22,7 @@ from rclpy.qos import QoSProfile
 
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.errors import ConfigError, PluginError
-from dc_core.handoff import AckPublisher
+from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
@@ -184,6 +184,11 @@ class DestinationServer(ManagedServer):
             self._subscription_of[topic] = subscription
             if topic in self._internal_topics:
                 with_history.append(topic)
+        if with_history:
+            # Records DC's servers send again after this server was away, for this server alone.
+            resent = self.intake.subscribe_batches(StringStamped, RESEND_TOPIC, self._on_resent, resend_qos())
+            resent.raw = True
+            self._subscription_of[RESEND_TOPIC] = resent
         self.get_logger().info(
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
@@ -262,6 +267,16 @@ class DestinationServer(ManagedServer):
             for source_ns, low in lows.items():
                 self.acks.tracker.saw(topic, -source_ns, low)
         self._hand_over(received)
+
+    def _on_resent(self, taken: list[tuple[bytes, Any]]) -> None:
+        """Records sent again by their publisher (dc_core.handoff), each handled as if from its own topic."""
+        by_topic: dict[str, list[tuple[bytes, Any]]] = {}
+        for serialised, info in taken:
+            topic = resent_topic(read_keyed_string_stamped(serialised)[2])
+            if topic is not None and topic in self._internal_topics and topic in self._subscription_of:
+                by_topic.setdefault(topic, []).append((serialised, info))
+        for topic, records in by_topic.items():
+            self._on_batch(topic, records)
 
     def _receive(
         self, topic: str, text: str, stamp_ns: int, key: HopKey | None, low: int = 0, source: int = 0
