@@ -144,6 +144,7 @@ class DestinationServer(ManagedServer):
         self._destroy_subscriptions()
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
+        self._stop_acks()
         for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
             self.get_logger().error(error)
         self.plugins.clear()
@@ -200,6 +201,7 @@ class DestinationServer(ManagedServer):
         self._destroy_subscriptions()
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)
+        self._stop_acks()
         errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
         if errors:
             raise PluginError("; ".join(errors))
@@ -218,6 +220,9 @@ class DestinationServer(ManagedServer):
             self.destroy_timer(self._hop_log_timer)
             self._hop_log_timer = None
         self._tick_logs()
+
+    def _stop_acks(self) -> None:
+        # After the pipeline's stop: the records it commits then are acknowledged too.
         if self.acks is not None:
             if self.pipeline is not None:
                 self.pipeline.on_seen_committed = None

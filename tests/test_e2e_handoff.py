@@ -12,6 +12,8 @@ import json
 import os
 import re
 import signal
+import subprocess
+import sys
 import time
 import urllib.request
 from pathlib import Path
@@ -22,6 +24,8 @@ import pytest
 from tests.bringup_util import Bringup
 from tests.domains import fresh_domain_id
 from tests.test_e2e_delivery_restart import (
+    INPUT_DEPTH,
+    PUBLISHER,
     ServerProcess,
     hop_metrics,
     numbers_in,
@@ -47,6 +51,14 @@ def handoff_metrics(lines: list[str]) -> dict[str, Any]:
     with urllib.request.urlopen(address[-1] + "metrics", timeout=5) as response:
         document: dict[str, Any] = json.load(response)
     return dict(document["handoff"]["/dc/measurement/numbers"])
+
+
+def hop_missing(lines: list[str]) -> dict[str, int]:
+    """Per input topic, `missing` in the hop section of the destination_server that logged last."""
+    address = [m.group(1) for line in lines if (m := re.search(r"metrics HTTP server on (http://\S+)", line))]
+    with urllib.request.urlopen(address[-1] + "metrics", timeout=5) as response:
+        document: dict[str, Any] = json.load(response)
+    return {topic: int(counts["missing"]) for topic, counts in document["hop"].items()}
 
 
 def with_metrics(params: Path) -> None:
@@ -142,17 +154,38 @@ def test_kill_9_of_destination_server_back_only_30_s_later_loses_none(tmp_path: 
 
 
 SINGLE_TOTAL = 3_000
+
+
+def publish_tagged(env: dict[str, str], first: int, count: int, rate: float) -> subprocess.Popen[str]:
+    """The restart tests' publisher, its records tagged for the File destination (no measurement adds the tag)."""
+    script = PUBLISHER.replace('json.dumps({"n": first + i})', 'json.dumps({"n": first + i, "tags": ["file"]})')
+    assert script != PUBLISHER
+    return subprocess.Popen(
+        [sys.executable, "-c", script, str(first), str(count), str(rate), str(INPUT_DEPTH)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
 SINGLE_RATE = 200.0
 
 
-def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_path: Path) -> None:
-    # Your node publishes on a volatile topic to a StringStamped measurement: what it publishes while
-    # the servers' process is down is lost, and the restarted process has only the buffer to know
-    # where your node was (its publisher continues its numbers).
+@pytest.mark.parametrize("path", ["through a StringStamped measurement", "straight to destination_server"])
+def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_path: Path, path: str) -> None:
+    # Your node publishes on a volatile topic: what it publishes while the servers' process is down
+    # is lost, and the restarted process has only the buffer to know where your node was (its
+    # publisher continues its numbers).
     params, output = write_params(tmp_path)
+    straight = path == "straight to destination_server"
+    if straight:
+        params.write_text(
+            params.read_text().replace('inputs: ["/dc/measurement/numbers"]', 'inputs: ["/robot/numbers"]')
+        )
     with Bringup(params, tmp_path / "home", args=["--single-process", "--bond-timeout", "3"]) as run:
         run.wait_ready()
-        publisher = publish(run.env, 0, SINGLE_TOTAL, SINGLE_RATE)
+        publisher = (publish_tagged if straight else publish)(run.env, 0, SINGLE_TOTAL, SINGLE_RATE)
         run.wait_until(lambda: len(numbers_in(output)) >= 600, 60, "600 records in the file")
         line = [s for s in run.stderr if "DC is up in one process (pid" in s][-1]
         os.kill(int(line.split("(pid ", 1)[1].split(")", 1)[0]), signal.SIGKILL)
@@ -161,16 +194,18 @@ def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_pat
         assert publisher.returncode == 0, published
 
         def accounted() -> int:
-            return len(numbers_in(output)) + int(hop_metrics(run.stderr)["missing"])
+            return len(numbers_in(output)) + sum(hop_missing(run.stderr).values())
 
         try:
             run.wait_until(lambda: accounted() >= SINGLE_TOTAL, 30, "every record delivered or counted")
         finally:
             counts = numbers_in(output)
-            hop = hop_metrics(run.stderr)
+            hop = hop_missing(run.stderr)
             lost_lines = [s for s in run.stderr if "never arrived" in s]
-            print(f"\nsingle process, kill -9 at {SINGLE_RATE:.0f}/s: {len(counts)} delivered, hop {hop}; {lost_lines}")
+            print(
+                f"\nsingle process, {path}, kill -9 at {SINGLE_RATE:.0f}/s: {len(counts)} delivered, hop {hop}; {lost_lines}"
+            )
     absent = [n for n in range(SINGLE_TOTAL) if n not in counts]
     assert absent, "the kill lost records: what this test is about"
-    assert hop["missing"] == len(absent), f"lost {ranges(absent)}, counted {hop['missing']}"
+    assert sum(hop.values()) == len(absent), f"lost {ranges(absent)}, counted {hop}"
     assert lost_lines, "the loss is logged"
