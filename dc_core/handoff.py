@@ -165,6 +165,18 @@ class Unacked:
     def records(self) -> deque[tuple[int, bytes, float]]:
         return self._records
 
+    def make_room(self, size: int) -> int:
+        """Drop the oldest records until one more of ``size`` bytes fits; returns how many."""
+        dropped = 0
+        records = self._records
+        while records and (
+            len(records) >= self.limit_records or (self.limit_bytes and self.bytes + size > self.limit_bytes)
+        ):
+            self._forget()
+            dropped += 1
+        self.dropped += dropped
+        return dropped
+
     def trim(self) -> int:
         """Drop the oldest records beyond the limits; returns how many."""
         dropped = 0
@@ -277,12 +289,20 @@ class HandoffSender:
             with lock:
                 seq = unacked.next_seq
                 unacked.next_seq = seq + 1
+                # Room is made before the key is written: its low must not name a record dropped
+                # right after (destination_server would wait for it, and acknowledge nothing more).
+                dropped = unacked.make_room(0) if len(records) >= limit_records else 0
                 low = records[0][0] if records else seq
                 key = f"{prefix}{seq}:{low}:{source}" if source else f"{prefix}{seq}:{low}"
                 serialised = write_string_stamped(stamp_ns, text, group_key, key)
+                if unacked.bytes + len(serialised) > limit_bytes:
+                    dropped += unacked.make_room(len(serialised))
+                    if (records[0][0] if records else seq) != low:
+                        low = records[0][0] if records else seq
+                        key = f"{prefix}{seq}:{low}:{source}" if source else f"{prefix}{seq}:{low}"
+                        serialised = write_string_stamped(stamp_ns, text, group_key, key)
                 records.append((seq, serialised, clock()))
                 unacked.bytes += len(serialised)
-                dropped = unacked.trim() if len(records) > limit_records or unacked.bytes > limit_bytes else 0
                 publisher.publish(serialised)
             if dropped:
                 drop_log.event(

@@ -103,6 +103,13 @@ class _Keyed:
     settled: int
     above: set[int] = field(default_factory=set)  # handled numbers at or above settled
     used: int = 0
+    # Ranges counted as missing: (first, last, the numbers in it handled before, those arrived since).
+    counted: list[tuple[int, int, set[int], set[int]]] = field(default_factory=list)
+
+
+# Ranges counted as missing remembered per publisher, so that a record of one arriving late (the
+# publisher dropped it while it was still on its way) is taken off the count again.
+COUNTED_RANGES = 64
 
 
 @dataclass
@@ -213,10 +220,12 @@ class HopIntake:
             state.source_max[writer_id] = source
         writer.used = self._clock
         verdict = _NOTHING_TO_SAY
+        if seq < writer.settled and writer.counted:
+            self._arrived_late(writer, seq, stats)
         if low > writer.settled:
-            # The publisher holds nothing below low any more: what of it never arrived is lost.
-            handled = sum(1 for s in writer.above if s < low)
-            skipped = low - writer.settled - handled
+            # The publisher holds nothing below low any more: what of it has not arrived is lost.
+            handled = {s for s in writer.above if s < low}
+            skipped = low - writer.settled - len(handled)
             first = writer.settled
             writer.above = {s for s in writer.above if s >= low}
             writer.settled = low
@@ -224,8 +233,26 @@ class HopIntake:
                 stats.missing += skipped
                 stats.gaps += 1
                 verdict = Verdict(skipped=skipped, first_skipped=first)
+                counted = writer.counted
+                if counted and counted[-1][1] + 1 >= first:
+                    # A publisher dropping one record per record it publishes makes a gap per
+                    # record: one range, or the late ones of older gaps would be counted anyway.
+                    start, _, was_handled, arrived = counted[-1]
+                    counted[-1] = (start, low - 1, was_handled | handled, arrived)
+                else:
+                    counted.append((first, low - 1, handled, set()))
+                    del counted[:-COUNTED_RANGES]
         self._keyed_handled(writer, seq)
         return verdict
+
+    @staticmethod
+    def _arrived_late(writer: _Keyed, seq: int, stats: TopicHopStats) -> None:
+        """A record counted as missing arrived after all (dropped by its publisher while on its way)."""
+        for first, last, handled, arrived in writer.counted:
+            if first <= seq <= last and seq not in handled and seq not in arrived:
+                arrived.add(seq)
+                stats.missing -= 1
+                return
 
     @staticmethod
     def _keyed_handled(writer: _Keyed, seq: int) -> None:

@@ -212,3 +212,36 @@ def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_pat
     assert absent, "the kill lost records: what this test is about"
     assert sum(hop.values()) == len(absent), f"lost {ranges(absent)}, counted {hop}"
     assert lost_lines, "the loss is logged"
+
+
+def test_beyond_the_publishers_limit_the_oldest_are_dropped_and_every_one_is_counted(tmp_path: Path) -> None:
+    # A hand-off of 500 records and a history of 100: destination_server down for ~3 s at 1,000/s.
+    params, output = write_params(tmp_path, history_depth=100)
+    params.write_text(params.read_text().replace("unacked_limit_records: 200000", "unacked_limit_records: 500"))
+    with_metrics(params)
+    with Bringup(params, tmp_path / "home", args=["--bond-timeout", "5"]) as run:
+        run.wait_ready()
+        publisher = publish(run.env, 0, TOTAL, RATE)
+        run.wait_until(lambda: len(numbers_in(output)) >= KILL_AT, 60, f"{KILL_AT} records in the file")
+        pid = int(next(s for s in run.stderr if "destination_server active (pid" in s).rsplit("pid ", 1)[1].rstrip(")"))
+        os.kill(pid, signal.SIGKILL)
+        published, _ = publisher.communicate(timeout=TOTAL / RATE + 60)
+        assert publisher.returncode == 0, published
+
+        def accounted() -> int:
+            return len(numbers_in(output)) + sum(hop_missing(run.stderr).values())
+
+        try:
+            run.wait_until(lambda: accounted() >= TOTAL, 60, "every record delivered or counted")
+        finally:
+            counts = numbers_in(output)
+            missing = hop_missing(run.stderr)
+            handoff = handoff_metrics(run.stderr)
+            print(
+                f"\nlimit 500, kill -9 at {RATE:.0f}/s: {len(counts)} delivered, missing {missing}; hand-off {handoff}"
+            )
+        dropped_lines = [s for s in run.stderr if "records dropped before destination_server acknowledged them" in s]
+    absent = [n for n in range(TOTAL) if n not in counts]
+    assert absent and handoff["dropped"] > 0, "the limit was reached: what this test is about"
+    assert sum(missing.values()) == len(absent), f"lost {ranges(absent)}, counted {missing}"
+    assert dropped_lines, "the publisher logs its drops"

@@ -89,6 +89,16 @@ def test_the_hop_drops_a_record_sent_again_and_counts_only_what_the_publisher_dr
     # The publisher dropped 4 at its limit: its oldest held is now 6.
     assert receive(6, 6) == (False, 1)
     assert hop.stats()[TOPIC]["missing"] == 1
+    # 4 was on its way when the publisher dropped it: it arrives, and is no longer counted as lost.
+    assert receive(4, 1) == (False, 0)
+    assert receive(4, 1) == (True, 0)
+    assert hop.stats()[TOPIC]["missing"] == 0
+    # Dropped one by one while on their way: one gap per record, each taken back as it arrives.
+    for seq in range(7, 107):
+        assert receive(seq + 100, seq + 1)[1] == 1
+    for seq in range(7, 107):
+        assert receive(seq, 1) == (False, 0)
+    assert hop.stats()[TOPIC]["missing"] == 0
 
 
 def test_a_restarted_publisher_s_first_record_counts_the_source_records_in_between_even_after_a_restart() -> None:
@@ -170,9 +180,26 @@ def test_a_publisher_beyond_its_limit_drops_the_oldest_counts_and_logs_them_and_
     for n in range(1, 4):
         publish(1 + n, f'{{"n": {n}}}', "")
     keys = [parse_frame_key(read_keyed_string_stamped(b)[2]) for b in ros_publisher.sent]
-    assert [k[1:] if k else None for k in keys] == [(1, 1, 41), (2, 1, 0), (3, 1, 0), (4, 2, 0)]
+    # A record's low is the oldest held once it is: never one dropped to make room for it.
+    assert [k[1:] if k else None for k in keys] == [(1, 1, 41), (2, 1, 0), (3, 2, 0), (4, 3, 0)]
     assert sender.metrics()[TOPIC]["dropped"] == 2 and sender.metrics()[TOPIC]["unacked"] == 2
     assert any("unacked_limit_records 2" in line for line in node.logger.lines), node.logger.lines
     other = sender.output("/not/read", _Publisher())
     other(1, "{}", "")
     assert "/not/read" not in sender.metrics(), "nothing is kept for a topic no destination_server reads"
+
+
+def test_at_the_byte_limit_each_record_names_as_low_the_oldest_record_still_held() -> None:
+    from dc_core.stamped_cdr import read_keyed_string_stamped
+
+    sender = HandoffSender(_Node(), HandoffParams(unacked_limit_bytes=300), [TOPIC])
+    ros_publisher = _Publisher()
+    publish = sender.output(TOPIC, ros_publisher)
+    for n in range(20):
+        pad = "x" * (n * 7 % 50)
+        publish(1 + n, f'{{"n": {n}, "pad": "{pad}"}}', "")
+        key = parse_frame_key(read_keyed_string_stamped(ros_publisher.sent[-1])[2])
+        assert key is not None
+        held = sender.metrics()[TOPIC]
+        assert held["unacked_bytes"] <= 300 + 8, held  # the key's digits may grow by a few bytes
+        assert key[2] == key[1] - held["unacked"] + 1, (key, held)
