@@ -35,10 +35,24 @@ RATE = 1000.0
 KINDS = ("single", "intake", "forward")
 
 
+# With --handoff: a destination_server section reading the output, so that measurement_server keeps
+# every record for its acknowledgement (dc_core.handoff); no destination_server runs, so none is
+# acknowledged and all stay held (10 s at 1,000/s: well within the default limits).
+HANDOFF_SECTION = f"""destination_server:
+  ros__parameters:
+    destination_plugins: ["file"]
+    file:
+      plugin: "dc_destinations/File"
+      inputs: ["{OUTPUT}"]
+"""
+HANDOFF = False
+
+
 def server_params(folder: Path) -> Path:
     params = folder / "measurement_server.yaml"
     params.write_text(
-        f"""measurement_server:
+        (HANDOFF_SECTION if HANDOFF else "")
+        + f"""measurement_server:
   ros__parameters:
     measurement_plugins: ["forwarded"]
     run_id:
@@ -96,7 +110,12 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=1, help="repeat; medians are reported")
     parser.add_argument("--domain", type=int, default=random.randint(150, 230), help="ROS_DOMAIN_ID")
     parser.add_argument("--json", default=str(e2e.REPO / "benchmarks" / "results" / "measurement_forwarding.json"))
+    parser.add_argument(
+        "--handoff", action="store_true", help="a destination_server reads the output: records are kept for its ack"
+    )
     args = parser.parse_args()
+    global HANDOFF
+    HANDOFF = args.handoff
     trees = e2e.checkouts(parser, args.trees)
     count = int(args.seconds * RATE)
     cpu: dict[str, list[float]] = {kind: [] for kind in (*KINDS, *trees)}

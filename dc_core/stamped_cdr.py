@@ -50,6 +50,22 @@ def read_stamped_record(serialised: bytes) -> tuple[int, str, str]:
     return _read_by_rclpy(serialised) if fields is None else fields
 
 
+def read_keyed_string_stamped(serialised: bytes) -> tuple[int, str, str]:
+    """``(header stamp in ns, data, header.frame_id)``: the frame_id carries a hand-off key (dc_core.handoff)."""
+    kind = serialised[:2]
+    stamp = _STAMP.get(kind)
+    if stamp is not None and len(serialised) >= _BODY + 12:
+        frame_length = stamp.unpack_from(serialised, _BODY)[2]
+        end = _BODY + 12 + frame_length
+        fields = _read(serialised, False)
+        if fields is not None and frame_length > 0:
+            frame = serialised[_BODY + 12 : end - 1]
+            nul = frame.find(0)
+            return fields[0], fields[1], (frame[:nul] if nul >= 0 else frame).decode("utf-8", "replace")
+    msg: Any = deserialize_message(serialised, StringStamped)
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, msg.data, msg.header.frame_id
+
+
 def _read(serialised: bytes, with_group_key: bool) -> tuple[int, str, str] | None:
     """The fields read here, or None for bytes left to rclpy."""
     kind = serialised[:2]
@@ -89,13 +105,13 @@ def _read_by_rclpy(serialised: bytes) -> tuple[int, str, str]:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, msg.data, msg.group_key
 
 
-# sec, nanosec, and the length of an empty frame_id (its NUL), which the three bytes after it pad.
+# sec, nanosec, and the length of frame_id (with its NUL).
 _WRITTEN_HEADER = struct.Struct("<iII")
 _INT32 = range(-(2**31), 2**31)
 
 
-def write_string_stamped(stamp_ns: int, data: str, group_key: str = "") -> bytes:
-    """A ``StringStamped`` (empty ``frame_id``) serialised as rclpy would, for ``Publisher.publish``.
+def write_string_stamped(stamp_ns: int, data: str, group_key: str = "", frame_id: str = "") -> bytes:
+    """A ``StringStamped`` serialised as rclpy would, for ``Publisher.publish``.
 
     A text that holds a NUL, and a stamp beyond the message's 32-bit seconds, are given to rclpy
     to serialise, which cuts a string at its NUL and refuses such a stamp; a text that is not
@@ -104,14 +120,17 @@ def write_string_stamped(stamp_ns: int, data: str, group_key: str = "") -> bytes
     sec, nanosec = divmod(stamp_ns, 1_000_000_000)
     encoded = data.encode("utf-8")
     key = group_key.encode("utf-8")
-    if b"\0" in encoded or b"\0" in key or sec not in _INT32:
-        return _written_by_rclpy(sec, nanosec, data, group_key)
-    end_of_data = 12 + 4 + len(encoded) + 1  # from the body's start: header, then data's length and bytes
+    frame = frame_id.encode("utf-8")
+    if b"\0" in encoded or b"\0" in key or b"\0" in frame or sec not in _INT32:
+        return _written_by_rclpy(sec, nanosec, data, group_key, frame_id)
+    end_of_frame = 12 + len(frame) + 1  # from the body's start
+    end_of_data = end_of_frame + -end_of_frame % 4 + 4 + len(encoded) + 1
     return b"".join(
         (
             _LITTLE_ENDIAN + b"\0\0",
-            _WRITTEN_HEADER.pack(sec, nanosec, 1),
-            b"\0\0\0\0",
+            _WRITTEN_HEADER.pack(sec, nanosec, len(frame) + 1),
+            frame,
+            b"\0" * (1 + -end_of_frame % 4),
             _LENGTH[_LITTLE_ENDIAN].pack(len(encoded) + 1),
             encoded,
             b"\0" * (1 + -end_of_data % 4),
@@ -122,9 +141,10 @@ def write_string_stamped(stamp_ns: int, data: str, group_key: str = "") -> bytes
     )
 
 
-def _written_by_rclpy(sec: int, nanosec: int, data: str, group_key: str) -> bytes:
+def _written_by_rclpy(sec: int, nanosec: int, data: str, group_key: str, frame_id: str = "") -> bytes:
     msg = StringStamped()
     msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    msg.header.frame_id = frame_id
     msg.data = data
     msg.group_key = group_key
     return bytes(serialize_message(msg))

@@ -151,6 +151,8 @@ class GroupCommitter:
         self._accepting = False
         self._writer: threading.Thread | None = None
         self._listeners: list[CommitListener] = []
+        # Called with the hop keys of each group commit once it succeeded (destination_server's acks).
+        self.on_seen_committed: Callable[[list[HopKey]], None] | None = None
         self.intake_drop_log = BurstLog(logger.error, "delivery intake: records dropped")
         self.commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
         # (since, error) while group commits fail for a reason that may pass (disk full, I/O error).
@@ -507,3 +509,8 @@ class GroupCommitter:
                 listener(batch.committed)
             except Exception as exc:
                 self.logger.error(f"delivery commit listener failed: {exc}")
+        if batch.seen and self.on_seen_committed is not None:
+            try:
+                self.on_seen_committed(batch.seen)
+            except Exception as exc:
+                self.logger.error(f"delivery: acknowledging committed records failed: {exc!r}")

@@ -88,6 +88,8 @@ class DeliveryPipeline:
         self._buffer: SqliteBuffer | None = None
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
+        # Set before start: called on the writer thread with the hop keys of each successful commit.
+        self.on_seen_committed: Callable[[list[HopKey]], None] | None = None
         self._quarantined = 0
         self._salvage_thread: threading.Thread | None = None
         self._salvaging: Path | None = None
@@ -186,6 +188,7 @@ class DeliveryPipeline:
         )
         for listener in self._listeners:
             self._committer.add_listener(listener)
+        self._committer.on_seen_committed = self.on_seen_committed
         self._committer.start()
         for name, sender in senders.items():
             route = self._routes[name]

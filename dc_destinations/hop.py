@@ -10,7 +10,12 @@ is there is a duplicate and is dropped before routing.
 Sequence numbers also show what never arrived: a jump from 5,000 to 7,001 means 2,000 records
 were lost between the publisher and this server (dropped by DDS under a flood, or published while
 the server was down, beyond the history); :class:`dc_core.sequence_numbers.TopicWriters` counts
-them. Pure: no ROS, no I/O.
+them.
+
+Records of DC's own publishers carry a hand-off key in ``header.frame_id`` (dc_core.handoff): their
+hop key is then ``(topic, -publisher id, the publisher's own number)``, which a record sent again
+keeps (DDS would number it anew), and what is lost is what the publisher dropped unacknowledged:
+numbers below its ``low`` that never arrived. Pure: no ROS, no I/O.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
+from dc_core.handoff import SOURCE_SUFFIX, parse_frame_key
 from dc_core.sequence_numbers import MAX_WRITERS_PER_TOPIC, TopicWriters
 
 
@@ -49,6 +55,20 @@ def hop_key(topic: str, info: Mapping[str, Any] | None) -> HopKey | None:
     return HopKey(topic, source_ns, seq)
 
 
+def keyed_hop_key(topic: str, frame_id: str) -> tuple[HopKey, int, int] | None:
+    """The hop key of a record with a hand-off key, its publisher's ``low`` and source number; None without one."""
+    parsed = parse_frame_key(frame_id) if frame_id else None
+    if parsed is None:
+        return None
+    writer, seq, low, source = parsed
+    return HopKey(topic, -writer, seq), low, source
+
+
+def source_key(key: HopKey, source: int) -> HopKey:
+    """The key that keeps, in the buffer, the highest source number forwarded by ``key``'s publisher."""
+    return HopKey(key.topic + SOURCE_SUFFIX, key.source_ns, source)
+
+
 @dataclass(frozen=True)
 class Verdict:
     """What the hop says of one arriving record."""
@@ -57,6 +77,7 @@ class Verdict:
     skipped: int = 0  # records of the same writer that never arrived just before this one
     first_skipped: int = 0  # sequence number of the first of them
     new_writer: bool = False
+    source: bool = False  # the skipped numbers are the source's (records a restarted publisher never forwarded)
 
 
 # The verdicts of most records, made once: a frozen dataclass costs ~1 us to build, per record.
@@ -76,8 +97,27 @@ class TopicHopStats:
 
 
 @dataclass
+class _Keyed:
+    """One hand-off publisher: every number below ``settled`` was handled or counted lost."""
+
+    settled: int
+    above: set[int] = field(default_factory=set)  # handled numbers at or above settled
+    used: int = 0
+    # Ranges counted as missing: (first, last, the numbers in it handled before, those arrived since).
+    counted: list[tuple[int, int, set[int], set[int]]] = field(default_factory=list)
+
+
+# Ranges counted as missing remembered per publisher, so that a record of one arriving late (the
+# publisher dropped it while it was still on its way) is taken off the count again.
+COUNTED_RANGES = 64
+
+
+@dataclass
 class _TopicState:
     writers: TopicWriters
+    keyed: dict[int, _Keyed] = field(default_factory=dict)
+    # Per hand-off publisher the highest source number it forwarded (StringStamped: your node's).
+    source_max: dict[int, int] = field(default_factory=dict)
     seen: set[HopKey] = field(default_factory=set)
     order: deque[HopKey] = field(default_factory=deque)
     stats: TopicHopStats = field(default_factory=TopicHopStats)
@@ -96,6 +136,7 @@ class HopIntake:
             raise ValueError("the deduplication window must hold at least one key")
         self.window = window
         self._max_writers = max_writers
+        self._clock = 0
         self._topics: dict[str, _TopicState] = {}
 
     def _topic(self, topic: str) -> _TopicState:
@@ -110,12 +151,25 @@ class HopIntake:
         Gaps among them were counted by the run that received them, so they are not counted again.
         """
         for key in keys:
+            if key.topic.endswith(SOURCE_SUFFIX):
+                state = self._topic(key.topic[: -len(SOURCE_SUFFIX)])
+                writer_id = -key.source_ns
+                state.source_max[writer_id] = max(key.seq, state.source_max.get(writer_id, 0))
+                continue
             state = self._topic(key.topic)
             if key not in state.seen:
-                state.writers.observe(key.seq)
+                if key.source_ns < 0:
+                    # What came before the oldest key kept is not known: nothing below it is counted.
+                    writer = state.keyed.get(-key.source_ns)
+                    if writer is None:
+                        writer = state.keyed[-key.source_ns] = _Keyed(key.seq)
+                    self._keyed_handled(writer, key.seq)
+                else:
+                    state.writers.observe(key.seq)
                 self._remember(state, key)
 
-    def check(self, topic: str, key: HopKey | None) -> Verdict:
+    def check(self, topic: str, key: HopKey | None, low: int = 0, source: int = 0) -> Verdict:
+        """What to do with an arriving record; ``low`` and ``source`` are from its hand-off key."""
         state = self._topic(topic)
         stats = state.stats
         stats.received += 1
@@ -125,6 +179,8 @@ class HopIntake:
         if key in state.seen:
             stats.duplicates += 1
             return _DUPLICATE
+        if key.source_ns < 0:
+            return self._check_keyed(state, -key.source_ns, key.seq, low, source)
         skipped = state.writers.observe(key.seq)
         if skipped is None:
             stats.writers += 1
@@ -135,6 +191,78 @@ class HopIntake:
         stats.gaps += 1
         return Verdict(skipped=skipped, first_skipped=key.seq - skipped)
 
+    def _check_keyed(self, state: _TopicState, writer_id: int, seq: int, low: int, source: int) -> Verdict:
+        stats = state.stats
+        self._clock += 1
+        writer = state.keyed.get(writer_id)
+        if writer is None:
+            if len(state.keyed) >= self._max_writers:
+                del state.keyed[min(state.keyed, key=lambda w: state.keyed[w].used)]
+            # A publisher first heard of now: what it holds from ``low`` on is sent again if need be.
+            writer = state.keyed[writer_id] = _Keyed(min(low, seq) if low > 0 else seq, used=self._clock)
+            stats.writers += 1
+            self._keyed_handled(writer, seq)
+            verdict = _NEW_WRITER
+            forwarded = max((n for w, n in state.source_max.items() if w != writer_id), default=0)
+            if seq == 1 and source > forwarded + 1 and forwarded:
+                # The first record of a restarted publisher (measurement_server) forwards the source's
+                # number ``source``; its predecessor forwarded up to ``forwarded``: what lies between
+                # never reached destination_server (received by the dead one and not acknowledged,
+                # or published while none ran).
+                skipped = source - forwarded - 1
+                stats.missing += skipped
+                stats.gaps += 1
+                verdict = Verdict(skipped=skipped, first_skipped=forwarded + 1, new_writer=True, source=True)
+            if source:
+                state.source_max[writer_id] = max(source, state.source_max.get(writer_id, 0))
+            return verdict
+        if source and source > state.source_max.get(writer_id, 0):
+            state.source_max[writer_id] = source
+        writer.used = self._clock
+        verdict = _NOTHING_TO_SAY
+        if seq < writer.settled and writer.counted:
+            self._arrived_late(writer, seq, stats)
+        if low > writer.settled:
+            # The publisher holds nothing below low any more: what of it has not arrived is lost.
+            handled = {s for s in writer.above if s < low}
+            skipped = low - writer.settled - len(handled)
+            first = writer.settled
+            writer.above = {s for s in writer.above if s >= low}
+            writer.settled = low
+            if skipped > 0:
+                stats.missing += skipped
+                stats.gaps += 1
+                verdict = Verdict(skipped=skipped, first_skipped=first)
+                counted = writer.counted
+                if counted and counted[-1][1] + 1 >= first:
+                    # A publisher dropping one record per record it publishes makes a gap per
+                    # record: one range, or the late ones of older gaps would be counted anyway.
+                    start, _, was_handled, arrived = counted[-1]
+                    counted[-1] = (start, low - 1, was_handled | handled, arrived)
+                else:
+                    counted.append((first, low - 1, handled, set()))
+                    del counted[:-COUNTED_RANGES]
+        self._keyed_handled(writer, seq)
+        return verdict
+
+    @staticmethod
+    def _arrived_late(writer: _Keyed, seq: int, stats: TopicHopStats) -> None:
+        """A record counted as missing arrived after all (dropped by its publisher while on its way)."""
+        for first, last, handled, arrived in writer.counted:
+            if first <= seq <= last and seq not in handled and seq not in arrived:
+                arrived.add(seq)
+                stats.missing -= 1
+                return
+
+    @staticmethod
+    def _keyed_handled(writer: _Keyed, seq: int) -> None:
+        if seq < writer.settled:
+            return
+        writer.above.add(seq)
+        while writer.settled in writer.above:
+            writer.above.discard(writer.settled)
+            writer.settled += 1
+
     def count_duplicate(self, topic: str) -> None:
         """Count a record received and dropped as a duplicate without :meth:`check` (a copy its caller saw)."""
         stats = self._topic(topic).stats
@@ -143,7 +271,7 @@ class HopIntake:
 
     def handled(self, key: HopKey | None) -> None:
         """Remember ``key``: a later copy of the record is a duplicate."""
-        if key is not None:
+        if key is not None and not key.topic.endswith(SOURCE_SUFFIX):
             state = self._topic(key.topic)
             if key not in state.seen:
                 self._remember(state, key)

@@ -29,19 +29,20 @@ from rclpy.qos import QoSProfile
 
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.errors import ConfigError, PluginError
+from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
-from dc_core.stamped_cdr import read_string_stamped
+from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
 from dc_core.worker import Outcome
 from dc_destinations.config import DestinationServerConfig, parse_destination_server
 from dc_destinations.confined_files import ConfinementParams, default_roots
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC
 from dc_destinations.health import summary as health_summary
-from dc_destinations.hop import HopIntake, HopKey, hop_key
+from dc_destinations.hop import HopIntake, HopKey, hop_key, keyed_hop_key, source_key
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
 from dc_interfaces.msg import StringStamped
@@ -114,6 +115,7 @@ class DestinationServer(ManagedServer):
         self._hop_log_timer: Any = None
         self._buffer_check_timer: Any = None
         self._buffer_checking = False
+        self.acks: AckPublisher | None = None
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
@@ -208,6 +210,7 @@ class DestinationServer(ManagedServer):
         self._destroy_subscriptions()
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
+        self._stop_acks()
         for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
             self.get_logger().error(error)
         self.plugins.clear()
@@ -223,10 +226,17 @@ class DestinationServer(ManagedServer):
         assert self.pipeline is not None and self.routing is not None
         for what, plugin in self._named_plugins():
             run_hook(what, plugin, "on_activate")
+        # Acks follow commits from the first one on: measurement_server and group_server keep each
+        # record they publish until it is acknowledged (dc_core.handoff).
+        acks = AckPublisher(self)
+        self.acks = acks
+        self.pipeline.on_seen_committed = acks.on_commit
         self.pipeline.start()
         # Before the first subscription: the history a publisher replays is checked against these keys.
         hop = HopIntake(self._hop_window)
-        hop.load(HopKey(*key) for key in self.pipeline.hop_keys())
+        loaded = [HopKey(*key) for key in self.pipeline.hop_keys()]
+        hop.load(loaded)
+        acks.tracker.committed(loaded)
         self.hop = hop
         self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")
         self._hop_log_timer = self.create_steady_timer(1.0, self._tick_logs)
@@ -244,10 +254,16 @@ class DestinationServer(ManagedServer):
             self._subscription_of[topic] = subscription
             if topic in self._internal_topics:
                 with_history.append(topic)
+        if with_history:
+            # Records DC's servers send again after this server was away, for this server alone.
+            resent = self.intake.subscribe_batches(StringStamped, RESEND_TOPIC, self._on_resent, resend_qos())
+            resent.raw = True
+            self._subscription_of[RESEND_TOPIC] = resent
         self.get_logger().info(
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
         )
+        acks.send()  # a hello: the publishers send again what this server has not acknowledged
 
     def deactivate_server(self) -> None:
         # Intake stops first, so everything received is committed before the senders stop.
@@ -260,6 +276,7 @@ class DestinationServer(ManagedServer):
         self._buffer_checking = False
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)
+        self._stop_acks()
         errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
         if errors:
             raise PluginError("; ".join(errors))
@@ -293,42 +310,100 @@ class DestinationServer(ManagedServer):
 
         self.worker.submit(pipeline.check_buffer, done)
 
+    def _stop_acks(self) -> None:
+        # After the pipeline's stop: the records it commits then are acknowledged too.
+        if self.acks is not None:
+            if self.pipeline is not None:
+                self.pipeline.on_seen_committed = None
+            self.acks.destroy()
+            self.acks = None
+
     # -- intake (the main loop's intake, on the main thread) --------------------------------------------
-    def _on_batch(self, topic: str, taken: list[tuple[bytes, Any]]) -> None:
-        """The records one drain took from ``topic``, in one hand-off to the pipeline."""
+    def _on_batch(self, topic: str, taken: list[tuple[bytes, Any]], resent: bool = False) -> None:
+        """The records one drain took from ``topic`` (or, ``resent``, from the resend topic on behalf of
+        ``topic``), in one hand-off to the pipeline."""
         assert self.hop is not None
         received: list[_Received] = []
         keys: set[HopKey] = set()
-        trusted = topic not in self._guarded_topics or self._publishers_trusted(topic)
+        trusted = topic not in self._guarded_topics or (
+            self._publishers_trusted(topic) and (not resent or self._publishers_trusted(RESEND_TOPIC))
+        )
+        internal = topic in self._internal_topics
+        lows: dict[int, int] = {}
+        sources: dict[HopKey, int] = {}
         for serialised, info in taken:
-            key = hop_key(topic, info)
+            low = source = 0
+            key: HopKey | None
+            if internal:
+                stamp_ns, text, frame_id = read_keyed_string_stamped(serialised)
+                keyed = keyed_hop_key(topic, frame_id)
+                if keyed is not None:
+                    key, low, source = keyed
+                    lows[key.source_ns] = max(low, lows.get(key.source_ns, 0))
+                else:
+                    key = hop_key(topic, info)
+            else:
+                key = hop_key(topic, info)
+                stamp_ns, text = read_string_stamped(serialised)
             if key is not None:
                 if key in keys:  # twice in one batch: the hop has not been told of the first yet
                     self.hop.count_duplicate(topic)
                     continue
                 keys.add(key)
-            stamp_ns, text = read_string_stamped(serialised)
-            one = self._receive(topic, text, stamp_ns, key, trusted)
+            one = self._receive(topic, text, stamp_ns, key, trusted, low, source)
             if one is not None:
                 received.append(one)
-        if topic not in self._internal_topics:
+                if source and key is not None:
+                    position = source_key(key, 0)
+                    sources[position] = max(source, sources.get(position, 0))
+        if not internal:
             received = _publisher_positions_only(received)
+        # Committed with the records: where the source of each publisher was, for the count after
+        # a restart of that publisher (dc_destinations.hop, "source").
+        received.extend(([], position._replace(seq=seq)) for position, seq in sources.items())
+        if lows and self.acks is not None:
+            for source_ns, low in lows.items():
+                self.acks.tracker.saw(topic, -source_ns, low)
         self._hand_over(received)
 
+    def _on_resent(self, taken: list[tuple[bytes, Any]]) -> None:
+        """Records sent again by their publisher (dc_core.handoff), each handled as if from its own topic."""
+        by_topic: dict[str, list[tuple[bytes, Any]]] = {}
+        for serialised, info in taken:
+            topic = resent_topic(read_keyed_string_stamped(serialised)[2])
+            if topic is not None and topic in self._internal_topics and topic in self._subscription_of:
+                by_topic.setdefault(topic, []).append((serialised, info))
+        for topic, records in by_topic.items():
+            # Whoever publishes on the resend topic speaks for the topic a record names: trusted by tags
+            # only while every publisher there is DC's too.
+            self._on_batch(topic, records, resent=True)
+
     def _receive(
-        self, topic: str, text: str, stamp_ns: int, key: HopKey | None, trusted: bool = True
+        self,
+        topic: str,
+        text: str,
+        stamp_ns: int,
+        key: HopKey | None,
+        trusted: bool = True,
+        low: int = 0,
+        source: int = 0,
     ) -> _Received | None:
         """What the pipeline takes of one record: its copies and its key; None for a duplicate."""
         assert self.hop is not None and self.routing is not None
-        verdict = self.hop.check(topic, key)
+        verdict = self.hop.check(topic, key, low, source)
         if verdict.duplicate:
             return None
         if verdict.skipped:
             assert self._hop_loss_log is not None
             last = verdict.first_skipped + verdict.skipped - 1
+            if verdict.source:
+                numbers = "its source's records (across a restart of the publisher forwarding them), numbers"
+            elif key is not None and key.source_ns < 0:
+                numbers = "its publisher's records"
+            else:
+                numbers = "publication sequence numbers"
             self._hop_loss_log.event(
-                verdict.skipped,
-                f"{topic}: publication sequence numbers {verdict.first_skipped}..{last} never arrived",
+                verdict.skipped, f"{topic}: {numbers} {verdict.first_skipped}..{last} never arrived"
             )
         self.stats.received += 1
         if stamp_ns == 0:
@@ -353,6 +428,8 @@ class DestinationServer(ManagedServer):
         return routed.deliveries, key
 
     def _tick_logs(self) -> None:
+        if self.acks is not None:
+            self.acks.send()  # once a second besides the commits': also the hello of a publisher restarted
         if self._hop_loss_log is not None:
             self._hop_loss_log.tick()
         self._malformed_log.tick()

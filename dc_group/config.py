@@ -9,6 +9,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from dc_core.errors import ConfigError
+from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, param, parse_params
 from dc_core.qos import RECORD_HISTORY_DEPTH
@@ -24,6 +25,9 @@ TIMEOUT_MARGIN_S = 1.0
 @dataclass(frozen=True, kw_only=True)
 class GroupServerParams(ServerNodeParams, MetricsHttpParams):
     groups: list[str] = param(doc="Ids of the groups to enable; each has a section of the same name")
+    handoff: HandoffParams = param(
+        default_factory=HandoffParams, doc="Records kept until destination_server acknowledges them"
+    )
     http_port: int = http_port_param(2021)
 
 

@@ -13,10 +13,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from dc_core.handoff import HandoffSender, destination_inputs
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
 from dc_core.records import MalformedRecord
-from dc_core.stamped_cdr import write_string_stamped
 from dc_group.config import GroupServerConfig, parse_group_server
 from dc_group.merge import parse_input
 from dc_group.metrics import group_prometheus_text
@@ -37,6 +37,8 @@ class GroupServer(ManagedServer):
         self.malformed: dict[str, int] = {}
         self._routes: dict[str, list[GroupPipeline]] = {}
         self._group_publishers: dict[str, Any] = {}
+        self._publish_of: dict[str, Callable[[int, str, str], None]] = {}
+        self.handoff: HandoffSender | None = None
         self._input_subscriptions: list[Any] = []
         self._expiry_timer: Any = None
         self._malformed_logged_at: dict[str, float] = {}
@@ -46,12 +48,16 @@ class GroupServer(ManagedServer):
 
     # -- transitions ---------------------------------------------------------------------------
     def configure_server(self) -> None:
-        config = parse_group_server(self.read_params_file()[NODE_NAME], NODE_NAME)
+        servers = self.read_params_file()
+        config = parse_group_server(servers[NODE_NAME], NODE_NAME)
         self.apply_node_params(config.node, config.warnings)
+        handoff = self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
         for group in config.groups:
             pipeline = GroupPipeline(group, self.get_logger())
             self.pipelines[group.name] = pipeline
-            self._group_publishers[group.name] = self.create_publisher(StringStamped, group.output, RECORD_QOS)
+            publisher = self.create_publisher(StringStamped, group.output, RECORD_QOS)
+            self._group_publishers[group.name] = publisher
+            self._publish_of[group.name] = handoff.output(group.output, publisher)
             for topic in group.inputs:
                 self._routes.setdefault(topic, []).append(pipeline)
             self.get_logger().info(
@@ -72,6 +78,8 @@ class GroupServer(ManagedServer):
         # A set times out at most a quarter of its timeout late, and never more than 0.5 s late.
         period = min(0.5, max(0.02, min(timeouts) / 4)) if timeouts else 0.5
         self._expiry_timer = self.create_steady_timer(period, self._expire)
+        if self.handoff is not None:
+            self.handoff.start()
         assert self.config is not None
         self.start_metrics_http(
             self.config.node, self.metrics_document, lambda: group_prometheus_text(self.metrics_document())
@@ -90,12 +98,18 @@ class GroupServer(ManagedServer):
             for name, pipeline in self.pipelines.items():
                 self._publish(name, pipeline.flush())
                 self.get_logger().info(f"group {name}: {pipeline.stats()}")
+        if self.handoff is not None:
+            self.handoff.stop()
         self.stop_metrics_http()
 
     def cleanup_server(self) -> None:
+        if self.handoff is not None:
+            self.handoff.close()
+            self.handoff = None
         for publisher in self._group_publishers.values():
             self.destroy_publisher(publisher)
         self._group_publishers.clear()
+        self._publish_of.clear()
         self.pipelines.clear()
         self.malformed.clear()
         self._routes.clear()
@@ -136,11 +150,11 @@ class GroupServer(ManagedServer):
                 self._publish(name, pipeline.expire(now))
 
     def _publish(self, group_name: str, outputs: list[GroupOutput]) -> None:
-        publisher = self._group_publishers.get(group_name)
-        if publisher is None:
+        publish = self._publish_of.get(group_name)
+        if publish is None:
             return
         for output in outputs:
-            publisher.publish(write_string_stamped(output.stamp_ns, output.data, output.group_key))
+            publish(output.stamp_ns, output.data, output.group_key)
 
     def _count_malformed(self, topic: str, exc: MalformedRecord, now: float) -> None:
         count = self.malformed.get(topic, 0) + 1
@@ -160,7 +174,8 @@ class GroupServer(ManagedServer):
         groups = self.stats()
         with self._lock:
             inputs = {topic: {"malformed": self.malformed.get(topic, 0)} for topic in self._routes}
-        return {"groups": groups, "inputs": inputs}
+        handoff = self.handoff
+        return {"groups": groups, "inputs": inputs, "handoff": handoff.metrics() if handoff is not None else {}}
 
 
 def main() -> int:

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any, cast
 
 from dc_core.errors import ConfigError, PluginError
+from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.paths import expand_values
@@ -42,6 +43,9 @@ class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
     all_base_path: str = param("", doc="Prefix for local and remote paths ($ENV, =custom_param)")
     custom_str_params_list: list[str] = param([], doc="Ids of custom string parameters added to records")
     run_id: RunIdParams = param(default_factory=RunIdParams, doc="Run identifier")
+    handoff: HandoffParams = param(
+        default_factory=HandoffParams, doc="Records kept until destination_server acknowledges them"
+    )
     http_port: int = http_port_param(2022)
 
 

@@ -11,13 +11,13 @@ from typing import Any
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.errors import PluginError
+from dc_core.handoff import HandoffSender, destination_inputs
 from dc_core.lifecycle import ManagedServer, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
 from dc_core.rostime import now_ns
-from dc_core.stamped_cdr import write_string_stamped
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
@@ -61,12 +61,15 @@ class MeasurementServer(ManagedServer):
         self._start_deadline = 0.0
         self._init_timer: Any = None
         self._clock_wait_logged = False
+        self.handoff: HandoffSender | None = None
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
-        section = self.read_params_file()[NODE_NAME]
+        servers = self.read_params_file()
+        section = servers[NODE_NAME]
         config = parse_measurement_server(section)
         self.config = config
+        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
 
@@ -102,7 +105,7 @@ class MeasurementServer(ManagedServer):
                 validator,
                 run_id,
                 custom,
-                self._publish_fn(publisher),
+                self._publish_fn(self.handoff.output(mcfg.output_topic, publisher)),
                 log,
                 clock_ns=lambda: now_ns(self),
             )
@@ -159,13 +162,13 @@ class MeasurementServer(ManagedServer):
 
         return publish
 
-    def _publish_fn(self, publisher: Any) -> Any:
+    def _publish_fn(self, handoff_publish: Any) -> Any:
         def publish(text: str, group_key: str, stamp_ns: int | None) -> None:
             if stamp_ns is None:
                 stamp_ns = now_ns(self)
-            # Serialised here and published raw: rclpy's conversion of a message object cost more
-            # than twice as much, for every record (dc_core.stamped_cdr).
-            publisher.publish(write_string_stamped(stamp_ns, text, group_key))
+            # Serialised and published raw by the hand-off, which keeps it until destination_server
+            # acknowledges it: rclpy's conversion of a message object cost more than twice as much.
+            handoff_publish(stamp_ns, text, group_key)
 
         return publish
 
@@ -178,6 +181,8 @@ class MeasurementServer(ManagedServer):
                     self.create_subscription(StringStamped, runtime.topic, self._topic_record_callback(runtime), 10)
                 )
         self._active = True
+        if self.handoff is not None:
+            self.handoff.start()
         for name, runner in self.runners.items():
             runner.set_active(True)
             self._record_publishers[name].on_activate(None)
@@ -194,11 +199,13 @@ class MeasurementServer(ManagedServer):
 
     def metrics_document(self) -> dict[str, Any]:
         """Per measurement its counters since configure (the HTTP thread reads them: ints, no lock needed)."""
+        handoff = self.handoff
         return {
             "measurements": {
                 name: {**dataclasses.asdict(runner.stats), **runner.plugin.counters()}
                 for name, runner in list(self.runners.items())
-            }
+            },
+            "handoff": handoff.metrics() if handoff is not None else {},
         }
 
     @staticmethod
@@ -287,6 +294,8 @@ class MeasurementServer(ManagedServer):
             )
         for name in self.runners:
             self._record_publishers[name].on_deactivate(None)
+        if self.handoff is not None:
+            self.handoff.stop()
         errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
         if errors:
             raise PluginError("; ".join(errors))
@@ -306,6 +315,9 @@ class MeasurementServer(ManagedServer):
             self.get_logger().warning(f"cleanup: jobs of plugins still ran after {WORKER_DRAIN_S:g} s")
         for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
             self.get_logger().error(error)
+        if self.handoff is not None:
+            self.handoff.close()
+            self.handoff = None
         for name in self.runners:
             self.destroy_lifecycle_publisher(self._record_publishers[name])
         for publisher in self._condition_publishers:

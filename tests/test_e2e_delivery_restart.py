@@ -97,12 +97,15 @@ sys.exit(0 if not await_forwarded or last in forwarded else 3)
 """
 
 
-def write_params(tmp_path: Path, history_depth: int = RECORD_HISTORY_DEPTH) -> tuple[Path, Path]:
+def write_params(tmp_path: Path, history_depth: int = RECORD_HISTORY_DEPTH, handoff: bool = True) -> tuple[Path, Path]:
+    """With ``handoff`` False, measurement_server keeps nothing for destination_server: the history alone."""
     out = tmp_path / "out"
     params = tmp_path / "params.yaml"
     params.write_text(f"""
 measurement_server:
   ros__parameters:
+    handoff:
+      unacked_limit_records: {200_000 if handoff else 0}
     measurement_plugins: ["numbers"]
     numbers:
       plugin: "dc_measurements/StringStamped"
@@ -207,8 +210,8 @@ def ranges(numbers: list[int]) -> str:
 
 
 def test_kill_9_while_10000_records_are_in_flight_loses_none_within_the_history(tmp_path: Path) -> None:
-    # history_depth sized for the rate: the publisher keeps the last 5 s of records.
-    params, output = write_params(tmp_path, history_depth=COVERING_DEPTH)
+    # history_depth sized for the rate: the publisher keeps the last 5 s of records (no hand-off).
+    params, output = write_params(tmp_path, history_depth=COVERING_DEPTH, handoff=False)
     with Bringup(params, tmp_path / "home", args=["--bond-timeout", "5"]) as run:
         counts, down_s, published = kill_destination_server_during(run, output, FLOOD_RATE)
         hop = hop_metrics(run.stderr)
@@ -225,7 +228,8 @@ def test_kill_9_while_10000_records_are_in_flight_loses_none_within_the_history(
 
 
 def test_kill_9_at_2000_records_per_s_counts_what_the_history_did_not_cover(tmp_path: Path) -> None:
-    params, output = write_params(tmp_path)
+    # The history alone (hand-off off): what it does not cover is counted from the DDS numbers.
+    params, output = write_params(tmp_path, handoff=False)
     with Bringup(params, tmp_path / "home", args=["--bond-timeout", "5"]) as run:
         counts, down_s, published = kill_destination_server_during(run, output, FLOOD_RATE)
         hop = hop_metrics(run.stderr)
@@ -319,6 +323,7 @@ def test_records_published_while_destination_server_is_stopped_arrive_once_it_is
     counts = numbers_in(output)
     assert sorted(counts) == list(range(1000))
     assert set(counts.values()) == {1}, "a record delivered before the stop is not delivered again"
-    # The history replayed all 1,000 records: the first 500 were recognised as already handled.
-    assert hop["duplicates"] == 500 and hop["missing"] == 0, hop
+    # The history replayed all 1,000 records: the first 500 were recognised as already handled; the
+    # 500 published meanwhile came from the history and were sent again by the hand-off too.
+    assert 500 <= hop["duplicates"] <= 1000 and hop["missing"] == 0, hop
     assert not any("records lost" in line for line in second.lines)

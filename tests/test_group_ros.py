@@ -351,3 +351,62 @@ def test_a_bad_configuration_fails_configure_and_keeps_the_node_alive(start: Any
     assert h.server.lifecycle_state == "unconfigured"
     params.write_text(yaml.safe_dump({"group_server": {"ros__parameters": {"groups": ["g"], "g": {"inputs": ["/a"]}}}}))
     assert h.server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+
+
+def test_records_destination_server_reads_are_kept_until_acknowledged_and_sent_again_to_it_alone(
+    start: Any, tmp_path: Path
+) -> None:
+    from dc_core.handoff import ACK_TOPIC, RESEND_TOPIC, ack_document, ack_qos, parse_frame_key, resent_topic
+
+    h = start({"g": {"inputs": ["a"], "sync_delay": 0.1}})
+    output = h.topic("g")
+    params = tmp_path / "params.yaml"  # the fixture's: a destination_server of the same file reads the output
+    document = yaml.safe_load(params.read_text())
+    document["destination_server"] = {
+        "ros__parameters": {
+            "destination_plugins": ["file"],
+            "file": {"plugin": "dc_destinations/File", "inputs": [output]},
+        }
+    }
+    params.write_text(yaml.safe_dump(document))
+    activate(h)
+    keys: list[tuple[int, int, int, int]] = []
+
+    def on_output(msg: Any) -> None:
+        key = parse_frame_key(msg.header.frame_id)
+        assert key is not None, msg.header.frame_id
+        keys.append(key)
+
+    h.helper.create_subscription(StringStamped, output, on_output, QOS)
+    resent: list[tuple[int, int, int, int]] = []
+
+    def on_resent(msg: Any) -> None:
+        assert resent_topic(msg.header.frame_id) == output, msg.header.frame_id
+        key = parse_frame_key(msg.header.frame_id)
+        assert key is not None
+        resent.append(key)
+
+    h.helper.create_subscription(StringStamped, RESEND_TOPIC, on_resent, QOS)
+    acks = h.helper.create_publisher(StringStamped, ACK_TOPIC, ack_qos())
+    for n in range(3):
+        h.publish("a", {"n": n}, (n + 1) * S)
+    assert h.spin_until(lambda: len(keys) == 3), keys
+    writer = keys[0][0]
+    assert [k[1] for k in keys] == [1, 2, 3]
+    assert h.server.handoff is not None
+    assert h.server.handoff.metrics()[output]["unacked"] == 3
+
+    def ack(instance: str, floor: int) -> None:
+        msg = StringStamped()
+        msg.data = ack_document(instance, [(output, writer, floor)])
+        acks.publish(msg)
+
+    assert h.spin_until(lambda: acks.get_subscription_count() > 0)
+    # A destination_server heard of for the first time, which has committed record 1: 2 and 3 again.
+    ack("first", 1)
+    assert h.spin_until(lambda: len(resent) == 2), resent
+    assert [k[1] for k in resent] == [2, 3], "sent again under their own numbers"
+    assert len(keys) == 3, "not on the output topic, where group inputs or conditions would take them for new"
+    ack("first", 3)
+    assert h.spin_until(lambda: h.server.handoff is not None and h.server.handoff.metrics()[output]["unacked"] == 0)
+    assert h.server.handoff.metrics()[output] == {"unacked": 0, "unacked_bytes": 0, "dropped": 0, "resent": 2}

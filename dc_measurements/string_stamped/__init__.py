@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.errors import PluginError
+from dc_core.handoff import forwarding
 from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement
 from dc_core.params import param
@@ -112,7 +113,9 @@ class StringStampedInput(Measurement[StringStampedParams]):
 
     def _on_message(self, serialised: bytes, info: Any) -> None:
         seq = info.get("publication_sequence_number") if info else None
-        if isinstance(seq, int) and seq > 0:
+        if not isinstance(seq, int) or seq <= 0:
+            seq = 0
+        if seq:
             skipped = self._writers.observe(seq)
             if skipped:
                 self.lost += skipped
@@ -131,7 +134,11 @@ class StringStampedInput(Measurement[StringStampedParams]):
             self._malformed_log.event(1, f"{exc}; record: {text[:_LOGGED_TEXT]!r}")
             return
         if not self.timer_driven:
-            self.context.emit(record, stamp_ns=stamp_ns or None, group_key=group_key or None)
+            forwarding(seq)  # a restart of measurement_server in between is counted downstream
+            try:
+                self.context.emit(record, stamp_ns=stamp_ns or None, group_key=group_key or None)
+            finally:
+                forwarding(0)
             return
         with self._lock:
             replaced = self._latest is not None
