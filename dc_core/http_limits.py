@@ -85,12 +85,13 @@ class BoundedHTTPServer(ThreadingHTTPServer):
             self._slots.release()
 
     def _refuse(self, request: socket.socket) -> None:
-        self.refused += 1
         try:
             request.settimeout(_REFUSE_SEND_S)
             request.sendall(_BUSY)
         except OSError:
             pass  # the client went away or reads nothing: closed all the same
         self.shutdown_request(request)
+        # Logged before it is counted: whoever sees the count can find the line.
         if self._on_refused is not None:
-            self._on_refused(self.refused)
+            self._on_refused(self.refused + 1)
+        self.refused += 1

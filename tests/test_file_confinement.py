@@ -30,6 +30,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from dc_bringup.local_servers.seaweedfs import SeaweedS3Server, missing_reason
 from dc_core.destination import OutgoingRecord
 from dc_core.errors import ConfigError
+from dc_core.handoff import RESEND_TOPIC, frame_key, new_writer_id, resend_qos
 from dc_core.lifecycle import ServerLoop
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext, RecordingLogger
@@ -328,24 +329,40 @@ def server_params(tmp_path: Path, server: SeaweedS3Server, topic: str, root: Pat
 
 
 def run_server_with_publisher(
-    tmp_path: Path, server: SeaweedS3Server, node_name: str, records: int
+    tmp_path: Path, server: SeaweedS3Server, node_name: str, records: int, *, as_resent: bool = False
 ) -> tuple[DestinationServer, Path, list[Path], str]:
     """destination_server in this process, and a publisher node ``node_name`` in a second context (another
     process' node, as far as DDS is concerned) publishing ``records`` records tagged for both destinations,
-    each naming a file inside the root. Returns once the server handled them all."""
-    topic = f"/dc/measurement/map_{uuid.uuid4().hex[:8]}"
+    each naming a file inside the root. Returns once the server handled them all.
+
+    ``as_resent``: the topic is one DC's measurement server publishes, and the records come on the
+    hand-off's resend topic as if sent again by that server (dc_core.handoff)."""
+    name = f"map_{uuid.uuid4().hex[:8]}"
+    topic = f"/dc/measurement/{name}"
     root = tmp_path / "data"
     files = [write(root / f"map-{i}.pgm", f"P5 {i}".encode()) for i in range(records)]
+    params = server_params(tmp_path, server, topic, root)
+    if as_resent:
+        document = yaml.safe_load(params.read_text())
+        document["measurement_server"] = {
+            "ros__parameters": {"measurement_plugins": [name], name: {"plugin": "dc_measurements/Uptime"}}
+        }
+        params.write_text(yaml.safe_dump(document, sort_keys=False))
     rclpy.init()
     publisher_context = Context()
     rclpy.init(context=publisher_context)
     try:
-        dest = DestinationServer(str(server_params(tmp_path, server, topic, root)))
+        dest = DestinationServer(str(params))
         executor = SingleThreadedExecutor()
         executor.add_node(dest)
         node = rclpy.create_node(node_name, context=publisher_context)
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-        publisher = node.create_publisher(StringStamped, topic, qos)
+        # Resent: nothing but DC's servers would publish on the topic itself (here, nobody does).
+        publisher = (
+            node.create_publisher(StringStamped, "/" + RESEND_TOPIC, resend_qos())
+            if as_resent
+            else node.create_publisher(StringStamped, topic, qos)
+        )
         loop = ServerLoop(executor, dest.intake)
         try:
             assert dest.trigger_configure() == TransitionCallbackReturn.SUCCESS
@@ -354,8 +371,11 @@ def run_server_with_publisher(
             while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
                 loop.spin_once(timeout_sec=0.02)
             prefix = uuid.uuid4().hex[:8]
+            writer = new_writer_id()
             for i, path in enumerate(files):
                 msg = StringStamped()
+                if as_resent:
+                    msg.header.frame_id = f"{frame_key(writer, i + 1, 1)}@{topic}"
                 msg.data = json.dumps({
                     "tags": ["disk", "flb_minio"],
                     "local_paths": {"pgm": str(path)},
@@ -409,6 +429,20 @@ def test_a_record_from_a_node_named_measurement_server_reaches_it__the_graph_tru
     assert not dest.stats.untrusted_tags
     assert len(server.objects(f"{prefix}/")) == 2
     assert all(f.exists() for f in files), "delete_when_sent is false by default"
+
+
+@needs_store
+def test_records_on_the_resend_topic_from_a_publisher_that_is_not_dc_do_not_reach_a_file_destination(
+    server: SeaweedS3Server, tmp_path: Path
+) -> None:
+    # The hand-off's resend topic speaks for DC's own topics: an outsider publishing there must not get
+    # the trust DC's servers have on the topic its records name.
+    dest, _, files, prefix = run_server_with_publisher(tmp_path, server, "dc_test_outsider", 3, as_resent=True)
+    assert sum(dest.stats.untrusted_tags.values()) == 3, dest.stats.untrusted_tags
+    assert all(f.exists() for f in files) and server.objects(f"{prefix}/") == {}
+    lines = (tmp_path / "out" / "records.jsonl").read_text().splitlines()
+    assert len(lines) == 3, "the destinations that read no file still get the records"
+    assert len(server.objects(f"{prefix}/")) + sum(dest.stats.untrusted_tags.values()) == len(files)
 
 
 # -- the issue's reproduction through dc-bringup ------------------------------------------------------------
