@@ -286,7 +286,8 @@ def test_kill_9_mid_stream(tmp_path: Path, mode: str, server: str) -> None:
             counts = numbers_in(output)
             missing = sum(hop_missing(run.stderr).values())
             print(
-                f"\nkill -9 of {server} ({mode}) at {KILL_RATE:.0f}/s: {sent} sent, {len(counts)} delivered, missing {missing}"
+                f"\nkill -9 of {server} ({mode}) at {KILL_RATE:.0f}/s: {sent} sent, {len(counts)} delivered "
+                f"({sum(c - 1 for c in counts.values())} twice), missing {missing}"
             )
     absent = [n for n in range(sent) if n not in counts]
     assert set(counts) <= set(range(sent))
@@ -294,9 +295,15 @@ def test_kill_9_mid_stream(tmp_path: Path, mode: str, server: str) -> None:
     if server == "destination_server":
         # The acknowledged hand-off: measurement_server kept what destination_server had not committed.
         assert missing == 0 and not absent, ranges(absent)
+    twice = sum(c - 1 for c in counts.values())
     if server == "measurement_server":
         # Nothing of destination_server's was killed: no batch can be sent twice.
-        assert set(counts.values()) == {1}, [n for n, c in counts.items() if c > 1]
+        assert twice == 0, [n for n, c in counts.items() if c > 1]
+    else:
+        # At least once (docs/delivery.md, "What is promised"): a kill between the destination's
+        # confirmation and the delete sends up to two batches (batch_size 500) again; the hand-off's
+        # copies are dropped by the hop keys.
+        assert twice <= 2 * 500, twice
     if missing:
         assert any("never arrived" in s for s in run.stderr), "a loss is logged"
 
@@ -347,11 +354,16 @@ def test_sigstop_then_a_burst_of_30_sigterms(tmp_path: Path) -> None:
         finally:
             counts = numbers_in(output)
             missing = sum(hop_missing(run.stderr).values())
-            print(f"\nSIGSTOP + 30 SIGTERMs at {SIGNAL_RATE:.0f}/s: {len(counts)} delivered, missing {missing}")
+            print(
+                f"\nSIGSTOP + 30 SIGTERMs at {SIGNAL_RATE:.0f}/s: {len(counts)} delivered "
+                f"({sum(c - 1 for c in counts.values())} twice), missing {missing}"
+            )
     # The hand-off: nothing lost, nothing counted; duplicates only from the kill (at least once).
     absent = [n for n in range(SIGNAL_TOTAL) if n not in counts]
     assert not absent and missing == 0, f"lost {ranges(absent)}, counted {missing}"
     assert len(counts) == SIGNAL_TOTAL
+    # At least once: the SIGKILL of the frozen server may send up to two batches (500 each) again.
+    assert sum(c - 1 for c in counts.values()) <= 2 * 500, counts.most_common(3)
 
 
 # -- 4. damaged pages at rest, and a sender that raises at the start that salvages them ----------------
