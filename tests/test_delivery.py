@@ -30,6 +30,7 @@ from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 from dc_destinations.storage import BufferInUse, default_storage_dir
 from tests.buffer_damage import damage_pages
+from tests.fault_helpers import tmpfs
 
 LOG = RecordingLogger("test_delivery")
 
@@ -1163,17 +1164,8 @@ def test_a_copy_for_no_destination_here_is_said_and_the_writer_commits_the_rest(
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A real file system of 2 MB (tmpfs), so that the buffer meets a real ENOSPC."""
-    mount_point = tmp_path / "disk"
-    mount_point.mkdir()
-    mounted = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount_point)], capture_output=True, text=True
-    )
-    if mounted.returncode != 0:
-        pytest.skip(f"mounting a small tmpfs needs root: {mounted.stderr.strip()}")
-    try:
-        yield mount_point
-    finally:
-        subprocess.run(["umount", "--lazy", str(mount_point)], check=False)
+    with tmpfs(tmp_path / "disk", "2m") as disk:
+        yield disk
 
 
 def fill(path: Path) -> None:

@@ -9,9 +9,7 @@ record published reaches the receiver (delivered + counted = sent).
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
 import time
 from collections import Counter
 from collections.abc import Iterator
@@ -21,22 +19,14 @@ from typing import Any
 import pytest
 
 from tests.bringup_util import Bringup, dc
+from tests.fault_helpers import fault_env, tmpfs
 from tests.http_receiver import Receiver, Request
 from tests.test_delivery import fill
 from tests.test_e2e_delivery_failures import finish, publish, wait_metric, write_params
 
 pytestmark = pytest.mark.e2e
 
-HOOKS = Path(__file__).resolve().parent / "fault_hooks"
 TOTAL = 300
-
-
-def _fault_env(tmp_path: Path, target: str) -> dict[str, str]:
-    return {
-        "PYTHONPATH": os.pathsep.join([*filter(None, [os.environ.get("PYTHONPATH")]), str(HOOKS)]),
-        "DC_TEST_FAULT": target,
-        "DC_TEST_FAULT_ONCE": str(tmp_path / "fault-raised"),
-    }
 
 
 @pytest.mark.parametrize(
@@ -50,7 +40,7 @@ def test_a_delivery_thread_that_dies_is_logged_and_its_server_restarted_without_
 ) -> None:
     with (
         Receiver() as receiver,
-        Bringup(write_params(tmp_path, receiver.port), tmp_path / "home", env=_fault_env(tmp_path, target)) as run,
+        Bringup(write_params(tmp_path, receiver.port), tmp_path / "home", env=fault_env(tmp_path, target)) as run,
     ):
         run.wait_ready()
         # Quickly: in --single-process the restart is of every server, and records a volatile publisher
@@ -89,17 +79,8 @@ def _web_metrics_of_the_last_start(run: Bringup) -> dict[str, Any]:
 
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
-    mount_point = tmp_path / "disk"
-    mount_point.mkdir()
-    mounted = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(mount_point)], capture_output=True, text=True
-    )
-    if mounted.returncode != 0:
-        pytest.skip(f"mounting a small tmpfs needs root: {mounted.stderr.strip()}")
-    try:
-        yield mount_point
-    finally:
-        subprocess.run(["umount", "--lazy", str(mount_point)], check=False)
+    with tmpfs(tmp_path / "disk") as disk:
+        yield disk
 
 
 def test_a_stop_that_cannot_commit_names_the_number_of_records_lost(tmp_path: Path, small_disk: Path) -> None:
@@ -131,7 +112,7 @@ def test_the_status_servers_thread_dying_restarts_destination_server_without_los
     target = "dc_core.http_status:_Server.serve_forever"
     with (
         Receiver() as receiver,
-        Bringup(write_params(tmp_path, receiver.port), tmp_path / "home", env=_fault_env(tmp_path, target)) as run,
+        Bringup(write_params(tmp_path, receiver.port), tmp_path / "home", env=fault_env(tmp_path, target)) as run,
     ):
         run.wait_ready()
         died = run.wait_stderr("thread dc-status-http: RuntimeError: injected by the test")
@@ -170,7 +151,7 @@ def test_a_measurement_servers_worker_failing_restarts_it_and_collection_resumes
     params = tmp_path / "params.yaml"
     params.write_text(NETWORK_PARAMS.format(buffer=tmp_path / "buffer"))
     target = "dc_core.worker:Worker._hand_over"
-    with Bringup(params, tmp_path / "home", env=_fault_env(tmp_path, target)) as run:
+    with Bringup(params, tmp_path / "home", env=fault_env(tmp_path, target)) as run:
         run.wait_ready()
         died = run.wait_stderr("thread measurement_server-worker (handing over a finished job): RuntimeError")
         assert "the thread died (thread_failures 1)" in died

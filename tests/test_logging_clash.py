@@ -22,6 +22,7 @@ import rclpy.logging
 
 from dc_core.logs import BurstLog, SeverityLogger
 from tests.bringup_util import Bringup
+from tests.fault_helpers import tmpfs
 from tests.http_receiver import Receiver, Request
 from tests.test_e2e_delivery_failures import finish, publish, wait_metric, write_params
 
@@ -126,17 +127,8 @@ def test_http_receiver_answering_503_then_401_dead_letters_and_says_so_without_a
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A real file system of 4 MB (tmpfs): the buffer meets a real ENOSPC."""
-    mount_point = tmp_path / "disk"
-    mount_point.mkdir()
-    mounted = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(mount_point)], capture_output=True, text=True
-    )
-    if mounted.returncode != 0:
-        pytest.skip(f"mounting a small tmpfs needs root: {mounted.stderr.strip()}")
-    try:
-        yield mount_point
-    finally:
-        subprocess.run(["umount", "--lazy", str(mount_point)], check=False)
+    with tmpfs(tmp_path / "disk") as disk:
+        yield disk
 
 
 def fill(path: Path) -> None:
