@@ -30,6 +30,7 @@ from dc_destinations.commit import GroupCommitter
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.sender import Sender
 from dc_destinations.settings import DestinationDeliveryParams
+from tests.fault_helpers import tmpfs
 from tests.test_delivery import Recorder, fill, record, settings, wait_until
 
 
@@ -295,19 +296,8 @@ def test_a_stop_during_a_flow_commits_what_waits_in_memory(tmp_path: Path) -> No
 
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
-    import subprocess
-
-    mount_point = tmp_path / "disk"
-    mount_point.mkdir()
-    mounted = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount_point)], capture_output=True, text=True
-    )
-    if mounted.returncode != 0:
-        pytest.skip(f"mounting a small tmpfs needs root: {mounted.stderr.strip()}")
-    try:
-        yield mount_point
-    finally:
-        subprocess.run(["umount", "--lazy", str(mount_point)], check=False)
+    with tmpfs(tmp_path / "disk", "2m") as disk:
+        yield disk
 
 
 def test_records_that_cannot_be_committed_at_the_stop_are_counted_and_named_in_one_line(small_disk: Path) -> None:
