@@ -54,8 +54,8 @@ class Supervisor:
         daemon: bool = True,
         on_failure: Callable[[BaseException], None] | None = None,
     ) -> threading.Thread:
-        """Start ``target`` on a thread named ``name`` under the rule; ``on_failure(exc)`` runs after it
-        was counted (to save what the thread held)."""
+        """Start ``target`` on a thread named ``name`` under the rule; ``on_failure(exc)`` runs before the
+        failure is counted and reported (to save what the thread held)."""
 
         def run() -> None:
             with self.guard(name, on_failure=on_failure):
@@ -73,12 +73,13 @@ class Supervisor:
         except BaseException as exc:  # whatever it is, the thread is gone: never silently
             if isinstance(exc, SystemExit) and not exc.code:
                 return  # a thread that asked to end is not a failure
-            self.failed(name, exc)
+            # What the thread held is put back first: whoever sees the server unhealthy sees it waiting.
             if on_failure is not None:
                 try:
                     on_failure(exc)
                 except Exception as again:
                     self.logger.error(f"thread {name}: saving its work after the failure failed too: {again!r}")
+            self.failed(name, exc)
 
     def failed(self, name: str, exc: BaseException) -> None:
         """Log, count and remember a failure of thread ``name`` (what :meth:`guard` does with an exception)."""
