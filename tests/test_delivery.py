@@ -753,6 +753,17 @@ def test_a_corrupt_buffer_at_start_is_set_aside_and_new_records_flow(tmp_path: P
         pipeline.stop(grace=0.5)
 
 
+def submit_padded(pipeline: DeliveryPipeline, total: int) -> list[str]:
+    """Submit ``total`` records of ~200 bytes to destination "sink"; their ids in order."""
+    sent_ids = []
+    for i in range(total):
+        rec = record(i)
+        rec.data["pad"] = "x" * 120
+        sent_ids.append(rec.record_id)
+        pipeline.submit("sink", rec)
+    return sent_ids
+
+
 def test_live_damage_shows_in_health_and_the_next_start_salvages_it(tmp_path: Path) -> None:
     """5,000 records wait for a destination that is down; 10 pages of the file in use are damaged.
 
@@ -773,13 +784,8 @@ def test_live_damage_shows_in_health_and_the_next_start_salvages_it(tmp_path: Pa
     params = DestinationDeliveryParams(batch_size=500)
     pipeline = DeliveryPipeline(config, {"sink": (sink, params)}, logger)
     pipeline.start()
-    sent_ids = []
     try:
-        for i in range(total):
-            rec = record(i)
-            rec.data["pad"] = "x" * 120
-            sent_ids.append(rec.record_id)
-            pipeline.submit("sink", rec)
+        sent_ids = submit_padded(pipeline, total)
         assert pipeline.flush_intake(10)
         wait_until(lambda: pipeline.metrics()["sink"]["retried"] >= 500, what="the first failed attempt recorded")
         assert pipeline.check_buffer() == "ok" and pipeline.healthy()
@@ -847,13 +853,8 @@ def test_damage_met_during_delivery_is_salvaged_at_once(tmp_path: Path) -> None:
         logger,
     )
     pipeline.start()
-    sent_ids = []
     try:
-        for i in range(total):
-            rec = record(i)
-            rec.data["pad"] = "x" * 120
-            sent_ids.append(rec.record_id)
-            pipeline.submit("sink", rec)
+        sent_ids = submit_padded(pipeline, total)
         assert pipeline.flush_intake(10)
         assert first.wait(10)
         with contextlib.closing(sqlite3.connect(tmp_path / FILE_NAME)) as other:

@@ -61,6 +61,22 @@ def hop_missing(lines: list[str]) -> dict[str, int]:
     return {topic: int(counts["missing"]) for topic, counts in document["hop"].items()}
 
 
+def active_pid(run: Bringup, server: str) -> int:
+    """The pid of the last ``server`` the lifecycle manager reported active."""
+    line = [s for s in run.stderr if f"{server} active (pid " in s][-1]
+    return int(line.rsplit("pid ", 1)[1].rstrip(")"))
+
+
+def single_process_pid(run: Bringup) -> int:
+    line = [s for s in run.stderr if "DC is up in one process (pid" in s][-1]
+    return int(line.split("(pid ", 1)[1].split(")", 1)[0])
+
+
+def delivered_or_counted(output: Path, lines: list[str]) -> int:
+    """Records in the File output plus those destination_server counts missing: what a loss must add up to."""
+    return len(numbers_in(output)) + sum(hop_missing(lines).values())
+
+
 def with_metrics(params: Path) -> None:
     """measurement_server's metrics HTTP server on a free port, to read its hand-off counters."""
     text = params.read_text()
@@ -86,8 +102,7 @@ def test_kill_9_of_destination_server_at_1000_records_per_s_loses_none(tmp_path:
         run.wait_ready()
         publisher = publish(run.env, 0, TOTAL, RATE)
         run.wait_until(lambda: len(numbers_in(output)) >= KILL_AT, 60, f"{KILL_AT} records in the file")
-        pid = int(next(s for s in run.stderr if "destination_server active (pid" in s).rsplit("pid ", 1)[1].rstrip(")"))
-        os.kill(pid, signal.SIGKILL)
+        os.kill(active_pid(run, "destination_server"), signal.SIGKILL)
         published, _ = publisher.communicate(timeout=TOTAL / RATE + 60)
         assert publisher.returncode == 0, published
         try:
@@ -190,17 +205,17 @@ def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_pat
         run.wait_ready()
         publisher = (publish_tagged if straight else publish)(run.env, 0, SINGLE_TOTAL, SINGLE_RATE)
         run.wait_until(lambda: len(numbers_in(output)) >= 600, 60, "600 records in the file")
-        line = [s for s in run.stderr if "DC is up in one process (pid" in s][-1]
-        os.kill(int(line.split("(pid ", 1)[1].split(")", 1)[0]), signal.SIGKILL)
+        os.kill(single_process_pid(run), signal.SIGKILL)
         run.wait_until(lambda: sum("DC is up in one process" in s for s in run.stderr) == 2, 60, "the process up again")
         published, _ = publisher.communicate(timeout=SINGLE_TOTAL / SINGLE_RATE + 60)
         assert publisher.returncode == 0, published
 
-        def accounted() -> int:
-            return len(numbers_in(output)) + sum(hop_missing(run.stderr).values())
-
         try:
-            run.wait_until(lambda: accounted() >= SINGLE_TOTAL, 30, "every record delivered or counted")
+            run.wait_until(
+                lambda: delivered_or_counted(output, run.stderr) >= SINGLE_TOTAL,
+                30,
+                "every record delivered or counted",
+            )
         finally:
             counts = numbers_in(output)
             hop = hop_missing(run.stderr)
@@ -223,16 +238,14 @@ def test_beyond_the_publishers_limit_the_oldest_are_dropped_and_every_one_is_cou
         run.wait_ready()
         publisher = publish(run.env, 0, TOTAL, RATE)
         run.wait_until(lambda: len(numbers_in(output)) >= KILL_AT, 60, f"{KILL_AT} records in the file")
-        pid = int(next(s for s in run.stderr if "destination_server active (pid" in s).rsplit("pid ", 1)[1].rstrip(")"))
-        os.kill(pid, signal.SIGKILL)
+        os.kill(active_pid(run, "destination_server"), signal.SIGKILL)
         published, _ = publisher.communicate(timeout=TOTAL / RATE + 60)
         assert publisher.returncode == 0, published
 
-        def accounted() -> int:
-            return len(numbers_in(output)) + sum(hop_missing(run.stderr).values())
-
         try:
-            run.wait_until(lambda: accounted() >= TOTAL, 60, "every record delivered or counted")
+            run.wait_until(
+                lambda: delivered_or_counted(output, run.stderr) >= TOTAL, 60, "every record delivered or counted"
+            )
         finally:
             counts = numbers_in(output)
             missing = hop_missing(run.stderr)

@@ -65,7 +65,7 @@ from tests.test_e2e_delivery_failures import (
 from tests.test_e2e_delivery_restart import numbers_in, ranges
 from tests.test_e2e_delivery_restart import publish as publish_numbers
 from tests.test_e2e_delivery_restart import write_params as write_file_params
-from tests.test_e2e_handoff import hop_missing
+from tests.test_e2e_handoff import active_pid, delivered_or_counted, hop_missing, single_process_pid
 
 pytestmark = pytest.mark.e2e
 
@@ -238,17 +238,6 @@ def your_node(run: Bringup, marker: Path) -> subprocess.Popen[str]:
     )
 
 
-def active_pid(run: Bringup, server: str) -> int:
-    """The pid of the last ``server`` the lifecycle manager reported active."""
-    line = [s for s in run.stderr if f"{server} active (pid " in s][-1]
-    return int(line.rsplit("pid ", 1)[1].rstrip(")"))
-
-
-def single_process_pid(run: Bringup) -> int:
-    line = [s for s in run.stderr if "DC is up in one process (pid" in s][-1]
-    return int(line.split("(pid ", 1)[1].split(")", 1)[0])
-
-
 @pytest.mark.parametrize(
     ("mode", "server"),
     [
@@ -280,11 +269,10 @@ def test_kill_9_mid_stream(tmp_path: Path, mode: str, server: str) -> None:
         assert node.returncode == 0, errors
         sent = int(printed)
 
-        def accounted() -> int:
-            return len(numbers_in(output)) + sum(hop_missing(run.stderr).values())
-
         try:
-            run.wait_until(lambda: accounted() >= sent, 60, "every record delivered or counted")
+            run.wait_until(
+                lambda: delivered_or_counted(output, run.stderr) >= sent, 60, "every record delivered or counted"
+            )
         finally:
             counts = numbers_in(output)
             missing = sum(hop_missing(run.stderr).values())
