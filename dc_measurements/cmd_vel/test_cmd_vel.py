@@ -100,7 +100,7 @@ def test_twist_stamped_publisher_gives_the_same_record_dated_by_its_header(
     # A publisher that exists before configure, as diff_drive_controller's does when DC starts.
     topic = unique("/cmd_vel")
     publisher = controller.create_publisher(TwistStamped, topic, QoSProfile(depth=10))
-    assert ros.spin_until(lambda: ros.node.get_publishers_info_by_topic(topic))  # discovered
+    assert ros.spin_until(lambda: bool(ros.node.get_publishers_info_by_topic(topic)))  # discovered
     plugin = ros.start(CmdVel, {"topic": topic, "message_type": message_type})
     assert plugin.subscribed_type == "geometry_msgs/msg/TwistStamped"
     assert ros.spin_until(lambda: publisher.get_subscription_count() >= 1)
@@ -141,7 +141,7 @@ def test_auto_follows_a_publisher_that_appears_after_configure(ros: Ros, control
 def test_auto_keeps_twist_for_a_twist_publisher_and_dates_by_the_poll(ros: Ros, controller: Node) -> None:
     topic = unique("/cmd_vel")
     publisher = controller.create_publisher(Twist, topic, QoSProfile(depth=10))
-    assert ros.spin_until(lambda: ros.node.get_publishers_info_by_topic(topic))
+    assert ros.spin_until(lambda: bool(ros.node.get_publishers_info_by_topic(topic)))
     plugin = ros.start(CmdVel, {"topic": topic})
     assert plugin.subscribed_type == "geometry_msgs/msg/Twist"
     assert ros.spin_until(lambda: publisher.get_subscription_count() >= 1)
