@@ -1,7 +1,8 @@
 """CmdVel measurement: the velocity commanded to the robot (geometry_msgs/Twist or TwistStamped on /cmd_vel).
 
-Jazzy's diff_drive_controller (and Nav2 with ``enable_stamped_cmd_vel``) publish TwistStamped, teleop
-and older stacks Twist; a subscription of the other type matches nothing. With ``message_type:
+Jazzy's diff_drive_controller reads TwistStamped, so what drives it (Nav2 with
+``enable_stamped_cmd_vel``, a stamped teleop) publishes that; older stacks publish Twist. A
+subscription of the other type matches nothing. With ``message_type:
 auto`` the type is read from the graph: at configure, and again at each poll that found no new
 message (a subscription that receives has the right type, and a poll is a cheap moment to look).
 """
