@@ -239,3 +239,13 @@ def test_thresholds_in_the_wrong_order_are_refused() -> None:
 
     with pytest.raises(PluginError, match="free_thresh"):
         PluginHarness().start(Map, {"free_thresh": 0.7, "occupied_thresh": 0.6})
+
+
+def test_a_map_in_base64_sizes_the_output_history_for_records_of_a_mebibyte() -> None:
+    from dc_core.record_history import DEFAULT_HISTORY_BYTES, history_depth_for
+    from dc_core.testing import PluginHarness
+
+    harness = PluginHarness()
+    assert harness.make(Map, {}).record_bytes_estimate() is None  # paths and sizes only: small
+    estimate = harness.make(Map, {"save_base64": True}).record_bytes_estimate()
+    assert history_depth_for(estimate or 0, 1000, DEFAULT_HISTORY_BYTES) == 64
