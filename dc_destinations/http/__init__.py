@@ -25,7 +25,7 @@ from urllib.parse import parse_qsl
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
-from dc_destinations.tls import is_credential_name, warn_if_credentials_in_clear
+from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
 FORMATS = ("json", "json_lines", "json_stream", "msgpack")
 CONTENT_TYPES = {"json_lines": "application/x-ndjson", "msgpack": "application/msgpack"}
@@ -67,7 +67,7 @@ def _latin1(text: str) -> bool:
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
-class HttpParams:
+class HttpParams(TlsParams):
     host: str = param("127.0.0.1", doc="Host name or IP address of the HTTP server")
     port: int = param(80, check=_port_problem, doc="TCP port of the HTTP server (443 is usual with `tls`)")
     uri: str = param("/", check=_uri_problem, doc="Path (and query) the batches are POSTed to")
@@ -89,12 +89,6 @@ class HttpParams:
     http_user: str = param("", doc="User name of HTTP basic authentication; empty: no authentication")
     http_passwd: str = param("", secret=True, doc="Password of HTTP basic authentication (never logged)")
     bearer_token: str = param("", secret=True, doc="Token sent as `Authorization: Bearer <token>` (never logged)")
-    tls: bool = param(False, doc="Use HTTPS")
-    tls_verify: bool = param(True, doc="Check the server's certificate and host name (with `tls`)")
-    tls_ca_file: str = param("", doc="CA certificates (PEM) to trust instead of the system's (with `tls`)")
-    tls_crt_file: str = param("", doc="Client certificate (PEM) for servers that ask for one (with `tls`)")
-    tls_key_file: str = param("", doc="Private key (PEM) of tls_crt_file, when not in the same file")
-    tls_key_passwd: str = param("", secret=True, doc="Password of an encrypted tls_key_file (never logged)")
     timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read or write")
     retry_after_max: float = param(
         60.0,
@@ -107,6 +101,7 @@ class HttpParams:
     )
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         for i, entry in enumerate(self.headers_list):
             if parse_header(entry) is None:
                 raise ConfigError(f"header[{i}]", f'expected "Name: value", got "{entry}"')
@@ -123,10 +118,6 @@ class HttpParams:
             raise ConfigError("bearer_token", "choose http_user/http_passwd or bearer_token, not both")
         if self.bearer_token and (not _latin1(self.bearer_token) or any(c in self.bearer_token for c in " \r\n")):
             raise ConfigError("bearer_token", "expected a token of Latin-1 characters without spaces")
-        if self.tls_key_file and not self.tls_crt_file:
-            raise ConfigError("tls_key_file", "set tls_crt_file too (the key goes with a client certificate)")
-        if self.tls_key_passwd and not (self.tls_key_file or self.tls_crt_file):
-            raise ConfigError("tls_key_passwd", "set tls_key_file (or tls_crt_file) too")
         if self.http_passwd and not self.http_user:
             raise ConfigError("http_passwd", "set http_user too (basic authentication needs both)")
         if ":" in self.http_user:
@@ -160,7 +151,7 @@ class Http(Destination[HttpParams]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         p = self.params
-        scheme = "https" if p.tls else "http"
+        scheme = "https" if p.tls_on else "http"
         host = f"[{p.host}]" if ":" in p.host else p.host
         # Without the query: it may hold an API key, and this URL goes into logs and dead letters.
         self.url = f"{scheme}://{host}:{p.port}{p.uri.split('?', 1)[0]}"
@@ -186,7 +177,7 @@ class Http(Destination[HttpParams]):
         headers.extend((str(name), _header_value(value)) for name, value in p.headers.items())
         self._headers = _merge_headers(headers, keep_duplicates=p.allow_duplicated_headers)
         self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_encoder(p.format)
-        self._tls = self._tls_context() if p.tls else None
+        self._tls = client_context(p, self._key_path(""), self.context.logger)
         self._warn_if_credentials_in_clear()
 
     def _warn_if_credentials_in_clear(self) -> None:
@@ -204,14 +195,14 @@ class Http(Destination[HttpParams]):
         if any(is_credential_name(key) for key, _ in parse_qsl(p.uri.partition("?")[2], keep_blank_values=True)):
             sent.append("the uri's query parameters")
         fix = "set tls: true (tls_verify: true, tls_ca_file for a private CA)"
-        if p.tls and not p.tls_verify:
+        if p.tls_on and not p.tls_verify:
             fix = "set tls_verify: true (tls_ca_file for a private CA)"
         warn_if_credentials_in_clear(
             self.context.logger,
             self.context.name,
             p.host,
             credentials=", ".join(sent),
-            verified_tls=p.tls and p.tls_verify,
+            verified_tls=p.tls_verified,
             fix=fix,
         )
 
@@ -297,31 +288,14 @@ class Http(Destination[HttpParams]):
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:
             p = self.params
-            if p.tls:
+            if self._tls is not None:
                 self._connection = http.client.HTTPSConnection(p.host, p.port, timeout=p.timeout, context=self._tls)
             else:
                 self._connection = http.client.HTTPConnection(p.host, p.port, timeout=p.timeout)
         return self._connection
 
-    def _tls_context(self) -> ssl.SSLContext:
-        p = self.params
-        try:
-            context = ssl.create_default_context(cafile=p.tls_ca_file or None)
-        except (OSError, ssl.SSLError) as exc:
-            raise ConfigError(self._key_path("tls_ca_file"), f"cannot load {p.tls_ca_file}: {exc}") from exc
-        if not p.tls_verify:
-            context.check_hostname = False
-            context.verify_mode = ssl.CERT_NONE
-        if p.tls_crt_file:
-            try:
-                context.load_cert_chain(p.tls_crt_file, p.tls_key_file or None, password=p.tls_key_passwd or None)
-            except (OSError, ssl.SSLError) as exc:
-                # The key password is not part of the message: an SSLError says "bad decrypt" at most.
-                raise ConfigError(self._key_path("tls_crt_file"), f"cannot load {p.tls_crt_file}: {exc}") from exc
-        return context
-
     def _key_path(self, key: str) -> str:
-        return f"destination_server.{self.context.name}.{key}"
+        return f"destination_server.{self.context.name}" + (f".{key}" if key else "")
 
     def _close(self) -> None:
         if self._connection is not None:

@@ -677,5 +677,5 @@ def test_a_wrong_key_password_fails_configure_without_quoting_it(pki: Pki) -> No
                 "tls_key_passwd": "not-the-" + KEY_PASSWORD,
             }
         )
-    assert "destination_server.web.tls_crt_file: cannot load" in str(caught.value)
+    assert "destination_server.web.tls_key_file: cannot load" in str(caught.value)
     assert KEY_PASSWORD not in str(caught.value)

@@ -21,6 +21,7 @@ import http.client
 import json
 import math
 import re
+import ssl
 import threading
 import urllib.parse
 from collections import OrderedDict
@@ -38,7 +39,7 @@ from dc_core.destination import (
 )
 from dc_core.errors import ConfigError
 from dc_core.params import param
-from dc_destinations.tls import warn_if_credentials_in_clear
+from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 APIS = ("auto", "v1", "v2")
 _INT64 = (-(2**63), 2**63 - 1)
@@ -60,7 +61,7 @@ def _port_problem(port: int) -> str | None:
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
-class InfluxDBParams:
+class InfluxDBParams(TlsParams):
     host: str = param("127.0.0.1", doc="Host name or IP address of the InfluxDB server")
     port: int = param(8086, check=_port_problem, doc="TCP port of the InfluxDB HTTP API")
     api: str = param(
@@ -83,6 +84,7 @@ class InfluxDBParams:
     timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read or write")
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
             raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
         if self.http_passwd and not self.http_user:
@@ -296,6 +298,7 @@ class InfluxDB(Destination[InfluxDBParams]):
         super().__init__(context, params)
         self._connection: http.client.HTTPConnection | None = None
         self._lock = threading.Lock()
+        self._tls: ssl.SSLContext | None = None
         self._headers: list[tuple[str, str]] = []
         self._secrets: list[str] = []
         self._sequencer = Sequencer()
@@ -311,7 +314,8 @@ class InfluxDB(Destination[InfluxDBParams]):
         else:
             self.path = "/write?" + urllib.parse.urlencode({"db": p.database, "precision": "ns"})
         host = f"[{p.host}]" if ":" in p.host else p.host
-        self.url = f"http://{host}:{p.port}{self.path}"
+        self.url = f"{'https' if p.tls_on else 'http'}://{host}:{p.port}{self.path}"
+        self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
         self._headers = [("Content-Type", "text/plain; charset=utf-8"), ("User-Agent", "dc-destinations")]
         if p.http_token:
             self._headers.append(("Authorization", f"Token {p.http_token}"))
@@ -320,14 +324,17 @@ class InfluxDB(Destination[InfluxDBParams]):
             token = base64.b64encode(f"{p.http_user}:{p.http_passwd}".encode()).decode("ascii")
             self._headers.append(("Authorization", f"Basic {token}"))
             self._secrets = [s for s in (p.http_passwd, token) if s]
+        if p.tls_key_passwd:
+            self._secrets.append(p.tls_key_passwd)
         warn_if_credentials_in_clear(
             self.context.logger,
             self.context.name,
             p.host,
             credentials="the token" if p.http_token else (f"the password of {p.http_user}" if p.http_passwd else ""),
-            verified_tls=False,  # this destination speaks plain HTTP only
-            fix="reach InfluxDB through a TLS tunnel or proxy on this machine (host 127.0.0.1), "
-            "or over a network nobody else shares",
+            verified_tls=p.tls_verified,
+            fix="set tls: true with tls_verify: true (tls_ca_file for a private CA)"
+            if not p.tls_on
+            else "set tls_verify: true (tls_ca_file for a private CA)",
         )
 
     def on_activate(self) -> None:
@@ -456,9 +463,11 @@ class InfluxDB(Destination[InfluxDBParams]):
 
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:
-            self._connection = http.client.HTTPConnection(
-                self.params.host, self.params.port, timeout=self.params.timeout
-            )
+            p = self.params
+            if self._tls is not None:
+                self._connection = http.client.HTTPSConnection(p.host, p.port, timeout=p.timeout, context=self._tls)
+            else:
+                self._connection = http.client.HTTPConnection(p.host, p.port, timeout=p.timeout)
         return self._connection
 
     def _close(self) -> None:

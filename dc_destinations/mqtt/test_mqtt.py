@@ -173,7 +173,7 @@ def test_wrong_password_is_retryable_names_the_reason_and_never_the_password(
 
 
 def test_secret_parameters_are_marked_secret() -> None:
-    assert {p.name for p in describe_params(MqttParams) if p.secret} == {"password"}
+    assert {p.name for p in describe_params(MqttParams) if p.secret} == {"password", "tls_key_passwd"}
 
 
 def test_broker_restart_mid_stream_fails_retryable_then_delivers(tmp_path: Path, destinations: list[Mqtt]) -> None:

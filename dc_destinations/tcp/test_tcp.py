@@ -434,7 +434,7 @@ def test_tls_verify_off_accepts_an_unknown_certificate(other_pki: Pki) -> None:
 def test_key_password_stays_out_of_repr_errors_and_logs(pki: Pki, caplog: pytest.LogCaptureFixture) -> None:
     params = parse_params(TcpParams, {"tls": tls_params(pki)}, "destination_server.tcp")
     assert Pki.PASSWORD not in repr(params) and Pki.PASSWORD not in str(params)
-    assert "tls=TlsParams(active=True" in repr(params)
+    assert "tls=True, tls_verify=True" in repr(params)
     with pytest.raises(ConfigError) as caught:
         tcp_destination(tls=tls_params(pki, key_passwd="wrong-" + Pki.PASSWORD))
     message = str(caught.value)
@@ -485,7 +485,7 @@ def test_a_ca_file_that_is_not_pem_is_a_configuration_error(tmp_path: Path) -> N
 
 def test_defaults_are_the_originals() -> None:
     p = parse_params(TcpParams, {}, "x")
-    assert (p.host, p.port, p.format, p.tls_settings.active, p.tls_settings.verify) == (
+    assert (p.host, p.port, p.format, p.tls, p.tls_verify) == (
         "127.0.0.1",
         5432,
         "json_lines",
@@ -518,11 +518,11 @@ destination_server:
       tls.key_passwd: "{Pki.PASSWORD}"
 """)
     (d,) = validate_params_file(params).configs["destination_server"].destinations
-    tls = d.plugin_params.tls_settings
-    assert (tls.active, tls.verify, tls.key_passwd) == (True, True, Pki.PASSWORD)
+    tls = d.plugin_params
+    assert (tls.tls, tls.tls_verify, tls.tls_key_passwd) == (True, True, Pki.PASSWORD)
     off = configure({"tls": {"active": "off", "verify": "on"}})
-    assert off.params.tls_settings.active is False
-    assert configure({"tls": "on"}).params.tls_settings.active is True
+    assert off.params.tls is False
+    assert configure({"tls": "on"}).params.tls is True
 
 
 # -- end to end through dc-bringup -----------------------------------------------------------------------------
