@@ -10,13 +10,11 @@ bearer token, TLS key password) are secrets: never logged, masked should a serve
 from __future__ import annotations
 
 import base64
-import email.utils
 import gzip
 import http.client
 import re
 import ssl
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,13 +23,12 @@ from urllib.parse import parse_qsl
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
+from dc_destinations.http_client import is_retryable_status, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
 FORMATS = ("json", "json_lines", "json_stream", "msgpack")
 CONTENT_TYPES = {"json_lines": "application/x-ndjson", "msgpack": "application/msgpack"}
 COMPRESSIONS = ("", "gzip")
-# Statuses a server uses to say "not now": the same request may succeed later.
-RETRYABLE_STATUSES = frozenset({408, 429})
 _HEADER_TOKEN = r"[!#$%&'*+.^_`|~0-9A-Za-z-]+"
 _HEADER_COLON = re.compile(rf"^({_HEADER_TOKEN}):[ \t]*(.*)$")
 _HEADER_SPACE = re.compile(rf"^({_HEADER_TOKEN})[ \t]+(.*)$")  # Fluent Bit's `Header Name value`
@@ -143,9 +140,6 @@ class Http(Destination[HttpParams]):
         self._tls: ssl.SSLContext | None = None
         self._lock = threading.Lock()
         self._encode: Callable[[Sequence[OutgoingRecord]], bytes] = _json_encoder("json")
-        # Monotonic time before which the server asked not to be called again (Retry-After).
-        self._not_before = 0.0
-        self._stopping = threading.Event()
         self.url = ""
 
     # -- lifecycle -------------------------------------------------------------------------------
@@ -207,13 +201,11 @@ class Http(Destination[HttpParams]):
         )
 
     def on_activate(self) -> None:
-        self._stopping.clear()
         # The connection opens with the first batch, in the sender's thread: a server that is down
         # or slow to answer must not hold up activation.
         self.context.logger.info(f"posting {self.params.format} batches to {self.url}")
 
     def on_deactivate(self) -> None:
-        self._stopping.set()  # ends a wait for Retry-After at once
         with self._lock:
             self._close()
 
@@ -223,10 +215,6 @@ class Http(Destination[HttpParams]):
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         body = self._body(batch)
-        # The sender's backoff may be shorter than what the server asked for: wait for the rest.
-        delay = self._not_before - time.monotonic()
-        if delay > 0 and self._stopping.wait(delay):
-            raise RetryableError(f"stopping while waiting for the server's Retry-After ({self.url})")
         with self._lock:
             reused = self._connection is not None
             try:
@@ -247,13 +235,13 @@ class Http(Destination[HttpParams]):
         # The server's reason first: `dc buffer list` shows the start of the message.
         message = f"HTTP {status} {reason}" + (f": {excerpt}" if excerpt else "") + f" ({self.url})"
         message = self._scrub(message)
-        if status in RETRYABLE_STATUSES or status >= 500:
-            wait = _retry_after_seconds(retry_after)
-            if wait is not None and self.params.retry_after_max > 0:
-                wait = min(wait, self.params.retry_after_max)
-                self._not_before = time.monotonic() + wait
-                message += f"; Retry-After {wait:g} s"
-            raise RetryableError(message)
+        if is_retryable_status(status):
+            wait = retry_after_seconds(retry_after)
+            if wait is None or self.params.retry_after_max <= 0:
+                raise RetryableError(message)
+            wait = min(wait, self.params.retry_after_max)
+            # The sender waits (within its scheduler_cap) before the next attempt, not this thread.
+            raise RetryableError(f"{message}; Retry-After {wait:g} s", retry_after=wait)
         if status in (401, 403):
             # The records are refused as before (dead letters, `dc buffer replay` once fixed); the
             # destination is failing at once, for the credentials are wrong for every record.
@@ -373,19 +361,3 @@ def _header_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     return str(value)
-
-
-def _retry_after_seconds(value: str | None) -> float | None:
-    """Retry-After in seconds, from delay-seconds or an HTTP date; None when absent or unreadable."""
-    if not value:
-        return None
-    value = value.strip()
-    if value.isdigit():
-        return float(value)
-    try:
-        moment = email.utils.parsedate_to_datetime(value)
-    except (TypeError, ValueError):
-        return None
-    if moment.tzinfo is None:
-        return None
-    return max(0.0, moment.timestamp() - time.time())

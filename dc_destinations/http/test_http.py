@@ -482,22 +482,26 @@ def test_a_bad_bearer_token_dead_letters_the_batch_and_is_never_logged(
 
 
 class RetryAfterServer:
-    """Answers 429 with a Retry-After header to the first request, then 200 (http_receiver sets no headers)."""
+    """Answers ``status`` with a Retry-After header to the first request, then 200; keeps each request's
+    arrival time and the records of those it accepted (http_receiver sets no headers)."""
 
-    def __init__(self, retry_after: str) -> None:
+    def __init__(self, retry_after: str, status: int = 429) -> None:
         self.times: list[float] = []
+        self.accepted: list[dict[str, Any]] = []
         server = self
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
 
             def do_POST(self) -> None:
-                self.rfile.read(int(self.headers.get("Content-Length", "0")))
+                body = self.rfile.read(int(self.headers.get("Content-Length", "0")))
                 server.times.append(time.monotonic())
                 first = len(server.times) == 1
-                self.send_response(429 if first else 200)
+                self.send_response(status if first else 200)
                 if first:
                     self.send_header("Retry-After", retry_after)
+                else:
+                    server.accepted.extend(json.loads(body))
                 self.send_header("Content-Length", "0")
                 self.end_headers()
 
@@ -517,35 +521,59 @@ class RetryAfterServer:
         self.http.server_close()
 
 
-def test_retry_after_is_obeyed_before_the_next_attempt() -> None:
+def test_retry_after_goes_to_the_sender_and_send_does_not_wait() -> None:
     with RetryAfterServer("1") as server:
         dest = http_destination(port=server.port)
-        with pytest.raises(RetryableError, match=r"HTTP 429 Too Many Requests .*; Retry-After 1 s"):
+        with pytest.raises(RetryableError, match=r"HTTP 429 Too Many Requests .*; Retry-After 1 s") as caught:
             dest.send(BATCH)
-        assert dest.send(BATCH) is None  # at once: the destination waits for the rest of the second
-    assert server.times[1] - server.times[0] >= 0.95
+        assert caught.value.retry_after == 1.0
+        assert dest.send(BATCH) is None  # at once: waiting is the sender's backoff's job
+    assert server.times[1] - server.times[0] < 0.9
 
 
 def test_retry_after_as_a_date_is_capped_by_retry_after_max() -> None:
     later = dt.datetime.now(dt.UTC) + dt.timedelta(hours=1)
     with RetryAfterServer(later.strftime("%a, %d %b %Y %H:%M:%S GMT")) as server:
         dest = http_destination(port=server.port, retry_after_max=0.5)
-        with pytest.raises(RetryableError, match=r"Retry-After 0.5 s"):
+        with pytest.raises(RetryableError, match=r"Retry-After 0.5 s") as caught:
             dest.send(BATCH)
-        assert dest.send(BATCH) is None
-    assert 0.45 <= server.times[1] - server.times[0] < 5
+    assert caught.value.retry_after == 0.5
+    with RetryAfterServer("30") as server, pytest.raises(RetryableError) as caught:
+        http_destination(port=server.port, retry_after_max=0).send(BATCH)
+    assert caught.value.retry_after is None, "retry_after_max 0: the backoff alone decides"
 
 
-def test_deactivation_ends_a_retry_after_wait() -> None:
-    with RetryAfterServer("60") as server:
-        dest = http_destination(port=server.port)
-        with pytest.raises(RetryableError):
-            dest.send(BATCH)
-        threading.Timer(0.2, dest.on_deactivate).start()
-        started = time.monotonic()
-        with pytest.raises(RetryableError, match="stopping while waiting"):
-            dest.send(BATCH)
-        assert time.monotonic() - started < 5
+@pytest.mark.parametrize(("cap", "earliest", "latest"), [(5.0, 1.95, 5.5), (0.5, 0.0, 1.5)])
+def test_the_senders_backoff_honours_retry_after_within_scheduler_cap(
+    tmp_path: Path, cap: float, earliest: float, latest: float
+) -> None:
+    """503 with Retry-After: 2, then 200: the second attempt comes no sooner than 2 s (the backoff
+    alone would retry after at most 0.05 s) and no later than scheduler_cap, which bounds it."""
+    logger: Any = logging.getLogger("test_http_destination.retry_after")
+    records = [record(n) for n in range(5)]
+    with RetryAfterServer("2", status=503) as server:
+        dest = Http(FakeContext(name="web", logger=logger), parse_params(HttpParams, {"port": server.port}, "web"))
+        dest.on_configure()
+        settings = DeliveryParams(storage_path=str(tmp_path), flush=0.05, scheduler_base=0.05, scheduler_cap=cap)
+        pipeline = DeliveryPipeline(settings, {"web": (dest, DestinationDeliveryParams())}, logger)
+        dest.on_activate()
+        pipeline.start()
+        try:
+            for rec in records:
+                pipeline.submit("web", rec)
+            deadline = time.monotonic() + 15
+            while int(pipeline.metrics()["web"]["sent"]) < len(records) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            metrics = pipeline.metrics()["web"]
+        finally:
+            pipeline.stop(0.5)
+            dest.on_deactivate()
+    first, second = server.times[:2]
+    assert earliest <= second - first <= latest, server.times
+    delivered = {r["record_id"] for r in server.accepted}
+    counted = int(metrics["dead_lettered"]) + int(metrics.get("dropped", 0))
+    assert len(delivered) + counted == len(records) == int(metrics["sent"]), metrics
+    assert int(metrics["retried"]) >= 1
 
 
 # -- TLS with a private CA -------------------------------------------------------------------------------------

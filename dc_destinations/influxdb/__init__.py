@@ -39,6 +39,7 @@ from dc_core.destination import (
 )
 from dc_core.errors import ConfigError
 from dc_core.params import param
+from dc_destinations.http_client import is_retryable_status, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 APIS = ("auto", "v1", "v2")
@@ -47,8 +48,6 @@ _EXCERPT_CHARS = 300
 _BODY_READ_LIMIT = 64 * 1024
 # Points remembered to give simultaneous records distinct sequence tags (see Sequencer).
 _SEQUENCE_MEMORY = 10_000
-# Statuses a server uses to say "not now": the same request may succeed later.
-_RETRYABLE_STATUSES = frozenset({408, 429})
 # Statuses of a write refused for some of its points (v1: 400; v2 also 422 for schema conflicts).
 _POINT_ERRORS = frozenset({400, 422})
 _TYPE_CONFLICT = re.compile(r'input field \\?"(.+?)\\?" on measurement \\?"(.+?)\\?" is type (\w+)')
@@ -406,14 +405,14 @@ class InfluxDB(Destination[InfluxDBParams]):
         with self._lock:
             reused = self._connection is not None
             try:
-                status, reason, text = self._post(body)
+                status, reason, text, retry_after = self._post(body)
             except (OSError, http.client.HTTPException) as first:
                 self._close()
                 if not (reused and isinstance(first, (http.client.RemoteDisconnected, ConnectionError))):
                     raise RetryableError(self._network_error(first)) from None
                 # A kept-alive connection the server closed while idle fails at its first use.
                 try:
-                    status, reason, text = self._post(body)
+                    status, reason, text, retry_after = self._post(body)
                 except (OSError, http.client.HTTPException) as second:
                     self._close()
                     raise RetryableError(self._network_error(second)) from None
@@ -442,13 +441,14 @@ class InfluxDB(Destination[InfluxDBParams]):
                 f"(InfluxDB 1.x before 1.8: set api: v1): {message}",
                 fix="create the bucket, or correct bucket / org / api",
             )
-        if status in _RETRYABLE_STATUSES or status >= 500:
-            raise RetryableError(message)
+        if is_retryable_status(status):
+            raise RetryableError(message, retry_after=retry_after)
         if status in _POINT_ERRORS:
             return status, message
         raise RejectedError(message)
 
-    def _post(self, body: bytes) -> tuple[int, str, str]:
+    def _post(self, body: bytes) -> tuple[int, str, str, float | None]:
+        """(status, reason, body text, Retry-After seconds) of one POST."""
         connection = self._open()
         connection.putrequest("POST", self.path, skip_accept_encoding=True)
         for name, value in self._headers:
@@ -459,7 +459,8 @@ class InfluxDB(Destination[InfluxDBParams]):
         data = response.read(_BODY_READ_LIMIT)
         if not response.isclosed() or response.will_close:
             self._close()
-        return response.status, response.reason, data.decode("utf-8", errors="replace")
+        text = data.decode("utf-8", errors="replace")
+        return response.status, response.reason, text, retry_after_seconds(response.getheader("Retry-After"))
 
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:

@@ -118,7 +118,11 @@ def test_sequence_tag_separates_simultaneous_records_and_stays_on_retry() -> Non
 
 
 def test_secret_parameters_and_alias() -> None:
-    assert {p.name for p in describe_params(InfluxDBParams) if p.secret} == {"http_passwd", "http_token", "tls_key_passwd"}
+    assert {p.name for p in describe_params(InfluxDBParams) if p.secret} == {
+        "http_passwd",
+        "http_token",
+        "tls_key_passwd",
+    }
     p = parse_params(InfluxDBParams, {"http_user": "u", "http_password": "pw"}, "x")
     assert p.http_passwd == "pw" and "pw" not in repr(p)
     assert parse_params(InfluxDBParams, {"bucket": "b"}, "x").api_version == "v2"

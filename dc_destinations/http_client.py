@@ -1,0 +1,41 @@
+"""What the destinations that POST over HTTP share: which answers mean "not now", and the server's Retry-After.
+
+HTTP, InfluxDB and Slack each read a server's answer; the rules for a retry live here once. A
+destination passes the wait on as ``RetryableError(message, retry_after=seconds)`` and never waits
+itself: the sender's backoff honours it, within ``scheduler_cap`` (dc_destinations.sender).
+"""
+
+from __future__ import annotations
+
+import email.utils
+import time
+from collections.abc import Callable
+from datetime import UTC
+
+# Statuses a server uses to say "not now": the same request may succeed later (and any 5xx).
+RETRYABLE_STATUSES = frozenset({408, 429})
+
+
+def is_retryable_status(status: int) -> bool:
+    """Whether an answer of ``status`` is worth sending the same request again for."""
+    return status in RETRYABLE_STATUSES or status >= 500
+
+
+def retry_after_seconds(value: str | None, *, now: Callable[[], float] = time.time) -> float | None:
+    """A Retry-After header as seconds from now: delay-seconds or an HTTP date (RFC 9110 §10.2.3).
+
+    None when the header is absent or unreadable, for the caller to choose (the backoff alone, or a
+    default). A date in the past is 0; a date without a zone is read as GMT, which HTTP dates are.
+    """
+    if value is None or not value.strip():
+        return None
+    text = value.strip()
+    if text.isdigit():
+        return float(text)
+    try:
+        moment = email.utils.parsedate_to_datetime(text)
+    except (TypeError, ValueError):
+        return None
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    return max(0.0, moment.timestamp() - now())
