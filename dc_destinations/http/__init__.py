@@ -22,7 +22,7 @@ from urllib.parse import parse_qsl
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import param
+from dc_core.params import host_problem, param, port_problem
 from dc_destinations.http_client import is_retryable_status, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
@@ -35,10 +35,6 @@ _HEADER_SPACE = re.compile(rf"^({_HEADER_TOKEN})[ \t]+(.*)$")  # Fluent Bit's `H
 _EXCERPT_CHARS = 200
 # Bytes of a response body read to keep the connection reusable; a longer body closes it instead.
 _BODY_READ_LIMIT = 64 * 1024
-
-
-def _port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
 
 
 def _uri_problem(uri: str) -> str | None:
@@ -65,8 +61,8 @@ def _latin1(text: str) -> bool:
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class HttpParams(TlsParams):
-    host: str = param("127.0.0.1", doc="Host name or IP address of the HTTP server")
-    port: int = param(80, check=_port_problem, doc="TCP port of the HTTP server (443 is usual with `tls`)")
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the HTTP server")
+    port: int = param(80, check=port_problem, doc="TCP port of the HTTP server (443 is usual with `tls`)")
     uri: str = param("/", check=_uri_problem, doc="Path (and query) the batches are POSTed to")
     format: str = param(
         "json",
@@ -121,8 +117,6 @@ class HttpParams(TlsParams):
             raise ConfigError("http_user", "a user name without ':' (basic authentication separates with it)")
         if self.header_tag and not re.fullmatch(_HEADER_TOKEN, self.header_tag):
             raise ConfigError("header_tag", f'expected a header name, got "{self.header_tag}"')
-        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
-            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
 
     @property
     def headers_list(self) -> list[str]:

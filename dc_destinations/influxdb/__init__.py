@@ -38,7 +38,7 @@ from dc_core.destination import (
     SendOutcome,
 )
 from dc_core.errors import ConfigError
-from dc_core.params import param
+from dc_core.params import host_problem, param, port_problem
 from dc_destinations.http_client import is_retryable_status, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
@@ -55,14 +55,10 @@ _INVALID_FIELD = re.compile(r'invalid field name: input field \\?"(.+?)\\?" on m
 _UNPARSABLE = re.compile(r"unable to parse '(.*?)': ", re.DOTALL)
 
 
-def _port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
-
-
 @dataclass(frozen=True, kw_only=True, repr=False)
 class InfluxDBParams(TlsParams):
-    host: str = param("127.0.0.1", doc="Host name or IP address of the InfluxDB server")
-    port: int = param(8086, check=_port_problem, doc="TCP port of the InfluxDB HTTP API")
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the InfluxDB server")
+    port: int = param(8086, check=port_problem, doc="TCP port of the InfluxDB HTTP API")
     api: str = param(
         "auto", choices=APIS, doc="v1: /write with a database; v2: /api/v2/write with org and bucket; auto: v2 when "
         "bucket or http_token is set"
@@ -84,8 +80,6 @@ class InfluxDBParams(TlsParams):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
-            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
         if self.http_passwd and not self.http_user:
             raise ConfigError("http_passwd", "set http_user too (basic authentication needs both)")
         if ":" in self.http_user:

@@ -28,7 +28,7 @@ except ImportError as exc:  # an optional dependency: say which extra brings it
 
 from dc_core.destination import ConfigurationProblem, Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import param
+from dc_core.params import host_problem, param, port_problem
 from dc_core.records import MalformedRecord
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
@@ -39,10 +39,6 @@ _WILDCARDS = ("+", "#", "\0")
 _AUTH_REASONS = ("not authorized", "bad user name or password", "bad username or password")
 # How often a waiting send looks again at the acknowledgements, besides being woken by them.
 _WAIT_SLICE_S = 0.05
-
-
-def _port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
 
 
 def template_keys(template: str) -> list[str]:
@@ -77,8 +73,8 @@ def _topic_problem(template: str) -> str | None:
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class MqttParams(TlsParams):
-    host: str = param("127.0.0.1", doc="Host name or IP address of the MQTT broker")
-    port: int = param(1883, check=_port_problem, doc="TCP port of the broker (8883 is usual with `tls`)")
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the MQTT broker")
+    port: int = param(1883, check=port_problem, doc="TCP port of the broker (8883 is usual with `tls`)")
     topic: str = param(
         "dc/{name}", check=_topic_problem, doc="Topic of each record; {key} is replaced by the record's value of key"
     )
@@ -102,8 +98,6 @@ class MqttParams(TlsParams):
         super().__post_init__()
         if self.password and not self.username:
             raise ConfigError("password", "set username too (MQTT sends a password only with a user name)")
-        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
-            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
 
 
 def default_client_id(destination: str, host: str, machine: str | None = None) -> str:

@@ -18,7 +18,7 @@ from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import param
+from dc_core.params import host_problem, param, port_problem
 from dc_destinations.tls import TlsParams, client_context, ssl_reason
 
 # "json" is the original's name for the same JSON lines.
@@ -27,14 +27,10 @@ FORMATS = ("json_lines", "json", "msgpack")
 _PEEK_READS = 64
 
 
-def _port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
-
-
 @dataclass(frozen=True, kw_only=True, repr=False)
 class TcpParams(TlsParams):
-    host: str = param("127.0.0.1", doc="Host name or IP address of the TCP server")
-    port: int = param(5432, check=_port_problem, doc="TCP port of the server (the original's default: 5432)")
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the TCP server")
+    port: int = param(5432, check=port_problem, doc="TCP port of the server (the original's default: 5432)")
     format: str = param(
         "json_lines",
         choices=FORMATS,
@@ -47,8 +43,6 @@ class TcpParams(TlsParams):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
-            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
 
     def __repr__(self) -> str:
         # Written out to leave tls_key_passwd out.
