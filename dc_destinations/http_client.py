@@ -1,4 +1,4 @@
-"""What the destinations that POST over HTTP share: which answers mean "not now", and the server's Retry-After.
+"""What the destinations that POST over HTTP share: the connection, "not now" answers, Retry-After.
 
 HTTP, InfluxDB and Slack each read a server's answer; the rules for a retry live here once. A
 destination passes the wait on as ``RetryableError(message, retry_after=seconds)`` and never waits
@@ -8,12 +8,21 @@ itself: the sender's backoff honours it, within ``scheduler_cap`` (dc_destinatio
 from __future__ import annotations
 
 import email.utils
+import http.client
+import ssl
 import time
 from collections.abc import Callable
 from datetime import UTC
 
 # Statuses a server uses to say "not now": the same request may succeed later (and any 5xx).
 RETRYABLE_STATUSES = frozenset({408, 429})
+
+
+def connection_to(host: str, port: int, timeout: float, tls: ssl.SSLContext | None) -> http.client.HTTPConnection:
+    """A connection (not yet opened) to ``host:port``: HTTPS with ``tls`` (dc_destinations.tls.client_context)."""
+    if tls is not None:
+        return http.client.HTTPSConnection(host, port, timeout=timeout, context=tls)
+    return http.client.HTTPConnection(host, port, timeout=timeout)
 
 
 def is_retryable_status(status: int) -> bool:

@@ -12,6 +12,7 @@ import ipaddress
 import ssl
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
@@ -30,6 +31,16 @@ class Pki:
     client_crt: Path  # common name CLIENT_NAME
     client_key: Path  # encrypted with KEY_PASSWORD
     stranger_ca: Path  # a CA that signed none of these
+
+    def client_params(self) -> dict[str, Any]:
+        """A destination's flat TLS parameters: this CA trusted, the client certificate and its encrypted key."""
+        return {
+            "tls": True,
+            "tls_ca_file": str(self.ca),
+            "tls_crt_file": str(self.client_crt),
+            "tls_key_file": str(self.client_key),
+            "tls_key_passwd": KEY_PASSWORD,
+        }
 
     def server_context(self, *, client_ca: Path | None = None) -> ssl.SSLContext:
         """A server's context with this PKI's certificate; ``client_ca``: mutual TLS, a client certificate of it required."""

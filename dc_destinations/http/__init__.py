@@ -23,7 +23,7 @@ from urllib.parse import parse_qsl
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
-from dc_destinations.http_client import is_retryable_status, retry_after_seconds
+from dc_destinations.http_client import connection_to, is_retryable_status, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
 FORMATS = ("json", "json_lines", "json_stream", "msgpack")
@@ -269,11 +269,7 @@ class Http(Destination[HttpParams]):
 
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:
-            p = self.params
-            if self._tls is not None:
-                self._connection = http.client.HTTPSConnection(p.host, p.port, timeout=p.timeout, context=self._tls)
-            else:
-                self._connection = http.client.HTTPConnection(p.host, p.port, timeout=p.timeout)
+            self._connection = connection_to(self.params.host, self.params.port, self.params.timeout, self._tls)
         return self._connection
 
     def _key_path(self, key: str) -> str:

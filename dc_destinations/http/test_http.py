@@ -608,11 +608,7 @@ def test_tls_client_certificate_with_an_encrypted_key(pki: Pki) -> None:
             http_destination(port=receiver.port, tls=True, tls_ca_file=str(pki.ca)).send(BATCH)
         dest = http_destination(
             port=receiver.port,
-            tls=True,
-            tls_ca_file=str(pki.ca),
-            tls_crt_file=str(pki.client_crt),
-            tls_key_file=str(pki.client_key),
-            tls_key_passwd=KEY_PASSWORD,
+            **pki.client_params(),
         )
         assert dest.send(BATCH) is None
     assert len(receiver.records()) == 2

@@ -39,7 +39,7 @@ from dc_core.destination import (
 )
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
-from dc_destinations.http_client import is_retryable_status, retry_after_seconds
+from dc_destinations.http_client import connection_to, is_retryable_status, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 APIS = ("auto", "v1", "v2")
@@ -458,11 +458,7 @@ class InfluxDB(Destination[InfluxDBParams]):
 
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:
-            p = self.params
-            if self._tls is not None:
-                self._connection = http.client.HTTPSConnection(p.host, p.port, timeout=p.timeout, context=self._tls)
-            else:
-                self._connection = http.client.HTTPConnection(p.host, p.port, timeout=p.timeout)
+            self._connection = connection_to(self.params.host, self.params.port, self.params.timeout, self._tls)
         return self._connection
 
     def _close(self) -> None:

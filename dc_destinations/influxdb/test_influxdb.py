@@ -321,11 +321,7 @@ def test_tls_client_certificate_with_an_encrypted_key(pki: Pki) -> None:
             without.send([record({"name": "cpu", "v": 1})])
         dest = influx(
             port=receiver.port,
-            tls=True,
-            tls_ca_file=str(pki.ca),
-            tls_crt_file=str(pki.client_crt),
-            tls_key_file=str(pki.client_key),
-            tls_key_passwd=KEY_PASSWORD,
+            **pki.client_params(),
         )
         assert dest.send([record({"name": "cpu", "v": 2}, 7, record_id="id2")]) is None
         (request,) = receiver.accepted()

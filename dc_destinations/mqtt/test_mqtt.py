@@ -379,11 +379,7 @@ def test_tls_client_certificate_with_an_encrypted_key(tmp_path: Path, pki: Pki, 
         robot = mqtt_destination(
             logger=logger,
             port=broker.port,
-            tls=True,
-            tls_ca_file=str(pki.ca),
-            tls_crt_file=str(pki.client_crt),
-            tls_key_file=str(pki.client_key),
-            tls_key_passwd=KEY_PASSWORD,
+            **pki.client_params(),
         )
         destinations.append(robot)
         assert robot.send([record(n, name="x") for n in range(3)]) is None

@@ -372,14 +372,7 @@ def test_key_password_stays_out_of_repr_errors_and_logs(pki: Pki, caplog: pytest
 
 
 def test_flat_tls_keys_as_http_and_mqtt_spell_them(pki: Pki) -> None:
-    flat: dict[str, Any] = {
-        "tls": True,
-        "tls_ca_file": str(pki.ca),
-        "tls_crt_file": str(pki.client_crt),
-        "tls_key_file": str(pki.client_key),
-        "tls_key_passwd": KEY_PASSWORD,
-        "tls_vhost": "localhost",
-    }
+    flat = {**pki.client_params(), "tls_vhost": "localhost"}
     with TcpReceiver(tls=pki.server_context(client_ca=pki.ca)) as receiver:
         context = FakeContext(name="tcp")
         dest = Tcp(context, parse_params(TcpParams, {"port": receiver.port, **flat}, "destination_server.tcp"))
