@@ -11,7 +11,7 @@ import email.utils
 import http.client
 import ssl
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from datetime import UTC
 
 # Statuses a server uses to say "not now": the same request may succeed later (and any 5xx).
@@ -48,3 +48,20 @@ def retry_after_seconds(value: str | None, *, now: Callable[[], float] = time.ti
     if moment.tzinfo is None:
         moment = moment.replace(tzinfo=UTC)
     return max(0.0, moment.timestamp() - now())
+
+
+def one_line(text: str, limit: int) -> str:
+    """``text`` on one line (runs of white space as one space), cut to ``limit`` characters with "…"."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def masked(text: str, secrets: Iterable[str]) -> str:
+    """``text`` with every one of ``secrets`` replaced by ``***``, should a server echo a credential back.
+
+    Longest first, so that a secret holding another (a URL and its token) is masked whole.
+    """
+    for secret in sorted(secrets, key=len, reverse=True):
+        if secret:
+            text = text.replace(secret, "***")
+    return text

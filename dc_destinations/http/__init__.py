@@ -23,7 +23,7 @@ from urllib.parse import parse_qsl
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
-from dc_destinations.http_client import connection_to, is_retryable_status, retry_after_seconds
+from dc_destinations.http_client import connection_to, is_retryable_status, masked, one_line, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
 FORMATS = ("json", "json_lines", "json_stream", "msgpack")
@@ -288,16 +288,10 @@ class Http(Destination[HttpParams]):
         return self._scrub(f"cannot POST to {self.url}: {detail}")
 
     def _excerpt(self, data: bytes) -> str:
-        text = " ".join(data.decode("utf-8", errors="replace").split())
-        if len(text) > _EXCERPT_CHARS:
-            text = text[: _EXCERPT_CHARS - 1] + "…"
-        return self._scrub(text)
+        return self._scrub(one_line(data.decode("utf-8", errors="replace"), _EXCERPT_CHARS))
 
     def _scrub(self, text: str) -> str:
-        """The credentials masked, should a server echo the request back."""
-        for secret in self._secrets:
-            text = text.replace(secret, "***")
-        return text
+        return masked(text, self._secrets)
 
 
 def _merge_headers(headers: list[tuple[str, str]], *, keep_duplicates: bool) -> list[tuple[str, str]]:

@@ -39,7 +39,7 @@ from dc_core.destination import (
 )
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
-from dc_destinations.http_client import connection_to, is_retryable_status, retry_after_seconds
+from dc_destinations.http_client import connection_to, is_retryable_status, masked, one_line, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 APIS = ("auto", "v1", "v2")
@@ -473,10 +473,7 @@ class InfluxDB(Destination[InfluxDBParams]):
         return self._scrub(f"cannot write to InfluxDB at {self.url}: {detail}")
 
     def _scrub(self, text: str) -> str:
-        """The credentials masked, should a server echo the request back."""
-        for secret in self._secrets:
-            text = text.replace(secret, "***")
-        return text
+        return masked(text, self._secrets)
 
 
 def _server_error(text: str) -> str:
@@ -489,8 +486,7 @@ def _server_error(text: str) -> str:
         found = answer.get("error") or answer.get("message")
         if isinstance(found, str):
             text = found
-    text = " ".join(text.split())
-    return text if len(text) <= _EXCERPT_CHARS else text[: _EXCERPT_CHARS - 1] + "…"
+    return one_line(text, _EXCERPT_CHARS)
 
 
 def _refused_lines(message: str, pending: dict[int, str], points: dict[int, Point]) -> list[int]:

@@ -29,7 +29,7 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
-from dc_destinations.http_client import is_retryable_status, retry_after_seconds
+from dc_destinations.http_client import is_retryable_status, masked, one_line, retry_after_seconds
 from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
 
 # Longest wait inside one send(): longer would hold up the destination's stop and hide progress.
@@ -294,12 +294,7 @@ class Slack(Destination[SlackParams]):
 
     # -- messages ----------------------------------------------------------------------------------
     def _excerpt(self, data: bytes) -> str:
-        text = " ".join(data.decode("utf-8", errors="replace").split())
-        if len(text) > _EXCERPT_CHARS:
-            text = text[: _EXCERPT_CHARS - 1] + "…"
-        return self._scrub(text)
+        return self._scrub(one_line(data.decode("utf-8", errors="replace"), _EXCERPT_CHARS))
 
     def _scrub(self, text: str) -> str:
-        for secret in self._secrets:
-            text = text.replace(secret, "***")
-        return text
+        return masked(text, self._secrets)
