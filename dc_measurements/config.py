@@ -219,21 +219,21 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         if key not in custom and key != "force_override":
             raise ConfigError(f"{path}.custom_str_params.{key}", "not listed in custom_str_params_list")
 
+    dynamic.update(node_params.condition_plugins, node_params.measurement_plugins)
     conditions: dict[str, ConditionConfig] = {}
     for cid in node_params.condition_plugins:
-        cpath = f"{path}.{cid}"
-        body = _plugin_section(section, cid, path)
-        dynamic.add(cid)
-        condition = parse_plugin_section("conditions", body, cpath, ConditionCommonParams)
+        condition = parse_plugin_section(
+            "conditions", _plugin_section(section, cid, path), f"{path}.{cid}", ConditionCommonParams
+        )
         conditions[cid] = ConditionConfig(cid, condition.common, condition.plugin_class, condition.params)
 
     measurements: list[MeasurementConfig] = []
     outputs: dict[str, str] = {}
     for mid in node_params.measurement_plugins:
         mpath = f"{path}.{mid}"
-        body = _plugin_section(section, mid, path)
-        dynamic.add(mid)
-        measurement = parse_plugin_section("measurements", body, mpath, MeasurementCommonParams)
+        measurement = parse_plugin_section(
+            "measurements", _plugin_section(section, mid, path), mpath, MeasurementCommonParams
+        )
         common, cls, plugin_params = measurement.common, measurement.plugin_class, measurement.params
         for key in ("if_all_conditions", "if_any_conditions", "if_none_conditions"):
             for cid in getattr(common, key):
