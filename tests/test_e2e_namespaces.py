@@ -9,6 +9,9 @@ robot's records too; a relative input (dc/measurement/who) under a namespace got
 from __future__ import annotations
 
 import json
+import re
+import time
+import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +36,8 @@ def write_params(folder: Path, robot: str) -> Path:
         f"""measurement_server:
   ros__parameters:
     measurement_plugins: ["uptime"]
+    http_server: true
+    http_port: 0
     custom_str_params_list: ["robot_name"]
     custom_str_params:
       robot_name:
@@ -71,6 +76,15 @@ def robot_of(record: dict[str, Any]) -> str:
     return str(record.get("robot_name") or record["uptime"]["robot_name"])
 
 
+def handoff(run: Bringup) -> dict[str, Any]:
+    """The `handoff` section of the robot's measurement_server metrics (its HTTP server logged its address)."""
+    (address,) = {
+        m.group(1) for line in run.stderr if "measurement_server" in line and (m := re.search(r"on (http://\S+)", line))
+    }
+    with urllib.request.urlopen(address + "metrics", timeout=5) as response:
+        return dict(json.load(response)["handoff"])
+
+
 @pytest.mark.usefixtures("bringup_mode")
 def test_two_namespaced_dcs_in_one_domain_each_deliver_only_their_own_robots_records(tmp_path: Path) -> None:
     home = tmp_path / "home"
@@ -104,6 +118,14 @@ def test_two_namespaced_dcs_in_one_domain_each_deliver_only_their_own_robots_rec
             assert not any("is absolute" in line for line in run.stderr), "\n".join(run.stderr)
             info = [line for line in run.stderr if "measurement uptime (dc_measurements/Uptime) ->" in line]
             assert info and info[0].split("-> ")[1].startswith(f"/{robot}/dc/measurement/uptime"), info
+            # The measurement server holds its records until its own destination_server acknowledges
+            # them, on the hand-off topics of the namespace: acknowledged, they are not held.
+            assert set(handoff(run)) == {f"/{robot}/dc/measurement/uptime"}
+            deadline = time.monotonic() + 15
+            while (held := handoff(run)[f"/{robot}/dc/measurement/uptime"])["unacked"] >= RECORDS // 2:
+                assert time.monotonic() < deadline, f"{robot}'s records not acknowledged: {held}"
+                time.sleep(0.2)
+            assert held["dropped"] == 0
             # The lifecycle manager of each namespace hears its own servers' heartbeats only.
             active = dc("lifecycle", "is-active", "--namespace", robot, "--timeout", "10", env=run.env)
             assert active.returncode == 0, active.stdout + active.stderr
