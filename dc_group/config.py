@@ -13,6 +13,7 @@ from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, param, parse_params
 from dc_core.qos import RECORD_HISTORY_DEPTH
+from dc_core.record_history import DEFAULT_HISTORY_BYTES
 from dc_core.topics import GROUP_TOPIC_PREFIX, resolve_topic
 
 NODE_NAME = "group_server"
@@ -53,6 +54,12 @@ class GroupParams:
     tags: list[str] = param([], doc="Destination names the merged record is routed to")
     nested_data: bool = param(True, doc="Publish nested objects; false flattens keys with '.'")
     include_group_name: bool = param(True, doc='Add "name": <group id>')
+    history_bytes: int = param(
+        DEFAULT_HISTORY_BYTES,
+        minimum=0,
+        doc="Bytes of merged records the output topic keeps at most (its 1,000 records' depth shrinks to fit "
+        "the largest record, never below 1); 0: no byte bound",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -71,6 +78,7 @@ class GroupConfig:
     tags: tuple[str, ...]
     nested_data: bool
     include_group_name: bool
+    history_bytes: int
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -163,6 +171,7 @@ def _parse_group(name: str, section: Any, path: str, namespace: str) -> GroupCon
         tags=tuple(params.tags),
         nested_data=params.nested_data,
         include_group_name=params.include_group_name,
+        history_bytes=params.history_bytes,
     )
 
 

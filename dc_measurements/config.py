@@ -15,6 +15,7 @@ from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_p
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.paths import expand_values
 from dc_core.plugins import load_plugin
+from dc_core.record_history import DEFAULT_HISTORY_BYTES
 from dc_core.topics import MEASUREMENT_TOPIC_PREFIX, resolve_topic
 
 NODE_NAME = "measurement_server"
@@ -72,6 +73,12 @@ class MeasurementCommonParams:
     include_measurement_plugin: bool = param(False, doc='Add "plugin": <plugin type>')
     history_depth: int = param(
         1000, minimum=1, doc="Records the output topic keeps for a destination_server that (re)starts late"
+    )
+    history_bytes: int = param(
+        DEFAULT_HISTORY_BYTES,
+        minimum=0,
+        doc="Bytes of records the output topic keeps at most: the depth shrinks to fit the largest record "
+        "published (never below 1); 0: history_depth alone",
     )
     remote_keys: list[str] = param([], doc="Names of remote storages (file-saving plugins)")
     remote_prefixes: list[str] = param([], doc="Prefix per remote key, same order")

@@ -17,6 +17,7 @@ from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
+from dc_core.record_history import SizedRecordPublisher, history_metrics
 from dc_core.rostime import now_ns
 from dc_core.topics import CONDITION_TOPIC_PREFIX
 from dc_interfaces.msg import Condition as ConditionMsg
@@ -52,7 +53,7 @@ class MeasurementServer(ManagedServer):
         self.config: MeasurementServerConfig | None = None
         self.runners: dict[str, MeasurementRunner] = {}
         self.conditions: dict[str, ConditionRuntime] = {}
-        self._record_publishers: dict[str, Any] = {}
+        self._record_publishers: dict[str, SizedRecordPublisher] = {}
         self._condition_publishers: list[Any] = []
         self._condition_subscriptions: list[Any] = []
         self._collect_timers: dict[str, Any] = {}
@@ -97,8 +98,16 @@ class MeasurementServer(ManagedServer):
             context = _MeasurementContext(mcfg.name, self.get_logger().get_child(mcfg.name), self, measurement_paths)
             plugin: Measurement[Any] = mcfg.plugin_class(context, mcfg.plugin_params)
             validator = self._validator(mcfg.name, plugin, c.enable_validator, c.json_schema_path)
-            publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, record_qos(c.history_depth))
-            self._record_publishers[mcfg.name] = publisher
+            record_publisher = SizedRecordPublisher(
+                mcfg.output_topic,
+                self._record_writers(mcfg.output_topic),
+                self.destroy_lifecycle_publisher,
+                history_depth=c.history_depth,
+                history_bytes=c.history_bytes,
+                record_bytes_estimate=plugin.record_bytes_estimate(),
+                logger=log,
+            )
+            self._record_publishers[mcfg.name] = record_publisher
             runner = MeasurementRunner(
                 mcfg,
                 plugin,
@@ -106,7 +115,7 @@ class MeasurementServer(ManagedServer):
                 validator,
                 run_id,
                 custom,
-                self._publish_fn(self.handoff.output(mcfg.output_topic, publisher)),
+                self._publish_fn(self.handoff.output(mcfg.output_topic, record_publisher)),
                 log,
                 clock_ns=lambda: now_ns(self),
             )
@@ -116,6 +125,12 @@ class MeasurementServer(ManagedServer):
                 f"measurement {mcfg.name} ({c.plugin}) -> {mcfg.output_topic}"
                 + (f" every {c.polling_interval} ms" if plugin.timer_driven else " on events")
             )
+
+    def _record_writers(self, topic: str) -> Any:
+        def create(depth: int) -> Any:
+            return self.create_lifecycle_publisher(StringStamped, topic, record_qos(depth))
+
+        return create
 
     def _base_paths(
         self, section: dict[str, Any], config: MeasurementServerConfig, custom: list[tuple[str, str, bool]]
@@ -207,6 +222,7 @@ class MeasurementServer(ManagedServer):
                 for name, runner in list(self.runners.items())
             },
             "handoff": handoff.metrics() if handoff is not None else {},
+            "history": history_metrics(list(self._record_publishers.values())),
         }
 
     @staticmethod
@@ -320,7 +336,7 @@ class MeasurementServer(ManagedServer):
             self.handoff.close()
             self.handoff = None
         for name in self.runners:
-            self.destroy_lifecycle_publisher(self._record_publishers[name])
+            self._record_publishers[name].destroy()
         for publisher in self._condition_publishers:
             self.destroy_publisher(publisher)
         self.runners.clear()
