@@ -16,6 +16,9 @@ from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.paths import expand_values
 from dc_core.plugins import parse_plugin_section
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
+from dc_core.topics import MEASUREMENT_TOPIC_PREFIX, resolve_topic
+
+NODE_NAME = "measurement_server"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -54,7 +57,9 @@ class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
 class MeasurementCommonParams:
     plugin: str = param(doc="Plugin type, e.g. dc_measurements/Uptime")
     group_key: str = param("", doc="Copied into StringStamped.group_key; the group server nests under it")
-    topic_output: str = param("", doc="Output topic (default /dc/measurement/<id>)")
+    topic_output: str = param(
+        "", doc="Output topic (default dc/measurement/<id> in the server's namespace: /dc/measurement/<id> without one)"
+    )
     polling_interval: int = param(1000, minimum=100, doc="Milliseconds between two collections")
     debug: bool = param(False, doc="Log every published record at info level")
     enable_validator: bool = param(True, doc="Validate every record against the JSON schema")
@@ -96,10 +101,11 @@ class MeasurementConfig:
     common: MeasurementCommonParams
     plugin_class: type
     plugin_params: Any
+    namespace: str = "/"
 
     @property
     def output_topic(self) -> str:
-        return output_topic(self.name, self.common)
+        return output_topic(self.name, self.common, self.namespace)
 
     @property
     def conditions(self) -> list[str]:
@@ -107,8 +113,9 @@ class MeasurementConfig:
         return [*c.if_all_conditions, *c.if_any_conditions, *c.if_none_conditions]
 
 
-def output_topic(measurement_id: str, common: MeasurementCommonParams) -> str:
-    return common.topic_output or f"/dc/measurement/{measurement_id}"
+def output_topic(measurement_id: str, common: MeasurementCommonParams, namespace: str = "/") -> str:
+    """Fully qualified, as the server in ``namespace`` publishes it: what other sections name is compared with it."""
+    return resolve_topic(common.topic_output or MEASUREMENT_TOPIC_PREFIX + measurement_id, namespace, NODE_NAME)
 
 
 @dataclass(frozen=True)
@@ -179,7 +186,7 @@ def _value_names(text: str) -> set[str]:
     return names
 
 
-def published_topics(section: dict[str, Any], path: str = "measurement_server") -> dict[str, int]:
+def published_topics(section: dict[str, Any], path: str = "measurement_server", namespace: str = "/") -> dict[str, int]:
     """Each measurement's output topic with the depth of the history it keeps, from the common
     parameters alone: no plugin is imported (the destination server asks, for its hop)."""
     node_params = parse_params(
@@ -191,11 +198,13 @@ def published_topics(section: dict[str, Any], path: str = "measurement_server") 
         common = parse_params(
             MeasurementCommonParams, body, f"{path}.{mid}", ignore=set(body) - field_names(MeasurementCommonParams)
         )
-        topics[output_topic(mid, common)] = common.history_depth
+        topics[output_topic(mid, common, namespace)] = common.history_depth
     return topics
 
 
-def parse_measurement_server(section: dict[str, Any], path: str = "measurement_server") -> MeasurementServerConfig:
+def parse_measurement_server(
+    section: dict[str, Any], path: str = "measurement_server", namespace: str = "/"
+) -> MeasurementServerConfig:
     node_params = parse_params(
         MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
     )
@@ -251,7 +260,7 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
                     )
         if len(common.remote_prefixes) < len(common.remote_keys):
             raise ConfigError(f"{mpath}.remote_prefixes", "needs one prefix per entry of remote_keys")
-        config = MeasurementConfig(mid, common, cls, plugin_params)
+        config = MeasurementConfig(mid, common, cls, plugin_params, namespace)
         if config.output_topic in outputs:
             raise ConfigError(
                 f"{mpath}.topic_output",
