@@ -38,10 +38,12 @@ def cmd_list_plugins(args: argparse.Namespace) -> int:
 def cmd_validate(args: argparse.Namespace) -> int:
     from dc_bringup.validate import check
 
-    report, error = check(args.params_file)
+    report, error = check(args.params_file, args.namespace)
     if report is None:
         print(f"invalid: {error}", file=sys.stderr)
         return 2
+    for note in report.notes:
+        print(note, file=sys.stderr)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     print(f"valid: {', '.join(report.servers)}")
@@ -442,6 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("validate", help="check a parameter file without running it")
     p.add_argument("params_file")
+    p.add_argument("--namespace", default="", help="the namespace dc-bringup will run the servers in")
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")

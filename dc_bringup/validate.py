@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import importlib
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dc_core.config import load_params_file, other_sections
+from dc_core.config import load_params
 from dc_core.errors import ConfigError, DcError
 from dc_core.jsonpath import impossible_path
 from dc_core.params import did_you_mean
 from dc_core.paths import expand_env
+from dc_core.ros_args import param_sections
 from dc_core.topics import ros_topic
 
 # Servers in start order: destinations first so nothing published at start is lost.
@@ -36,6 +38,7 @@ class ValidationReport:
     servers: list[str] = field(default_factory=list)
     configs: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # said once at INFO, not warnings
 
 
 def _parse(server: str, section: dict[str, Any]) -> Any:
@@ -44,12 +47,16 @@ def _parse(server: str, section: dict[str, Any]) -> Any:
     return getattr(module, function)(section, server)
 
 
-def validate_params_file(path: str | Path) -> ValidationReport:
-    """Parse every server section; raise ConfigError on the first error, return warnings."""
-    sections = load_params_file(path)
+def validate_params_file(path: str | Path, namespace: str = "", ros_args: Sequence[str] = ()) -> ValidationReport:
+    """Parse every server section (for servers in ``namespace``, with the ``--ros-args`` parameters
+    over the file's); raise ConfigError on the first error, return warnings."""
+    loaded = load_params(path, namespace, param_sections(ros_args))
+    sections = loaded.servers
     report = ValidationReport()
-    for name in other_sections(path):
-        report.warnings.append(f"{name}: not a DC server section, ignored (fine if it holds another node's parameters)")
+    if loaded.ignored:
+        report.notes.append(
+            "sections for nodes DC does not run, ignored (other nodes' parameters): " + ", ".join(loaded.ignored)
+        )
     for server in SERVER_MODULES:
         if server in sections:
             config = _parse(server, sections[server])
@@ -185,9 +192,11 @@ def _shared_metrics_ports(configs: dict[str, Any]) -> list[str]:
     return warnings
 
 
-def check(path: str | Path) -> tuple[ValidationReport | None, str | None]:
+def check(
+    path: str | Path, namespace: str = "", ros_args: Sequence[str] = ()
+) -> tuple[ValidationReport | None, str | None]:
     """(report, None) when valid, (None, error text) when not."""
     try:
-        return validate_params_file(path), None
+        return validate_params_file(path, namespace, ros_args), None
     except ConfigError as exc:
         return None, str(exc)
