@@ -112,13 +112,13 @@ class ServerPluginContext:
 def check_remapped_type(node: Any, msg_type: Any, topic: str, resolved: str) -> None:
     """ConfigError when a remap (``--ros-args -r``) sent ``topic`` to a topic of another type.
 
-    DDS would match nothing there and say nothing. Only what the graph knows when the subscription
-    is made can be checked: a publisher that appears later with another type is not seen here.
+    DDS would match nothing there and say nothing. Only the publishers the graph knows when the
+    subscription is made can be checked: one that appears later with another type is not seen here.
     """
     if resolved == node.resolve_topic_name(topic, only_expand=True):
         return  # not remapped: a type clash is the publisher's, as for any subscriber
     ours = f"{msg_type.__module__.split('.')[0]}/msg/{msg_type.__name__}"
-    theirs = sorted({t for name, types in node.get_topic_names_and_types() if name == resolved for t in types})
+    theirs = sorted({info.topic_type for info in node.get_publishers_info_by_topic(resolved)})
     if theirs and ours not in theirs:
         raise ConfigError(
             topic, f"remapped to {resolved}, which carries {', '.join(theirs)}: {ours} expected (check --ros-args -r)"
