@@ -109,7 +109,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dc_bringup.manager import LifecycleManager
     from dc_bringup.processes import ServerProcess
 
-    rclpy.init(args=["--ros-args", "--log-level", args.log_level], signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        # The ROS arguments too: rcl refuses here, before any server starts, what it would refuse in each
+        # (a -p list of mixed types), and the manager is in the namespace a -r __ns:= gives them.
+        manager_args = ["--ros-args", "--log-level", args.log_level, *ros_args]
+        rclpy.init(args=manager_args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # rclpy's RCLError, UnknownROSArgsError: both say which argument
+        print(f"dc-bringup: invalid --ros-args: {exc}", file=sys.stderr)
+        return 2
     from dc_core.lifecycle import ros_namespace
 
     namespace = ros_namespace(dc_namespace(args)) if dc_namespace(args).strip("/") else ""

@@ -125,7 +125,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dc_core.signals import wake_on_signals
     from dc_core.supervision import Supervisor
 
-    stop = init_server_process(args.log_level, args.namespace, ros_args)
+    try:
+        stop = init_server_process(args.log_level, args.namespace, ros_args)
+    except Exception as exc:  # rclpy's RCLError, UnknownROSArgsError: both say which argument
+        print(f"dc-bringup: invalid --ros-args: {exc}", file=sys.stderr)
+        return 2
     joined = time.monotonic()  # graph discovery runs from the first node on: the manager's wait counts from here
     namespace = ros_namespace(namespace_arg) if namespace_arg.strip("/") else ""
 

@@ -6,13 +6,14 @@ import difflib
 import os
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from dc_core.errors import ConfigError
+from dc_core.node_params import ServerNodeParams
 
 SERVERS = ("measurement_server", "group_server", "destination_server", "image_services")
 # How alike (difflib ratio) a top-level key must be to a server's name to be taken for a typo of it:
@@ -189,9 +190,9 @@ def load_params(path: str | Path, namespace: str = "", ros_sections: Sequence[Pa
 
     A server runs when DC's file has a section naming it (wildcards in the namespace allowed:
     ``/**/measurement_server``) that matches it; a section of wildcards alone (``/**``) adds
-    parameters to the servers that run but starts none. ``ros_sections`` (``--params-file`` and ``-p``
-    of ``--ros-args``, :mod:`dc_core.ros_args`) come after the file's sections: on the command
-    line, as for any ROS node, they win.
+    parameters to the servers that run but starts none, and only those each server has.
+    ``ros_sections`` (``--params-file`` and ``-p`` of ``--ros-args``, :mod:`dc_core.ros_args`) come
+    after the file's sections: on the command line, as for any ROS node, they win.
     """
     file = Path(path)
     sections = read_sections(file)
@@ -206,11 +207,18 @@ def load_params(path: str | Path, namespace: str = "", ros_sections: Sequence[Pa
         raise ConfigError("", f"{file}: no DC server section{where} (expected one of {', '.join(SERVERS)})")
     servers: dict[str, dict[str, Any]] = {}
     raw: dict[str, dict[str, Any]] = {}
+    every_server = {f.name for f in fields(ServerNodeParams)}
     for server in running:
+        matching = [s for s in [*sections, *ros_sections] if node_name_matches(s.node, fqns[server])]
+        own = [s for s in matching if s.node.rsplit("/", 1)[-1] == server]
+        # A ROS node ignores the overrides of parameters it does not declare: a wildcard section
+        # (/**, -p without a node) sets on each server only what it has — the parameters of every
+        # server, and the top-level keys its own sections write (a plugin's section, flb).
+        has = every_server.union(*(s.params for s in own))
         merged: dict[str, Any] = {}
-        for section in [*sections, *ros_sections]:
-            if node_name_matches(section.node, fqns[server]):
-                merged = merge_params(merged, section.params)
+        for section in matching:
+            given = section.params if section in own else {k: v for k, v in section.params.items() if k in has}
+            merged = merge_params(merged, given)
         raw[server] = merged
         servers[server] = expand_references(merged, server)
     ignored = [s.node for s in sections if not any(node_name_matches(s.node, fqns[server]) for server in running)]

@@ -140,3 +140,17 @@ def test_a_remap_to_a_topic_of_another_type_is_an_error_naming_both(tmp_path: Pa
             line = dc.wait_stderr("tf2_msgs/msg/TFMessage expected")
             assert "activate failed" in line or "configure failed" in line, line
         chatter.destroy()
+
+
+@pytest.mark.usefixtures("bringup_mode")
+def test_ros_arguments_rcl_would_refuse_stop_dc_bringup_before_any_server_starts(tmp_path: Path) -> None:
+    params = tmp_path / "nav2_style.yaml"
+    params.write_text(PARAMS)
+    for ros_args, message in (
+        (["--frobnicate"], "invalid configuration: --ros-args: unknown ROS argument '--frobnicate'"),
+        (["-p", "a:=[1, x]"], "invalid --ros-args: "),  # rcl's own refusal: a list of mixed types
+    ):
+        with Bringup(params, tmp_path / "home", args=["--namespace", "r1", "--ros-args", *ros_args]) as dc:
+            assert dc.wait_exit(30) == 2
+            dc.wait_stderr(message)
+            assert not [line for line in dc.stderr if "measurement_server" in line and "active" in line]

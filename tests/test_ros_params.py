@@ -239,3 +239,18 @@ def test_flattened_parameters_hide_secrets() -> None:
 )
 def test_ros_values(value: Any, held: Any, as_json: bool) -> None:
     assert ros_value(value) == (held, as_json)
+
+
+def test_a_wildcard_sets_on_each_server_only_the_parameters_it_has(tmp_path: Path) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text(
+        f"{M}:\n  ros__parameters:\n    uptime: {{plugin: u}}\n"
+        "destination_server:\n  ros__parameters:\n    flb: {flush: 1}\n"
+        "/**:\n  ros__parameters:\n    flb.grace: 5\n    unknown_to_all: 1\n"
+    )
+    ros_args = ["-p", "uptime.polling_interval:=5000", "-p", "heartbeat_period:=0.5"]
+    servers = load_params(params, "", param_sections(ros_args)).servers
+    # As a ROS node ignores overrides of parameters it does not declare: destination_server has no
+    # uptime, measurement_server no flb; heartbeat_period is every server's.
+    assert servers[M] == {"uptime": {"plugin": "u", "polling_interval": 5000}, "heartbeat_period": 0.5}
+    assert servers["destination_server"] == {"flb": {"flush": 1, "grace": 5}, "heartbeat_period": 0.5}
