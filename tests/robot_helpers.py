@@ -51,10 +51,11 @@ class Ros:
 
 
 @contextmanager
-def ros_session(name: str) -> Iterator[Ros]:
-    """A node in a fresh context, its executor, and a plugin harness on it."""
+def ros_session(name: str, domain_id: int | None = None) -> Iterator[Ros]:
+    """A node in a fresh context (in ``domain_id``, else the session's domain), its executor, and a
+    plugin harness on it."""
     context = Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, domain_id=domain_id)
     try:
         node = rclpy.create_node(f"test_{name}_{uuid.uuid4().hex[:8]}", context=context)
         executor = SingleThreadedExecutor(context=context)

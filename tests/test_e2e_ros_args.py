@@ -9,17 +9,12 @@ back through the nodes' parameter services, as ``ros2 param get`` reads them.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import pytest
-import rclpy
 from rcl_interfaces.msg import ParameterType
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import QoSProfile
@@ -27,7 +22,7 @@ from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 
 from tests.bringup_util import Bringup
-from tests.robot_helpers import tf_message, transform
+from tests.robot_helpers import ros_session, tf_message, transform
 
 pytestmark = pytest.mark.e2e
 
@@ -61,21 +56,6 @@ controller_server:
 NAMESPACED_TF = ["-r", "/tf:=tf", "-r", "/tf_static:=tf_static"]
 
 
-@contextmanager
-def ros_node(domain_id: int) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
-    context = Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    node = rclpy.create_node("ros_args_test", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    try:
-        yield node, executor
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
-
-
 def call(executor: SingleThreadedExecutor, future: Any) -> Any:
     executor.spin_until_future_complete(future, timeout_sec=10.0)
     assert future.done(), "no answer from the parameter service"
@@ -91,7 +71,8 @@ def test_tf_remapped_into_the_namespace_and_parameters_served_read_only(tmp_path
         # Other nodes' sections: said once, at INFO, not as warnings.
         dc.wait_stderr("sections for nodes DC does not run, ignored (other nodes' parameters): controller_server")
         dc.wait_ready()
-        with ros_node(dc.domain_id) as (node, executor):
+        with ros_session("ros_args", dc.domain_id) as ros:
+            node, executor = ros.node, ros.executor
             robot_tf = node.create_publisher(TFMessage, "/r1/tf", QoSProfile(depth=10))
             other_tf = node.create_publisher(TFMessage, "/tf", QoSProfile(depth=10))
             deadline = time.monotonic() + 30.0
@@ -133,7 +114,8 @@ def test_a_remap_to_a_topic_of_another_type_is_an_error_naming_both(tmp_path: Pa
     params = tmp_path / "nav2_style.yaml"
     params.write_text(PARAMS)
     bringup = Bringup(params, tmp_path / "home", args=["--namespace", "r1", "--ros-args", "-r", "/tf:=chatter"])
-    with ros_node(bringup.domain_id) as (node, _executor):
+    with ros_session("ros_args", bringup.domain_id) as ros:
+        node = ros.node
         chatter = node.create_publisher(String, "/r1/chatter", QoSProfile(depth=1))
         with bringup as dc:
             dc.wait_stderr("/tf: remapped to /r1/chatter, which carries std_msgs/msg/String", 60)
