@@ -95,7 +95,11 @@ def param_sections(ros_args: Sequence[str]) -> list[ParamSection]:
 
 def namespace_remap(ros_args: Sequence[str]) -> str | None:
     """The namespace ``-r __ns:=/x`` (or ``-r node:__ns:=/x`` — taken for every server) sets, if any."""
-    for flag, value in _flags(ros_args):
+    try:
+        flags = _flags(ros_args)
+    except ConfigError:
+        return None  # said by check_ros_args, with the rest of the configuration's checks
+    for flag, value in flags:
         if flag in ("-r", "--remap"):
             rule, _, target = value.partition(":=")
             if rule.rpartition(":")[2] == "__ns":

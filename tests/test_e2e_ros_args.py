@@ -132,7 +132,7 @@ def test_ros_arguments_rcl_would_refuse_stop_dc_bringup_before_any_server_starts
         (["--frobnicate"], "invalid configuration: --ros-args: unknown ROS argument '--frobnicate'"),
         (["-p", "a:=[1, x]"], "invalid --ros-args: "),  # rcl's own refusal: a list of mixed types
     ):
-        with Bringup(params, tmp_path / "home", args=["--namespace", "r1", "--ros-args", *ros_args]) as dc:
+        with Bringup(params, tmp_path / "home", args=["--ros-args", *ros_args, "-r", "__ns:=/r1"]) as dc:
             assert dc.wait_exit(30) == 2
             dc.wait_stderr(message)
             assert not [line for line in dc.stderr if "measurement_server" in line and "active" in line]

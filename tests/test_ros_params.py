@@ -196,6 +196,7 @@ def test_a_wrong_type_given_with_p_is_reported_with_its_yaml_path(tmp_path: Path
 def test_namespace_remap() -> None:
     assert namespace_remap(["-r", "/tf:=tf", "-r", "__ns:=/r1"]) == "/r1"
     assert namespace_remap(["-r", "/tf:=tf"]) is None
+    assert namespace_remap(["--frobnicate"]) is None  # check_ros_args says what is wrong
 
 
 # -- DC's settings as ROS parameters ---------------------------------------------------------------
