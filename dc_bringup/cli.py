@@ -42,6 +42,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
     if report is None:
         print(f"invalid: {error}", file=sys.stderr)
         return 2
+    for note in report.notes:
+        print(note, file=sys.stderr)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     print(f"valid: {', '.join(report.servers)}")
@@ -128,7 +130,7 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
 
     targets = [
         (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(args.params).configs)
+        for e in metrics_endpoints(validate_params_file(args.params, args.namespace).configs)
     ]
     if not targets:
         print(
@@ -470,6 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="ask the servers whose HTTP server this parameter file enables (destination_server flb.http_*,"
         " group_server and measurement_server http_*)",
     )
+    p.add_argument("--namespace", default="", help="with --params: the namespace dc-bringup runs the servers in")
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.set_defaults(func=cmd_status)
 
