@@ -20,6 +20,7 @@ from typing import Any
 
 import rclpy
 import rclpy.utilities
+from dc_lifecycle_interfaces.msg import Heartbeat
 from lifecycle_msgs.msg import State
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
@@ -52,7 +53,6 @@ from dc_core.private_files import use_private_umask
 from dc_core.signals import StopFlag, StopRequest, wake_on_signals
 from dc_core.supervision import Supervisor
 from dc_core.worker import Worker
-from dc_interfaces.msg import Heartbeat
 
 HEARTBEAT_TOPIC = "/dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
