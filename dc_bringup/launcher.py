@@ -58,6 +58,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_TRUE = ("true", "1", "yes", "on")
+_FALSE = ("false", "0", "no", "off", "")
+
+
+def launch_command(
+    params_file: str,
+    namespace: str = "",
+    use_sim_time: str = "false",
+    log_level: str = "info",
+    python: str = sys.executable,
+) -> list[str]:
+    """The dc-bringup command line for the arguments of the ament package's dc.launch.py (ros/dc_launch).
+
+    Launch arguments arrive as text (``use_sim_time:=True``), so they are read here, where a wrong one
+    is refused with its name before any process starts. The command runs DC with the interpreter that
+    imported it: the one that has DC installed, whatever ``dc-bringup`` is first on PATH.
+    """
+    if not params_file.strip():
+        raise ValueError("params_file: required (a DC parameter file, e.g. params_file:=/path/to/dc.yaml)")
+    path = Path(params_file).expanduser().resolve()
+    if not path.is_file():
+        raise ValueError(f"params_file: {path} is not a file")
+    sim = use_sim_time.strip().lower()
+    if sim not in _TRUE + _FALSE:
+        raise ValueError(f"use_sim_time: {use_sim_time!r} is not a boolean (true or false)")
+    level = log_level.strip().lower()
+    if level not in LOG_LEVELS:
+        raise ValueError(f"log_level: {log_level!r} is not one of {', '.join(LOG_LEVELS)}")
+    command = [python, "-m", "dc_bringup.launcher", str(path), "--log-level", level]
+    if namespace.strip("/ "):
+        command += ["--namespace", namespace.strip()]
+    if sim in _TRUE:
+        command.append("--use-sim-time")
+    return command
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # Before anything is written: the servers, ffmpeg and rclpy's log files inherit it (dc_core.private_files).
