@@ -42,11 +42,13 @@ ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces \
 # headless browser and its driver that test the dashboard as a user sees it.
 TEST_DEBS := libzbar0 ffmpeg mosquitto postgresql influxdb chromium chromium-driver
 
-IFACE_SRCS := dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
+# Included by every interface package's CMakeLists.txt.
+IFACE_CMAKE := interfaces/cmake/dc_wheels_python_includes.cmake
+IFACE_SRCS := $(IFACE_CMAKE) dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
 	$(wildcard dc_interfaces/msg/*.msg dc_interfaces/srv/*.srv dc_interfaces/action/*.action)
-LIFECYCLE_IFACE_SRCS := interfaces/dc_lifecycle_interfaces/CMakeLists.txt interfaces/dc_lifecycle_interfaces/package.xml \
+LIFECYCLE_IFACE_SRCS := $(IFACE_CMAKE) interfaces/dc_lifecycle_interfaces/CMakeLists.txt interfaces/dc_lifecycle_interfaces/package.xml \
 	$(wildcard interfaces/dc_lifecycle_interfaces/msg/*.msg interfaces/dc_lifecycle_interfaces/srv/*.srv)
-TF2_MSGS_SRCS := interfaces/tf2_msgs/CMakeLists.txt interfaces/tf2_msgs/package.xml \
+TF2_MSGS_SRCS := $(IFACE_CMAKE) interfaces/tf2_msgs/CMakeLists.txt interfaces/tf2_msgs/package.xml \
 	$(wildcard interfaces/tf2_msgs/msg/*.msg)
 
 # Keep ROS traffic and logs of `run` and `test` on this machine and inside the checkout.
