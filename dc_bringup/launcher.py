@@ -55,6 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="run every server in one process with one loop (less memory and CPU, less isolation; docs/bringup.md)",
     )
     parser.add_argument("--validate-only", action="store_true", help="check the configuration and exit")
+    parser.add_argument(
+        "--stop-with-parent",
+        action="store_true",
+        help="stop, as on SIGTERM, when the process that started dc-bringup exits, even killed (dc.launch.py sets it)",
+    )
     return parser
 
 
@@ -86,7 +91,9 @@ def launch_command(
     level = log_level.strip().lower()
     if level not in LOG_LEVELS:
         raise ValueError(f"log_level: {log_level!r} is not one of {', '.join(LOG_LEVELS)}")
-    command = [python, "-m", "dc_bringup.launcher", str(path), "--log-level", level]
+    # launch leaves its children running when it is killed or gets SIGTERM (docker stop, a supervisor):
+    # DC then stops in order instead of living on without it.
+    command = [python, "-m", "dc_bringup.launcher", str(path), "--log-level", level, "--stop-with-parent"]
     if namespace.strip("/ "):
         command += ["--namespace", namespace.strip()]
     if sim in _TRUE:
@@ -96,6 +103,13 @@ def launch_command(
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.stop_with_parent:
+        from dc_bringup.processes import die_with_parent
+
+        parent = os.getppid()
+        die_with_parent()
+        if os.getppid() != parent:  # gone before it could be watched
+            return 0
     # Before anything is written: the servers, ffmpeg and rclpy's log files inherit it (dc_core.private_files).
     use_private_umask()
     params_file = str(Path(args.params_file).resolve())
