@@ -371,10 +371,10 @@ LIFECYCLE_COMMANDS = ("startup", "pause", "resume", "reset", "shutdown", "is-act
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     """Ask dc-bringup's lifecycle manager (its manage_nodes and is_active services)."""
     import rclpy
+    from dc_lifecycle_interfaces.srv import ManageLifecycleNodes
     from std_srvs.srv import Trigger
 
     from dc_bringup.manager import DEGRADED_PREFIX, NODE_NAME
-    from dc_interfaces.srv import ManageLifecycleNodes
 
     namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
     manager = f"{namespace}/{NODE_NAME}"

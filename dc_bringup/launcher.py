@@ -60,6 +60,11 @@ def build_parser() -> argparse.ArgumentParser:
         "remaps (-r /tf:=tf), parameters (-p name:=value, -p node:name:=value, --params-file FILE, over the "
         "parameter file's), --log-level (docs/bringup.md)"
     )
+    parser.add_argument(
+        "--stop-with-parent",
+        action="store_true",
+        help="stop, as on SIGTERM, when the process that started dc-bringup exits, even killed (dc.launch.py sets it)",
+    )
     return parser
 
 
@@ -70,12 +75,57 @@ def dc_namespace(args: argparse.Namespace) -> str:
     return args.namespace if args.namespace.strip("/") else (namespace_remap(args.ros_args) or "")
 
 
+_TRUE = ("true", "1", "yes", "on")
+_FALSE = ("false", "0", "no", "off", "")
+
+
+def launch_command(
+    params_file: str,
+    namespace: str = "",
+    use_sim_time: str = "false",
+    log_level: str = "info",
+    python: str = sys.executable,
+) -> list[str]:
+    """The dc-bringup command line for the arguments of the ament package's dc.launch.py (ros/dc_launch).
+
+    Launch arguments arrive as text (``use_sim_time:=True``), so they are read here, where a wrong one
+    is refused with its name before any process starts. The command runs DC with the interpreter that
+    imported it: the one that has DC installed, whatever ``dc-bringup`` is first on PATH.
+    """
+    if not params_file.strip():
+        raise ValueError("params_file: required (a DC parameter file, e.g. params_file:=/path/to/dc.yaml)")
+    path = Path(params_file).expanduser().resolve()
+    if not path.is_file():
+        raise ValueError(f"params_file: {path} is not a file")
+    sim = use_sim_time.strip().lower()
+    if sim not in _TRUE + _FALSE:
+        raise ValueError(f"use_sim_time: {use_sim_time!r} is not a boolean (true or false)")
+    level = log_level.strip().lower()
+    if level not in LOG_LEVELS:
+        raise ValueError(f"log_level: {log_level!r} is not one of {', '.join(LOG_LEVELS)}")
+    # launch leaves its children running when it is killed or gets SIGTERM (docker stop, a supervisor):
+    # DC then stops in order instead of living on without it.
+    command = [python, "-m", "dc_bringup.launcher", str(path), "--log-level", level, "--stop-with-parent"]
+    if namespace.strip("/ "):
+        command += ["--namespace", namespace.strip()]
+    if sim in _TRUE:
+        command.append("--use-sim-time")
+    return command
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from dc_core.ros_args import split_ros_args
 
     own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(own)
     args.ros_args = ros_args
+    if args.stop_with_parent:
+        from dc_bringup.processes import die_with_parent
+
+        parent = os.getppid()
+        die_with_parent()
+        if os.getppid() != parent:  # gone before it could be watched
+            return 0
     # Before anything is written: the servers, ffmpeg and rclpy's log files inherit it (dc_core.private_files).
     use_private_umask()
     params_file = str(Path(args.params_file).resolve())

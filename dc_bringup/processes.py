@@ -36,7 +36,8 @@ class ManagedServerHandle(Protocol):
 
 
 def die_with_parent() -> None:
-    # If dc-bringup is killed with -9, its servers must not live on as orphans.
+    """SIGTERM to this process when its parent exits: a server when dc-bringup is killed with -9, and
+    dc-bringup itself when its launcher is (--stop-with-parent); neither must live on as an orphan."""
     with contextlib.suppress(OSError):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 

@@ -20,6 +20,7 @@ from typing import Any
 
 import rclpy
 import rclpy.utilities
+from dc_lifecycle_interfaces.msg import Heartbeat
 from lifecycle_msgs.msg import State
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
@@ -55,7 +56,6 @@ from dc_core.signals import StopFlag, StopRequest, wake_on_signals
 from dc_core.supervision import Supervisor
 from dc_core.topics import ros_namespace
 from dc_core.worker import Worker
-from dc_interfaces.msg import Heartbeat
 
 # Relative: the servers and the lifecycle manager of one namespace share it, another DC's are apart.
 HEARTBEAT_TOPIC = "dc/heartbeat"
