@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -271,9 +272,16 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
             "destination_server:\n  ros__parameters:\n    flb:\n      http_server: true\n"
             f"      http_port: {server.server_address[1]}\n    destination_plugins: []\n"
         )
-        result = dc("status", "--params", str(params))
+        result = dc("status", "--params", str(params), "--wide")
+        narrow = dc("status", "--params", str(params))
     finally:
         server.shutdown()
+    assert narrow.returncode == 0, narrow.stderr
+    assert max(len(line) for line in narrow.stdout.splitlines()) <= 100, narrow.stdout
+    narrow_header, narrow_row, error_line, *_ = narrow.stdout.splitlines()
+    assert narrow_header.split()[:4] == ["destination", "health", "received", "sent"]
+    assert narrow_row.split() == ["pg", "failing", "10", "7", "3", "12.5", "2", "0", "1"]
+    assert re.fullmatch(r"  last error: 6\d s ago: HTTP 503 Service Unavailable", error_line), error_line
     assert result.returncode == 0, result.stderr
     header, row, *rest = result.stdout.splitlines()
     titles = header.split()
@@ -421,6 +429,6 @@ group_server:
     result = dc("validate", str(params))
     assert result.returncode == 0, result.stderr
     assert (
-        "measurement_server.http_port: 2022 is also group_server.http_port: measurement_server will not serve its"
-        " metrics" in result.stderr
+        "measurement_server.http_port: 2022 is also group_server.http_port: measurement_server serves its metrics"
+        " on another, free port (dc status finds it)" in result.stderr
     )
