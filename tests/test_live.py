@@ -39,7 +39,8 @@ def env_of(run: Bringup) -> dict[str, str]:
 
 
 def json_objects(text: str) -> list[Any]:
-    decoder, at, found = json.JSONDecoder(), 0, []
+    decoder, at = json.JSONDecoder(), 0
+    found: list[Any] = []
     while True:
         while at < len(text) and text[at].isspace():
             at += 1
