@@ -131,3 +131,36 @@ def test_a_second_dc_on_the_machine_serves_its_metrics_on_free_ports(tmp_path: P
                 assert documents["measurement_server"]["measurements"]["uptime"]["published"] >= 1
                 ports.append(re.findall(r"metrics HTTP server on http://127\.0\.0\.1:(\d+)/", "\n".join(run.stderr)))
             assert len(ports[0]) == len(ports[1]) == 2 and not set(ports[0]) & set(ports[1]), ports
+
+
+def test_a_server_address_is_found_while_its_process_lives(tmp_path: Path, monkeypatch: Any) -> None:
+    from dc_core import metrics_registry as registry
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    own = registry.announce("measurement_server", 7, "/r1", "127.0.0.1", 40123)
+    assert own is not None and own.parent.stat().st_mode & 0o777 == 0o700
+    # A server killed with SIGKILL leaves its file: a pid no process has is skipped.
+    gone = own.parent / "group_server.json"
+    gone.write_text(json.dumps({"server": "group_server", "host": "127.0.0.1", "port": 40124, "pid": 2**22 + 1}))
+    found = registry.announced(7, "r1")
+    assert list(found) == ["measurement_server"] and found["measurement_server"].port == 40123
+    assert registry.announced(7, "/") == {} and registry.announced(8, "/r1") == {}
+    registry.withdraw(own)
+    assert registry.announced(7, "/r1") == {}
+
+
+def test_status_targets_for_every_shipped_parameter_file(tmp_path: Path, monkeypatch: Any) -> None:
+    """`dc status --params` with any params/ file, none edited: the running servers' addresses, also
+    for a file that names a secret's variable only the servers' environment has."""
+    from dc_bringup.live import metrics_targets
+    from dc_core import metrics_registry as registry
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    monkeypatch.setenv("ROS_DOMAIN_ID", "7")
+    for name in ("destination_server", "group_server", "measurement_server"):
+        registry.announce(name, 7, "/", "127.0.0.1", 40000 + len(name))
+    files = sorted(p for p in (REPO / "params").rglob("*.yaml") if "fastdds" not in p.parts)
+    assert len(files) > 20
+    for file in files:
+        targets = metrics_targets(str(file), "", "127.0.0.1", None)
+        assert targets and all(t.port >= 40000 for t in targets), (file, targets)
