@@ -94,13 +94,21 @@ def from_sources(args: Any, environ: Mapping[str, str] | None = None) -> Dashboa
 
 
 def metrics_urls(args: Any) -> list[tuple[str, str]]:
-    """(label, URL) of every --metrics URL and of each server whose HTTP server --params enables."""
+    """(label, URL) of every --metrics URL and of the destination server of --params (the Health page
+    reads delivery; the other servers' endpoints, on by default, have none): where it runs when it
+    wrote its address down (dc_core.metrics_registry), else the port the file configures."""
     urls = [(url, url) for url in getattr(args, "metrics", None) or []]
     params = getattr(args, "params", None)
     if params:
         from dc_bringup.validate import metrics_endpoints, validate_params_file
+        from dc_core.metrics_registry import announced, domain_id_from_env
 
+        running = announced(domain_id_from_env(), "/")
         for endpoint in metrics_endpoints(validate_params_file(params).configs):
+            if endpoint.server != "destination_server":
+                continue
+            found = running.get(endpoint.server)
             host = "127.0.0.1" if endpoint.listen in ("0.0.0.0", "") else endpoint.listen
-            urls.append((endpoint.server, f"http://{host}:{endpoint.port}/api/v1/metrics"))
+            host, port = (found.host, found.port) if found is not None else (host, endpoint.port)
+            urls.append((endpoint.server, f"http://{host}:{port}/api/v1/metrics"))
     return urls
