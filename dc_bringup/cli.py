@@ -203,6 +203,8 @@ def cmd_status(args: argparse.Namespace) -> int:
     except DcError as exc:
         print(f"dc status: {exc}", file=sys.stderr)
         return 2
+    if not targets:
+        return 1
     documents: dict[str, Any] = {}
     unreachable = False
     for server, host, port in targets:

@@ -22,7 +22,6 @@ from dc_core.errors import DcError
 
 # What a terminal of a laptop or an SSH session shows without wrapping; `--wide` shows everything.
 WIDTH = 100
-DEFAULT_PORT = 2020
 
 
 @dataclass(frozen=True)
@@ -44,7 +43,8 @@ def metrics_targets(
 ) -> list[Target]:
     """The endpoints to ask: ``--port`` alone; else the servers running in this ROS domain and
     namespace (their written-down addresses), those of ``params`` only when given; else, for a server
-    not found running, the port ``params`` configures (raises DcError when ``params`` is invalid)."""
+    not found running, the port ``params`` configures (raises DcError when ``params`` is invalid and
+    none runs). Empty, and said on stderr, when nothing is found."""
     from dc_core.metrics_registry import announced, domain_id_from_env, folder
 
     if port is not None:
@@ -53,13 +53,15 @@ def metrics_targets(
     if not params:
         if running:
             return [Target(a.server, a.host, a.port) for a in running.values()]
+        # Not a guess at the default port: another DC of the machine may hold it, and its counters
+        # would be shown as this one's.
         where = folder(domain_id_from_env(), namespace)
         print(
-            f"{command}: no running DC server wrote its metrics address in {where} (ROS_DOMAIN_ID and "
-            f"--namespace as dc-bringup's?); asking {host}:{DEFAULT_PORT}",
+            f"{command}: no running DC server found in {where} (is dc-bringup running, with this ROS_DOMAIN_ID "
+            "and --namespace? --params F asks the ports F configures, --port P one server)",
             file=sys.stderr,
         )
-        return [Target("", host, DEFAULT_PORT)]
+        return []
     from dc_bringup.validate import metrics_endpoints, validate_params_file
 
     try:
@@ -80,10 +82,7 @@ def metrics_targets(
             listen = "127.0.0.1" if endpoint.listen in ("0.0.0.0", "") else endpoint.listen
             targets.append(Target(endpoint.server, listen, endpoint.port))
     if not targets:
-        print(
-            f"{command}: every server of {params} has http_server: false; asking {host}:{DEFAULT_PORT}", file=sys.stderr
-        )
-        targets.append(Target("", host, DEFAULT_PORT))
+        print(f"{command}: every server of {params} has http_server: false", file=sys.stderr)
     return targets
 
 
@@ -254,6 +253,8 @@ def cmd_top(args: argparse.Namespace) -> int:
     except DcError as exc:
         print(f"dc top: {exc}", file=sys.stderr)
         return 2
+    if not targets:
+        return 1
     # Clearing the screen only makes sense on a terminal; piped, each view follows the last.
     redraw = sys.stdout.isatty() and not args.once
     where = ", ".join(t.server or f"{t.host}:{t.port}" for t in targets)

@@ -104,6 +104,11 @@ def test_tap_prints_records_as_they_pass(tmp_path: Path) -> None:
         assert [r["name"] for r in json_objects(by_destination.stdout)] == ["uptime", "uptime"]
         assert "/dc/measurement/uptime" in by_destination.stderr
 
+    # Stopped: its servers' addresses are gone with them; no guess at another DC's port.
+    stopped = dc("status", env=env_of(run))
+    assert stopped.returncode == 1 and stopped.stdout == ""
+    assert "dc status: no running DC server found in " in stopped.stderr
+
     nobody = dc("tap", "/dc/measurement/nothing_here", "--timeout", "1", env=env_of(run))
     assert nobody.returncode == 1
     assert nobody.stdout == ""
