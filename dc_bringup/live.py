@@ -15,6 +15,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -169,73 +170,96 @@ def _name(name: str, width: int) -> str:
     return name if len(name) <= width else name[: width - 1] + "~"
 
 
+# A `dc top` column: heading, width, and its cell from (row now, row an interval ago, seconds between).
+Column = tuple[str, int, Callable[[dict[str, Any], dict[str, Any] | None, float], str]]
+
+
+def _rate_of(key: str) -> Callable[[dict[str, Any], dict[str, Any] | None, float], str]:
+    return lambda row, was, seconds: _num(_rate(row, was, key, seconds), 2)
+
+
+def _value_of(key: str, digits: int = 0) -> Callable[[dict[str, Any], dict[str, Any] | None, float], str]:
+    return lambda row, was, seconds: _num(row.get(key), digits)
+
+
+def _health_of(row: dict[str, Any], was: dict[str, Any] | None, seconds: float) -> str:
+    health = row.get("health")
+    return str(health.get("state") or "-") if isinstance(health, dict) else "-"
+
+
+# (server, section of its document, title, columns), in the order records flow; each row fits WIDTH.
+TOP_SECTIONS: list[tuple[str, str, str, list[Column]]] = [
+    (
+        "measurement_server",
+        "measurements",
+        "measurement",
+        [
+            ("state", -12, lambda row, was, seconds: _measurement_state(row, was)),
+            ("rec/s", 8, _rate_of("published")),
+            ("published", 11, _value_of("published")),
+            ("collected", 11, _value_of("collected")),
+            ("gated", 8, _value_of("gated")),
+            ("errors", 8, _value_of("errors")),
+            ("lost", 8, lambda row, was, seconds: _num(row.get("lost", 0))),
+        ],
+    ),
+    (
+        "group_server",
+        "groups",
+        "group",
+        [
+            ("state", -12, lambda row, was, seconds: _group_state(row, was)),
+            ("rec/s", 8, _rate_of("published")),
+            ("published", 11, _value_of("published")),
+            ("partial", 9, _value_of("published_partial")),
+            ("dropped", 9, _value_of("dropped_incomplete")),
+            ("pending", 9, _value_of("pending")),
+        ],
+    ),
+    (
+        "destination_server",
+        "destinations",
+        "destination",
+        [
+            ("state", -10, _health_of),
+            ("in/s", 8, _rate_of("received")),
+            ("sent/s", 8, _rate_of("sent")),
+            ("pending", 9, _value_of("buffered")),
+            ("oldest s", 10, _value_of("oldest_pending_age_s", 1)),
+            ("failed", 8, _value_of("failed")),
+            ("dropped", 9, _value_of("dropped")),
+            ("dead", 7, _value_of("dead_letters")),
+        ],
+    ),
+]
+
+
+def _cell(text: str, width: int) -> str:
+    """Right-aligned in ``width``; a negative width: left-aligned in its absolute value."""
+    return f"{text:<{-width}}" if width < 0 else f"{text:>{width}}"
+
+
 def top_table(before: Sample | None, now: Sample, interval: float, header: str) -> list[str]:
     """The lines of one `dc top` view, each at most :data:`WIDTH` columns."""
     seconds = now.at - before.at if before is not None else 0.0
     lines = [header[:WIDTH]]
     old = before.documents if before is not None else {}
-
-    measurements = now.documents.get("measurement_server", {}).get("measurements", {})
-    if isinstance(measurements, dict) and measurements:
-        previous = old.get("measurement_server", {}).get("measurements", {})
-        lines.append("")
-        lines.append(
-            f"{'measurement':<22}{'state':<12}{'rec/s':>8}{'published':>11}{'collected':>11}"
-            f"{'gated':>8}{'errors':>8}{'lost':>8}"
-        )
-        for name, row in sorted(measurements.items()):
-            if not isinstance(row, dict):
-                continue
-            was = previous.get(name) if isinstance(previous, dict) else None
-            lines.append(
-                f"{_name(name, 21):<22}{_measurement_state(row, was):<12}"
-                f"{_num(_rate(row, was, 'published', seconds), 2):>8}{_num(row.get('published')):>11}"
-                f"{_num(row.get('collected')):>11}{_num(row.get('gated')):>8}{_num(row.get('errors')):>8}"
-                f"{_num(row.get('lost', 0)):>8}"
-            )
-
-    groups = now.documents.get("group_server", {}).get("groups", {})
-    if isinstance(groups, dict) and groups:
-        previous = old.get("group_server", {}).get("groups", {})
-        lines.append("")
-        lines.append(
-            f"{'group':<22}{'state':<12}{'rec/s':>8}{'published':>11}{'partial':>9}{'dropped':>9}{'pending':>9}"
-        )
-        for name, row in sorted(groups.items()):
-            if not isinstance(row, dict):
-                continue
-            was = previous.get(name) if isinstance(previous, dict) else None
-            lines.append(
-                f"{_name(name, 21):<22}{_group_state(row, was):<12}"
-                f"{_num(_rate(row, was, 'published', seconds), 2):>8}{_num(row.get('published')):>11}"
-                f"{_num(row.get('published_partial')):>9}{_num(row.get('dropped_incomplete')):>9}"
-                f"{_num(row.get('pending')):>9}"
-            )
-
+    for server, section, title, columns in TOP_SECTIONS:
+        rows = now.documents.get(server, {}).get(section, {})
+        if not isinstance(rows, dict) or not rows:
+            continue
+        previous = old.get(server, {}).get(section, {})
+        lines += ["", f"{title:<22}" + "".join(_cell(heading, width) for heading, width, _ in columns)]
+        for name, row in sorted(rows.items()):
+            if isinstance(row, dict):
+                was = previous.get(name) if isinstance(previous, dict) else None
+                cells = "".join(_cell(value(row, was, seconds), width) for _, width, value in columns)
+                lines.append(f"{_name(name, 21):<22}{cells}")
     destinations = now.documents.get("destination_server", {}).get("destinations", {})
-    if isinstance(destinations, dict) and destinations:
-        previous = old.get("destination_server", {}).get("destinations", {})
-        lines.append("")
-        lines.append(
-            f"{'destination':<22}{'state':<10}{'in/s':>8}{'sent/s':>8}{'pending':>9}{'oldest s':>10}"
-            f"{'failed':>8}{'dropped':>9}{'dead':>7}"
-        )
-        for name, row in sorted(destinations.items()):
-            if not isinstance(row, dict):
-                continue
-            was = previous.get(name) if isinstance(previous, dict) else None
-            health = row.get("health")
-            state = health.get("state") if isinstance(health, dict) else None
-            lines.append(
-                f"{_name(name, 21):<22}{state or '-'!s:<10}"
-                f"{_num(_rate(row, was, 'received', seconds), 2):>8}{_num(_rate(row, was, 'sent', seconds), 2):>8}"
-                f"{_num(row.get('buffered')):>9}{_num(row.get('oldest_pending_age_s'), 1):>10}"
-                f"{_num(row.get('failed')):>8}{_num(row.get('dropped')):>9}{_num(row.get('dead_letters')):>7}"
-            )
-        for name, row in sorted(destinations.items()):
-            health = row.get("health") if isinstance(row, dict) else None
-            if isinstance(health, dict) and health.get("state") in ("retrying", "failing"):
-                lines.append(f"  {name}: {health.get('reason') or row.get('last_error') or ''}"[:WIDTH])
+    for name, row in sorted(destinations.items()) if isinstance(destinations, dict) else []:
+        health = row.get("health") if isinstance(row, dict) else None
+        if isinstance(health, dict) and health.get("state") in ("retrying", "failing"):
+            lines.append(f"  {name}: {health.get('reason') or row.get('last_error') or ''}"[:WIDTH])
 
     for server, why in sorted(now.unreachable.items()):
         lines.append(f"{server}: unreachable ({why})"[:WIDTH])

@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
 from pathlib import Path
 from typing import Any
 
-from tests.bringup_util import REPO, Bringup, dc
+import pytest
+
+from tests.bringup_util import BIN, REPO, Bringup, dc
 
 WIDTH = 100
 
@@ -46,10 +49,14 @@ def json_objects(text: str) -> list[Any]:
             at += 1
         if at >= len(text):
             return found
-        value, at = decoder.raw_decode(text, at)
+        try:
+            value, at = decoder.raw_decode(text, at)
+        except ValueError as exc:
+            raise AssertionError(f"not JSON at {at}: {text!r}") from exc
         found.append(value)
 
 
+@pytest.mark.e2e
 def test_top_and_status_on_the_default_job_fit_100_columns(tmp_path: Path) -> None:
     with Bringup(REPO / "params" / "default.yaml", tmp_path / "home") as run:
         run.wait_records(1, timeout=40, predicate=lambda r: r.get("name") == "cpu")
@@ -68,6 +75,16 @@ def test_top_and_status_on_the_default_job_fit_100_columns(tmp_path: Path) -> No
         for name in ("stdout", "file"):
             assert rows[name][1] == "ok" and re.fullmatch(r"\d+\.\d\d", rows[name][2]), top.stdout
 
+        # Not a terminal: no screen clearing, one table after the other, each interval.
+        try:
+            subprocess.run(
+                [str(BIN / "dc"), "top", "--interval", "0.5"], capture_output=True, env=env_of(run), timeout=4
+            )
+            raise AssertionError("dc top without --once exited")
+        except subprocess.TimeoutExpired as running_top:
+            shown = (running_top.stdout or b"").decode()
+        assert shown.count("dc top ") >= 2 and "\x1b[" not in shown, shown
+
         status = dc("status", env=env_of(run))
         assert status.returncode == 0, status.stderr
         narrow = status.stdout.splitlines()
@@ -85,6 +102,7 @@ def test_top_and_status_on_the_default_job_fit_100_columns(tmp_path: Path) -> No
         assert with_params.stdout.splitlines()[0] == narrow[0]
 
 
+@pytest.mark.e2e
 def test_tap_prints_records_as_they_pass(tmp_path: Path) -> None:
     params = tmp_path / "p.yaml"
     params.write_text(FAST_UPTIME)
@@ -118,6 +136,7 @@ def test_tap_prints_records_as_they_pass(tmp_path: Path) -> None:
     ]
 
 
+@pytest.mark.e2e
 def test_a_second_dc_on_the_machine_serves_its_metrics_on_free_ports(tmp_path: Path) -> None:
     params = tmp_path / "p.yaml"
     params.write_text(FAST_UPTIME)
