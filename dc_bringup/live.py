@@ -403,9 +403,10 @@ def cmd_tap(args: argparse.Namespace) -> int:
             rclpy.spin_once(node, timeout_sec=0.1)
         if not topics:
             named = ", ".join(sure or candidates)
+            hint = "" if sure else "; a destination's name needs --params"
             print(
                 f"dc tap: no publisher on {named} after {args.timeout:g} s (is dc-bringup running, in this ROS "
-                "domain and --namespace?)",
+                f"domain and --namespace?{hint})",
                 file=sys.stderr,
             )
             return 1
