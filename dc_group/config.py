@@ -12,10 +12,9 @@ from dc_core.errors import ConfigError
 from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, param, parse_params
-from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
+from dc_core.topics import group_topic
 
-DEFAULT_OUTPUT_PREFIX = "/dc/group/"
 # How long past the slop an incomplete set is kept when sync_timeout is not set: the latest
 # partner of a message is stamped at most sync_delay after it, and this leaves room for
 # collection and transport delays.
@@ -102,11 +101,6 @@ class GroupServerConfig:
         return {group.output: list(group.tags) for group in self.groups}
 
 
-def published_topics(section: dict[str, Any], path: str = "group_server") -> dict[str, int]:
-    """Each group's output topic with the depth of the history it keeps (the destination server asks, for its hop)."""
-    return dict.fromkeys(sorted(parse_group_server(section, path).outputs), RECORD_HISTORY_DEPTH)
-
-
 def parse_group_server(section: dict[str, Any], path: str = "group_server") -> GroupServerConfig:
     """Build the group server configuration from its ``ros__parameters`` mapping."""
     if not isinstance(section, dict):
@@ -156,7 +150,7 @@ def _parse_group(name: str, section: Any, path: str) -> GroupConfig:
     return GroupConfig(
         name=name,
         inputs=tuple(params.inputs),
-        output=params.output or DEFAULT_OUTPUT_PREFIX + name,
+        output=params.output or group_topic(name),
         sync_delay=params.sync_delay,
         sync_timeout=timeout,
         emit_partial=params.on_sync_timeout == "emit_partial",

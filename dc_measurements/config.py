@@ -13,9 +13,11 @@ from dc_core.errors import ConfigError, PluginError
 from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
-from dc_core.paths import expand_values
+from dc_core.paths import DEFAULT_SAVE_BASE_PATH, expand_values
 from dc_core.plugins import load_plugin
+from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
+from dc_core.topics import measurement_topic
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -39,7 +41,7 @@ class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
     measurement_plugins: list[str] = param([], doc="Ids of the measurements to load")
     condition_plugins: list[str] = param([], doc="Ids of the conditions to load")
     save_local_base_path: str = param(
-        "$HOME/ros2/data/%Y/%m/%d/%H", doc="Local base folder for saved files ($ENV, =param, strftime)"
+        DEFAULT_SAVE_BASE_PATH, doc="Local base folder for saved files ($ENV, =param, strftime)"
     )
     all_base_path: str = param("", doc="Prefix for local and remote paths ($ENV, =custom_param)")
     custom_str_params_list: list[str] = param([], doc="Ids of custom string parameters added to records")
@@ -67,7 +69,9 @@ class MeasurementCommonParams:
     include_measurement_name: bool = param(True, doc='Add "name": <id>')
     include_measurement_plugin: bool = param(False, doc='Add "plugin": <plugin type>')
     history_depth: int = param(
-        1000, minimum=1, doc="Records the output topic keeps for a destination_server that (re)starts late"
+        RECORD_HISTORY_DEPTH,
+        minimum=1,
+        doc="Records the output topic keeps for a destination_server that (re)starts late",
     )
     history_bytes: int = param(
         DEFAULT_HISTORY_BYTES,
@@ -108,7 +112,7 @@ class MeasurementConfig:
 
 
 def output_topic(measurement_id: str, common: MeasurementCommonParams) -> str:
-    return common.topic_output or f"/dc/measurement/{measurement_id}"
+    return common.topic_output or measurement_topic(measurement_id)
 
 
 @dataclass(frozen=True)
@@ -184,22 +188,6 @@ def _load(kind: str, type_name: str, path: str) -> type:
         return load_plugin(kind, type_name)
     except PluginError as exc:
         raise ConfigError(f"{path}.plugin", str(exc)) from exc
-
-
-def published_topics(section: dict[str, Any], path: str = "measurement_server") -> dict[str, int]:
-    """Each measurement's output topic with the depth of the history it keeps, from the common
-    parameters alone: no plugin is imported (the destination server asks, for its hop)."""
-    node_params = parse_params(
-        MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
-    )
-    topics = {}
-    for mid in node_params.measurement_plugins:
-        body = _plugin_section(section, mid, path)
-        common = parse_params(
-            MeasurementCommonParams, body, f"{path}.{mid}", ignore=set(body) - field_names(MeasurementCommonParams)
-        )
-        topics[output_topic(mid, common)] = common.history_depth
-    return topics
 
 
 def parse_measurement_server(section: dict[str, Any], path: str = "measurement_server") -> MeasurementServerConfig:

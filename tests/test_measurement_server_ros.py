@@ -629,6 +629,52 @@ measurement_server:
     assert len(slow_out) == published
 
 
+def test_a_tcp_health_connect_that_hangs_delays_neither_a_fast_measurement_nor_the_heartbeat(
+    harness: Harness, silent_port: int
+) -> None:
+    """TCPHealth waits up to its timeout for a port that drops SYNs: on the worker, not the main loop."""
+    health, fast = unique("tcp_health"), unique("uptime")
+    server = harness.start_server(f"""
+measurement_server:
+  ros__parameters:
+    heartbeat_period: 0.2
+    measurement_plugins: ["{health}", "{fast}"]
+    {health}:
+      plugin: "dc_measurements/TCPHealth"
+      polling_interval: 500
+      name: "blackholed"
+      port: {silent_port}
+      timeout: 2000
+    {fast}:
+      plugin: "dc_measurements/Uptime"
+      polling_interval: 100
+""")
+    health_out = harness.listen(f"/dc/measurement/{health}")
+    fast_out = harness.listen(f"/dc/measurement/{fast}")
+    fast_times: list[float] = []
+    heartbeats: list[float] = []
+    harness.peer.create_subscription(
+        Heartbeat, HEARTBEAT_TOPIC, lambda msg: heartbeats.append(time.monotonic()), HEARTBEAT_QOS
+    )
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{fast}")
+    assert server.trigger_activate() == SUCCESS
+
+    def fast_arrivals() -> bool:
+        while len(fast_times) < len(fast_out):
+            fast_times.append(time.monotonic())
+        return len(health_out) >= 2
+
+    harness.spin_until(fast_arrivals, "two records of the hanging TCPHealth", timeout=15.0)
+    assert [r["active"] for r in records(health_out)] == [False, False]
+    # Each connect waits its 2 s timeout: on the main thread it would leave 2 s gaps in both.
+    assert len(fast_times) >= 30
+    assert max(gaps(fast_times)) < 1.0, gaps(fast_times)
+    assert max(gaps(heartbeats)) < 1.0, gaps(heartbeats)
+    assert server.runners[health].stats.overrun >= 4
+    assert server.trigger_deactivate() == SUCCESS
+
+
 def test_worker_hands_outcomes_back_on_the_thread_that_runs_them() -> None:
     woken = threading.Event()
     worker = Worker("test-worker", woken.set, threads=2)

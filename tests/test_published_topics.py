@@ -1,0 +1,75 @@
+"""The topics destination_server takes as DC's own, read from the other servers' sections by
+dc_core.topics.published_topics, without their configuration classes (issue 25, item 6)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from dc_bringup.validate import validate_params_file
+from dc_core.config import load_params_file
+from dc_core.qos import RECORD_HISTORY_DEPTH
+from dc_core.topics import group_topic, measurement_topic, published_topics
+
+REPO = Path(__file__).resolve().parent.parent
+PARAMS = sorted((REPO / "params").rglob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", PARAMS, ids=lambda p: str(p.relative_to(REPO)))
+def test_the_topics_read_are_those_the_servers_configurations_publish(
+    path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The few keys read here agree with the servers' own parsers on every parameter file shipped."""
+    for name in re.findall(r"\$\{(\w+)\}", path.read_text()):  # the demos' servers.env
+        monkeypatch.setenv(name, "5432" if name.endswith("PORT") else "127.0.0.1")
+    configs = validate_params_file(path).configs
+    expected: dict[str, int] = {}
+    if "measurement_server" in configs:
+        expected |= {m.output_topic: m.common.history_depth for m in configs["measurement_server"].measurements}
+    if "group_server" in configs:
+        expected |= dict.fromkeys(configs["group_server"].outputs, RECORD_HISTORY_DEPTH)
+    assert published_topics(load_params_file(path)) == (expected, [])
+
+
+def test_defaults_and_given_names_with_their_depths() -> None:
+    servers = {
+        "measurement_server": {
+            "measurement_plugins": ["cpu", "map"],
+            "cpu": {"plugin": "dc_measurements/Cpu"},
+            "map": {"plugin": "dc_measurements/Map", "topic_output": "/maps", "history_depth": 3},
+        },
+        "group_server": {"groups": ["robot", "both"], "robot": {"inputs": ["/a"]}, "both": {"output": "/b"}},
+    }
+    assert published_topics(servers) == (
+        {
+            measurement_topic("cpu"): RECORD_HISTORY_DEPTH,
+            "/maps": 3,
+            group_topic("robot"): RECORD_HISTORY_DEPTH,
+            "/b": RECORD_HISTORY_DEPTH,
+        },
+        [],
+    )
+    assert measurement_topic("cpu") == "/dc/measurement/cpu" and group_topic("robot") == "/dc/group/robot"
+
+
+def test_what_does_not_read_is_said_with_its_path_and_the_rest_is_still_known() -> None:
+    servers = {
+        "measurement_server": {
+            "measurement_plugins": ["cpu", "missing", "odd", "shallow"],
+            "cpu": {},
+            "odd": {"topic_output": 5},
+            "shallow": {"history_depth": 0},
+        },
+        "group_server": {"groups": "robot"},
+    }
+    topics, problems = published_topics(servers)
+    assert topics == {measurement_topic("cpu"): RECORD_HISTORY_DEPTH}
+    assert [p.partition(":")[0] for p in problems] == [
+        "measurement_server.missing",
+        "measurement_server.odd.topic_output",
+        "measurement_server.shallow.history_depth",
+        "group_server.groups",
+    ]
+    assert published_topics({"destination_server": {}}) == ({}, [])
