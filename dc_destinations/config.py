@@ -15,10 +15,10 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from dc_core.errors import ConfigError, PluginError
+from dc_core.errors import ConfigError
 from dc_core.node_params import ServerNodeParams, record_linger_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
-from dc_core.plugins import load_plugin
+from dc_core.plugins import parse_plugin_section
 from dc_core.timefmt import TIME_FORMATS
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
@@ -130,31 +130,17 @@ def _flb_section(section: dict[str, Any], path: str, warnings: list[str]) -> dic
     return _numeric_strings_to_numbers(flb, DeliveryParams)
 
 
-def _load(type_name: str, path: str) -> type:
-    try:
-        return load_plugin("destinations", type_name)
-    except PluginError as exc:
-        raise ConfigError(f"{path}.plugin", str(exc)) from exc
-
-
 def _parse_destination(name: str, body: Any, path: str) -> DestinationConfig:
     if body is None:
         raise ConfigError(path, "section missing (listed in destination_plugins but not configured)")
     if not isinstance(body, dict):
         raise ConfigError(path, f"expected a mapping, got {body!r}")
-    common_keys = field_names(DestinationCommonParams)
-    common = parse_params(DestinationCommonParams, body, path, ignore=set(body) - common_keys)
-    plugin_class = _load(common.plugin, path)
-    params_class: type = plugin_class.Params  # type: ignore[attr-defined]
-    known = common_keys | field_names(DestinationDeliveryParams) | field_names(params_class)
-    for key in body:
-        if key not in known:
-            suggestion = did_you_mean(str(key), known)
-            raise ConfigError(f"{path}.{key}", f"unknown parameter of {common.plugin}{suggestion}")
-    delivery_keys = field_names(DestinationDeliveryParams)
-    delivery = parse_params(DestinationDeliveryParams, body, path, ignore=known - delivery_keys)
+    parsed = parse_plugin_section(
+        "destinations", body, path, DestinationCommonParams, shared=(DestinationDeliveryParams,)
+    )
+    common, plugin_class, plugin_params = parsed.common, parsed.plugin_class, parsed.params
+    (delivery,) = parsed.shared
     check_destination_params(delivery, path)
-    plugin_params: Any = parse_params(params_class, body, path, ignore=known - field_names(params_class))
     if not common.inputs:
         raise ConfigError(f"{path}.inputs", "expected at least one topic")
     for i, topic in enumerate(common.inputs):

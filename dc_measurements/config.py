@@ -7,14 +7,14 @@ opens no file and starts nothing. ``dc validate`` and ``dc-bringup`` call it bef
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
-from dc_core.errors import ConfigError, PluginError
+from dc_core.errors import ConfigError
 from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.paths import DEFAULT_SAVE_BASE_PATH, expand_values
-from dc_core.plugins import load_plugin
+from dc_core.plugins import parse_plugin_section
 from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
 from dc_core.topics import measurement_topic
@@ -183,13 +183,6 @@ def _value_names(text: str) -> set[str]:
     return names
 
 
-def _load(kind: str, type_name: str, path: str) -> type:
-    try:
-        return load_plugin(kind, type_name)
-    except PluginError as exc:
-        raise ConfigError(f"{path}.plugin", str(exc)) from exc
-
-
 def parse_measurement_server(section: dict[str, Any], path: str = "measurement_server") -> MeasurementServerConfig:
     node_params = parse_params(
         MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
@@ -221,31 +214,22 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         if key not in custom and key != "force_override":
             raise ConfigError(f"{path}.custom_str_params.{key}", "not listed in custom_str_params_list")
 
+    dynamic.update(node_params.condition_plugins, node_params.measurement_plugins)
     conditions: dict[str, ConditionConfig] = {}
     for cid in node_params.condition_plugins:
-        cpath = f"{path}.{cid}"
-        body = _plugin_section(section, cid, path)
-        dynamic.add(cid)
-        ccommon = parse_params(
-            ConditionCommonParams, body, cpath, ignore=set(body) - field_names(ConditionCommonParams)
+        condition = parse_plugin_section(
+            "conditions", _plugin_section(section, cid, path), f"{path}.{cid}", ConditionCommonParams
         )
-        ccls = _load("conditions", ccommon.plugin, cpath)
-        cparams: Any = parse_params(cast(Any, ccls).Params, body, cpath, ignore=field_names(ConditionCommonParams))
-        conditions[cid] = ConditionConfig(cid, ccommon, ccls, cparams)
+        conditions[cid] = ConditionConfig(cid, condition.common, condition.plugin_class, condition.params)
 
     measurements: list[MeasurementConfig] = []
     outputs: dict[str, str] = {}
     for mid in node_params.measurement_plugins:
         mpath = f"{path}.{mid}"
-        body = _plugin_section(section, mid, path)
-        dynamic.add(mid)
-        common = parse_params(
-            MeasurementCommonParams, body, mpath, ignore=set(body) - field_names(MeasurementCommonParams)
+        measurement = parse_plugin_section(
+            "measurements", _plugin_section(section, mid, path), mpath, MeasurementCommonParams
         )
-        cls = _load("measurements", common.plugin, mpath)
-        plugin_params: Any = parse_params(
-            cast(Any, cls).Params, body, mpath, ignore=field_names(MeasurementCommonParams)
-        )
+        common, cls, plugin_params = measurement.common, measurement.plugin_class, measurement.params
         for key in ("if_all_conditions", "if_any_conditions", "if_none_conditions"):
             for cid in getattr(common, key):
                 if cid not in conditions:
