@@ -70,7 +70,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from dc_bringup.single_process import supervise
 
         return supervise(args, params_file)
-    report, error = check(params_file)
+    report, error = check(params_file, args.namespace)
     if report is None:
         print(f"dc-bringup: invalid configuration: {error}", file=sys.stderr)
         return 2
@@ -92,7 +92,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dc_bringup.processes import ServerProcess
 
     rclpy.init(args=["--ros-args", "--log-level", args.log_level], signal_handler_options=SignalHandlerOptions.NO)
-    from dc_core.lifecycle import ros_namespace
+    from dc_core.topics import ros_namespace
 
     namespace = ros_namespace(args.namespace) if args.namespace.strip("/") else ""
     servers = [

@@ -103,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    report, error = check(args.params_file)
+    report, error = check(args.params_file, args.namespace)
     if report is None:
         print(f"dc-bringup: invalid configuration: {error}", file=sys.stderr)
         return 2
@@ -116,9 +116,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.parameter import Parameter
 
     from dc_bringup.manager import LifecycleManager
-    from dc_core.lifecycle import ServerLoop, init_server_process, ros_namespace
+    from dc_core.lifecycle import ServerLoop, init_server_process
     from dc_core.signals import wake_on_signals
     from dc_core.supervision import Supervisor
+    from dc_core.topics import ros_namespace
 
     stop = init_server_process(args.log_level, args.namespace)
     joined = time.monotonic()  # graph discovery runs from the first node on: the manager's wait counts from here

@@ -51,10 +51,12 @@ from dc_core.plugin import MessageCallback
 from dc_core.private_files import use_private_umask
 from dc_core.signals import StopFlag, StopRequest, wake_on_signals
 from dc_core.supervision import Supervisor
+from dc_core.topics import ros_namespace
 from dc_core.worker import Worker
 from dc_interfaces.msg import Heartbeat
 
-HEARTBEAT_TOPIC = "/dc/heartbeat"
+# Relative: the servers and the lifecycle manager of one namespace share it, another DC's are apart.
+HEARTBEAT_TOPIC = "dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # The heartbeat's state while a server is unhealthy (a thread of it died, dc_core.supervision): the
 # lifecycle's own "an error is being handled" state, so Heartbeat.msg needs no new field. The
@@ -297,11 +299,6 @@ class ManagedServer(LifecycleNode):
         if state.label in ("active", "inactive"):
             self._guard("cleanup", self.cleanup_server)
         return TransitionCallbackReturn.SUCCESS
-
-
-def ros_namespace(namespace: str) -> str:
-    """``robot1`` or ``/robot1/`` as ROS writes a namespace: ``/robot1``."""
-    return "/" + namespace.strip("/")
 
 
 def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequence[str] = ()) -> StopRequest:

@@ -23,13 +23,12 @@ from dc_core.topics import condition_topic
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
-from dc_measurements.config import MeasurementServerConfig, parse_measurement_server
+from dc_measurements.config import NODE_NAME, MeasurementServerConfig, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
 from dc_measurements.metrics import measurement_prometheus_text
 from dc_measurements.runner import MeasurementRunner
 from dc_measurements.validation import RecordValidator
 
-NODE_NAME = "measurement_server"
 INIT_MATCH_WAIT_S = 2.0
 # How long deactivate waits for collections running on the worker.
 WORKER_DRAIN_S = 5.0
@@ -69,9 +68,10 @@ class MeasurementServer(ManagedServer):
     def configure_server(self) -> None:
         servers = self.read_params_file()
         section = servers[NODE_NAME]
-        config = parse_measurement_server(section)
+        namespace = self.get_namespace()
+        config = parse_measurement_server(section, NODE_NAME, namespace)
         self.config = config
-        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
+        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers, namespace))
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
 
