@@ -42,6 +42,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
     if report is None:
         print(f"invalid: {error}", file=sys.stderr)
         return 2
+    for note in report.notes:
+        print(note, file=sys.stderr)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     print(f"valid: {', '.join(report.servers)}")
@@ -124,7 +126,7 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
     """(server, host, port) to ask: --host/--port, or the servers with an HTTP server in --params."""
     if not args.params:
         return [("", args.host, args.port)]
-    targets = _metrics_servers(args.params)
+    targets = _metrics_servers(args.params, args.namespace)
     if not targets:
         print(
             f"dc status: no server has its HTTP server enabled in {args.params} (destination_server flb.http_server,"
@@ -364,10 +366,10 @@ LIFECYCLE_COMMANDS = ("startup", "pause", "resume", "reset", "shutdown", "is-act
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     """Ask dc-bringup's lifecycle manager (its manage_nodes and is_active services)."""
     import rclpy
+    from dc_lifecycle_interfaces.srv import ManageLifecycleNodes
     from std_srvs.srv import Trigger
 
     from dc_bringup.manager import DEGRADED_PREFIX, NODE_NAME
-    from dc_interfaces.srv import ManageLifecycleNodes
 
     namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
     manager = f"{namespace}/{NODE_NAME}"
@@ -423,13 +425,14 @@ def _metrics_urls(params: str) -> list[tuple[str, str]]:
     return [(server, f"http://{host}:{port}/api/v1/metrics") for server, host, port in _metrics_servers(params)]
 
 
-def _metrics_servers(params: str) -> list[tuple[str, str, int]]:
-    """(server, host, port) of each server whose HTTP server the parameter file enables."""
+def _metrics_servers(params: str, namespace: str = "") -> list[tuple[str, str, int]]:
+    """(server, host, port) of each server whose HTTP server the parameter file enables, for the servers
+    in ``namespace`` (the file's sections are read as they read them)."""
     from dc_bringup.validate import metrics_endpoints, validate_params_file
 
     return [
         (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(params).configs)
+        for e in metrics_endpoints(validate_params_file(params, namespace).configs)
     ]
 
 
@@ -480,6 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="ask the servers whose HTTP server this parameter file enables (destination_server flb.http_*,"
         " group_server and measurement_server http_*)",
     )
+    p.add_argument("--namespace", default="", help="with --params: the namespace dc-bringup runs the servers in")
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.set_defaults(func=cmd_status)
 

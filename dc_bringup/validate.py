@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import importlib
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dc_core.config import load_params_file, other_sections
+from dc_core.config import load_params
 from dc_core.errors import ConfigError, DcError
 from dc_core.jsonpath import impossible_path
 from dc_core.params import did_you_mean
 from dc_core.paths import expand_env
+from dc_core.ros_args import param_sections
 from dc_core.topics import outside_namespace, ros_namespace, ros_topic
 
 # Servers in start order: destinations first so nothing published at start is lost.
@@ -36,6 +38,7 @@ class ValidationReport:
     servers: list[str] = field(default_factory=list)
     configs: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # said once at INFO, not warnings
 
 
 # The servers whose topic names resolve in their namespace (image_services' are services).
@@ -50,13 +53,16 @@ def _parse(server: str, section: dict[str, Any], namespace: str) -> Any:
     return getattr(module, function)(section, server)
 
 
-def validate_params_file(path: str | Path, namespace: str = "") -> ValidationReport:
-    """Parse every server section as the servers in ``namespace`` read it (topic names fully
-    qualified there); raise ConfigError on the first error, return warnings."""
-    sections = load_params_file(path)
+def validate_params_file(path: str | Path, namespace: str = "", ros_args: Sequence[str] = ()) -> ValidationReport:
+    """Parse every server section as the servers in ``namespace`` read it (topic names fully qualified
+    there, the ``--ros-args`` parameters over the file's); raise ConfigError on the first error, return warnings."""
+    loaded = load_params(path, namespace, param_sections(ros_args))
+    sections = loaded.servers
     report = ValidationReport()
-    for name in other_sections(path):
-        report.warnings.append(f"{name}: not a DC server section, ignored (fine if it holds another node's parameters)")
+    if loaded.ignored:
+        report.notes.append(
+            "sections for nodes DC does not run, ignored (other nodes' parameters): " + ", ".join(loaded.ignored)
+        )
     for server in SERVER_MODULES:
         if server in sections:
             config = _parse(server, sections[server], ros_namespace(namespace))
@@ -213,9 +219,11 @@ def _shared_metrics_ports(configs: dict[str, Any]) -> list[str]:
     return warnings
 
 
-def check(path: str | Path, namespace: str = "") -> tuple[ValidationReport | None, str | None]:
+def check(
+    path: str | Path, namespace: str = "", ros_args: Sequence[str] = ()
+) -> tuple[ValidationReport | None, str | None]:
     """(report, None) when valid, (None, error text) when not."""
     try:
-        return validate_params_file(path, namespace), None
+        return validate_params_file(path, namespace, ros_args), None
     except ConfigError as exc:
         return None, str(exc)

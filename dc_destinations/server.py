@@ -22,10 +22,12 @@ import functools
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from rclpy.qos import QoSProfile
+from rclpy.utilities import get_rmw_implementation_identifier
 
 from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
@@ -36,6 +38,7 @@ from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
+from dc_core.rmw_features import no_sequence_numbers_line, publication_sequence_numbers
 from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
 from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, published_topics, resolve_topic
 from dc_core.worker import Outcome
@@ -105,6 +108,10 @@ class IntakeStats:
 
 
 class DestinationServer(ManagedServer):
+    # Whether the RMW gives publication sequence numbers (dc_core.rmw_features); a test replaces it to
+    # see the line of an RMW without them, which the PyPI wheels do not ship.
+    sequence_numbers: Callable[[str], bool | None] = staticmethod(publication_sequence_numbers)
+
     def __init__(self, params_file: str) -> None:
         super().__init__(NODE_NAME, params_file)
         self.config: DestinationServerConfig | None = None
@@ -136,6 +143,7 @@ class DestinationServer(ManagedServer):
         # for a manager that (re)subscribes.
         self._health_pub = self.create_publisher(StringStamped, HEALTH_TOPIC, HEALTH_QOS)
         self._health_sent = ""
+        self._rmw_checked = False
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -263,6 +271,26 @@ class DestinationServer(ManagedServer):
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
         )
         acks.send()  # a hello: the publishers send again what this server has not acknowledged
+        if not self._rmw_checked:
+            self._rmw_checked = True
+            self._say_what_the_rmw_lacks()
+
+    def _say_what_the_rmw_lacks(self) -> None:
+        """Once, at the first activation: what a middleware without publication sequence numbers changes."""
+        assert self.routing is not None
+        identifier = get_rmw_implementation_identifier()
+        supported = self.sequence_numbers(identifier)
+        if supported:
+            return
+        if supported is None:
+            self.get_logger().info(
+                f"whether the middleware {identifier} gives publication sequence numbers is unknown: "
+                "records of your own nodes without them are not deduplicated (docs/delivery.md)"
+            )
+            return
+        external = sorted(t for t in self.routing.topics if t not in self._internal_topics)
+        log = self.get_logger().warning if external else self.get_logger().info
+        log(no_sequence_numbers_line(identifier, external))
 
     def deactivate_server(self) -> None:
         # Intake stops first, so everything received is committed before the senders stop.

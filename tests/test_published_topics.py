@@ -34,7 +34,7 @@ def test_the_topics_read_are_those_the_servers_configurations_publish(
         expected |= {m.output_topic: m.common.history_depth for m in configs["measurement_server"].measurements}
     if "group_server" in configs:
         expected |= dict.fromkeys(configs["group_server"].outputs, RECORD_HISTORY_DEPTH)
-    assert published_topics(load_params_file(path), namespace) == (expected, [])
+    assert published_topics(load_params_file(path, namespace), namespace) == (expected, [])
 
 
 def test_defaults_and_given_names_with_their_depths() -> None:
