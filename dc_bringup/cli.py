@@ -126,12 +126,7 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
     """(server, host, port) to ask: --host/--port, or the servers with an HTTP server in --params."""
     if not args.params:
         return [("", args.host, args.port)]
-    from dc_bringup.validate import metrics_endpoints, validate_params_file
-
-    targets = [
-        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(args.params, args.namespace).configs)
-    ]
+    targets = _metrics_servers(args.params, args.namespace)
     if not targets:
         print(
             f"dc status: no server has its HTTP server enabled in {args.params} (destination_server flb.http_server,"
@@ -422,7 +417,23 @@ def cmd_servers(args: argparse.Namespace) -> int:
 def cmd_dashboard(args: argparse.Namespace) -> int:
     from dc_dashboard.cli import run
 
-    return run(args)
+    return run(args, params_metrics=_metrics_urls)
+
+
+def _metrics_urls(params: str) -> list[tuple[str, str]]:
+    """(server, its metrics URL) for each server whose HTTP server the parameter file enables."""
+    return [(server, f"http://{host}:{port}/api/v1/metrics") for server, host, port in _metrics_servers(params)]
+
+
+def _metrics_servers(params: str, namespace: str = "") -> list[tuple[str, str, int]]:
+    """(server, host, port) of each server whose HTTP server the parameter file enables, for the servers
+    in ``namespace`` (the file's sections are read as they read them)."""
+    from dc_bringup.validate import metrics_endpoints, validate_params_file
+
+    return [
+        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
+        for e in metrics_endpoints(validate_params_file(params, namespace).configs)
+    ]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

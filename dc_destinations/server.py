@@ -29,8 +29,9 @@ from typing import Any
 from rclpy.qos import QoSProfile
 from rclpy.utilities import get_rmw_implementation_identifier
 
+from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
-from dc_core.errors import ConfigError, PluginError
+from dc_core.errors import PluginError
 from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
@@ -39,10 +40,9 @@ from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.rmw_features import no_sequence_numbers_line, publication_sequence_numbers
 from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
-from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, resolve_topic
+from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, published_topics, resolve_topic
 from dc_core.worker import Outcome
 from dc_destinations.config import NODE_NAME, DestinationServerConfig, parse_destination_server
-from dc_destinations.confined_files import ConfinementParams, default_roots
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC
 from dc_destinations.health import summary as health_summary
@@ -191,7 +191,7 @@ class DestinationServer(ManagedServer):
 
     def _with_default_roots(self, config: DestinationServerConfig, servers: dict[str, Any]) -> list[Any]:
         """The destinations, those reading files without ``allowed_roots`` given the measurement
-        server's save folder of this same file (dc_destinations.confined_files.default_roots)."""
+        server's save folder of this same file (dc_core.confined_files.default_roots)."""
         destinations = []
         roots: list[str] | None = None
         for d in config.destinations:
@@ -205,21 +205,12 @@ class DestinationServer(ManagedServer):
         return destinations
 
     def _published_by_dc(self, servers: dict[str, dict[str, Any]], namespace: str) -> dict[str, int]:
-        """Topics the measurement and group servers of this configuration publish, with their history depth.
-
-        A section that does not parse is not this server's to refuse (dc-bringup validated the file
-        first): its topics are then taken as other nodes' ones, and a warning says so.
-        """
-        from dc_group.config import published_topics as group_outputs
-        from dc_measurements.config import published_topics as measurement_outputs
-
-        topics: dict[str, int] = {}
-        for server, published in (("measurement_server", measurement_outputs), ("group_server", group_outputs)):
-            if server in servers:
-                try:
-                    topics.update(published(servers[server], server, namespace))
-                except ConfigError as exc:
-                    self.get_logger().warning(f"{server}'s outputs unknown, its section does not parse: {exc}")
+        """Topics the measurement and group servers of this configuration publish in ``namespace``, with
+        their history depth (dc_core.topics.published_topics); what does not read is said and taken as
+        other nodes' topics."""
+        topics, problems = published_topics(servers, namespace)
+        for problem in problems:
+            self.get_logger().warning(problem)
         return topics
 
     def cleanup_server(self) -> None:

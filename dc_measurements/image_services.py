@@ -196,7 +196,7 @@ class ImageServices(ManagedServer):
     def _save(self, request: Any, response: Any) -> Any:
         import cv2
 
-        from dc_destinations.confined_files import FileRefused
+        from dc_core.confined_files import FileRefused
         from dc_measurements.camera.images import ImageError
 
         try:
@@ -219,8 +219,8 @@ class ImageServices(ManagedServer):
 
 def save_confinement(node: ImageServicesParams, measurement_server: dict[str, Any] | None) -> Any:
     """Where save_image may write: ``save_roots`` ($ENV expanded), else the measurement server's save folder."""
+    from dc_core.confined_files import Confinement, default_roots
     from dc_core.paths import expand_env
-    from dc_destinations.confined_files import Confinement, default_roots
 
     if node.save_roots:
         roots = [expand_env(root, f"{NODE_NAME}.save_roots[{i}]") for i, root in enumerate(node.save_roots)]

@@ -13,15 +13,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from nav_msgs.msg import Odometry
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from dc_core.condition import Condition, ConditionContext
 from dc_core.errors import PluginError
 from dc_core.params import param
-
-# Best effort matches both reliable and best-effort odometry publishers (drivers and simulators
-# differ); a lost message only delays the decision by one count.
-ODOMETRY_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+from dc_core.qos import SENSOR_QOS
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -94,7 +90,8 @@ class Moving(Condition[MovingParams]):
         with self._lock:
             self._hysteresis = self._new_hysteresis()
         topic = self.params.odom_topic
-        self._subscription = self.context.subscribe(Odometry, topic, self._on_odometry, ODOMETRY_QOS)
+        # (A lost message only delays the decision by one count.)
+        self._subscription = self.context.subscribe(Odometry, topic, self._on_odometry, SENSOR_QOS)
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:
