@@ -28,7 +28,7 @@ SENSOR_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 def topic_param(default: str, doc: str) -> Any:
-    return param(default, doc=doc, check=lambda name: topic_problem(name) and "a ROS 2 topic name")
+    return param(default, doc=doc, check=lambda name: topic_problem(name) and "a ROS 2 topic name", sensor_topic=True)
 
 
 def repeat_last_param() -> Any:

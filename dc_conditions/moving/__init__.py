@@ -26,7 +26,7 @@ ODOMETRY_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 @dataclass(frozen=True, kw_only=True)
 class MovingParams:
-    odom_topic: str = param("/odom", doc="nav_msgs/msg/Odometry topic whose twist gives the speed")
+    odom_topic: str = param("/odom", doc="nav_msgs/msg/Odometry topic whose twist gives the speed", sensor_topic=True)
     speed_threshold: float = param(0.2, minimum=0.0, doc="Speed (m/s) above which a message counts as moving")
     count_limit: int = param(8, minimum=1, doc="Bound of the counter (messages), in both directions")
     count_hysteresis: int = param(

@@ -49,6 +49,7 @@ class CameraParams:
     cam_topic: str = param(
         doc="Image topic (sensor_msgs/Image, or sensor_msgs/CompressedImage: see image_type)",
         check=lambda name: topic_problem(name) and "a ROS 2 topic name",
+        sensor_topic=True,
     )
     image_type: str = param(
         "auto",

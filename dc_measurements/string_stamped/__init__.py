@@ -26,6 +26,7 @@ class StringStampedParams:
     topic: str = param(
         doc="Input topic (dc_interfaces/msg/StringStamped) where your nodes publish ('-' is read as '_')",
         check=lambda name: topic_problem(name) and "a ROS 2 topic name",
+        sensor_topic=True,
     )
     timer_based: bool = param(
         True,
