@@ -14,6 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 from dc_core.handoff import HandoffSender, destination_inputs
+from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
 from dc_core.records import MalformedRecord
@@ -51,7 +52,12 @@ class GroupServer(ManagedServer):
         servers = self.read_params_file()
         config = parse_group_server(servers[NODE_NAME], NODE_NAME)
         self.apply_node_params(config.node, config.warnings)
-        handoff = self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
+        handoff = self.handoff = HandoffSender(
+            self,
+            config.node.handoff,
+            destination_inputs(servers),
+            marks=marks_folder(self.get_namespace(), self.get_name()),
+        )
         for group in config.groups:
             pipeline = GroupPipeline(group, self.get_logger())
             self.pipelines[group.name] = pipeline

@@ -12,6 +12,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.errors import PluginError
 from dc_core.handoff import HandoffSender, destination_inputs
+from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
@@ -69,7 +70,12 @@ class MeasurementServer(ManagedServer):
         section = servers[NODE_NAME]
         config = parse_measurement_server(section)
         self.config = config
-        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
+        self.handoff = HandoffSender(
+            self,
+            config.node.handoff,
+            destination_inputs(servers),
+            marks=marks_folder(self.get_namespace(), self.get_name()),
+        )
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
 

@@ -299,6 +299,178 @@ def test_kill_9_mid_stream(tmp_path: Path, mode: str, server: str) -> None:
         assert any("never arrived" in s for s in run.stderr), "a loss is logged"
 
 
+# -- 2b. kill -9 of a server holding records of its own it published, not acknowledged -------------------
+
+TICKS = 8  # Dummy measurements, 10 records/s each: DC's own records, nobody else's numbers to count by
+# What DC's servers published, as a bystander node saw it: each record's hand-off key (dc_core.handoff).
+OBSERVER = """
+import sys
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from dc_interfaces.msg import StringStamped
+out = open(sys.argv[1], "a", buffering=1)
+rclpy.init()
+node = rclpy.create_node("observer")
+qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+for topic in sys.argv[2:]:
+    node.create_subscription(StringStamped, topic, lambda m, t=topic: out.write(f"{t} {m.header.frame_id}\\n"), qos)
+rclpy.spin(node)
+"""
+
+
+def ticks_params(tmp_path: Path) -> tuple[Path, Path, list[str]]:
+    """measurement_server with TICKS Dummy measurements every 100 ms into a File destination."""
+    names = [f"tick{i}" for i in range(TICKS)]
+    topics = [f"/dc/measurement/{name}" for name in names]
+    measurements = "".join(
+        f"""    {name}:
+      plugin: "dc_measurements/Dummy"
+      polling_interval: 100
+      record: '{{"m": "{name}"}}'
+      tags: ["file"]
+"""
+        for name in names
+    )
+    params = tmp_path / "params.yaml"
+    params.write_text(f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: {json.dumps(names)}
+{measurements}destination_server:
+  ros__parameters:
+    flb:
+      storage_path: "{tmp_path / "buffer"}"
+      flush: 0.2
+      commit_interval: 1.0
+      http_server: true
+      http_port: 0
+    destination_plugins: ["file"]
+    file:
+      plugin: "dc_destinations/File"
+      path: "{tmp_path / "out"}"
+      file: "ticks.jsonl"
+      inputs: {json.dumps(topics)}
+""")
+    return params, tmp_path / "out" / "ticks.jsonl", topics
+
+
+def observed_high(lines_file: Path) -> dict[str, int]:
+    """Per topic, the highest hand-off number the observer saw (a publisher numbers its records 1, 2, 3...)."""
+    from dc_core.handoff import parse_frame_key
+
+    high: dict[str, int] = {}
+    if lines_file.exists():
+        for line in lines_file.read_text().splitlines():
+            topic, _, frame_id = line.partition(" ")
+            parsed = parse_frame_key(frame_id)
+            if parsed is not None:
+                high[topic] = max(high.get(topic, 0), parsed[1])
+    return high
+
+
+def marks_of(run: Bringup) -> dict[str, int]:
+    """Per topic, the highest number measurement_server's publishers wrote in their hand-off marks."""
+    from dc_core.handoff_marks import HEADER
+
+    folder = Path(run.env["XDG_DATA_HOME"]) / "dc" / "handoff" / f"domain-{run.env['ROS_DOMAIN_ID']}" / "default"
+    high: dict[str, int] = {}
+    for path in (folder / "measurement_server").glob("*.mark"):
+        data = path.read_bytes()
+        high[data[HEADER.size :].decode()] = HEADER.unpack_from(data)[1]
+    return high
+
+
+def ticks_before(output: Path, moment: float) -> Counter[str]:
+    """Per topic, the records in the File output stamped before ``moment`` (the killed publisher's)."""
+    counts: Counter[str] = Counter()
+    if output.exists():
+        for line in output.read_text().splitlines():
+            if line.endswith("}"):
+                record = json.loads(line)
+                if float(record["date"]) < moment:
+                    counts[f"/dc/measurement/{record['m']}"] += 1
+    return counts
+
+
+@pytest.mark.parametrize("mode", ["processes", "single-process"])
+def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -> None:
+    """measurement_server publishes records of its own (timer samples) that destination_server has not
+    acknowledged (processes: destination_server is stopped with SIGSTOP; single process: those of the
+    last second, not committed yet: commit_interval 1 s) when it is killed with -9. Its successor
+    announces where the killed one got to: what never arrived is counted in `missing`."""
+    params, output, topics = ticks_params(tmp_path)
+    single = mode == "single-process"
+    args = ["--bond-timeout", "30", *(["--single-process"] if single else [])]
+    keys = tmp_path / "observed"
+    with Bringup(params, tmp_path / "home", args=args) as run:
+        run.wait_ready()
+        observer = subprocess.Popen(
+            [sys.executable, "-c", OBSERVER, str(keys), *topics], env=run.env, stderr=subprocess.DEVNULL
+        )
+        try:
+            run.wait_until(
+                lambda: len(ticks_before(output, time.time())) == len(observed_high(keys)) == TICKS,
+                30,
+                "every topic in the file and seen by the observer",
+            )
+            if single:
+                victim = single_process_pid(run)
+            else:
+                destination = active_pid(run, "destination_server")
+                os.kill(destination, signal.SIGSTOP)  # nothing acknowledged from now on
+                stopped_at = observed_high(keys)
+                run.wait_until(
+                    lambda: all(observed_high(keys).get(t, 0) >= stopped_at.get(t, 0) + 30 for t in topics),
+                    30,
+                    "3 s of records held",
+                )
+                victim = active_pid(run, "measurement_server")
+            # Stopped first, so that the observer has seen all it published when it dies.
+            os.kill(victim, signal.SIGSTOP)
+            killed_at = time.time()
+            seen: list[dict[str, int]] = [{}]
+
+            def quiet() -> bool:
+                now = observed_high(keys)
+                settled = now == seen[0]
+                seen[0] = now
+                return settled
+
+            run.wait_until(quiet, 30, "the observer seeing nothing more")
+            # Written before each record is published: the observer saw them all, or all but the one
+            # being published when the SIGSTOP came (taken, never sent: lost too).
+            produced = marks_of(run)
+            assert all(0 <= produced[t] - seen[0][t] <= 1 for t in topics), (produced, seen[0])
+            os.kill(victim, signal.SIGKILL)
+            up_again = "DC is up in one process (pid" if single else "measurement_server active (pid "
+            run.wait_until(lambda: sum(up_again in s for s in run.stderr) >= 2, 60, "the server up again")
+            if not single:
+                os.kill(destination, signal.SIGCONT)
+
+            def settled() -> bool:
+                missing = hop_missing(run.stderr)
+                delivered = ticks_before(output, killed_at)
+                return all(delivered[t] + missing.get(t, 0) >= produced[t] for t in topics)
+
+            try:
+                run.wait_until(settled, 30, "every record of the killed server delivered or counted")
+            finally:
+                delivered = ticks_before(output, killed_at)
+                missing = hop_missing(run.stderr)
+                print(
+                    f"\nkill -9 of measurement_server ({mode}) holding its own records: produced "
+                    f"{sum(produced.values())}, delivered {sum(delivered.values())}, missing {sum(missing.values())}"
+                )
+        finally:
+            observer.terminate()
+            observer.wait(10)
+        warnings = [s for s in run.stderr if "not acknowledged when its process ended" in s]
+    for topic in topics:
+        assert delivered[topic] + missing.get(topic, 0) == produced[topic], (topic, delivered, missing, produced)
+    assert sum(missing.values()) > 0, "the kill lost records: what this test is about"
+    assert len(warnings) == sum(1 for t in topics if missing.get(t, 0)), warnings
+
+
 # -- 3. SIGSTOP beyond the bond timeout, then a burst of SIGTERMs -------------------------------------
 
 SIGNAL_TOTAL = 3_000
