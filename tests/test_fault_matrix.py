@@ -368,13 +368,17 @@ def observed_high(lines_file: Path) -> dict[str, int]:
     return high
 
 
+def marks_folder(run: Bringup) -> Path:
+    home = Path(run.env["XDG_DATA_HOME"])
+    return home / "dc" / "handoff" / f"domain-{run.env['ROS_DOMAIN_ID']}" / "default" / "measurement_server"
+
+
 def marks_of(run: Bringup) -> dict[str, int]:
     """Per topic, the highest number measurement_server's publishers wrote in their hand-off marks."""
     from dc_core.handoff_marks import HEADER
 
-    folder = Path(run.env["XDG_DATA_HOME"]) / "dc" / "handoff" / f"domain-{run.env['ROS_DOMAIN_ID']}" / "default"
     high: dict[str, int] = {}
-    for path in (folder / "measurement_server").glob("*.mark"):
+    for path in marks_folder(run).glob("*.mark"):
         data = path.read_bytes()
         high[data[HEADER.size :].decode()] = HEADER.unpack_from(data)[1]
     return high
@@ -461,6 +465,11 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -
                     f"\nkill -9 of measurement_server ({mode}) holding its own records: produced "
                     f"{sum(produced.values())}, delivered {sum(delivered.values())}, missing {sum(missing.values())}"
                 )
+            # Counted and acknowledged: the killed publishers' marks are retired, the living ones' stay.
+            run.wait_until(
+                lambda: len(list(marks_folder(run).glob("*.mark"))) == TICKS, 15, "the killed server's marks retired"
+            )
+            table = dc("status", "--port", metrics_port(run), env=run.env).stdout
         finally:
             observer.terminate()
             observer.wait(10)
@@ -469,6 +478,7 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -
         assert delivered[topic] + missing.get(topic, 0) == produced[topic], (topic, delivered, missing, produced)
     assert sum(missing.values()) > 0, "the kill lost records: what this test is about"
     assert len(warnings) == sum(1 for t in topics if missing.get(t, 0)), warnings
+    assert "publisher(s) ended holding records)" in table, table
 
 
 # -- 3. SIGSTOP beyond the bond timeout, then a burst of SIGTERMs -------------------------------------
