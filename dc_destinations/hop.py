@@ -209,10 +209,8 @@ class HopIntake:
         self._clock += 1
         writer = state.keyed.get(writer_id)
         if writer is None:
-            if len(state.keyed) >= self._max_writers:
-                del state.keyed[min(state.keyed, key=lambda w: state.keyed[w].used)]
             # A publisher first heard of now: what it holds from ``low`` on is sent again if need be.
-            writer = state.keyed[writer_id] = _Keyed(min(low, seq) if low > 0 else seq, used=self._clock)
+            writer = self._new_keyed(state, writer_id, min(low, seq) if low > 0 else seq)
             stats.writers += 1
             self._keyed_handled(writer, seq)
             verdict = _NEW_WRITER
@@ -258,6 +256,12 @@ class HopIntake:
         self._keyed_handled(writer, seq)
         return verdict
 
+    def _new_keyed(self, state: _TopicState, writer_id: int, settled: int) -> _Keyed:
+        if len(state.keyed) >= self._max_writers:
+            del state.keyed[min(state.keyed, key=lambda w: state.keyed[w].used)]
+        writer = state.keyed[writer_id] = _Keyed(settled, used=self._clock)
+        return writer
+
     @staticmethod
     def _arrived_late(writer: _Keyed, seq: int, stats: TopicHopStats) -> None:
         """A record counted as missing arrived after all (dropped by its publisher while on its way)."""
@@ -290,9 +294,7 @@ class HopIntake:
         self._clock += 1
         writer = state.keyed.get(writer_id)
         if writer is None:
-            if len(state.keyed) >= self._max_writers:
-                del state.keyed[min(state.keyed, key=lambda w: state.keyed[w].used)]
-            writer = state.keyed[writer_id] = _Keyed(acked + 1, used=self._clock)
+            writer = self._new_keyed(state, writer_id, acked + 1)
         if writer.settled > high:
             return None
         first = max(writer.settled, acked + 1)

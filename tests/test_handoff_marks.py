@@ -16,34 +16,9 @@ import dc_core.handoff_marks as marks
 from dc_core.handoff import ENDED_SUFFIX, AckTracker, HandoffParams, HandoffSender, ack_document, forwarding
 from dc_core.handoff_marks import HEADER, Ended, EndedWriters, WriterMark, ended_document, parse_ended
 from dc_destinations.hop import HopIntake, HopKey
+from tests.test_handoff import _Node, _Publisher
 
 TOPIC = "/dc/measurement/ticks"
-
-
-class _Logger:
-    def __init__(self) -> None:
-        self.lines: list[str] = []
-
-    def get_child(self, name: str) -> _Logger:
-        return self
-
-    def error(self, line: str) -> None:
-        self.lines.append(line)
-
-    warning = info = error
-
-
-class _Node:
-    def __init__(self) -> None:
-        self.logger = _Logger()
-
-    def get_logger(self) -> _Logger:
-        return self.logger
-
-
-class _Publisher:
-    def publish(self, serialised: bytes) -> None:
-        return None
 
 
 def read_mark(path: Path) -> tuple[int, int, bool, str]:
