@@ -384,23 +384,24 @@ class DestinationServer(ManagedServer):
             return
         server, ended = parsed
         settled: list[_Received] = []
+        losses: list[str] = []
+        total = 0
         for one in ended:
             if one.topic not in self._internal_topics or one.topic not in self._subscription_of:
                 continue  # not read here (any more): nothing of it was expected
             counted = self.hop.writer_ended(one.topic, one.writer, one.high, one.acked)
             settled.append(([], HopKey(one.topic + ENDED_SUFFIX, -one.writer, one.high)))
-            if counted is None:
-                continue
-            first, lost = counted
-            if lost:
-                self.get_logger().warning(
-                    f"{one.topic}: {lost} records of {server}'s publisher {one.writer:x} never arrived "
-                    f"(numbers {first}..{one.high}, not acknowledged when its process ended); counted in missing"
-                )
-            else:
-                self.get_logger().info(
-                    f"{one.topic}: {server}'s publisher {one.writer:x} ended; all its records up to {one.high} arrived"
-                )
+            if counted is not None:
+                first, lost = counted
+                total += lost
+                losses.append(f"{one.topic} {lost} (publisher {one.writer:x}, numbers {first}..{one.high})")
+        if total:
+            self.get_logger().warning(
+                f"{total} records of {server} never arrived, not acknowledged when its process ended (killed?); "
+                f"counted in missing: {', '.join(losses)}"
+            )
+        elif losses:
+            self.get_logger().info(f"{server}'s publishers of its last run ended; all their records arrived")
         self._hand_over(settled)
 
     def _on_resent(self, taken: list[tuple[bytes, Any]]) -> None:
