@@ -21,6 +21,7 @@ promise when they meet.
 | kill -9 of destination_server (processes) | 2 `test_kill_9_mid_stream[processes-destination_server]` | delivered = sent, `missing` 0 (the acknowledged hand-off) | test_e2e_handoff.py::test_kill_9_of_destination_server_at_1000_records_per_s_loses_none |
 | kill -9 of measurement_server (processes) | 2 `test_kill_9_mid_stream[processes-measurement_server]` | delivered + hop `missing` = sent | (none before: this file) |
 | kill -9 of the one process (--single-process) | 2 `test_kill_9_mid_stream[single-process-the whole process]` | delivered + hop `missing` = sent | test_e2e_handoff.py::test_single_process_kill_9_counts_what_your_node_published_meanwhile |
+| kill -9 of measurement_server holding records of its own (timer samples) not acknowledged: destination_server SIGSTOPped (processes); the last second not committed (--single-process) | 2b `test_kill_9_of_a_server_holding_its_own_records[processes]`, `[single-process]` | per topic delivered + hop `missing` = the killed publisher's last number (the observer saw all of them, or all but the one being published); one warning; the dead publishers' marks retired; `dc status` names the loss | (none before: this file) |
 | SIGSTOP of destination_server beyond --bond-timeout | 3 `test_sigstop_then_a_burst_of_30_sigterms` | delivered = sent, `missing` 0 | (none before: this file) |
 | a burst of 30 SIGTERMs | 3, to the destination_server restarted after the SIGSTOP | same | test_signals.py::test_fifty_bursts_of_thirty_sigterms_never_hang_a_server_process |
 | damaged pages at rest | 4 `test_damaged_pages_and_a_sender_raising_at_the_next_start[at rest]` | delivered + `lost_to_damage` = sent | test_e2e_delivery_failures.py::test_damaged_pages_of_a_waiting_backlog_cost_only_their_records |
@@ -28,7 +29,7 @@ promise when they meet.
 | a destination thread raising (the sender) | 4, at the start that salvages the damaged file | same | test_e2e_never_silent.py::test_a_delivery_thread_that_dies_is_logged_and_its_server_restarted_without_loss |
 
 Small counts and short backoffs (flb.scheduler_base 0.2 s, scheduler_cap 2 s) keep the file short:
-7 tests, ~3 minutes on the shared 2-CPU machine while other suites ran.
+9 tests, ~3.5 minutes on the shared 2-CPU machine while other suites ran.
 """
 
 from __future__ import annotations
