@@ -21,7 +21,7 @@ promise when they meet.
 | kill -9 of destination_server (processes) | 2 `test_kill_9_mid_stream[processes-destination_server]` | delivered = sent, `missing` 0 (the acknowledged hand-off) | test_e2e_handoff.py::test_kill_9_of_destination_server_at_1000_records_per_s_loses_none |
 | kill -9 of measurement_server (processes) | 2 `test_kill_9_mid_stream[processes-measurement_server]` | delivered + hop `missing` = sent | (none before: this file) |
 | kill -9 of the one process (--single-process) | 2 `test_kill_9_mid_stream[single-process-the whole process]` | delivered + hop `missing` = sent | test_e2e_handoff.py::test_single_process_kill_9_counts_what_your_node_published_meanwhile |
-| kill -9 of measurement_server holding records of its own (timer samples) not acknowledged: destination_server SIGSTOPped (processes); the last second not committed (--single-process) | 2b `test_kill_9_of_a_server_holding_its_own_records[processes]`, `[single-process]` | per topic delivered + hop `missing` = the killed publisher's last number (the observer saw all of them, or all but the one being published); one warning; the dead publishers' marks retired; `dc status` names the loss | (none before: this file) |
+| kill -9 of measurement_server (group_server) holding records of its own (timer samples, groups of them) not acknowledged: destination_server SIGSTOPped (processes); the last second not committed (--single-process) | 2b `test_kill_9_of_a_server_holding_its_own_records[processes-measurement_server]`, `[single-process-measurement_server]`, `[processes-group_server]` | per topic delivered + hop `missing` = the killed publisher's last number (the observer saw all of them, or all but the one being published); one warning; the dead publishers' marks retired; `dc status` names the loss | (none before: this file) |
 | SIGSTOP of destination_server beyond --bond-timeout | 3 `test_sigstop_then_a_burst_of_30_sigterms` | delivered = sent, `missing` 0 | (none before: this file) |
 | a burst of 30 SIGTERMs | 3, to the destination_server restarted after the SIGSTOP | same | test_signals.py::test_fifty_bursts_of_thirty_sigterms_never_hang_a_server_process |
 | damaged pages at rest | 4 `test_damaged_pages_and_a_sender_raising_at_the_next_start[at rest]` | delivered + `lost_to_damage` = sent | test_e2e_delivery_failures.py::test_damaged_pages_of_a_waiting_backlog_cost_only_their_records |
@@ -29,7 +29,7 @@ promise when they meet.
 | a destination thread raising (the sender) | 4, at the start that salvages the damaged file | same | test_e2e_never_silent.py::test_a_delivery_thread_that_dies_is_logged_and_its_server_restarted_without_loss |
 
 Small counts and short backoffs (flb.scheduler_base 0.2 s, scheduler_cap 2 s) keep the file short:
-9 tests, ~3.5 minutes on the shared 2-CPU machine while other suites ran.
+10 tests, ~4 minutes on the shared 2-CPU machine while other suites ran.
 """
 
 from __future__ import annotations
@@ -319,10 +319,26 @@ rclpy.spin(node)
 """
 
 
-def ticks_params(tmp_path: Path) -> tuple[Path, Path, list[str]]:
-    """measurement_server with TICKS Dummy measurements every 100 ms into a File destination."""
+def ticks_params(tmp_path: Path, server: str) -> tuple[Path, Path, list[str]]:
+    """measurement_server with TICKS Dummy measurements every 100 ms into a File destination; with
+    ``server`` group_server, the File destination reads groups of two of them instead."""
     names = [f"tick{i}" for i in range(TICKS)]
     topics = [f"/dc/measurement/{name}" for name in names]
+    groups = ""
+    if server == "group_server":
+        pairs = [f"pair{i}" for i in range(TICKS // 2)]
+        groups = f"""group_server:
+  ros__parameters:
+    groups: {json.dumps(pairs)}
+""" + "".join(
+            f"""    {pair}:
+      inputs: {json.dumps(topics[2 * i : 2 * i + 2])}
+      sync_delay: 0.2
+      tags: ["file"]
+"""
+            for i, pair in enumerate(pairs)
+        )
+        topics = [f"/dc/group/{pair}" for pair in pairs]
     measurements = "".join(
         f"""    {name}:
       plugin: "dc_measurements/Dummy"
@@ -337,7 +353,7 @@ def ticks_params(tmp_path: Path) -> tuple[Path, Path, list[str]]:
 measurement_server:
   ros__parameters:
     measurement_plugins: {json.dumps(names)}
-{measurements}destination_server:
+{measurements}{groups}destination_server:
   ros__parameters:
     flb:
       storage_path: "{tmp_path / "buffer"}"
@@ -369,17 +385,17 @@ def observed_high(lines_file: Path) -> dict[str, int]:
     return high
 
 
-def marks_folder(run: Bringup) -> Path:
+def marks_folder(run: Bringup, server: str) -> Path:
     home = Path(run.env["XDG_DATA_HOME"])
-    return home / "dc" / "handoff" / f"domain-{run.env['ROS_DOMAIN_ID']}" / "default" / "measurement_server"
+    return home / "dc" / "handoff" / f"domain-{run.env['ROS_DOMAIN_ID']}" / "default" / server
 
 
-def marks_of(run: Bringup) -> dict[str, int]:
-    """Per topic, the highest number measurement_server's publishers wrote in their hand-off marks."""
+def marks_of(run: Bringup, server: str) -> dict[str, int]:
+    """Per topic, the highest number ``server``'s publishers wrote in their hand-off marks."""
     from dc_core.handoff_marks import HEADER
 
     high: dict[str, int] = {}
-    for path in marks_folder(run).glob("*.mark"):
+    for path in marks_folder(run, server).glob("*.mark"):
         data = path.read_bytes()
         high[data[HEADER.size :].decode()] = HEADER.unpack_from(data)[1]
     return high
@@ -393,17 +409,22 @@ def ticks_before(output: Path, moment: float) -> Counter[str]:
             if line.endswith("}"):
                 record = json.loads(line)
                 if float(record["date"]) < moment:
-                    counts[f"/dc/measurement/{record['m']}"] += 1
+                    topic = f"/dc/measurement/{record['m']}" if "m" in record else f"/dc/group/{record['name']}"
+                    counts[topic] += 1
     return counts
 
 
-@pytest.mark.parametrize("mode", ["processes", "single-process"])
-def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -> None:
-    """measurement_server publishes records of its own (timer samples) that destination_server has not
-    acknowledged (processes: destination_server is stopped with SIGSTOP; single process: those of the
-    last second, not committed yet: commit_interval 1 s) when it is killed with -9. Its successor
-    announces where the killed one got to: what never arrived is counted in `missing`."""
-    params, output, topics = ticks_params(tmp_path)
+@pytest.mark.parametrize(
+    ("mode", "server"),
+    [("processes", "measurement_server"), ("single-process", "measurement_server"), ("processes", "group_server")],
+)
+def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str, server: str) -> None:
+    """measurement_server publishes records of its own (timer samples; group_server: groups of them)
+    that destination_server has not acknowledged (processes: destination_server is stopped with
+    SIGSTOP; single process: those of the last second, not committed yet: commit_interval 1 s) when
+    it is killed with -9. Its successor announces where the killed one got to: what never arrived is
+    counted in `missing`."""
+    params, output, topics = ticks_params(tmp_path, server)
     single = mode == "single-process"
     args = ["--bond-timeout", "30", *(["--single-process"] if single else [])]
     keys = tmp_path / "observed"
@@ -414,7 +435,7 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -
         )
         try:
             run.wait_until(
-                lambda: len(ticks_before(output, time.time())) == len(observed_high(keys)) == TICKS,
+                lambda: len(ticks_before(output, time.time())) == len(observed_high(keys)) == len(topics),
                 30,
                 "every topic in the file and seen by the observer",
             )
@@ -425,11 +446,11 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -
                 os.kill(destination, signal.SIGSTOP)  # nothing acknowledged from now on
                 stopped_at = observed_high(keys)
                 run.wait_until(
-                    lambda: all(observed_high(keys).get(t, 0) >= stopped_at.get(t, 0) + 30 for t in topics),
+                    lambda: all(observed_high(keys).get(t, 0) >= stopped_at.get(t, 0) + 20 for t in topics),
                     30,
                     "3 s of records held",
                 )
-                victim = active_pid(run, "measurement_server")
+                victim = active_pid(run, server)
             # Stopped first, so that the observer has seen all it published when it dies.
             os.kill(victim, signal.SIGSTOP)
             killed_at = time.time()
@@ -444,10 +465,10 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -
             run.wait_until(quiet, 30, "the observer seeing nothing more")
             # Written before each record is published: the observer saw them all, or all but the one
             # being published when the SIGSTOP came (taken, never sent: lost too).
-            produced = marks_of(run)
+            produced = marks_of(run, server)
             assert all(0 <= produced[t] - seen[0][t] <= 1 for t in topics), (produced, seen[0])
             os.kill(victim, signal.SIGKILL)
-            up_again = "DC is up in one process (pid" if single else "measurement_server active (pid "
+            up_again = "DC is up in one process (pid" if single else f"{server} active (pid "
             run.wait_until(lambda: sum(up_again in s for s in run.stderr) >= 2, 60, "the server up again")
             if not single:
                 os.kill(destination, signal.SIGCONT)
@@ -463,12 +484,14 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -
                 delivered = ticks_before(output, killed_at)
                 missing = hop_missing(run.stderr)
                 print(
-                    f"\nkill -9 of measurement_server ({mode}) holding its own records: produced "
+                    f"\nkill -9 of {server} ({mode}) holding its own records: produced "
                     f"{sum(produced.values())}, delivered {sum(delivered.values())}, missing {sum(missing.values())}"
                 )
             # Counted and acknowledged: the killed publishers' marks are retired, the living ones' stay.
             run.wait_until(
-                lambda: len(list(marks_folder(run).glob("*.mark"))) == TICKS, 15, "the killed server's marks retired"
+                lambda: len(list(marks_folder(run, server).glob("*.mark"))) == len(topics),
+                15,
+                "the killed server's marks retired",
             )
             table = dc("status", "--port", metrics_port(run), env=run.env).stdout
         finally:
@@ -479,7 +502,7 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str) -
         assert delivered[topic] + missing.get(topic, 0) == produced[topic], (topic, delivered, missing, produced)
     assert sum(missing.values()) > 0, "the kill lost records: what this test is about"
     # One line, with the number: the announcement came once (transient local, one destination_server).
-    assert len(warnings) == 1 and f"{sum(missing.values())} records of measurement_server" in warnings[0], warnings
+    assert len(warnings) == 1 and f"{sum(missing.values())} records of {server}" in warnings[0], warnings
     assert "publisher(s) ended holding records)" in table, table
 
 
