@@ -21,7 +21,7 @@ promise when they meet.
 | kill -9 of destination_server (processes) | 2 `test_kill_9_mid_stream[processes-destination_server]` | delivered = sent, `missing` 0 (the acknowledged hand-off) | test_e2e_handoff.py::test_kill_9_of_destination_server_at_1000_records_per_s_loses_none |
 | kill -9 of measurement_server (processes) | 2 `test_kill_9_mid_stream[processes-measurement_server]` | delivered + hop `missing` = sent | (none before: this file) |
 | kill -9 of the one process (--single-process) | 2 `test_kill_9_mid_stream[single-process-the whole process]` | delivered + hop `missing` = sent | test_e2e_handoff.py::test_single_process_kill_9_counts_what_your_node_published_meanwhile |
-| kill -9 of measurement_server (group_server) holding records of its own (timer samples, groups of them) not acknowledged: destination_server SIGSTOPped (processes); the last second not committed (--single-process) | 2b `test_kill_9_of_a_server_holding_its_own_records[processes-measurement_server]`, `[single-process-measurement_server]`, `[processes-group_server]` | per topic delivered + hop `missing` = the killed publisher's last number (the observer saw all of them, or all but the one being published); one warning; the dead publishers' marks retired; `dc status` names the loss | (none before: this file) |
+| kill -9 of measurement_server (group_server) holding records of its own (timer samples, groups of them) not acknowledged: destination_server SIGSTOPped (processes); the buffer's disk full, commits failing (--single-process) | 2b `test_kill_9_of_a_server_holding_its_own_records[processes-measurement_server]`, `[single-process-measurement_server]`, `[processes-group_server]` | per topic delivered + hop `missing` = the killed publisher's last number (the observer saw all of them, or all but the one being published); one warning; the dead publishers' marks retired; `dc status` names the loss | (none before: this file) |
 | SIGSTOP of destination_server beyond --bond-timeout | 3 `test_sigstop_then_a_burst_of_30_sigterms` | delivered = sent, `missing` 0 | (none before: this file) |
 | a burst of 30 SIGTERMs | 3, to the destination_server restarted after the SIGSTOP | same | test_signals.py::test_fifty_bursts_of_thirty_sigterms_never_hang_a_server_process |
 | damaged pages at rest | 4 `test_damaged_pages_and_a_sender_raising_at_the_next_start[at rest]` | delivered + `lost_to_damage` = sent | test_e2e_delivery_failures.py::test_damaged_pages_of_a_waiting_backlog_cost_only_their_records |
@@ -358,7 +358,6 @@ measurement_server:
     flb:
       storage_path: "{tmp_path / "buffer"}"
       flush: 0.2
-      commit_interval: 1.0
       http_server: true
       http_port: 0
     destination_plugins: ["file"]
@@ -402,13 +401,16 @@ def marks_of(run: Bringup, server: str) -> dict[str, int]:
 
 
 def ticks_before(output: Path, moment: float) -> Counter[str]:
-    """Per topic, the records in the File output stamped before ``moment`` (the killed publisher's)."""
+    """Per topic, the distinct records in the File output stamped before ``moment`` (the killed
+    publisher's); one delivered again (at least once: the same ``record_id``) counts once."""
+    seen: set[str] = set()
     counts: Counter[str] = Counter()
     if output.exists():
         for line in output.read_text().splitlines():
             if line.endswith("}"):
                 record = json.loads(line)
-                if float(record["date"]) < moment:
+                if float(record["date"]) < moment and record["record_id"] not in seen:
+                    seen.add(record["record_id"])
                     topic = f"/dc/measurement/{record['m']}" if "m" in record else f"/dc/group/{record['name']}"
                     counts[topic] += 1
     return counts
@@ -421,14 +423,18 @@ def ticks_before(output: Path, moment: float) -> Counter[str]:
 def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str, server: str) -> None:
     """measurement_server publishes records of its own (timer samples; group_server: groups of them)
     that destination_server has not acknowledged (processes: destination_server is stopped with
-    SIGSTOP; single process: those of the last second, not committed yet: commit_interval 1 s) when
-    it is killed with -9. Its successor announces where the killed one got to: what never arrived is
-    counted in `missing`."""
+    SIGSTOP; single process: the buffer's disk is full, its commits fail, the records wait in memory)
+    when it is killed with -9. Its successor announces where the killed one got to: what never
+    arrived is counted in `missing`."""
     params, output, topics = ticks_params(tmp_path, server)
     single = mode == "single-process"
     args = ["--bond-timeout", "30", *(["--single-process"] if single else [])]
     keys = tmp_path / "observed"
-    with Bringup(params, tmp_path / "home", args=args) as run:
+    with contextlib.ExitStack() as stack:
+        if single:
+            disk = stack.enter_context(tmpfs(tmp_path / "disk"))
+            params.write_text(params.read_text().replace(str(tmp_path / "buffer"), str(disk)))
+        run = stack.enter_context(Bringup(params, tmp_path / "home", args=args))
         run.wait_ready()
         observer = subprocess.Popen(
             [sys.executable, "-c", OBSERVER, str(keys), *topics], env=run.env, stderr=subprocess.DEVNULL
@@ -440,17 +446,19 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str, s
                 "every topic in the file and seen by the observer",
             )
             if single:
+                fill(disk / "filler")  # nothing committed, so nothing acknowledged, from now on
+                run.wait_stderr("group commit failed", 30)
                 victim = single_process_pid(run)
             else:
                 destination = active_pid(run, "destination_server")
                 os.kill(destination, signal.SIGSTOP)  # nothing acknowledged from now on
-                stopped_at = observed_high(keys)
-                run.wait_until(
-                    lambda: all(observed_high(keys).get(t, 0) >= stopped_at.get(t, 0) + 20 for t in topics),
-                    30,
-                    "3 s of records held",
-                )
                 victim = active_pid(run, server)
+            stopped_at = observed_high(keys)
+            run.wait_until(
+                lambda: all(observed_high(keys).get(t, 0) >= stopped_at.get(t, 0) + 20 for t in topics),
+                30,
+                "2 s of records held",
+            )
             # Stopped first, so that the observer has seen all it published when it dies.
             os.kill(victim, signal.SIGSTOP)
             killed_at = time.time()
@@ -468,6 +476,8 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str, s
             produced = marks_of(run, server)
             assert all(0 <= produced[t] - seen[0][t] <= 1 for t in topics), (produced, seen[0])
             os.kill(victim, signal.SIGKILL)
+            if single:
+                (disk / "filler").unlink()  # the restarted process has room
             up_again = "DC is up in one process (pid" if single else f"{server} active (pid "
             run.wait_until(lambda: sum(up_again in s for s in run.stderr) >= 2, 60, "the server up again")
             if not single:
