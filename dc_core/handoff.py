@@ -429,7 +429,8 @@ class HandoffSender:
             self._log.warning(
                 "records not acknowledged by destination_server when this server stopped: "
                 + ", ".join(f"{topic} {count}" for topic, count in sorted(held.items()))
-                + "; delivered if destination_server received them before it stopped, lost otherwise"
+                + "; delivered if destination_server received them before it stopped, lost otherwise (counted by "
+                "destination_server after this server's next start)"
             )
         return sum(held.values())
 
