@@ -22,6 +22,7 @@ promise when they meet.
 | kill -9 of measurement_server (processes) | 2 `test_kill_9_mid_stream[processes-measurement_server]` | delivered + hop `missing` = sent | (none before: this file) |
 | kill -9 of the one process (--single-process) | 2 `test_kill_9_mid_stream[single-process-the whole process]` | delivered + hop `missing` = sent | test_e2e_handoff.py::test_single_process_kill_9_counts_what_your_node_published_meanwhile |
 | kill -9 of measurement_server (group_server) holding records of its own (timer samples, groups of them) not acknowledged: destination_server SIGSTOPped (processes); the buffer's disk full, commits failing (--single-process) | 2b `test_kill_9_of_a_server_holding_its_own_records[processes-measurement_server]`, `[single-process-measurement_server]`, `[processes-group_server]` | per topic delivered + hop `missing` = the killed publisher's last number (the observer saw all of them, or all but the one being published); one warning; the dead publishers' marks retired; `dc status` names the loss | (none before: this file) |
+| (no fault) a stop with records held unacknowledged, and a start | 2b `test_a_stop_and_a_start_count_nothing_lost` | `missing` 0: the marks the stop left are announced and destination_server has every record | — |
 | SIGSTOP of destination_server beyond --bond-timeout | 3 `test_sigstop_then_a_burst_of_30_sigterms` | delivered = sent, `missing` 0 | (none before: this file) |
 | a burst of 30 SIGTERMs | 3, to the destination_server restarted after the SIGSTOP | same | test_signals.py::test_fifty_bursts_of_thirty_sigterms_never_hang_a_server_process |
 | damaged pages at rest | 4 `test_damaged_pages_and_a_sender_raising_at_the_next_start[at rest]` | delivered + `lost_to_damage` = sent | test_e2e_delivery_failures.py::test_damaged_pages_of_a_waiting_backlog_cost_only_their_records |
@@ -29,7 +30,7 @@ promise when they meet.
 | a destination thread raising (the sender) | 4, at the start that salvages the damaged file | same | test_e2e_never_silent.py::test_a_delivery_thread_that_dies_is_logged_and_its_server_restarted_without_loss |
 
 Small counts and short backoffs (flb.scheduler_base 0.2 s, scheduler_cap 2 s) keep the file short:
-10 tests, ~4 minutes on the shared 2-CPU machine while other suites ran.
+11 tests, ~4.5 minutes on the shared 2-CPU machine while other suites ran.
 """
 
 from __future__ import annotations
@@ -514,6 +515,31 @@ def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str, s
     # One line, with the number: the announcement came once (transient local, one destination_server).
     assert len(warnings) == 1 and f"{sum(missing.values())} records of {server}" in warnings[0], warnings
     assert "publisher(s) ended holding records)" in table, table
+
+
+def test_a_stop_and_a_start_count_nothing_lost(tmp_path: Path) -> None:
+    """Without a fault: the marks a stop leaves (records held when the last acks came too late) are
+    announced at the next start, and destination_server, which has every record, counts none."""
+    params, output, topics = ticks_params(tmp_path, "measurement_server")
+    home = tmp_path / "home"
+    with Bringup(params, home) as first:
+        first.wait_ready()
+        first.wait_until(lambda: min(ticks_before(output, time.time()).values(), default=0) >= 20, 30, "records")
+    stopped_at = time.time()
+    left = list(marks_folder(first, "measurement_server").glob("*.mark"))
+    with Bringup(params, home, env={"ROS_DOMAIN_ID": str(first.domain_id)}) as second:
+        second.wait_ready()
+        second.wait_until(
+            lambda: len(list(marks_folder(second, "measurement_server").glob("*.mark"))) == len(topics),
+            15,
+            "the first run's marks retired",
+        )
+        second.wait_until(lambda: min(ticks_before(output, time.time()).values()) >= 30, 30, "the second run's records")
+        missing = hop_missing(second.stderr)
+    print(f"\nstop and start: {len(left)} marks left by the stop; missing {missing}")
+    assert sum(missing.values()) == 0, missing
+    assert not any("never arrived" in line for line in second.stderr)
+    assert len(ticks_before(output, stopped_at)) == len(topics)
 
 
 # -- 3. SIGSTOP beyond the bond timeout, then a burst of SIGTERMs -------------------------------------
