@@ -39,6 +39,7 @@ from dc_core.private_files import create_private, make_folders
 ENDED_TOPIC = "dc/handoff_ended"
 """Relative, as the acks: the publishers of this namespace that ended holding unacknowledged records."""
 SUFFIX = ".mark"
+NEW_SUFFIX = ".new"
 MAGIC = b"DCW1"
 # magic, then the highest number published, the highest acknowledged, and 1 when the records forward
 # a source's numbers; the topic follows, in UTF-8.
@@ -70,14 +71,20 @@ class WriterMark:
         make_folders(folder)
         self.path = folder / f"{writer:x}{SUFFIX}"
         encoded = topic.encode()
-        self._fd = create_private(self.path, os.O_RDWR)
+        # Written and locked under another name, then renamed: a starting server never takes a mark
+        # that is still being made for an ended one.
+        making = self.path.with_name(self.path.name + NEW_SUFFIX)
+        self._fd = create_private(making, os.O_RDWR)
         try:
             fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             os.ftruncate(self._fd, 0)
             os.write(self._fd, HEADER.pack(MAGIC, 0, 0, 0) + encoded)
             self.map = mmap.mmap(self._fd, HEADER.size + len(encoded))
+            os.rename(making, self.path)
         except BaseException:
             os.close(self._fd)
+            with contextlib.suppress(OSError):
+                making.unlink()
             raise
         self.forwarding = False
 
@@ -139,6 +146,9 @@ class EndedWriters:
         return self.ended()
 
     def _take(self, path: Path) -> tuple[float, Ended, int, Path] | None:
+        if path.name.endswith(SUFFIX + NEW_SUFFIX):
+            self._forget_unfinished(path)
+            return None
         if not path.name.endswith(SUFFIX):
             return None
         try:
@@ -164,6 +174,19 @@ class EndedWriters:
             self._delete(fd, path)
             return None
         return info.st_mtime, Ended(topic, writer, high, acked), fd, path
+
+    def _forget_unfinished(self, path: Path) -> None:
+        """A mark its process died making (nothing published yet), unless it is being made now."""
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except OSError:
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            return
+        self._delete(fd, path)
 
     @staticmethod
     def _delete(fd: int, path: Path | None) -> None:

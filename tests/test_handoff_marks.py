@@ -78,6 +78,7 @@ def test_what_has_nothing_to_announce_is_deleted_and_the_oldest_beyond_the_limit
     all_acknowledged = ended_mark(1, 10, 10)
     forwarding_source = ended_mark(2, 10, 4, forwards=True)  # counted from the source's numbers instead
     (tmp_path / "3.mark").write_bytes(b"not a mark")
+    (tmp_path / "7.mark.new").write_bytes(b"")  # its process died making it
     (tmp_path / "other.txt").write_text("left alone")
     for writer in (4, 5, 6):
         path = ended_mark(writer, 10 + writer, 1)
@@ -88,6 +89,7 @@ def test_what_has_nothing_to_announce_is_deleted_and_the_oldest_beyond_the_limit
     assert sorted(e.writer for e in ended.scan()) == [5, 6]
     assert not all_acknowledged.exists() and not forwarding_source.exists() and not (tmp_path / "3.mark").exists()
     assert (tmp_path / "other.txt").exists() and not (tmp_path / "4.mark").exists()
+    assert not (tmp_path / "7.mark.new").exists()
     assert any("publisher 4 ended holding up to 13 records" in w and "forgotten uncounted" in w for w in warnings)
     assert any("not a hand-off mark" in w for w in warnings)
     # destination_server acknowledged 5 to its end (15), 6 not yet (16).
