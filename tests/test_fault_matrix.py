@@ -64,7 +64,7 @@ from tests.test_e2e_delivery_failures import (
     wait_metric,
     write_params,
 )
-from tests.test_e2e_delivery_restart import numbers_in, ranges
+from tests.test_e2e_delivery_restart import file_destination, numbers_in, ranges
 from tests.test_e2e_delivery_restart import publish as publish_numbers
 from tests.test_e2e_delivery_restart import write_params as write_file_params
 from tests.test_e2e_handoff import active_pid, delivered_or_counted, hop_missing, single_process_pid
@@ -354,20 +354,7 @@ def ticks_params(tmp_path: Path, server: str) -> tuple[Path, Path, list[str]]:
 measurement_server:
   ros__parameters:
     measurement_plugins: {json.dumps(names)}
-{measurements}{groups}destination_server:
-  ros__parameters:
-    flb:
-      storage_path: "{tmp_path / "buffer"}"
-      flush: 0.2
-      http_server: true
-      http_port: 0
-    destination_plugins: ["file"]
-    file:
-      plugin: "dc_destinations/File"
-      path: "{tmp_path / "out"}"
-      file: "ticks.jsonl"
-      inputs: {json.dumps(topics)}
-""")
+{measurements}{groups}{file_destination(tmp_path, tmp_path / "out" / "ticks.jsonl", topics)}""")
     return params, tmp_path / "out" / "ticks.jsonl", topics
 
 
