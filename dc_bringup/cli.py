@@ -278,6 +278,15 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
     for topic, destinations in sorted(untrusted.items()) if isinstance(untrusted, dict) else []:
         for name, count in sorted(destinations.items()):
             print(f"untrusted tags: {count} on {topic} kept from {name} (a publisher there is not DC's)")
+    hop = metrics.get("hop", {})
+    for topic, counts in sorted(hop.items()) if isinstance(hop, dict) else []:
+        if isinstance(counts, dict) and counts.get("missing"):
+            ended = counts.get("writers_ended")
+            print(
+                f"lost before destination_server: {counts['missing']} on {topic} (missing, {counts.get('gaps')} gaps"
+                + (f"; {ended} publisher(s) ended holding records" if ended else "")
+                + ")"
+            )
 
 
 def _print_threads(metrics: dict[str, Any]) -> None:
