@@ -39,10 +39,6 @@ def list_plugins(kind: str) -> list[PluginInfo]:
     return sorted(out, key=lambda p: p.name)
 
 
-def plugin_names(kind: str) -> list[str]:
-    return sorted(_entry_points(kind))
-
-
 def load_plugin(kind: str, name: str) -> type:
     """The class registered as ``name``; a clear :class:`PluginError` otherwise."""
     available = _entry_points(kind)

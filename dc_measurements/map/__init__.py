@@ -37,7 +37,6 @@ MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 VOLATILE_MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 _SUFFIXES = (".yaml", ".pgm", ".png")
 MAP_BASE64_ESTIMATE = 1024 * 1024
-_WAIT_STEP_S = 0.02
 
 
 @dataclass(frozen=True, kw_only=True)
