@@ -36,11 +36,15 @@ def param(
     secret: bool = False,
     aliases: Iterable[str] = (),
     check: Callable[[Any], str | None] | None = None,
+    no_effect: str = "",
 ) -> Any:
     """Declare one parameter. No default means the key is required.
 
     ``check`` is a pure function returning None when the value is acceptable, or what was
     expected ("an IPv4 address"): reported with the parameter's YAML path.
+
+    ``no_effect`` (why it has none) marks a key accepted so that the original's files load, but
+    ignored: :func:`no_effect_notes` says so for each one a configuration gives.
     """
     metadata = {
         "doc": doc,
@@ -50,6 +54,7 @@ def param(
         "secret": secret,
         "aliases": tuple(aliases),
         "check": check,
+        "no_effect": no_effect,
     }
     # A secret stays out of the dataclass repr, so logging a parameter object never shows it.
     shown = not secret
@@ -212,6 +217,30 @@ def parse_params(cls: type[T], mapping: Any, path: str, *, ignore: Iterable[str]
         return cls(**values)
     except ConfigError as exc:  # cross-field checks in __post_init__ name keys relative to the section
         raise ConfigError(_join(path, exc.path), exc.message) from exc
+
+
+def no_effect_notes(cls: type, mapping: Any, path: str) -> list[str]:
+    """One warning per key of ``mapping`` (nested sections too) that ``cls`` accepts with no effect.
+
+    Pure, like :func:`parse_params`, which has accepted ``mapping`` already: a server's configure
+    logs these with its other configuration warnings, so each is said once per configure.
+    """
+    if not isinstance(mapping, Mapping):
+        return []
+    hints = typing.get_type_hints(cls)
+    notes: list[str] = []
+    for f in dataclasses.fields(cls):
+        for key in (f.name, *f.metadata.get("aliases", ())):
+            if key not in mapping:
+                continue
+            if f.metadata.get("no_effect"):
+                notes.append(
+                    f"{_join(path, key)}: accepted for the original's files, has no effect because "
+                    f"{f.metadata['no_effect']}"
+                )
+            elif dataclasses.is_dataclass(hints[f.name]):
+                notes.extend(no_effect_notes(hints[f.name], mapping[key], _join(path, key)))
+    return notes
 
 
 def describe_params(cls: type) -> list[ParamInfo]:

@@ -17,7 +17,7 @@ from typing import Any
 
 from dc_core.errors import ConfigError, PluginError
 from dc_core.node_params import ServerNodeParams, record_linger_param
-from dc_core.params import did_you_mean, field_names, param, parse_params
+from dc_core.params import did_you_mean, field_names, no_effect_notes, param, parse_params
 from dc_core.plugins import load_plugin
 from dc_core.timefmt import TIME_FORMATS
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S
@@ -169,6 +169,7 @@ def parse_destination_server(section: dict[str, Any], path: str = "destination_s
     node_values = {key: section[key] for key in node_keys if key in section}
     node_values["flb"] = _flb_section(section, path, warnings)
     node = parse_params(DestinationServerParams, node_values, path)
+    warnings.extend(no_effect_notes(DestinationServerParams, node_values, path))
 
     seen: set[str] = set()
     for name in node.destination_plugins:
@@ -181,6 +182,8 @@ def parse_destination_server(section: dict[str, Any], path: str = "destination_s
         warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
 
     destinations = [_parse_destination(name, section.get(name), f"{path}.{name}") for name in node.destination_plugins]
+    for d in destinations:
+        warnings.extend(no_effect_notes(type(d.plugin_params), section[d.name], f"{path}.{d.name}"))
     # A destination without its own unhealthy_after has the server's.
     destinations = [
         d

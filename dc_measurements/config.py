@@ -12,7 +12,7 @@ from typing import Any, cast
 from dc_core.errors import ConfigError, PluginError
 from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
-from dc_core.params import did_you_mean, field_names, param, parse_params
+from dc_core.params import did_you_mean, field_names, no_effect_notes, param, parse_params
 from dc_core.paths import expand_values
 from dc_core.plugins import load_plugin
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
@@ -243,6 +243,7 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         )
         ccls = _load("conditions", ccommon.plugin, cpath)
         cparams: Any = parse_params(cast(Any, ccls).Params, body, cpath, ignore=field_names(ConditionCommonParams))
+        warnings.extend(no_effect_notes(cast(Any, ccls).Params, body, cpath))
         conditions[cid] = ConditionConfig(cid, ccommon, ccls, cparams)
 
     measurements: list[MeasurementConfig] = []
@@ -258,6 +259,7 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         plugin_params: Any = parse_params(
             cast(Any, cls).Params, body, mpath, ignore=field_names(MeasurementCommonParams)
         )
+        warnings.extend(no_effect_notes(cast(Any, cls).Params, body, mpath))
         for key in ("if_all_conditions", "if_any_conditions", "if_none_conditions"):
             for cid in getattr(common, key):
                 if cid not in conditions:

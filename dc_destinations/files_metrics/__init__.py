@@ -79,7 +79,11 @@ def _port_problem(port: int | str) -> str | None:
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class StorageSection(ObjectStoreParams):
-    input_names: list[str] = param([], doc="Found in the seed's demos: accepted, no effect")
+    input_names: list[str] = param(
+        [],
+        doc="Found in the seed's demos: accepted, no effect",
+        no_effect="records come from the destination's inputs",
+    )
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
@@ -119,8 +123,16 @@ class FilesMetricsDatabaseParams:
         aliases=("timestamp_Key",),
         doc="Record key whose value (epoch seconds or ISO 8601 text) fills `timestamp`; empty: the record's stamp",
     )
-    time_format: str = param("double", doc="Found in the seed's files: accepted, no effect")
-    time_key: str = param("date", doc="Found in the seed's files: accepted, no effect")
+    time_format: str = param(
+        "double",
+        doc="Found in the seed's files: accepted, no effect",
+        no_effect="`timestamp` comes from timestamp_key or the record's stamp",
+    )
+    time_key: str = param(
+        "date",
+        doc="Found in the seed's files: accepted, no effect",
+        no_effect="`timestamp` comes from timestamp_key or the record's stamp",
+    )
     ssl: bool = param(
         False,
         doc="TLS that checks the server (sslmode verify-full, the system's CAs or sslrootcert); "
@@ -162,7 +174,11 @@ class FilesMetricsParams(ConfinementParams):
         maximum=60.0,
         doc="Seconds a file neither on disk nor stored is looked for again before its record is dead-lettered",
     )
-    plugin_path: str = param("", doc="The original's Go plugin file: accepted, no effect")
+    plugin_path: str = param(
+        "",
+        doc="The original's Go plugin file: accepted, no effect",
+        no_effect="there is no Go plugin to load",
+    )
     minio: StorageSection = param(default_factory=_minio_not_given, doc="The MinIO storage, if file_storage lists it")
     s3: S3Section = param(default_factory=_s3_not_given, doc="The S3 storage, if file_storage lists it")
     pgsql: FilesMetricsDatabaseParams = param(

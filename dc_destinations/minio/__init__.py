@@ -99,8 +99,16 @@ class MinIOParams(ObjectStoreParams, ConfinementParams):
         False, doc="Delete each local file once its object is verified (one storage; FilesMetrics for several)"
     )
     timeout: float = param(30.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
-    verbose_plugin: bool = param(False, doc="Accepted for compatibility: no effect")
-    plugin_path: str = param("", doc="Accepted for compatibility: no effect (there is no Go plugin to load)")
+    verbose_plugin: bool = param(
+        False,
+        doc="Accepted for compatibility: no effect",
+        no_effect="DC logs at dc-bringup's --log-level (there is no Go plugin)",
+    )
+    plugin_path: str = param(
+        "",
+        doc="Accepted for compatibility: no effect (there is no Go plugin to load)",
+        no_effect="there is no Go plugin to load",
+    )
 
     def __post_init__(self) -> None:
         super().__post_init__()

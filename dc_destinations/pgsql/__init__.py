@@ -88,10 +88,27 @@ class PgSQLParams:
         doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full); empty with ssl: the system's",
     )
     connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
-    async_: bool = param(False, aliases=("async",), doc="The original's `async`: accepted, no effect")
-    min_pool_size: int | str = param("1", doc="Accepted for the original's files; no effect (one connection)")
-    max_pool_size: int | str = param("4", doc="Accepted for the original's files; no effect (one connection)")
-    cockroachdb: bool = param(False, doc="Accepted for the original's files; no effect")
+    async_: bool = param(
+        False,
+        aliases=("async",),
+        doc="The original's `async`: accepted, no effect",
+        no_effect="each batch is written by the destination's own sender thread",
+    )
+    min_pool_size: int | str = param(
+        "1",
+        doc="Accepted for the original's files; no effect (one connection)",
+        no_effect="DC keeps one connection per destination",
+    )
+    max_pool_size: int | str = param(
+        "4",
+        doc="Accepted for the original's files; no effect (one connection)",
+        no_effect="DC keeps one connection per destination",
+    )
+    cockroachdb: bool = param(
+        False,
+        doc="Accepted for the original's files; no effect",
+        no_effect="DC writes PostgreSQL's SQL whatever the server",
+    )
 
     def __post_init__(self) -> None:
         check_server(self.host, self.ssl, self.sslmode, self.sslrootcert)

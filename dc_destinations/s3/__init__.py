@@ -123,10 +123,27 @@ class S3Params(AwsCredentialsParams):
         "50M", check=_size_problem, doc="Objects above this size are uploaded in parts of this size (5M to 5G)"
     )
     use_put_object: bool = param(False, doc="Always one PutObject request, never a multipart upload")
-    upload_timeout: str = param("10m", check=_duration_problem, doc="Accepted for compatibility: not used")
-    store_dir: str = param("/tmp/fluent-bit/s3", doc="Accepted for compatibility: not used (the buffer keeps records)")
-    store_dir_limit_size: str = param("0", doc="Accepted for compatibility: not used")
-    preserve_data_ordering: bool = param(True, doc="Accepted for compatibility: batches are always sent in order")
+    upload_timeout: str = param(
+        "10m",
+        check=_duration_problem,
+        doc="Accepted for compatibility: not used",
+        no_effect="each batch is written when the destination server sends it (flb.flush, batch_size)",
+    )
+    store_dir: str = param(
+        "/tmp/fluent-bit/s3",
+        doc="Accepted for compatibility: not used (the buffer keeps records)",
+        no_effect="the destination server's buffer keeps the records",
+    )
+    store_dir_limit_size: str = param(
+        "0",
+        doc="Accepted for compatibility: not used",
+        no_effect="the destination server's buffer keeps the records (storage_total_limit_size bounds it)",
+    )
+    preserve_data_ordering: bool = param(
+        True,
+        doc="Accepted for compatibility: batches are always sent in order",
+        no_effect="batches are always sent in order",
+    )
     compression: str = param("", choices=("", "gzip"), doc="gzip: compressed objects (.gz, Content-Encoding: gzip)")
     content_type: str = param("", doc="Content-Type of the objects; empty: application/x-ndjson")
     canned_acl: str = param("", choices=CANNED_ACLS, doc="Canned ACL of the objects; empty: the bucket's default")

@@ -71,7 +71,12 @@ class TcpParams:
     )
     connect_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect (and the TLS handshake)")
     write_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds a write may block")
-    workers: int = param(2, minimum=0, doc="Accepted for the original's files; one sender per destination")
+    workers: int = param(
+        2,
+        minimum=0,
+        doc="Accepted for the original's files; one sender per destination",
+        no_effect="each destination has one sender, the destination server's",
+    )
 
     def __post_init__(self) -> None:
         if not self.host or any(c.isspace() or c in "/?#" for c in self.host):

@@ -87,7 +87,11 @@ class CameraParams:
         doc="A compressed frame whose header gives more pixels is refused without being decoded "
         "(counted in frames_too_large); 50 MP decodes to 150 MB",
     )
-    node_name: str = param("", doc="Accepted for the original's configurations (it named a node); unused")
+    node_name: str = param(
+        "",
+        doc="Accepted for the original's configurations (it named a node); unused",
+        no_effect="the Camera subscribes through the measurement server's node",
+    )
 
 
 @dataclass

@@ -34,7 +34,10 @@ class DistanceTraveledParams:
     robot_base_frame: str = param("base_link", doc="The robot's frame (source tf)")
     odom_topic: str = topic_param("/odom", "nav_msgs/msg/Odometry topic (source odom)")
     transform_timeout: float = param(
-        0.1, minimum=0.0, doc="Accepted for the original's configurations; poses are taken as TF updates arrive"
+        0.1,
+        minimum=0.0,
+        doc="Accepted for the original's configurations; poses are taken as TF updates arrive",
+        no_effect="poses are taken as TF updates arrive",
     )
     min_step: float = param(
         0.01,

@@ -54,7 +54,11 @@ class MapParams:
     save_map_timeout: float = param(
         3.0, minimum=0.0, doc="Seconds a poll waits for a first map when none has arrived yet"
     )
-    quiet: bool = param(True, doc="Accepted for the original's configurations (there is no map_saver output)")
+    quiet: bool = param(
+        True,
+        doc="Accepted for the original's configurations (there is no map_saver output)",
+        no_effect="there is no map_saver output",
+    )
     save_base64: bool = param(False, doc="Also put the PNG (base64) and the YAML text in the record")
     free_thresh: float = param(0.25, minimum=0.0, maximum=1.0, doc="Occupancy at or below which a cell is free")
     occupied_thresh: float = param(0.65, minimum=0.0, maximum=1.0, doc="Occupancy at or above which a cell is occupied")
