@@ -66,6 +66,12 @@ def param(
     return dataclasses.field(default=default, metadata=metadata, repr=shown)
 
 
+def compat_param(default: Any, because: str, **options: Any) -> Any:
+    """A key accepted so that the original's files load, without effect in DC: ``because`` says why
+    (in its documentation, and in the configure warning of :func:`no_effect_notes`)."""
+    return param(default, doc=f"Accepted for the original's files; no effect: {because}", no_effect=because, **options)
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class NoParams:
     """Parameters of a plugin that has none of its own."""

@@ -16,6 +16,7 @@ from typing import Any, TypeVar
 from dc_core.destination import ConfigurationProblem, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
+from dc_core.params import param
 from dc_destinations.tls import warn_if_credentials_in_clear
 
 T = TypeVar("T")
@@ -44,7 +45,9 @@ def require_psycopg(name: str, kind: str) -> None:
         ) from exc
 
 
-def port_problem(port: int) -> str | None:
+def port_problem(port: int | str) -> str | None:
+    if isinstance(port, str):  # the original's files write "5432"
+        port = int(port) if port.strip().isdigit() else 0
     return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
 
 
@@ -112,6 +115,52 @@ def warn_if_password_in_clear(logger: Logger, destination: str, settings: Server
         fix=f"set {section}.ssl: true and no sslmode (verify-full against the system's CAs), "
         f"with {section}.sslrootcert for a private CA",
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class PostgresServerParams:
+    """Where and how a destination logs in to PostgreSQL (PgSQL, FilesMetrics' ``pgsql``), checked together."""
+
+    host: str = param("127.0.0.1", doc="Host name or IP address of the PostgreSQL server")
+    port: int | str = param(5432, check=port_problem, doc='TCP port of the server (the original wrote "5432")')
+    user: str = param("", doc="Role to log in as; empty: the system user running DC (libpq's default)")
+    password: str = param("", secret=True, doc="Password of `user` (never logged)")
+    database: str = param("", doc="Database to connect to; empty: the same name as the user (libpq's default)")
+    timestamp_key: str = param(
+        "",
+        aliases=("timestamp_Key",),
+        doc="Record key whose value (epoch seconds or ISO 8601 text) fills the row's time; empty: the record's stamp",
+    )
+    ssl: bool = param(
+        False,
+        doc="TLS that checks the server (sslmode verify-full, the system's CAs or sslrootcert); "
+        "false: TLS when the server offers it, unchecked (prefer)",
+    )
+    sslmode: str = param("", choices=SSLMODES, doc="libpq's sslmode, overriding `ssl` (verify-full checks the host)")
+    sslrootcert: str = param(
+        "",
+        doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full); empty with ssl: the system's",
+    )
+    connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
+
+    def __post_init__(self) -> None:
+        check_server(self.host, self.ssl, self.sslmode, self.sslrootcert)
+
+    @property
+    def effective_sslmode(self) -> str:
+        return effective_sslmode(self.ssl, self.sslmode)
+
+    def server(self) -> ServerSettings:
+        return ServerSettings(
+            host=self.host,
+            port=int(self.port),
+            user=self.user,
+            password=self.password,
+            database=self.database,
+            sslmode=self.effective_sslmode,
+            sslrootcert=effective_sslrootcert(self.ssl, self.sslmode, self.sslrootcert),
+            connect_timeout=self.connect_timeout,
+        )
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)

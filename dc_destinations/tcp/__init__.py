@@ -20,7 +20,7 @@ from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import param, parse_params
+from dc_core.params import compat_param, param, parse_params
 
 # "json" is the original's name for the same JSON lines.
 FORMATS = ("json_lines", "json", "msgpack")
@@ -71,12 +71,7 @@ class TcpParams:
     )
     connect_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect (and the TLS handshake)")
     write_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds a write may block")
-    workers: int = param(
-        2,
-        minimum=0,
-        doc="Accepted for the original's files; one sender per destination",
-        no_effect="each destination has one sender, the destination server's",
-    )
+    workers: int = compat_param(2, "each destination has one sender, the destination server's", minimum=0)
 
     def __post_init__(self) -> None:
         if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
