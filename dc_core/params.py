@@ -37,6 +37,7 @@ def param(
     aliases: Iterable[str] = (),
     check: Callable[[Any], str | None] | None = None,
     no_effect: str = "",
+    section: type | None = None,
 ) -> Any:
     """Declare one parameter. No default means the key is required.
 
@@ -44,7 +45,9 @@ def param(
     expected ("an IPv4 address"): reported with the parameter's YAML path.
 
     ``no_effect`` (why it has none) marks a key accepted so that the original's files load, but
-    ignored: :func:`no_effect_notes` says so for each one a configuration gives.
+    ignored: :func:`no_effect_notes` says so for each one a configuration gives. ``section`` is the
+    parameter class a mapping value of the key is read as, when the key's type cannot say it
+    (``tls: true`` or a ``tls:`` section): :func:`no_effect_notes` looks into it.
     """
     metadata = {
         "doc": doc,
@@ -55,6 +58,7 @@ def param(
         "aliases": tuple(aliases),
         "check": check,
         "no_effect": no_effect,
+        "section": section,
     }
     # A secret stays out of the dataclass repr, so logging a parameter object never shows it.
     shown = not secret
@@ -70,6 +74,18 @@ def compat_param(default: Any, because: str, **options: Any) -> Any:
     """A key accepted so that the original's files load, without effect in DC: ``because`` says why
     (in its documentation, and in the configure warning of :func:`no_effect_notes`)."""
     return param(default, doc=f"Accepted for the original's files; no effect: {because}", no_effect=because, **options)
+
+
+def port_problem(port: int | str) -> str | None:
+    """A ``check`` of a TCP port: 1 to 65535 (digits in a string count, as the original's files wrote them)."""
+    if isinstance(port, str):
+        port = int(port) if port.strip().isdigit() else 0
+    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
+
+
+def host_problem(host: str) -> str | None:
+    """A ``check`` of a host name or IP address: not empty, no white space, nothing of a URL (``/?#``)."""
+    return None if host and not any(c.isspace() or c in "/?#" for c in host) else "a host name or IP address"
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -244,8 +260,10 @@ def no_effect_notes(cls: type, mapping: Any, path: str) -> list[str]:
                     f"{_join(path, key)}: accepted for the original's files, has no effect because "
                     f"{f.metadata['no_effect']}"
                 )
-            elif dataclasses.is_dataclass(hints[f.name]):
-                notes.extend(no_effect_notes(hints[f.name], mapping[key], _join(path, key)))
+                continue
+            nested = hints[f.name] if dataclasses.is_dataclass(hints[f.name]) else f.metadata.get("section")
+            if nested is not None:
+                notes.extend(no_effect_notes(nested, mapping[key], _join(path, key)))
     return notes
 
 

@@ -358,8 +358,15 @@ NO_EFFECT = "accepted for the original's files, has no effect because"
             },
             "destination_server.fm.pgsql.time_key",
         ),
+        (
+            {
+                "destination_plugins": ["tcp"],
+                "tcp": {"plugin": "dc_destinations/TCP", "inputs": [UPTIME], "tls": {"active": "on", "debug": 2}},
+            },
+            "destination_server.tcp.tls.debug",
+        ),
     ],
-    ids=["server flb section", "plugin key by its alias", "nested section"],
+    ids=["server flb section", "plugin key by its alias", "nested section", "the tls section an alias holds"],
 )
 def test_a_compatibility_key_without_effect_is_said_once(section: dict[str, Any], path: str) -> None:
     warnings = parse_destination_server(section).warnings

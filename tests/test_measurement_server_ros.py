@@ -24,6 +24,7 @@ from typing import Any
 import pytest
 import rclpy
 import yaml
+from dc_lifecycle_interfaces.msg import Heartbeat
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
@@ -37,7 +38,7 @@ from dc_core.measurement import Measurement
 from dc_core.params import NoParams
 from dc_core.qos import record_qos
 from dc_core.worker import Outcome, Worker
-from dc_interfaces.msg import Heartbeat, StringStamped
+from dc_interfaces.msg import StringStamped
 from dc_measurements.config import parse_measurement_server
 from dc_measurements.server import MeasurementServer
 from tests.hostile_records import hostile_stream

@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 from dc_core.destination import ConfigurationProblem, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
-from dc_core.params import param
+from dc_core.params import host_problem, param, port_problem
 from dc_destinations.tls import warn_if_credentials_in_clear
 
 T = TypeVar("T")
@@ -45,12 +45,6 @@ def require_psycopg(name: str, kind: str) -> None:
         ) from exc
 
 
-def port_problem(port: int | str) -> str | None:
-    if isinstance(port, str):  # the original's files write "5432"
-        port = int(port) if port.strip().isdigit() else 0
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
-
-
 def table_problem(table: str) -> str | None:
     parts = table.split(".")
     if not table or len(parts) > 2 or any(not p or len(p.encode()) > MAX_IDENTIFIER or "\0" in p for p in parts):
@@ -58,10 +52,8 @@ def table_problem(table: str) -> str | None:
     return None
 
 
-def check_server(host: str, ssl: bool, sslmode: str, sslrootcert: str) -> None:
+def check_server(ssl: bool, sslmode: str, sslrootcert: str) -> None:
     """The checks of a server section that a single parameter cannot make; ConfigError naming the key."""
-    if not host or any(c.isspace() or c in "/?#" for c in host):
-        raise ConfigError("host", f'expected a host name or IP address, got "{host}"')
     if ssl and sslmode in ("disable", "allow", "prefer"):
         raise ConfigError("sslmode", f'"{sslmode}" contradicts ssl: true (use require, verify-ca or verify-full)')
     if sslrootcert and effective_sslmode(ssl, sslmode) not in ("verify-ca", "verify-full", "require"):
@@ -121,7 +113,7 @@ def warn_if_password_in_clear(logger: Logger, destination: str, settings: Server
 class PostgresServerParams:
     """Where and how a destination logs in to PostgreSQL (PgSQL, FilesMetrics' ``pgsql``), checked together."""
 
-    host: str = param("127.0.0.1", doc="Host name or IP address of the PostgreSQL server")
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the PostgreSQL server")
     port: int | str = param(5432, check=port_problem, doc='TCP port of the server (the original wrote "5432")')
     user: str = param("", doc="Role to log in as; empty: the system user running DC (libpq's default)")
     password: str = param("", secret=True, doc="Password of `user` (never logged)")
@@ -144,7 +136,7 @@ class PostgresServerParams:
     connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
 
     def __post_init__(self) -> None:
-        check_server(self.host, self.ssl, self.sslmode, self.sslrootcert)
+        check_server(self.ssl, self.sslmode, self.sslrootcert)
 
     @property
     def effective_sslmode(self) -> str:
