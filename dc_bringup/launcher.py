@@ -37,6 +37,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds each server gets to stop before it is killed (default 15)",
     )
     parser.add_argument(
+        "--transition-timeout",
+        type=float,
+        default=None,
+        help="seconds a lifecycle transition may take before the server is asked where it is "
+        "(default 30, or destination_server's flb.grace + 30 when that is longer)",
+    )
+    parser.add_argument(
         "--namespace", default="", help="ROS namespace of every server and of the lifecycle manager (e.g. robot1)"
     )
     parser.add_argument(
@@ -88,7 +95,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from dc_bringup.manager import LifecycleManager
+    from dc_bringup.manager import LifecycleManager, default_transition_timeout
     from dc_bringup.processes import ServerProcess
 
     rclpy.init(args=["--ros-args", "--log-level", args.log_level], signal_handler_options=SignalHandlerOptions.NO)
@@ -100,7 +107,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name in SERVER_MODULES
         if name in report.servers
     ]
-    manager = LifecycleManager(servers, bond_timeout=args.bond_timeout, namespace=namespace)
+    manager = LifecycleManager(
+        servers,
+        bond_timeout=args.bond_timeout,
+        namespace=namespace,
+        transition_timeout=args.transition_timeout or default_transition_timeout(report.configs),
+    )
     manager.stop_timeout = args.stop_timeout  # an unhealthy server is stopped in order before its restart
     # A signal, or a server process exiting, wakes the watch at once rather than at its next period.
     signal.signal(signal.SIGCHLD, lambda signum, frame: None)

@@ -28,9 +28,9 @@ from typing import Any
 from rclpy.qos import QoSProfile
 
 from dc_core.destination import Destination, OutgoingRecord
-from dc_core.errors import ConfigError, PluginError
+from dc_core.errors import ConfigError
 from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
-from dc_core.lifecycle import ManagedServer, run_server
+from dc_core.lifecycle import ManagedServer, PartialTeardown, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
@@ -279,7 +279,8 @@ class DestinationServer(ManagedServer):
         self._stop_acks()
         errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
         if errors:
-            raise PluginError("; ".join(errors))
+            # The server's own part is torn down: it can go on (dc_core.lifecycle).
+            raise PartialTeardown("; ".join(errors))
 
     def _named_plugins(self) -> list[tuple[str, Destination[Any]]]:
         assert self.config is not None
