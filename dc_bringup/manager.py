@@ -43,8 +43,8 @@ GET_STATE_PROBE_S = 0.5
 # get_state of a server that is up: unanswered this long, its state cannot be read (it hangs, or it is
 # busy in a transition: a server answers one request at a time).
 GET_STATE_TIMEOUT_S = 5.0
-# How long a transition may take before the manager asks where the server is, at least; a deactivate
-# gets the destinations' flb.grace more (default_transition_timeout).
+# How long a transition may take before the manager asks where the server is, by default: this, or
+# destination_server's flb.grace and the margin when longer (default_transition_timeout).
 TRANSITION_TIMEOUT_S = 30.0
 TRANSITION_MARGIN_S = 30.0
 PROBES_PER_CLIENT = 4

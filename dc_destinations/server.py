@@ -211,7 +211,8 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
         self._stop_acks()
-        for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
+        # Without a config (a configure that failed parsing it) there is no plugin to clean up.
+        for error in run_hook_on_each(self._named_plugins() if self.config is not None else [], "on_cleanup"):
             self.get_logger().error(error)
         self.plugins.clear()
         self._debug.clear()
