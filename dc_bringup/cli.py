@@ -38,10 +38,12 @@ def cmd_list_plugins(args: argparse.Namespace) -> int:
 def cmd_validate(args: argparse.Namespace) -> int:
     from dc_bringup.validate import check
 
-    report, error = check(args.params_file)
+    report, error = check(args.params_file, args.namespace)
     if report is None:
         print(f"invalid: {error}", file=sys.stderr)
         return 2
+    for note in report.notes:
+        print(note, file=sys.stderr)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     print(f"valid: {', '.join(report.servers)}")
@@ -60,7 +62,7 @@ def cmd_pub(args: argparse.Namespace) -> int:
     from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-    from dc_core.topics import ros_topic, topic_problem
+    from dc_core.topics import ros_namespace, ros_topic, topic_problem
     from dc_interfaces.msg import StringStamped
 
     problem = topic_problem(args.topic)
@@ -72,11 +74,12 @@ def cmd_pub(args: argparse.Namespace) -> int:
         print(f"dc pub: {args.topic!r} is not a valid ROS 2 topic name; publishing on {topic!r}", file=sys.stderr)
     args.topic = topic
     rclpy.init()
-    node = rclpy.create_node("dc_pub")
+    node = rclpy.create_node("dc_pub", namespace=ros_namespace(args.namespace))
     qos = QoSProfile(
         depth=max(args.count, 10), reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
     )
     publisher = node.create_publisher(StringStamped, args.topic, qos)
+    resolved = publisher.topic_name  # with --namespace, where a relative name went
     sent = 0
     unacknowledged = False
     try:
@@ -110,7 +113,7 @@ def cmd_pub(args: argparse.Namespace) -> int:
     finally:
         node.destroy_node()
         rclpy.shutdown()
-    print(f"published {sent} record(s) on {args.topic}")
+    print(f"published {sent} record(s) on {resolved}")
     return 1 if unacknowledged else 0
 
 
@@ -127,7 +130,7 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
 
     targets = [
         (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(args.params).configs)
+        for e in metrics_endpoints(validate_params_file(args.params, args.namespace).configs)
     ]
     if not targets:
         print(
@@ -368,10 +371,10 @@ LIFECYCLE_COMMANDS = ("startup", "pause", "resume", "reset", "shutdown", "is-act
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     """Ask dc-bringup's lifecycle manager (its manage_nodes and is_active services)."""
     import rclpy
+    from dc_lifecycle_interfaces.srv import ManageLifecycleNodes
     from std_srvs.srv import Trigger
 
     from dc_bringup.manager import DEGRADED_PREFIX, NODE_NAME
-    from dc_interfaces.srv import ManageLifecycleNodes
 
     namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
     manager = f"{namespace}/{NODE_NAME}"
@@ -463,11 +466,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("validate", help="check a parameter file without running it")
     p.add_argument("params_file")
+    p.add_argument(
+        "--namespace", default="", help="check it as dc-bringup --namespace reads it (topic names in the namespace)"
+    )
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
-    p.add_argument("topic")
+    p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
     p.add_argument("json", help="the record, a JSON object")
+    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
     p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
     p.add_argument("--group-key", default="")
@@ -486,6 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="ask the servers whose HTTP server this parameter file enables (destination_server flb.http_*,"
         " group_server and measurement_server http_*)",
     )
+    p.add_argument("--namespace", default="", help="with --params: the namespace dc-bringup runs the servers in")
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.set_defaults(func=cmd_status)
 

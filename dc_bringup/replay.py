@@ -131,8 +131,9 @@ class BagPlayer:
             return
         from rosgraph_msgs.msg import Clock
 
-        if self._last_clock_ns and bag_ns < self._last_clock_ns and bag_ns > self._last_clock_ns - 10**9:
-            bag_ns = self._last_clock_ns  # never a little backwards: a message a bit late in the bag
+        # Never backwards within a pass (a loop resets _last_clock_ns): DC clears its TF history when
+        # its clock jumps back, as tf2_ros does, so only a real restart of the bag may do that.
+        bag_ns = max(bag_ns, self._last_clock_ns)
         message = Clock()
         message.clock.sec, message.clock.nanosec = divmod(bag_ns, 1_000_000_000)
         self._clock_publisher.publish(message)
@@ -182,7 +183,8 @@ class BagPlayer:
             while True:
                 now = time.monotonic()
                 if now >= next_clock:
-                    self._publish_clock(start_bag + int((now - start_wall) * rate * 1e9))
+                    # A player running late does not run the clock past the message it still owes.
+                    self._publish_clock(min(bag_ns, start_bag + int((now - start_wall) * rate * 1e9)))
                     next_clock = now + CLOCK_PERIOD_S
                 if now >= due:
                     break

@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import importlib
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dc_core.config import load_params_file, other_sections
+from dc_core.config import load_params
 from dc_core.errors import ConfigError, DcError
 from dc_core.jsonpath import impossible_path
 from dc_core.params import did_you_mean
 from dc_core.paths import expand_env
-from dc_core.topics import ros_topic
+from dc_core.ros_args import param_sections
+from dc_core.topics import outside_namespace, ros_namespace, ros_topic
 
 # Servers in start order: destinations first so nothing published at start is lost.
 # In start order: destinations first (nothing published at start is lost), measurements last.
@@ -36,28 +38,60 @@ class ValidationReport:
     servers: list[str] = field(default_factory=list)
     configs: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # said once at INFO, not warnings
 
 
-def _parse(server: str, section: dict[str, Any]) -> Any:
+# The servers whose topic names resolve in their namespace (image_services' are services).
+_TOPIC_SERVERS = ("destination_server", "group_server", "measurement_server")
+
+
+def _parse(server: str, section: dict[str, Any], namespace: str) -> Any:
     module_name, function = _PARSERS[server]
     module = importlib.import_module(module_name)
+    if server in _TOPIC_SERVERS:
+        return getattr(module, function)(section, server, namespace)
     return getattr(module, function)(section, server)
 
 
-def validate_params_file(path: str | Path) -> ValidationReport:
-    """Parse every server section; raise ConfigError on the first error, return warnings."""
-    sections = load_params_file(path)
+def validate_params_file(path: str | Path, namespace: str = "", ros_args: Sequence[str] = ()) -> ValidationReport:
+    """Parse every server section as the servers in ``namespace`` read it (topic names fully qualified
+    there, the ``--ros-args`` parameters over the file's); raise ConfigError on the first error, return warnings."""
+    loaded = load_params(path, namespace, param_sections(ros_args))
+    sections = loaded.servers
     report = ValidationReport()
-    for name in other_sections(path):
-        report.warnings.append(f"{name}: not a DC server section, ignored (fine if it holds another node's parameters)")
+    if loaded.ignored:
+        report.notes.append(
+            "sections for nodes DC does not run, ignored (other nodes' parameters): " + ", ".join(loaded.ignored)
+        )
     for server in SERVER_MODULES:
         if server in sections:
-            config = _parse(server, sections[server])
+            config = _parse(server, sections[server], ros_namespace(namespace))
             report.servers.append(server)
             report.configs[server] = config
             report.warnings.extend(getattr(config, "warnings", []))
     report.warnings.extend(_cross_checks(report.configs))
+    report.warnings.extend(_shared_root_topics(report.configs, ros_namespace(namespace)))
     return report
+
+
+def _shared_root_topics(configs: dict[str, Any], namespace: str) -> list[str]:
+    """DC topic names written absolute (/dc/…) while the servers run in a namespace: once per name,
+    for they are not isolated — every DC of the ROS domain publishes or reads the same topic."""
+    named: list[str] = []
+    if "measurement_server" in configs:
+        measurements = configs["measurement_server"]
+        named += [m.output_topic for m in measurements.measurements]
+        named += [c.common.topic for c in measurements.conditions.values() if c.common.topic]
+    if "group_server" in configs:
+        for group in configs["group_server"].groups:
+            named += [*group.inputs, group.output]
+    if "destination_server" in configs:
+        named += [topic for d in configs["destination_server"].destinations for topic in d.common.inputs]
+    return [
+        f"{topic} is absolute: outside namespace {namespace}, shared with every DC of this ROS domain; "
+        f"write {topic.lstrip('/')} (relative) for this DC's own"
+        for topic in outside_namespace(named, namespace)
+    ]
 
 
 def _cross_checks(configs: dict[str, Any]) -> list[str]:
@@ -185,9 +219,11 @@ def _shared_metrics_ports(configs: dict[str, Any]) -> list[str]:
     return warnings
 
 
-def check(path: str | Path) -> tuple[ValidationReport | None, str | None]:
+def check(
+    path: str | Path, namespace: str = "", ros_args: Sequence[str] = ()
+) -> tuple[ValidationReport | None, str | None]:
     """(report, None) when valid, (None, error text) when not."""
     try:
-        return validate_params_file(path), None
+        return validate_params_file(path, namespace, ros_args), None
     except ConfigError as exc:
         return None, str(exc)

@@ -4,7 +4,8 @@ Buffering, batching, retries with backoff, dead letters and counters live once, 
 destination server; a destination only delivers. ``send`` returns ``None`` when every record of the
 batch was confirmed, a :class:`SendOutcome` for per-record results, or raises
 :class:`RetryableError` (the whole batch is retried later) or :class:`RejectedError` (the whole
-batch is dead-lettered). Any other exception counts as retryable. ``send`` runs in the
+batch is dead-lettered). Any other exception counts as retryable. A server's "not before" (HTTP's
+Retry-After) goes in ``retry_after`` of either; the sender's backoff honours it. ``send`` runs in the
 destination's own worker thread, never on the ROS executor, so it may block on I/O.
 
 A failure that retrying alone cannot mend (a wrong password, a missing bucket or table, a refused
@@ -28,7 +29,16 @@ from dc_core.records import dump_record, parse_record
 
 
 class RetryableError(DcError):
-    """Delivery failed for a reason that may pass (network down, server busy, 5xx)."""
+    """Delivery failed for a reason that may pass (network down, server busy, 5xx).
+
+    ``retry_after``: seconds the server asked to be left alone (HTTP's Retry-After), when it said;
+    the sender waits at least that long before the next attempt, but never longer than its
+    ``scheduler_cap``. A destination never waits inside ``send`` for it.
+    """
+
+    def __init__(self, message: str, *, retry_after: float | None = None) -> None:
+        super().__init__(message)
+        self.retry_after = retry_after
 
 
 class ConfigurationProblem(RetryableError):
@@ -60,10 +70,14 @@ class RejectedError(DcError):
 
 @dataclass
 class SendOutcome:
-    """Per-record result of a batch: indexes into the batch with the reason. Others succeeded."""
+    """Per-record result of a batch: indexes into the batch with the reason. Others succeeded.
+
+    ``retry_after``: as for :class:`RetryableError`, the server's wish before ``retry`` is tried again.
+    """
 
     retry: dict[int, str] = field(default_factory=dict)
     reject: dict[int, str] = field(default_factory=dict)
+    retry_after: float | None = None
 
 
 @dataclass(frozen=True)

@@ -79,6 +79,15 @@ class Measurement(Plugin[ParamsT]):
         """
         return self.collect(), None, None
 
+    def record_bytes_estimate(self) -> int | None:
+        """The usual size of a record in bytes, for a plugin whose records are large (images in base64).
+
+        The output topic's history starts as deep as ``history_bytes`` allows for records of this
+        size, instead of ``history_depth``; either way it shrinks when a larger record is published
+        (dc_core.record_history). None: small records.
+        """
+        return None
+
     def on_failed_validation(self, record: dict[str, Any], error: str) -> None:
         """Hook called when a record does not match the schema (after it was logged)."""
 

@@ -61,6 +61,18 @@ def param(
     return dataclasses.field(default=default, metadata=metadata, repr=shown)
 
 
+def port_problem(port: int | str) -> str | None:
+    """A ``check`` of a TCP port: 1 to 65535 (digits in a string count, as the original's files wrote them)."""
+    if isinstance(port, str):
+        port = int(port) if port.strip().isdigit() else 0
+    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
+
+
+def host_problem(host: str) -> str | None:
+    """A ``check`` of a host name or IP address: not empty, no white space, nothing of a URL (``/?#``)."""
+    return None if host and not any(c.isspace() or c in "/?#" for c in host) else "a host name or IP address"
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class NoParams:
     """Parameters of a plugin that has none of its own."""

@@ -6,11 +6,21 @@ register exactly like a third-party package does.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
+from typing import Any, Generic, Protocol, TypeVar
 
-from dc_core.errors import PluginError
-from dc_core.params import did_you_mean
+from dc_core.errors import ConfigError, PluginError
+from dc_core.params import did_you_mean, field_names, parse_params
+
+
+class _NamesItsPlugin(Protocol):
+    @property
+    def plugin(self) -> str: ...
+
+
+CommonT = TypeVar("CommonT", bound=_NamesItsPlugin)
 
 GROUPS = {
     "measurements": "dc.measurements",
@@ -63,6 +73,61 @@ def load_plugin(kind: str, name: str) -> type:
             f"its class must subclass {base.__module__}.{base.__qualname__}"
         )
     return cls
+
+
+def load_plugin_class(kind: str, name: str, path: str) -> type:
+    """:func:`load_plugin` for a configuration: a :class:`ConfigError` at ``<path>.plugin`` when it fails."""
+    try:
+        return load_plugin(kind, name)
+    except PluginError as exc:
+        raise ConfigError(f"{path}.plugin", str(exc)) from exc
+
+
+@dataclass(frozen=True)
+class PluginSection(Generic[CommonT]):
+    """One plugin instance's section of a server, parsed: its common keys, its class, the classes
+    that share the section (``shared``, in order) and its own parameters."""
+
+    common: CommonT
+    plugin_class: type
+    shared: tuple[Any, ...]
+    params: Any
+
+
+def parse_plugin_section(
+    kind: str,
+    body: Mapping[str, Any],
+    path: str,
+    common_cls: type[CommonT],
+    *,
+    shared: Iterable[type] = (),
+) -> PluginSection[CommonT]:
+    """Parse a plugin instance's section: the common keys (``common_cls``, whose ``plugin`` names the
+    type), the plugin's class, the parameter classes every instance of the server shares (``shared``),
+    and the plugin's own ``Params``; every error names its YAML path under ``path``.
+
+    With ``shared``, a key none of them knows is reported once, as an unknown parameter of the
+    plugin, with a suggestion taken from all of them; without, the plugin's ``Params`` report it.
+    """
+    common_keys = field_names(common_cls)
+    common = parse_params(common_cls, body, path, ignore=set(body) - common_keys)
+    plugin = common.plugin
+    plugin_class = load_plugin_class(kind, plugin, path)
+    params_class: type = plugin_class.Params  # type: ignore[attr-defined]
+    shared_classes = tuple(shared)
+    others = set(common_keys)
+    for cls in shared_classes:
+        others |= field_names(cls)
+    if shared_classes:
+        known = others | field_names(params_class)
+        for key in body:
+            if key not in known:
+                raise ConfigError(f"{path}.{key}", f"unknown parameter of {plugin}{did_you_mean(str(key), known)}")
+    shared_params: tuple[Any, ...] = tuple(
+        parse_params(cls, body, path, ignore=set(body) - field_names(cls)) for cls in shared_classes
+    )
+    params: Any = parse_params(params_class, body, path, ignore=others)
+    return PluginSection(common, plugin_class, shared_params, params)
 
 
 def plugin_base(kind: str) -> type:

@@ -171,8 +171,12 @@ class TransformBuffer:
 
     def set_transform(
         self, parent: str, child: str, stamp_ns: int, transform: Transform, *, static: bool = False
-    ) -> None:
-        """Record the pose of ``child`` in ``parent`` at ``stamp_ns``; ValueError when parent == child or empty."""
+    ) -> bool:
+        """Record the pose of ``child`` in ``parent`` at ``stamp_ns``; ValueError when parent == child or empty.
+
+        False when the sample was ignored: more than ``cache_s`` older than the link's newest sample, or
+        older than the newest sample of the link from another parent.
+        """
         parent, child = _frame(parent), _frame(child)
         if not parent or not child or parent == child:
             raise ValueError(f"invalid transform {parent!r} -> {child!r}: frames must be distinct and non-empty")
@@ -180,20 +184,21 @@ class TransformBuffer:
             link = self._links.get(child)
             if static:
                 self._links[child] = _Link(parent, static=transform)
-                return
+                return True
             if link is None or link.static is not None or (link.parent != parent and stamp_ns > link.stamps[-1]):
                 self._links[child] = _Link(parent, stamps=[stamp_ns], transforms=[transform])
-                return
+                return True
             if link.parent != parent or stamp_ns < link.stamps[-1] - self._cache_ns:
-                return
+                return False
             i = bisect.bisect_left(link.stamps, stamp_ns)
             if i < len(link.stamps) and link.stamps[i] == stamp_ns:
                 link.transforms[i] = transform
-                return
+                return True
             link.stamps.insert(i, stamp_ns)
             link.transforms.insert(i, transform)
             drop = bisect.bisect_left(link.stamps, link.stamps[-1] - self._cache_ns)
             del link.stamps[:drop], link.transforms[:drop]
+            return True
 
     def lookup(self, target_frame: str, source_frame: str, time_ns: int = 0, *, tolerance_ns: int = 0) -> Transform:
         """The pose of ``source_frame`` in ``target_frame`` at ``time_ns`` (maps source points into target).
@@ -227,7 +232,7 @@ class TransformBuffer:
             return set(self._links) | {link.parent for link in self._links.values()}
 
     def clear(self) -> None:
-        """Forget dynamic samples (time jumped backwards: a bag restarted); static transforms stay."""
+        """Forget dynamic samples (the clock jumped backwards: a bag restarted); static transforms stay."""
         with self._lock:
             self._links = {child: link for child, link in self._links.items() if link.static is not None}
 

@@ -263,14 +263,7 @@ class GroupCommitter:
                 f"intake_queue_limit_bytes ({self.settings.intake_queue_limit_bytes})"
             )
         if reason is not None:
-            dropped = 0
-            for copies, _ in received:
-                for name, _ in copies:
-                    route = self._routes.get(name)
-                    if route is not None:
-                        route.metrics.add("received")
-                        route.metrics.add("dropped")
-                        dropped += 1
+            dropped = self._count_dropped(received)
             if dropped:
                 self.intake_drop_log.event(dropped, reason)
             return False
@@ -317,15 +310,19 @@ class GroupCommitter:
 
     def _lose(self, handoffs: Sequence[Received], reason: str) -> None:
         """Count the copies of ``handoffs`` as received and dropped; the stop logs their number once."""
-        lost = 0
-        for copies, _ in handoffs:
+        self._add_lost(self._count_dropped(handoffs), reason)
+
+    def _count_dropped(self, received: Sequence[Received]) -> int:
+        """Count each copy of ``received`` as received and dropped at its destination; how many were."""
+        dropped = 0
+        for copies, _ in received:
             for name, _ in copies:
                 route = self._routes.get(name)
                 if route is not None:
                     route.metrics.add("received")
                     route.metrics.add("dropped")
-                    lost += 1
-        self._add_lost(lost, reason)
+                    dropped += 1
+        return dropped
 
     def _add_lost(self, count: int, reason: str) -> None:
         # The writer and a stop that gave up waiting for it may both count.

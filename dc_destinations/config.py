@@ -15,15 +15,17 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from dc_core.errors import ConfigError, PluginError
+from dc_core.errors import ConfigError
 from dc_core.node_params import ServerNodeParams, record_linger_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
-from dc_core.plugins import load_plugin
+from dc_core.plugins import parse_plugin_section
 from dc_core.timefmt import TIME_FORMATS
+from dc_core.topics import resolve_topic
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
+NODE_NAME = "destination_server"
 _OBSOLETE_NODE_KEYS = ("ros2_plugin_path", "ros2_plugin_spin_time_ms")
 # Written in destination_server by the seed's TurtleBot3 stdout demo; the original ignored them there.
 _MEASUREMENT_SERVER_KEYS = ("custom_str_params_list", "custom_str_params")
@@ -130,40 +132,31 @@ def _flb_section(section: dict[str, Any], path: str, warnings: list[str]) -> dic
     return _numeric_strings_to_numbers(flb, DeliveryParams)
 
 
-def _load(type_name: str, path: str) -> type:
-    try:
-        return load_plugin("destinations", type_name)
-    except PluginError as exc:
-        raise ConfigError(f"{path}.plugin", str(exc)) from exc
-
-
-def _parse_destination(name: str, body: Any, path: str) -> DestinationConfig:
+def _parse_destination(name: str, body: Any, path: str, namespace: str) -> DestinationConfig:
     if body is None:
         raise ConfigError(path, "section missing (listed in destination_plugins but not configured)")
     if not isinstance(body, dict):
         raise ConfigError(path, f"expected a mapping, got {body!r}")
-    common_keys = field_names(DestinationCommonParams)
-    common = parse_params(DestinationCommonParams, body, path, ignore=set(body) - common_keys)
-    plugin_class = _load(common.plugin, path)
-    params_class: type = plugin_class.Params  # type: ignore[attr-defined]
-    known = common_keys | field_names(DestinationDeliveryParams) | field_names(params_class)
-    for key in body:
-        if key not in known:
-            suggestion = did_you_mean(str(key), known)
-            raise ConfigError(f"{path}.{key}", f"unknown parameter of {common.plugin}{suggestion}")
-    delivery_keys = field_names(DestinationDeliveryParams)
-    delivery = parse_params(DestinationDeliveryParams, body, path, ignore=known - delivery_keys)
+    parsed = parse_plugin_section(
+        "destinations", body, path, DestinationCommonParams, shared=(DestinationDeliveryParams,)
+    )
+    common, plugin_class, plugin_params = parsed.common, parsed.plugin_class, parsed.params
+    (delivery,) = parsed.shared
     check_destination_params(delivery, path)
-    plugin_params: Any = parse_params(params_class, body, path, ignore=known - field_names(params_class))
     if not common.inputs:
         raise ConfigError(f"{path}.inputs", "expected at least one topic")
     for i, topic in enumerate(common.inputs):
         if not topic:
             raise ConfigError(f"{path}.inputs[{i}]", "expected a topic name, got an empty string")
+    # Fully qualified as the server subscribes: records keep the topic they came on, and routing,
+    # hand-off acks and the checks against the other sections' outputs compare these names.
+    common = dataclasses.replace(common, inputs=[resolve_topic(t, namespace, NODE_NAME) for t in common.inputs])
     return DestinationConfig(name, common, delivery, plugin_class, plugin_params)
 
 
-def parse_destination_server(section: dict[str, Any], path: str = "destination_server") -> DestinationServerConfig:
+def parse_destination_server(
+    section: dict[str, Any], path: str = "destination_server", namespace: str = "/"
+) -> DestinationServerConfig:
     warnings: list[str] = []
     node_keys = field_names(DestinationServerParams)
     node_values = {key: section[key] for key in node_keys if key in section}
@@ -180,7 +173,9 @@ def parse_destination_server(section: dict[str, Any], path: str = "destination_s
     if not node.destination_plugins:
         warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
 
-    destinations = [_parse_destination(name, section.get(name), f"{path}.{name}") for name in node.destination_plugins]
+    destinations = [
+        _parse_destination(name, section.get(name), f"{path}.{name}", namespace) for name in node.destination_plugins
+    ]
     # A destination without its own unhealthy_after has the server's.
     destinations = [
         d

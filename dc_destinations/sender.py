@@ -15,8 +15,10 @@ For a destination plugin's author, this is the whole story of delivery:
    dead-lettered. Any other exception (:class:`~dc_core.destination.RetryableError`, a socket
    error…) means the whole batch is retried.
 4. A retry waits with exponential backoff and full jitter (``scheduler_base`` doubling up to
-   ``scheduler_cap``); a success resets it. A record retried more than ``retry_limit`` times
-   (-1: never given up) is dead-lettered with its last error.
+   ``scheduler_cap``); a success resets it. A ``retry_after`` the destination passes on (the
+   server's Retry-After) lengthens that wait to at least it, and never beyond ``scheduler_cap``.
+   A record retried more than ``retry_limit`` times (-1: never given up) is dead-lettered with its
+   last error.
 5. ``send`` is called again with the same records (same ``record_id``) after a retry or a crash
    of the server between ``send`` and the deletion: a destination that can deduplicate on
    ``record_id`` delivers exactly once.
@@ -148,6 +150,8 @@ class Sender:
         # and the delete of the batch before, running in the reader thread (see _run).
         self._confirmed: list[int] = []
         self._acknowledging: Future[None] | None = None
+        # The server's wish (seconds) carried by the last failed send, for the backoff that follows.
+        self._retry_after: float | None = None
 
     def run(self) -> None:
         # While send() waits on the destination, a reader thread reads and prepares the next batch
@@ -216,7 +220,7 @@ class Sender:
                 continue
             if must_retry:
                 ahead = None  # the retried records come first again: read from the head
-                if self._wait_backoff(self._backoff.next_delay()):
+                if self._wait_backoff(self._retry_delay()):
                     return
             else:
                 self._backoff.reset()
@@ -308,6 +312,13 @@ class Sender:
         self.route.failure_log.event(1, what)
         return self._wait_backoff(self._backoff.next_delay())
 
+    def _retry_delay(self) -> float:
+        """The backoff's next delay, lengthened to the server's retry_after within scheduler_cap."""
+        delay = self._backoff.next_delay()
+        if self._retry_after is not None:
+            delay = max(delay, min(self._retry_after, self.settings.scheduler_cap))
+        return delay
+
     def _wait_backoff(self, delay: float) -> bool:
         if self._wait is not None:
             return self._wait(delay) or self.closing.event.is_set()
@@ -346,7 +357,7 @@ class Sender:
             self.bound_dead_letters()
         if not records:
             return False
-        retry, reject, problem = _outcome_of(route.destination, records)
+        retry, reject, problem, self._retry_after = _outcome_of(route.destination, records)
         if retry or reject:
             confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
         else:
@@ -412,21 +423,29 @@ class _Batch:
 
 def _outcome_of(
     destination: Destination[Any], records: list[OutgoingRecord]
-) -> tuple[dict[int, str], dict[int, str], tuple[str, str] | None]:
-    """``send(records)`` as (retry, reject, problem): batch indexes with their reasons (the rest were
-    confirmed), and (what, fix) when the failure is one retrying cannot mend (dc_destinations.health)."""
+) -> tuple[dict[int, str], dict[int, str], tuple[str, str] | None, float | None]:
+    """``send(records)`` as (retry, reject, problem, retry_after): batch indexes with their reasons (the
+    rest were confirmed), (what, fix) when the failure is one retrying cannot mend
+    (dc_destinations.health), and the seconds the server asked to wait, when it said."""
     try:
         outcome = destination.send(records)
     except RejectedError as exc:
-        return {}, dict.fromkeys(range(len(records)), f"rejected: {exc}"), attention_needed(exc)
+        return {}, dict.fromkeys(range(len(records)), f"rejected: {exc}"), attention_needed(exc), None
     except RetryableError as exc:
-        return dict.fromkeys(range(len(records)), str(exc)), {}, attention_needed(exc)
+        return dict.fromkeys(range(len(records)), str(exc)), {}, attention_needed(exc), _seconds(exc.retry_after)
     except Exception as exc:
-        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}, attention_needed(exc)
+        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}, attention_needed(exc), None
     if not isinstance(outcome, SendOutcome):
-        return {}, {}, None
+        return {}, {}, None, None
     retry = {i: reason for i, reason in outcome.retry.items() if 0 <= i < len(records)}
     reject = {
         i: f"rejected: {reason}" for i, reason in outcome.reject.items() if 0 <= i < len(records) and i not in retry
     }
-    return retry, reject, None
+    return retry, reject, None, _seconds(outcome.retry_after) if retry else None
+
+
+def _seconds(value: Any) -> float | None:
+    """A plugin's retry_after as seconds; None when it gave none, or nothing a wait can use (NaN, negative)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        return None
+    return float(value)

@@ -15,15 +15,15 @@ from typing import Any
 
 from dc_core.handoff import HandoffSender, destination_inputs
 from dc_core.lifecycle import ManagedServer, run_server
-from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
+from dc_core.qos import RECORD_HISTORY_DEPTH, VOLATILE_RECORD_QOS, record_qos
+from dc_core.record_history import SizedRecordPublisher, history_metrics
 from dc_core.records import MalformedRecord
-from dc_group.config import GroupServerConfig, parse_group_server
+from dc_group.config import NODE_NAME, GroupServerConfig, parse_group_server
 from dc_group.merge import parse_input
 from dc_group.metrics import group_prometheus_text
 from dc_group.pipeline import GroupOutput, GroupPipeline
 from dc_interfaces.msg import StringStamped
 
-NODE_NAME = "group_server"
 # Same profile as the measurement server's records: reliable, deep enough for bursts.
 # Repeated malformed messages on one topic are logged at most this often (all are counted).
 MALFORMED_LOG_PERIOD_S = 10.0
@@ -36,7 +36,7 @@ class GroupServer(ManagedServer):
         self.pipelines: dict[str, GroupPipeline] = {}
         self.malformed: dict[str, int] = {}
         self._routes: dict[str, list[GroupPipeline]] = {}
-        self._group_publishers: dict[str, Any] = {}
+        self._group_publishers: dict[str, SizedRecordPublisher] = {}
         self._publish_of: dict[str, Callable[[int, str, str], None]] = {}
         self.handoff: HandoffSender | None = None
         self._input_subscriptions: list[Any] = []
@@ -49,13 +49,21 @@ class GroupServer(ManagedServer):
     # -- transitions ---------------------------------------------------------------------------
     def configure_server(self) -> None:
         servers = self.read_params_file()
-        config = parse_group_server(servers[NODE_NAME], NODE_NAME)
+        namespace = self.get_namespace()
+        config = parse_group_server(servers[NODE_NAME], NODE_NAME, namespace)
         self.apply_node_params(config.node, config.warnings)
-        handoff = self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
+        handoff = self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers, namespace))
         for group in config.groups:
             pipeline = GroupPipeline(group, self.get_logger())
             self.pipelines[group.name] = pipeline
-            publisher = self.create_publisher(StringStamped, group.output, RECORD_QOS)
+            publisher = SizedRecordPublisher(
+                group.output,
+                self._record_writers(group.output),
+                self.destroy_publisher,
+                history_depth=RECORD_HISTORY_DEPTH,
+                history_bytes=group.history_bytes,
+                logger=self.get_logger(),
+            )
             self._group_publishers[group.name] = publisher
             self._publish_of[group.name] = handoff.output(group.output, publisher)
             for topic in group.inputs:
@@ -66,6 +74,12 @@ class GroupServer(ManagedServer):
                 f"on_sync_timeout {'emit_partial' if group.emit_partial else 'drop'})"
             )
         self.config = config
+
+    def _record_writers(self, topic: str) -> Callable[[int], Any]:
+        def create(depth: int) -> Any:
+            return self.create_publisher(StringStamped, topic, record_qos(depth))
+
+        return create
 
     def activate_server(self) -> None:
         for topic in self._routes:
@@ -107,7 +121,7 @@ class GroupServer(ManagedServer):
             self.handoff.close()
             self.handoff = None
         for publisher in self._group_publishers.values():
-            self.destroy_publisher(publisher)
+            publisher.destroy()
         self._group_publishers.clear()
         self._publish_of.clear()
         self.pipelines.clear()
@@ -175,7 +189,12 @@ class GroupServer(ManagedServer):
         with self._lock:
             inputs = {topic: {"malformed": self.malformed.get(topic, 0)} for topic in self._routes}
         handoff = self.handoff
-        return {"groups": groups, "inputs": inputs, "handoff": handoff.metrics() if handoff is not None else {}}
+        return {
+            "groups": groups,
+            "inputs": inputs,
+            "handoff": handoff.metrics() if handoff is not None else {},
+            "history": history_metrics(list(self._group_publishers.values())),
+        }
 
 
 def main() -> int:

@@ -7,14 +7,18 @@ opens no file and starts nothing. ``dc validate`` and ``dc-bringup`` call it bef
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
-from dc_core.errors import ConfigError, PluginError
+from dc_core.errors import ConfigError
 from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.paths import expand_values
-from dc_core.plugins import load_plugin
+from dc_core.plugins import parse_plugin_section
+from dc_core.record_history import DEFAULT_HISTORY_BYTES
+from dc_core.topics import MEASUREMENT_TOPIC_PREFIX, resolve_topic
+
+NODE_NAME = "measurement_server"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -53,7 +57,9 @@ class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
 class MeasurementCommonParams:
     plugin: str = param(doc="Plugin type, e.g. dc_measurements/Uptime")
     group_key: str = param("", doc="Copied into StringStamped.group_key; the group server nests under it")
-    topic_output: str = param("", doc="Output topic (default /dc/measurement/<id>)")
+    topic_output: str = param(
+        "", doc="Output topic (default dc/measurement/<id> in the server's namespace: /dc/measurement/<id> without one)"
+    )
     polling_interval: int = param(1000, minimum=100, doc="Milliseconds between two collections")
     debug: bool = param(False, doc="Log every published record at info level")
     enable_validator: bool = param(True, doc="Validate every record against the JSON schema")
@@ -67,6 +73,12 @@ class MeasurementCommonParams:
     include_measurement_plugin: bool = param(False, doc='Add "plugin": <plugin type>')
     history_depth: int = param(
         1000, minimum=1, doc="Records the output topic keeps for a destination_server that (re)starts late"
+    )
+    history_bytes: int = param(
+        DEFAULT_HISTORY_BYTES,
+        minimum=0,
+        doc="Bytes of records the output topic keeps at most: the depth shrinks to fit the largest record "
+        "published (never below 1); 0: history_depth alone",
     )
     remote_keys: list[str] = param([], doc="Names of remote storages (file-saving plugins)")
     remote_prefixes: list[str] = param([], doc="Prefix per remote key, same order")
@@ -89,10 +101,11 @@ class MeasurementConfig:
     common: MeasurementCommonParams
     plugin_class: type
     plugin_params: Any
+    namespace: str = "/"
 
     @property
     def output_topic(self) -> str:
-        return output_topic(self.name, self.common)
+        return output_topic(self.name, self.common, self.namespace)
 
     @property
     def conditions(self) -> list[str]:
@@ -100,8 +113,9 @@ class MeasurementConfig:
         return [*c.if_all_conditions, *c.if_any_conditions, *c.if_none_conditions]
 
 
-def output_topic(measurement_id: str, common: MeasurementCommonParams) -> str:
-    return common.topic_output or f"/dc/measurement/{measurement_id}"
+def output_topic(measurement_id: str, common: MeasurementCommonParams, namespace: str = "/") -> str:
+    """Fully qualified, as the server in ``namespace`` publishes it: what other sections name is compared with it."""
+    return resolve_topic(common.topic_output or MEASUREMENT_TOPIC_PREFIX + measurement_id, namespace, NODE_NAME)
 
 
 @dataclass(frozen=True)
@@ -172,14 +186,7 @@ def _value_names(text: str) -> set[str]:
     return names
 
 
-def _load(kind: str, type_name: str, path: str) -> type:
-    try:
-        return load_plugin(kind, type_name)
-    except PluginError as exc:
-        raise ConfigError(f"{path}.plugin", str(exc)) from exc
-
-
-def published_topics(section: dict[str, Any], path: str = "measurement_server") -> dict[str, int]:
+def published_topics(section: dict[str, Any], path: str = "measurement_server", namespace: str = "/") -> dict[str, int]:
     """Each measurement's output topic with the depth of the history it keeps, from the common
     parameters alone: no plugin is imported (the destination server asks, for its hop)."""
     node_params = parse_params(
@@ -191,11 +198,13 @@ def published_topics(section: dict[str, Any], path: str = "measurement_server") 
         common = parse_params(
             MeasurementCommonParams, body, f"{path}.{mid}", ignore=set(body) - field_names(MeasurementCommonParams)
         )
-        topics[output_topic(mid, common)] = common.history_depth
+        topics[output_topic(mid, common, namespace)] = common.history_depth
     return topics
 
 
-def parse_measurement_server(section: dict[str, Any], path: str = "measurement_server") -> MeasurementServerConfig:
+def parse_measurement_server(
+    section: dict[str, Any], path: str = "measurement_server", namespace: str = "/"
+) -> MeasurementServerConfig:
     node_params = parse_params(
         MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
     )
@@ -226,31 +235,22 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
         if key not in custom and key != "force_override":
             raise ConfigError(f"{path}.custom_str_params.{key}", "not listed in custom_str_params_list")
 
+    dynamic.update(node_params.condition_plugins, node_params.measurement_plugins)
     conditions: dict[str, ConditionConfig] = {}
     for cid in node_params.condition_plugins:
-        cpath = f"{path}.{cid}"
-        body = _plugin_section(section, cid, path)
-        dynamic.add(cid)
-        ccommon = parse_params(
-            ConditionCommonParams, body, cpath, ignore=set(body) - field_names(ConditionCommonParams)
+        condition = parse_plugin_section(
+            "conditions", _plugin_section(section, cid, path), f"{path}.{cid}", ConditionCommonParams
         )
-        ccls = _load("conditions", ccommon.plugin, cpath)
-        cparams: Any = parse_params(cast(Any, ccls).Params, body, cpath, ignore=field_names(ConditionCommonParams))
-        conditions[cid] = ConditionConfig(cid, ccommon, ccls, cparams)
+        conditions[cid] = ConditionConfig(cid, condition.common, condition.plugin_class, condition.params)
 
     measurements: list[MeasurementConfig] = []
     outputs: dict[str, str] = {}
     for mid in node_params.measurement_plugins:
         mpath = f"{path}.{mid}"
-        body = _plugin_section(section, mid, path)
-        dynamic.add(mid)
-        common = parse_params(
-            MeasurementCommonParams, body, mpath, ignore=set(body) - field_names(MeasurementCommonParams)
+        measurement = parse_plugin_section(
+            "measurements", _plugin_section(section, mid, path), mpath, MeasurementCommonParams
         )
-        cls = _load("measurements", common.plugin, mpath)
-        plugin_params: Any = parse_params(
-            cast(Any, cls).Params, body, mpath, ignore=field_names(MeasurementCommonParams)
-        )
+        common, cls, plugin_params = measurement.common, measurement.plugin_class, measurement.params
         for key in ("if_all_conditions", "if_any_conditions", "if_none_conditions"):
             for cid in getattr(common, key):
                 if cid not in conditions:
@@ -260,7 +260,7 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
                     )
         if len(common.remote_prefixes) < len(common.remote_keys):
             raise ConfigError(f"{mpath}.remote_prefixes", "needs one prefix per entry of remote_keys")
-        config = MeasurementConfig(mid, common, cls, plugin_params)
+        config = MeasurementConfig(mid, common, cls, plugin_params, namespace)
         if config.output_topic in outputs:
             raise ConfigError(
                 f"{mpath}.topic_output",

@@ -16,17 +16,18 @@ from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
+from dc_core.record_history import SizedRecordPublisher, history_metrics
 from dc_core.rostime import now_ns
+from dc_core.topics import CONDITION_TOPIC_PREFIX
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
-from dc_measurements.config import MeasurementServerConfig, parse_measurement_server
+from dc_measurements.config import NODE_NAME, MeasurementServerConfig, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
 from dc_measurements.metrics import measurement_prometheus_text
 from dc_measurements.runner import MeasurementRunner
 from dc_measurements.validation import RecordValidator
 
-NODE_NAME = "measurement_server"
 INIT_MATCH_WAIT_S = 2.0
 # How long deactivate waits for collections running on the worker.
 WORKER_DRAIN_S = 5.0
@@ -51,7 +52,7 @@ class MeasurementServer(ManagedServer):
         self.config: MeasurementServerConfig | None = None
         self.runners: dict[str, MeasurementRunner] = {}
         self.conditions: dict[str, ConditionRuntime] = {}
-        self._record_publishers: dict[str, Any] = {}
+        self._record_publishers: dict[str, SizedRecordPublisher] = {}
         self._condition_publishers: list[Any] = []
         self._condition_subscriptions: list[Any] = []
         self._collect_timers: dict[str, Any] = {}
@@ -66,9 +67,10 @@ class MeasurementServer(ManagedServer):
     def configure_server(self) -> None:
         servers = self.read_params_file()
         section = servers[NODE_NAME]
-        config = parse_measurement_server(section)
+        namespace = self.get_namespace()
+        config = parse_measurement_server(section, NODE_NAME, namespace)
         self.config = config
-        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
+        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers, namespace))
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
 
@@ -79,7 +81,7 @@ class MeasurementServer(ManagedServer):
         log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
 
         for name, ccfg in config.conditions.items():
-            publisher = self.create_publisher(ConditionMsg, f"/dc/condition/{name}", CONDITION_QOS)
+            publisher = self.create_publisher(ConditionMsg, CONDITION_TOPIC_PREFIX + name, CONDITION_QOS)
             self._condition_publishers.append(publisher)
             context = _MeasurementContext(name, self.get_logger().get_child(name), self, paths)
             condition = ccfg.plugin_class(context, ccfg.plugin_params)
@@ -95,8 +97,16 @@ class MeasurementServer(ManagedServer):
             context = _MeasurementContext(mcfg.name, self.get_logger().get_child(mcfg.name), self, measurement_paths)
             plugin: Measurement[Any] = mcfg.plugin_class(context, mcfg.plugin_params)
             validator = self._validator(mcfg.name, plugin, c.enable_validator, c.json_schema_path)
-            publisher = self.create_lifecycle_publisher(StringStamped, mcfg.output_topic, record_qos(c.history_depth))
-            self._record_publishers[mcfg.name] = publisher
+            record_publisher = SizedRecordPublisher(
+                mcfg.output_topic,
+                self._record_writers(mcfg.output_topic),
+                self.destroy_lifecycle_publisher,
+                history_depth=c.history_depth,
+                history_bytes=c.history_bytes,
+                record_bytes_estimate=plugin.record_bytes_estimate(),
+                logger=log,
+            )
+            self._record_publishers[mcfg.name] = record_publisher
             runner = MeasurementRunner(
                 mcfg,
                 plugin,
@@ -104,7 +114,7 @@ class MeasurementServer(ManagedServer):
                 validator,
                 run_id,
                 custom,
-                self._publish_fn(self.handoff.output(mcfg.output_topic, publisher)),
+                self._publish_fn(self.handoff.output(mcfg.output_topic, record_publisher)),
                 log,
                 clock_ns=lambda: now_ns(self),
             )
@@ -114,6 +124,12 @@ class MeasurementServer(ManagedServer):
                 f"measurement {mcfg.name} ({c.plugin}) -> {mcfg.output_topic}"
                 + (f" every {c.polling_interval} ms" if plugin.timer_driven else " on events")
             )
+
+    def _record_writers(self, topic: str) -> Any:
+        def create(depth: int) -> Any:
+            return self.create_lifecycle_publisher(StringStamped, topic, record_qos(depth))
+
+        return create
 
     def _base_paths(
         self, section: dict[str, Any], config: MeasurementServerConfig, custom: list[tuple[str, str, bool]]
@@ -205,6 +221,7 @@ class MeasurementServer(ManagedServer):
                 for name, runner in list(self.runners.items())
             },
             "handoff": handoff.metrics() if handoff is not None else {},
+            "history": history_metrics(list(self._record_publishers.values())),
         }
 
     @staticmethod
@@ -319,7 +336,7 @@ class MeasurementServer(ManagedServer):
             self.handoff.close()
             self.handoff = None
         for name in self.runners:
-            self.destroy_lifecycle_publisher(self._record_publishers[name])
+            self._record_publishers[name].destroy()
         for publisher in self._condition_publishers:
             self.destroy_publisher(publisher)
         self.runners.clear()

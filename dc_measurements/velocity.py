@@ -132,12 +132,20 @@ class LatestTwistMeasurement(Measurement[TwistParamsT]):
 
     def on_configure(self) -> None:
         self.on_cleanup()
-        self._subscription = self.context.subscribe(self.message_type, self.topic, self._on_message, SENSOR_QOS)
+        self.subscribe(self.message_type)
 
-    def on_cleanup(self) -> None:
+    def subscribe(self, message_type: Any) -> None:
+        """Subscribe to ``topic`` as ``message_type``, in place of the current subscription."""
+        self._unsubscribe()
+        self._subscription = self.context.subscribe(message_type, self.topic, self._on_message, SENSOR_QOS)
+
+    def _unsubscribe(self) -> None:
         if self._subscription is not None:
             self.context.unsubscribe(self._subscription)
             self._subscription = None
+
+    def on_cleanup(self) -> None:
+        self._unsubscribe()
         self._latest.reset()
 
     def _on_message(self, message: Any, info: Any = None) -> None:

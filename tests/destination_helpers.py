@@ -1,12 +1,15 @@
-"""What the tests of several destination plugins share: sample records, a configured plugin, a PostgreSQL."""
+"""What the tests of several destination plugins share: sample records, a configured plugin, a PostgreSQL,
+a run through the real sender and buffer."""
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import secrets
 import shutil
 import tempfile
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +19,8 @@ from dc_bringup.local_servers.postgres import PostgresServer
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext
+from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
 STAMP_NS = 1_677_668_906_045_817_000
 
@@ -28,6 +33,43 @@ def make(cls: type[Destination[Any]], name: str = "dest", **params: Any) -> Dest
     plugin = cls(FakeContext(name=name), parse_params(cls.Params, params, f"destination_server.{name}"))
     plugin.on_configure()
     return plugin
+
+
+def through_pipeline(
+    tmp_path: Path,
+    dest: Destination[Any],
+    records: list[OutgoingRecord],
+    until: Callable[[dict[str, Any]], bool],
+    *,
+    scheduler_cap: float = 0.2,
+    timeout: float = 15.0,
+) -> dict[str, Any]:
+    """Deliver ``records`` to the configured ``dest`` through the real sender and buffer (short backoff)
+    until ``until`` holds of the destination's metrics (counters, ``buffered``, ``health``); those metrics."""
+    name = dest.context.name
+    logger: Any = logging.getLogger(f"tests.through_pipeline.{name}")
+    settings = DeliveryParams(storage_path=str(tmp_path), flush=0.05, scheduler_base=0.05, scheduler_cap=scheduler_cap)
+    pipeline = DeliveryPipeline(settings, {name: (dest, DestinationDeliveryParams())}, logger)
+    dest.on_activate()
+    pipeline.start()
+    try:
+        for rec in records:
+            pipeline.submit(name, rec)
+        deadline = time.monotonic() + timeout
+        while not until(pipeline.metrics()[name]) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        metrics = pipeline.metrics()[name]
+    finally:
+        pipeline.stop(0.5)
+        dest.on_deactivate()
+    assert until(metrics), metrics
+    return metrics
+
+
+def tls_refused(metrics: dict[str, Any]) -> bool:
+    """The destination reported failing for a TLS verification (dc_destinations.health), records waiting."""
+    health = metrics["health"]
+    return health["state"] == "failing" and "TLS verification failed" in health.get("reason", "")
 
 
 UPTIMES = [

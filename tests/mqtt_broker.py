@@ -39,7 +39,8 @@ def missing_reason() -> str | None:
 class Broker:
     """mosquitto on 127.0.0.1:``port``; ``users`` (name → password) turns anonymous access off.
 
-    ``tls``: (certificate, key) PEM files make the listener a TLS one.
+    ``tls``: (certificate, key) PEM files make the listener a TLS one; ``client_ca``: it then asks
+    every client for a certificate signed by that CA.
     ``persistent``: the broker saves its sessions when stopped and loads them when started again,
     so a subscriber's subscription and the QoS 1 messages queued for it survive a restart.
     """
@@ -52,6 +53,7 @@ class Broker:
         users: dict[str, str] | None = None,
         persistent: bool = False,
         tls: tuple[Path, Path] | None = None,
+        client_ca: Path | None = None,
     ) -> None:
         self.folder = folder
         folder.mkdir(parents=True, exist_ok=True)
@@ -69,6 +71,8 @@ class Broker:
         ]
         if tls is not None:
             lines += [f"certfile {tls[0]}", f"keyfile {tls[1]}"]
+            if client_ca is not None:
+                lines += [f"cafile {client_ca}", "require_certificate true"]
         if users:
             if MOSQUITTO_PASSWD is None:
                 raise RuntimeError("mosquitto_passwd is not installed")

@@ -16,6 +16,7 @@ from nav_msgs.msg import Odometry
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from tf2_msgs.msg import TFMessage
 
 from dc_core.measurement import Measurement
@@ -51,12 +52,17 @@ class Ros:
 
 
 @contextmanager
-def ros_session(name: str) -> Iterator[Ros]:
-    """A node in a fresh context, its executor, and a plugin harness on it."""
+def ros_session(name: str, *, use_sim_time: bool = False, domain_id: int | None = None) -> Iterator[Ros]:
+    """A node in a fresh context (in ``domain_id``, else the session's domain; following /clock with
+    ``use_sim_time``), its executor, and a plugin harness on it."""
     context = Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, domain_id=domain_id)
     try:
-        node = rclpy.create_node(f"test_{name}_{uuid.uuid4().hex[:8]}", context=context)
+        node = rclpy.create_node(
+            f"test_{name}_{uuid.uuid4().hex[:8]}",
+            context=context,
+            parameter_overrides=[Parameter("use_sim_time", Parameter.Type.BOOL, use_sim_time)],
+        )
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         try:

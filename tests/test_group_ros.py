@@ -25,6 +25,7 @@ from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from dc_core.qos import record_qos
 from dc_group.server import GroupServer
 from dc_interfaces.msg import StringStamped
 from tests.hostile_records import hostile_stream
@@ -410,3 +411,25 @@ def test_records_destination_server_reads_are_kept_until_acknowledged_and_sent_a
     ack("first", 3)
     assert h.spin_until(lambda: h.server.handoff is not None and h.server.handoff.metrics()[output]["unacked"] == 0)
     assert h.server.handoff.metrics()[output] == {"unacked": 0, "unacked_bytes": 0, "dropped": 0, "resent": 2}
+
+
+def test_large_merged_records_get_a_history_bounded_in_bytes(start: Any) -> None:
+    h = start({"frames": {"inputs": ["camera"], "sync_delay": 0.1, "history_bytes": 500_000}})
+    activate(h)
+    live = h.listen("frames")
+    blob = "x" * 100_000
+    for i in range(12):
+        h.publish("camera", {"i": i, "image": blob}, (10 + i) * S)
+    h.wait_for_output("frames", 12)
+    history = h.server.metrics_document()["history"][h.topic("frames")]
+    assert history["largest_record"] > 100_000
+    assert history["depth"] == 500_000 // history["largest_record"] == 4
+    # A transient-local subscriber joining now gets what DDS holds: the newest 4, not 12.
+    late: list[int] = []
+    h.helper.create_subscription(
+        StringStamped, h.topic("frames"), lambda msg: late.append(json.loads(msg.data)["camera"]["i"]), record_qos(1000)
+    )
+    assert h.spin_until(lambda: len(late) >= 4)
+    h.spin_until(lambda: len(late) > 4, timeout=0.5)  # nothing beyond the history
+    assert late == [8, 9, 10, 11]
+    assert [r.data["camera"]["i"] for r in live] == list(range(12))  # the replacement lost nothing live

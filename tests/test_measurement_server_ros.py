@@ -24,6 +24,7 @@ from typing import Any
 import pytest
 import rclpy
 import yaml
+from dc_lifecycle_interfaces.msg import Heartbeat
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
@@ -35,8 +36,9 @@ from dc_core import plugins
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ServerLoop
 from dc_core.measurement import Measurement
 from dc_core.params import NoParams
+from dc_core.qos import record_qos
 from dc_core.worker import Outcome, Worker
-from dc_interfaces.msg import Heartbeat, StringStamped
+from dc_interfaces.msg import StringStamped
 from dc_measurements.config import parse_measurement_server
 from dc_measurements.server import MeasurementServer
 from tests.hostile_records import hostile_stream
@@ -457,6 +459,9 @@ def test_counters_are_served_over_http_while_active(harness: Harness) -> None:
 
     with urllib.request.urlopen(f"{base}/metrics", timeout=5) as reply:
         document = json.load(reply)
+    history = document.pop("history")[f"/dc/measurement/{measurement.name}"]
+    assert (history["depth"], history["replaced"]) == (1000, 0)  # small records: the count bounds the history
+    assert history["held_bytes"] == history["largest_record"] > 0  # the one record published
     assert document == {
         "measurements": {
             measurement.name: {
@@ -647,3 +652,47 @@ def test_worker_hands_outcomes_back_on_the_thread_that_runs_them() -> None:
             Outcome[int](error=ValueError("broken device")).get()
     finally:
         worker.shutdown()
+
+
+# --- the history of the output topics, bounded in bytes ------------------------------------------
+
+
+def test_a_large_record_measurement_gets_a_shallow_history_a_small_one_keeps_1000(harness: Harness) -> None:
+    big, small = unique("big"), unique("small")
+    blob = "x" * 100_000
+    server = harness.start_server(f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["{big}", "{small}"]
+    {big}:
+      plugin: "dc_measurements/Dummy"
+      polling_interval: 100
+      history_bytes: 1048576
+      record: '{{"blob": "{blob}"}}'
+    {small}:
+      plugin: "dc_measurements/Dummy"
+      polling_interval: 100
+      history_bytes: 1048576
+""")
+    # A volatile subscriber from the start (as group_server's): the writer's replacement loses it nothing.
+    live = harness.listen(f"/dc/measurement/{big}")
+    assert server.trigger_configure() == SUCCESS
+    assert server.trigger_activate() == SUCCESS
+    harness.spin_until(lambda: server.runners[big].stats.published >= 15, "15 large records")
+    assert server.trigger_deactivate() == SUCCESS
+    published = server.runners[big].stats.published
+    harness.spin_until(lambda: len(live) == published, "every large record, live")
+    history = server.metrics_document()["history"]
+    size = history[f"/dc/measurement/{big}"]["largest_record"]
+    assert size > 100_000
+    assert history[f"/dc/measurement/{big}"]["depth"] == 1048576 // size == 10
+    assert history[f"/dc/measurement/{big}"]["replaced"] == 1
+    assert history[f"/dc/measurement/{small}"]["depth"] == 1000
+
+    # What DDS replays to a transient-local subscriber that joins late: the newest 10, not all 15+.
+    late: list[Any] = []
+    harness.peer.create_subscription(StringStamped, f"/dc/measurement/{big}", late.append, record_qos(1000))
+    harness.spin_until(lambda: len(late) >= 10, "the history")
+    harness.spin_for(0.5)  # nothing beyond it
+    assert len(late) == 10
+    assert [m.data for m in late] == [m.data for m in live[-10:]]

@@ -9,7 +9,7 @@ import pytest
 
 from dc_core.config import load_params_file, nest_dotted_keys
 from dc_core.errors import ConfigError
-from dc_core.params import describe_params, param, parse_params
+from dc_core.params import describe_params, host_problem, param, parse_params, port_problem
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -155,3 +155,20 @@ def test_an_unset_environment_reference_names_the_key(tmp_path: Any, monkeypatch
         load_params_file(file)
     assert caught.value.path == "destination_server.pg.password"
     assert "environment variable DC_TEST_UNSET is not set" in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("port", "ok"), [(1, True), (65535, True), ("5432", True), (0, False), (65536, False), ("x", False)]
+)
+def test_port_problem_is_the_one_port_check(port: int | str, ok: bool) -> None:
+    assert (port_problem(port) is None) == ok
+    if not ok:
+        assert port_problem(port) == "a TCP port from 1 to 65535"
+
+
+@pytest.mark.parametrize(
+    ("host", "ok"),
+    [("127.0.0.1", True), ("::1", True), ("db.example.org", True), ("", False), ("http://x", False), ("a b", False)],
+)
+def test_host_problem_refuses_what_is_not_a_host(host: str, ok: bool) -> None:
+    assert (host_problem(host) is None) == ok

@@ -98,6 +98,21 @@ def test_looping_starts_the_clock_over(ros: Ros) -> None:
     player.close()
 
 
+def test_the_clock_never_goes_back_within_a_pass_even_when_the_player_lags(ros: Ros) -> None:
+    """At 10,000x every message is late: the wall-paced /clock runs ahead of the messages' times. Were a
+    late message's time published after it, /clock would go back and DC would clear its TF history."""
+    clock: list[int] = []
+    ros.node.create_subscription(
+        Clock, "/clock", lambda m: clock.append(stamp_ns(cast(Any, m).clock)), QoSProfile(depth=1000)
+    )
+    player = BagPlayer(ros.node, BAG, ReplayOptions(rate=10_000.0, topics=("/odom",), delay_s=0), RecordingLogger())
+    thread = play(ros, player)
+    assert ros.spin_until(lambda: not thread.is_alive() and len(clock) >= ODOMETRY_MESSAGES)
+    assert player.report.published["/odom"] == ODOMETRY_MESSAGES
+    assert clock == sorted(clock)
+    player.close()
+
+
 def test_what_cannot_be_replayed_is_said(ros: Ros, tmp_path: Path) -> None:
     with pytest.raises(ReplayError, match="no bag at"):
         BagPlayer(ros.node, tmp_path / "nothing", ReplayOptions(), RecordingLogger())

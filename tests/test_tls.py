@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import pwd
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -18,10 +19,11 @@ import pytest
 
 from dc_bringup.local_servers.postgres import missing_reason
 from dc_core.destination import Destination, RetryableError
+from dc_core.errors import ConfigError
 from dc_core.params import parse_params
 from dc_core.plugins import load_plugin
 from dc_core.testing import FakeContext, RecordingLogger
-from dc_destinations.tls import is_credential_name, is_loopback
+from dc_destinations.tls import TlsParams, client_context, is_credential_name, is_loopback
 from tests.destination_helpers import UPTIMES, running_postgres
 
 REMOTE = "192.0.2.1"  # TEST-NET-1: documentation only, never routed
@@ -92,8 +94,9 @@ CASES: list[tuple[str, dict[str, Any], dict[str, Any] | None, str]] = [
     ("dc_destinations/HTTP", {"bearer_token": "t0ken", "tls": True, "tls_verify": False}, None, "tls_verify: true"),
     ("dc_destinations/MQTT", {"username": "dc", "password": "s3cret"}, {"tls": True}, "password of dc"),
     ("dc_destinations/MQTT", {"username": "dc", "password": "s3cret", "tls": True, "tls_verify": False}, None, "dc"),
-    ("dc_destinations/InfluxDB", {"http_token": "t0ken", "bucket": "b", "org": "o"}, None, "the token"),
-    ("dc_destinations/InfluxDB", {"http_user": "dc", "http_passwd": "s3cret"}, None, "password of dc"),
+    ("dc_destinations/InfluxDB", {"http_token": "t0ken", "bucket": "b", "org": "o"}, {"tls": True}, "the token"),
+    ("dc_destinations/InfluxDB", {"http_user": "dc", "http_passwd": "s3cret"}, {"tls": True}, "password of dc"),
+    ("dc_destinations/InfluxDB", {"http_token": "t0ken", "bucket": "b", "tls": True, "tls_verify": False}, None, "tok"),
 ]
 
 
@@ -124,6 +127,42 @@ def test_credentials_to_a_remote_host_in_clear_are_warned_about_once(
 )
 def test_no_credentials_no_warning(kind: str, params: dict[str, Any]) -> None:
     assert warnings_of(kind, host=REMOTE, **params) == []
+
+
+# -- one TLS parameter set: the flat tls_* keys, and TCP's original tls: section as their alias -----------
+
+
+@pytest.mark.parametrize("kind", ["dc_destinations/HTTP", "dc_destinations/MQTT", "dc_destinations/InfluxDB"])
+def test_the_tls_section_is_an_alias_of_the_flat_keys_on_every_destination(kind: str) -> None:
+    section = {"active": True, "verify": "off", "ca_file": "", "key_passwd": ""}
+    plugin, logger = configured(kind, tls=section)
+    params: Any = plugin.params
+    assert (params.tls, params.tls_verify, params.tls_ca_file) == (True, False, "")
+    (note,) = logger.at("warning")
+    assert "destination_server.sink.tls: the tls: section" in note and "deprecated" in note
+    flat, flat_logger = configured(kind, tls=True, tls_verify=False)
+    assert flat_logger.at("warning") == [], "the flat spelling is not deprecated"
+    assert flat.params == params, "the same settings either way"
+
+
+def test_the_two_spellings_do_not_mix_and_errors_name_the_key_as_written(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"^x\.tls_verify: write the TLS settings either as tls_\* keys"):
+        parse_params(TlsParams, {"tls": {"active": True}, "tls_verify": False}, "x")
+    with pytest.raises(ConfigError, match=r"^x\.tls\.key_file: set crt_file too"):
+        parse_params(TlsParams, {"tls": {"active": True, "key_file": "k.pem"}}, "x")
+    with pytest.raises(ConfigError, match=r"^x\.tls\.vhost: this destination has no vhost setting"):
+        parse_params(TlsParams, {"tls": {"active": True, "vhost": "example.org"}}, "x")
+    missing = str(tmp_path / "none.pem")
+    for spelled, params in (
+        ("tls_ca_file", {"tls": True, "tls_ca_file": missing}),
+        ("tls.ca_file", {"tls": {"active": True, "ca_file": missing}}),
+    ):
+        with pytest.raises(
+            ConfigError, match=rf"^destination_server\.d\.{re.escape(spelled)}: cannot load .*: no such file"
+        ):
+            client_context(parse_params(TlsParams, params, "x"), "destination_server.d")
+    off = parse_params(TlsParams, {"tls_ca_file": missing}, "x")
+    assert client_context(off, "destination_server.d") is None, "files are read only when tls is on"
 
 
 def test_object_stores_over_plain_http_are_warned_about() -> None:

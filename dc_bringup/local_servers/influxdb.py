@@ -5,6 +5,7 @@ Debian's ``influxdb`` package (1.6) is the server that installs here: it offers 
 data and WAL folders, its configuration, log, pid and port live in the state folder, so a restart
 with the same folder finds the same data on the same port. Usage reporting and the ``_internal``
 monitoring database are off; with ``user`` set, authentication is on and that user is an admin.
+With ``tls`` (certificate, key and the CA that signed it, PEM files) it answers HTTPS only.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import base64
 import contextlib
 import json
 import shutil
+import ssl
 import subprocess
 import time
 import urllib.error
@@ -37,9 +39,18 @@ class InfluxServer:
     name = "influxdb"
 
     def __init__(
-        self, state_dir: Path, port: int = 0, database: str = "dc", user: str = "", password: str = ""
+        self,
+        state_dir: Path,
+        port: int = 0,
+        database: str = "dc",
+        user: str = "",
+        password: str = "",
+        tls: tuple[Path, Path, Path] | None = None,
     ) -> None:
         self.state_dir = Path(state_dir).absolute()
+        self.tls = tls
+        # How this process checks the server it started: with the CA of its certificate.
+        self._client_tls = ssl.create_default_context(cafile=str(tls[2])) if tls is not None else None
         self.database = database
         self.user = user
         self.password = password
@@ -58,7 +69,7 @@ class InfluxServer:
 
     @property
     def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
+        return f"{'https' if self.tls is not None else 'http'}://127.0.0.1:{self.port}"
 
     # -- protocol ---------------------------------------------------------------------------------
     def start(self, timeout: float = 30.0) -> None:
@@ -94,6 +105,8 @@ class InfluxServer:
         values: dict[str, str | int] = {"host": "127.0.0.1", "port": self.port, "database": self.database}
         if self.user:
             values.update(http_user=self.user, http_passwd=self.password)
+        if self.tls is not None:
+            values.update(tls="true", tls_ca_file=str(self.tls[2]))
         return values
 
     def __enter__(self) -> InfluxServer:
@@ -121,7 +134,7 @@ class InfluxServer:
             token = base64.b64encode(f"{self.user}:{self.password}".encode()).decode("ascii")
             request.add_header("Authorization", f"Basic {token}")
         try:
-            with urllib.request.urlopen(request, timeout=10) as response:
+            with urllib.request.urlopen(request, timeout=10, context=self._client_tls) as response:
                 answer = json.loads(response.read())
         except urllib.error.HTTPError as exc:
             raise ServerError(
@@ -159,6 +172,12 @@ bind-address = "127.0.0.1:{rpc_port}"
   auth-enabled = {"true" if self.user else "false"}
   log-enabled = false
 """
+        if self.tls is not None:
+            certificate, key, _ca = self.tls
+            text += f"""  https-enabled = true
+  https-certificate = {json.dumps(str(certificate))}
+  https-private-key = {json.dumps(str(key))}
+"""
         path = self.state_dir / "influxdb.conf"
         path.write_text(text)
         return path
@@ -170,7 +189,7 @@ bind-address = "127.0.0.1:{rpc_port}"
                     f"influxd exited with status {self._process.returncode} on port {self.port}{self._log_tail()}"
                 )
             try:
-                with urllib.request.urlopen(f"{self.url}/ping", timeout=2) as response:
+                with urllib.request.urlopen(f"{self.url}/ping", timeout=2, context=self._client_tls) as response:
                     if response.status == 204:
                         return
             except (OSError, urllib.error.URLError):

@@ -24,7 +24,7 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.logs import BurstLog
-from dc_core.params import param
+from dc_core.params import param, port_problem
 from dc_destinations.confined_files import (
     Confinement,
     ConfinementParams,
@@ -70,13 +70,6 @@ def _storages_problem(storages: list[str]) -> str | None:
     return None
 
 
-def _port_problem(port: int | str) -> str | None:
-    expected = "a TCP port from 1 to 65535"
-    if isinstance(port, str):
-        port = int(port) if port.strip().isdigit() else 0
-    return None if 1 <= port <= 65535 else expected
-
-
 @dataclass(frozen=True, kw_only=True, repr=False)
 class StorageSection(ObjectStoreParams):
     input_names: list[str] = param([], doc="Found in the seed's demos: accepted, no effect")
@@ -107,7 +100,7 @@ def _s3_not_given() -> S3Section:
 @dataclass(frozen=True, kw_only=True)
 class FilesMetricsDatabaseParams:
     host: str = param("127.0.0.1", doc="Host name or IP address of the PostgreSQL server")
-    port: int | str = param(5432, check=_port_problem, doc='TCP port of the server (the original wrote "5432")')
+    port: int | str = param(5432, check=port_problem, doc='TCP port of the server (the original wrote "5432")')
     user: str = param("", doc="Role to log in as; empty: the system user running DC (libpq's default)")
     password: str = param("", secret=True, doc="Password of `user` (never logged)")
     database: str = param("", doc="Database to connect to; empty: the same name as the user (libpq's default)")

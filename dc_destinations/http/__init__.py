@@ -10,13 +10,11 @@ bearer token, TLS key password) are secrets: never logged, masked should a serve
 from __future__ import annotations
 
 import base64
-import email.utils
 import gzip
 import http.client
 import re
 import ssl
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -24,24 +22,19 @@ from urllib.parse import parse_qsl
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import param
-from dc_destinations.tls import is_credential_name, warn_if_credentials_in_clear
+from dc_core.params import host_problem, param, port_problem
+from dc_destinations.http_client import connection_to, is_retryable_status, masked, one_line, retry_after_seconds
+from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
 FORMATS = ("json", "json_lines", "json_stream", "msgpack")
 CONTENT_TYPES = {"json_lines": "application/x-ndjson", "msgpack": "application/msgpack"}
 COMPRESSIONS = ("", "gzip")
-# Statuses a server uses to say "not now": the same request may succeed later.
-RETRYABLE_STATUSES = frozenset({408, 429})
 _HEADER_TOKEN = r"[!#$%&'*+.^_`|~0-9A-Za-z-]+"
 _HEADER_COLON = re.compile(rf"^({_HEADER_TOKEN}):[ \t]*(.*)$")
 _HEADER_SPACE = re.compile(rf"^({_HEADER_TOKEN})[ \t]+(.*)$")  # Fluent Bit's `Header Name value`
 _EXCERPT_CHARS = 200
 # Bytes of a response body read to keep the connection reusable; a longer body closes it instead.
 _BODY_READ_LIMIT = 64 * 1024
-
-
-def _port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
 
 
 def _uri_problem(uri: str) -> str | None:
@@ -67,9 +60,9 @@ def _latin1(text: str) -> bool:
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
-class HttpParams:
-    host: str = param("127.0.0.1", doc="Host name or IP address of the HTTP server")
-    port: int = param(80, check=_port_problem, doc="TCP port of the HTTP server (443 is usual with `tls`)")
+class HttpParams(TlsParams):
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the HTTP server")
+    port: int = param(80, check=port_problem, doc="TCP port of the HTTP server (443 is usual with `tls`)")
     uri: str = param("/", check=_uri_problem, doc="Path (and query) the batches are POSTed to")
     format: str = param(
         "json",
@@ -89,12 +82,6 @@ class HttpParams:
     http_user: str = param("", doc="User name of HTTP basic authentication; empty: no authentication")
     http_passwd: str = param("", secret=True, doc="Password of HTTP basic authentication (never logged)")
     bearer_token: str = param("", secret=True, doc="Token sent as `Authorization: Bearer <token>` (never logged)")
-    tls: bool = param(False, doc="Use HTTPS")
-    tls_verify: bool = param(True, doc="Check the server's certificate and host name (with `tls`)")
-    tls_ca_file: str = param("", doc="CA certificates (PEM) to trust instead of the system's (with `tls`)")
-    tls_crt_file: str = param("", doc="Client certificate (PEM) for servers that ask for one (with `tls`)")
-    tls_key_file: str = param("", doc="Private key (PEM) of tls_crt_file, when not in the same file")
-    tls_key_passwd: str = param("", secret=True, doc="Password of an encrypted tls_key_file (never logged)")
     timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read or write")
     retry_after_max: float = param(
         60.0,
@@ -107,6 +94,7 @@ class HttpParams:
     )
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         for i, entry in enumerate(self.headers_list):
             if parse_header(entry) is None:
                 raise ConfigError(f"header[{i}]", f'expected "Name: value", got "{entry}"')
@@ -123,18 +111,12 @@ class HttpParams:
             raise ConfigError("bearer_token", "choose http_user/http_passwd or bearer_token, not both")
         if self.bearer_token and (not _latin1(self.bearer_token) or any(c in self.bearer_token for c in " \r\n")):
             raise ConfigError("bearer_token", "expected a token of Latin-1 characters without spaces")
-        if self.tls_key_file and not self.tls_crt_file:
-            raise ConfigError("tls_key_file", "set tls_crt_file too (the key goes with a client certificate)")
-        if self.tls_key_passwd and not (self.tls_key_file or self.tls_crt_file):
-            raise ConfigError("tls_key_passwd", "set tls_key_file (or tls_crt_file) too")
         if self.http_passwd and not self.http_user:
             raise ConfigError("http_passwd", "set http_user too (basic authentication needs both)")
         if ":" in self.http_user:
             raise ConfigError("http_user", "a user name without ':' (basic authentication separates with it)")
         if self.header_tag and not re.fullmatch(_HEADER_TOKEN, self.header_tag):
             raise ConfigError("header_tag", f'expected a header name, got "{self.header_tag}"')
-        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
-            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
 
     @property
     def headers_list(self) -> list[str]:
@@ -152,15 +134,12 @@ class Http(Destination[HttpParams]):
         self._tls: ssl.SSLContext | None = None
         self._lock = threading.Lock()
         self._encode: Callable[[Sequence[OutgoingRecord]], bytes] = _json_encoder("json")
-        # Monotonic time before which the server asked not to be called again (Retry-After).
-        self._not_before = 0.0
-        self._stopping = threading.Event()
         self.url = ""
 
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         p = self.params
-        scheme = "https" if p.tls else "http"
+        scheme = "https" if p.tls_on else "http"
         host = f"[{p.host}]" if ":" in p.host else p.host
         # Without the query: it may hold an API key, and this URL goes into logs and dead letters.
         self.url = f"{scheme}://{host}:{p.port}{p.uri.split('?', 1)[0]}"
@@ -186,7 +165,7 @@ class Http(Destination[HttpParams]):
         headers.extend((str(name), _header_value(value)) for name, value in p.headers.items())
         self._headers = _merge_headers(headers, keep_duplicates=p.allow_duplicated_headers)
         self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_encoder(p.format)
-        self._tls = self._tls_context() if p.tls else None
+        self._tls = client_context(p, self._key_path(""), self.context.logger)
         self._warn_if_credentials_in_clear()
 
     def _warn_if_credentials_in_clear(self) -> None:
@@ -204,25 +183,23 @@ class Http(Destination[HttpParams]):
         if any(is_credential_name(key) for key, _ in parse_qsl(p.uri.partition("?")[2], keep_blank_values=True)):
             sent.append("the uri's query parameters")
         fix = "set tls: true (tls_verify: true, tls_ca_file for a private CA)"
-        if p.tls and not p.tls_verify:
+        if p.tls_on and not p.tls_verify:
             fix = "set tls_verify: true (tls_ca_file for a private CA)"
         warn_if_credentials_in_clear(
             self.context.logger,
             self.context.name,
             p.host,
             credentials=", ".join(sent),
-            verified_tls=p.tls and p.tls_verify,
+            verified_tls=p.tls_verified,
             fix=fix,
         )
 
     def on_activate(self) -> None:
-        self._stopping.clear()
         # The connection opens with the first batch, in the sender's thread: a server that is down
         # or slow to answer must not hold up activation.
         self.context.logger.info(f"posting {self.params.format} batches to {self.url}")
 
     def on_deactivate(self) -> None:
-        self._stopping.set()  # ends a wait for Retry-After at once
         with self._lock:
             self._close()
 
@@ -232,10 +209,6 @@ class Http(Destination[HttpParams]):
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         body = self._body(batch)
-        # The sender's backoff may be shorter than what the server asked for: wait for the rest.
-        delay = self._not_before - time.monotonic()
-        if delay > 0 and self._stopping.wait(delay):
-            raise RetryableError(f"stopping while waiting for the server's Retry-After ({self.url})")
         with self._lock:
             reused = self._connection is not None
             try:
@@ -256,13 +229,13 @@ class Http(Destination[HttpParams]):
         # The server's reason first: `dc buffer list` shows the start of the message.
         message = f"HTTP {status} {reason}" + (f": {excerpt}" if excerpt else "") + f" ({self.url})"
         message = self._scrub(message)
-        if status in RETRYABLE_STATUSES or status >= 500:
-            wait = _retry_after_seconds(retry_after)
-            if wait is not None and self.params.retry_after_max > 0:
-                wait = min(wait, self.params.retry_after_max)
-                self._not_before = time.monotonic() + wait
-                message += f"; Retry-After {wait:g} s"
-            raise RetryableError(message)
+        if is_retryable_status(status):
+            wait = retry_after_seconds(retry_after)
+            if wait is None or self.params.retry_after_max <= 0:
+                raise RetryableError(message)
+            wait = min(wait, self.params.retry_after_max)
+            # The sender waits (within its scheduler_cap) before the next attempt, not this thread.
+            raise RetryableError(f"{message}; Retry-After {wait:g} s", retry_after=wait)
         if status in (401, 403):
             # The records are refused as before (dead letters, `dc buffer replay` once fixed); the
             # destination is failing at once, for the credentials are wrong for every record.
@@ -296,32 +269,11 @@ class Http(Destination[HttpParams]):
 
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:
-            p = self.params
-            if p.tls:
-                self._connection = http.client.HTTPSConnection(p.host, p.port, timeout=p.timeout, context=self._tls)
-            else:
-                self._connection = http.client.HTTPConnection(p.host, p.port, timeout=p.timeout)
+            self._connection = connection_to(self.params.host, self.params.port, self.params.timeout, self._tls)
         return self._connection
 
-    def _tls_context(self) -> ssl.SSLContext:
-        p = self.params
-        try:
-            context = ssl.create_default_context(cafile=p.tls_ca_file or None)
-        except (OSError, ssl.SSLError) as exc:
-            raise ConfigError(self._key_path("tls_ca_file"), f"cannot load {p.tls_ca_file}: {exc}") from exc
-        if not p.tls_verify:
-            context.check_hostname = False
-            context.verify_mode = ssl.CERT_NONE
-        if p.tls_crt_file:
-            try:
-                context.load_cert_chain(p.tls_crt_file, p.tls_key_file or None, password=p.tls_key_passwd or None)
-            except (OSError, ssl.SSLError) as exc:
-                # The key password is not part of the message: an SSLError says "bad decrypt" at most.
-                raise ConfigError(self._key_path("tls_crt_file"), f"cannot load {p.tls_crt_file}: {exc}") from exc
-        return context
-
     def _key_path(self, key: str) -> str:
-        return f"destination_server.{self.context.name}.{key}"
+        return f"destination_server.{self.context.name}" + (f".{key}" if key else "")
 
     def _close(self) -> None:
         if self._connection is not None:
@@ -336,16 +288,10 @@ class Http(Destination[HttpParams]):
         return self._scrub(f"cannot POST to {self.url}: {detail}")
 
     def _excerpt(self, data: bytes) -> str:
-        text = " ".join(data.decode("utf-8", errors="replace").split())
-        if len(text) > _EXCERPT_CHARS:
-            text = text[: _EXCERPT_CHARS - 1] + "…"
-        return self._scrub(text)
+        return self._scrub(one_line(data.decode("utf-8", errors="replace"), _EXCERPT_CHARS))
 
     def _scrub(self, text: str) -> str:
-        """The credentials masked, should a server echo the request back."""
-        for secret in self._secrets:
-            text = text.replace(secret, "***")
-        return text
+        return masked(text, self._secrets)
 
 
 def _merge_headers(headers: list[tuple[str, str]], *, keep_duplicates: bool) -> list[tuple[str, str]]:
@@ -399,19 +345,3 @@ def _header_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     return str(value)
-
-
-def _retry_after_seconds(value: str | None) -> float | None:
-    """Retry-After in seconds, from delay-seconds or an HTTP date; None when absent or unreadable."""
-    if not value:
-        return None
-    value = value.strip()
-    if value.isdigit():
-        return float(value)
-    try:
-        moment = email.utils.parsedate_to_datetime(value)
-    except (TypeError, ValueError):
-        return None
-    if moment.tzinfo is None:
-        return None
-    return max(0.0, moment.timestamp() - time.time())

@@ -9,25 +9,18 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import gzip
-import ipaddress
 import json
 import logging
 import re
-import ssl
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
 import msgpack
 import pytest
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
 
 from dc_core.destination import OutgoingRecord, RejectedError, RetryableError
 from dc_core.errors import ConfigError
@@ -39,7 +32,9 @@ from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.http import Http, HttpParams
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+from tests.destination_helpers import through_pipeline, tls_refused
 from tests.http_receiver import Receiver, Request, Responder, free_port
+from tests.tls_pki import KEY_PASSWORD, Pki, make_pki
 
 
 def http_destination(name: str = "web", **params: Any) -> Http:
@@ -482,22 +477,26 @@ def test_a_bad_bearer_token_dead_letters_the_batch_and_is_never_logged(
 
 
 class RetryAfterServer:
-    """Answers 429 with a Retry-After header to the first request, then 200 (http_receiver sets no headers)."""
+    """Answers ``status`` with a Retry-After header to the first request, then 200; keeps each request's
+    arrival time and the records of those it accepted (http_receiver sets no headers)."""
 
-    def __init__(self, retry_after: str) -> None:
+    def __init__(self, retry_after: str, status: int = 429) -> None:
         self.times: list[float] = []
+        self.accepted: list[dict[str, Any]] = []
         server = self
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
 
             def do_POST(self) -> None:
-                self.rfile.read(int(self.headers.get("Content-Length", "0")))
+                body = self.rfile.read(int(self.headers.get("Content-Length", "0")))
                 server.times.append(time.monotonic())
                 first = len(server.times) == 1
-                self.send_response(429 if first else 200)
+                self.send_response(status if first else 200)
                 if first:
                     self.send_header("Retry-After", retry_after)
+                else:
+                    server.accepted.extend(json.loads(body))
                 self.send_header("Content-Length", "0")
                 self.end_headers()
 
@@ -517,119 +516,71 @@ class RetryAfterServer:
         self.http.server_close()
 
 
-def test_retry_after_is_obeyed_before_the_next_attempt() -> None:
+def test_retry_after_goes_to_the_sender_and_send_does_not_wait() -> None:
     with RetryAfterServer("1") as server:
         dest = http_destination(port=server.port)
-        with pytest.raises(RetryableError, match=r"HTTP 429 Too Many Requests .*; Retry-After 1 s"):
+        with pytest.raises(RetryableError, match=r"HTTP 429 Too Many Requests .*; Retry-After 1 s") as caught:
             dest.send(BATCH)
-        assert dest.send(BATCH) is None  # at once: the destination waits for the rest of the second
-    assert server.times[1] - server.times[0] >= 0.95
+        assert caught.value.retry_after == 1.0
+        assert dest.send(BATCH) is None  # at once: waiting is the sender's backoff's job
+    assert server.times[1] - server.times[0] < 0.9
 
 
 def test_retry_after_as_a_date_is_capped_by_retry_after_max() -> None:
     later = dt.datetime.now(dt.UTC) + dt.timedelta(hours=1)
     with RetryAfterServer(later.strftime("%a, %d %b %Y %H:%M:%S GMT")) as server:
         dest = http_destination(port=server.port, retry_after_max=0.5)
-        with pytest.raises(RetryableError, match=r"Retry-After 0.5 s"):
+        with pytest.raises(RetryableError, match=r"Retry-After 0.5 s") as caught:
             dest.send(BATCH)
-        assert dest.send(BATCH) is None
-    assert 0.45 <= server.times[1] - server.times[0] < 5
+    assert caught.value.retry_after == 0.5
+    with RetryAfterServer("30") as server, pytest.raises(RetryableError) as caught:
+        http_destination(port=server.port, retry_after_max=0).send(BATCH)
+    assert caught.value.retry_after is None, "retry_after_max 0: the backoff alone decides"
 
 
-def test_deactivation_ends_a_retry_after_wait() -> None:
-    with RetryAfterServer("60") as server:
-        dest = http_destination(port=server.port)
-        with pytest.raises(RetryableError):
-            dest.send(BATCH)
-        threading.Timer(0.2, dest.on_deactivate).start()
-        started = time.monotonic()
-        with pytest.raises(RetryableError, match="stopping while waiting"):
-            dest.send(BATCH)
-        assert time.monotonic() - started < 5
+@pytest.mark.parametrize(("cap", "earliest", "latest"), [(5.0, 1.95, 5.5), (0.5, 0.0, 1.5)])
+def test_the_senders_backoff_honours_retry_after_within_scheduler_cap(
+    tmp_path: Path, cap: float, earliest: float, latest: float
+) -> None:
+    """503 with Retry-After: 2, then 200: the second attempt comes no sooner than 2 s (the backoff
+    alone would retry after at most 0.05 s) and no later than scheduler_cap, which bounds it."""
+    logger: Any = logging.getLogger("test_http_destination.retry_after")
+    records = [record(n) for n in range(5)]
+    with RetryAfterServer("2", status=503) as server:
+        dest = Http(FakeContext(name="web", logger=logger), parse_params(HttpParams, {"port": server.port}, "web"))
+        dest.on_configure()
+        settings = DeliveryParams(storage_path=str(tmp_path), flush=0.05, scheduler_base=0.05, scheduler_cap=cap)
+        pipeline = DeliveryPipeline(settings, {"web": (dest, DestinationDeliveryParams())}, logger)
+        dest.on_activate()
+        pipeline.start()
+        try:
+            for rec in records:
+                pipeline.submit("web", rec)
+            deadline = time.monotonic() + 15
+            while int(pipeline.metrics()["web"]["sent"]) < len(records) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            metrics = pipeline.metrics()["web"]
+        finally:
+            pipeline.stop(0.5)
+            dest.on_deactivate()
+    first, second = server.times[:2]
+    assert earliest <= second - first <= latest, server.times
+    delivered = {r["record_id"] for r in server.accepted}
+    counted = int(metrics["dead_lettered"]) + int(metrics.get("dropped", 0))
+    assert len(delivered) + counted == len(records) == int(metrics["sent"]), metrics
+    assert int(metrics["retried"]) >= 1
 
 
 # -- TLS with a private CA -------------------------------------------------------------------------------------
 
-KEY_PASSWORD = "client-key-pa55"
-
-
-@dataclass(frozen=True)
-class Pki:
-    ca: Path
-    server_crt: Path
-    server_key: Path
-    client_crt: Path
-    client_key: Path  # encrypted with KEY_PASSWORD
-    stranger_ca: Path  # a CA that signed none of these
-
-
-def _issue(
-    folder: Path, name: str, issuer: tuple[x509.Name, ec.EllipticCurvePrivateKey] | None, *, server: bool = False
-) -> tuple[x509.Name, ec.EllipticCurvePrivateKey, x509.Certificate]:
-    key = ec.generate_private_key(ec.SECP256R1())
-    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)])
-    issuer_name, issuer_key = issuer if issuer is not None else (subject, key)
-    now = dt.datetime.now(dt.UTC)
-    builder = (
-        x509.CertificateBuilder()
-        .subject_name(subject)
-        .issuer_name(issuer_name)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - dt.timedelta(minutes=5))
-        .not_valid_after(now + dt.timedelta(days=1))
-        .add_extension(x509.BasicConstraints(ca=issuer is None, path_length=None), critical=True)
-    )
-    if issuer is not None:
-        builder = builder.add_extension(
-            x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False
-        ).add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(issuer_key.public_key()), critical=False)
-    else:
-        builder = builder.add_extension(
-            x509.KeyUsage(False, False, False, False, False, True, True, False, False), critical=True
-        ).add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
-    if server:
-        builder = builder.add_extension(
-            x509.SubjectAlternativeName([x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
-            critical=False,
-        )
-    certificate = builder.sign(issuer_key, hashes.SHA256())
-    (folder / f"{name}.crt").write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
-    return subject, key, certificate
-
-
-def _write_key(path: Path, key: ec.EllipticCurvePrivateKey, password: str | None = None) -> Path:
-    encryption: serialization.KeySerializationEncryption = (
-        serialization.BestAvailableEncryption(password.encode()) if password else serialization.NoEncryption()
-    )
-    path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, encryption))
-    return path
-
 
 @pytest.fixture(scope="module")
 def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    folder = tmp_path_factory.mktemp("tls")
-    ca_name, ca_key, _ = _issue(folder, "ca", None)
-    _, server_key, _ = _issue(folder, "server", (ca_name, ca_key), server=True)
-    _, client_key, _ = _issue(folder, "client", (ca_name, ca_key))
-    _issue(folder, "stranger", None)
-    return Pki(
-        ca=folder / "ca.crt",
-        server_crt=folder / "server.crt",
-        server_key=_write_key(folder / "server.key", server_key),
-        client_crt=folder / "client.crt",
-        client_key=_write_key(folder / "client.key", client_key, KEY_PASSWORD),
-        stranger_ca=folder / "stranger.crt",
-    )
+    return make_pki(tmp_path_factory.mktemp("tls"))
 
 
 def tls_receiver(pki: Pki, *, client_ca: Path | None = None) -> Receiver:
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-    context.load_cert_chain(str(pki.server_crt), str(pki.server_key))
-    if client_ca is not None:  # mutual TLS: the server wants a client certificate of this CA
-        context.verify_mode = ssl.CERT_REQUIRED
-        context.load_verify_locations(str(client_ca))
-    return Receiver(tls=context)
+    return Receiver(tls=pki.server_context(client_ca=client_ca))
 
 
 def test_tls_with_the_servers_ca_file(pki: Pki) -> None:
@@ -657,14 +608,25 @@ def test_tls_client_certificate_with_an_encrypted_key(pki: Pki) -> None:
             http_destination(port=receiver.port, tls=True, tls_ca_file=str(pki.ca)).send(BATCH)
         dest = http_destination(
             port=receiver.port,
-            tls=True,
-            tls_ca_file=str(pki.ca),
-            tls_crt_file=str(pki.client_crt),
-            tls_key_file=str(pki.client_key),
-            tls_key_passwd=KEY_PASSWORD,
+            **pki.client_params(),
         )
         assert dest.send(BATCH) is None
     assert len(receiver.records()) == 2
+
+
+def test_a_wrong_ca_fails_the_destination_and_keeps_every_record(tmp_path: Path, pki: Pki) -> None:
+    records = [record(n) for n in range(4)]
+    with tls_receiver(pki) as receiver:
+        params = parse_params(
+            HttpParams, {"port": receiver.port, "tls": True, "tls_ca_file": str(pki.stranger_ca)}, "w"
+        )
+        dest = Http(FakeContext(name="web"), params)
+        dest.on_configure()
+        metrics = through_pipeline(tmp_path, dest, records, lambda m: tls_refused(m) and m["buffered"] == 4)
+    assert "certificate verify failed" in metrics["health"]["reason"]
+    delivered = len(receiver.records())
+    assert delivered + int(metrics["buffered"]) + int(metrics["dead_lettered"]) == len(records)
+    assert delivered == 0 and int(metrics["sent"]) == 0
 
 
 def test_a_wrong_key_password_fails_configure_without_quoting_it(pki: Pki) -> None:
@@ -677,5 +639,5 @@ def test_a_wrong_key_password_fails_configure_without_quoting_it(pki: Pki) -> No
                 "tls_key_passwd": "not-the-" + KEY_PASSWORD,
             }
         )
-    assert "destination_server.web.tls_crt_file: cannot load" in str(caught.value)
+    assert "destination_server.web.tls_key_file: cannot load" in str(caught.value)
     assert KEY_PASSWORD not in str(caught.value)

@@ -21,6 +21,7 @@ import http.client
 import json
 import math
 import re
+import ssl
 import threading
 import urllib.parse
 from collections import OrderedDict
@@ -37,8 +38,9 @@ from dc_core.destination import (
     SendOutcome,
 )
 from dc_core.errors import ConfigError
-from dc_core.params import param
-from dc_destinations.tls import warn_if_credentials_in_clear
+from dc_core.params import host_problem, param, port_problem
+from dc_destinations.http_client import connection_to, is_retryable_status, masked, one_line, retry_after_seconds
+from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 APIS = ("auto", "v1", "v2")
 _INT64 = (-(2**63), 2**63 - 1)
@@ -46,8 +48,6 @@ _EXCERPT_CHARS = 300
 _BODY_READ_LIMIT = 64 * 1024
 # Points remembered to give simultaneous records distinct sequence tags (see Sequencer).
 _SEQUENCE_MEMORY = 10_000
-# Statuses a server uses to say "not now": the same request may succeed later.
-_RETRYABLE_STATUSES = frozenset({408, 429})
 # Statuses of a write refused for some of its points (v1: 400; v2 also 422 for schema conflicts).
 _POINT_ERRORS = frozenset({400, 422})
 _TYPE_CONFLICT = re.compile(r'input field \\?"(.+?)\\?" on measurement \\?"(.+?)\\?" is type (\w+)')
@@ -55,14 +55,10 @@ _INVALID_FIELD = re.compile(r'invalid field name: input field \\?"(.+?)\\?" on m
 _UNPARSABLE = re.compile(r"unable to parse '(.*?)': ", re.DOTALL)
 
 
-def _port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
-
-
 @dataclass(frozen=True, kw_only=True, repr=False)
-class InfluxDBParams:
-    host: str = param("127.0.0.1", doc="Host name or IP address of the InfluxDB server")
-    port: int = param(8086, check=_port_problem, doc="TCP port of the InfluxDB HTTP API")
+class InfluxDBParams(TlsParams):
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the InfluxDB server")
+    port: int = param(8086, check=port_problem, doc="TCP port of the InfluxDB HTTP API")
     api: str = param(
         "auto", choices=APIS, doc="v1: /write with a database; v2: /api/v2/write with org and bucket; auto: v2 when "
         "bucket or http_token is set"
@@ -83,8 +79,7 @@ class InfluxDBParams:
     timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read or write")
 
     def __post_init__(self) -> None:
-        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
-            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
+        super().__post_init__()
         if self.http_passwd and not self.http_user:
             raise ConfigError("http_passwd", "set http_user too (basic authentication needs both)")
         if ":" in self.http_user:
@@ -296,6 +291,7 @@ class InfluxDB(Destination[InfluxDBParams]):
         super().__init__(context, params)
         self._connection: http.client.HTTPConnection | None = None
         self._lock = threading.Lock()
+        self._tls: ssl.SSLContext | None = None
         self._headers: list[tuple[str, str]] = []
         self._secrets: list[str] = []
         self._sequencer = Sequencer()
@@ -311,7 +307,8 @@ class InfluxDB(Destination[InfluxDBParams]):
         else:
             self.path = "/write?" + urllib.parse.urlencode({"db": p.database, "precision": "ns"})
         host = f"[{p.host}]" if ":" in p.host else p.host
-        self.url = f"http://{host}:{p.port}{self.path}"
+        self.url = f"{'https' if p.tls_on else 'http'}://{host}:{p.port}{self.path}"
+        self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
         self._headers = [("Content-Type", "text/plain; charset=utf-8"), ("User-Agent", "dc-destinations")]
         if p.http_token:
             self._headers.append(("Authorization", f"Token {p.http_token}"))
@@ -320,14 +317,17 @@ class InfluxDB(Destination[InfluxDBParams]):
             token = base64.b64encode(f"{p.http_user}:{p.http_passwd}".encode()).decode("ascii")
             self._headers.append(("Authorization", f"Basic {token}"))
             self._secrets = [s for s in (p.http_passwd, token) if s]
+        if p.tls_key_passwd:
+            self._secrets.append(p.tls_key_passwd)
         warn_if_credentials_in_clear(
             self.context.logger,
             self.context.name,
             p.host,
             credentials="the token" if p.http_token else (f"the password of {p.http_user}" if p.http_passwd else ""),
-            verified_tls=False,  # this destination speaks plain HTTP only
-            fix="reach InfluxDB through a TLS tunnel or proxy on this machine (host 127.0.0.1), "
-            "or over a network nobody else shares",
+            verified_tls=p.tls_verified,
+            fix="set tls: true with tls_verify: true (tls_ca_file for a private CA)"
+            if not p.tls_on
+            else "set tls_verify: true (tls_ca_file for a private CA)",
         )
 
     def on_activate(self) -> None:
@@ -399,14 +399,14 @@ class InfluxDB(Destination[InfluxDBParams]):
         with self._lock:
             reused = self._connection is not None
             try:
-                status, reason, text = self._post(body)
+                status, reason, text, retry_after = self._post(body)
             except (OSError, http.client.HTTPException) as first:
                 self._close()
                 if not (reused and isinstance(first, (http.client.RemoteDisconnected, ConnectionError))):
                     raise RetryableError(self._network_error(first)) from None
                 # A kept-alive connection the server closed while idle fails at its first use.
                 try:
-                    status, reason, text = self._post(body)
+                    status, reason, text, retry_after = self._post(body)
                 except (OSError, http.client.HTTPException) as second:
                     self._close()
                     raise RetryableError(self._network_error(second)) from None
@@ -435,13 +435,14 @@ class InfluxDB(Destination[InfluxDBParams]):
                 f"(InfluxDB 1.x before 1.8: set api: v1): {message}",
                 fix="create the bucket, or correct bucket / org / api",
             )
-        if status in _RETRYABLE_STATUSES or status >= 500:
-            raise RetryableError(message)
+        if is_retryable_status(status):
+            raise RetryableError(message, retry_after=retry_after)
         if status in _POINT_ERRORS:
             return status, message
         raise RejectedError(message)
 
-    def _post(self, body: bytes) -> tuple[int, str, str]:
+    def _post(self, body: bytes) -> tuple[int, str, str, float | None]:
+        """(status, reason, body text, Retry-After seconds) of one POST."""
         connection = self._open()
         connection.putrequest("POST", self.path, skip_accept_encoding=True)
         for name, value in self._headers:
@@ -452,13 +453,12 @@ class InfluxDB(Destination[InfluxDBParams]):
         data = response.read(_BODY_READ_LIMIT)
         if not response.isclosed() or response.will_close:
             self._close()
-        return response.status, response.reason, data.decode("utf-8", errors="replace")
+        text = data.decode("utf-8", errors="replace")
+        return response.status, response.reason, text, retry_after_seconds(response.getheader("Retry-After"))
 
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:
-            self._connection = http.client.HTTPConnection(
-                self.params.host, self.params.port, timeout=self.params.timeout
-            )
+            self._connection = connection_to(self.params.host, self.params.port, self.params.timeout, self._tls)
         return self._connection
 
     def _close(self) -> None:
@@ -473,10 +473,7 @@ class InfluxDB(Destination[InfluxDBParams]):
         return self._scrub(f"cannot write to InfluxDB at {self.url}: {detail}")
 
     def _scrub(self, text: str) -> str:
-        """The credentials masked, should a server echo the request back."""
-        for secret in self._secrets:
-            text = text.replace(secret, "***")
-        return text
+        return masked(text, self._secrets)
 
 
 def _server_error(text: str) -> str:
@@ -489,8 +486,7 @@ def _server_error(text: str) -> str:
         found = answer.get("error") or answer.get("message")
         if isinstance(found, str):
             text = found
-    text = " ".join(text.split())
-    return text if len(text) <= _EXCERPT_CHARS else text[: _EXCERPT_CHARS - 1] + "…"
+    return one_line(text, _EXCERPT_CHARS)
 
 
 def _refused_lines(message: str, pending: dict[int, str], points: dict[int, Point]) -> list[int]:

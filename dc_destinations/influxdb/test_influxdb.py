@@ -24,8 +24,9 @@ from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.influxdb import InfluxDB, InfluxDBParams, Sequencer, to_point
 from dc_destinations.record_ids import new_record_id
 from tests.bringup_util import BIN, Bringup
-from tests.destination_helpers import forwarding_params
+from tests.destination_helpers import forwarding_params, through_pipeline, tls_refused
 from tests.http_receiver import Receiver, Request
+from tests.tls_pki import KEY_PASSWORD, Pki, make_pki
 
 STAMP = 1_677_668_906_045_817_123
 needs_influxd = pytest.mark.skipif(missing_reason() is not None, reason=str(missing_reason()))
@@ -118,7 +119,11 @@ def test_sequence_tag_separates_simultaneous_records_and_stays_on_retry() -> Non
 
 
 def test_secret_parameters_and_alias() -> None:
-    assert {p.name for p in describe_params(InfluxDBParams) if p.secret} == {"http_passwd", "http_token"}
+    assert {p.name for p in describe_params(InfluxDBParams) if p.secret} == {
+        "http_passwd",
+        "http_token",
+        "tls_key_passwd",
+    }
     p = parse_params(InfluxDBParams, {"http_user": "u", "http_password": "pw"}, "x")
     assert p.http_passwd == "pw" and "pw" not in repr(p)
     assert parse_params(InfluxDBParams, {"bucket": "b"}, "x").api_version == "v2"
@@ -267,6 +272,68 @@ def test_v2_statuses() -> None:
         answers["next"] = (422, b'{"code":"unprocessable entity","message":"failure writing points"}')
         outcome = dest.send([record({"name": "cpu", "v": 1}), record({"name": "cpu", "v": 2})])
         assert outcome is not None and sorted(outcome.reject) == [0, 1], "each line refused alone"
+
+
+# -- TLS: a real influxd over HTTPS; a client certificate against a local receiver (influxd 1.6 asks for none) --
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
+    return make_pki(tmp_path_factory.mktemp("tls"))
+
+
+@pytest.fixture(scope="module")
+def https_server(tmp_path_factory: pytest.TempPathFactory, pki: Pki) -> Iterator[InfluxServer]:
+    if missing_reason() is not None:
+        pytest.skip(str(missing_reason()))
+    tls = (pki.server_crt, pki.server_key, pki.ca)
+    with InfluxServer(tmp_path_factory.mktemp("influx-tls"), database="dc", tls=tls) as s:
+        yield s
+
+
+@needs_influxd
+def test_tls_to_influxd_with_its_ca_file(https_server: InfluxServer) -> None:
+    dest = influx(**https_server.settings())
+    assert dest.url.startswith("https://127.0.0.1:")
+    assert dest.send([record({"name": "tls", "v": n}, STAMP + n) for n in range(3)]) is None
+    assert len(rows(https_server, 'SELECT * FROM "tls"')) == 3
+
+
+@needs_influxd
+def test_tls_a_wrong_ca_fails_the_destination_and_keeps_every_record(
+    tmp_path: Path, https_server: InfluxServer, pki: Pki
+) -> None:
+    records = [record({"name": "wrong_ca", "v": n}, STAMP + n) for n in range(4)]
+    settings = {**https_server.settings(), "tls_ca_file": str(pki.stranger_ca)}
+    dest = InfluxDB(FakeContext(name="tsdb", logger=RecordingLogger()), parse_params(InfluxDBParams, settings, "x"))
+    dest.on_configure()
+    metrics = through_pipeline(tmp_path, dest, records, lambda m: tls_refused(m) and m["buffered"] == 4)
+    delivered = len(rows(https_server, 'SELECT * FROM "wrong_ca"'))
+    assert delivered + int(metrics["buffered"]) + int(metrics["dead_lettered"]) == len(records)
+    assert delivered == 0 and int(metrics["sent"]) == 0
+
+
+def test_tls_client_certificate_with_an_encrypted_key(pki: Pki) -> None:
+    with Receiver(tls=pki.server_context(client_ca=pki.ca)) as receiver:
+        receiver.status = 204
+        without = influx(port=receiver.port, tls=True, tls_ca_file=str(pki.ca))
+        with pytest.raises(RetryableError):
+            without.send([record({"name": "cpu", "v": 1})])
+        dest = influx(
+            port=receiver.port,
+            **pki.client_params(),
+        )
+        assert dest.send([record({"name": "cpu", "v": 2}, 7, record_id="id2")]) is None
+        (request,) = receiver.accepted()
+    assert request.body == b'cpu v=2i,record_id="id2" 7\n'
+    assert KEY_PASSWORD not in repr(dest.params)
+
+
+def test_a_token_over_plain_http_to_another_host_warns_with_the_tls_fix() -> None:
+    logger = RecordingLogger()
+    influx(logger=logger, host="influx.example.org", bucket="b", http_token="tok")
+    (warning,) = [m for level, m in logger.lines if level == "warning"]
+    assert "the token sent to influx.example.org without verified TLS" in warning and "set tls: true" in warning
 
 
 # -- end to end through dc-bringup ------------------------------------------------------------------------

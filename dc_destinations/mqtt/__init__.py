@@ -28,9 +28,9 @@ except ImportError as exc:  # an optional dependency: say which extra brings it
 
 from dc_core.destination import ConfigurationProblem, Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import param
+from dc_core.params import host_problem, param, port_problem
 from dc_core.records import MalformedRecord
-from dc_destinations.tls import warn_if_credentials_in_clear
+from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 # MQTT topic names are UTF-8 strings of at most 65535 bytes, and a published one has no wildcard.
 _TOPIC_MAX_BYTES = 65535
@@ -39,10 +39,6 @@ _WILDCARDS = ("+", "#", "\0")
 _AUTH_REASONS = ("not authorized", "bad user name or password", "bad username or password")
 # How often a waiting send looks again at the acknowledgements, besides being woken by them.
 _WAIT_SLICE_S = 0.05
-
-
-def _port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
 
 
 def template_keys(template: str) -> list[str]:
@@ -76,9 +72,9 @@ def _topic_problem(template: str) -> str | None:
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
-class MqttParams:
-    host: str = param("127.0.0.1", doc="Host name or IP address of the MQTT broker")
-    port: int = param(1883, check=_port_problem, doc="TCP port of the broker (8883 is usual with `tls`)")
+class MqttParams(TlsParams):
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the MQTT broker")
+    port: int = param(1883, check=port_problem, doc="TCP port of the broker (8883 is usual with `tls`)")
     topic: str = param(
         "dc/{name}", check=_topic_problem, doc="Topic of each record; {key} is replaced by the record's value of key"
     )
@@ -92,11 +88,6 @@ class MqttParams:
     clean_session: bool = param(True, doc="Start a new session at each connection (false: the broker keeps it)")
     username: str = param("", doc="User name sent to the broker; empty: none")
     password: str = param("", secret=True, doc="Password sent to the broker, with `username` (never logged)")
-    tls: bool = param(False, doc="Connect with TLS")
-    tls_ca_file: str = param("", doc="CA certificates (PEM) to trust instead of the system's (with `tls`)")
-    tls_crt_file: str = param("", doc="Client certificate (PEM) for brokers that require one (with `tls`)")
-    tls_key_file: str = param("", doc="Private key (PEM) of `tls_crt_file`; empty: in the certificate file")
-    tls_verify: bool = param(True, doc="Check the broker's certificate and host name (with `tls`)")
     keepalive: int = param(60, minimum=5, maximum=65535, doc="Seconds between keep-alive pings on an idle connection")
     connect_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and receive CONNACK")
     publish_timeout: float = param(
@@ -104,12 +95,9 @@ class MqttParams:
     )
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.password and not self.username:
             raise ConfigError("password", "set username too (MQTT sends a password only with a user name)")
-        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
-            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
-        if self.tls_key_file and not self.tls_crt_file:
-            raise ConfigError("tls_key_file", "set tls_crt_file too (the key belongs to a client certificate)")
 
 
 def default_client_id(destination: str, host: str, machine: str | None = None) -> str:
@@ -180,15 +168,15 @@ class Mqtt(Destination[MqttParams]):
     def on_configure(self) -> None:
         p = self.params
         host = f"[{p.host}]" if ":" in p.host else p.host
-        self.address = f"{'mqtts' if p.tls else 'mqtt'}://{host}:{p.port}"
+        self.address = f"{'mqtts' if p.tls_on else 'mqtt'}://{host}:{p.port}"
         self.client_id = p.client_id or default_client_id(self.context.name, p.host)
-        self._tls = self._tls_context() if p.tls else None
+        self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
         warn_if_credentials_in_clear(
             self.context.logger,
             self.context.name,
             p.host,
             credentials=f"the password of {p.username}" if p.password else "",
-            verified_tls=p.tls and p.tls_verify,
+            verified_tls=p.tls_verified,
             fix="set tls: true with tls_verify: true (tls_ca_file for a private CA; port 8883 is usual)",
         )
 
@@ -340,28 +328,12 @@ class Mqtt(Destination[MqttParams]):
             connection, self._connection = self._connection, None
             connection.close()
 
-    def _tls_context(self) -> ssl.SSLContext:
-        p = self.params
-        path = f"destination_server.{self.context.name}"
-        try:
-            context = ssl.create_default_context(cafile=p.tls_ca_file or None)
-        except (OSError, ssl.SSLError) as exc:
-            raise ConfigError(f"{path}.tls_ca_file", f"cannot load {p.tls_ca_file}: {exc}") from None
-        if p.tls_crt_file:
-            try:
-                context.load_cert_chain(p.tls_crt_file, p.tls_key_file or None)
-            except (OSError, ssl.SSLError) as exc:
-                # The exception says which file and why; never what the key holds.
-                where = f"{p.tls_crt_file}" + (f" and {p.tls_key_file}" if p.tls_key_file else "")
-                raise ConfigError(f"{path}.tls_crt_file", f"cannot load {where}: {exc}") from None
-        if not p.tls_verify:
-            context.check_hostname = False
-            context.verify_mode = ssl.CERT_NONE
-        return context
-
     def _scrub(self, text: str) -> str:
-        """The password masked, should a library or broker ever quote it."""
-        return text.replace(self.params.password, "***") if self.params.password else text
+        """The passwords masked, should a library or broker ever quote them."""
+        for secret in (self.params.password, self.params.tls_key_passwd):
+            if secret:
+                text = text.replace(secret, "***")
+        return text
 
 
 def _topic_text(key: str, value: Any) -> str:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import socket
 import subprocess
 import threading
@@ -27,9 +26,10 @@ from dc_destinations.config import parse_destination_server
 from dc_destinations.mqtt import Mqtt, MqttParams, default_client_id
 from dc_destinations.record_ids import new_record_id
 from tests.bringup_util import BIN, Bringup, dc
-from tests.destination_helpers import forwarding_params
+from tests.destination_helpers import forwarding_params, through_pipeline, tls_refused
 from tests.http_receiver import free_port
 from tests.mqtt_broker import MOSQUITTO_PASSWD, Broker, Subscriber, missing_reason
+from tests.tls_pki import KEY_PASSWORD, Pki, make_pki
 
 if missing_reason() is not None:
     pytest.skip(str(missing_reason()), allow_module_level=True)
@@ -173,7 +173,7 @@ def test_wrong_password_is_retryable_names_the_reason_and_never_the_password(
 
 
 def test_secret_parameters_are_marked_secret() -> None:
-    assert {p.name for p in describe_params(MqttParams) if p.secret} == {"password"}
+    assert {p.name for p in describe_params(MqttParams) if p.secret} == {"password", "tls_key_passwd"}
 
 
 def test_broker_restart_mid_stream_fails_retryable_then_delivers(tmp_path: Path, destinations: list[Mqtt]) -> None:
@@ -344,25 +344,20 @@ def test_activation_does_not_connect() -> None:
 
 
 @pytest.fixture(scope="module")
-def certificate(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    if shutil.which("openssl") is None:
-        pytest.skip("openssl not installed")
-    folder = tmp_path_factory.mktemp("tls")
-    cert, key = folder / "cert.pem", folder / "key.pem"
-    subprocess.run(
-        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=localhost",
-         "-addext", "subjectAltName=IP:127.0.0.1,DNS:localhost", "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True,
-    )  # fmt: skip
-    return cert, key
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
+    return make_pki(tmp_path_factory.mktemp("tls"))
+
+
+def published(broker: Broker) -> int:
+    """PUBLISH packets the broker received (its log says so for each, whatever the client's TLS)."""
+    return broker.log_text().count("Received PUBLISH from")
 
 
 def test_tls_with_the_brokers_ca_file_and_refusal_of_an_unknown_one(
-    tmp_path: Path, certificate: tuple[Path, Path], destinations: list[Mqtt]
+    tmp_path: Path, pki: Pki, destinations: list[Mqtt]
 ) -> None:
-    cert, key = certificate
-    with Broker(tmp_path / "tls", tls=(cert, key)) as broker:
-        good = mqtt_destination(port=broker.port, tls=True, tls_ca_file=str(cert))
+    with Broker(tmp_path / "tls", tls=(pki.server_crt, pki.server_key)) as broker:
+        good = mqtt_destination(port=broker.port, tls=True, tls_ca_file=str(pki.ca))
         unknown = mqtt_destination(port=broker.port, tls=True, connect_timeout=3)
         lax = mqtt_destination(port=broker.port, tls=True, tls_verify=False)
         destinations.extend([good, unknown, lax])
@@ -371,6 +366,43 @@ def test_tls_with_the_brokers_ca_file_and_refusal_of_an_unknown_one(
         with pytest.raises(RetryableError, match=r"(?i)certificate"):
             unknown.send([record(1, name="x")])
         assert lax.send([record(2, name="x")]) is None
+        assert published(broker) == 2
+
+
+def test_tls_client_certificate_with_an_encrypted_key(tmp_path: Path, pki: Pki, destinations: list[Mqtt]) -> None:
+    with Broker(tmp_path / "mtls", tls=(pki.server_crt, pki.server_key), client_ca=pki.ca) as broker:
+        anonymous = mqtt_destination(port=broker.port, tls=True, tls_ca_file=str(pki.ca), connect_timeout=3)
+        destinations.append(anonymous)
+        with pytest.raises(RetryableError):
+            anonymous.send([record(0, name="x")])
+        logger = RecordingLogger()
+        robot = mqtt_destination(
+            logger=logger,
+            port=broker.port,
+            **pki.client_params(),
+        )
+        destinations.append(robot)
+        assert robot.send([record(n, name="x") for n in range(3)]) is None
+        assert published(broker) == 3
+    with pytest.raises(ConfigError) as caught:
+        mqtt_destination(
+            tls=True, tls_crt_file=str(pki.client_crt), tls_key_file=str(pki.client_key), tls_key_passwd="not-it"
+        )
+    assert str(caught.value).startswith("destination_server.fleet.tls_key_file: cannot load ")
+    texts = [str(caught.value), repr(robot.params), *(m for _, m in logger.lines)]
+    assert all(KEY_PASSWORD not in text for text in texts)
+
+
+def test_a_wrong_ca_fails_the_destination_and_keeps_every_record(tmp_path: Path, pki: Pki) -> None:
+    records = [record(n, name="x") for n in range(4)]
+    with Broker(tmp_path / "tls", tls=(pki.server_crt, pki.server_key)) as broker:
+        params = {"port": broker.port, "tls": True, "tls_ca_file": str(pki.stranger_ca), "connect_timeout": 3}
+        dest = Mqtt(FakeContext(name="fleet", logger=RecordingLogger()), parse_params(MqttParams, params, "m"))
+        dest.on_configure()
+        metrics = through_pipeline(tmp_path / "buffer", dest, records, lambda m: tls_refused(m) and m["buffered"] == 4)
+        delivered = published(broker)
+    assert delivered + int(metrics["buffered"]) + int(metrics["dead_lettered"]) == len(records)
+    assert delivered == 0 and int(metrics["sent"]) == 0
 
 
 # -- end to end through dc-bringup ------------------------------------------------------------------------

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, SendOutcome
-from dc_core.params import param
+from dc_core.params import param, port_problem
 from dc_core.records import MalformedRecord
 from dc_destinations.pgsql.connection import (
     MAX_IDENTIFIER,
@@ -44,7 +44,6 @@ from dc_destinations.pgsql.connection import (
     effective_sslrootcert,
     is_record_error,
     one_line,
-    port_problem,
     require_psycopg,
     table_problem,
     warn_if_password_in_clear,

@@ -16,6 +16,7 @@ from typing import Any, TypeVar
 from dc_core.destination import ConfigurationProblem, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
+from dc_core.params import host_problem
 from dc_destinations.tls import warn_if_credentials_in_clear
 
 T = TypeVar("T")
@@ -44,10 +45,6 @@ def require_psycopg(name: str, kind: str) -> None:
         ) from exc
 
 
-def port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
-
-
 def table_problem(table: str) -> str | None:
     parts = table.split(".")
     if not table or len(parts) > 2 or any(not p or len(p.encode()) > MAX_IDENTIFIER or "\0" in p for p in parts):
@@ -57,8 +54,9 @@ def table_problem(table: str) -> str | None:
 
 def check_server(host: str, ssl: bool, sslmode: str, sslrootcert: str) -> None:
     """The checks of a server section that a single parameter cannot make; ConfigError naming the key."""
-    if not host or any(c.isspace() or c in "/?#" for c in host):
-        raise ConfigError("host", f'expected a host name or IP address, got "{host}"')
+    expected = host_problem(host)
+    if expected is not None:
+        raise ConfigError("host", f'expected {expected}, got "{host}"')
     if ssl and sslmode in ("disable", "allow", "prefer"):
         raise ConfigError("sslmode", f'"{sslmode}" contradicts ssl: true (use require, verify-ca or verify-full)')
     if sslrootcert and effective_sslmode(ssl, sslmode) not in ("verify-ca", "verify-full", "require"):

@@ -2,9 +2,10 @@
 
 A message carries up to ``max_records_per_message`` records, one line each from ``template``.
 Slack allows an incoming webhook about one message per second and answers ``429`` with
-``Retry-After`` beyond that; this destination keeps to ``rate`` itself and honours ``Retry-After``
-before posting again. It waits inside ``send`` (which runs on the destination's own thread) for at
-most a few seconds, then hands what is left back to the buffer to be retried.
+``Retry-After`` beyond that. This destination keeps to ``rate`` itself, waiting inside ``send``
+(which runs on the destination's own thread) for at most a few seconds, then hands what is left back
+to the buffer. A ``429`` hands the rest back at once with Slack's ``Retry-After`` as the
+``retry_after`` of the retry: the sender's backoff waits it out, not this thread.
 
 The webhook URL is a credential (whoever has it can post to the channel): it never appears in a
 log, an error, ``last_error``, a dead letter or a repr; messages show ``https://hooks.slack.com/***``.
@@ -12,7 +13,6 @@ log, an error, ``last_error``, a dead letter or a repr; messages show ``https://
 
 from __future__ import annotations
 
-import email.utils
 import http.client
 import json
 import string
@@ -29,6 +29,7 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
+from dc_destinations.http_client import is_retryable_status, masked, one_line, retry_after_seconds
 from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
 
 # Longest wait inside one send(): longer would hold up the destination's stop and hide progress.
@@ -39,8 +40,6 @@ RETRY_AFTER_DEFAULT_S = 1.0
 RETRY_AFTER_MAX_S = 3600.0
 _BODY_READ_LIMIT = 64 * 1024
 _EXCERPT_CHARS = 200
-# Statuses that say "not now": the same message may be accepted later.
-_RETRYABLE_STATUSES = frozenset({408, 429})
 
 
 def _webhook_problem(url: str) -> str | None:
@@ -156,7 +155,6 @@ class Slack(Destination[SlackParams]):
         self._secrets: list[str] = []
         self._stopping = threading.Event()
         self._next_post_at = 0.0  # monotonic: the rate's next free slot
-        self._not_before = 0.0  # monotonic: Slack's Retry-After
         self._template_failing = False
         self.url = ""
 
@@ -183,7 +181,7 @@ class Slack(Destination[SlackParams]):
         self.context.logger.info(f"posting records to the Slack webhook {self.url}")
 
     def on_deactivate(self) -> None:
-        self._stopping.set()  # a send waiting for its slot returns at once, its records retried
+        self._stopping.set()  # a send waiting for the rate's slot returns at once, its records retried
 
     def on_cleanup(self) -> None:
         self.on_deactivate()
@@ -219,6 +217,7 @@ class Slack(Destination[SlackParams]):
         chunks = [range(start, min(start + size, len(batch))) for start in range(0, len(batch), size)]
         retry: dict[int, str] = {}
         reject: dict[int, str] = {}
+        retry_after: float | None = None
         posted = 0
         for n, chunk in enumerate(chunks):
             rest = [i for c in chunks[n:] for i in c]
@@ -227,7 +226,7 @@ class Slack(Destination[SlackParams]):
                 retry.update(dict.fromkeys(rest, wait_reason))
                 break
             text = "\n".join(self.text(batch[i]) for i in chunk)
-            outcome, reason = self._post(text)
+            outcome, reason, retry_after = self._post(text)
             if outcome == "sent":
                 posted += 1
             elif outcome == "retry":
@@ -241,25 +240,23 @@ class Slack(Destination[SlackParams]):
         if not retry and not reject:
             return None
         if len(retry) == len(batch):
-            raise RetryableError(next(iter(retry.values())))
+            raise RetryableError(next(iter(retry.values())), retry_after=retry_after)
         if len(reject) == len(batch):
             raise RejectedError(next(iter(reject.values())))
-        return SendOutcome(retry=retry, reject=reject)
+        return SendOutcome(retry=retry, reject=reject, retry_after=retry_after)
 
     def _wait_for_slot(self, deadline: float) -> str | None:
-        """Wait for the rate's next slot and Slack's Retry-After; why not, when that is past ``deadline``."""
-        free_at = max(self._next_post_at, self._not_before)
+        """Wait for the rate's next slot; why not, when that is past ``deadline``."""
+        free_at = self._next_post_at
         now = time.monotonic()
         if free_at > deadline:
-            if self._not_before > now:
-                return f"Slack rate limited the webhook: waiting {self._not_before - now:.1f} s more ({self.url})"
             return f"held back by rate {self.params.rate:g} message(s)/s: the rest of the batch follows ({self.url})"
         if free_at > now and self._stopping.wait(free_at - now):
             return f"destination stopping before its turn to post ({self.url})"
         return None
 
-    def _post(self, text: str) -> tuple[str, str]:
-        """POST one message: ("sent" | "retry" | "reject_message" | "reject_all", reason)."""
+    def _post(self, text: str) -> tuple[str, str, float | None]:
+        """POST one message: ("sent" | "retry" | "reject_message" | "reject_all", reason, Retry-After seconds)."""
         body = json.dumps({"text": text}, ensure_ascii=False).encode("utf-8")
         request = urllib.request.Request(
             self.params.webhook,
@@ -271,7 +268,7 @@ class Slack(Destination[SlackParams]):
         try:
             with self._opener.open(request, timeout=self.params.timeout) as response:
                 response.read(_BODY_READ_LIMIT)
-                return "sent", ""
+                return "sent", "", None
         except urllib.error.HTTPError as exc:
             status, reason = exc.code, exc.reason
             excerpt = self._excerpt(exc.read(_BODY_READ_LIMIT))
@@ -282,43 +279,22 @@ class Slack(Destination[SlackParams]):
             detail = getattr(exc, "reason", None) or exc
             if isinstance(detail, TimeoutError) or isinstance(exc, TimeoutError):
                 detail = f"no answer within {self.params.timeout:g} s"
-            return "retry", self._scrub(f"cannot POST to the Slack webhook {self.url}: {detail}")
+            return "retry", self._scrub(f"cannot POST to the Slack webhook {self.url}: {detail}"), None
         message = self._scrub(f"Slack answered HTTP {status} {reason}" + (f": {excerpt}" if excerpt else ""))
         if status == 429:
-            delay = _retry_after_seconds(retry_after)
-            self._not_before = time.monotonic() + delay
-            return "retry", f"{message}; retrying after {delay:g} s ({self.url})"
-        if status in _RETRYABLE_STATUSES or status >= 500:
-            return "retry", f"{message} ({self.url})"
+            # Slack always means "slow down" by it: without a readable Retry-After, a second.
+            seconds = retry_after_seconds(retry_after)
+            delay = min(RETRY_AFTER_DEFAULT_S if seconds is None else seconds, RETRY_AFTER_MAX_S)
+            return "retry", f"{message}; retrying after {delay:g} s ({self.url})", delay
+        if is_retryable_status(status):
+            return "retry", f"{message} ({self.url})", retry_after_seconds(retry_after)
         if status == 400:
-            return "reject_message", f"{message} ({self.url})"
-        return "reject_all", f"{message} ({self.url})"
+            return "reject_message", f"{message} ({self.url})", None
+        return "reject_all", f"{message} ({self.url})", None
 
     # -- messages ----------------------------------------------------------------------------------
     def _excerpt(self, data: bytes) -> str:
-        text = " ".join(data.decode("utf-8", errors="replace").split())
-        if len(text) > _EXCERPT_CHARS:
-            text = text[: _EXCERPT_CHARS - 1] + "…"
-        return self._scrub(text)
+        return self._scrub(one_line(data.decode("utf-8", errors="replace"), _EXCERPT_CHARS))
 
     def _scrub(self, text: str) -> str:
-        for secret in self._secrets:
-            text = text.replace(secret, "***")
-        return text
-
-
-def _retry_after_seconds(value: str | None) -> float:
-    """Retry-After as seconds: a number, or an HTTP date; 1 s when absent or unreadable."""
-    if not value:
-        return RETRY_AFTER_DEFAULT_S
-    try:
-        seconds = float(value)
-    except ValueError:
-        try:
-            when = email.utils.parsedate_to_datetime(value)
-        except (TypeError, ValueError):
-            return RETRY_AFTER_DEFAULT_S
-        if when.tzinfo is None:
-            when = when.replace(tzinfo=UTC)
-        seconds = (when - datetime.now(UTC)).total_seconds()
-    return min(max(seconds, 0.0), RETRY_AFTER_MAX_S)
+        return masked(text, self._secrets)

@@ -9,91 +9,47 @@ the peer dies can still be lost: the one case the durable buffer cannot cover (R
 
 from __future__ import annotations
 
-import os
 import socket
 import ssl
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import cached_property
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import param, parse_params
+from dc_core.params import host_problem, param, port_problem
+from dc_destinations.tls import TlsParams, client_context, ssl_reason
 
 # "json" is the original's name for the same JSON lines.
 FORMATS = ("json_lines", "json", "msgpack")
 # Reads done before a batch to find out whether the peer hung up; what a receiver sends is discarded.
 _PEEK_READS = 64
-_TLS_ONLY_KEYS = ("ca_file", "crt_file", "key_file", "key_passwd", "vhost")
-
-
-def _port_problem(port: int) -> str | None:
-    return None if 1 <= port <= 65535 else "a TCP port from 1 to 65535"
-
-
-@dataclass(frozen=True, kw_only=True)
-class TlsParams:
-    """The original's `tls.*` keys: `tls.active: on` or a `tls:` section."""
-
-    active: bool = param(False, doc="Use TLS")
-    verify: bool = param(True, doc="Check the server's certificate and host name")
-    debug: int = param(1, minimum=0, maximum=4, doc="Accepted for the original's files; no effect")
-    ca_file: str = param("", doc="CA certificates (PEM) to trust instead of the system's")
-    crt_file: str = param("", doc="Client certificate (PEM), for servers that require one")
-    key_file: str = param("", doc="Private key of crt_file (PEM), if not in crt_file")
-    key_passwd: str = param("", secret=True, doc="Password of key_file (never logged)")
-    vhost: str = param("", doc="Host name to check the certificate against and send as SNI; empty: host")
-
-    def __post_init__(self) -> None:
-        if self.key_file and not self.crt_file:
-            raise ConfigError("key_file", "set crt_file too (the key belongs to a client certificate)")
-        if self.key_passwd and not (self.key_file or self.crt_file):
-            raise ConfigError("key_passwd", "set crt_file (and key_file) too")
-
-    def __repr__(self) -> str:
-        shown = {k: v for k, v in vars(self).items() if k != "key_passwd"}
-        return f"TlsParams({', '.join(f'{k}={v!r}' for k, v in shown.items())})"
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
-class TcpParams:
-    host: str = param("127.0.0.1", doc="Host name or IP address of the TCP server")
-    port: int = param(5432, check=_port_problem, doc="TCP port of the server (the original's default: 5432)")
+class TcpParams(TlsParams):
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the TCP server")
+    port: int = param(5432, check=port_problem, doc="TCP port of the server (the original's default: 5432)")
     format: str = param(
         "json_lines",
         choices=FORMATS,
         doc="json_lines (or json): one JSON object per line; msgpack: one msgpack map per record, back to back",
     )
-    tls: bool | dict[str, Any] = param(
-        False, doc="true: TLS with the defaults; or the original's section (tls.active, tls.verify, ...)"
-    )
+    tls_vhost: str = param("", doc="Host name the certificate is checked against and sent as SNI; empty: host")
     connect_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect (and the TLS handshake)")
     write_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds a write may block")
     workers: int = param(2, minimum=0, doc="Accepted for the original's files; one sender per destination")
 
     def __post_init__(self) -> None:
-        if not self.host or any(c.isspace() or c in "/?#" for c in self.host):
-            raise ConfigError("host", f'expected a host name or IP address, got "{self.host}"')
-        _ = self.tls_settings  # a wrong `tls.*` key is reported when the file is read, not at the first batch
-
-    @cached_property
-    def tls_settings(self) -> TlsParams:
-        """The TLS settings whatever the spelling (`tls: true`, `tls.active: on`, a `tls:` section)."""
-        if isinstance(self.tls, bool):
-            return TlsParams(active=self.tls)
-        settings = parse_params(TlsParams, self.tls, "tls")
-        if "active" not in self.tls and any(self.tls.get(k) for k in _TLS_ONLY_KEYS):
-            # The original read a missing tls.active as off: certificates configured for a
-            # connection that would go out in clear text are more likely a forgotten line.
-            raise ConfigError("tls.active", "set tls.active: true (or false) beside the other tls.* keys")
-        return settings
+        super().__post_init__()
 
     def __repr__(self) -> str:
-        # The `tls` mapping may hold key_passwd: show the parsed settings, which leave it out.
+        # Written out to leave tls_key_passwd out.
         return (
-            f"TcpParams(host={self.host!r}, port={self.port!r}, format={self.format!r}, tls={self.tls_settings!r}, "
+            f"TcpParams(host={self.host!r}, port={self.port!r}, format={self.format!r}, tls={self.tls!r}, "
+            f"tls_verify={self.tls_verify!r}, tls_ca_file={self.tls_ca_file!r}, tls_crt_file={self.tls_crt_file!r}, "
+            f"tls_key_file={self.tls_key_file!r}, tls_vhost={self.tls_vhost!r}, "
             f"connect_timeout={self.connect_timeout!r}, write_timeout={self.write_timeout!r})"
         )
 
@@ -118,7 +74,7 @@ class Tcp(Destination[TcpParams]):
         host = f"[{p.host}]" if ":" in p.host else p.host
         self.address = f"{host}:{p.port}"
         self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_line
-        self._tls = self._tls_context() if p.tls_settings.active else None
+        self._tls = client_context(p, self._key_path(""), self.context.logger)
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a server that is down
@@ -189,13 +145,14 @@ class Tcp(Destination[TcpParams]):
             raise RetryableError(self._network_error("cannot connect to", exc)) from None
         try:
             if self._tls is not None:
-                server_name = p.tls_settings.vhost or p.host
+                server_name = p.tls_vhost or p.host
                 sock = self._tls.wrap_socket(sock, server_hostname=server_name)
         except ssl.SSLCertVerificationError as exc:
             sock.close()
             message = (
                 f"TLS handshake with {self.address} failed: {exc.verify_message or exc.reason} "
-                f"(check {self._key_path('tls.ca_file')} and tls.vhost, or set tls.verify: false on a test bench)"
+                f"(check {self._key_path(p.tls_key('ca_file'))} and {p.tls_key('vhost')}, "
+                f"or set {p.tls_key('verify')}: false on a test bench)"
             )
             if not self._tls_failing:  # a configuration problem: said once at ERROR, then by the sender's log
                 self.context.logger.error(f"{message}; records wait in the buffer until it is fixed")
@@ -210,33 +167,6 @@ class Tcp(Destination[TcpParams]):
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         return sock
 
-    def _tls_context(self) -> ssl.SSLContext:
-        t = self.params.tls_settings
-        for key, path in (("ca_file", t.ca_file), ("crt_file", t.crt_file), ("key_file", t.key_file)):
-            if path and not os.access(path, os.R_OK):
-                problem = "no such file" if not os.path.exists(path) else "not readable"
-                raise ConfigError(self._key_path(f"tls.{key}"), f"cannot load {path}: {problem}")
-        try:
-            context = ssl.create_default_context(cafile=t.ca_file or None)
-        except (OSError, ssl.SSLError) as exc:
-            raise ConfigError(self._key_path("tls.ca_file"), f"cannot load {t.ca_file}: {_reason(exc)}") from exc
-        if t.crt_file:
-            try:
-                # The password goes to OpenSSL only; its messages never quote it.
-                context.load_cert_chain(t.crt_file, t.key_file or None, password=t.key_passwd or None)
-            except (OSError, ssl.SSLError) as exc:
-                files = t.crt_file + (f" and {t.key_file}" if t.key_file else "")
-                key = "tls.key_file" if t.key_file else "tls.crt_file"
-                raise ConfigError(
-                    self._key_path(key),
-                    f"cannot load {files}: {_reason(exc)} (PEM certificate and key that match, "
-                    "and the key's tls.key_passwd if it is encrypted)",
-                ) from exc
-        if not t.verify:
-            context.check_hostname = False
-            context.verify_mode = ssl.CERT_NONE
-        return context
-
     def _close(self) -> None:
         if self._socket is not None:
             sock, self._socket = self._socket, None
@@ -244,22 +174,13 @@ class Tcp(Destination[TcpParams]):
 
     # -- messages ----------------------------------------------------------------------------------
     def _key_path(self, key: str) -> str:
-        return f"destination_server.{self.context.name}.{key}"
+        return f"destination_server.{self.context.name}" + (f".{key}" if key else "")
 
     def _network_error(self, what: str, exc: BaseException) -> str:
         if isinstance(exc, TimeoutError):
             timeout = self.params.connect_timeout if what == "cannot connect to" else self.params.write_timeout
             return f"{what} {self.address}: no progress within {timeout:g} s"
-        return f"{what} {self.address}: {_reason(exc)}"
-
-
-def _reason(exc: BaseException) -> str:
-    """The errno text ("Connection refused"), not Python's "[Errno 111]" prefix; OpenSSL's reason for TLS."""
-    if isinstance(exc, ssl.SSLError):
-        return str(exc.reason or exc).lower().replace("_", " ")
-    if isinstance(exc, OSError) and exc.strerror:
-        return exc.strerror
-    return str(exc) or type(exc).__name__
+        return f"{what} {self.address}: {ssl_reason(exc)}"
 
 
 def _json_line(record: OutgoingRecord) -> bytes:

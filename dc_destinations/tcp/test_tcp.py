@@ -10,7 +10,6 @@ shuts down cleanly does; the records a peer that dies abruptly never read are TC
 from __future__ import annotations
 
 import contextlib
-import datetime
 import json
 import socket
 import ssl
@@ -26,10 +25,6 @@ from typing import Any
 
 import msgpack
 import pytest
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
 
 from dc_bringup.validate import validate_params_file
 from dc_core.destination import OutgoingRecord, RetryableError, SendOutcome
@@ -40,8 +35,9 @@ from dc_destinations.config import parse_destination_server
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.tcp import Tcp, TcpParams
 from tests.bringup_util import BIN, Bringup, dc
-from tests.destination_helpers import forwarding_params
+from tests.destination_helpers import forwarding_params, through_pipeline, tls_refused
 from tests.http_receiver import free_port
+from tests.tls_pki import KEY_PASSWORD, Pki, make_pki
 
 
 class TcpReceiver:
@@ -294,97 +290,29 @@ def test_activation_does_not_connect() -> None:
 # -- TLS -----------------------------------------------------------------------------------------------------
 
 
-class Pki:
-    """A CA, a server certificate for 127.0.0.1 and a client certificate (encrypted key), as PEM files."""
-
-    PASSWORD = "Key-Passw0rd-Very-Secret"
-
-    def __init__(self, folder: Path, name: str) -> None:
-        self.folder = folder
-        ca_key = ec.generate_private_key(ec.SECP256R1())
-        ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"{name} test CA")])
-        self.ca_cert = self._certificate(ca_name, ca_key.public_key(), ca_name, ca_key, ca=True)
-        self.ca = self._write(f"{name}-ca.pem", self.ca_cert.public_bytes(serialization.Encoding.PEM))
-        self.server_cert, self.server_key = self._leaf(f"{name}-server", "localhost", ca_name, ca_key, server=True)
-        self.client_cert, self.client_key = self._leaf(f"{name}-client", "robot-c3po", ca_name, ca_key, server=False)
-
-    def _certificate(
-        self, subject: x509.Name, public: Any, issuer: x509.Name, key: Any, *, ca: bool, san: Any = None
-    ) -> x509.Certificate:
-        now = datetime.datetime.now(datetime.UTC)
-        builder = (
-            x509.CertificateBuilder()
-            .subject_name(subject)
-            .issuer_name(issuer)
-            .public_key(public)
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(now - datetime.timedelta(minutes=5))
-            .not_valid_after(now + datetime.timedelta(days=1))
-            .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True)
-        )
-        if san is not None:
-            builder = builder.add_extension(san, critical=False)
-        return builder.sign(key, hashes.SHA256())
-
-    def _leaf(self, stem: str, cn: str, issuer: x509.Name, ca_key: Any, *, server: bool) -> tuple[Path, Path]:
-        import ipaddress
-
-        key = ec.generate_private_key(ec.SECP256R1())
-        san = (
-            x509.SubjectAlternativeName([x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))])
-            if server
-            else None
-        )
-        subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])
-        cert = self._certificate(subject, key.public_key(), issuer, ca_key, ca=False, san=san)
-        encryption: Any = (
-            serialization.NoEncryption()
-            if server
-            else serialization.BestAvailableEncryption(self.PASSWORD.encode())  # the client key is encrypted
-        )
-        key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, encryption)
-        return (
-            self._write(f"{stem}.pem", cert.public_bytes(serialization.Encoding.PEM)),
-            self._write(f"{stem}.key", key_pem),
-        )
-
-    def _write(self, name: str, data: bytes) -> Path:
-        path = self.folder / name
-        path.write_bytes(data)
-        return path
-
-    def server_context(self, *, require_client: bool) -> ssl.SSLContext:
-        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-        context.load_cert_chain(str(self.server_cert), str(self.server_key))
-        if require_client:
-            context.verify_mode = ssl.CERT_REQUIRED
-            context.load_verify_locations(str(self.ca))
-        return context
-
-
 @pytest.fixture(scope="module")
 def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return Pki(tmp_path_factory.mktemp("pki"), "fleet")
+    return make_pki(tmp_path_factory.mktemp("pki"), "fleet")
 
 
 @pytest.fixture(scope="module")
 def other_pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return Pki(tmp_path_factory.mktemp("other"), "other")
+    return make_pki(tmp_path_factory.mktemp("other"), "other")
 
 
 def tls_params(pki: Pki, **extra: Any) -> dict[str, Any]:
     return {
         "active": True,
         "ca_file": str(pki.ca),
-        "crt_file": str(pki.client_cert),
+        "crt_file": str(pki.client_crt),
         "key_file": str(pki.client_key),
-        "key_passwd": Pki.PASSWORD,
+        "key_passwd": KEY_PASSWORD,
         **extra,
     }
 
 
 def test_tls_with_the_right_ca_and_a_client_certificate(pki: Pki) -> None:
-    with TcpReceiver(tls=pki.server_context(require_client=True)) as receiver:
+    with TcpReceiver(tls=pki.server_context(client_ca=pki.ca)) as receiver:
         dest = tcp_destination(port=receiver.port, tls=tls_params(pki))
         assert dest.send(batch(0, 5)) is None
         assert dest.send(batch(5, 5)) is None
@@ -395,7 +323,7 @@ def test_tls_with_the_right_ca_and_a_client_certificate(pki: Pki) -> None:
 
 
 def test_tls_refuses_a_server_of_another_ca_with_a_clear_message(pki: Pki, other_pki: Pki) -> None:
-    with TcpReceiver(tls=other_pki.server_context(require_client=False)) as receiver:
+    with TcpReceiver(tls=other_pki.server_context()) as receiver:
         context = FakeContext(name="tcp")
         params = parse_params(TcpParams, {"port": receiver.port, "tls": tls_params(pki)}, "destination_server.tcp")
         dest = Tcp(context, params)
@@ -413,7 +341,7 @@ def test_tls_refuses_a_server_of_another_ca_with_a_clear_message(pki: Pki, other
 
 
 def test_tls_checks_the_host_name(pki: Pki) -> None:
-    with TcpReceiver(tls=pki.server_context(require_client=False)) as receiver:
+    with TcpReceiver(tls=pki.server_context()) as receiver:
         with pytest.raises(RetryableError, match=r"Hostname mismatch|IP address mismatch"):
             tcp_destination(
                 port=receiver.port, tls={"active": True, "ca_file": str(pki.ca), "vhost": "elsewhere"}
@@ -424,7 +352,7 @@ def test_tls_checks_the_host_name(pki: Pki) -> None:
 
 
 def test_tls_verify_off_accepts_an_unknown_certificate(other_pki: Pki) -> None:
-    with TcpReceiver(tls=other_pki.server_context(require_client=False)) as receiver:
+    with TcpReceiver(tls=other_pki.server_context()) as receiver:
         with pytest.raises(RetryableError, match="certificate"):
             tcp_destination(port=receiver.port, tls=True).send(batch(0, 1))
         assert tcp_destination(port=receiver.port, tls={"active": "on", "verify": "off"}).send(batch(0, 1)) is None
@@ -433,14 +361,56 @@ def test_tls_verify_off_accepts_an_unknown_certificate(other_pki: Pki) -> None:
 
 def test_key_password_stays_out_of_repr_errors_and_logs(pki: Pki, caplog: pytest.LogCaptureFixture) -> None:
     params = parse_params(TcpParams, {"tls": tls_params(pki)}, "destination_server.tcp")
-    assert Pki.PASSWORD not in repr(params) and Pki.PASSWORD not in str(params)
-    assert "tls=TlsParams(active=True" in repr(params)
+    assert KEY_PASSWORD not in repr(params) and KEY_PASSWORD not in str(params)
+    assert "tls=True, tls_verify=True" in repr(params)
     with pytest.raises(ConfigError) as caught:
-        tcp_destination(tls=tls_params(pki, key_passwd="wrong-" + Pki.PASSWORD))
+        tcp_destination(tls=tls_params(pki, key_passwd="wrong-" + KEY_PASSWORD))
     message = str(caught.value)
     assert message.startswith("destination_server.tcp.tls.key_file: cannot load "), message
-    assert "tls.key_passwd" in message and Pki.PASSWORD not in message
-    assert all(Pki.PASSWORD not in r.getMessage() for r in caplog.records)
+    assert "tls.key_passwd" in message and KEY_PASSWORD not in message
+    assert all(KEY_PASSWORD not in r.getMessage() for r in caplog.records)
+
+
+def test_flat_tls_keys_as_http_and_mqtt_spell_them(pki: Pki) -> None:
+    flat = {**pki.client_params(), "tls_vhost": "localhost"}
+    with TcpReceiver(tls=pki.server_context(client_ca=pki.ca)) as receiver:
+        context = FakeContext(name="tcp")
+        dest = Tcp(context, parse_params(TcpParams, {"port": receiver.port, **flat}, "destination_server.tcp"))
+        dest.on_configure()
+        assert dest.send(batch(0, 3)) is None
+        assert [line["seq"] for line in receiver.wait_lines(3)] == [0, 1, 2]
+    assert context.logger.at("warning") == [], "the flat spelling is not deprecated"
+    with pytest.raises(
+        ConfigError, match=r"tls_ca_file: write the TLS settings either as tls_\* keys or as a tls: section"
+    ):
+        tcp_destination(tls={"active": True}, tls_ca_file=str(pki.ca))
+
+
+def test_the_tls_section_still_works_and_is_noted_as_deprecated_once(pki: Pki) -> None:
+    with TcpReceiver(tls=pki.server_context(client_ca=pki.ca)) as receiver:
+        context = FakeContext(name="tcp")
+        params = {"port": receiver.port, "tls": tls_params(pki)}
+        dest = Tcp(context, parse_params(TcpParams, params, "destination_server.tcp"))
+        dest.on_configure()
+        assert dest.send(batch(0, 1)) is None
+        receiver.wait_lines(1)
+    (note,) = context.logger.at("warning")
+    assert "destination_server.tcp.tls: the tls: section" in note and "deprecated" in note and "tls_ca_file" in note
+    assert KEY_PASSWORD not in note
+
+
+def test_a_wrong_ca_fails_the_destination_and_keeps_every_record(tmp_path: Path, pki: Pki) -> None:
+    records = batch(0, 4)
+    with TcpReceiver(tls=pki.server_context()) as receiver:
+        params = parse_params(TcpParams, {"port": receiver.port, "tls": True, "tls_ca_file": str(pki.stranger_ca)}, "t")
+        dest = Tcp(FakeContext(name="tcp"), params)
+        dest.on_configure()
+        metrics = through_pipeline(tmp_path, dest, records, lambda m: tls_refused(m) and m["buffered"] == 4)
+    assert "unable to get local issuer certificate" in metrics["health"]["reason"]
+    assert "tls_ca_file" in metrics["health"]["reason"], "the message names the flat key the file used"
+    delivered = len(receiver.lines())
+    assert delivered + int(metrics["buffered"]) + int(metrics["dead_lettered"]) == len(records) == 4
+    assert delivered == 0 and int(metrics["sent"]) == 0
 
 
 # -- configuration ---------------------------------------------------------------------------------------------
@@ -485,7 +455,7 @@ def test_a_ca_file_that_is_not_pem_is_a_configuration_error(tmp_path: Path) -> N
 
 def test_defaults_are_the_originals() -> None:
     p = parse_params(TcpParams, {}, "x")
-    assert (p.host, p.port, p.format, p.tls_settings.active, p.tls_settings.verify) == (
+    assert (p.host, p.port, p.format, p.tls, p.tls_verify) == (
         "127.0.0.1",
         5432,
         "json_lines",
@@ -513,16 +483,16 @@ destination_server:
       tls.verify: "on"
       tls.debug: 1
       tls.ca_file: "{pki.ca}"
-      tls.crt_file: "{pki.client_cert}"
+      tls.crt_file: "{pki.client_crt}"
       tls.key_file: "{pki.client_key}"
-      tls.key_passwd: "{Pki.PASSWORD}"
+      tls.key_passwd: "{KEY_PASSWORD}"
 """)
     (d,) = validate_params_file(params).configs["destination_server"].destinations
-    tls = d.plugin_params.tls_settings
-    assert (tls.active, tls.verify, tls.key_passwd) == (True, True, Pki.PASSWORD)
+    tls = d.plugin_params
+    assert (tls.tls, tls.tls_verify, tls.tls_key_passwd) == (True, True, KEY_PASSWORD)
     off = configure({"tls": {"active": "off", "verify": "on"}})
-    assert off.params.tls_settings.active is False
-    assert configure({"tls": "on"}).params.tls_settings.active is True
+    assert off.params.tls is False
+    assert configure({"tls": "on"}).params.tls is True
 
 
 # -- end to end through dc-bringup -----------------------------------------------------------------------------

@@ -96,10 +96,19 @@ class _Frame:
     number: int
 
 
+# A 1920x1080 JPEG at quality 90 is ~0.3-0.4 MB, ~0.5 MB in base64: what one image in a record weighs.
+BASE64_IMAGE_ESTIMATE = 512 * 1024
+
+
 class Camera(Measurement[CameraParams]):
     """Camera frames: QR codes and barcodes read in them, and raw, turned and inspected images (JPEG)."""
 
     collect_in_worker = True
+
+    def record_bytes_estimate(self) -> int | None:
+        p = self.params
+        images = p.save_raw_base64 + p.save_rotated_base64 + p.save_inspected_base64
+        return images * BASE64_IMAGE_ESTIMATE or None
 
     def __init__(self, context: MeasurementContext, params: CameraParams) -> None:
         super().__init__(context, params)

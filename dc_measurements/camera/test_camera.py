@@ -318,3 +318,14 @@ def test_an_oversized_compressed_frame_is_counted_and_logged_and_the_next_frame_
     record = collected(ros, plugin, lambda: publisher.publish(good))
     assert {c["data"] for c in record["inspected"]["barcode"]} == {LABEL.qr, LABEL.linear}
     ros.harness.stop(plugin)
+
+
+def test_images_in_base64_size_the_output_history() -> None:
+    from dc_core.testing import PluginHarness
+
+    def estimate(**params: Any) -> int | None:
+        return PluginHarness().make(Camera, {"cam_name": "c", "cam_topic": "/c", **params}).record_bytes_estimate()
+
+    assert estimate() is None  # files only: small records, the history keeps history_depth
+    assert estimate(save_raw_base64=True) == 512 * 1024
+    assert estimate(save_raw_base64=True, save_inspected_base64=True) == 1024 * 1024

@@ -19,8 +19,12 @@ from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
 from dc_core.rostime import stamp_ns
 from dc_core.tf import TransformBuffer, TransformError
-from dc_core.tf_listener import TIME_JUMP_BACK_NS, TfListener
+from dc_core.tf_listener import TfListener
 from dc_measurements.velocity import SENSOR_QOS, topic_param
+
+# Odometry stamped this far behind the previous message means its time restarted (a bag replayed
+# without use_sim_time), not a late message: one topic from one publisher, so stamps are monotonic.
+ODOM_TIME_JUMP_BACK_NS = 1_000_000_000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -130,7 +134,7 @@ class DistanceTraveled(Measurement[DistanceTraveledParams]):
 
     def _on_odometry(self, message: Any, info: Any = None) -> None:
         at = stamp_ns(message.header.stamp)
-        if at < self._last_pose_ns - TIME_JUMP_BACK_NS:
+        if at < self._last_pose_ns - ODOM_TIME_JUMP_BACK_NS:
             self.odometer.restart_path()
         self._last_pose_ns = at
         position = message.pose.pose.position
@@ -140,4 +144,9 @@ class DistanceTraveled(Measurement[DistanceTraveledParams]):
         return {"distance_traveled": self.odometer.total}
 
     def counters(self) -> dict[str, int]:
-        return {"jumps": self.odometer.jumps, "no_transform": self.no_transform}
+        return {
+            "jumps": self.odometer.jumps,
+            "no_transform": self.no_transform,
+            "tf_time_jumps": self._listener.time_jumps,
+            "tf_old_data": self._listener.old_data,
+        }

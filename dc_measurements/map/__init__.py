@@ -1,12 +1,13 @@
 """Map measurement: the occupancy grid of ``/map`` saved as map_saver's PGM + YAML and a PNG.
 
 The grid arrives on a TRANSIENT_LOCAL subscription (a map server publishes it once; a late
-subscriber still gets it). A poll renders the newest grid on the server's worker — the original ran
-``map_saver_cli`` in a shell from its timer, holding the server up to ``save_map_timeout`` — unless
-it is identical to the grid saved last: a map that did not change is not written, nor published,
-again. The files are written, on the worker, once the record is published (:meth:`Map.on_published`):
-a record the conditions drop leaves no file. Width and height come from the grid (the original
-assumed a square map).
+subscriber still gets it), or a VOLATILE one with ``transient_local: false`` (a transient-local
+subscription matches no volatile publisher: a QoS warning, and no map). A poll renders the newest
+grid on the server's worker — the original ran ``map_saver_cli`` in a shell from its timer, holding
+the server up to ``save_map_timeout`` — unless it is identical to the grid saved last: a map that
+did not change is not written, nor published, again. The files are written, on the worker, once
+the record is published (:meth:`Map.on_published`): a record the conditions drop leaves no file.
+Width and height come from the grid (the original assumed a square map).
 """
 
 from __future__ import annotations
@@ -33,13 +34,20 @@ from dc_measurements.saved_files import PendingFiles, ReservedPaths, file_locati
 from dc_measurements.velocity import topic_param
 
 MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+VOLATILE_MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 _SUFFIXES = (".yaml", ".pgm", ".png")
+MAP_BASE64_ESTIMATE = 1024 * 1024
 _WAIT_STEP_S = 0.02
 
 
 @dataclass(frozen=True, kw_only=True)
 class MapParams:
-    topic: str = topic_param("/map", "nav_msgs/msg/OccupancyGrid topic (TRANSIENT_LOCAL, as map servers publish)")
+    topic: str = topic_param("/map", "nav_msgs/msg/OccupancyGrid topic")
+    transient_local: bool = param(
+        True,
+        doc="Subscribe transient-local, as map servers publish (a map published before DC started arrives); "
+        "false: volatile, for a volatile publisher (Nav2's map_subscribe_transient_local)",
+    )
     save_path: str = param(
         "map/%Y-%m-%dT%H:%M:%S",
         doc="Path of the saved files without extension, under save_local_base_path/all_base_path ($ENV, strftime)",
@@ -76,6 +84,10 @@ class Map(Measurement[MapParams]):
         self.saved = 0
         self.save_errors = 0
 
+    def record_bytes_estimate(self) -> int | None:
+        # A trinary PNG compresses well: a 4,000 x 4,000 map (200 m at 5 cm) is well under 1 MiB in base64.
+        return MAP_BASE64_ESTIMATE if self.params.save_base64 else None
+
     def on_configure(self) -> None:
         p = self.params
         if p.free_thresh >= p.occupied_thresh:
@@ -84,7 +96,8 @@ class Map(Measurement[MapParams]):
                 f"occupied_thresh ({p.occupied_thresh})"
             )
         self.on_cleanup()
-        self._subscription = self.context.subscribe(OccupancyGrid, p.topic, self._on_grid, MAP_QOS)
+        qos = MAP_QOS if p.transient_local else VOLATILE_MAP_QOS
+        self._subscription = self.context.subscribe(OccupancyGrid, p.topic, self._on_grid, qos)
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:

@@ -202,6 +202,27 @@ def test_a_map_that_cannot_be_saved_is_counted_logged_and_saved_at_the_next_poll
     ros.harness.stop(plugin)
 
 
+def test_a_volatile_map_publisher_is_read_with_transient_local_false(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/map")
+    volatile = ros.harness.make(Map, {"topic": topic, "transient_local": False, "save_map_timeout": 0.0})
+    default = ros.harness.make(Map, {"topic": topic, "save_map_timeout": 0.0})
+    for plugin in (volatile, default):
+        ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+        plugin.on_configure()
+        plugin.on_activate()
+    volatile_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+    # Matched by the volatile subscription only: a transient-local one does not match a volatile
+    # publisher (the QoS warning, and no map, of the default).
+    publisher = ros.publisher(OccupancyGrid, topic, volatile_qos)
+    assert publisher.get_subscription_count() == 1
+    publisher.publish(grid(6, 4, seed=5))
+    record = collected(ros, volatile)
+    assert (record["width"], record["height"]) == (6, 4)
+    assert default.collect() is None and default.counters()["no_map"] == 1
+    for plugin in (volatile, default):
+        ros.harness.stop(plugin)
+
+
 def test_no_map_reports_nothing_after_save_map_timeout(ros: Ros, tmp_path: Path) -> None:
     plugin = ros.harness.make(Map, {"topic": unique("/map"), "save_map_timeout": 0.2})
     ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
@@ -218,3 +239,13 @@ def test_thresholds_in_the_wrong_order_are_refused() -> None:
 
     with pytest.raises(PluginError, match="free_thresh"):
         PluginHarness().start(Map, {"free_thresh": 0.7, "occupied_thresh": 0.6})
+
+
+def test_a_map_in_base64_sizes_the_output_history_for_records_of_a_mebibyte() -> None:
+    from dc_core.record_history import DEFAULT_HISTORY_BYTES, history_depth_for
+    from dc_core.testing import PluginHarness
+
+    harness = PluginHarness()
+    assert harness.make(Map, {}).record_bytes_estimate() is None  # paths and sizes only: small
+    estimate = harness.make(Map, {"save_base64": True}).record_bytes_estimate()
+    assert history_depth_for(estimate or 0, 1000, DEFAULT_HISTORY_BYTES) == 64

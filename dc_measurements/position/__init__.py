@@ -88,4 +88,8 @@ class Position(Measurement[PositionParams]):
         return self.collect_stamped()[0]
 
     def counters(self) -> dict[str, int]:
-        return {"no_transform": self.no_transform, "tf_time_jumps": self._listener.time_jumps}
+        return {
+            "no_transform": self.no_transform,
+            "tf_time_jumps": self._listener.time_jumps,
+            "tf_old_data": self._listener.old_data,
+        }
