@@ -255,9 +255,17 @@ class LifecycleManager(Node):
             if current == _SOURCE_STATE[label]:
                 failure = self.transition(server, label, to)
                 if failure is not None:
+                    if label in ("configure", "activate") and server not in self._errored:
+                        # Not coming up: the watch restarts it as a server whose bring-up failed, and
+                        # is_active says so meanwhile.
+                        self._not_up.setdefault(server, self.bond_timeout)
+                        self._watch_since[server] = time.monotonic()
                     return failure
                 current = to
-        return None if current == target else f"{server} is {current}, not {target}"
+        if current != target:
+            return f"{server} is {current}, not {target}"
+        self._not_up.pop(server, None)  # up after all: no restart is due
+        return None
 
     def _forget_clients(self, server: str) -> None:
         # A client matched with a dead process' service may send its request there only: a restarted
