@@ -156,6 +156,36 @@ def test_a_deactivate_that_stops_part_way_ends_in_error_and_the_server_is_restar
     assert not [line for line in run.stderr if "could not be committed" in line]
 
 
+def test_a_resume_whose_activate_fails_says_so_and_the_server_is_restarted_active(tmp_path: Path) -> None:
+    # measurement_server's second activate (the resume) fails once; its first, at start-up, does not.
+    target = "dc_core.lifecycle:ManagedServer.start_metrics_http"
+    with (
+        Receiver() as receiver,
+        Bringup(
+            write_params(tmp_path, receiver.port),
+            tmp_path / "home",
+            args=["--bond-timeout", "3"],
+            env=fault_env(tmp_path, target, skip=1),
+        ) as run,
+    ):
+        run.wait_ready()
+        assert lifecycle(run, "pause") == (0, ["pause: done"])
+        code, out = lifecycle(run, "resume")
+        assert code == 1 and len(out) == 1, out
+        assert out[0] == (
+            "resume: failed: measurement_server: activate failed; it is still inactive (its log above says why) "
+            "(see dc-bringup log)"
+        ), out
+        # Not "active" while it is not: is_active names it until the watch has restarted it active.
+        code, out = lifecycle(run, "is-active", 10)
+        assert code == 1 and "not up: measurement_server" in out[0], out
+        run.wait_stderr("measurement_server did not come up: restarting it", 20)
+        run.wait_until(lambda: lifecycle(run, "is-active", 10)[0] == 0, 30, "every server active")
+        finish(publish(run, BATCH, rate=500, padding=1))
+        wait_delivered(receiver, 1)
+    assert len(delivered(receiver, 1)) == BATCH, "delivered = sent"
+
+
 def test_a_deactivate_as_long_as_a_15_s_grace_is_sent_once_and_succeeds(tmp_path: Path) -> None:
     stall = threading.Event()
     stalled = threading.Event()
