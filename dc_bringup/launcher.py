@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="seconds a lifecycle transition may take before the server is asked where it is "
-        "(default 30, or destination_server's flb.grace + 30 when that is longer)",
+        "(default destination_server's flb.grace + 30)",
     )
     parser.add_argument(
         "--namespace", default="", help="ROS namespace of every server and of the lifecycle manager (e.g. robot1)"

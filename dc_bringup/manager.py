@@ -44,10 +44,9 @@ GET_STATE_PROBE_S = 0.5
 # get_state of a server that is up: unanswered this long, its state cannot be read (it hangs, or it is
 # busy in a transition: a server answers one request at a time).
 GET_STATE_TIMEOUT_S = 5.0
-# How long a transition may take before the manager asks where the server is, by default: this, or
-# destination_server's flb.grace and the margin when longer (default_transition_timeout).
+# How long a transition may take before the manager asks where the server is, by default: this more
+# than destination_server's flb.grace (default_transition_timeout), which a deactivate may take.
 TRANSITION_TIMEOUT_S = 30.0
-TRANSITION_MARGIN_S = 30.0
 PROBES_PER_CLIENT = 4
 # Longest wait between two attempts to restart a server that does not come up.
 MAX_RETRY_DELAY_S = 60.0
@@ -529,12 +528,12 @@ class LifecycleManager(Node):
 
 
 def default_transition_timeout(configs: dict[str, Any]) -> float:
-    """TRANSITION_TIMEOUT_S, or destination_server's flb.grace and a margin when that is longer: a
-    deactivate delivers for up to flb.grace seconds, and must not be thought lost meanwhile.
-    ``configs``: the parsed sections (dc_bringup.validate.ValidationReport.configs)."""
+    """destination_server's flb.grace and TRANSITION_TIMEOUT_S: a deactivate delivers for up to
+    flb.grace seconds, and must not be thought lost meanwhile (TRANSITION_TIMEOUT_S alone without a
+    destination_server). ``configs``: the parsed sections (dc_bringup.validate.ValidationReport.configs)."""
     destinations = configs.get("destination_server")
     grace = float(destinations.node.flb.grace) if destinations is not None else 0.0
-    return max(TRANSITION_TIMEOUT_S, grace + TRANSITION_MARGIN_S)
+    return grace + TRANSITION_TIMEOUT_S
 
 
 def _nothing() -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -16,6 +17,8 @@ import rclpy
 from rclpy.context import Context
 from rclpy.lifecycle import TransitionCallbackReturn
 
+from dc_bringup.manager import default_transition_timeout
+from dc_bringup.validate import validate_params_file
 from dc_core.lifecycle import ManagedServer, PartialTeardown
 
 SUCCESS = TransitionCallbackReturn.SUCCESS
@@ -131,3 +134,21 @@ def test_a_failed_configure_undone_is_a_failure_back_in_unconfigured(server: Fau
     assert server.trigger_configure() == FAILURE
     assert server.lifecycle_state == "unconfigured"
     assert server.ran == ["configure", "cleanup"]
+
+
+def test_the_default_transition_timeout_exceeds_the_destinations_grace(tmp_path: Path) -> None:
+    params = tmp_path / "params.yaml"
+    section = """
+destination_server:
+  ros__parameters:
+    flb:
+      grace: {grace}
+    destination_plugins: ["out"]
+    out:
+      plugin: "dc_destinations/Stdout"
+      inputs: ["dc/measurement/uptime"]
+"""
+    for grace, expected in ((15.0, 45.0), (1.0, 31.0)):
+        params.write_text(section.format(grace=grace))
+        assert default_transition_timeout(validate_params_file(params).configs) == expected
+    assert default_transition_timeout({}) == 30.0  # no destination_server: nothing waits for a grace
