@@ -401,9 +401,16 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
             print(f"dc lifecycle: {manager} did not answer in {args.timeout:g} s", file=sys.stderr)
             return 2
         response = future.result()
+        failure = ""
+        if args.command_name != "is-active" and not response.success:
+            failure = _last_failure(node, manager, args.timeout)
     finally:
         node.destroy_node()
         rclpy.shutdown()
+    if failure:
+        # One line naming the servers and what each failed at.
+        print(f"{args.command_name}: failed: {failure} (see dc-bringup log)")
+        return 1
     if args.command_name == "is-active":
         if response.success and response.message.startswith(DEGRADED_PREFIX):
             print(response.message)
@@ -412,6 +419,20 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     else:
         print(f"{args.command_name}: {'done' if response.success else 'failed (see dc-bringup log)'}")
     return 0 if response.success else 1
+
+
+def _last_failure(node: Any, manager: str, timeout: float) -> str:
+    """What the manager's last command failed at, as its is_active tells it ("" if it does not)."""
+    import rclpy
+    from std_srvs.srv import Trigger
+
+    from dc_bringup.manager import FAILED_PREFIX
+
+    future = node.create_client(Trigger, f"{manager}/is_active").call_async(Trigger.Request())
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if not future.done():
+        return ""
+    return str(future.result().message).partition(FAILED_PREFIX)[2]
 
 
 def cmd_servers(args: argparse.Namespace) -> int:

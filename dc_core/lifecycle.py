@@ -2,8 +2,15 @@
 
 Every DC server is an rclpy ``LifecycleNode``. Subclasses implement ``configure_server`` (parse and
 build; raise to fail), ``activate_server`` (timers, connections), ``deactivate_server`` (stop intake,
-flush) and ``cleanup_server`` (release). A failing transition is logged with its reason and reported
-as FAILURE; the process keeps running and can be configured again.
+flush) and ``cleanup_server`` (release). A failing transition is logged with its reason and its
+result is what the node's state then is (ROS 2's lifecycle design):
+
+- configure or activate that fails is undone and reported as FAILURE: the node is back where it was;
+- a teardown (deactivate, cleanup, or the undo of a failed step) that stops part-way leaves the node
+  in no state it could go on from: ERROR, and ``on_error`` releases what it can — ``unconfigured``
+  if that works, ``finalized`` if not (the lifecycle manager restarts the process either way);
+- a teardown that went to its end but one part of which failed (a plugin's own ``on_deactivate``,
+  :class:`PartialTeardown`) succeeds, with that part logged at ERROR.
 """
 
 from __future__ import annotations
@@ -70,6 +77,12 @@ EXECUTOR_TURN_MAX_CALLBACKS = 256
 # The longest a server's loop sleeps when nothing happens: signals and work wake it at once, this
 # only bounds a wait should a wake-up ever be missed.
 IDLE_WAIT_S = 5.0
+
+
+class PartialTeardown(DcError):
+    """Raised by ``deactivate_server`` or ``cleanup_server`` that went to its end when one part of it
+    failed (a plugin's own hook): the server is torn down and can go on, so the transition succeeds
+    and the part is logged at ERROR. Any other exception of a teardown means it stopped part-way."""
 
 
 @dataclass
@@ -287,22 +300,41 @@ class ManagedServer(LifecycleNode):
         raise NotImplementedError
 
     def _guard(self, what: str, step: Any, undo: Any = None) -> TransitionCallbackReturn:
+        """``step``, FAILURE if it raises and ``undo`` (a teardown) then ran to its end, ERROR if not."""
         started = time.monotonic()
         try:
             step()
-        except DcError as exc:
-            self.get_logger().error(f"{what} failed: {exc}")
         except Exception as exc:  # a plugin bug must fail the transition, not the process
-            self.get_logger().error(f"{what} failed: {exc!r}\n{traceback.format_exc()}")
+            self._log_failure(what, exc)
         else:
             self.get_logger().debug(f"{what} done in {time.monotonic() - started:.3f} s")
             return TransitionCallbackReturn.SUCCESS
-        if undo is not None:
-            try:
-                undo()
-            except Exception as exc:
-                self.get_logger().error(f"undoing {what} failed too: {exc!r}")
+        if undo is not None and self._teardown(f"undoing {what}", undo) == TransitionCallbackReturn.ERROR:
+            return TransitionCallbackReturn.ERROR
         return TransitionCallbackReturn.FAILURE
+
+    def _teardown(self, what: str, step: Any) -> TransitionCallbackReturn:
+        """A teardown: SUCCESS when it went to its end (a :class:`PartialTeardown` logged at ERROR),
+        ERROR when it stopped part-way — the node is then neither what it was nor what it was to become."""
+        started = time.monotonic()
+        try:
+            step()
+        except PartialTeardown as exc:
+            self.get_logger().error(f"{what}: done, but {exc}")
+        except Exception as exc:
+            self._log_failure(what, exc)
+            self.get_logger().error(
+                f"{what} stopped part-way: the transition ends in ERROR (on_error releases the rest)"
+            )
+            return TransitionCallbackReturn.ERROR
+        self.get_logger().debug(f"{what} done in {time.monotonic() - started:.3f} s")
+        return TransitionCallbackReturn.SUCCESS
+
+    def _log_failure(self, what: str, exc: Exception) -> None:
+        if isinstance(exc, DcError):
+            self.get_logger().error(f"{what} failed: {exc}")
+        else:
+            self.get_logger().error(f"{what} failed: {exc!r}\n{traceback.format_exc()}")
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         return self._guard("configure", self.configure_server, self.cleanup_server)
@@ -314,18 +346,31 @@ class ManagedServer(LifecycleNode):
         return result
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        result = self._guard("deactivate", self.deactivate_server)
-        super().on_deactivate(state)
+        result = self._teardown("deactivate", self.deactivate_server)
+        super().on_deactivate(state)  # the lifecycle publishers stop in any case
         return result
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        return self._guard("cleanup", self.cleanup_server)
+        return self._teardown("cleanup", self.cleanup_server)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """After a transition from ``state`` ended in ERROR: release everything (cleanup). SUCCESS
+        takes the node to ``unconfigured``, FAILURE to ``finalized`` (rclpy's lifecycle)."""
+        # After a failed configure whose undo stopped part-way, that undo was the cleanup: tried once more.
+        result = self._teardown(f"cleanup after the failed transition from {state.label}", self.cleanup_server)
+        if result == TransitionCallbackReturn.SUCCESS:
+            self.get_logger().error(f"{self.get_name()} is unconfigured after an error; it must be configured again")
+            return TransitionCallbackReturn.SUCCESS
+        self.get_logger().fatal(
+            f"{self.get_name()} is finalized: it cannot go on; only a restart of its process brings it back"
+        )
+        return TransitionCallbackReturn.FAILURE
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
         if state.label == "active":
-            self._guard("deactivate", self.deactivate_server)
+            self._teardown("deactivate", self.deactivate_server)
         if state.label in ("active", "inactive"):
-            self._guard("cleanup", self.cleanup_server)
+            self._teardown("cleanup", self.cleanup_server)
         return TransitionCallbackReturn.SUCCESS
 
 

@@ -31,10 +31,9 @@ from rclpy.utilities import get_rmw_implementation_identifier
 
 from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
-from dc_core.errors import PluginError
 from dc_core.handoff import ENDED_SUFFIX, RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
-from dc_core.lifecycle import ManagedServer, run_server
+from dc_core.lifecycle import ManagedServer, PartialTeardown, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
@@ -220,7 +219,8 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
         self._stop_acks()
-        for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
+        # Without a config (a configure that failed parsing it) there is no plugin to clean up.
+        for error in run_hook_on_each(self._named_plugins() if self.config is not None else [], "on_cleanup"):
             self.get_logger().error(error)
         self.plugins.clear()
         self._debug.clear()
@@ -313,7 +313,8 @@ class DestinationServer(ManagedServer):
         self._stop_acks()
         errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
         if errors:
-            raise PluginError("; ".join(errors))
+            # The server's own part is torn down: it can go on (dc_core.lifecycle).
+            raise PartialTeardown("; ".join(errors))
 
     def _named_plugins(self) -> list[tuple[str, Destination[Any]]]:
         assert self.config is not None
