@@ -28,7 +28,7 @@ from typing import Any
 from rclpy.qos import QoSProfile
 
 from dc_core.destination import Destination, OutgoingRecord
-from dc_core.errors import ConfigError, PluginError
+from dc_core.errors import ConfigError, DcError, PluginError
 from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
@@ -211,7 +211,7 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
         self._stop_acks()
-        for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
+        for error in self._plugin_hooks("on_cleanup"):
             self.get_logger().error(error)
         self.plugins.clear()
         self._debug.clear()
@@ -277,9 +277,22 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)
         self._stop_acks()
-        errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
+        errors = self._plugin_hooks("on_deactivate")
         if errors:
             raise PluginError("; ".join(errors))
+
+    def _plugin_hooks(self, hook: str) -> list[str]:
+        """``hook`` of every plugin, never while its send() runs (DeliveryPipeline.between_sends)."""
+        pipeline = self.pipeline
+        if pipeline is None:
+            return run_hook_on_each(self._named_plugins(), hook)
+        errors: list[str] = []
+        for name, (what, plugin) in zip(self.plugins, self._named_plugins(), strict=True):
+            try:
+                pipeline.between_sends(name, functools.partial(run_hook, what, plugin, hook))
+            except DcError as exc:
+                errors.append(str(exc))
+        return errors
 
     def _named_plugins(self) -> list[tuple[str, Destination[Any]]]:
         assert self.config is not None
