@@ -34,7 +34,6 @@ same backoff: a sender never dies. Dead letters are bounded per destination by
 
 from __future__ import annotations
 
-import logging
 import math
 import threading
 import time
@@ -78,13 +77,10 @@ class Gate:
         self._settle()
         return result
 
-    def run(self, hook: Callable[[], None], timeout: float = 0.0) -> bool:
-        """``hook()`` now when no ``send`` runs (within ``timeout`` s): True, and what it raises passes.
-
-        Otherwise False, and ``hook`` runs on the sender's thread once the ``send`` returns, what it
-        raises logged there.
-        """
-        if self._busy.acquire(timeout=timeout):
+    def run(self, hook: Callable[[], None]) -> bool:
+        """``hook()`` now when no ``send`` runs: True, and what it raises passes. Otherwise False, and
+        ``hook`` runs on the sender's thread once the ``send`` returns, what it raises logged there."""
+        if self._busy.acquire(blocking=False):
             try:
                 hook()
             finally:
@@ -129,11 +125,11 @@ class Route:
     dead_letter_drop_log: BurstLog
     malformed_log: BurstLog
     health: DestinationHealth
+    gate: Gate
     wakeup: threading.Event = field(default_factory=threading.Event)
     # Records committed since the sender last found its queue empty: it wakes at batch_size.
     pending_hint: int = 0
     thread: threading.Thread | None = None
-    gate: Gate = field(default_factory=lambda: Gate(logging.getLogger(__name__)))
 
     @classmethod
     def of(cls, name: str, destination: Destination[Any], params: DestinationDeliveryParams, logger: Logger) -> Route:
