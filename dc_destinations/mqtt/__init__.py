@@ -144,9 +144,6 @@ class _Connection:
         with self.changed:
             self.changed.notify_all()
 
-    def is_up(self) -> bool:
-        return self.connected
-
     def close(self) -> None:
         """Say goodbye if still connected, and stop the network thread."""
         # Returns an error code, not raising, when the socket is gone already.
@@ -165,7 +162,9 @@ class Mqtt(Destination[MqttParams]):
         self._tls: ssl.SSLContext | None = None
         # Opened again once paho says it is lost (connected False).
         self._connection = self.keep(
-            Connection("", self._connect, _Connection.close, timeout=params.connect_timeout, usable=_Connection.is_up)
+            Connection(
+                "", self._connect, _Connection.close, timeout=params.connect_timeout, usable=lambda c: c.connected
+            )
         )
         self.client_id = ""
         self.address = ""
