@@ -1,6 +1,6 @@
 # DC — developer entry points.
 #
-#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, tf2_msgs (cmake) + DC (editable, with the test, camera and destination extras)
+#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, dc_lifecycle_interfaces, tf2_msgs (cmake) + DC (editable, with the test, camera and destination extras)
 #                    + the example plugin package examples/dc_uptime_custom
 #   make test-deps   Debian packages the tests need (installed only if missing)
 #   make test        ruff, mypy, pytest
@@ -42,9 +42,13 @@ ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces \
 # headless browser and its driver that test the dashboard as a user sees it.
 TEST_DEBS := libzbar0 ffmpeg mosquitto postgresql influxdb chromium chromium-driver
 
-IFACE_SRCS := dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
+# Included by every interface package's CMakeLists.txt.
+IFACE_CMAKE := interfaces/cmake/dc_wheels_python_includes.cmake
+IFACE_SRCS := $(IFACE_CMAKE) dc_interfaces/CMakeLists.txt dc_interfaces/package.xml \
 	$(wildcard dc_interfaces/msg/*.msg dc_interfaces/srv/*.srv dc_interfaces/action/*.action)
-TF2_MSGS_SRCS := interfaces/tf2_msgs/CMakeLists.txt interfaces/tf2_msgs/package.xml \
+LIFECYCLE_IFACE_SRCS := $(IFACE_CMAKE) interfaces/dc_lifecycle_interfaces/CMakeLists.txt interfaces/dc_lifecycle_interfaces/package.xml \
+	$(wildcard interfaces/dc_lifecycle_interfaces/msg/*.msg interfaces/dc_lifecycle_interfaces/srv/*.srv)
+TF2_MSGS_SRCS := $(IFACE_CMAKE) interfaces/tf2_msgs/CMakeLists.txt interfaces/tf2_msgs/package.xml \
 	$(wildcard interfaces/tf2_msgs/msg/*.msg)
 
 # Keep ROS traffic and logs of `run` and `test` on this machine and inside the checkout.
@@ -72,19 +76,34 @@ $(VENV)/.stamp-ros: $(CONSTRAINTS)
 # 2. Interface packages, built out of tree with plain cmake and installed into the venv prefix (the
 #    ament index is searched there), so `from dc_interfaces.msg import ...` works without sourcing.
 #    LD_LIBRARY_PATH is computed from a clean environment, so only this venv's ROS libraries are used.
+#    Each build starts from an empty build folder, and what the previous one installed into this venv
+#    is removed before installing: a type taken out of a package (Heartbeat left dc_interfaces) must
+#    leave no generated file behind, neither in the build folder nor in the venv.
 define build_interfaces
 	unset AMENT_PREFIX_PATH CMAKE_PREFIX_PATH COLCON_PREFIX_PATH PYTHONPATH; \
 	export LD_LIBRARY_PATH="$$(env -u LD_LIBRARY_PATH $(VPY) -c \
 		'import ros_wheels_bootstrapper as b; print(b.get_ros_paths())')"; \
-	cmake -S $(1) -B $(CURDIR)/build/$(notdir $(1)) \
+	build=$(CURDIR)/build/$(notdir $(1)); \
+	if [ -f $$build/install_manifest.txt ]; then mv $$build/install_manifest.txt $$build.installed; fi; \
+	rm -rf $$build; \
+	cmake -S $(1) -B $$build \
 		-DCMAKE_PREFIX_PATH=$(VENV) -DCMAKE_INSTALL_PREFIX=$(VENV) \
 		-DPython3_EXECUTABLE=$(VPY) -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF; \
-	cmake --build $(CURDIR)/build/$(notdir $(1)) -j $(NPROC); \
-	cmake --install $(CURDIR)/build/$(notdir $(1))
+	cmake --build $$build -j $(NPROC); \
+	if [ -f $$build.installed ]; then \
+		{ grep -F '$(VENV)/' $$build.installed || true; } | xargs -r -d '\n' rm -f; \
+		rm -f $$build.installed; \
+	fi; \
+	cmake --install $$build
 endef
 
 $(VENV)/.stamp-interfaces: $(VENV)/.stamp-ros $(IFACE_SRCS)
 	$(call build_interfaces,dc_interfaces)
+	touch $@
+
+# DC's own interfaces (Heartbeat, ManageLifecycleNodes), apart from the original's in dc_interfaces.
+$(VENV)/.stamp-lifecycle-interfaces: $(VENV)/.stamp-ros $(LIFECYCLE_IFACE_SRCS)
+	$(call build_interfaces,interfaces/dc_lifecycle_interfaces)
 	touch $@
 
 # 2b. tf2_msgs (TFMessage, to read /tf without tf2_ros), only where no real one is importable: a
@@ -102,7 +121,7 @@ $(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
 # 3. DC itself, editable, with the test tools; then the example plugin package of the custom uptime
 #    demo, installed as any third-party plugin package would be (after DC, into its environment).
 EXAMPLE_PLUGIN := examples/dc_uptime_custom
-$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml $(EXAMPLE_PLUGIN)/pyproject.toml
+$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-lifecycle-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml $(EXAMPLE_PLUGIN)/pyproject.toml
 	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql]'
 	$(PIP) install -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
 	touch $@

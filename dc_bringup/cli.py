@@ -36,12 +36,15 @@ def cmd_list_plugins(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
+    from dc_bringup.launcher import dc_namespace
     from dc_bringup.validate import check
 
-    report, error = check(args.params_file)
+    report, error = check(args.params_file, dc_namespace(args), args.ros_args)
     if report is None:
         print(f"invalid: {error}", file=sys.stderr)
         return 2
+    for note in report.notes:
+        print(note, file=sys.stderr)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     print(f"valid: {', '.join(report.servers)}")
@@ -60,7 +63,7 @@ def cmd_pub(args: argparse.Namespace) -> int:
     from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-    from dc_core.topics import ros_topic, topic_problem
+    from dc_core.topics import ros_namespace, ros_topic, topic_problem
     from dc_interfaces.msg import StringStamped
 
     problem = topic_problem(args.topic)
@@ -72,11 +75,12 @@ def cmd_pub(args: argparse.Namespace) -> int:
         print(f"dc pub: {args.topic!r} is not a valid ROS 2 topic name; publishing on {topic!r}", file=sys.stderr)
     args.topic = topic
     rclpy.init()
-    node = rclpy.create_node("dc_pub")
+    node = rclpy.create_node("dc_pub", namespace=ros_namespace(args.namespace))
     qos = QoSProfile(
         depth=max(args.count, 10), reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
     )
     publisher = node.create_publisher(StringStamped, args.topic, qos)
+    resolved = publisher.topic_name  # with --namespace, where a relative name went
     sent = 0
     unacknowledged = False
     try:
@@ -110,7 +114,7 @@ def cmd_pub(args: argparse.Namespace) -> int:
     finally:
         node.destroy_node()
         rclpy.shutdown()
-    print(f"published {sent} record(s) on {args.topic}")
+    print(f"published {sent} record(s) on {resolved}")
     return 1 if unacknowledged else 0
 
 
@@ -123,12 +127,7 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
     """(server, host, port) to ask: --host/--port, or the servers with an HTTP server in --params."""
     if not args.params:
         return [("", args.host, args.port)]
-    from dc_bringup.validate import metrics_endpoints, validate_params_file
-
-    targets = [
-        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(args.params).configs)
-    ]
+    targets = _metrics_servers(args.params, args.namespace)
     if not targets:
         print(
             f"dc status: no server has its HTTP server enabled in {args.params} (destination_server flb.http_server,"
@@ -368,10 +367,10 @@ LIFECYCLE_COMMANDS = ("startup", "pause", "resume", "reset", "shutdown", "is-act
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     """Ask dc-bringup's lifecycle manager (its manage_nodes and is_active services)."""
     import rclpy
+    from dc_lifecycle_interfaces.srv import ManageLifecycleNodes
     from std_srvs.srv import Trigger
 
     from dc_bringup.manager import DEGRADED_PREFIX, NODE_NAME
-    from dc_interfaces.srv import ManageLifecycleNodes
 
     namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
     manager = f"{namespace}/{NODE_NAME}"
@@ -419,7 +418,23 @@ def cmd_servers(args: argparse.Namespace) -> int:
 def cmd_dashboard(args: argparse.Namespace) -> int:
     from dc_dashboard.cli import run
 
-    return run(args)
+    return run(args, params_metrics=_metrics_urls)
+
+
+def _metrics_urls(params: str) -> list[tuple[str, str]]:
+    """(server, its metrics URL) for each server whose HTTP server the parameter file enables."""
+    return [(server, f"http://{host}:{port}/api/v1/metrics") for server, host, port in _metrics_servers(params)]
+
+
+def _metrics_servers(params: str, namespace: str = "") -> list[tuple[str, str, int]]:
+    """(server, host, port) of each server whose HTTP server the parameter file enables, for the servers
+    in ``namespace`` (the file's sections are read as they read them)."""
+    from dc_bringup.validate import metrics_endpoints, validate_params_file
+
+    return [
+        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
+        for e in metrics_endpoints(validate_params_file(params, namespace).configs)
+    ]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -442,11 +457,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("validate", help="check a parameter file without running it")
     p.add_argument("params_file")
+    p.add_argument(
+        "--namespace", default="", help="check it as dc-bringup --namespace reads it (topic names in the namespace)"
+    )
     p.set_defaults(func=cmd_validate)
+    p.epilog = (
+        "--ros-args ... (last, or ended by --): checked as dc-bringup reads them: -p and --params-file over the "
+        "file's parameters, -r __ns:=/NS as --namespace, -r remaps of the robot's topics"
+    )
 
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
-    p.add_argument("topic")
+    p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
     p.add_argument("json", help="the record, a JSON object")
+    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
     p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
     p.add_argument("--group-key", default="")
@@ -465,6 +488,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="ask the servers whose HTTP server this parameter file enables (destination_server flb.http_*,"
         " group_server and measurement_server http_*)",
     )
+    p.add_argument("--namespace", default="", help="with --params: the namespace dc-bringup runs the servers in")
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.set_defaults(func=cmd_status)
 
@@ -544,7 +568,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         from dc_sim.node import main as sim_main
 
         return sim_main(argv[1:])
+    ros_args: list[str] = []
+    if argv[:1] == ["validate"]:
+        # As dc-bringup takes them (the servers' ROS arguments): not options of the command.
+        from dc_core.ros_args import split_ros_args
+
+        argv, ros_args = split_ros_args(argv)
     args = build_parser().parse_args(argv)
+    args.ros_args = ros_args
     code: int = args.func(args)
     return code
 

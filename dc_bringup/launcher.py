@@ -55,11 +55,77 @@ def build_parser() -> argparse.ArgumentParser:
         help="run every server in one process with one loop (less memory and CPU, less isolation; docs/bringup.md)",
     )
     parser.add_argument("--validate-only", action="store_true", help="check the configuration and exit")
+    parser.epilog = (
+        "--ros-args ... (last, or ended by --): ROS arguments given to every server as to any ROS node: "
+        "remaps (-r /tf:=tf), parameters (-p name:=value, -p node:name:=value, --params-file FILE, over the "
+        "parameter file's), --log-level (docs/bringup.md)"
+    )
+    parser.add_argument(
+        "--stop-with-parent",
+        action="store_true",
+        help="stop, as on SIGTERM, when the process that started dc-bringup exits, even killed (dc.launch.py sets it)",
+    )
     return parser
 
 
+def dc_namespace(args: argparse.Namespace) -> str:
+    """The namespace of the servers: --namespace, or a ``-r __ns:=`` of the ROS arguments."""
+    from dc_core.ros_args import namespace_remap
+
+    return args.namespace if args.namespace.strip("/") else (namespace_remap(args.ros_args) or "")
+
+
+_TRUE = ("true", "1", "yes", "on")
+_FALSE = ("false", "0", "no", "off", "")
+
+
+def launch_command(
+    params_file: str,
+    namespace: str = "",
+    use_sim_time: str = "false",
+    log_level: str = "info",
+    python: str = sys.executable,
+) -> list[str]:
+    """The dc-bringup command line for the arguments of the ament package's dc.launch.py (ros/dc_launch).
+
+    Launch arguments arrive as text (``use_sim_time:=True``), so they are read here, where a wrong one
+    is refused with its name before any process starts. The command runs DC with the interpreter that
+    imported it: the one that has DC installed, whatever ``dc-bringup`` is first on PATH.
+    """
+    if not params_file.strip():
+        raise ValueError("params_file: required (a DC parameter file, e.g. params_file:=/path/to/dc.yaml)")
+    path = Path(params_file).expanduser().resolve()
+    if not path.is_file():
+        raise ValueError(f"params_file: {path} is not a file")
+    sim = use_sim_time.strip().lower()
+    if sim not in _TRUE + _FALSE:
+        raise ValueError(f"use_sim_time: {use_sim_time!r} is not a boolean (true or false)")
+    level = log_level.strip().lower()
+    if level not in LOG_LEVELS:
+        raise ValueError(f"log_level: {log_level!r} is not one of {', '.join(LOG_LEVELS)}")
+    # launch leaves its children running when it is killed or gets SIGTERM (docker stop, a supervisor):
+    # DC then stops in order instead of living on without it.
+    command = [python, "-m", "dc_bringup.launcher", str(path), "--log-level", level, "--stop-with-parent"]
+    if namespace.strip("/ "):
+        command += ["--namespace", namespace.strip()]
+    if sim in _TRUE:
+        command.append("--use-sim-time")
+    return command
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    from dc_core.ros_args import split_ros_args
+
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(own)
+    args.ros_args = ros_args
+    if args.stop_with_parent:
+        from dc_bringup.processes import die_with_parent
+
+        parent = os.getppid()
+        die_with_parent()
+        if os.getppid() != parent:  # gone before it could be watched
+            return 0
     # Before anything is written: the servers, ffmpeg and rclpy's log files inherit it (dc_core.private_files).
     use_private_umask()
     params_file = str(Path(args.params_file).resolve())
@@ -70,10 +136,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         from dc_bringup.single_process import supervise
 
         return supervise(args, params_file)
-    report, error = check(params_file)
+    report, error = check(params_file, dc_namespace(args), ros_args)
     if report is None:
         print(f"dc-bringup: invalid configuration: {error}", file=sys.stderr)
         return 2
+    for note in report.notes:
+        print(f"dc-bringup: {note}", file=sys.stderr)
     for warning in report.warnings:
         print(f"dc-bringup: warning: {warning}", file=sys.stderr)
     if args.validate_only:
@@ -91,12 +159,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dc_bringup.manager import LifecycleManager
     from dc_bringup.processes import ServerProcess
 
-    rclpy.init(args=["--ros-args", "--log-level", args.log_level], signal_handler_options=SignalHandlerOptions.NO)
-    from dc_core.lifecycle import ros_namespace
+    try:
+        # The ROS arguments too: rcl refuses here, before any server starts, what it would refuse in each
+        # (a -p list of mixed types), and the manager is in the namespace a -r __ns:= gives them.
+        manager_args = ["--ros-args", "--log-level", args.log_level, *ros_args]
+        rclpy.init(args=manager_args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # rclpy's RCLError, UnknownROSArgsError: both say which argument
+        print(f"dc-bringup: invalid --ros-args: {exc}", file=sys.stderr)
+        return 2
+    from dc_core.topics import ros_namespace
 
-    namespace = ros_namespace(args.namespace) if args.namespace.strip("/") else ""
+    namespace = ros_namespace(dc_namespace(args)) if dc_namespace(args).strip("/") else ""
     servers = [
-        ServerProcess(name, SERVER_MODULES[name], params_file, args.log_level, namespace, args.use_sim_time)
+        ServerProcess(name, SERVER_MODULES[name], params_file, args.log_level, namespace, args.use_sim_time, ros_args)
         for name in SERVER_MODULES
         if name in report.servers
     ]

@@ -1,5 +1,5 @@
 """The lifecycle manager: ordered configure/activate, heartbeats, restart of what died, and the services
-``manage_nodes`` (dc_interfaces/srv/ManageLifecycleNodes: startup, pause, resume, reset, shutdown) and
+``manage_nodes`` (dc_lifecycle_interfaces/srv/ManageLifecycleNodes: startup, pause, resume, reset, shutdown) and
 ``is_active`` (std_srvs/srv/Trigger), as Nav2's lifecycle manager offers them.
 
 Transitions run on the main loop only (:meth:`LifecycleManager.run_commands`). The services are
@@ -20,6 +20,8 @@ from collections.abc import Sequence
 from concurrent.futures import Future
 from typing import Any
 
+from dc_lifecycle_interfaces.msg import Heartbeat
+from dc_lifecycle_interfaces.srv import ManageLifecycleNodes
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.executors import SingleThreadedExecutor
@@ -32,8 +34,7 @@ from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_STATE_UNHEALTHY, HEARTBEA
 from dc_core.logs import SeverityLogger
 from dc_core.supervision import Supervisor
 from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC, degraded_line
-from dc_interfaces.msg import Heartbeat, StringStamped
-from dc_interfaces.srv import ManageLifecycleNodes
+from dc_interfaces.msg import StringStamped
 
 NODE_NAME = "lifecycle_manager_dc"
 # is_active's message when the servers are active but a destination is failing (dc_destinations.health).

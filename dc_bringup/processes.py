@@ -8,7 +8,10 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Sequence
 from typing import Protocol
+
+from dc_core.ros_args import ROS_ARGS_END, ROS_ARGS_FLAG
 
 _PR_SET_PDEATHSIG = 1
 
@@ -33,7 +36,8 @@ class ManagedServerHandle(Protocol):
 
 
 def die_with_parent() -> None:
-    # If dc-bringup is killed with -9, its servers must not live on as orphans.
+    """SIGTERM to this process when its parent exits: a server when dc-bringup is killed with -9, and
+    dc-bringup itself when its launcher is (--stop-with-parent); neither must live on as an orphan."""
     with contextlib.suppress(OSError):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
@@ -47,6 +51,7 @@ class ServerProcess:
         log_level: str,
         namespace: str = "",
         use_sim_time: bool = False,
+        ros_args: Sequence[str] = (),
     ) -> None:
         self.name = name
         self.module = module
@@ -54,6 +59,7 @@ class ServerProcess:
         self.log_level = log_level
         self.namespace = namespace
         self.use_sim_time = use_sim_time
+        self.ros_args = list(ros_args)
         self.process: subprocess.Popen[bytes] | None = None
         self.starts = 0
 
@@ -63,6 +69,8 @@ class ServerProcess:
             cmd += ["--namespace", self.namespace]
         if self.use_sim_time:
             cmd.append("--use-sim-time")
+        if self.ros_args:
+            cmd += [ROS_ARGS_FLAG, *self.ros_args, ROS_ARGS_END]
         # Own process group: a terminal's Ctrl-C reaches dc-bringup only, which stops servers in order.
         self.process = subprocess.Popen(cmd, preexec_fn=die_with_parent, process_group=0, env=os.environ.copy())
         self.starts += 1

@@ -29,6 +29,7 @@ from typing import Any
 
 from dc_bringup.processes import die_with_parent
 from dc_bringup.validate import SERVER_MODULES, check
+from dc_core.ros_args import ROS_ARGS_END, ROS_ARGS_FLAG, namespace_remap, split_ros_args
 from dc_core.signals import StopRequest
 
 # The process asks its supervisor for a restart (EX_TEMPFAIL): a server stopped beating.
@@ -102,12 +103,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    report, error = check(args.params_file)
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(own)
+    namespace_arg = args.namespace if args.namespace.strip("/") else (namespace_remap(ros_args) or "")
+    report, error = check(args.params_file, namespace_arg, ros_args)
     if report is None:
         print(f"dc-bringup: invalid configuration: {error}", file=sys.stderr)
         return 2
     if not args.restarted:
+        for note in report.notes:
+            print(f"dc-bringup: {note}", file=sys.stderr)
         for warning in report.warnings:
             print(f"dc-bringup: warning: {warning}", file=sys.stderr)
 
@@ -116,13 +121,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.parameter import Parameter
 
     from dc_bringup.manager import LifecycleManager
-    from dc_core.lifecycle import ServerLoop, init_server_process, ros_namespace
+    from dc_core.lifecycle import ServerLoop, init_server_process
     from dc_core.signals import wake_on_signals
     from dc_core.supervision import Supervisor
+    from dc_core.topics import ros_namespace
 
-    stop = init_server_process(args.log_level, args.namespace)
+    try:
+        stop = init_server_process(args.log_level, args.namespace, ros_args)
+    except Exception as exc:  # rclpy's RCLError, UnknownROSArgsError: both say which argument
+        print(f"dc-bringup: invalid --ros-args: {exc}", file=sys.stderr)
+        return 2
     joined = time.monotonic()  # graph discovery runs from the first node on: the manager's wait counts from here
-    namespace = ros_namespace(args.namespace) if args.namespace.strip("/") else ""
+    namespace = ros_namespace(namespace_arg) if namespace_arg.strip("/") else ""
 
     names = [name for name in SERVER_MODULES if name in report.servers]
     nodes = []
@@ -261,6 +271,8 @@ def supervise(args: argparse.Namespace, params_file: str) -> int:
         cmd.append("--use-sim-time")
     if args.no_autostart:
         cmd.append("--no-autostart")
+    if args.ros_args:
+        cmd += [ROS_ARGS_FLAG, *args.ros_args, ROS_ARGS_END]
     # The handler sets a flag and, where the main thread waits for it, interrupts the wait: nothing
     # that takes a lock (dc_core.signals), so a burst of signals cannot hang it.
     stopping = StopRequest()

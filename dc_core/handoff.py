@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.params import param
+from dc_core.topics import resolve_topic
 
 ACK_TOPIC = "dc/handoff_acks"
 """Relative: the acks of the destination_server of this namespace only (one DC per namespace)."""
@@ -445,8 +446,9 @@ def ack_qos() -> Any:
     )
 
 
-def destination_inputs(servers: Mapping[str, Any]) -> set[str]:
-    """The topics the destination_server section of a parameter file reads (no plugin imported)."""
+def destination_inputs(servers: Mapping[str, Any], namespace: str = "/") -> set[str]:
+    """The topics the destination_server section of a parameter file reads (no plugin imported),
+    fully qualified in ``namespace`` as the destination server there resolves them."""
     section = servers.get("destination_server")
     if not isinstance(section, dict):
         return set()
@@ -456,7 +458,11 @@ def destination_inputs(servers: Mapping[str, Any]) -> set[str]:
     for name in names if isinstance(names, list) else []:
         plugin = params.get(name) if isinstance(name, str) else None
         inputs = plugin.get("inputs") if isinstance(plugin, dict) else None
-        topics.update(i for i in (inputs if isinstance(inputs, list) else []) if isinstance(i, str))
+        topics.update(
+            resolve_topic(i, namespace, "destination_server")
+            for i in (inputs if isinstance(inputs, list) else [])
+            if isinstance(i, str) and i
+        )
     return topics
 
 

@@ -20,6 +20,7 @@ from typing import Any
 
 import rclpy
 import rclpy.utilities
+from dc_lifecycle_interfaces.msg import Heartbeat
 from lifecycle_msgs.msg import State
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
@@ -36,7 +37,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from dc_core.config import load_params_file
+from dc_core.config import load_params
+from dc_core.declared_params import declare_read_only
 from dc_core.errors import ConfigError, DcError
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import Intake
@@ -49,12 +51,14 @@ from dc_core.node_params import (
 )
 from dc_core.plugin import MessageCallback
 from dc_core.private_files import use_private_umask
+from dc_core.ros_args import param_sections, process_ros_args, set_process_ros_args, split_ros_args
 from dc_core.signals import StopFlag, StopRequest, wake_on_signals
 from dc_core.supervision import Supervisor
+from dc_core.topics import ros_namespace
 from dc_core.worker import Worker
-from dc_interfaces.msg import Heartbeat
 
-HEARTBEAT_TOPIC = "/dc/heartbeat"
+# Relative: the servers and the lifecycle manager of one namespace share it, another DC's are apart.
+HEARTBEAT_TOPIC = "dc/heartbeat"
 HEARTBEAT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # The heartbeat's state while a server is unhealthy (a thread of it died, dc_core.supervision): the
 # lifecycle's own "an error is being handled" state, so Heartbeat.msg needs no new field. The
@@ -81,7 +85,13 @@ class ServerPluginContext:
         return self.server
 
     def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile) -> Any:
-        return self.server.intake.subscribe(msg_type, topic, callback, qos)
+        subscription = self.server.intake.subscribe(msg_type, topic, callback, qos)
+        try:
+            check_remapped_type(self.server, msg_type, topic, subscription.topic_name)
+        except ConfigError:
+            self.server.intake.unsubscribe(subscription)
+            raise
+        return subscription
 
     def unsubscribe(self, subscription: Any) -> None:
         self.server.intake.unsubscribe(subscription)
@@ -101,6 +111,22 @@ class ServerPluginContext:
         return self.server.supervisor.start_thread(target, name=name)
 
 
+def check_remapped_type(node: Any, msg_type: Any, topic: str, resolved: str) -> None:
+    """ConfigError when a remap (``--ros-args -r``) sent ``topic`` to a topic of another type.
+
+    DDS would match nothing there and say nothing. Only the publishers the graph knows when the
+    subscription is made can be checked: one that appears later with another type is not seen here.
+    """
+    if resolved == node.resolve_topic_name(topic, only_expand=True):
+        return  # not remapped: a type clash is the publisher's, as for any subscriber
+    ours = f"{msg_type.__module__.split('.')[0]}/msg/{msg_type.__name__}"
+    theirs = sorted({info.topic_type for info in node.get_publishers_info_by_topic(resolved)})
+    if theirs and ours not in theirs:
+        raise ConfigError(
+            topic, f"remapped to {resolved}, which carries {', '.join(theirs)}: {ours} expected (check --ros-args -r)"
+        )
+
+
 class ManagedServer(LifecycleNode):
     """A DC server process' node."""
 
@@ -117,6 +143,7 @@ class ManagedServer(LifecycleNode):
         # The record_linger parameter (ServerLoop), set at configure.
         self.record_linger_s = DEFAULT_RECORD_LINGER_S
         self._heartbeat_seq = 0
+        self._declared_params: set[str] = set()  # DC's settings, as ROS parameters (read_params_file)
         self._heartbeat_pub = self.create_publisher(Heartbeat, HEARTBEAT_TOPIC, HEARTBEAT_QOS)
         # The heartbeat runs in every state: it tells the manager the process is alive. On the steady
         # clock: under use_sim_time a paused or finished bag stops ROS time, not the process.
@@ -138,11 +165,14 @@ class ManagedServer(LifecycleNode):
 
     # -- configuration -----------------------------------------------------------------------
     def read_params_file(self) -> dict[str, dict[str, Any]]:
-        """The DC sections of the parameter file; ConfigError when this server has none."""
-        sections = load_params_file(self.params_file)
-        if self.get_name() not in sections:
+        """The DC sections of the parameter file for this node's namespace, with the process'
+        ``--ros-args`` parameters over them; ConfigError when this server has none. This server's
+        become its read-only ROS parameters (dc_core.declared_params)."""
+        loaded = load_params(self.params_file, self.get_namespace(), param_sections(process_ros_args()))
+        if self.get_name() not in loaded.servers:
             raise ConfigError(self.get_name(), f"no {self.get_name()} section in {self.params_file}")
-        return sections
+        self._declared_params = declare_read_only(self, loaded.raw[self.get_name()], self._declared_params)
+        return loaded.servers
 
     def apply_node_params(self, node: ServerNodeParams, warnings: Sequence[str]) -> None:
         """What every server does with its parsed configuration: say its warnings, beat at its period."""
@@ -299,11 +329,6 @@ class ManagedServer(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
 
-def ros_namespace(namespace: str) -> str:
-    """``robot1`` or ``/robot1/`` as ROS writes a namespace: ``/robot1``."""
-    return "/" + namespace.strip("/")
-
-
 def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequence[str] = ()) -> StopRequest:
     """rclpy for a process of servers, and the stop SIGINT and SIGTERM ask: its loop stops, its servers shut
     down. Give it to :func:`dc_core.signals.wake_on_signals` too, so that waiting threads see it at once."""
@@ -311,6 +336,7 @@ def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequ
     ros_args = ["--ros-args", "--log-level", log_level]
     if namespace.strip("/"):
         ros_args += ["-r", f"__ns:={ros_namespace(namespace)}"]
+    set_process_ros_args(more_ros_args)  # the servers read -p and --params-file at each configure
     # rclpy's own handlers would shut the context down under the servers before they could stop in order.
     rclpy.init(args=[*ros_args, *more_ros_args], signal_handler_options=SignalHandlerOptions.NO)
     # The handler only sets a flag and writes the wake-up socket: safe however many signals come (dc_core.signals).
@@ -320,17 +346,18 @@ def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequ
 
 
 def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = None) -> int:
-    """Process entry point of a server: ``python -m <module> PARAMS [--autostart]``."""
+    """Process entry point of a server: ``python -m <module> PARAMS [--autostart] [--ros-args ...]``."""
     parser = argparse.ArgumentParser(prog=node_class.__name__)
     parser.add_argument("params_file")
     parser.add_argument("--log-level", default=os.environ.get("DC_LOG_LEVEL", "info"))
     parser.add_argument("--autostart", action="store_true", help="configure and activate without a manager")
     parser.add_argument("--namespace", default="", help="ROS namespace of the node")
     parser.add_argument("--use-sim-time", action="store_true", help="follow /clock (a bag, a simulator)")
-    args = parser.parse_args(argv)
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(own)
 
     sim_time = ["-p", "use_sim_time:=true"] if args.use_sim_time else []
-    stop = init_server_process(args.log_level, args.namespace, sim_time)
+    stop = init_server_process(args.log_level, args.namespace, [*sim_time, *ros_args])
     node = node_class(args.params_file)  # type: ignore[call-arg]
     executor = SingleThreadedExecutor()
     executor.add_node(node)

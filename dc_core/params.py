@@ -36,11 +36,14 @@ def param(
     secret: bool = False,
     aliases: Iterable[str] = (),
     check: Callable[[Any], str | None] | None = None,
+    sensor_topic: bool = False,
 ) -> Any:
     """Declare one parameter. No default means the key is required.
 
     ``check`` is a pure function returning None when the value is acceptable, or what was
-    expected ("an IPv4 address"): reported with the parameter's YAML path.
+    expected ("an IPv4 address"): reported with the parameter's YAML path. ``sensor_topic`` marks a
+    topic the robot publishes (``/odom``): under ``--namespace``, an absolute one outside the
+    namespace is warned about (dc_bringup.validate).
     """
     metadata = {
         "doc": doc,
@@ -50,6 +53,7 @@ def param(
         "secret": secret,
         "aliases": tuple(aliases),
         "check": check,
+        "sensor_topic": sensor_topic,
     }
     # A secret stays out of the dataclass repr, so logging a parameter object never shows it.
     shown = not secret

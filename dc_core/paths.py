@@ -9,6 +9,10 @@ from collections.abc import Callable, Mapping
 
 from dc_core.errors import ConfigError
 
+# The measurement server's save_local_base_path when none is given; the file destinations confine the
+# files records name to its fixed part by default (dc_core.confined_files.default_roots).
+DEFAULT_SAVE_BASE_PATH = "$HOME/ros2/data/%Y/%m/%d/%H"
+
 _ENV = re.compile(r"\$\{([A-Za-z_]\w*)\}|\$([A-Za-z_]\w*)")
 _VALUE = re.compile(r"=\{([A-Za-z_]\w*)\}|=([A-Za-z_]\w*)")
 

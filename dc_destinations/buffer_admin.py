@@ -20,9 +20,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, TextIO
 
-import yaml
-
-from dc_core.errors import DcError
+from dc_core.config import load_params
+from dc_core.errors import ConfigError, DcError
 from dc_core.paths import expand_env
 from dc_destinations.buffer import FILE_NAME, DeadLetter, QueueStats, SqliteBuffer
 from dc_destinations.salvage import SalvageReport
@@ -37,17 +36,18 @@ def storage_file(storage_path: str = "", params_file: str = "", namespace: str =
     """The buffer file: ``storage_path``, else a parameter file's ``flb.storage_path``, else the default
     folder of the destination server in ``namespace`` and this environment's ROS_DOMAIN_ID."""
     if not storage_path and params_file:
-        storage_path = _storage_path_from_params(Path(params_file))
+        storage_path = _storage_path_from_params(Path(params_file), namespace)
     directory = Path(expand_env(storage_path)).expanduser() if storage_path else default_storage_dir(namespace)
     return directory / FILE_NAME if directory.suffix != ".sqlite3" else directory
 
 
-def _storage_path_from_params(params_file: Path) -> str:
-    with params_file.open(encoding="utf-8") as handle:
-        document = yaml.safe_load(handle) or {}
-    server = document.get("destination_server", {}) if isinstance(document, dict) else {}
-    parameters = server.get("ros__parameters", {}) if isinstance(server, dict) else {}
-    flb = parameters.get("flb", {}) if isinstance(parameters, dict) else {}
+def _storage_path_from_params(params_file: Path, namespace: str = "/") -> str:
+    # Read as the server reads it (a Nav2-style /r1/destination_server:, flb.storage_path dotted).
+    try:
+        parameters = load_params(params_file, namespace).raw.get("destination_server", {})
+    except ConfigError:
+        return ""  # no destination_server there: the default folder, as without --params
+    flb = parameters.get("flb", {})
     value = flb.get("storage_path", "") if isinstance(flb, dict) else ""
     return str(value or "")
 

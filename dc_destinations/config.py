@@ -20,10 +20,12 @@ from dc_core.node_params import ServerNodeParams, record_linger_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
 from dc_core.plugins import parse_plugin_section
 from dc_core.timefmt import TIME_FORMATS
+from dc_core.topics import resolve_topic
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
+NODE_NAME = "destination_server"
 _OBSOLETE_NODE_KEYS = ("ros2_plugin_path", "ros2_plugin_spin_time_ms")
 # Written in destination_server by the seed's TurtleBot3 stdout demo; the original ignored them there.
 _MEASUREMENT_SERVER_KEYS = ("custom_str_params_list", "custom_str_params")
@@ -130,7 +132,7 @@ def _flb_section(section: dict[str, Any], path: str, warnings: list[str]) -> dic
     return _numeric_strings_to_numbers(flb, DeliveryParams)
 
 
-def _parse_destination(name: str, body: Any, path: str) -> DestinationConfig:
+def _parse_destination(name: str, body: Any, path: str, namespace: str) -> DestinationConfig:
     if body is None:
         raise ConfigError(path, "section missing (listed in destination_plugins but not configured)")
     if not isinstance(body, dict):
@@ -146,10 +148,15 @@ def _parse_destination(name: str, body: Any, path: str) -> DestinationConfig:
     for i, topic in enumerate(common.inputs):
         if not topic:
             raise ConfigError(f"{path}.inputs[{i}]", "expected a topic name, got an empty string")
+    # Fully qualified as the server subscribes: records keep the topic they came on, and routing,
+    # hand-off acks and the checks against the other sections' outputs compare these names.
+    common = dataclasses.replace(common, inputs=[resolve_topic(t, namespace, NODE_NAME) for t in common.inputs])
     return DestinationConfig(name, common, delivery, plugin_class, plugin_params)
 
 
-def parse_destination_server(section: dict[str, Any], path: str = "destination_server") -> DestinationServerConfig:
+def parse_destination_server(
+    section: dict[str, Any], path: str = "destination_server", namespace: str = "/"
+) -> DestinationServerConfig:
     warnings: list[str] = []
     node_keys = field_names(DestinationServerParams)
     node_values = {key: section[key] for key in node_keys if key in section}
@@ -166,7 +173,9 @@ def parse_destination_server(section: dict[str, Any], path: str = "destination_s
     if not node.destination_plugins:
         warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
 
-    destinations = [_parse_destination(name, section.get(name), f"{path}.{name}") for name in node.destination_plugins]
+    destinations = [
+        _parse_destination(name, section.get(name), f"{path}.{name}", namespace) for name in node.destination_plugins
+    ]
     # A destination without its own unhealthy_after has the server's.
     destinations = [
         d

@@ -22,6 +22,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NoReturn
 
+from dc_core.confined_files import OpenedFile
 from dc_core.destination import RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
@@ -33,7 +34,6 @@ from dc_destinations.aws import (
     check_credentials,
     region_problem,
 )
-from dc_destinations.confined_files import OpenedFile
 from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
 
 try:
@@ -274,7 +274,7 @@ class NoLocalFile:
 
 
 LocalFile = str | OpenedFile
-"""A local file by path, or opened by :class:`dc_destinations.confined_files.Confinement` (read through its
+"""A local file by path, or opened by :class:`dc_core.confined_files.Confinement` (read through its
 descriptor, whatever its path names meanwhile)."""
 
 

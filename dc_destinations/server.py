@@ -9,8 +9,8 @@ Topics published by DC's own servers are subscribed transient-local: after a (re
 receives the publishers' history again, and the hop (dc_destinations.hop) drops what the buffer
 already holds and counts what was lost (docs/delivery.md, "The hop between servers").
 
-A record on DC's own topics (/dc/measurement/*, /dc/group/*) reaches a destination that reads the
-files records name only while every publisher of that topic is one of DC's servers
+A record on DC's own topics (dc/measurement/*, dc/group/* in its namespace or at the root) reaches a
+destination that reads the files records name only while every publisher of that topic is one of DC's servers
 (``trust_tags_from``, docs/security.md): a message does not say which publisher sent it, so one
 foreign publisher on the topic makes all its records untrusted for those destinations meanwhile.
 """
@@ -22,23 +22,27 @@ import functools
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from rclpy.qos import QoSProfile
+from rclpy.utilities import get_rmw_implementation_identifier
 
+from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
-from dc_core.errors import ConfigError, DcError, PluginError
+from dc_core.errors import DcError, PluginError
 from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
+from dc_core.rmw_features import no_sequence_numbers_line, publication_sequence_numbers
 from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
+from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, published_topics, resolve_topic
 from dc_core.worker import Outcome
-from dc_destinations.config import DestinationServerConfig, parse_destination_server
-from dc_destinations.confined_files import ConfinementParams, default_roots
+from dc_destinations.config import NODE_NAME, DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC
 from dc_destinations.health import summary as health_summary
@@ -47,7 +51,6 @@ from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
 from dc_interfaces.msg import StringStamped
 
-NODE_NAME = "destination_server"
 PREVIEW_CHARS = 200
 # Keys kept per topic to recognise replays, in histories: a replay is at most one history per
 # publisher, so this covers four publishers of one topic (each of DC's own topics has one).
@@ -56,7 +59,6 @@ HOP_WINDOW_HISTORIES = 4
 MALFORMED_LINES_PER_BURST = 10
 # The nodes whose records may route themselves to file destinations, in this server's namespace.
 DC_PUBLISHERS = frozenset({"measurement_server", "group_server"})
-INTERNAL_PREFIXES = ("/dc/measurement/", "/dc/group/")
 # A foreign publisher seen on a topic keeps it untrusted this long after it left: its last records
 # may still wait in the subscription's queue, and a message does not say who sent it.
 FOREIGN_MEMORY_S = 10.0
@@ -65,6 +67,14 @@ FOREIGN_MEMORY_S = 10.0
 UNKNOWN_NODE_WAIT_S = 0.5
 # Seconds deactivate waits for a running integrity check of the buffer (it only reads the file).
 BUFFER_CHECK_DRAIN_S = 2.0
+
+
+def internal_prefixes(namespace: str) -> tuple[str, ...]:
+    """Where DC's own records are, for the server in ``namespace``: its namespace's, and the root's
+    (written absolute in a file, other DCs of the domain may publish there too)."""
+    own = (resolve_topic(MEASUREMENT_TOPIC_PREFIX, namespace), resolve_topic(GROUP_TOPIC_PREFIX, namespace))
+    return tuple(dict.fromkeys((*own, "/" + MEASUREMENT_TOPIC_PREFIX, "/" + GROUP_TOPIC_PREFIX)))
+
 
 _Received = tuple[list[tuple[str, OutgoingRecord]], HopKey | None]
 """One received record as the pipeline takes it: its copies by destination name, and its hop key."""
@@ -98,6 +108,10 @@ class IntakeStats:
 
 
 class DestinationServer(ManagedServer):
+    # Whether the RMW gives publication sequence numbers (dc_core.rmw_features); a test replaces it to
+    # see the line of an RMW without them, which the PyPI wheels do not ship.
+    sequence_numbers: Callable[[str], bool | None] = staticmethod(publication_sequence_numbers)
+
     def __init__(self, params_file: str) -> None:
         super().__init__(NODE_NAME, params_file)
         self.config: DestinationServerConfig | None = None
@@ -129,13 +143,15 @@ class DestinationServer(ManagedServer):
         # for a manager that (re)subscribes.
         self._health_pub = self.create_publisher(StringStamped, HEALTH_TOPIC, HEALTH_QOS)
         self._health_sent = ""
+        self._rmw_checked = False
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
         servers = self.read_params_file()
-        config = parse_destination_server(servers[NODE_NAME])
+        namespace = self.get_namespace()
+        config = parse_destination_server(servers[NODE_NAME], NODE_NAME, namespace)
         self.config = config
-        self._internal_topics = self._published_by_dc(servers)
+        self._internal_topics = self._published_by_dc(servers, namespace)
         self._hop_window = HOP_WINDOW_HISTORIES * max([RECORD_HISTORY_DEPTH, *self._internal_topics.values()])
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
@@ -158,7 +174,7 @@ class DestinationServer(ManagedServer):
             self._guarded_topics = {
                 topic
                 for topic in self.routing.topics
-                if (topic.startswith(INTERNAL_PREFIXES) or topic in self._internal_topics)
+                if (topic.startswith(internal_prefixes(namespace)) or topic in self._internal_topics)
                 and self.routing.has_trusted_only(topic)
             }
         self.pipeline = DeliveryPipeline(
@@ -175,7 +191,7 @@ class DestinationServer(ManagedServer):
 
     def _with_default_roots(self, config: DestinationServerConfig, servers: dict[str, Any]) -> list[Any]:
         """The destinations, those reading files without ``allowed_roots`` given the measurement
-        server's save folder of this same file (dc_destinations.confined_files.default_roots)."""
+        server's save folder of this same file (dc_core.confined_files.default_roots)."""
         destinations = []
         roots: list[str] | None = None
         for d in config.destinations:
@@ -188,22 +204,13 @@ class DestinationServer(ManagedServer):
             destinations.append(d)
         return destinations
 
-    def _published_by_dc(self, servers: dict[str, dict[str, Any]]) -> dict[str, int]:
-        """Topics the measurement and group servers of this configuration publish, with their history depth.
-
-        A section that does not parse is not this server's to refuse (dc-bringup validated the file
-        first): its topics are then taken as other nodes' ones, and a warning says so.
-        """
-        from dc_group.config import published_topics as group_outputs
-        from dc_measurements.config import published_topics as measurement_outputs
-
-        topics: dict[str, int] = {}
-        for server, published in (("measurement_server", measurement_outputs), ("group_server", group_outputs)):
-            if server in servers:
-                try:
-                    topics.update(published(servers[server]))
-                except ConfigError as exc:
-                    self.get_logger().warning(f"{server}'s outputs unknown, its section does not parse: {exc}")
+    def _published_by_dc(self, servers: dict[str, dict[str, Any]], namespace: str) -> dict[str, int]:
+        """Topics the measurement and group servers of this configuration publish in ``namespace``, with
+        their history depth (dc_core.topics.published_topics); what does not read is said and taken as
+        other nodes' topics."""
+        topics, problems = published_topics(servers, namespace)
+        for problem in problems:
+            self.get_logger().warning(problem)
         return topics
 
     def cleanup_server(self) -> None:
@@ -264,6 +271,26 @@ class DestinationServer(ManagedServer):
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
         )
         acks.send()  # a hello: the publishers send again what this server has not acknowledged
+        if not self._rmw_checked:
+            self._rmw_checked = True
+            self._say_what_the_rmw_lacks()
+
+    def _say_what_the_rmw_lacks(self) -> None:
+        """Once, at the first activation: what a middleware without publication sequence numbers changes."""
+        assert self.routing is not None
+        identifier = get_rmw_implementation_identifier()
+        supported = self.sequence_numbers(identifier)
+        if supported:
+            return
+        if supported is None:
+            self.get_logger().info(
+                f"whether the middleware {identifier} gives publication sequence numbers is unknown: "
+                "records of your own nodes without them are not deduplicated (docs/delivery.md)"
+            )
+            return
+        external = sorted(t for t in self.routing.topics if t not in self._internal_topics)
+        log = self.get_logger().warning if external else self.get_logger().info
+        log(no_sequence_numbers_line(identifier, external))
 
     def deactivate_server(self) -> None:
         # Intake stops first, so everything received is committed before the senders stop.

@@ -12,10 +12,10 @@ from dc_core.errors import ConfigError
 from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, param, parse_params
-from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
+from dc_core.topics import group_topic, resolve_topic
 
-DEFAULT_OUTPUT_PREFIX = "/dc/group/"
+NODE_NAME = "group_server"
 # How long past the slop an incomplete set is kept when sync_timeout is not set: the latest
 # partner of a message is stamped at most sync_delay after it, and this leaves room for
 # collection and transport delays.
@@ -35,7 +35,7 @@ class GroupServerParams(ServerNodeParams, MetricsHttpParams):
 @dataclass(frozen=True, kw_only=True)
 class GroupParams:
     inputs: list[str] = param(doc="StringStamped topics to merge (measurement or group outputs)")
-    output: str = param("", doc="Topic of the merged records (default /dc/group/<group>)")
+    output: str = param("", doc="Topic of the merged records (default dc/group/<group>, in the server's namespace)")
     sync_delay: float = param(
         5.0, minimum=0.0, doc="Slop in seconds: the largest spread of header stamps within one set"
     )
@@ -102,13 +102,9 @@ class GroupServerConfig:
         return {group.output: list(group.tags) for group in self.groups}
 
 
-def published_topics(section: dict[str, Any], path: str = "group_server") -> dict[str, int]:
-    """Each group's output topic with the depth of the history it keeps (the destination server asks, for its hop)."""
-    return dict.fromkeys(sorted(parse_group_server(section, path).outputs), RECORD_HISTORY_DEPTH)
-
-
-def parse_group_server(section: dict[str, Any], path: str = "group_server") -> GroupServerConfig:
-    """Build the group server configuration from its ``ros__parameters`` mapping."""
+def parse_group_server(section: dict[str, Any], path: str = "group_server", namespace: str = "/") -> GroupServerConfig:
+    """Build the group server configuration from its ``ros__parameters`` mapping; topic names come out
+    fully qualified, as the server in ``namespace`` resolves them."""
     if not isinstance(section, dict):
         raise ConfigError(path, f"expected a mapping, got {section!r}")
     node_keys = tuple(f.name for f in fields(GroupServerParams))
@@ -125,7 +121,7 @@ def parse_group_server(section: dict[str, Any], path: str = "group_server") -> G
         if key not in node_keys and key not in names:
             hint = did_you_mean(str(key), [*node_keys, *names])
             raise ConfigError(f"{path}.{key}", f"unknown parameter (not a group listed in {path}.groups){hint}")
-    groups = tuple(_parse_group(name, section.get(name), f"{path}.{name}") for name in names)
+    groups = tuple(_parse_group(name, section.get(name), f"{path}.{name}", namespace) for name in names)
     _check_topology(groups, path)
     warnings = [
         f"{path}.{g.name}: sync_timeout ({g.sync_timeout:g} s) is shorter than sync_delay "
@@ -136,17 +132,20 @@ def parse_group_server(section: dict[str, Any], path: str = "group_server") -> G
     return GroupServerConfig(node=node, groups=groups, warnings=warnings)
 
 
-def _parse_group(name: str, section: Any, path: str) -> GroupConfig:
+def _parse_group(name: str, section: Any, path: str, namespace: str) -> GroupConfig:
     if section is None:
         raise ConfigError(path, "group section missing (a listed group needs at least its inputs)")
     params = parse_params(GroupParams, section, path)
     if not params.inputs:
         raise ConfigError(f"{path}.inputs", "expected at least one input topic")
+    inputs: list[str] = []
     for i, topic in enumerate(params.inputs):
         if not topic.strip():
             raise ConfigError(f"{path}.inputs[{i}]", "a topic name cannot be empty")
-        if topic in params.inputs[:i]:
-            raise ConfigError(f"{path}.inputs[{i}]", f"{topic} is listed twice")
+        resolved = resolve_topic(topic, namespace, NODE_NAME)
+        if resolved in inputs:
+            raise ConfigError(f"{path}.inputs[{i}]", f"{resolved} is listed twice")
+        inputs.append(resolved)
     if params.sync_timeout is not None and params.sync_timeout <= 0:
         raise ConfigError(f"{path}.sync_timeout", f"expected a number > 0, got {params.sync_timeout!r}")
     timeout = params.sync_timeout if params.sync_timeout is not None else params.sync_delay + TIMEOUT_MARGIN_S
@@ -155,8 +154,8 @@ def _parse_group(name: str, section: Any, path: str) -> GroupConfig:
             raise ConfigError(f"{path}.exclude_keys[{i}]", f'expected "key.sub.key" paths, got "{pattern}"')
     return GroupConfig(
         name=name,
-        inputs=tuple(params.inputs),
-        output=params.output or DEFAULT_OUTPUT_PREFIX + name,
+        inputs=tuple(inputs),
+        output=resolve_topic(params.output or group_topic(name), namespace, NODE_NAME),
         sync_delay=params.sync_delay,
         sync_timeout=timeout,
         emit_partial=params.on_sync_timeout == "emit_partial",

@@ -18,13 +18,12 @@ from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_HISTORY_DEPTH, VOLATILE_RECORD_QOS, record_qos
 from dc_core.record_history import SizedRecordPublisher, history_metrics
 from dc_core.records import MalformedRecord
-from dc_group.config import GroupServerConfig, parse_group_server
+from dc_group.config import NODE_NAME, GroupServerConfig, parse_group_server
 from dc_group.merge import parse_input
 from dc_group.metrics import group_prometheus_text
 from dc_group.pipeline import GroupOutput, GroupPipeline
 from dc_interfaces.msg import StringStamped
 
-NODE_NAME = "group_server"
 # Same profile as the measurement server's records: reliable, deep enough for bursts.
 # Repeated malformed messages on one topic are logged at most this often (all are counted).
 MALFORMED_LOG_PERIOD_S = 10.0
@@ -50,9 +49,10 @@ class GroupServer(ManagedServer):
     # -- transitions ---------------------------------------------------------------------------
     def configure_server(self) -> None:
         servers = self.read_params_file()
-        config = parse_group_server(servers[NODE_NAME], NODE_NAME)
+        namespace = self.get_namespace()
+        config = parse_group_server(servers[NODE_NAME], NODE_NAME, namespace)
         self.apply_node_params(config.node, config.warnings)
-        handoff = self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
+        handoff = self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers, namespace))
         for group in config.groups:
             pipeline = GroupPipeline(group, self.get_logger())
             self.pipelines[group.name] = pipeline

@@ -13,9 +13,13 @@ from dc_core.errors import ConfigError
 from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
-from dc_core.paths import expand_values
+from dc_core.paths import DEFAULT_SAVE_BASE_PATH, expand_values
 from dc_core.plugins import parse_plugin_section
+from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
+from dc_core.topics import measurement_topic, resolve_topic
+
+NODE_NAME = "measurement_server"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -39,7 +43,7 @@ class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
     measurement_plugins: list[str] = param([], doc="Ids of the measurements to load")
     condition_plugins: list[str] = param([], doc="Ids of the conditions to load")
     save_local_base_path: str = param(
-        "$HOME/ros2/data/%Y/%m/%d/%H", doc="Local base folder for saved files ($ENV, =param, strftime)"
+        DEFAULT_SAVE_BASE_PATH, doc="Local base folder for saved files ($ENV, =param, strftime)"
     )
     all_base_path: str = param("", doc="Prefix for local and remote paths ($ENV, =custom_param)")
     custom_str_params_list: list[str] = param([], doc="Ids of custom string parameters added to records")
@@ -54,7 +58,9 @@ class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
 class MeasurementCommonParams:
     plugin: str = param(doc="Plugin type, e.g. dc_measurements/Uptime")
     group_key: str = param("", doc="Copied into StringStamped.group_key; the group server nests under it")
-    topic_output: str = param("", doc="Output topic (default /dc/measurement/<id>)")
+    topic_output: str = param(
+        "", doc="Output topic (default dc/measurement/<id> in the server's namespace: /dc/measurement/<id> without one)"
+    )
     polling_interval: int = param(1000, minimum=100, doc="Milliseconds between two collections")
     debug: bool = param(False, doc="Log every published record at info level")
     enable_validator: bool = param(True, doc="Validate every record against the JSON schema")
@@ -67,7 +73,9 @@ class MeasurementCommonParams:
     include_measurement_name: bool = param(True, doc='Add "name": <id>')
     include_measurement_plugin: bool = param(False, doc='Add "plugin": <plugin type>')
     history_depth: int = param(
-        1000, minimum=1, doc="Records the output topic keeps for a destination_server that (re)starts late"
+        RECORD_HISTORY_DEPTH,
+        minimum=1,
+        doc="Records the output topic keeps for a destination_server that (re)starts late",
     )
     history_bytes: int = param(
         DEFAULT_HISTORY_BYTES,
@@ -96,10 +104,11 @@ class MeasurementConfig:
     common: MeasurementCommonParams
     plugin_class: type
     plugin_params: Any
+    namespace: str = "/"
 
     @property
     def output_topic(self) -> str:
-        return output_topic(self.name, self.common)
+        return output_topic(self.name, self.common, self.namespace)
 
     @property
     def conditions(self) -> list[str]:
@@ -107,8 +116,9 @@ class MeasurementConfig:
         return [*c.if_all_conditions, *c.if_any_conditions, *c.if_none_conditions]
 
 
-def output_topic(measurement_id: str, common: MeasurementCommonParams) -> str:
-    return common.topic_output or f"/dc/measurement/{measurement_id}"
+def output_topic(measurement_id: str, common: MeasurementCommonParams, namespace: str = "/") -> str:
+    """Fully qualified, as the server in ``namespace`` publishes it: what other sections name is compared with it."""
+    return resolve_topic(common.topic_output or measurement_topic(measurement_id), namespace, NODE_NAME)
 
 
 @dataclass(frozen=True)
@@ -179,23 +189,9 @@ def _value_names(text: str) -> set[str]:
     return names
 
 
-def published_topics(section: dict[str, Any], path: str = "measurement_server") -> dict[str, int]:
-    """Each measurement's output topic with the depth of the history it keeps, from the common
-    parameters alone: no plugin is imported (the destination server asks, for its hop)."""
-    node_params = parse_params(
-        MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
-    )
-    topics = {}
-    for mid in node_params.measurement_plugins:
-        body = _plugin_section(section, mid, path)
-        common = parse_params(
-            MeasurementCommonParams, body, f"{path}.{mid}", ignore=set(body) - field_names(MeasurementCommonParams)
-        )
-        topics[output_topic(mid, common)] = common.history_depth
-    return topics
-
-
-def parse_measurement_server(section: dict[str, Any], path: str = "measurement_server") -> MeasurementServerConfig:
+def parse_measurement_server(
+    section: dict[str, Any], path: str = "measurement_server", namespace: str = "/"
+) -> MeasurementServerConfig:
     node_params = parse_params(
         MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
     )
@@ -251,7 +247,7 @@ def parse_measurement_server(section: dict[str, Any], path: str = "measurement_s
                     )
         if len(common.remote_prefixes) < len(common.remote_keys):
             raise ConfigError(f"{mpath}.remote_prefixes", "needs one prefix per entry of remote_keys")
-        config = MeasurementConfig(mid, common, cls, plugin_params)
+        config = MeasurementConfig(mid, common, cls, plugin_params, namespace)
         if config.output_topic in outputs:
             raise ConfigError(
                 f"{mpath}.topic_output",

@@ -19,16 +19,16 @@ from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
 from dc_core.record_history import SizedRecordPublisher, history_metrics
 from dc_core.rostime import now_ns
+from dc_core.topics import condition_topic
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
-from dc_measurements.config import MeasurementServerConfig, parse_measurement_server
+from dc_measurements.config import NODE_NAME, MeasurementServerConfig, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
 from dc_measurements.metrics import measurement_prometheus_text
 from dc_measurements.runner import MeasurementRunner
 from dc_measurements.validation import RecordValidator
 
-NODE_NAME = "measurement_server"
 INIT_MATCH_WAIT_S = 2.0
 # How long deactivate waits for collections running on the worker.
 WORKER_DRAIN_S = 5.0
@@ -68,9 +68,10 @@ class MeasurementServer(ManagedServer):
     def configure_server(self) -> None:
         servers = self.read_params_file()
         section = servers[NODE_NAME]
-        config = parse_measurement_server(section)
+        namespace = self.get_namespace()
+        config = parse_measurement_server(section, NODE_NAME, namespace)
         self.config = config
-        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers))
+        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers, namespace))
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
 
@@ -81,7 +82,7 @@ class MeasurementServer(ManagedServer):
         log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
 
         for name, ccfg in config.conditions.items():
-            publisher = self.create_publisher(ConditionMsg, f"/dc/condition/{name}", CONDITION_QOS)
+            publisher = self.create_publisher(ConditionMsg, condition_topic(name), CONDITION_QOS)
             self._condition_publishers.append(publisher)
             context = _MeasurementContext(name, self.get_logger().get_child(name), self, paths)
             condition = ccfg.plugin_class(context, ccfg.plugin_params)

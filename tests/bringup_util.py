@@ -26,10 +26,18 @@ class Bringup:
     mode_args: ClassVar[list[str]] = []
 
     def __init__(
-        self, params: Path | str, home: Path, *, args: Sequence[str] = (), env: dict[str, str] | None = None
+        self,
+        params: Path | str,
+        home: Path,
+        *,
+        args: Sequence[str] = (),
+        env: dict[str, str] | None = None,
+        command: Sequence[str] = (),
     ) -> None:
         self.params = Path(params)
         self.args = [*self.mode_args, *args]
+        # A whole command line instead of `dc-bringup PARAMS ARGS` (the one ros/dc_launch builds).
+        self.command = list(command) or [str(BIN / "dc-bringup"), str(self.params), *self.args]
         self.domain_id = fresh_domain_id()
         self.env = dict(os.environ)
         self.env["ROS_DOMAIN_ID"] = str(self.domain_id)
@@ -51,7 +59,7 @@ class Bringup:
     # -- process -----------------------------------------------------------------------------
     def __enter__(self) -> Bringup:
         self.process = subprocess.Popen(
-            [str(BIN / "dc-bringup"), str(self.params), *self.args],
+            self.command,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

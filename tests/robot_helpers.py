@@ -52,10 +52,11 @@ class Ros:
 
 
 @contextmanager
-def ros_session(name: str, *, use_sim_time: bool = False) -> Iterator[Ros]:
-    """A node in a fresh context (following /clock with ``use_sim_time``), its executor, and a plugin harness on it."""
+def ros_session(name: str, *, use_sim_time: bool = False, domain_id: int | None = None) -> Iterator[Ros]:
+    """A node in a fresh context (in ``domain_id``, else the session's domain; following /clock with
+    ``use_sim_time``), its executor, and a plugin harness on it."""
     context = Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, domain_id=domain_id)
     try:
         node = rclpy.create_node(
             f"test_{name}_{uuid.uuid4().hex[:8]}",

@@ -422,6 +422,12 @@ def test_dc_buffer_finds_the_storage_path_in_a_parameter_file(tmp_path: Path) ->
     params = tmp_path / "params.yaml"
     params.write_text(f'destination_server:\n  ros__parameters:\n    flb:\n      storage_path: "{tmp_path}/buf"\n')
     assert buffer_admin.storage_file(params_file=str(params)) == tmp_path / "buf" / FILE_NAME
+    # A Nav2-style file: each robot's section under its namespace, read as the server reads it.
+    params.write_text(
+        f'/r1/destination_server:\n  ros__parameters:\n    flb.storage_path: "{tmp_path}/r1"\n'
+        f'/r2:\n  destination_server:\n    ros__parameters:\n      flb.storage_path: "{tmp_path}/r2"\n'
+    )
+    assert buffer_admin.storage_file(params_file=str(params), namespace="/r2") == tmp_path / "r2" / FILE_NAME
 
 
 def test_dc_buffer_leaves_a_corrupt_file_alone(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

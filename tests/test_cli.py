@@ -143,7 +143,7 @@ def test_validate_warns_about_a_condition_key_the_schema_rules_out_and_ignores_o
     )
     assert "elsewhere" not in result.stderr, "a condition on another topic judges that topic's records"
     # Nav2 and other nodes keep their parameters in the same file: ignored, said once, not an error.
-    assert "controller_server: not a DC server section, ignored" in result.stderr
+    assert "sections for nodes DC does not run, ignored (other nodes' parameters): controller_server" in result.stderr
     params.write_text(UPTIME_GATED.format(key="time"))
     assert "never in the records" not in dc("validate", str(params)).stderr
 

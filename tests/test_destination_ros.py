@@ -297,3 +297,33 @@ def test_invalid_configuration_fails_configure_and_can_be_retried(running: Runni
     assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert server.config is not None
     assert server.config.names == ["disk", "flb_pgsql"]
+
+
+def test_a_middleware_without_sequence_numbers_is_said_once_at_startup(
+    running: Running, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """The PyPI wheels have Fast DDS only: the detection is forced to answer as Cyclone DDS's
+    rmw_feature_supported does (False); what the server then says is what a Cyclone user reads."""
+    server = running.server
+    server.sequence_numbers = lambda identifier: False
+    for _ in range(2):  # a second activation (pause and resume) does not say it again
+        assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        assert server.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+        assert server.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+    lines = [line for line in capfd.readouterr().err.splitlines() if "publication sequence numbers" in line]
+    assert len(lines) == 1, lines
+    (line,) = lines
+    assert line.startswith("[WARN]"), line  # records of a publisher that is not DC's are affected
+    assert f"your own nodes' records on {running.topic}" in line
+    assert "duplicates, never a loss" in line and "not counted" in line
+
+
+def test_a_middleware_with_sequence_numbers_is_not_mentioned(
+    running: Running, capfd: pytest.CaptureFixture[str]
+) -> None:
+    # The real detection: Fast DDS answers rmw_feature_supported(publication sequence number) = true.
+    server = running.server
+    assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert server.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    assert "publication sequence numbers" not in capfd.readouterr().err

@@ -24,6 +24,7 @@ from typing import Any
 
 import pytest
 import rclpy
+from dc_lifecycle_interfaces.msg import Heartbeat
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.context import Context
@@ -34,7 +35,7 @@ from std_msgs.msg import String
 
 from dc_core.executors import EXECUTOR_KINDS, make_executor, spin_until
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ManagedServer
-from dc_interfaces.msg import Heartbeat, StringStamped
+from dc_interfaces.msg import StringStamped
 from tests.domains import fresh_domain_id
 from tests.ros_util import two_contexts, wait_for
 

@@ -18,6 +18,7 @@ from types import SimpleNamespace
 from typing import Any, cast
 
 import pytest
+from dc_lifecycle_interfaces.msg import Heartbeat
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from rclpy.context import Context
@@ -30,7 +31,6 @@ from dc_core import lifecycle
 from dc_core.intake import DRAIN_MAX, Intake, Wake
 from dc_core.lifecycle import HEARTBEAT_QOS, HEARTBEAT_TOPIC, ManagedServer, ServerLoop
 from dc_core.testing import RecordingLogger
-from dc_interfaces.msg import Heartbeat
 from tests.ros_util import two_contexts, wait_for
 
 RECORD_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)

@@ -21,11 +21,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
-from dc_core.errors import ConfigError
-from dc_core.logs import BurstLog
-from dc_core.params import param, port_problem
-from dc_destinations.confined_files import (
+from dc_core.confined_files import (
     Confinement,
     ConfinementParams,
     FileRefused,
@@ -33,6 +29,10 @@ from dc_destinations.confined_files import (
     confinement_of,
     delete_opened,
 )
+from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.errors import ConfigError
+from dc_core.logs import BurstLog
+from dc_core.params import param, port_problem
 from dc_destinations.files_metrics.media import DurationProbe, content_type, is_video
 from dc_destinations.files_metrics.table import FileRow, FilesTable
 from dc_destinations.object_files import (

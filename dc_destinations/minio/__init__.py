@@ -30,11 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, NoReturn
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
-from dc_core.errors import ConfigError
-from dc_core.logs import BurstLog
-from dc_core.params import param
-from dc_destinations.confined_files import (
+from dc_core.confined_files import (
     Confinement,
     ConfinementParams,
     FileRefused,
@@ -42,6 +38,10 @@ from dc_destinations.confined_files import (
     confinement_of,
     delete_opened,
 )
+from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.errors import ConfigError
+from dc_core.logs import BurstLog
+from dc_core.params import param
 from dc_destinations.object_files import (
     PART_SIZE_METADATA,
     FilePair,

@@ -27,7 +27,7 @@ from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
 from dc_core.rostime import now_ns, stamp_ns
-from dc_core.topics import topic_problem
+from dc_core.topics import topic_param
 from dc_core.worker import Outcome
 from dc_measurements.saved_files import PendingFiles, ReservedPaths, file_locations
 
@@ -46,9 +46,8 @@ def _modules_problem(modules: list[str]) -> str | None:
 @dataclass(frozen=True, kw_only=True)
 class CameraParams:
     cam_name: str = param(doc="Name of the camera, given as camera_name in every record")
-    cam_topic: str = param(
+    cam_topic: str = topic_param(
         doc="Image topic (sensor_msgs/Image, or sensor_msgs/CompressedImage: see image_type)",
-        check=lambda name: topic_problem(name) and "a ROS 2 topic name",
     )
     image_type: str = param(
         "auto",

@@ -28,10 +28,10 @@ from dc_core.errors import PluginError
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
 from dc_core.rostime import now_ns
+from dc_core.topics import topic_param
 from dc_core.worker import Outcome
 from dc_measurements.map.files import map_yaml, pgm_bytes, png_bytes, trinary_image
 from dc_measurements.saved_files import PendingFiles, ReservedPaths, file_locations
-from dc_measurements.velocity import topic_param
 
 MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 VOLATILE_MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
@@ -42,7 +42,7 @@ _WAIT_STEP_S = 0.02
 
 @dataclass(frozen=True, kw_only=True)
 class MapParams:
-    topic: str = topic_param("/map", "nav_msgs/msg/OccupancyGrid topic")
+    topic: str = topic_param("/map", doc="nav_msgs/msg/OccupancyGrid topic")
     transient_local: bool = param(
         True,
         doc="Subscribe transient-local, as map servers publish (a map published before DC started arrives); "
