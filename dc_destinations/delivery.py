@@ -193,6 +193,7 @@ class DeliveryPipeline:
         for name, sender in senders.items():
             route = self._routes[name]
             route.wakeup.clear()
+            route.destination.stopping.clear()
             route.thread = self.supervisor.start_thread(sender.run, name=f"dc-sender-{name}")
         pending = buffer.pending_salvage()
         if pending is not None:
@@ -222,6 +223,7 @@ class DeliveryPipeline:
             if route.thread is not None:
                 route.thread.join(timeout=max(self._closing.deadline - self._clock(), 0.0) + 1.0)
                 if route.thread.is_alive():
+                    route.destination.stopping.set()  # a send that waits (a rate's slot) returns now
                     self.logger.warning(
                         f"destination {route.name}: send() still running after the {grace:g} s grace; "
                         "its batch stays in the buffer and will be sent again"
@@ -250,6 +252,18 @@ class DeliveryPipeline:
         if self._lock_taken_by_start:
             self.release_storage()
             self._lock_taken_by_start = False
+
+    def between_sends(self, name: str, hook: Callable[[], None]) -> bool:
+        """``hook()`` (the destination ``name``'s deactivate or cleanup) never while its ``send`` runs.
+
+        Now, and True, unless a ``send`` still runs past the stop's grace: then False, and ``hook``
+        runs on the sender's thread as soon as that ``send`` returns (dc_destinations.sender.Gate).
+        """
+        route = self._routes.get(name)
+        if route is None:
+            hook()
+            return True
+        return route.gate.run(hook)
 
     # -- intake ---------------------------------------------------------------------------------
 

@@ -31,6 +31,7 @@ from rclpy.utilities import get_rmw_implementation_identifier
 
 from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
+from dc_core.errors import DcError
 from dc_core.handoff import ENDED_SUFFIX, RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
 from dc_core.lifecycle import ManagedServer, PartialTeardown, run_server
@@ -220,7 +221,7 @@ class DestinationServer(ManagedServer):
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
         self._stop_acks()
         # Without a config (a configure that failed parsing it) there is no plugin to clean up.
-        for error in run_hook_on_each(self._named_plugins() if self.config is not None else [], "on_cleanup"):
+        for error in self._plugin_hooks("on_cleanup") if self.config is not None else []:
             self.get_logger().error(error)
         self.plugins.clear()
         self._debug.clear()
@@ -311,10 +312,23 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)
         self._stop_acks()
-        errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
+        errors = self._plugin_hooks("on_deactivate")
         if errors:
             # The server's own part is torn down: it can go on (dc_core.lifecycle).
             raise PartialTeardown("; ".join(errors))
+
+    def _plugin_hooks(self, hook: str) -> list[str]:
+        """``hook`` of every plugin, never while its send() runs (DeliveryPipeline.between_sends)."""
+        pipeline = self.pipeline
+        if pipeline is None:
+            return run_hook_on_each(self._named_plugins(), hook)
+        errors: list[str] = []
+        for name, (what, plugin) in zip(self.plugins, self._named_plugins(), strict=True):
+            try:
+                pipeline.between_sends(name, functools.partial(run_hook, what, plugin, hook))
+            except DcError as exc:
+                errors.append(str(exc))
+        return errors
 
     def _named_plugins(self) -> list[tuple[str, Destination[Any]]]:
         assert self.config is not None

@@ -185,6 +185,7 @@ class FilesMetrics(Destination[FilesMetricsParams]):
             prepared=f"table {table.name}",
         )
         self.address = self._database.address
+        self.keep(self._database)
         name = self.context.name
         warn_if_password_in_clear(
             self.context.logger, name, self._database.settings, f"destination_server.{name}.pgsql"
@@ -202,12 +203,8 @@ class FilesMetrics(Destination[FilesMetricsParams]):
             f"tracking the files of {storages} in table {self.params.pgsql.table} of {self.address}"
         )
 
-    def on_deactivate(self) -> None:
-        if self._database is not None:
-            self._database.close()
-
     def on_cleanup(self) -> None:
-        self.on_deactivate()
+        super().on_cleanup()
         self._stores = []
 
     def counters(self) -> dict[str, int]:

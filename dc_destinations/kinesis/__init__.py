@@ -18,7 +18,6 @@ from __future__ import annotations
 import datetime as dt
 import re
 import string
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -98,7 +97,6 @@ class KinesisStreams(Destination[KinesisParams]):
         self._client: Any = None
         self._fields = _template_fields(params.partition_key)
         self._last_problem = ""
-        self._lock = threading.Lock()
         self.where = ""
 
     # -- lifecycle -------------------------------------------------------------------------------
@@ -139,27 +137,26 @@ class KinesisStreams(Destination[KinesisParams]):
                 request_bytes = 0
             requests[-1].append((i, data, key))
             request_bytes += size
-        with self._lock:
-            for n, entries in enumerate(requests):
-                if not entries:
-                    continue
-                try:
-                    results = self._put(entries)
-                except RetryableError as exc:
-                    if n == 0 and not outcome.reject:
-                        raise  # nothing of the batch went: the whole batch is retried
-                    # This request and the ones not sent yet are retried; those already put are confirmed.
-                    for later in requests[n:]:
-                        outcome.retry.update((i, str(exc)) for i, _, _ in later)
-                    break
-                except RejectedError as exc:
-                    outcome.reject.update((i, str(exc)) for i, _, _ in entries)
-                    continue
-                for (i, _, _), result in zip(entries, results, strict=True):
-                    if result.get("ErrorCode"):
-                        # Throughput exceeded, internal failure, a KMS hiccup: the service's per-record
-                        # refusals all pass with time, so the record is retried alone.
-                        outcome.retry[i] = f"{result['ErrorCode']}: {result.get('ErrorMessage', '')} ({self.where})"
+        for n, entries in enumerate(requests):
+            if not entries:
+                continue
+            try:
+                results = self._put(entries)
+            except RetryableError as exc:
+                if n == 0 and not outcome.reject:
+                    raise  # nothing of the batch went: the whole batch is retried
+                # This request and the ones not sent yet are retried; those already put are confirmed.
+                for later in requests[n:]:
+                    outcome.retry.update((i, str(exc)) for i, _, _ in later)
+                break
+            except RejectedError as exc:
+                outcome.reject.update((i, str(exc)) for i, _, _ in entries)
+                continue
+            for (i, _, _), result in zip(entries, results, strict=True):
+                if result.get("ErrorCode"):
+                    # Throughput exceeded, internal failure, a KMS hiccup: the service's per-record
+                    # refusals all pass with time, so the record is retried alone.
+                    outcome.retry[i] = f"{result['ErrorCode']}: {result.get('ErrorMessage', '')} ({self.where})"
         if outcome.retry or outcome.reject:
             return outcome
         return None

@@ -111,6 +111,7 @@ class PgSQL(Destination[PgSQLParams]):
             prepared=f"table {self.params.table}",
         )
         self.address = self._database.address
+        self.keep(self._database)
         warn_if_password_in_clear(
             self.context.logger, self.context.name, self._database.settings, f"destination_server.{self.context.name}"
         )
@@ -133,13 +134,6 @@ class PgSQL(Destination[PgSQLParams]):
         # The connection opens with the first batch, in the sender's thread: a database that is down
         # must not hold up activation.
         self.context.logger.info(f"inserting into table {self.params.table} of {self.address}")
-
-    def on_deactivate(self) -> None:
-        if self._database is not None:
-            self._database.close()
-
-    def on_cleanup(self) -> None:
-        self.on_deactivate()
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:

@@ -26,7 +26,6 @@ import datetime as dt
 import gzip
 import hashlib
 import re
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -138,7 +137,6 @@ class S3(Destination[S3Params]):
         super().__init__(context, params)
         self._client: Any = None
         self._last_problem = ""
-        self._lock = threading.Lock()
         self._max_object_bytes = parse_size(params.total_file_size) or 0
         self._chunk_bytes = parse_size(params.upload_chunk_size) or MIN_PART_BYTES
         self._tag_parts = self._split_tag(context.name)
@@ -189,20 +187,19 @@ class S3(Destination[S3Params]):
                 size = 0
             objects[-1].append((i, line))
             size += len(line)
-        with self._lock:
-            for n, lines in enumerate(objects):
-                if not lines:
-                    continue
-                key = self.object_key(batch[lines[0][0]], n)
-                try:
-                    self._upload(key, b"".join(line for _, line in lines))
-                except RetryableError as exc:
-                    if n == 0 and not outcome.reject:
-                        raise  # nothing of the batch went: the whole batch is retried
-                    # This object and the ones not written yet are retried; those written are confirmed.
-                    for later in objects[n:]:
-                        outcome.retry.update((i, str(exc)) for i, _ in later)
-                    break
+        for n, lines in enumerate(objects):
+            if not lines:
+                continue
+            key = self.object_key(batch[lines[0][0]], n)
+            try:
+                self._upload(key, b"".join(line for _, line in lines))
+            except RetryableError as exc:
+                if n == 0 and not outcome.reject:
+                    raise  # nothing of the batch went: the whole batch is retried
+                # This object and the ones not written yet are retried; those written are confirmed.
+                for later in objects[n:]:
+                    outcome.retry.update((i, str(exc)) for i, _ in later)
+                break
         if outcome.retry or outcome.reject:
             return outcome
         return None
