@@ -424,3 +424,13 @@ group_server:
         "measurement_server.http_port: 2022 is also group_server.http_port: measurement_server will not serve its"
         " metrics" in result.stderr
     )
+
+
+def test_pub_with_nobody_subscribed_says_so_and_fails_unless_no_wait(ros_env: dict[str, str]) -> None:
+    alone = dc("pub", "/nobody_listens", '{"n": 1}', "--wait-matched", "0.5", env=ros_env)
+    assert alone.returncode == 3, alone.stdout + alone.stderr
+    assert "nobody subscribes to /nobody_listens (waited 0.5 s); nothing published" in alone.stderr
+    assert "published" not in alone.stdout
+    anyway = dc("pub", "/nobody_listens", '{"n": 1}', "--no-wait", env=ros_env)
+    assert anyway.returncode == 0, anyway.stderr
+    assert "published 1 record(s) on /nobody_listens" in anyway.stdout
