@@ -433,11 +433,14 @@ def _metrics_servers(params: str, namespace: str = "") -> list[tuple[str, str, i
     """(server, host, port) of each server whose HTTP server the parameter file enables, for the servers
     in ``namespace`` (the file's sections are read as they read them)."""
     from dc_bringup.validate import metrics_endpoints, validate_params_file
+    from dc_core.config import UnsetShown
 
-    return [
-        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(params, namespace).configs)
-    ]
+    # The servers' secrets live in their service's environment, not in this shell: only addresses are read here.
+    environ = UnsetShown()
+    endpoints = metrics_endpoints(validate_params_file(params, namespace, environ=environ).configs)
+    if environ.unset:
+        print(f"dc status: not set in this shell, shown as unset: {', '.join(sorted(environ.unset))}", file=sys.stderr)
+    return [(e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port) for e in endpoints]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
