@@ -147,6 +147,8 @@ class DestinationServer(ManagedServer):
         self._health_sent = ""
         self._rmw_checked = False
         self._sent_before: dict[str, tuple[float, int]] = {}  # for records/s on /diagnostics
+        self._diagnosing = False
+        self._destination_metrics: dict[str, dict[str, Any]] | None = None
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -234,6 +236,7 @@ class DestinationServer(ManagedServer):
     # -- activate / deactivate ---------------------------------------------------------------------
     def activate_server(self) -> None:
         assert self.pipeline is not None and self.routing is not None
+        self._diagnosing = False  # a job the last deactivation's worker stop left without its outcome
         for what, plugin in self._named_plugins():
             run_hook(what, plugin, "on_activate")
         # Acks follow commits from the first one on: measurement_server and group_server keep each
@@ -521,14 +524,34 @@ class DestinationServer(ManagedServer):
             return ""
         return self.pipeline.unhealthy_reason()
 
+    def publish_diagnostics(self) -> None:
+        pipeline = self.pipeline
+        if pipeline is None or self.lifecycle_state != "active":
+            super().publish_diagnostics()
+            return
+        if self._diagnosing:
+            return  # the previous one still waits for the buffer: this one would say the same
+        self._diagnosing = True
+
+        def done(outcome: Outcome[dict[str, dict[str, Any]]]) -> None:
+            self._diagnosing = False
+            self._destination_metrics = outcome.value if outcome.error is None else None
+            if outcome.error is not None:
+                self.get_logger().error(f"destination metrics for /diagnostics failed: {outcome.error!r}")
+            super(DestinationServer, self).publish_diagnostics()
+
+        # On the worker: the buffer's counts wait for a group commit in progress, the intake must not.
+        self.worker.submit(pipeline.metrics, done)
+
     def diagnostic_statuses(self) -> list[Any]:
-        pipeline, config = self.pipeline, self.config
-        if pipeline is None or config is None or self.lifecycle_state != "active":
+        pipeline, config, metrics = self.pipeline, self.config, self._destination_metrics
+        self._destination_metrics = None
+        if pipeline is None or config is None or metrics is None or self.lifecycle_state != "active":
             return []
         secrets = [value for d in config.destinations for value in secret_values(d.plugin_params)]
         now = time.monotonic()
         statuses = []
-        for name, values in pipeline.metrics().items():
+        for name, values in metrics.items():
             health = values["health"]
             state = health["state"]
             sent = int(values["sent"])

@@ -111,6 +111,7 @@ def level(wanted: bytes) -> Any:
     return lambda status: status.level == wanted
 
 
+@pytest.mark.usefixtures("bringup_mode")
 def test_a_healthy_run_shows_ok_for_each_server_and_destination(tmp_path: Path) -> None:
     with Receiver() as receiver, Bringup(_params(tmp_path, receiver.port), tmp_path / "home") as run:
         run.wait_ready()
