@@ -21,45 +21,18 @@ from dc_core.diagnostics import scrub
 from tests.bringup_util import Bringup
 from tests.fault_helpers import fault_env
 from tests.http_receiver import Receiver, free_port
-from tests.test_e2e_delivery_failures import SCHEDULER_BASE, SCHEDULER_CAP, finish, publish
+from tests.test_e2e_delivery_failures import finish, publish, write_params
 
 pytestmark = pytest.mark.e2e
 
 DEADLINE_S = 45.0
 
 
-def _params(tmp_path: Path, port: int) -> Path:
-    params = tmp_path / "params.yaml"
-    params.write_text(f"""
-measurement_server:
-  ros__parameters:
-    diagnostics_period: 0.2
-    measurement_plugins: ["seq"]
-    seq:
-      plugin: "dc_measurements/StringStamped"
-      topic: "/robot/seq"
-      timer_based: false
-      qos_depth: 1000
-      enable_validator: false
-      tags: ["web"]
-destination_server:
-  ros__parameters:
-    diagnostics_period: 0.2
-    unhealthy_after: 4.0
-    flb:
-      storage_path: "{tmp_path / "buffer"}"
-      flush: 0.2
-      scheduler_base: {SCHEDULER_BASE}
-      scheduler_cap: {SCHEDULER_CAP}
-    destination_plugins: ["web"]
-    web:
-      plugin: "dc_destinations/HTTP"
-      inputs: ["/dc/measurement/seq"]
-      port: {port}
-      uri: "/ingest"
-      timeout: 2.0
-""")
-    return params
+def _bringup(tmp_path: Path, port: int, env: dict[str, str] | None = None) -> Bringup:
+    """A run delivering /robot/seq to http://127.0.0.1:``port``; statuses five times a second (every server's
+    parameter, given as a user would on the command line) and ``failing`` after 4 s."""
+    ros_args = ["--ros-args", "-p", "diagnostics_period:=0.2", "-p", "destination_server:unhealthy_after:=4.0"]
+    return Bringup(write_params(tmp_path, port), tmp_path / "home", args=ros_args, env=env)
 
 
 class Monitor:
@@ -113,7 +86,7 @@ def level(wanted: bytes) -> Any:
 
 @pytest.mark.usefixtures("bringup_mode")
 def test_a_healthy_run_shows_ok_for_each_server_and_destination(tmp_path: Path) -> None:
-    with Receiver() as receiver, Bringup(_params(tmp_path, receiver.port), tmp_path / "home") as run:
+    with Receiver() as receiver, _bringup(tmp_path, receiver.port) as run:
         run.wait_ready()
         finish(publish(run, 20, rate=200))
         run.wait_until(lambda: len(receiver.records()) == 20, 30, "every record")
@@ -126,6 +99,12 @@ def test_a_healthy_run_shows_ok_for_each_server_and_destination(tmp_path: Path) 
             )
             server = monitor.wait("destination_server: server", level(DiagnosticStatus.OK), "OK")
             measurement = monitor.wait("measurement_server: server", level(DiagnosticStatus.OK), "OK")
+            # diagnostics_period 0.2 from --ros-args: about five a second (one a second by default).
+            before = len(monitor.seen["measurement_server: server"])
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline:
+                monitor.executor.spin_once(timeout_sec=0.05)
+            assert len(monitor.seen["measurement_server: server"]) - before >= 3
         finally:
             monitor.close()
     assert web.message == "delivering"
@@ -136,7 +115,7 @@ def test_a_healthy_run_shows_ok_for_each_server_and_destination(tmp_path: Path) 
 
 
 def test_a_destination_that_cannot_be_reached_is_warn_then_error_with_the_reason(tmp_path: Path) -> None:
-    with Bringup(_params(tmp_path, free_port()), tmp_path / "home") as run:
+    with _bringup(tmp_path, free_port()) as run:
         run.wait_ready()
         monitor = Monitor(run)
         try:
@@ -157,7 +136,7 @@ def test_a_killed_writer_thread_is_error_on_the_server_status(tmp_path: Path) ->
     target = "dc_destinations.commit:GroupCommitter._commit"
     with (
         Receiver() as receiver,
-        Bringup(_params(tmp_path, receiver.port), tmp_path / "home", env=fault_env(tmp_path, target)) as run,
+        _bringup(tmp_path, receiver.port, fault_env(tmp_path, target)) as run,
     ):
         run.wait_ready()
         monitor = Monitor(run)
