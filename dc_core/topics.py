@@ -40,8 +40,9 @@ def topic_problem(name: str) -> str | None:
 
 
 def topic_param(default: Any = dataclasses.MISSING, *, doc: str) -> Any:
-    """A plugin parameter naming a topic, refused at configure when no mapping makes it one (no default: required)."""
-    return param(default, doc=doc, check=lambda name: topic_problem(name) and "a ROS 2 topic name")
+    """A plugin parameter naming a robot topic it reads, refused at configure when no mapping makes it one
+    (no default: required); under --namespace, an absolute one outside it is warned about (sensor_topic)."""
+    return param(default, doc=doc, check=lambda name: topic_problem(name) and "a ROS 2 topic name", sensor_topic=True)
 
 
 # DC's own topics, relative: each resolves in the namespace of the node that publishes or reads it,

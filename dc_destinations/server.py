@@ -34,7 +34,8 @@ from dc_core.destination import Destination, OutgoingRecord
 from dc_core.diagnostics import ERROR, OK, WARN, scrub, secret_values
 from dc_core.diagnostics import status as diagnostic_status
 from dc_core.errors import PluginError
-from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
+from dc_core.handoff import ENDED_SUFFIX, RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
+from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
@@ -132,6 +133,7 @@ class DestinationServer(ManagedServer):
         self._buffer_check_timer: Any = None
         self._buffer_checking = False
         self.acks: AckPublisher | None = None
+        self._ended_subscription: Any = None
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
@@ -272,6 +274,11 @@ class DestinationServer(ManagedServer):
             resent = self.intake.subscribe_batches(StringStamped, RESEND_TOPIC, self._on_resent, resend_qos())
             resent.raw = True
             self._subscription_of[RESEND_TOPIC] = resent
+            # The publishers of DC's servers that ended holding records (dc_core.handoff_marks); on the
+            # executor, which runs on this thread too, between the intake's turns.
+            self._ended_subscription = self.create_subscription(
+                StringStamped, ENDED_TOPIC, self._on_ended, ended_qos(depth=10)
+            )
         self.get_logger().info(
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
@@ -322,6 +329,9 @@ class DestinationServer(ManagedServer):
     def _destroy_subscriptions(self) -> None:
         subscriptions = list(self._subscription_of.values())
         self._subscription_of.clear()
+        if self._ended_subscription is not None:
+            self.destroy_subscription(self._ended_subscription)
+            self._ended_subscription = None
         for subscription in subscriptions:
             self.intake.unsubscribe(subscription)
         if self._hop_log_timer is not None:
@@ -398,6 +408,34 @@ class DestinationServer(ManagedServer):
             for source_ns, low in lows.items():
                 self.acks.tracker.saw(topic, -source_ns, low)
         self._hand_over(received)
+
+    def _on_ended(self, msg: Any) -> None:
+        """A server announces its publishers of an earlier run that ended holding records not acknowledged:
+        what of theirs never arrived is counted, and that it was is committed (then acknowledged)."""
+        parsed = parse_ended(msg.data)
+        if parsed is None or self.hop is None:
+            return
+        server, ended = parsed
+        settled: list[_Received] = []
+        losses: list[str] = []
+        total = 0
+        for one in ended:
+            if one.topic not in self._internal_topics or one.topic not in self._subscription_of:
+                continue  # not read here (any more): nothing of it was expected
+            counted = self.hop.writer_ended(one.topic, one.writer, one.high, one.acked)
+            settled.append(([], HopKey(one.topic + ENDED_SUFFIX, -one.writer, one.high)))
+            if counted is not None:
+                first, lost = counted
+                total += lost
+                losses.append(f"{one.topic} {lost} (publisher {one.writer:x}, numbers {first}..{one.high})")
+        if total:
+            self.get_logger().warning(
+                f"{total} records of {server} never arrived, not acknowledged when its process ended (killed?); "
+                f"counted in missing: {', '.join(losses)}"
+            )
+        elif losses:
+            self.get_logger().info(f"{server}'s publishers of its last run ended; all their records arrived")
+        self._hand_over(settled)
 
     def _on_resent(self, taken: list[tuple[bytes, Any]]) -> None:
         """Records sent again by their publisher (dc_core.handoff), each handled as if from its own topic."""

@@ -228,6 +228,7 @@ def parse_measurement_server(
         condition = parse_plugin_section(
             "conditions", _plugin_section(section, cid, path), f"{path}.{cid}", ConditionCommonParams
         )
+        warnings.extend(condition.notes)
         conditions[cid] = ConditionConfig(cid, condition.common, condition.plugin_class, condition.params)
 
     measurements: list[MeasurementConfig] = []
@@ -237,6 +238,7 @@ def parse_measurement_server(
         measurement = parse_plugin_section(
             "measurements", _plugin_section(section, mid, path), mpath, MeasurementCommonParams
         )
+        warnings.extend(measurement.notes)
         common, cls, plugin_params = measurement.common, measurement.plugin_class, measurement.params
         for key in ("if_all_conditions", "if_any_conditions", "if_none_conditions"):
             for cid in getattr(common, key):

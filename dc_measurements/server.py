@@ -12,6 +12,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.errors import PluginError
 from dc_core.handoff import HandoffSender, destination_inputs
+from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
@@ -71,7 +72,12 @@ class MeasurementServer(ManagedServer):
         namespace = self.get_namespace()
         config = parse_measurement_server(section, NODE_NAME, namespace)
         self.config = config
-        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers, namespace))
+        self.handoff = HandoffSender(
+            self,
+            config.node.handoff,
+            destination_inputs(servers, namespace),
+            marks=marks_folder(namespace, self.get_name()),
+        )
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
 

@@ -18,11 +18,12 @@ from dc_core.condition import Condition, ConditionContext
 from dc_core.errors import PluginError
 from dc_core.params import param
 from dc_core.qos import SENSOR_QOS
+from dc_core.topics import topic_param
 
 
 @dataclass(frozen=True, kw_only=True)
 class MovingParams:
-    odom_topic: str = param("/odom", doc="nav_msgs/msg/Odometry topic whose twist gives the speed")
+    odom_topic: str = topic_param("/odom", doc="nav_msgs/msg/Odometry topic whose twist gives the speed")
     speed_threshold: float = param(0.2, minimum=0.0, doc="Speed (m/s) above which a message counts as moving")
     count_limit: int = param(8, minimum=1, doc="Bound of the counter (messages), in both directions")
     count_hysteresis: int = param(

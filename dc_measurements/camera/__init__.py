@@ -25,7 +25,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from dc_core.errors import PluginError
 from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement, MeasurementContext
-from dc_core.params import param
+from dc_core.params import compat_param, param
 from dc_core.rostime import now_ns, stamp_ns
 from dc_core.topics import topic_param
 from dc_core.worker import Outcome
@@ -86,7 +86,7 @@ class CameraParams:
         doc="A compressed frame whose header gives more pixels is refused without being decoded "
         "(counted in frames_too_large); 50 MP decodes to 150 MB",
     )
-    node_name: str = param("", doc="Accepted for the original's configurations (it named a node); unused")
+    node_name: str = compat_param("", "the Camera subscribes through the measurement server's node")
 
 
 @dataclass

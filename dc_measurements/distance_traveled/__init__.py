@@ -16,7 +16,7 @@ from nav_msgs.msg import Odometry
 
 from dc_core.errors import PluginError
 from dc_core.measurement import Measurement, MeasurementContext
-from dc_core.params import param
+from dc_core.params import compat_param, param
 from dc_core.qos import SENSOR_QOS
 from dc_core.rostime import stamp_ns
 from dc_core.tf import TransformBuffer, TransformError
@@ -34,9 +34,7 @@ class DistanceTraveledParams:
     global_frame: str = param("map", doc="Frame the robot's path is measured in (source tf)")
     robot_base_frame: str = param("base_link", doc="The robot's frame (source tf)")
     odom_topic: str = topic_param("/odom", doc="nav_msgs/msg/Odometry topic (source odom)")
-    transform_timeout: float = param(
-        0.1, minimum=0.0, doc="Accepted for the original's configurations; poses are taken as TF updates arrive"
-    )
+    transform_timeout: float = compat_param(0.1, "poses are taken as TF updates arrive", minimum=0.0)
     min_step: float = param(
         0.01,
         minimum=0.0,
