@@ -84,13 +84,17 @@ def cmd_pub(args: argparse.Namespace) -> int:
     sent = 0
     unacknowledged = False
     try:
-        deadline = time.monotonic() + args.wait_matched
+        deadline = time.monotonic() + (0 if args.no_wait else args.wait_matched)
         while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
-        if publisher.get_subscription_count() == 0 and args.wait_matched > 0:
+        if publisher.get_subscription_count() == 0 and not args.no_wait:
+            # Once this process exits, a record nobody took is gone: "published" would be a lie.
             print(
-                f"dc pub: no subscriber on {args.topic} after {args.wait_matched} s; publishing anyway", file=sys.stderr
+                f"dc pub: nobody subscribes to {resolved} (waited {args.wait_matched:g} s); nothing published"
+                " (--no-wait publishes anyway)",
+                file=sys.stderr,
             )
+            return 3
         while args.count == 0 or sent < args.count:
             msg = StringStamped()
             msg.header.stamp = node.get_clock().now().to_msg()
@@ -460,11 +464,14 @@ def _metrics_servers(params: str, namespace: str = "") -> list[tuple[str, str, i
     """(server, host, port) of each server whose HTTP server the parameter file enables, for the servers
     in ``namespace`` (the file's sections are read as they read them)."""
     from dc_bringup.validate import metrics_endpoints, validate_params_file
+    from dc_core.config import UnsetShown
 
-    return [
-        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(params, namespace).configs)
-    ]
+    # The servers' secrets live in their service's environment, not in this shell: only addresses are read here.
+    environ = UnsetShown()
+    endpoints = metrics_endpoints(validate_params_file(params, namespace, environ=environ).configs)
+    if environ.unset:
+        print(f"dc status: not set in this shell, shown as unset: {', '.join(sorted(environ.unset))}", file=sys.stderr)
+    return [(e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port) for e in endpoints]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -503,7 +510,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
     p.add_argument("--group-key", default="")
-    p.add_argument("--wait-matched", type=float, default=5.0, help="seconds to wait for a subscriber")
+    p.add_argument(
+        "--wait-matched", type=float, default=5.0, help="seconds to wait for a subscriber (none: exit 3, nothing sent)"
+    )
+    p.add_argument("--no-wait", action="store_true", help="publish at once, whether anyone subscribes or not")
     p.add_argument(
         "--linger", type=float, default=5.0, help="at most this many seconds to wait for subscribers' acknowledgements"
     )

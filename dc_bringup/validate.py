@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,10 +54,13 @@ def _parse(server: str, section: dict[str, Any], namespace: str) -> Any:
     return getattr(module, function)(section, server)
 
 
-def validate_params_file(path: str | Path, namespace: str = "", ros_args: Sequence[str] = ()) -> ValidationReport:
+def validate_params_file(
+    path: str | Path, namespace: str = "", ros_args: Sequence[str] = (), environ: Mapping[str, str] | None = None
+) -> ValidationReport:
     """Parse every server section as the servers in ``namespace`` read it (topic names fully qualified
-    there, the ``--ros-args`` parameters over the file's); raise ConfigError on the first error, return warnings."""
-    loaded = load_params(path, namespace, param_sections(ros_args))
+    there, the ``--ros-args`` parameters over the file's); raise ConfigError on the first error, return warnings.
+    ``environ``: what ``${NAME}`` references read (the process' environment by default)."""
+    loaded = load_params(path, namespace, param_sections(ros_args), environ)
     sections = loaded.servers
     report = ValidationReport()
     if loaded.ignored:

@@ -28,6 +28,7 @@ from typing import Any
 import rclpy
 import rclpy.utilities
 from dc_lifecycle_interfaces.msg import Heartbeat
+from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import State
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
@@ -46,11 +47,15 @@ from rclpy.signals import SignalHandlerOptions
 
 from dc_core.config import load_params
 from dc_core.declared_params import declare_read_only
+from dc_core.diagnostics import DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, ERROR, OK, WARN, scrub
+from dc_core.diagnostics import array as diagnostic_array
+from dc_core.diagnostics import status as diagnostic_status
 from dc_core.errors import ConfigError, DcError
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import Intake
 from dc_core.logs import Logger, SeverityLogger
 from dc_core.node_params import (
+    DEFAULT_DIAGNOSTICS_PERIOD_S,
     DEFAULT_HEARTBEAT_PERIOD_S,
     DEFAULT_RECORD_LINGER_S,
     MetricsHttpParams,
@@ -162,6 +167,10 @@ class ManagedServer(LifecycleNode):
         # clock: under use_sim_time a paused or finished bag stops ROS time, not the process.
         self._steady_clock = Clock(clock_type=ClockType.STEADY_TIME)
         self._heartbeat_timer = self.create_timer(heartbeat_period, self._send_heartbeat, clock=self._steady_clock)
+        # Like the heartbeat in every state: a server that cannot configure says so there too.
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
+        self._diagnostics_timer: Any = None
+        self.set_diagnostics_period(DEFAULT_DIAGNOSTICS_PERIOD_S)
         self._metrics_http: StatusServer | None = None
         # Slow work of plugins (dc_core.worker): a finished job wakes the loop through a guard
         # condition, made with the worker (rclpy's EventsExecutor stops firing timers beside one).
@@ -192,6 +201,7 @@ class ManagedServer(LifecycleNode):
         for warning in warnings:
             self.get_logger().warning(warning)
         self.set_heartbeat_period(node.heartbeat_period)
+        self.set_diagnostics_period(node.diagnostics_period)
         self.record_linger_s = node.record_linger
         if node.use_sim_time and not self.get_parameter("use_sim_time").value:
             # rclpy's time source starts following /clock when the parameter changes.
@@ -280,6 +290,45 @@ class ManagedServer(LifecycleNode):
         self._heartbeat_timer.cancel()
         self.destroy_timer(self._heartbeat_timer)
         self._heartbeat_timer = self.create_timer(period, self._send_heartbeat, clock=self._steady_clock)
+
+    # -- /diagnostics (dc_core.diagnostics) ---------------------------------------------------------
+    def set_diagnostics_period(self, period: float) -> None:
+        """Publish on /diagnostics every ``period`` seconds (0: not at all)."""
+        if self._diagnostics_timer is not None:
+            self._diagnostics_timer.cancel()
+            self.destroy_timer(self._diagnostics_timer)
+            self._diagnostics_timer = None
+        if period > 0:
+            self._diagnostics_timer = self.create_timer(period, self.publish_diagnostics, clock=self._steady_clock)
+
+    def publish_diagnostics(self) -> None:
+        statuses = [self._server_status(), *self.diagnostic_statuses()]
+        self._diagnostics_pub.publish(diagnostic_array(statuses, self.get_clock().now().to_msg()))
+
+    def _server_status(self) -> Any:
+        state = self.lifecycle_state
+        reason = self.supervisor.unhealthy_reason or self.unhealthy_reason()
+        if reason:
+            level, message = ERROR, scrub(reason)
+        elif state != "active":
+            level, message = WARN, f"not active: {state}"
+        else:
+            level, message = OK, "active"
+        values = {
+            "state": state,
+            "namespace": self.get_namespace(),
+            "thread_failures": self.supervisor.thread_failures,
+            "unhealthy": scrub(reason or ""),
+        }
+        return diagnostic_status(f"{self.get_name()}: server", level, message, values)
+
+    def unhealthy_reason(self) -> str:
+        """Why the server is unhealthy beyond a thread that died (a subclass knows more), or ""."""
+        return ""
+
+    def diagnostic_statuses(self) -> list[Any]:
+        """The server's statuses besides its own (the destination server's: one per destination)."""
+        return []
 
     @property
     def lifecycle_state(self) -> str:

@@ -475,12 +475,25 @@ class DeliveryPipeline:
     def healthy(self) -> bool:
         """Writer and senders alive, no thread of the server died, records reaching the disk (a failing
         group commit keeps every new record in memory only), and the buffer file undamaged at its last check."""
+        return not self.unhealthy_reason()
+
+    def unhealthy_reason(self) -> str:
+        """Why :meth:`healthy` is False ("" while healthy)."""
         committer = self._committer
-        if committer is None or not committer.running or committer.failing is not None or self._damaged:
-            return False
-        if self.supervisor.unhealthy:
-            return False
-        return all(route.thread is not None and route.thread.is_alive() for route in self._routes.values())
+        if committer is None or not committer.running:
+            return "the buffer writer is not running"
+        if committer.failing is not None:
+            return f"records cannot be committed to the buffer: {committer.failing[1]}"
+        if self._damaged:
+            return "the buffer file was found damaged at its last check"
+        if self.supervisor.unhealthy_reason:
+            return self.supervisor.unhealthy_reason
+        dead = [name for name in self._routes if not self.sender_alive(name)]
+        return f"sender thread of {', '.join(dead)} not running" if dead else ""
+
+    def sender_alive(self, name: str) -> bool:
+        thread = self._routes[name].thread
+        return thread is not None and thread.is_alive()
 
     def destination_health(self) -> dict[str, dict[str, Any]]:
         """Per destination: ok, retrying or failing, and while not ok since when and why (dc_destinations.health)."""

@@ -450,7 +450,8 @@ class Sender:
             if retried:
                 route.failure_log.event(retried, first_error)
         if dead:
-            moved = buffer.dead_letter(route.name, dead)
+            # A refused record was tried once more than its queue row counted (only retries are counted there).
+            moved = buffer.dead_letter(route.name, dead, tried_now={sent_rows[i].row_id for i in reject})
             route.metrics.add("dead_lettered", moved)
             route.dead_letter_log.event(moved, f"{dead[0][1]}; see `dc buffer list`")
             self.bound_dead_letters()
