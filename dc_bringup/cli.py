@@ -39,9 +39,10 @@ def cmd_list_plugins(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
+    from dc_bringup.launcher import dc_namespace
     from dc_bringup.validate import check
 
-    report, error = check(args.params_file, args.namespace)
+    report, error = check(args.params_file, dc_namespace(args), args.ros_args)
     if report is None:
         print(f"invalid: {error}", file=sys.stderr)
         return 2
@@ -86,13 +87,17 @@ def cmd_pub(args: argparse.Namespace) -> int:
     sent = 0
     unacknowledged = False
     try:
-        deadline = time.monotonic() + args.wait_matched
+        deadline = time.monotonic() + (0 if args.no_wait else args.wait_matched)
         while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
-        if publisher.get_subscription_count() == 0 and args.wait_matched > 0:
+        if publisher.get_subscription_count() == 0 and not args.no_wait:
+            # Once this process exits, a record nobody took is gone: "published" would be a lie.
             print(
-                f"dc pub: no subscriber on {args.topic} after {args.wait_matched} s; publishing anyway", file=sys.stderr
+                f"dc pub: nobody subscribes to {resolved} (waited {args.wait_matched:g} s); nothing published"
+                " (--no-wait publishes anyway)",
+                file=sys.stderr,
             )
+            return 3
         while args.count == 0 or sent < args.count:
             msg = StringStamped()
             msg.header.stamp = node.get_clock().now().to_msg()
@@ -314,6 +319,15 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
     for topic, destinations in sorted(untrusted.items()) if isinstance(untrusted, dict) else []:
         for name, count in sorted(destinations.items()):
             print(f"untrusted tags: {count} on {topic} kept from {name} (a publisher there is not DC's)")
+    hop = metrics.get("hop", {})
+    for topic, counts in sorted(hop.items()) if isinstance(hop, dict) else []:
+        if isinstance(counts, dict) and counts.get("missing"):
+            ended = counts.get("writers_ended")
+            print(
+                f"lost before destination_server: {counts['missing']} on {topic} (missing, {counts.get('gaps')} gaps"
+                + (f"; {ended} publisher(s) ended holding records" if ended else "")
+                + ")"
+            )
 
 
 def _print_threads(metrics: dict[str, Any]) -> None:
@@ -428,9 +442,16 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
             print(f"dc lifecycle: {manager} did not answer in {args.timeout:g} s", file=sys.stderr)
             return 2
         response = future.result()
+        failure = ""
+        if args.command_name != "is-active" and not response.success:
+            failure = _last_failure(node, manager, args.timeout)
     finally:
         node.destroy_node()
         rclpy.shutdown()
+    if failure:
+        # One line naming the servers and what each failed at.
+        print(f"{args.command_name}: failed: {failure} (see dc-bringup log)")
+        return 1
     if args.command_name == "is-active":
         if response.success and response.message.startswith(DEGRADED_PREFIX):
             print(response.message)
@@ -439,6 +460,20 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     else:
         print(f"{args.command_name}: {'done' if response.success else 'failed (see dc-bringup log)'}")
     return 0 if response.success else 1
+
+
+def _last_failure(node: Any, manager: str, timeout: float) -> str:
+    """What the manager's last command failed at, as its is_active tells it ("" if it does not)."""
+    import rclpy
+    from std_srvs.srv import Trigger
+
+    from dc_bringup.manager import FAILED_PREFIX
+
+    future = node.create_client(Trigger, f"{manager}/is_active").call_async(Trigger.Request())
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if not future.done():
+        return ""
+    return str(future.result().message).partition(FAILED_PREFIX)[2]
 
 
 def cmd_servers(args: argparse.Namespace) -> int:
@@ -454,7 +489,16 @@ def cmd_servers(args: argparse.Namespace) -> int:
 def cmd_dashboard(args: argparse.Namespace) -> int:
     from dc_dashboard.cli import run
 
-    return run(args)
+    return run(args, params_metrics=_metrics_urls)
+
+
+def _metrics_urls(params: str) -> list[tuple[str, str]]:
+    """(server, URL) of the destination server of the parameter file, where it runs (else the port the
+    file configures): the dashboard's Health page reads delivery, the other servers' endpoints have none."""
+    from dc_bringup.live import metrics_targets
+
+    targets = metrics_targets(params, "", "127.0.0.1", None, "dc dashboard")
+    return [(t.server, t.url) for t in targets if t.server == "destination_server"]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -481,6 +525,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--namespace", default="", help="check it as dc-bringup --namespace reads it (topic names in the namespace)"
     )
     p.set_defaults(func=cmd_validate)
+    p.epilog = (
+        "--ros-args ... (last, or ended by --): checked as dc-bringup reads them: -p and --params-file over the "
+        "file's parameters, -r __ns:=/NS as --namespace, -r remaps of the robot's topics"
+    )
 
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
     p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
@@ -489,7 +537,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
     p.add_argument("--group-key", default="")
-    p.add_argument("--wait-matched", type=float, default=5.0, help="seconds to wait for a subscriber")
+    p.add_argument(
+        "--wait-matched", type=float, default=5.0, help="seconds to wait for a subscriber (none: exit 3, nothing sent)"
+    )
+    p.add_argument("--no-wait", action="store_true", help="publish at once, whether anyone subscribes or not")
     p.add_argument(
         "--linger", type=float, default=5.0, help="at most this many seconds to wait for subscribers' acknowledgements"
     )
@@ -591,7 +642,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         from dc_sim.node import main as sim_main
 
         return sim_main(argv[1:])
+    ros_args: list[str] = []
+    if argv[:1] == ["validate"]:
+        # As dc-bringup takes them (the servers' ROS arguments): not options of the command.
+        from dc_core.ros_args import split_ros_args
+
+        argv, ros_args = split_ros_args(argv)
     args = build_parser().parse_args(argv)
+    args.ros_args = ros_args
     code: int = args.func(args)
     return code
 

@@ -64,9 +64,16 @@ def metrics_targets(
         )
         return []
     from dc_bringup.validate import metrics_endpoints, validate_params_file
+    from dc_core.config import UnsetShown
 
+    # The servers' secrets live in their service's environment, not in this shell: only addresses are read here.
+    environ = UnsetShown()
     try:
-        configs = validate_params_file(params, namespace).configs
+        configs = validate_params_file(params, namespace, environ=environ).configs
+        if environ.unset:
+            print(
+                f"{command}: not set in this shell, shown as unset: {', '.join(sorted(environ.unset))}", file=sys.stderr
+            )
     except DcError as exc:
         if not running:
             raise

@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import abc
 import functools
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 from dc_core.errors import DcError
-from dc_core.plugin import ParamsT, Plugin, PluginContext
+from dc_core.plugin import ParamsT, Plugin
 from dc_core.records import dump_record, parse_record
 
 
@@ -184,13 +185,50 @@ class StoredRecord(OutgoingRecord):
         return f"StoredRecord(record_id={self.record_id!r}, topic={self.topic!r}, stamp_ns={self.stamp_ns!r})"
 
 
-DestinationContext = PluginContext
-"""What the destination server gives a destination plugin (the common plugin context)."""
+class Closable(Protocol):
+    def close(self) -> None: ...
+
+
+ClosableT = TypeVar("ClosableT", bound=Closable)
 
 
 class Destination(Plugin[ParamsT]):
-    """Base class of destination plugins."""
+    """Base class of destination plugins.
+
+    The destination server never runs ``send`` at the same time as ``on_deactivate`` or
+    ``on_cleanup`` (dc_destinations.sender.Gate): a plugin needs no lock of its own for what those
+    share. What it keeps open between batches it hands to :meth:`keep` once; the default
+    ``on_deactivate`` and ``on_cleanup`` close it.
+    """
 
     @abc.abstractmethod
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         """Deliver ``batch``; see the module documentation for the outcomes."""
+
+    def keep(self, resource: ClosableT) -> ClosableT:
+        """``resource`` (a connection, dc_destinations.connection.Connection), closed on deactivate and cleanup."""
+        kept: list[Closable] = self.__dict__.setdefault("_dc_kept", [])
+        if not any(r is resource for r in kept):
+            kept.append(resource)
+        return resource
+
+    def close_kept(self) -> None:
+        """Close what :meth:`keep` was given; a plugin overriding the hooks calls it (or ``super()``)."""
+        for resource in self.__dict__.get("_dc_kept", []):
+            resource.close()
+
+    def on_deactivate(self) -> None:
+        self.close_kept()
+
+    def on_cleanup(self) -> None:
+        self.close_kept()
+
+    @property
+    def stopping(self) -> threading.Event:
+        """Set when the server stops delivery while ``send`` still runs past the grace; cleared at the start.
+
+        A ``send`` that waits for something (a rate's next slot, a file to be complete) waits on it,
+        so that it returns at once, its records retried at the next start.
+        """
+        event: threading.Event = self.__dict__.setdefault("_dc_stopping", threading.Event())
+        return event

@@ -5,8 +5,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-_ABSENT = object()
-
 
 class PathNotFound(LookupError):
     """The key path does not lead to a value."""

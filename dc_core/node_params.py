@@ -8,6 +8,7 @@ from typing import Any
 from dc_core.params import param
 
 DEFAULT_HEARTBEAT_PERIOD_S = 1.0
+DEFAULT_DIAGNOSTICS_PERIOD_S = 1.0
 # measurement, group and image servers: at 1,000 forwarded records/s 0.03 s cost a sixth less CPU per
 # record than 0.01 s, while a timer due meanwhile waits 30 ms at most (docs/performance.md).
 DEFAULT_RECORD_LINGER_S = 0.03
@@ -36,6 +37,12 @@ class ServerNodeParams:
         DEFAULT_HEARTBEAT_PERIOD_S, minimum=0.05, doc="Seconds between heartbeats to the lifecycle manager"
     )
     record_linger: float = record_linger_param(DEFAULT_RECORD_LINGER_S)
+    # One a second is what diagnostic_updater publishes at by default.
+    diagnostics_period: float = param(
+        DEFAULT_DIAGNOSTICS_PERIOD_S,
+        minimum=0.0,
+        doc="Seconds between the server's statuses on /diagnostics (docs/diagnostics.md; 0: none published)",
+    )
 
 
 def http_port_param(default: int) -> Any:

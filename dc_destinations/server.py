@@ -29,22 +29,25 @@ from typing import Any
 from rclpy.qos import QoSProfile
 from rclpy.utilities import get_rmw_implementation_identifier
 
+from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
-from dc_core.errors import ConfigError, PluginError
-from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
-from dc_core.lifecycle import ManagedServer, run_server
+from dc_core.diagnostics import ERROR, OK, WARN, scrub, secret_values
+from dc_core.diagnostics import status as diagnostic_status
+from dc_core.errors import DcError
+from dc_core.handoff import ENDED_SUFFIX, RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
+from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
+from dc_core.lifecycle import ManagedServer, PartialTeardown, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.rmw_features import no_sequence_numbers_line, publication_sequence_numbers
 from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
-from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, resolve_topic
+from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, published_topics, resolve_topic
 from dc_core.worker import Outcome
 from dc_destinations.config import NODE_NAME, DestinationServerConfig, parse_destination_server
-from dc_destinations.confined_files import ConfinementParams, default_roots
 from dc_destinations.delivery import DeliveryPipeline
-from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC
+from dc_destinations.health import FAILING, HEALTH_QOS, HEALTH_TOPIC, RETRYING
 from dc_destinations.health import summary as health_summary
 from dc_destinations.hop import HopIntake, HopKey, hop_key, keyed_hop_key, source_key
 from dc_destinations.record_ids import new_record_id
@@ -130,6 +133,7 @@ class DestinationServer(ManagedServer):
         self._buffer_check_timer: Any = None
         self._buffer_checking = False
         self.acks: AckPublisher | None = None
+        self._ended_subscription: Any = None
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
@@ -144,6 +148,9 @@ class DestinationServer(ManagedServer):
         self._health_pub = self.create_publisher(StringStamped, HEALTH_TOPIC, HEALTH_QOS)
         self._health_sent = ""
         self._rmw_checked = False
+        self._sent_before: dict[str, tuple[float, int]] = {}  # for records/s on /diagnostics
+        self._diagnosing = False
+        self._destination_metrics: dict[str, dict[str, Any]] | None = None
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -192,7 +199,7 @@ class DestinationServer(ManagedServer):
 
     def _with_default_roots(self, config: DestinationServerConfig, servers: dict[str, Any]) -> list[Any]:
         """The destinations, those reading files without ``allowed_roots`` given the measurement
-        server's save folder of this same file (dc_destinations.confined_files.default_roots)."""
+        server's save folder of this same file (dc_core.confined_files.default_roots)."""
         destinations = []
         roots: list[str] | None = None
         for d in config.destinations:
@@ -206,21 +213,12 @@ class DestinationServer(ManagedServer):
         return destinations
 
     def _published_by_dc(self, servers: dict[str, dict[str, Any]], namespace: str) -> dict[str, int]:
-        """Topics the measurement and group servers of this configuration publish, with their history depth.
-
-        A section that does not parse is not this server's to refuse (dc-bringup validated the file
-        first): its topics are then taken as other nodes' ones, and a warning says so.
-        """
-        from dc_group.config import published_topics as group_outputs
-        from dc_measurements.config import published_topics as measurement_outputs
-
-        topics: dict[str, int] = {}
-        for server, published in (("measurement_server", measurement_outputs), ("group_server", group_outputs)):
-            if server in servers:
-                try:
-                    topics.update(published(servers[server], server, namespace))
-                except ConfigError as exc:
-                    self.get_logger().warning(f"{server}'s outputs unknown, its section does not parse: {exc}")
+        """Topics the measurement and group servers of this configuration publish in ``namespace``, with
+        their history depth (dc_core.topics.published_topics); what does not read is said and taken as
+        other nodes' topics."""
+        topics, problems = published_topics(servers, namespace)
+        for problem in problems:
+            self.get_logger().warning(problem)
         return topics
 
     def cleanup_server(self) -> None:
@@ -228,7 +226,8 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
         self._stop_acks()
-        for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
+        # Without a config (a configure that failed parsing it) there is no plugin to clean up.
+        for error in self._plugin_hooks("on_cleanup") if self.config is not None else []:
             self.get_logger().error(error)
         self.plugins.clear()
         self._debug.clear()
@@ -241,6 +240,7 @@ class DestinationServer(ManagedServer):
     # -- activate / deactivate ---------------------------------------------------------------------
     def activate_server(self) -> None:
         assert self.pipeline is not None and self.routing is not None
+        self._diagnosing = False  # a job the last deactivation's worker stop left without its outcome
         for what, plugin in self._named_plugins():
             run_hook(what, plugin, "on_activate")
         # Acks follow commits from the first one on: measurement_server and group_server keep each
@@ -276,6 +276,11 @@ class DestinationServer(ManagedServer):
             resent = self.intake.subscribe_batches(StringStamped, RESEND_TOPIC, self._on_resent, resend_qos())
             resent.raw = True
             self._subscription_of[RESEND_TOPIC] = resent
+            # The publishers of DC's servers that ended holding records (dc_core.handoff_marks); on the
+            # executor, which runs on this thread too, between the intake's turns.
+            self._ended_subscription = self.create_subscription(
+                StringStamped, ENDED_TOPIC, self._on_ended, ended_qos(depth=10)
+            )
         self.get_logger().info(
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
@@ -314,9 +319,23 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)
         self._stop_acks()
-        errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
+        errors = self._plugin_hooks("on_deactivate")
         if errors:
-            raise PluginError("; ".join(errors))
+            # The server's own part is torn down: it can go on (dc_core.lifecycle).
+            raise PartialTeardown("; ".join(errors))
+
+    def _plugin_hooks(self, hook: str) -> list[str]:
+        """``hook`` of every plugin, never while its send() runs (DeliveryPipeline.between_sends)."""
+        pipeline = self.pipeline
+        if pipeline is None:
+            return run_hook_on_each(self._named_plugins(), hook)
+        errors: list[str] = []
+        for name, (what, plugin) in zip(self.plugins, self._named_plugins(), strict=True):
+            try:
+                pipeline.between_sends(name, functools.partial(run_hook, what, plugin, hook))
+            except DcError as exc:
+                errors.append(str(exc))
+        return errors
 
     def _named_plugins(self) -> list[tuple[str, Destination[Any]]]:
         assert self.config is not None
@@ -326,6 +345,9 @@ class DestinationServer(ManagedServer):
     def _destroy_subscriptions(self) -> None:
         subscriptions = list(self._subscription_of.values())
         self._subscription_of.clear()
+        if self._ended_subscription is not None:
+            self.destroy_subscription(self._ended_subscription)
+            self._ended_subscription = None
         for subscription in subscriptions:
             self.intake.unsubscribe(subscription)
         if self._hop_log_timer is not None:
@@ -402,6 +424,34 @@ class DestinationServer(ManagedServer):
             for source_ns, low in lows.items():
                 self.acks.tracker.saw(topic, -source_ns, low)
         self._hand_over(received)
+
+    def _on_ended(self, msg: Any) -> None:
+        """A server announces its publishers of an earlier run that ended holding records not acknowledged:
+        what of theirs never arrived is counted, and that it was is committed (then acknowledged)."""
+        parsed = parse_ended(msg.data)
+        if parsed is None or self.hop is None:
+            return
+        server, ended = parsed
+        settled: list[_Received] = []
+        losses: list[str] = []
+        total = 0
+        for one in ended:
+            if one.topic not in self._internal_topics or one.topic not in self._subscription_of:
+                continue  # not read here (any more): nothing of it was expected
+            counted = self.hop.writer_ended(one.topic, one.writer, one.high, one.acked)
+            settled.append(([], HopKey(one.topic + ENDED_SUFFIX, -one.writer, one.high)))
+            if counted is not None:
+                first, lost = counted
+                total += lost
+                losses.append(f"{one.topic} {lost} (publisher {one.writer:x}, numbers {first}..{one.high})")
+        if total:
+            self.get_logger().warning(
+                f"{total} records of {server} never arrived, not acknowledged when its process ended (killed?); "
+                f"counted in missing: {', '.join(losses)}"
+            )
+        elif losses:
+            self.get_logger().info(f"{server}'s publishers of its last run ended; all their records arrived")
+        self._hand_over(settled)
 
     def _on_resent(self, taken: list[tuple[bytes, Any]]) -> None:
         """Records sent again by their publisher (dc_core.handoff), each handled as if from its own topic."""
@@ -521,6 +571,79 @@ class DestinationServer(ManagedServer):
             msg.data = text
             self._health_pub.publish(msg)
             self._health_sent = text
+
+    # -- /diagnostics (dc_core.diagnostics, docs/diagnostics.md) -------------------------------------
+    def unhealthy_reason(self) -> str:
+        if self.pipeline is None or self.lifecycle_state != "active":
+            return ""
+        return self.pipeline.unhealthy_reason()
+
+    def publish_diagnostics(self) -> None:
+        pipeline = self.pipeline
+        if pipeline is None or self.lifecycle_state != "active":
+            super().publish_diagnostics()
+            return
+        if self._diagnosing:
+            return  # the previous one still waits for the buffer: this one would say the same
+        self._diagnosing = True
+
+        def done(outcome: Outcome[dict[str, dict[str, Any]]]) -> None:
+            self._diagnosing = False
+            self._destination_metrics = outcome.value if outcome.error is None else None
+            if outcome.error is not None:
+                self.get_logger().error(f"destination metrics for /diagnostics failed: {outcome.error!r}")
+            super(DestinationServer, self).publish_diagnostics()
+
+        # On the worker: the buffer's counts wait for a group commit in progress, the intake must not.
+        self.worker.submit(pipeline.metrics, done)
+
+    def diagnostic_statuses(self) -> list[Any]:
+        pipeline, config, metrics = self.pipeline, self.config, self._destination_metrics
+        self._destination_metrics = None
+        if pipeline is None or config is None or metrics is None or self.lifecycle_state != "active":
+            return []
+        secrets = [value for d in config.destinations for value in secret_values(d.plugin_params)]
+        now = time.monotonic()
+        statuses = []
+        for name, values in metrics.items():
+            health = values["health"]
+            state = health["state"]
+            sent = int(values["sent"])
+            before = self._sent_before.get(name)
+            self._sent_before[name] = (now, sent)
+            rate = (sent - before[1]) / (now - before[0]) if before is not None and now > before[0] else None
+            if not pipeline.sender_alive(name):
+                level, message = ERROR, "its sender thread is not running: records wait in the buffer"
+            elif state == FAILING:
+                level, message = ERROR, f"failing: {scrub(health['reason'], secrets)}"
+            elif state == RETRYING:
+                level, message = WARN, f"retrying: {scrub(health['reason'], secrets)}"
+            else:
+                level, message = OK, "delivering"
+            statuses.append(
+                diagnostic_status(
+                    f"{self.get_name()}: {name}",
+                    level,
+                    message,
+                    {
+                        "state": state,
+                        "pending": values["buffered"],
+                        "oldest_pending_s": values["oldest_pending_age_s"],
+                        "records_per_s": rate,
+                        "sent": sent,
+                        "retried": values["retried"],
+                        "failed": values["failed"],
+                        "dropped": values["dropped"],
+                        "dead_letters": values["dead_letters"],
+                        "failing_for_s": health.get("for_s"),
+                        "fix": health.get("fix", ""),
+                        "last_error": scrub(values["last_error"], secrets),
+                        "last_error_time": values["last_error_time"],
+                        "last_delivery": values["last_delivery"],
+                    },
+                )
+            )
+        return statuses
 
     def _hand_over(self, received: list[_Received]) -> None:
         """Submit records with their copies and keys; the keys are remembered once the pipeline took them.

@@ -28,13 +28,13 @@ from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_bringup.local_servers.seaweedfs import SeaweedS3Server, missing_reason
+from dc_core.confined_files import Confinement, FileRefused, check_key, default_roots
 from dc_core.destination import OutgoingRecord
 from dc_core.errors import ConfigError
 from dc_core.handoff import RESEND_TOPIC, frame_key, new_writer_id, resend_qos
 from dc_core.lifecycle import ServerLoop
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext, RecordingLogger
-from dc_destinations.confined_files import Confinement, FileRefused, check_key, default_roots
 from dc_destinations.minio import MinIO, MinIOParams
 from dc_destinations.server import DestinationServer
 from dc_interfaces.msg import StringStamped
@@ -449,7 +449,7 @@ def test_records_on_the_resend_topic_from_a_publisher_that_is_not_dc_do_not_reac
 
 
 def status(run: Bringup) -> dict[str, Any]:
-    line = run.wait_stderr("metrics HTTP server on http://")
+    line = run.wait_stderr("destination_server]: metrics HTTP server on http://")
     match = re.search(r"http://[^:/]+:(\d+)/", line)
     assert match, line
     result = dc("status", "--json", "--port", match.group(1), env=run.env)

@@ -8,7 +8,6 @@ the server and never the password. What they write, and how their table is prepa
 from __future__ import annotations
 
 import contextlib
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -16,7 +15,7 @@ from typing import Any, TypeVar
 from dc_core.destination import ConfigurationProblem, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
-from dc_core.params import host_problem
+from dc_core.params import host_problem, param, port_problem
 from dc_destinations.tls import warn_if_credentials_in_clear
 
 T = TypeVar("T")
@@ -52,11 +51,8 @@ def table_problem(table: str) -> str | None:
     return None
 
 
-def check_server(host: str, ssl: bool, sslmode: str, sslrootcert: str) -> None:
+def check_server(ssl: bool, sslmode: str, sslrootcert: str) -> None:
     """The checks of a server section that a single parameter cannot make; ConfigError naming the key."""
-    expected = host_problem(host)
-    if expected is not None:
-        raise ConfigError("host", f'expected {expected}, got "{host}"')
     if ssl and sslmode in ("disable", "allow", "prefer"):
         raise ConfigError("sslmode", f'"{sslmode}" contradicts ssl: true (use require, verify-ca or verify-full)')
     if sslrootcert and effective_sslmode(ssl, sslmode) not in ("verify-ca", "verify-full", "require"):
@@ -112,6 +108,52 @@ def warn_if_password_in_clear(logger: Logger, destination: str, settings: Server
     )
 
 
+@dataclass(frozen=True, kw_only=True)
+class PostgresServerParams:
+    """Where and how a destination logs in to PostgreSQL (PgSQL, FilesMetrics' ``pgsql``), checked together."""
+
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the PostgreSQL server")
+    port: int | str = param(5432, check=port_problem, doc='TCP port of the server (the original wrote "5432")')
+    user: str = param("", doc="Role to log in as; empty: the system user running DC (libpq's default)")
+    password: str = param("", secret=True, doc="Password of `user` (never logged)")
+    database: str = param("", doc="Database to connect to; empty: the same name as the user (libpq's default)")
+    timestamp_key: str = param(
+        "",
+        aliases=("timestamp_Key",),
+        doc="Record key whose value (epoch seconds or ISO 8601 text) fills the row's time; empty: the record's stamp",
+    )
+    ssl: bool = param(
+        False,
+        doc="TLS that checks the server (sslmode verify-full, the system's CAs or sslrootcert); "
+        "false: TLS when the server offers it, unchecked (prefer)",
+    )
+    sslmode: str = param("", choices=SSLMODES, doc="libpq's sslmode, overriding `ssl` (verify-full checks the host)")
+    sslrootcert: str = param(
+        "",
+        doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full); empty with ssl: the system's",
+    )
+    connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
+
+    def __post_init__(self) -> None:
+        check_server(self.ssl, self.sslmode, self.sslrootcert)
+
+    @property
+    def effective_sslmode(self) -> str:
+        return effective_sslmode(self.ssl, self.sslmode)
+
+    def server(self) -> ServerSettings:
+        return ServerSettings(
+            host=self.host,
+            port=int(self.port),
+            user=self.user,
+            password=self.password,
+            database=self.database,
+            sslmode=self.effective_sslmode,
+            sslrootcert=effective_sslrootcert(self.ssl, self.sslmode, self.sslrootcert),
+            connect_timeout=self.connect_timeout,
+        )
+
+
 @dataclass(frozen=True, kw_only=True, repr=False)
 class ServerSettings:
     """Where and how to log in; empty ``user``/``database`` are libpq's defaults."""
@@ -141,7 +183,8 @@ class KeptConnection:
 
     ``prepare(connection)`` runs on every new connection before any work (checking or creating a
     table); a psycopg error there is reported as "cannot prepare <what>", and a RetryableError it
-    raises passes as it is. Thread-safe: one piece of work at a time.
+    raises passes as it is. No lock: the destination server never runs ``send`` beside deactivate or
+    cleanup (dc_destinations.sender.Gate).
     """
 
     def __init__(
@@ -159,7 +202,6 @@ class KeptConnection:
         self._prepare = prepare
         self._prepared = prepared
         self._connection: Any = None  # psycopg.Connection
-        self._lock = threading.Lock()
 
     @property
     def address(self) -> str:
@@ -172,29 +214,27 @@ class KeptConnection:
         """``work(connection)``; a psycopg error it lets through becomes a scrubbed RetryableError."""
         import psycopg
 
-        with self._lock:
-            first = True
-            while True:
-                reused = self._connection is not None
-                try:
-                    return work(self._connect())
-                except psycopg.Error as exc:
-                    lost = self._lost(exc)
-                    self._close()  # the next attempt starts afresh, preparation included
-                    if first and reused and lost:
-                        # A kept connection that the server closed while idle (a restart) fails at
-                        # its first use: not a failure of this work, so once more on a new one.
-                        first = False
-                        continue
-                    message = self.describe(exc)
-                    fix = self.fix_for(exc)
-                    if fix:
-                        raise ConfigurationProblem(message, fix=fix) from None
-                    raise RetryableError(message) from None
+        first = True
+        while True:
+            reused = self._connection is not None
+            try:
+                return work(self._connect())
+            except psycopg.Error as exc:
+                lost = self._lost(exc)
+                self._close()  # the next attempt starts afresh, preparation included
+                if first and reused and lost:
+                    # A kept connection that the server closed while idle (a restart) fails at
+                    # its first use: not a failure of this work, so once more on a new one.
+                    first = False
+                    continue
+                message = self.describe(exc)
+                fix = self.fix_for(exc)
+                if fix:
+                    raise ConfigurationProblem(message, fix=fix) from None
+                raise RetryableError(message) from None
 
     def close(self) -> None:
-        with self._lock:
-            self._close()
+        self._close()
 
     # -- messages ----------------------------------------------------------------------------------
     def describe(self, exc: BaseException) -> str:
