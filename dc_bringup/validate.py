@@ -280,7 +280,7 @@ def _shared_metrics_ports(configs: dict[str, Any]) -> list[str]:
             if endpoint.port != 0 and endpoint.port == other.port and (endpoint.listen == other.listen or wildcard):
                 warnings.append(
                     f"{endpoint.path}.http_port: {endpoint.port} is also {other.path}.http_port: {endpoint.server} "
-                    "will not serve its metrics"
+                    "serves its metrics on another, free port (dc status finds it)"
                 )
     return warnings
 

@@ -259,7 +259,12 @@ class ManagedServer(LifecycleNode):
             metrics=lambda: {**document(), "threads": self.supervisor.metrics()},
             prometheus=lambda: prometheus() + self.supervisor.prometheus(),
             supervisor=self.supervisor,
+            announce_as=self.metrics_announce_as(),
         )
+
+    def metrics_announce_as(self) -> tuple[str, int, str]:
+        """How this server's metrics address is written down for `dc status` (dc_core.metrics_registry)."""
+        return self.get_name(), self.context.get_domain_id(), self.get_namespace()
 
     def stop_metrics_http(self) -> None:
         if self._metrics_http is not None:

@@ -54,6 +54,9 @@ def http_port_param(default: int) -> Any:
 class MetricsHttpParams:
     """The metrics HTTP server of a server: a subclass sets its own default ``http_port``."""
 
-    http_server: bool = param(False, doc="Serve health and counters over HTTP (JSON and Prometheus) while active")
+    # On by default (loopback only) so that `dc status` and `dc top` work on any job without edits.
+    http_server: bool = param(
+        True, doc="Serve health and counters over HTTP (JSON and Prometheus) while active, on loopback by default"
+    )
     http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server (loopback by default)")
     http_port: int = http_port_param(0)

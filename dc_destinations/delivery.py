@@ -102,6 +102,8 @@ class DeliveryPipeline:
         self._damaged = False
         self._last_log_tick = 0.0
         self._status: StatusServer | None = None
+        # (server, ROS domain id, namespace) under which the server writes its metrics address down.
+        self.metrics_announce_as: tuple[str, int, str] | None = None
         self._sections: dict[str, Callable[[], Any]] = {}
         self.storage_file: Path | None = None
         self._lock: BufferLock | None = None
@@ -532,6 +534,7 @@ class DeliveryPipeline:
             metrics=self.status_document,
             prometheus=self.prometheus,
             supervisor=self.supervisor,
+            announce_as=self.metrics_announce_as,
         )
 
 

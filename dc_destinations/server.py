@@ -193,6 +193,7 @@ class DestinationServer(ManagedServer):
         )
         # At configure: a buffer another process owns fails configure, with the owner named.
         self.pipeline.claim_storage(self.get_namespace())
+        self.pipeline.metrics_announce_as = self.metrics_announce_as()
         self.pipeline.add_metrics_section("intake", self.intake_metrics)
         self.pipeline.add_metrics_section("hop", self.hop_metrics)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -272,9 +273,18 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
             "destination_server:\n  ros__parameters:\n    flb:\n      http_server: true\n"
             f"      http_port: {server.server_address[1]}\n    destination_plugins: []\n"
         )
-        result = dc("status", "--params", str(params))
+        # Its own runtime folder: no server of this session's domain is found running.
+        env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}
+        result = dc("status", "--params", str(params), "--wide", env=env)
+        narrow = dc("status", "--params", str(params), env=env)
     finally:
         server.shutdown()
+    assert narrow.returncode == 0, narrow.stderr
+    assert max(len(line) for line in narrow.stdout.splitlines()) <= 100, narrow.stdout
+    narrow_header, narrow_row, error_line, *_ = narrow.stdout.splitlines()
+    assert narrow_header.split()[:4] == ["destination", "health", "received", "sent"]
+    assert narrow_row.split() == ["pg", "failing", "10", "7", "3", "12.5", "2", "0", "1"]
+    assert re.fullmatch(r"  last error: 6\d s ago: HTTP 503 Service Unavailable", error_line), error_line
     assert result.returncode == 0, result.stderr
     header, row, *rest = result.stdout.splitlines()
     titles = header.split()
@@ -283,7 +293,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert cells[:5] == ["pg", "failing", "10", "3", "600"] and "12.5" in cells
     assert titles[-5:] == ["sent", "s", "ago", "last", "error"]
     assert 3.0 <= float(cells[len(STATUS_COLUMNS)]) < 30.0, row  # seconds since last_delivery, the last column
-    assert row.endswith("60 s ago: HTTP 503 Service Unavailable")
+    assert re.search(r"  6\d s ago: HTTP 503 Service Unavailable$", row), row
     assert any("corrupt files set aside 1" in line for line in rest)
     assert any("COMMITS FAILING for 42.0 s" in line and "disk is full" in line for line in rest), rest
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
@@ -422,8 +432,8 @@ group_server:
     result = dc("validate", str(params))
     assert result.returncode == 0, result.stderr
     assert (
-        "measurement_server.http_port: 2022 is also group_server.http_port: measurement_server will not serve its"
-        " metrics" in result.stderr
+        "measurement_server.http_port: 2022 is also group_server.http_port: measurement_server serves its metrics"
+        " on another, free port (dc status finds it)" in result.stderr
     )
 
 
