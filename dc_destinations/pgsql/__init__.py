@@ -47,6 +47,8 @@ from dc_destinations.pgsql.connection import (
 
 _EPOCH = dt.datetime(1970, 1, 1)
 _COLUMNS = ("tag", "time", "data", "record_id")
+# A batch's rows: (index in the batch, the values of _COLUMNS).
+_Rows = list[tuple[int, tuple[str, dt.datetime, str, str]]]
 # The column types of a table DC creates (a `tag` of type text too): a COPY into such a table can be
 # binary, which costs the client and the server about half the CPU of text (docs/performance.md).
 # Any other types (a table made by hand: json, timestamptz, varchar(n)) get text, converted by the
@@ -140,7 +142,7 @@ class PgSQL(Destination[PgSQLParams]):
         assert self._database is not None, "send() before on_configure()"
         database = self._database
         tag = self.context.name
-        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]] = []
+        rows: _Rows = []
         rejected: dict[int, str] = {}
         for i, record in enumerate(batch):
             try:
@@ -153,12 +155,7 @@ class PgSQL(Destination[PgSQLParams]):
             rejected.update(database.run(lambda connection: self._insert_rows(database, connection, rows)))
         return SendOutcome(reject=rejected) if rejected else None
 
-    def _insert_rows(
-        self,
-        database: KeptConnection,
-        connection: Any,
-        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]],
-    ) -> dict[int, str]:
+    def _insert_rows(self, database: KeptConnection, connection: Any, rows: _Rows) -> dict[int, str]:
         import psycopg
 
         if self._direct:
@@ -200,24 +197,13 @@ class PgSQL(Destination[PgSQLParams]):
                 raise
             return self._refused(database, connection, rows, exc)
 
-    def _refused(
-        self,
-        database: KeptConnection,
-        connection: Any,
-        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]],
-        exc: Exception,
-    ) -> dict[int, str]:
+    def _refused(self, database: KeptConnection, connection: Any, rows: _Rows, exc: Exception) -> dict[int, str]:
         """The server refused a record of the batch: which one, when it is alone; else each row on its own."""
         if len(rows) == 1:
             return {rows[0][0]: database.refusal(exc)}
         return self._insert_one_by_one(database, connection, rows)
 
-    def _insert_one_by_one(
-        self,
-        database: KeptConnection,
-        connection: Any,
-        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]],
-    ) -> dict[int, str]:
+    def _insert_one_by_one(self, database: KeptConnection, connection: Any, rows: _Rows) -> dict[int, str]:
         """Which rows does the server refuse? Each again in its own savepoint, in one transaction."""
         import psycopg
 
