@@ -39,10 +39,10 @@ from dc_destinations.pgsql.connection import (
     KeptConnection,
     PostgresServerParams,
     is_record_error,
+    keep_database,
     one_line,
     require_psycopg,
     table_problem,
-    warn_if_password_in_clear,
 )
 
 _EPOCH = dt.datetime(1970, 1, 1)
@@ -105,18 +105,14 @@ class PgSQL(Destination[PgSQLParams]):
         require_psycopg(self.context.name, "PgSQL")
         from psycopg import sql
 
-        self._database = KeptConnection(
+        self._database = keep_database(
+            self,
             self.params.server(),
-            application_name=f"dc {self.context.name}",
-            logger=self.context.logger,
             prepare=self._prepare_table,
             prepared=f"table {self.params.table}",
+            section=f"destination_server.{self.context.name}",
         )
         self.address = self._database.address
-        self.keep(self._database)
-        warn_if_password_in_clear(
-            self.context.logger, self.context.name, self._database.settings, f"destination_server.{self.context.name}"
-        )
         self._insert = sql.SQL(
             "INSERT INTO {} (tag, time, data, record_id) VALUES (%s, %s, %s::jsonb, %s)"
             " ON CONFLICT (record_id) DO NOTHING"
