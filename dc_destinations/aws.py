@@ -235,18 +235,14 @@ class AwsDestination(Destination[AwsParamsT]):
 
     service: ClassVar[str]
 
-    def __init__(self, context: Any, params: AwsParamsT) -> None:
+    def __init__(self, context: Any, params: AwsParamsT, *, target: str) -> None:
+        """``target``: what the records go to ("stream dc", "bucket logs"), named in every message."""
         super().__init__(context, params)
         self._client: Any = None
         self._last_problem = ""
-        self.where = ""
-
-    def target(self) -> str:
-        """What the records go to, for ``where`` ("stream dc", "bucket logs")."""
-        raise NotImplementedError
+        self.where = params.where(target)
 
     def on_configure(self) -> None:
-        self.where = self.params.where(self.target())
         self._client = self.keep(self.params.client(self.service, self.context.logger, self.context.name))
 
     def _problem(self, message: str) -> None:

@@ -95,13 +95,10 @@ class KinesisStreams(AwsDestination[KinesisParams]):
     service = "kinesis"
 
     def __init__(self, context: Any, params: KinesisParams) -> None:
-        super().__init__(context, params)
+        super().__init__(context, params, target=f"stream {params.stream}")
         self._fields = _template_fields(params.partition_key)
 
     # -- lifecycle -------------------------------------------------------------------------------
-    def target(self) -> str:
-        return f"stream {self.params.stream}"
-
     def on_activate(self) -> None:
         # The stream is not probed here: an unreachable service must not hold up activation, and the
         # first batch says clearly what is wrong.

@@ -137,7 +137,7 @@ class S3(AwsDestination[S3Params]):
     service = "s3"
 
     def __init__(self, context: Any, params: S3Params) -> None:
-        super().__init__(context, params)
+        super().__init__(context, params, target=f"bucket {params.bucket}")
         self._max_object_bytes = parse_size(params.total_file_size) or 0
         self._chunk_bytes = parse_size(params.upload_chunk_size) or MIN_PART_BYTES
         self._tag_parts = self._split_tag(context.name)
@@ -155,9 +155,6 @@ class S3(AwsDestination[S3Params]):
         return parts
 
     # -- lifecycle -------------------------------------------------------------------------------
-    def target(self) -> str:
-        return f"bucket {self.params.bucket}"
-
     def on_activate(self) -> None:
         # The bucket is not probed here: an unreachable store must not hold up activation, and the
         # first batch says clearly what is wrong.
