@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from dc_core.destination import ConfigurationProblem, RetryableError
+from dc_core.destination import ConfigurationProblem, Destination, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
 from dc_core.params import host_problem, param, port_problem
@@ -361,3 +361,22 @@ def is_record_error(exc: BaseException) -> bool:
 def one_line(text: str) -> str:
     text = " ".join(text.split())
     return text if len(text) <= MESSAGE_CHARS else text[: MESSAGE_CHARS - 1] + "…"
+
+
+def keep_database(
+    destination: Destination[Any],
+    settings: ServerSettings,
+    *,
+    prepare: Callable[[Any], None],
+    prepared: str,
+    section: str,
+) -> KeptConnection:
+    """The PostgreSQL connection of ``destination`` (PgSQL, FilesMetrics), handed to its ``keep``; the
+    warning about a password sent in clear said now, at configure, once (``section``: the YAML path of
+    the connection's keys)."""
+    name, logger = destination.context.name, destination.context.logger
+    database = destination.keep(
+        KeptConnection(settings, application_name=f"dc {name}", logger=logger, prepare=prepare, prepared=prepared)
+    )
+    warn_if_password_in_clear(logger, name, settings, section)
+    return database
