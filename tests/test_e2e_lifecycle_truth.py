@@ -209,8 +209,9 @@ def test_a_deactivate_as_long_as_a_15_s_grace_is_sent_once_and_succeeds(tmp_path
             finish(publish(run, BATCH, rate=500, padding=1))
             assert stalled.wait(10)
 
-            # The send in flight ends 18 s into the pause: the HTTP destination's own on_deactivate
-            # waits for it, after the pipeline waited the 15 s grace (and 1 s) for it.
+            # The send in flight ends 18 s into the pause: the pipeline waits the 15 s grace for it,
+            # then the deactivate returns and the plugin's own teardown waits for the send's end
+            # (dc_destinations.sender.Gate) — a transition longer than the old fixed 10 s timeout.
             pause = subprocess.Popen(
                 [str(BIN / "dc"), "lifecycle", "pause", "--timeout", "60"],
                 env=run.env,
@@ -228,7 +229,7 @@ def test_a_deactivate_as_long_as_a_15_s_grace_is_sent_once_and_succeeds(tmp_path
                 answer_now.set()
             assert (pause.returncode, out.strip()) == (0, "pause: done")
             took = time.monotonic() - started
-            assert took >= 18, took
+            assert took >= 15, took
             run.wait_stderr("still running after the 15 s grace")
             assert not [line for line in run.stderr if "sending it again" in line or "asking again" in line]
             # A slow transition is no missing heartbeat: nothing was restarted.

@@ -150,8 +150,9 @@ destination_server:
 def test_a_measurement_servers_worker_failing_restarts_it_and_collection_resumes(tmp_path: Path) -> None:
     params = tmp_path / "params.yaml"
     params.write_text(NETWORK_PARAMS.format(buffer=tmp_path / "buffer"))
-    target = "dc_core.worker:Worker._hand_over"
-    with Bringup(params, tmp_path / "home", env=fault_env(tmp_path, target)) as run:
+    target = "dc_core.worker:Worker._hand_over"  # destination_server runs a Worker too (/diagnostics)
+    env = fault_env(tmp_path, target, only_in="dc_measurements.server")
+    with Bringup(params, tmp_path / "home", env=env) as run:
         run.wait_ready()
         died = run.wait_stderr("thread measurement_server-worker (handing over a finished job): RuntimeError")
         assert "the thread died (thread_failures 1)" in died

@@ -7,12 +7,16 @@ those processes, once: the marker file ``DC_TEST_FAULT_ONCE`` is created atomica
 raises, so a restarted process runs normally. With ``DC_TEST_FAULT_HANG`` set to a number of
 seconds, that first call blocks that long instead (then runs the method): a hang. With
 ``DC_TEST_FAULT_SKIP`` set to n, the first n calls in each process run normally (a fault at the
-second activate, not at start-up). Nothing here is imported without ``DC_TEST_FAULT``.
+second activate, not at start-up). With ``DC_TEST_FAULT_IN`` set to a server's module
+(``dc_measurements.server``), only that server's process faults: a method several servers run (a
+worker's) would otherwise fault in whichever calls it first. Nothing here is imported without
+``DC_TEST_FAULT``.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 
 _SPEC = os.environ.get("DC_TEST_FAULT")
 if _SPEC:
@@ -27,8 +31,12 @@ if _SPEC:
     _marker = os.environ["DC_TEST_FAULT_ONCE"]
     _hang_s = float(os.environ.get("DC_TEST_FAULT_HANG", "0"))
     _skip = [int(os.environ.get("DC_TEST_FAULT_SKIP", "0"))]
+    # runpy has made sys.argv[0] the file of the module run with -m by the time a method is called.
+    _only_in = os.environ.get("DC_TEST_FAULT_IN", "").replace(".", os.sep)
 
     def _raise_once(self: Any, *args: Any, **kwargs: Any) -> Any:
+        if _only_in and _only_in not in sys.argv[0]:
+            return _original(self, *args, **kwargs)
         if _skip[0] > 0:
             _skip[0] -= 1
             return _original(self, *args, **kwargs)
