@@ -20,10 +20,18 @@ from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qsl
 
-from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.destination import (
+    Destination,
+    OutgoingRecord,
+    ProbeResult,
+    RejectedError,
+    RetryableError,
+    SendOutcome,
+)
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
 from dc_destinations.http_client import connection_to, is_retryable_status, masked, one_line, retry_after_seconds
+from dc_destinations.probes import connect_probe
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
 FORMATS = ("json", "json_lines", "json_stream", "msgpack")
@@ -193,6 +201,13 @@ class Http(Destination[HttpParams]):
             verified_tls=p.tls_verified,
             fix=fix,
         )
+
+    def probe(self) -> ProbeResult:
+        """Connect (and the TLS handshake) only: no request is sent, for no method is safe on every
+        receiver (a HEAD or GET on the uri may have effects on some); credentials are not checked."""
+        p = self.params
+        server_name = getattr(p, "tls_vhost", "") or p.host
+        return connect_probe(p.host, p.port, p.timeout, self._tls, server_name=server_name, what=self.url)
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a server that is down

@@ -33,6 +33,7 @@ from dc_core.destination import (
     ConfigurationProblem,
     Destination,
     OutgoingRecord,
+    ProbeResult,
     RejectedError,
     RetryableError,
     SendOutcome,
@@ -455,6 +456,35 @@ class InfluxDB(Destination[InfluxDBParams]):
             self._close()
         text = data.decode("utf-8", errors="replace")
         return response.status, response.reason, text, retry_after_seconds(response.getheader("Retry-After"))
+
+    def probe(self) -> ProbeResult:
+        """A read with the real credentials: v2 lists the bucket by name, v1 the databases."""
+        p = self.params
+        if p.api_version == "v2":
+            query = urllib.parse.urlencode({"name": p.bucket, "org": p.org} if p.org else {"name": p.bucket})
+            path, target = f"/api/v2/buckets?{query}", f"bucket {p.bucket!r}"
+        else:
+            path, target = "/query?" + urllib.parse.urlencode({"q": "SHOW DATABASES"}), f"database {p.database!r}"
+        connection = connection_to(p.host, p.port, p.timeout, self._tls)
+        headers = {name: value for name, value in self._headers if name.lower() != "content-type"}
+        try:
+            connection.request("GET", path, headers=headers)
+            response = connection.getresponse()
+            status, text = response.status, response.read(1 << 20).decode("utf-8", errors="replace")
+        except (OSError, http.client.HTTPException) as exc:
+            return ProbeResult(False, self._network_error(exc), "check host, port and tls")
+        finally:
+            connection.close()
+        hint = "http_token" if p.api_version == "v2" else "http_user and http_passwd"
+        if status in (401, 403):
+            return ProbeResult(False, f"InfluxDB refused the credentials: HTTP {status} ({self.url})", f"check {hint}")
+        if status != 200:
+            error = self._scrub(_server_error(text))
+            return ProbeResult(False, f"InfluxDB answered HTTP {status}: {error} ({self.url})", "check api, org")
+        if f'"{p.bucket if p.api_version == "v2" else p.database}"' not in text:
+            create = "create the bucket" if p.api_version == "v2" else f"CREATE DATABASE {p.database}"
+            return ProbeResult(False, f"no {target} in InfluxDB {p.host}:{p.port}", f"{create}, or correct the name")
+        return ProbeResult(True, f"{target} found, credentials accepted ({p.host}:{p.port})")
 
     def _open(self) -> http.client.HTTPConnection:
         if self._connection is None:

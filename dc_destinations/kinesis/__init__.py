@@ -29,7 +29,14 @@ try:
 except ImportError as exc:  # an optional dependency: say which extra brings it
     raise ImportError(f"the KinesisStreams destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
 
-from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.destination import (
+    Destination,
+    OutgoingRecord,
+    ProbeResult,
+    RejectedError,
+    RetryableError,
+    SendOutcome,
+)
 from dc_core.params import param
 from dc_core.records import MalformedRecord, dump_record
 from dc_destinations.aws import (
@@ -136,6 +143,20 @@ class KinesisStreams(Destination[KinesisParams]):
         )
         # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
         self._client = self._session().client("kinesis", endpoint_url=endpoint, config=config)
+
+    def probe(self) -> ProbeResult:
+        """DescribeStreamSummary with the real credentials: the stream exists and is writable-state."""
+        try:
+            summary = self._client.describe_stream_summary(StreamName=self.params.stream)["StreamDescriptionSummary"]
+        except Exception as exc:  # botocore's errors and the network's; _describe words each
+            _, message = self._describe(exc)
+            code = str(getattr(exc, "response", {}).get("Error", {}).get("Code", ""))
+            fix = "create the stream, or correct stream / region" if code == "ResourceNotFoundException" else ""
+            return ProbeResult(False, message, fix or "check the credentials, region and endpoint")
+        status = summary.get("StreamStatus", "")
+        if status not in ("ACTIVE", "UPDATING"):
+            return ProbeResult(False, f"{self.where} is {status}, not ACTIVE", "wait for the stream, or recreate it")
+        return ProbeResult(True, f"{self.where} is {status}, credentials accepted")
 
     def on_activate(self) -> None:
         # The stream is not probed here: an unreachable service must not hold up activation, and the

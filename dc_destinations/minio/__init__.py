@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, NoReturn
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.logs import BurstLog
 from dc_core.params import param
@@ -192,6 +192,24 @@ class MinIO(Destination[MinIOParams]):
         self._client = store_client(self.params, self.context.name, self.params.timeout)
         warn_if_store_in_clear(self.context.logger, self.context.name, self.params)
         self.where = store_where(self.params.bucket, self._client)
+
+    def probe(self) -> ProbeResult:
+        """HEAD of the bucket with the real credentials (the store's HEAD answers carry no error code)."""
+        try:
+            self._client.head_bucket(Bucket=self.params.bucket)
+        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+            error = getattr(exc, "response", {}).get("Error", {})
+            if str(error.get("Code", "")) in ("404", "NoSuchBucket"):
+                return ProbeResult(
+                    False, f"no {self.where}", "create the bucket (create_bucket), or correct bucket / endpoint"
+                )
+            failure = store_failure(exc, self.where, "read the bucket")
+            fixes = {
+                "credentials": "check access_key_id and secret_access_key",
+                "network": "check endpoint and use_ssl",
+            }
+            return ProbeResult(False, failure.message, fixes.get(failure.kind, ""))
+        return ProbeResult(True, f"{self.where} exists, credentials accepted")
 
     def on_activate(self) -> None:
         self._stopping.clear()

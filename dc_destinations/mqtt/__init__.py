@@ -10,6 +10,7 @@ lost or never made is reported to the buffer as a retryable failure, then made a
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import socket
 import ssl
@@ -26,7 +27,14 @@ try:
 except ImportError as exc:  # an optional dependency: say which extra brings it
     raise ImportError(f"the MQTT destination needs paho-mqtt: pip install 'ros2-dc[mqtt]' ({exc})") from exc
 
-from dc_core.destination import ConfigurationProblem, Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import (
+    ConfigurationProblem,
+    Destination,
+    OutgoingRecord,
+    ProbeResult,
+    RetryableError,
+    SendOutcome,
+)
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
 from dc_core.records import MalformedRecord
@@ -185,6 +193,23 @@ class Mqtt(Destination[MqttParams]):
         # must not hold up activation.
         p = self.params
         self.context.logger.info(f"publishing to {self.address} on {p.topic!r} with QoS {p.qos}")
+
+    def probe(self) -> ProbeResult:
+        """An MQTT CONNECT with the real credentials (and TLS), then a DISCONNECT; nothing published.
+        Under a client id of its own with a clean session: the running DC's, taken over, would be
+        disconnected by the broker, and a kept session would be left behind."""
+        own_id, own_params = self.client_id, self.params
+        self.client_id = f"{own_id}-check"
+        self.params = dataclasses.replace(own_params, clean_session=True)
+        try:
+            with self._lock:
+                self._connect()
+                self._close()
+        finally:
+            self.client_id, self.params = own_id, own_params
+        return ProbeResult(
+            True, f"connected to {self.address}" + (f" as {own_params.username}" if own_params.username else "")
+        )
 
     def on_deactivate(self) -> None:
         with self._lock:

@@ -37,7 +37,14 @@ try:
 except ImportError as exc:  # an optional dependency: say which extra brings it
     raise ImportError(f"the S3 destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
 
-from dc_core.destination import ConfigurationProblem, Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import (
+    ConfigurationProblem,
+    Destination,
+    OutgoingRecord,
+    ProbeResult,
+    RetryableError,
+    SendOutcome,
+)
 from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_core.records import MalformedRecord, dump_record
@@ -195,6 +202,23 @@ class S3(Destination[S3Params]):
         session = p.session(self.context.name, p.region, p.timeout)
         # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
         self._client = session.client("s3", endpoint_url=endpoint, config=config)
+
+    def probe(self) -> ProbeResult:
+        """HEAD of the bucket with the real credentials: it exists and they may see it (a write
+        permission is only proven by dc check --write-test)."""
+        try:
+            self._client.head_bucket(Bucket=self.params.bucket)
+        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+            fix = _fix_for(exc)
+            code = str(getattr(exc, "response", {}).get("Error", {}).get("Code", ""))
+            if code in ("404", "NoSuchBucket"):
+                return ProbeResult(
+                    False, f"no {self.where}", "create the bucket, or correct bucket / region / endpoint"
+                )
+            if code == "403":  # a HEAD answer has no body, hence no error code but the status
+                fix = "check the access key, secret key, role_arn and the policy's s3:ListBucket"
+            return ProbeResult(False, self._describe(exc, "(HEAD bucket)"), fix or "check endpoint and region")
+        return ProbeResult(True, f"{self.where} exists, credentials accepted")
 
     def on_activate(self) -> None:
         # The bucket is not probed here: an unreachable store must not hold up activation, and the

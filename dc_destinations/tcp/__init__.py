@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
 from dc_destinations.tls import TlsParams, client_context, ssl_reason
@@ -81,6 +81,12 @@ class Tcp(Destination[TcpParams]):
         # must not hold up activation.
         scheme = "TLS" if self._tls is not None else "TCP"
         self.context.logger.info(f"writing {self.params.format} records to {self.address} over {scheme}")
+
+    def probe(self) -> ProbeResult:
+        """A connection as the first batch opens it (TLS handshake included), closed unused."""
+        with self._lock:
+            self._connect().close()
+        return ProbeResult(True, f"connected to {self.address}" + (" over TLS" if self._tls is not None else ""))
 
     def on_deactivate(self) -> None:
         with self._lock:
