@@ -200,7 +200,7 @@ def test_influxdb_with_a_missing_database_fails_with_the_fix(tmp_path: Path) -> 
 def test_http_and_slack_probes_connect_and_send_nothing(tmp_path: Path) -> None:
     with Receiver() as receiver:
         port = receiver.port
-        destinations = {
+        destinations: dict[str, dict[str, Any]] = {
             "web": {"plugin": "dc_destinations/HTTP", "host": "127.0.0.1", "port": port, "uri": "/in"},
             # Slack cannot be reached from here: its probe is a connection to the webhook's host, the
             # same here with a webhook on loopback (the plugin's own tests use such a stand-in too).
