@@ -70,6 +70,7 @@ def check_destination(dest: Any, write_test: bool) -> list[Row]:
         plugin = dest.plugin_class(context, dest.plugin_params)
         plugin.on_configure()
     except Exception as exc:
+        context.stop_worker()
         reason, fix = _failure(exc)
         return [Row(component, FAILED, f"cannot configure: {reason}", fix)]
     rows: list[Row] = []
@@ -127,9 +128,10 @@ def check_measurement(m: Any, conditions: dict[str, Any]) -> list[Row]:
     try:
         plugin = m.plugin_class(context, m.plugin_params)
         if not plugin.timer_driven:
-            return [Row(component, SKIPPED, "publishes on ROS events: run dc-bringup (dc tap) to see its records")]
+            return [Row(component, SKIPPED, "publishes on ROS events: run dc-bringup to see its records")]
         plugin.on_configure()
     except Exception as exc:
+        context.stop_worker()
         return [_measurement_failure(component, exc)]
     try:
         try:
@@ -141,11 +143,16 @@ def check_measurement(m: Any, conditions: dict[str, Any]) -> list[Row]:
         rows += [_judge(cid, conditions[cid], m.name, sample) for cid in dict.fromkeys(m.conditions)]
         return rows
     finally:
-        try:
-            plugin.on_deactivate()
-            plugin.on_cleanup()
-        finally:
-            context.stop_worker()
+        _stop(plugin, context)
+
+
+def _stop(plugin: Any, context: FakeContext) -> None:
+    """Deactivated and cleaned up as a server does at shutdown, its worker threads stopped."""
+    try:
+        plugin.on_deactivate()
+        plugin.on_cleanup()
+    finally:
+        context.stop_worker()
 
 
 def _measurement_failure(component: str, exc: BaseException) -> Row:
@@ -185,6 +192,7 @@ def _judge(cid: str, condition: Any, measurement: str, sample: Any) -> Row:
         plugin = condition.plugin_class(context, condition.plugin_params)
         plugin.on_configure()
     except Exception as exc:
+        context.stop_worker()
         reason, fix = _failure(exc)
         return Row(component, FAILED, f"cannot configure: {reason}", fix)
     try:
@@ -198,11 +206,7 @@ def _judge(cid: str, condition: Any, measurement: str, sample: Any) -> Row:
         reason, fix = _failure(exc)
         return Row(component, FAILED, reason, fix)
     finally:
-        try:
-            plugin.on_deactivate()
-            plugin.on_cleanup()
-        finally:
-            context.stop_worker()
+        _stop(plugin, context)
 
 
 # -- the whole file --------------------------------------------------------------------------------------
