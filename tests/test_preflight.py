@@ -236,3 +236,21 @@ def test_kinesis_probe_against_moto_finds_a_missing_stream(tmp_path: Path) -> No
         assert "kinesis-secret-5" not in result.stdout
     finally:
         moto.stop()
+
+
+def test_a_sample_failing_its_schema_fails_only_when_it_would_be_dropped(tmp_path: Path) -> None:
+    schema = tmp_path / "uptime.json"
+    schema.write_text('{"type": "object", "properties": {"time": {"type": "integer", "maximum": 0}}}')
+    params = params_with(tmp_path, {"out": {"plugin": "dc_destinations/Null"}})
+    document = yaml.safe_load(params.read_text())
+    uptime = document["measurement_server"]["ros__parameters"]["uptime"]
+    uptime.update(json_schema_path=str(schema), enable_validator=True, drop_invalid=True)
+    params.write_text(yaml.safe_dump(document))
+    result = dc_check(params, cwd=tmp_path)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "sample fails its schema, dropped: time:" in row_of(result.stdout, "measurement uptime")
+    uptime["drop_invalid"] = False
+    params.write_text(yaml.safe_dump(document))
+    result = dc_check(params, cwd=tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert row_of(result.stdout, "measurement uptime").split()[2] == "warn"
