@@ -62,17 +62,26 @@ def _failure(exc: BaseException) -> tuple[str, str]:
     return text, fix
 
 
-# -- destinations ------------------------------------------------------------------------------------
-def check_destination(dest: Any, write_test: bool) -> list[Row]:
-    component = f"destination {dest.name}"
-    context = FakeContext(name=dest.name, logger=_logger())
+def _configured(component: str, config: Any, context: FakeContext) -> Any:
+    """The plugin of ``config`` (a destination's or condition's), made and configured as its server
+    does; a failed Row when that fails."""
     try:
-        plugin = dest.plugin_class(context, dest.plugin_params)
+        plugin = config.plugin_class(context, config.plugin_params)
         plugin.on_configure()
     except Exception as exc:
         context.stop_worker()
         reason, fix = _failure(exc)
-        return [Row(component, FAILED, f"cannot configure: {reason}", fix)]
+        return Row(component, FAILED, f"cannot configure: {reason}", fix)
+    return plugin
+
+
+# -- destinations ------------------------------------------------------------------------------------
+def check_destination(dest: Any, write_test: bool) -> list[Row]:
+    component = f"destination {dest.name}"
+    context = FakeContext(name=dest.name, logger=_logger())
+    plugin = _configured(component, dest, context)
+    if isinstance(plugin, Row):
+        return [plugin]
     rows: list[Row] = []
     try:
         try:
@@ -191,13 +200,9 @@ def _judge(cid: str, condition: Any, measurement: str, sample: Any) -> Row:
     if condition.common.topic:
         return Row(component, SKIPPED, f"judges the records of {condition.common.topic}: needs ROS")
     context = FakeContext(name=cid, logger=_logger())
-    try:
-        plugin = condition.plugin_class(context, condition.plugin_params)
-        plugin.on_configure()
-    except Exception as exc:
-        context.stop_worker()
-        reason, fix = _failure(exc)
-        return Row(component, FAILED, f"cannot configure: {reason}", fix)
+    plugin = _configured(component, condition, context)
+    if isinstance(plugin, Row):
+        return plugin
     try:
         plugin.on_activate()
         try:

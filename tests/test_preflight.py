@@ -254,3 +254,34 @@ def test_a_sample_failing_its_schema_fails_only_when_it_would_be_dropped(tmp_pat
     result = dc_check(params, cwd=tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
     assert row_of(result.stdout, "measurement uptime").split()[2] == "warn"
+
+
+@pytest.mark.skipif(postgres_missing() is not None or s3_missing() is not None, reason="no PostgreSQL or SeaweedFS")
+def test_files_metrics_probes_its_database_and_every_storage_bucket(tmp_path: Path) -> None:
+    with running_postgres("dc-check-fm-") as pg, SeaweedS3Server(tmp_path / "seaweedfs") as s3:
+        store = s3.settings()
+        minio = {
+            "endpoint": f"127.0.0.1:{s3.port}",
+            "use_ssl": False,
+            "access_key_id": store["aws_access_key_id"],
+            "secret_access_key": store["aws_secret_access_key"],
+            "bucket": "no-such-bucket",
+            "src_fields": ["local_paths.png"],
+            "upload_fields": ["remote_paths.minio.png"],
+        }
+        pgsql = {"host": "127.0.0.1", "port": pg.port, "user": pg.user, "password": pg.password}
+        body = {
+            "plugin": "dc_destinations/FilesMetrics",
+            "file_storage": ["minio"],
+            "minio": minio,
+            "pgsql": {**pgsql, "database": pg.database},
+        }
+        result = dc_check(params_with(tmp_path, {"fm": body}), cwd=tmp_path)
+        assert result.returncode == 1, result.stdout + result.stderr
+        row = row_of(result.stdout, "destination fm")
+        assert "no minio: bucket no-such-bucket" in row and "fix: create the bucket" in row, row
+        body["minio"] = {**minio, "bucket": store["bucket"]}
+        result = dc_check(params_with(tmp_path, {"fm": body}), cwd=tmp_path)
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert "table files_metrics is created at the first batch" in row_of(result.stdout, "destination fm")
+        assert pg.password not in result.stdout

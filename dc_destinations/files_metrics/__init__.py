@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.logs import BurstLog
 from dc_core.params import param, port_problem
@@ -41,7 +41,9 @@ from dc_destinations.object_files import (
     ObjectStoreParams,
     StoreUnavailable,
     file_pairs,
+    probe_bucket,
     store_client,
+    store_where,
     verify_stored,
     warn_if_store_in_clear,
 )
@@ -54,6 +56,7 @@ from dc_destinations.pgsql.connection import (
     effective_sslmode,
     effective_sslrootcert,
     is_record_error,
+    probe_table,
     require_psycopg,
     table_problem,
     warn_if_password_in_clear,
@@ -249,6 +252,19 @@ class FilesMetrics(Destination[FilesMetricsParams]):
             )
             for name in self.params.file_storage
         ]
+
+    def probe(self) -> ProbeResult:
+        """The table's database (as PgSQL's probe) and every storage's bucket; the first failure."""
+        assert self._database is not None and self._table is not None, "probe() before on_configure()"
+        results = [probe_table(self._database, self._table.identifier, self._table.name)]
+        results += [
+            probe_bucket(s.client, s.section.bucket, f"{s.name}: {store_where(s.section.bucket, s.client)}")
+            for s in self._stores
+        ]
+        failed = [r for r in results if not r.ok]
+        if failed:
+            return failed[0]
+        return ProbeResult(True, "; ".join(r.reason for r in results))
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a database that is down

@@ -50,6 +50,7 @@ from dc_destinations.object_files import (
     StoreUnavailable,
     file_pairs,
     part_digests,
+    probe_bucket,
     store_client,
     store_failure,
     store_where,
@@ -194,22 +195,7 @@ class MinIO(Destination[MinIOParams]):
         self.where = store_where(self.params.bucket, self._client)
 
     def probe(self) -> ProbeResult:
-        """HEAD of the bucket with the real credentials (the store's HEAD answers carry no error code)."""
-        try:
-            self._client.head_bucket(Bucket=self.params.bucket)
-        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
-            error = getattr(exc, "response", {}).get("Error", {})
-            if str(error.get("Code", "")) in ("404", "NoSuchBucket"):
-                return ProbeResult(
-                    False, f"no {self.where}", "create the bucket (create_bucket), or correct bucket / endpoint"
-                )
-            failure = store_failure(exc, self.where, "read the bucket")
-            fixes = {
-                "credentials": "check access_key_id and secret_access_key",
-                "network": "check endpoint and use_ssl",
-            }
-            return ProbeResult(False, failure.message, fixes.get(failure.kind, ""))
-        return ProbeResult(True, f"{self.where} exists, credentials accepted")
+        return probe_bucket(self._client, self.params.bucket, self.where)
 
     def on_activate(self) -> None:
         self._stopping.clear()

@@ -44,6 +44,7 @@ from dc_destinations.pgsql.connection import (
     effective_sslrootcert,
     is_record_error,
     one_line,
+    probe_table,
     require_psycopg,
     table_problem,
     warn_if_password_in_clear,
@@ -172,44 +173,8 @@ class PgSQL(Destination[PgSQLParams]):
         ).format(self._table(), staging)
 
     def probe(self) -> ProbeResult:
-        """A connection of its own with the real credentials, and the catalog read: does the table
-        exist and may this user insert into it (or, if not, create it, as the first batch would)."""
-        import psycopg
-
         assert self._database is not None, "probe() before on_configure()"
-        database = self._database
-        try:
-            with psycopg.connect(autocommit=True, **database.connect_options()) as connection:
-                table = self._table().as_string(connection)
-                row = connection.execute(
-                    """SELECT to_regclass(%(t)s) IS NOT NULL,
-                              CASE WHEN to_regclass(%(t)s) IS NULL THEN false
-                                   ELSE has_table_privilege(to_regclass(%(t)s), 'INSERT') END,
-                              has_schema_privilege(current_schema(), 'CREATE'), current_user""",
-                    {"t": table},
-                ).fetchone()
-        except psycopg.Error as exc:
-            return ProbeResult(
-                False, database.scrub(f"cannot connect: {database.describe(exc)}"), database.fix_for(exc)
-            )
-        assert row is not None
-        exists, may_insert, may_create, user = row
-        name = self.params.table
-        if exists and may_insert:
-            return ProbeResult(True, f"connected to {self.address} as {user}; may insert into table {name}")
-        if exists:
-            return ProbeResult(
-                False, f"{user} may not insert into table {name} ({self.address})", f"GRANT INSERT ON {name} TO {user}"
-            )
-        if may_create:
-            return ProbeResult(
-                True, f"connected to {self.address} as {user}; table {name} is created at the first batch"
-            )
-        return ProbeResult(
-            False,
-            f"table {name} does not exist in {self.address} and {user} may not create it",
-            f"create the table, or GRANT CREATE ON SCHEMA to {user}",
-        )
+        return probe_table(self._database, self._table(), self.params.table)
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a database that is down
