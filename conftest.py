@@ -21,6 +21,9 @@ if "PYTEST_XDIST_WORKER" in os.environ or "ROS_DOMAIN_ID" not in os.environ:
     os.environ["ROS_DOMAIN_ID"] = str(session_domain_id())
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="dc-test-roslog-"))
 os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+# Servers run in the test process keep state under $XDG_DATA_HOME (the default buffer folder, the
+# hand-off marks of dc_core.handoff_marks): this session's, never the account's.
+os.environ["XDG_DATA_HOME"] = tempfile.mkdtemp(prefix="dc-test-data-")
 
 
 # -- dc-bringup's two modes ---------------------------------------------------------------------

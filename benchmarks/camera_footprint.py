@@ -168,10 +168,10 @@ def role_publisher(fps: float, seconds: float, switch_s: float) -> None:
 def role_subscriber() -> None:
     """The cheapest receiver: the Camera's topic and QoS, taken by DC's intake loop, frames counted."""
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image
 
-    from dc_core.executors import make_executor
     from dc_core.intake import Intake
     from dc_core.lifecycle import ServerLoop
     from dc_measurements.camera import FRAME_QOS
@@ -185,7 +185,7 @@ def role_subscriber() -> None:
     def on_frame(msg: Any, info: Any) -> None:
         count[0] += 1
 
-    executor = make_executor("single")
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
     intake = Intake(node)
     intake.subscribe(Image, TOPIC, on_frame, FRAME_QOS)

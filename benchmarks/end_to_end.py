@@ -10,7 +10,8 @@ a ROS domain of its own), so the ratios compare like with like:
    ``single``, rclpy's SingleThreadedExecutor in a ``spin_once`` loop (what destination_server used
    before its intake, and what a plain rclpy node does); ``intake``, the same loop as
    destination_server's (dc_core.lifecycle.ServerLoop: the subscription taken by dc_core.intake,
-   the executor for the rest); ``events``, rclpy's experimental EventsExecutor;
+   the executor for the rest) (the ``events`` kind, rclpy's experimental EventsExecutor, went with
+   dc_core/executors.py: DC's servers cannot use it, docs/performance.md);
 2. intake: the same publisher to a real destination_server process (`python -m
    dc_destinations.server PARAMS --autostart`) whose File destination is down (its folder is
    missing), so the committed rows stay in the SQLite buffer: records/s from the first publish to
@@ -131,9 +132,9 @@ def role_subscriber(kind: str, topic: str = TOPIC) -> None:
     published again as they are on ``FORWARDED`` (with DC's record QoS, as measurement_server does).
     """
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from dc_core.executors import make_executor, spin_until
     from dc_core.intake import Intake
     from dc_core.lifecycle import ServerLoop
     from dc_core.qos import RECORD_QOS, VOLATILE_RECORD_QOS
@@ -150,7 +151,9 @@ def role_subscriber(kind: str, topic: str = TOPIC) -> None:
         state["last"] = time.time()
 
     on_intake = kind in ("intake", "forward")
-    executor = make_executor("single" if on_intake else kind)
+    if kind not in ("single", "intake", "forward"):
+        raise SystemExit(f"unknown subscriber kind {kind!r}: single, intake or forward")
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
     intake = Intake(node)
     if kind == "forward":
@@ -177,7 +180,8 @@ def role_subscriber(kind: str, topic: str = TOPIC) -> None:
     if on_intake:
         ServerLoop(executor, intake).run(stop, _StderrLog())
     else:
-        spin_until(executor, stop, lambda exc: print(f"error {exc!r}", file=sys.stderr, flush=True))
+        while not stop.is_set():  # what a plain rclpy node does; SIGTERM is seen within 0.1 s
+            executor.spin_once(timeout_sec=0.1)
     report()
     executor.shutdown()
     node.destroy_node()
@@ -657,7 +661,7 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=0.0, help=argparse.SUPPRESS)
     parser.add_argument("--topic", default=TOPIC, help=argparse.SUPPRESS)
     parser.add_argument(
-        "--transports", default="single,intake", help="bare subscribers, comma-separated: single, intake, events"
+        "--transports", default="single,intake", help="bare subscribers, comma-separated: single, intake"
     )
     parser.add_argument("--flood", type=int, default=20_000, help="records published as fast as possible")
     parser.add_argument("--paced-seconds", type=float, default=10.0, help="length of the 1,000/s runs")

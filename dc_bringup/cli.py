@@ -36,9 +36,10 @@ def cmd_list_plugins(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
+    from dc_bringup.launcher import dc_namespace
     from dc_bringup.validate import check
 
-    report, error = check(args.params_file, args.namespace)
+    report, error = check(args.params_file, dc_namespace(args), args.ros_args)
     if report is None:
         print(f"invalid: {error}", file=sys.stderr)
         return 2
@@ -126,12 +127,7 @@ def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
     """(server, host, port) to ask: --host/--port, or the servers with an HTTP server in --params."""
     if not args.params:
         return [("", args.host, args.port)]
-    from dc_bringup.validate import metrics_endpoints, validate_params_file
-
-    targets = [
-        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(args.params, args.namespace).configs)
-    ]
+    targets = _metrics_servers(args.params, args.namespace)
     if not targets:
         print(
             f"dc status: no server has its HTTP server enabled in {args.params} (destination_server flb.http_server,"
@@ -282,6 +278,15 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
     for topic, destinations in sorted(untrusted.items()) if isinstance(untrusted, dict) else []:
         for name, count in sorted(destinations.items()):
             print(f"untrusted tags: {count} on {topic} kept from {name} (a publisher there is not DC's)")
+    hop = metrics.get("hop", {})
+    for topic, counts in sorted(hop.items()) if isinstance(hop, dict) else []:
+        if isinstance(counts, dict) and counts.get("missing"):
+            ended = counts.get("writers_ended")
+            print(
+                f"lost before destination_server: {counts['missing']} on {topic} (missing, {counts.get('gaps')} gaps"
+                + (f"; {ended} publisher(s) ended holding records" if ended else "")
+                + ")"
+            )
 
 
 def _print_threads(metrics: dict[str, Any]) -> None:
@@ -422,7 +427,23 @@ def cmd_servers(args: argparse.Namespace) -> int:
 def cmd_dashboard(args: argparse.Namespace) -> int:
     from dc_dashboard.cli import run
 
-    return run(args)
+    return run(args, params_metrics=_metrics_urls)
+
+
+def _metrics_urls(params: str) -> list[tuple[str, str]]:
+    """(server, its metrics URL) for each server whose HTTP server the parameter file enables."""
+    return [(server, f"http://{host}:{port}/api/v1/metrics") for server, host, port in _metrics_servers(params)]
+
+
+def _metrics_servers(params: str, namespace: str = "") -> list[tuple[str, str, int]]:
+    """(server, host, port) of each server whose HTTP server the parameter file enables, for the servers
+    in ``namespace`` (the file's sections are read as they read them)."""
+    from dc_bringup.validate import metrics_endpoints, validate_params_file
+
+    return [
+        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
+        for e in metrics_endpoints(validate_params_file(params, namespace).configs)
+    ]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -449,6 +470,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--namespace", default="", help="check it as dc-bringup --namespace reads it (topic names in the namespace)"
     )
     p.set_defaults(func=cmd_validate)
+    p.epilog = (
+        "--ros-args ... (last, or ended by --): checked as dc-bringup reads them: -p and --params-file over the "
+        "file's parameters, -r __ns:=/NS as --namespace, -r remaps of the robot's topics"
+    )
 
     p = sub.add_parser(
         "check", help="preflight: validate, probe every destination, collect each measurement once, judge conditions"
@@ -562,7 +587,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         from dc_sim.node import main as sim_main
 
         return sim_main(argv[1:])
+    ros_args: list[str] = []
+    if argv[:1] == ["validate"]:
+        # As dc-bringup takes them (the servers' ROS arguments): not options of the command.
+        from dc_core.ros_args import split_ros_args
+
+        argv, ros_args = split_ros_args(argv)
     args = build_parser().parse_args(argv)
+    args.ros_args = ros_args
     code: int = args.func(args)
     return code
 

@@ -106,7 +106,7 @@ def check_destination(dest: Any, write_test: bool) -> list[Row]:
 
 
 def _write_test(dest: Any, plugin: Any) -> Row:
-    from dc_destinations.confined_files import ConfinementParams
+    from dc_core.confined_files import ConfinementParams
 
     component = f"destination {dest.name} write"
     if isinstance(dest.plugin_params, ConfinementParams):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -11,8 +12,8 @@ from typing import Any
 from dc_core.config import load_params
 from dc_core.errors import ConfigError
 from dc_core.params import did_you_mean
-from dc_core.ros_args import param_sections
-from dc_core.topics import outside_namespace, ros_namespace, ros_topic
+from dc_core.ros_args import param_sections, topic_remaps
+from dc_core.topics import outside_namespace, resolve_topic, ros_namespace, ros_topic
 
 # Servers in start order: destinations first so nothing published at start is lost.
 # In start order: destinations first (nothing published at start is lost), measurements last.
@@ -67,8 +68,70 @@ def validate_params_file(path: str | Path, namespace: str = "", ros_args: Sequen
             report.configs[server] = config
             report.warnings.extend(getattr(config, "warnings", []))
     report.warnings.extend(_cross_checks(report.configs))
-    report.warnings.extend(_shared_root_topics(report.configs, ros_namespace(namespace)))
+    ns = ros_namespace(namespace)
+    report.warnings.extend(_shared_root_topics(report.configs, ns))
+    report.warnings.extend(_shared_root_services(report.configs, ns))
+    report.warnings.extend(_sensor_topics_outside(report.configs, sections.get("measurement_server", {}), ns, ros_args))
     return report
+
+
+def _shared_root_services(configs: dict[str, Any], namespace: str) -> list[str]:
+    """image_services' service_namespace written absolute outside the namespace: every DC of the domain
+    offering it serves the same services (the last one started answers)."""
+    if namespace == "/" or "image_services" not in configs:
+        return []
+    written = configs["image_services"].node.service_namespace
+    resolved = resolve_topic(written, namespace, "image_services")
+    if resolved == namespace or resolved.startswith(namespace + "/"):
+        return []
+    return [
+        f"image_services.service_namespace: {written} is absolute: outside namespace {namespace}, the same "
+        f"services for every DC of this ROS domain; write {written.strip('/')} (relative) for this DC's own"
+    ]
+
+
+def _sensor_topics_outside(
+    configs: dict[str, Any], section: dict[str, Any], namespace: str, ros_args: Sequence[str]
+) -> list[str]:
+    """The robot's topics DC reads (parameters marked ``sensor_topic``: ``/odom``, ``/map``, …) that are
+    absolute and outside the namespace, defaults included: once per topic, with the parameters naming it.
+
+    They stay absolute (the original's defaults, which files rely on), but under --namespace they are
+    most often another robot's or nobody's: Nav2's multi-robot bringup puts them in the namespace. A
+    name a ``-r`` rule sends elsewhere is the user's choice and not warned about.
+    """
+    if namespace == "/" or "measurement_server" not in configs:
+        return []
+    measurements = configs["measurement_server"]
+    remaps = topic_remaps(ros_args, namespace, "measurement_server")
+    named = [(m.name, m.plugin_params) for m in measurements.measurements]
+    named += [(cid, c.plugin_params) for cid, c in measurements.conditions.items()]
+    uses: dict[str, list[tuple[str, str, bool]]] = {}  # topic -> (YAML path, key, whether the default)
+    for name, params in named:
+        written = section.get(name)
+        if not dataclasses.is_dataclass(params) or not isinstance(written, dict):
+            continue
+        for f in dataclasses.fields(params):
+            value = getattr(params, f.name)
+            if not f.metadata.get("sensor_topic") or not isinstance(value, str) or not value:
+                continue
+            topic = resolve_topic(ros_topic(value), namespace, "measurement_server")
+            if topic in remaps or topic.startswith(namespace + "/"):
+                continue
+            path = f"measurement_server.{name}.{f.name}"
+            default = not any(key in written for key in (f.name, *f.metadata.get("aliases", ())))
+            uses.setdefault(topic, []).append((path, f.name, default))
+    warnings = []
+    for topic, where in uses.items():
+        relative = topic.lstrip("/")
+        paths = ", ".join(path + (" (default)" if default else "") for path, _, default in where)
+        fixes = " or ".join(f"{key}: {relative}" for key in dict.fromkeys(key for _, key, _ in where))
+        warnings.append(
+            f"{topic} is absolute: outside namespace {namespace}, not this robot's own topic ({paths}); "
+            f"write {fixes} (relative: {namespace}/{relative}) for this robot's, or remap it "
+            f"(--ros-args -r {topic}:={relative})"
+        )
+    return warnings
 
 
 def _shared_root_topics(configs: dict[str, Any], namespace: str) -> list[str]:

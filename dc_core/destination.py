@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dc_core.errors import DcError
-from dc_core.plugin import ParamsT, Plugin, PluginContext
+from dc_core.plugin import ParamsT, Plugin
 from dc_core.records import dump_record, parse_record
 
 
@@ -182,10 +182,6 @@ class StoredRecord(OutgoingRecord):
 
     def __repr__(self) -> str:
         return f"StoredRecord(record_id={self.record_id!r}, topic={self.topic!r}, stamp_ns={self.stamp_ns!r})"
-
-
-DestinationContext = PluginContext
-"""What the destination server gives a destination plugin (the common plugin context)."""
 
 
 @dataclass(frozen=True)

@@ -24,9 +24,20 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+from dc_core.handoff_marks import (
+    ENDED_TOPIC,
+    HIGH_AT,
+    NUMBER,
+    EndedWriters,
+    WriterMark,
+    ended_document,
+    ended_qos,
+)
 from dc_core.params import param
+from dc_core.private_files import make_folders
 from dc_core.topics import resolve_topic
 
 ACK_TOPIC = "dc/handoff_acks"
@@ -37,6 +48,16 @@ the record topic every subscriber (a condition, group_server) would take old rec
 KEY_PREFIX = "dc:"
 SOURCE_SUFFIX = " <- source"
 """Hop keys of this pseudo-topic keep, per publisher, the highest source number it forwarded."""
+ENDED_SUFFIX = " <- ended"
+"""Hop keys of this pseudo-topic keep, per publisher that ended, the number it ended at, once counted
+(dc_core.handoff_marks)."""
+
+
+def position_topic(topic: str) -> bool:
+    """Whether a hop key of ``topic`` keeps a publisher's position rather than a record's key."""
+    return topic.endswith((SOURCE_SUFFIX, ENDED_SUFFIX))
+
+
 ACK_PERIOD_S = 1.0
 # Records republished per turn of the sender's timer: a restarted destination_server takes a
 # backlog of minutes in slices, beside the live records, instead of all of it in one burst.
@@ -243,7 +264,10 @@ class HandoffSender:
         acked_topics: Iterable[str],
         *,
         clock: Callable[[], float] = time.monotonic,
+        marks: Path | None = None,
     ) -> None:
+        """``marks``: the folder of this server's hand-off marks (:func:`dc_core.handoff_marks.marks_folder`);
+        None: a kill of this server loses what it holds uncounted."""
         from dc_core.logs import BurstLog
 
         self._node = node
@@ -259,6 +283,21 @@ class HandoffSender:
         self._last_ack = float("-inf")
         self._log = node.get_logger().get_child("handoff")
         self._drop_log = BurstLog(self._log.error, "records dropped before destination_server acknowledged them")
+        # Where each publisher got to, on disk, and the publishers of earlier runs that ended holding
+        # records (dc_core.handoff_marks); None where the folder cannot be used (logged once).
+        self._marks_folder: Path | None = None
+        if self._acked_topics and marks is not None:
+            try:
+                make_folders(marks)
+                self._marks_folder = marks
+            except OSError as exc:
+                self._log.warning(
+                    f"hand-off marks folder {marks} cannot be used ({exc}): records this server holds are lost "
+                    "uncounted if it is killed"
+                )
+        self._marks: dict[str, WriterMark] = {}
+        self._ended: EndedWriters | None = None
+        self._ended_publisher: Any = None
 
     def output(self, topic: str, publisher: Any) -> Callable[[int, str, str], None]:
         """The publish function of one output topic: ``publish(stamp_ns, text, group_key)``."""
@@ -278,6 +317,9 @@ class HandoffSender:
         lock = self._lock
         clock = self._clock
         drop_log = self._drop_log
+        mark = self._mark(topic, unacked.writer)
+        mark_map = mark.map if mark is not None else None
+        pack_number = NUMBER.pack_into
 
         # The per-record path, inlined: each method call here cost ~0.1-0.3 us a record.
         records = unacked.records
@@ -290,6 +332,11 @@ class HandoffSender:
             with lock:
                 seq = unacked.next_seq
                 unacked.next_seq = seq + 1
+                if mark_map is not None:
+                    # Before the record leaves: a kill from here on is counted up to ``seq``.
+                    pack_number(mark_map, HIGH_AT, seq)
+                    if source and mark is not None and not mark.forwarding:
+                        mark.forwards()
                 # Room is made before the key is written: its low must not name a record dropped
                 # right after (destination_server would wait for it, and acknowledge nothing more).
                 dropped = unacked.make_room(0) if len(records) >= limit_records else 0
@@ -314,12 +361,34 @@ class HandoffSender:
 
         return publish
 
+    def _mark(self, topic: str, writer: int) -> WriterMark | None:
+        if self._marks_folder is None:
+            return None
+        try:
+            mark = self._marks[topic] = WriterMark(self._marks_folder, writer, topic)
+        except OSError as exc:
+            self._log.warning(f"{topic}: hand-off mark not written ({exc}): records held are lost uncounted if killed")
+            return None
+        return mark
+
     def start(self) -> None:
-        """Listen to the acks (at activation)."""
+        """Listen to the acks, announce the publishers of earlier runs that ended holding records (at activation)."""
         from dc_interfaces.msg import StringStamped
 
         if not any(o.unacked is not None for o in self._outputs.values()) or self._timer is not None:
             return
+        if self._ended is None and self._marks_folder is not None:
+            self._ended = EndedWriters(self._marks_folder, self._log.warning)
+            ended = self._ended.scan()
+            if ended:
+                self._ended_publisher = self._node.create_publisher(StringStamped, ENDED_TOPIC, ended_qos())
+                self._log.warning(
+                    f"{len(ended)} publisher(s) of an earlier run of this server ended holding records not "
+                    "acknowledged (killed?): "
+                    + ", ".join(f"{e.topic} up to {e.high - e.acked}" for e in ended)
+                    + "; destination_server counts those it lacks"
+                )
+                self._announce()
         self._resend_publisher = self._node.create_publisher(StringStamped, RESEND_TOPIC, resend_qos())
         if self._subscription is None:
             self._subscription = self._node.create_subscription(StringStamped, ACK_TOPIC, self._on_ack, ack_qos())
@@ -345,13 +414,24 @@ class HandoffSender:
         with self._lock:
             held = {o.topic: len(o.unacked) for o in self._outputs.values() if o.unacked is not None and o.unacked}
             self._outputs.clear()
+            # Kept where records are held: the next start announces how far this publisher got.
+            for topic, mark in self._marks.items():
+                mark.close(keep=topic in held)
+            self._marks.clear()
+        if self._ended is not None:
+            self._ended.release()
+            self._ended = None
+        if self._ended_publisher is not None:
+            self._node.destroy_publisher(self._ended_publisher)
+            self._ended_publisher = None
         if held:
             # At a stop, destination_server usually has them (it commits what it received when it
             # stops, after this server), but its last acks come too late to be seen: a warning.
             self._log.warning(
                 "records not acknowledged by destination_server when this server stopped: "
                 + ", ".join(f"{topic} {count}" for topic, count in sorted(held.items()))
-                + "; delivered if destination_server received them before it stopped, lost otherwise"
+                + "; delivered if destination_server received them before it stopped, lost otherwise (counted by "
+                "destination_server after this server's next start)"
             )
         return sum(held.values())
 
@@ -370,7 +450,10 @@ class HandoffSender:
                 if unacked is None:
                     continue
                 floor = acks.get((output.topic, unacked.writer))
-                if (floor is not None and unacked.ack(floor)) or hello:
+                moved = floor is not None and unacked.ack(floor)
+                if moved and output.topic in self._marks:
+                    self._marks[output.topic].acked(unacked.acked)
+                if moved or hello:
                     output.in_flight = 0
                     output.progress_at = now
                 elif now - output.progress_at > self._params.resend_after:
@@ -382,7 +465,19 @@ class HandoffSender:
                 output.resend_before = max(output.resend_before, cutoff)
         if hello:
             self._log.info(f"destination_server {document['instance']} acknowledges: sending what it lacks")
+        if self._ended is not None and self._ended.retire(acks):
+            self._announce()
         self._resend_slice()
+
+    def _announce(self) -> None:
+        """The ended publishers not retired yet (an empty list replaces the last one in the history)."""
+        from dc_interfaces.msg import StringStamped
+
+        if self._ended is None or self._ended_publisher is None:
+            return
+        msg = StringStamped()
+        msg.data = ended_document(self._node.get_name(), self._ended.ended())
+        self._ended_publisher.publish(msg)
 
     def _resend_slice(self) -> None:
         self._drop_log.tick()
@@ -527,7 +622,13 @@ class AckTracker:
         with self._lock:
             touched: set[tuple[str, int]] = set()
             for topic, source_ns, seq in keys:
-                if source_ns < 0 and not topic.endswith(SOURCE_SUFFIX):
+                if source_ns < 0 and topic.endswith(ENDED_SUFFIX):
+                    # A publisher that ended at ``seq``, its losses counted: acknowledged to its end, so
+                    # that its successor forgets it (dc_core.handoff_marks).
+                    state = self._writer(topic[: -len(ENDED_SUFFIX)], -source_ns)
+                    state.low = max(state.low, seq + 1)
+                    touched.add((topic[: -len(ENDED_SUFFIX)], -source_ns))
+                elif source_ns < 0 and not topic.endswith(SOURCE_SUFFIX):
                     state = self._writer(topic, -source_ns)
                     assert state.committed is not None
                     if seq > state.floor:

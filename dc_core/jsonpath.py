@@ -7,8 +7,6 @@ from typing import Any
 
 from dc_core.params import did_you_mean
 
-_ABSENT = object()
-
 
 class PathNotFound(LookupError):
     """The key path does not lead to a value."""

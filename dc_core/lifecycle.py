@@ -363,7 +363,6 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
     executor.add_node(node)
     loop = ServerLoop(executor, node.intake)
     wake_on_signals(loop.wake, stop, node.supervisor)
-    code = 0
     try:
         if args.autostart:
             if node.trigger_configure() != TransitionCallbackReturn.SUCCESS:
@@ -380,7 +379,7 @@ def run_server(node_class: type[ManagedServer], argv: Sequence[str] | None = Non
         if rclpy.utilities.ok():
             rclpy.shutdown()
         sys.stdout.flush()
-    return code
+    return 0
 
 
 class ServerLoop:

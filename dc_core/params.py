@@ -36,11 +36,21 @@ def param(
     secret: bool = False,
     aliases: Iterable[str] = (),
     check: Callable[[Any], str | None] | None = None,
+    sensor_topic: bool = False,
+    no_effect: str = "",
+    section: type | None = None,
 ) -> Any:
     """Declare one parameter. No default means the key is required.
 
     ``check`` is a pure function returning None when the value is acceptable, or what was
-    expected ("an IPv4 address"): reported with the parameter's YAML path.
+    expected ("an IPv4 address"): reported with the parameter's YAML path. ``sensor_topic`` marks a
+    topic the robot publishes (``/odom``): under ``--namespace``, an absolute one outside the
+    namespace is warned about (dc_bringup.validate).
+
+    ``no_effect`` (why it has none) marks a key accepted so that the original's files load, but
+    ignored: :func:`no_effect_notes` says so for each one a configuration gives. ``section`` is the
+    parameter class a mapping value of the key is read as, when the key's type cannot say it
+    (``tls: true`` or a ``tls:`` section): :func:`no_effect_notes` looks into it.
     """
     metadata = {
         "doc": doc,
@@ -50,6 +60,9 @@ def param(
         "secret": secret,
         "aliases": tuple(aliases),
         "check": check,
+        "sensor_topic": sensor_topic,
+        "no_effect": no_effect,
+        "section": section,
     }
     # A secret stays out of the dataclass repr, so logging a parameter object never shows it.
     shown = not secret
@@ -59,6 +72,12 @@ def param(
         frozen = list(default)
         return dataclasses.field(default_factory=lambda: list(frozen), metadata=metadata, repr=shown)
     return dataclasses.field(default=default, metadata=metadata, repr=shown)
+
+
+def compat_param(default: Any, because: str, **options: Any) -> Any:
+    """A key accepted so that the original's files load, without effect in DC: ``because`` says why
+    (in its documentation, and in the configure warning of :func:`no_effect_notes`)."""
+    return param(default, doc=f"Accepted for the original's files; no effect: {because}", no_effect=because, **options)
 
 
 def port_problem(port: int | str) -> str | None:
@@ -224,6 +243,32 @@ def parse_params(cls: type[T], mapping: Any, path: str, *, ignore: Iterable[str]
         return cls(**values)
     except ConfigError as exc:  # cross-field checks in __post_init__ name keys relative to the section
         raise ConfigError(_join(path, exc.path), exc.message) from exc
+
+
+def no_effect_notes(cls: type, mapping: Any, path: str) -> list[str]:
+    """One warning per key of ``mapping`` (nested sections too) that ``cls`` accepts with no effect.
+
+    Pure, like :func:`parse_params`, which has accepted ``mapping`` already: a server's configure
+    logs these with its other configuration warnings, so each is said once per configure.
+    """
+    if not isinstance(mapping, Mapping):
+        return []
+    hints = typing.get_type_hints(cls)
+    notes: list[str] = []
+    for f in dataclasses.fields(cls):
+        for key in (f.name, *f.metadata.get("aliases", ())):
+            if key not in mapping:
+                continue
+            if f.metadata.get("no_effect"):
+                notes.append(
+                    f"{_join(path, key)}: accepted for the original's files, has no effect because "
+                    f"{f.metadata['no_effect']}"
+                )
+                continue
+            nested = hints[f.name] if dataclasses.is_dataclass(hints[f.name]) else f.metadata.get("section")
+            if nested is not None:
+                notes.extend(no_effect_notes(nested, mapping[key], _join(path, key)))
+    return notes
 
 
 def describe_params(cls: type) -> list[ParamInfo]:

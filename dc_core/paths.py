@@ -6,8 +6,13 @@ import os
 import re
 import time
 from collections.abc import Callable, Mapping
+from pathlib import Path
 
 from dc_core.errors import ConfigError
+
+# The measurement server's save_local_base_path when none is given; the file destinations confine the
+# files records name to its fixed part by default (dc_core.confined_files.default_roots).
+DEFAULT_SAVE_BASE_PATH = "$HOME/ros2/data/%Y/%m/%d/%H"
 
 _ENV = re.compile(r"\$\{([A-Za-z_]\w*)\}|\$([A-Za-z_]\w*)")
 _VALUE = re.compile(r"=\{([A-Za-z_]\w*)\}|=([A-Za-z_]\w*)")
@@ -54,3 +59,17 @@ def fixed_prefix(path: str) -> str:
         kept.append(part)
     prefix = "/".join(kept)
     return "/" if not prefix and path.startswith("/") else prefix
+
+
+def data_home() -> Path:
+    """``$XDG_DATA_HOME``, else ``~/.local/share``: where DC keeps what must outlive its processes."""
+    return Path(os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share"))
+
+
+def instance_dir(kind: str, namespace: str = "/", domain_id: str | None = None) -> Path:
+    """``<data home>/dc/<kind>/domain-<ROS_DOMAIN_ID>/<namespace>/``: one folder per DC instance (ROS domain
+    ``domain_id``, default ``$ROS_DOMAIN_ID``, else 0 as rclpy's; ``default`` for the root namespace,
+    ``ns.robot1.arm`` for ``/robot1/arm``), so that two DCs on one machine never share it."""
+    domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
+    parts = [part for part in namespace.split("/") if part]
+    return data_home() / "dc" / kind / f"domain-{domain}" / ("ns." + ".".join(parts) if parts else "default")

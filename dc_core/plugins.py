@@ -12,7 +12,7 @@ from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Generic, Protocol, TypeVar
 
 from dc_core.errors import ConfigError, PluginError
-from dc_core.params import did_you_mean, field_names, parse_params
+from dc_core.params import did_you_mean, field_names, no_effect_notes, parse_params
 
 
 class _NamesItsPlugin(Protocol):
@@ -49,10 +49,6 @@ def list_plugins(kind: str) -> list[PluginInfo]:
     return sorted(out, key=lambda p: p.name)
 
 
-def plugin_names(kind: str) -> list[str]:
-    return sorted(_entry_points(kind))
-
-
 def load_plugin(kind: str, name: str) -> type:
     """The class registered as ``name``; a clear :class:`PluginError` otherwise."""
     available = _entry_points(kind)
@@ -86,12 +82,14 @@ def load_plugin_class(kind: str, name: str, path: str) -> type:
 @dataclass(frozen=True)
 class PluginSection(Generic[CommonT]):
     """One plugin instance's section of a server, parsed: its common keys, its class, the classes
-    that share the section (``shared``, in order) and its own parameters."""
+    that share the section (``shared``, in order), its own parameters, and one warning per key it
+    accepts without effect (``notes``, for the server's configure warnings)."""
 
     common: CommonT
     plugin_class: type
     shared: tuple[Any, ...]
     params: Any
+    notes: tuple[str, ...] = ()
 
 
 def parse_plugin_section(
@@ -104,7 +102,8 @@ def parse_plugin_section(
 ) -> PluginSection[CommonT]:
     """Parse a plugin instance's section: the common keys (``common_cls``, whose ``plugin`` names the
     type), the plugin's class, the parameter classes every instance of the server shares (``shared``),
-    and the plugin's own ``Params``; every error names its YAML path under ``path``.
+    and the plugin's own ``Params``; every error names its YAML path under ``path``, and the keys they
+    accept without effect are named in the result's ``notes``.
 
     A key none of them knows is reported once, as an unknown parameter of the plugin, with a
     suggestion taken from all of them.
@@ -128,7 +127,10 @@ def parse_plugin_section(
         parse_params(cls, body, path, ignore=set(body) - field_names(cls)) for cls in shared_classes
     )
     params: Any = parse_params(params_class, body, path, ignore=others)
-    return PluginSection(common, plugin_class, shared_params, params)
+    notes = tuple(
+        note for cls in (common_cls, *shared_classes, params_class) for note in no_effect_notes(cls, body, path)
+    )
+    return PluginSection(common, plugin_class, shared_params, params, notes)
 
 
 def plugin_base(kind: str) -> type:

@@ -1,4 +1,4 @@
-"""Quality of service of record topics between DC's servers.
+"""Quality of service of the topics DC subscribes to and publishes: records between DC's servers, sensors.
 
 Reliable, with a transient-local history of ``RECORD_HISTORY_DEPTH`` records per topic: a server
 that starts, or restarts, after a record was published still receives it from the publisher's
@@ -13,6 +13,11 @@ from collections.abc import Mapping
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 RECORD_HISTORY_DEPTH = 1000
+
+# Sensor topics other nodes publish (odometry, velocity commands): best effort matches reliable and
+# best-effort publishers alike. Real robots publish /odom best effort, teleop and Nav2 publish /cmd_vel
+# reliable; a reliable subscription would miss the former. A lost message costs one sample.
+SENSOR_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 def record_qos(depth: int = RECORD_HISTORY_DEPTH) -> QoSProfile:
@@ -30,7 +35,7 @@ RECORD_QOS = record_qos()
 
 # A transient-local subscription does not match a volatile publisher (any plain ROS 2 node, or
 # `ros2 topic pub`), so subscriptions are volatile unless the topic is known to be published by a
-# DC server of the same configuration (published_topics of dc_measurements.config and dc_group.config).
+# DC server of the same configuration (dc_core.topics.published_topics).
 VOLATILE_RECORD_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=RECORD_HISTORY_DEPTH,

@@ -14,6 +14,7 @@ import yaml
 
 from dc_core.config import ParamSection, nest_dotted_keys, read_sections
 from dc_core.errors import ConfigError
+from dc_core.topics import resolve_topic
 
 ROS_ARGS_FLAG = "--ros-args"
 ROS_ARGS_END = "--"
@@ -105,6 +106,27 @@ def namespace_remap(ros_args: Sequence[str]) -> str | None:
             if rule.rpartition(":")[2] == "__ns":
                 return target
     return None
+
+
+def topic_remaps(ros_args: Sequence[str], namespace: str, node: str) -> dict[str, str]:
+    """The names ``-r`` rules send elsewhere for node ``node`` in ``namespace``, fully qualified, from -> to.
+
+    A rule's names resolve in the node's namespace, as rcl resolves them; the first rule matching a
+    name wins, as in rcl; ``node:from:=to`` applies to that node only.
+    """
+    try:
+        flags = _flags(ros_args)
+    except ConfigError:
+        return {}  # said by check_ros_args
+    remaps: dict[str, str] = {}
+    for flag, value in flags:
+        if flag in ("-r", "--remap"):
+            rule, _, target = value.partition(":=")
+            only_for, _, source = rule.rpartition(":")
+            if source.startswith("__") or (only_for and only_for != node):
+                continue  # __ns, __node: not a topic
+            remaps.setdefault(resolve_topic(source, namespace, node), resolve_topic(target, namespace, node))
+    return remaps
 
 
 def set_process_ros_args(ros_args: Sequence[str]) -> None:

@@ -7,7 +7,13 @@ so once, and rejects any other invalid name with the reason.
 
 from __future__ import annotations
 
+import dataclasses
 import re
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+from dc_core.params import param
+from dc_core.qos import RECORD_HISTORY_DEPTH
 
 _VALID = re.compile(r"^[A-Za-z0-9_/~{}]+$")
 
@@ -31,6 +37,12 @@ def topic_problem(name: str) -> str | None:
     if mapped.lstrip("/")[:1].isdigit():
         return "a topic name cannot start with a digit"
     return None
+
+
+def topic_param(default: Any = dataclasses.MISSING, *, doc: str) -> Any:
+    """A plugin parameter naming a robot topic it reads, refused at configure when no mapping makes it one
+    (no default: required); under --namespace, an absolute one outside it is warned about (sensor_topic)."""
+    return param(default, doc=doc, check=lambda name: topic_problem(name) and "a ROS 2 topic name", sensor_topic=True)
 
 
 # DC's own topics, relative: each resolves in the namespace of the node that publishes or reads it,
@@ -70,3 +82,70 @@ def outside_namespace(topics: list[str], namespace: str) -> list[str]:
     if ros_namespace(namespace) == "/":
         return []
     return [t for t in dict.fromkeys(topics) if t.startswith(ROOT_DC_PREFIX)]
+
+
+# The default names of the topics DC's servers publish on, relative like the prefixes above. Each server
+# uses these functions, and so does the destination server, which reads the others' sections to learn
+# which of its inputs are DC's own (published_topics below): a name changes here, once.
+def measurement_topic(measurement_id: str) -> str:
+    """The output topic of a measurement whose ``topic_output`` is not given (before resolution)."""
+    return MEASUREMENT_TOPIC_PREFIX + measurement_id
+
+
+def group_topic(group: str) -> str:
+    """The output topic of a group whose ``output`` is not given (before resolution)."""
+    return GROUP_TOPIC_PREFIX + group
+
+
+def condition_topic(condition: str) -> str:
+    """The topic a condition's state is published on (before resolution)."""
+    return CONDITION_TOPIC_PREFIX + condition
+
+
+def published_topics(servers: Mapping[str, Any], namespace: str = "/") -> tuple[dict[str, int], list[str]]:
+    """The topics the measurement and group servers of one parameter file publish, fully qualified as
+    those servers in ``namespace`` resolve them, each with the depth of the history it keeps; and, as
+    warnings, what could not be read.
+
+    Read from the sections' few keys that name a topic, not by the servers' configuration classes: the
+    destination server learns its siblings' topics without importing them. dc-bringup validated the
+    file with those classes first; what does not read here is taken as another node's topic, and said.
+    """
+    topics: dict[str, int] = {}
+    problems: list[str] = []
+    # A server's section is named after its node, the name ``~`` and ``{node}`` resolve to.
+    for mid, body, path, node in _listed_sections(servers, "measurement_server", "measurement_plugins", problems):
+        topic = body.get("topic_output") or measurement_topic(mid)
+        depth = body.get("history_depth", RECORD_HISTORY_DEPTH)
+        if not isinstance(topic, str):
+            problems.append(f"{path}.topic_output: not a topic name, its records are taken as another node's")
+        elif isinstance(depth, bool) or not isinstance(depth, int) or depth < 1:
+            problems.append(f"{path}.history_depth: not a depth, its records are taken as another node's")
+        else:
+            topics[resolve_topic(topic, namespace, node)] = depth
+    for group, body, path, node in _listed_sections(servers, "group_server", "groups", problems):
+        topic = body.get("output") or group_topic(group)
+        if isinstance(topic, str):
+            topics[resolve_topic(topic, namespace, node)] = RECORD_HISTORY_DEPTH
+        else:
+            problems.append(f"{path}.output: not a topic name, its records are taken as another node's")
+    return topics, problems
+
+
+def _listed_sections(
+    servers: Mapping[str, Any], server: str, key: str, problems: list[str]
+) -> Iterator[tuple[str, Mapping[str, Any], str, str]]:
+    """(id, section, YAML path, node name) of each plugin or group ``server`` lists under ``key``."""
+    section = servers.get(server)
+    if section is None:
+        return
+    listed = section.get(key, []) if isinstance(section, Mapping) else None
+    if not isinstance(listed, list):
+        problems.append(f"{server}.{key}: not a list, the topics of {server} are taken as other nodes'")
+        return
+    for name in listed:
+        body = section.get(name) if isinstance(name, str) else None
+        if isinstance(body, Mapping):
+            yield name, body, f"{server}.{name}", server
+        else:
+            problems.append(f"{server}.{name}: no section, its records are taken as another node's")

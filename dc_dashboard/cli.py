@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from dc_core.errors import DcError
+from dc_dashboard.settings import ParamsMetrics
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,7 +61,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--print-index-sql", action="store_true", help="print those CREATE INDEX statements and exit")
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, params_metrics: ParamsMetrics | None = None) -> int:
+    """``params_metrics`` reads --params (see dc_dashboard.settings.ParamsMetrics)."""
     try:
         import psycopg  # noqa: F401
     except ImportError:
@@ -70,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from dc_dashboard.settings import from_sources
 
     try:
-        settings = from_sources(args)
+        settings = from_sources(args, params_metrics=params_metrics)
     except (DcError, ValueError) as exc:
         print(f"dc dashboard: {exc}", file=sys.stderr)
         return 2

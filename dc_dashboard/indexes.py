@@ -13,6 +13,7 @@ from typing import Any
 
 from psycopg import sql
 
+from dc_dashboard.errors import first_line
 from dc_dashboard.settings import PostgresSettings
 
 _MAX_IDENTIFIER = 63
@@ -106,8 +107,6 @@ def create(settings: PostgresSettings, say: Any = print) -> int:
     """Build the missing indexes (each table that exists); 0 when all are there afterwards."""
     import psycopg
 
-    from dc_dashboard.queries import _first_line
-
     try:
         with psycopg.connect(**{**settings.connect_kwargs(), "options": ""}, autocommit=True) as connection:
             todo = set(missing(connection, settings))
@@ -123,7 +122,7 @@ def create(settings: PostgresSettings, say: Any = print) -> int:
                 connection.execute(statement)
             left = missing(connection, settings)
     except psycopg.Error as exc:
-        say(f"dc dashboard: PostgreSQL {settings.address()}: {_first_line(exc)}")
+        say(f"dc dashboard: PostgreSQL {settings.address()}: {first_line(exc)}")
         return 2
     say("indexes: all present" if not left else f"indexes still missing: {', '.join(left)}")
     return 0 if not left else 1

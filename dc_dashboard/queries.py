@@ -16,7 +16,7 @@ from typing import Any
 
 from dc_dashboard import indexes
 from dc_dashboard.catalog import Sources, sources_of
-from dc_dashboard.errors import DashboardError
+from dc_dashboard.errors import DashboardError, first_line
 from dc_dashboard.filters import Filters
 from dc_dashboard.settings import PostgresSettings
 
@@ -102,14 +102,14 @@ class Store:
             with psycopg.connect(**self.settings.connect_kwargs(), autocommit=True) as connection:
                 yield connection
         except psycopg.errors.UndefinedTable as exc:
-            raise DashboardError(f"no such table in {self.settings.address()}: {_first_line(exc)}") from None
+            raise DashboardError(f"no such table in {self.settings.address()}: {first_line(exc)}") from None
         except psycopg.errors.QueryCanceled:
             raise DashboardError(
                 f"PostgreSQL {self.settings.address()} took longer than {self.settings.statement_timeout_ms} ms;"
                 " are the dashboard's indexes there? (dc dashboard --create-indexes)"
             ) from None
         except psycopg.Error as exc:
-            raise DashboardError(f"PostgreSQL {self.settings.address()}: {_first_line(exc)}") from None
+            raise DashboardError(f"PostgreSQL {self.settings.address()}: {first_line(exc)}") from None
 
     # -- what is there -------------------------------------------------------------------------
     def catalog(self, connection: Any) -> Catalog:
@@ -438,11 +438,6 @@ def _remote_key(record: dict[str, Any], file_key: str) -> str:
 
 def _epoch(value: dt.datetime) -> float:
     return value.replace(tzinfo=dt.UTC).timestamp() if value.tzinfo is None else value.timestamp()
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return text[0] if text else type(exc).__name__
 
 
 # Distinct values by skipping through an index: one index probe per value, not a scan of the table.

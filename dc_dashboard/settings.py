@@ -8,7 +8,7 @@ them out, and nothing prints or logs it whole.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -66,7 +66,14 @@ class DashboardSettings:
     metrics: tuple[tuple[str, str], ...] = ()
 
 
-def from_sources(args: Any, environ: Mapping[str, str] | None = None) -> DashboardSettings:
+# A parameter file's path -> (label, URL) of each metrics server it enables. The command that starts the
+# dashboard gives it (dc_bringup knows the servers' configurations; the dashboard, below it, does not).
+ParamsMetrics = Callable[[str], list[tuple[str, str]]]
+
+
+def from_sources(
+    args: Any, environ: Mapping[str, str] | None = None, params_metrics: ParamsMetrics | None = None
+) -> DashboardSettings:
     """Arguments first, then the DC_POSTGRES_* / DC_S3_* variables, then the defaults."""
     env = os.environ if environ is None else environ
 
@@ -90,17 +97,15 @@ def from_sources(args: Any, environ: Mapping[str, str] | None = None) -> Dashboa
         secret_access_key=pick("s3_secret_access_key", "DC_S3_AWS_SECRET_ACCESS_KEY"),
         bucket=pick("s3_bucket", "DC_S3_BUCKET"),
     )
-    return DashboardSettings(postgres, s3, tuple(metrics_urls(args)))
+    return DashboardSettings(postgres, s3, tuple(metrics_urls(args, params_metrics)))
 
 
-def metrics_urls(args: Any) -> list[tuple[str, str]]:
+def metrics_urls(args: Any, params_metrics: ParamsMetrics | None = None) -> list[tuple[str, str]]:
     """(label, URL) of every --metrics URL and of each server whose HTTP server --params enables."""
     urls = [(url, url) for url in getattr(args, "metrics", None) or []]
     params = getattr(args, "params", None)
     if params:
-        from dc_bringup.validate import metrics_endpoints, validate_params_file
-
-        for endpoint in metrics_endpoints(validate_params_file(params).configs):
-            host = "127.0.0.1" if endpoint.listen in ("0.0.0.0", "") else endpoint.listen
-            urls.append((endpoint.server, f"http://{host}:{endpoint.port}/api/v1/metrics"))
+        if params_metrics is None:
+            raise ValueError("--params: no reader of parameter files was given (start the dashboard by dc dashboard)")
+        urls.extend(params_metrics(params))
     return urls

@@ -1,5 +1,6 @@
-"""What the AWS destinations (KinesisStreams, S3) share: boto3 sessions, endpoint and name checks, and
-which of boto3's errors mean what.
+"""What the AWS destinations (KinesisStreams, S3, and the S3 stores of MinIO and FilesMetrics) share:
+their client parameters, boto3 sessions and clients, endpoint and name checks, and which of boto3's
+errors mean what. botocore's client configuration is made here only (:func:`make_client`).
 
 Credentials come from boto3's default chain (environment, shared profile, instance or task role)
 unless keys are given; with ``role_arn`` those only serve to assume the role through STS, and its
@@ -15,6 +16,7 @@ from typing import Any
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
 from dc_core.params import param
+from dc_destinations.settings import parse_size
 from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
 
 try:
@@ -25,8 +27,13 @@ try:
     import botocore.session
 except ImportError as exc:  # an optional dependency: say which extra brings it
     raise ImportError(
-        f"the AWS destinations (KinesisStreams, S3) need boto3: pip install 'ros2-dc[aws]' ({exc})"
+        f"the AWS and S3-compatible destinations (KinesisStreams, S3, MinIO, FilesMetrics) need boto3: "
+        f"pip install 'ros2-dc[aws]' ({exc})"
     ) from exc
+
+# What the destinations catch, from here: importing this module is what says which extra brings boto3.
+ClientError = botocore.exceptions.ClientError
+BotoCoreError = botocore.exceptions.BotoCoreError
 
 # Whole-request errors about who is calling: fixed by an operator (keys, role, policy), not by the records.
 CREDENTIAL_CODES = frozenset(
@@ -43,6 +50,8 @@ CREDENTIAL_CODES = frozenset(
         "MissingAuthenticationToken",
     }
 )
+# S3 names a wrong key ID its own way, on top of the codes every AWS service uses ("403": a HEAD's answer).
+S3_CREDENTIAL_CODES = CREDENTIAL_CODES | {"InvalidAccessKeyId", "InvalidToken", "TokenRefreshRequired", "403"}
 NETWORK_ERRORS = (
     botocore.exceptions.EndpointConnectionError,
     botocore.exceptions.ConnectTimeoutError,
@@ -51,9 +60,47 @@ NETWORK_ERRORS = (
 )
 CREDENTIALS_MISSING = (botocore.exceptions.NoCredentialsError, botocore.exceptions.PartialCredentialsError)
 
+# S3's limits: parts of 5 MiB to 5 GiB (the last one smaller), at most 10000 of them, 5 GiB in one PUT.
+MIN_PART_BYTES = 5 * 1024 * 1024
+MAX_PART_BYTES = 5 * 1024 * 1024 * 1024
+MAX_PARTS = 10_000
+MAX_PUT_BYTES = 5 * 1024 * 1024 * 1024
+
 _REGION = re.compile(r"[a-z]{2,}(-[a-z0-9]+)*(-\d+)?")
+_BUCKET = re.compile(r"[a-z0-9][a-z0-9.-]{1,61}[a-z0-9]")
 ROLE_ARN = re.compile(r"arn:aws[a-z-]*:iam::\d{12}:role/[\w+=,.@/-]+")
 EXTERNAL_ID = re.compile(r"[\w+=,.@:/-]{2,1224}")
+
+
+def region_problem(region: str) -> str | None:
+    return None if _REGION.fullmatch(region) else 'an AWS region such as "eu-west-1"'
+
+
+def size_problem(text: str) -> str | None:
+    """For sizes of objects and parts, where nothing (0) makes no sense."""
+    try:
+        size = parse_size(text)
+    except ConfigError:
+        size = None
+    return None if size else 'a size such as "64M", "16M" or a number of bytes'
+
+
+def bucket_problem(bucket: str) -> str | None:
+    if _BUCKET.fullmatch(bucket) and ".." not in bucket:
+        return None
+    if bucket == "dc_bucket":
+        return 'a bucket name: the original\'s default "dc_bucket" is not one (no "_" in bucket names), use "dc-bucket"'
+    return "a bucket name (3 to 63 lowercase letters, digits, '.', '-')"
+
+
+def endpoint_url(value: str, use_ssl: bool = True) -> str | None:
+    """An endpoint parameter as a URL: a URL as it is; a host (Fluent Bit's) or host:port (the original
+    MinIO plugin's) with https, or http when ``use_ssl`` is false; None when empty (the region's)."""
+    if not value:
+        return None
+    if "://" in value:
+        return value
+    return f"{'https' if use_ssl else 'http'}://{value}"
 
 
 def check_credentials(access_key: str, secret_key: str, role_arn: str, external_id: str, sts_endpoint: str) -> None:
@@ -90,23 +137,20 @@ class AwsCredentialsParams:
             self.aws_access_key_id, self.aws_secret_access_key, self.role_arn, self.external_id, self.sts_endpoint
         )
 
-    def warn_if_in_clear(self, logger: Logger, destination: str, endpoint: str) -> None:
-        """The shared warning (dc_destinations.tls) for an endpoint override (or STS's) over plain HTTP.
+    def _warn_if_in_clear(self, logger: Logger, destination: str, endpoint: str) -> None:
+        """The shared warning (:func:`warn_if_signed_in_clear`) for an endpoint override (or STS's) over plain HTTP.
 
-        Requests are signed, not carrying the secret key, but the access key, the signed requests and
-        the records travel readable (and STS's answer holds temporary credentials in clear).
+        STS's answer holds temporary credentials, in clear too.
         """
         key = self.aws_access_key_id or "(from boto3's chain)"
         for url, what in ((endpoint_url(endpoint), "requests"), (endpoint_url(self.sts_endpoint), "STS requests")):
-            if url is not None:
-                warn_if_credentials_in_clear(
-                    logger,
-                    destination,
-                    url_host(url),
-                    credentials=f"{what} signed with access key {key}",
-                    verified_tls=url_is_verified_tls(url),
-                    fix="use an https:// endpoint (a host name without a scheme is https)",
-                )
+            warn_if_signed_in_clear(
+                logger,
+                destination,
+                url,
+                signed=f"{what} signed with access key {key}",
+                fix="use an https:// endpoint (a host name without a scheme is https)",
+            )
 
     def session(self, name: str, region: str, timeout: float) -> Any:
         """A boto3 session with these credentials (see :func:`aws_session`)."""
@@ -122,15 +166,99 @@ class AwsCredentialsParams:
         )
 
 
-def region_problem(region: str) -> str | None:
-    return None if _REGION.fullmatch(region) else 'an AWS region such as "eu-west-1"'
+@dataclass(frozen=True, kw_only=True)
+class AwsClientParams(AwsCredentialsParams):
+    """What a destination calling one AWS service takes (Fluent Bit's names), and the client made of it."""
 
+    region: str = param("us-east-1", check=region_problem, doc="AWS region of the service")
+    endpoint: str = param("", doc="Service endpoint (host name or URL; S3: path-style requests); empty: the region's")
+    auto_retry_requests: bool = param(True, doc="Retry a failed request once at once, before the backoff")
+    timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
+    log_key: str = param("", doc="Send only this key's value instead of the whole record; empty: the whole record")
 
-def endpoint_url(value: str) -> str | None:
-    """Fluent Bit's ``endpoint`` is a host name (HTTPS); a URL is taken as is."""
-    if not value:
+    def where(self, what: str) -> str:
+        """'<what> in <region>[ at <endpoint>]': named in every message, so an operator sees what to fix."""
+        endpoint = endpoint_url(self.endpoint)
+        return f"{what} in {self.region}" + (f" at {endpoint}" if endpoint else "")
+
+    def client(self, service: str, logger: Logger, name: str) -> Any:
+        """A boto3 client of ``service`` for destination ``name``, after the warning about an endpoint
+        in clear; making it reads configuration only, nothing is sent."""
+        self._warn_if_in_clear(logger, name, self.endpoint)
+        endpoint = endpoint_url(self.endpoint)
+        return make_client(
+            service,
+            session=self.session(name, self.region, self.timeout),
+            region=self.region,
+            endpoint=endpoint,
+            timeout=self.timeout,
+            # Fluent Bit's auto_retry_requests: one immediate retry; the destination server's backoff does the rest.
+            attempts=2 if self.auto_retry_requests else 1,
+            # S3-compatible stores (SeaweedFS, MinIO, Ceph) rarely resolve bucket.host names: path-style there.
+            addressing_style=("path" if endpoint else "auto") if service == "s3" else None,
+        )
+
+    def common_failure(self, exc: Exception, service: str, where: str) -> str | None:
+        """The message of a failure every AWS destination words alike (role, credentials, network),
+        scrubbed; None for the service's own answers."""
+        if isinstance(exc, botocore.exceptions.ClientError) and exc.operation_name == "AssumeRole":
+            error = exc.response.get("Error", {})
+            code, text = str(error.get("Code", "")), str(error.get("Message", ""))
+            return self.scrub(f"cannot assume role {self.role_arn}: {code}: {text} (for {where})")
+        if isinstance(exc, CREDENTIALS_MISSING):
+            return (
+                f"no AWS credentials for {where}: set them in the environment, a profile, an instance "
+                "role, or aws_access_key_id / aws_secret_access_key"
+            )
+        if isinstance(exc, NETWORK_ERRORS):
+            return self.scrub(f"cannot reach {service} for {where}: {exc}")
         return None
-    return value if "://" in value else f"https://{value}"
+
+    def scrub(self, text: str) -> str:
+        """``text`` without the secret key (an error message may quote a request)."""
+        secret = self.aws_secret_access_key
+        return text.replace(secret, "***") if secret else text
+
+
+def make_client(
+    service: str,
+    *,
+    session: Any,
+    region: str,
+    endpoint: str | None,
+    timeout: float,
+    attempts: int | None,
+    addressing_style: str | None = None,
+) -> Any:
+    """A boto3 client of ``session``; ``attempts`` None keeps botocore's retries (STS)."""
+    options: dict[str, Any] = {}
+    if attempts is not None:
+        options["retries"] = {"total_max_attempts": attempts, "mode": "standard"}
+    if addressing_style is not None:
+        options["s3"] = {"addressing_style": addressing_style}
+    config = botocore.config.Config(
+        region_name=region,
+        connect_timeout=timeout,
+        read_timeout=timeout,
+        # DC's own requests say who sends them (STS's never did).
+        user_agent_extra="dc-destinations" if attempts is not None else None,
+        **options,
+    )
+    return session.client(service, endpoint_url=endpoint, config=config)
+
+
+def warn_if_signed_in_clear(logger: Logger, destination: str, url: str | None, *, signed: str, fix: str) -> bool:
+    """The shared warning (dc_destinations.tls) for signed requests to ``url`` over plain HTTP.
+
+    Requests are signed, not carrying the secret key, but the access key, the signed requests and
+    what they carry travel readable, and a signed request can be replayed within minutes. ``url``
+    None is AWS's own endpoint: https, checked by boto3.
+    """
+    if url is None:
+        return False
+    return warn_if_credentials_in_clear(
+        logger, destination, url_host(url), credentials=signed, verified_tls=url_is_verified_tls(url), fix=fix
+    )
 
 
 def aws_session(
@@ -150,10 +278,8 @@ def aws_session(
     )
     if not role_arn:
         return base
-    sts = base.client(
-        "sts",
-        endpoint_url=endpoint_url(sts_endpoint),
-        config=botocore.config.Config(region_name=region, connect_timeout=timeout, read_timeout=timeout),
+    sts = make_client(
+        "sts", session=base, region=region, endpoint=endpoint_url(sts_endpoint), timeout=timeout, attempts=None
     )
     session_name = re.sub(r"[^\w+=,.@-]", "-", f"dc-{name}")[:64]
 

@@ -56,7 +56,9 @@ class _CommitBatch:
     by_destination: dict[str, list[PendingRecord]] = field(default_factory=dict)
     limits: dict[str, QueueLimit] = field(default_factory=dict)
     seen: list[HopKey] = field(default_factory=list)
-    committed: list[tuple[str, str]] = field(default_factory=list)  # (destination, record_id), as they came
+    # (destination, record_id) as they came, for commit listeners: None (not built) when none listens.
+    committed: list[tuple[str, str]] | None = None
+    count: int = 0
 
     def add(self, route: Route, record: PendingRecord) -> None:
         records = self.by_destination.get(route.name)
@@ -64,11 +66,9 @@ class _CommitBatch:
             records = self.by_destination[route.name] = []
             self.limits[route.name] = route.limit
         records.append(record)
-        self.committed.append((route.name, record.record_id))
-
-    @property
-    def count(self) -> int:
-        return len(self.committed)
+        self.count += 1
+        if self.committed is not None:
+            self.committed.append((route.name, record.record_id))
 
 
 class _Handoff(list[Received]):
@@ -286,7 +286,11 @@ class GroupCommitter:
         return done.wait(timeout)
 
     def add_listener(self, listener: CommitListener) -> None:
-        """Call ``listener`` on the writer thread with ``(destination, record_id)`` of each group commit."""
+        """Call ``listener`` on the writer thread with ``(destination, record_id)`` of each group commit.
+
+        Used by tests only: the per-record list is built only while a listener exists (from the next
+        group commit on), so delivery without one pays nothing for it.
+        """
         self._listeners.append(listener)
 
     def _take_all(self) -> list[Received]:
@@ -428,7 +432,7 @@ class GroupCommitter:
 
     def _storable(self, handoffs: list[Received]) -> _CommitBatch:
         """What of ``handoffs`` the buffer can hold; a record that is not valid UTF-8 JSON is counted apart."""
-        batch = _CommitBatch()
+        batch = _CommitBatch(committed=[] if self._listeners else None)
         routes = self._routes
         for copies, seen in handoffs:
             if seen is not None:
@@ -503,7 +507,7 @@ class GroupCommitter:
                 route.wakeup.set()
         for listener in self._listeners:
             try:
-                listener(batch.committed)
+                listener(batch.committed or [])
             except Exception as exc:
                 self.logger.error(f"delivery commit listener failed: {exc}")
         if batch.seen and self.on_seen_committed is not None:

@@ -17,7 +17,7 @@ from typing import Any
 
 from dc_core.errors import ConfigError
 from dc_core.node_params import ServerNodeParams, record_linger_param
-from dc_core.params import did_you_mean, field_names, param, parse_params
+from dc_core.params import did_you_mean, field_names, no_effect_notes, param, parse_params
 from dc_core.plugins import parse_plugin_section
 from dc_core.timefmt import TIME_FORMATS
 from dc_core.topics import resolve_topic
@@ -132,7 +132,7 @@ def _flb_section(section: dict[str, Any], path: str, warnings: list[str]) -> dic
     return _numeric_strings_to_numbers(flb, DeliveryParams)
 
 
-def _parse_destination(name: str, body: Any, path: str, namespace: str) -> DestinationConfig:
+def _parse_destination(name: str, body: Any, path: str, namespace: str, warnings: list[str]) -> DestinationConfig:
     if body is None:
         raise ConfigError(path, "section missing (listed in destination_plugins but not configured)")
     if not isinstance(body, dict):
@@ -142,6 +142,7 @@ def _parse_destination(name: str, body: Any, path: str, namespace: str) -> Desti
     )
     common, plugin_class, plugin_params = parsed.common, parsed.plugin_class, parsed.params
     (delivery,) = parsed.shared
+    warnings.extend(parsed.notes)
     check_destination_params(delivery, path)
     if not common.inputs:
         raise ConfigError(f"{path}.inputs", "expected at least one topic")
@@ -162,6 +163,7 @@ def parse_destination_server(
     node_values = {key: section[key] for key in node_keys if key in section}
     node_values["flb"] = _flb_section(section, path, warnings)
     node = parse_params(DestinationServerParams, node_values, path)
+    warnings.extend(no_effect_notes(DestinationServerParams, node_values, path))
 
     seen: set[str] = set()
     for name in node.destination_plugins:
@@ -174,7 +176,8 @@ def parse_destination_server(
         warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
 
     destinations = [
-        _parse_destination(name, section.get(name), f"{path}.{name}", namespace) for name in node.destination_plugins
+        _parse_destination(name, section.get(name), f"{path}.{name}", namespace, warnings)
+        for name in node.destination_plugins
     ]
     # A destination without its own unhealthy_after has the server's.
     destinations = [

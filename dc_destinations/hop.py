@@ -15,7 +15,9 @@ them.
 Records of DC's own publishers carry a hand-off key in ``header.frame_id`` (dc_core.handoff): their
 hop key is then ``(topic, -publisher id, the publisher's own number)``, which a record sent again
 keeps (DDS would number it anew), and what is lost is what the publisher dropped unacknowledged:
-numbers below its ``low`` that never arrived. Pure: no ROS, no I/O.
+numbers below its ``low`` that never arrived, and, when the publisher's process ended (killed) holding
+records, the numbers up to where it got that never arrived, announced by its successor
+(dc_core.handoff_marks, :meth:`HopIntake.writer_ended`). Pure: no ROS, no I/O.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from dc_core.handoff import SOURCE_SUFFIX, parse_frame_key
+from dc_core.handoff import ENDED_SUFFIX, SOURCE_SUFFIX, parse_frame_key, position_topic
 from dc_core.sequence_numbers import MAX_WRITERS_PER_TOPIC, TopicWriters
 
 
@@ -94,6 +96,9 @@ class TopicHopStats:
     gaps: int = 0  # how many jumps those were
     writers: int = 0  # writers recognised since start (a restarted publisher is a new one)
     unkeyed: int = 0  # records without a source timestamp or sequence number: not deduplicated
+    # Hand-off publishers whose process ended holding records not acknowledged, as their successor
+    # announced them; what of theirs never arrived is in ``missing``.
+    writers_ended: int = 0
 
 
 @dataclass
@@ -156,6 +161,14 @@ class HopIntake:
                 writer_id = -key.source_ns
                 state.source_max[writer_id] = max(key.seq, state.source_max.get(writer_id, 0))
                 continue
+            if key.topic.endswith(ENDED_SUFFIX):
+                # Counted by the run that committed this: settled up to where the publisher ended.
+                state = self._topic(key.topic[: -len(ENDED_SUFFIX)])
+                ended = state.keyed.setdefault(-key.source_ns, _Keyed(key.seq + 1))
+                if ended.settled <= key.seq:
+                    ended.above = {s for s in ended.above if s > key.seq}
+                    ended.settled = key.seq + 1
+                continue
             state = self._topic(key.topic)
             if key not in state.seen:
                 if key.source_ns < 0:
@@ -196,10 +209,8 @@ class HopIntake:
         self._clock += 1
         writer = state.keyed.get(writer_id)
         if writer is None:
-            if len(state.keyed) >= self._max_writers:
-                del state.keyed[min(state.keyed, key=lambda w: state.keyed[w].used)]
             # A publisher first heard of now: what it holds from ``low`` on is sent again if need be.
-            writer = state.keyed[writer_id] = _Keyed(min(low, seq) if low > 0 else seq, used=self._clock)
+            writer = self._new_keyed(state, writer_id, min(low, seq) if low > 0 else seq)
             stats.writers += 1
             self._keyed_handled(writer, seq)
             verdict = _NEW_WRITER
@@ -245,6 +256,12 @@ class HopIntake:
         self._keyed_handled(writer, seq)
         return verdict
 
+    def _new_keyed(self, state: _TopicState, writer_id: int, settled: int) -> _Keyed:
+        if len(state.keyed) >= self._max_writers:
+            del state.keyed[min(state.keyed, key=lambda w: state.keyed[w].used)]
+        writer = state.keyed[writer_id] = _Keyed(settled, used=self._clock)
+        return writer
+
     @staticmethod
     def _arrived_late(writer: _Keyed, seq: int, stats: TopicHopStats) -> None:
         """A record counted as missing arrived after all (dropped by its publisher while on its way)."""
@@ -263,6 +280,38 @@ class HopIntake:
             writer.above.discard(writer.settled)
             writer.settled += 1
 
+    def writer_ended(self, topic: str, writer_id: int, high: int, acked: int) -> tuple[int, int] | None:
+        """A hand-off publisher ended (its process died) after publishing up to ``high``, acknowledged up to
+        ``acked``: counts the numbers it published that never arrived as ``missing``.
+
+        Returns ``(first, lost)``: the first number counted and how many (0: all arrived), or None when that
+        was settled already (the same announcement again).
+        A publisher this server does not know (its keys no longer in the buffer) is taken to have lost
+        everything after ``acked``.
+        """
+        state = self._topic(topic)
+        stats = state.stats
+        self._clock += 1
+        writer = state.keyed.get(writer_id)
+        if writer is None:
+            writer = self._new_keyed(state, writer_id, acked + 1)
+        if writer.settled > high:
+            return None
+        first = max(writer.settled, acked + 1)
+        handled = {s for s in writer.above if first <= s <= high}
+        lost = max(0, high - first + 1 - len(handled))
+        writer.above = {s for s in writer.above if s > high}
+        writer.settled = high + 1
+        writer.used = self._clock
+        stats.writers_ended += 1
+        if lost:
+            stats.missing += lost
+            stats.gaps += 1
+            # A record of it still on its way (received after this) is taken off the count again.
+            writer.counted.append((first, high, handled, set()))
+            del writer.counted[:-COUNTED_RANGES]
+        return first, lost
+
     def count_duplicate(self, topic: str) -> None:
         """Count a record received and dropped as a duplicate without :meth:`check` (a copy its caller saw)."""
         stats = self._topic(topic).stats
@@ -271,7 +320,7 @@ class HopIntake:
 
     def handled(self, key: HopKey | None) -> None:
         """Remember ``key``: a later copy of the record is a duplicate."""
-        if key is not None and not key.topic.endswith(SOURCE_SUFFIX):
+        if key is not None and not position_topic(key.topic):
             state = self._topic(key.topic)
             if key not in state.seen:
                 self._remember(state, key)

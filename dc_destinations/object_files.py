@@ -18,52 +18,46 @@ import dataclasses
 import hashlib
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, NoReturn
+from typing import Any, NoReturn, Protocol, TypeVar
 
+from dc_core.confined_files import (
+    Confinement,
+    ConfinementParams,
+    FileRefused,
+    OpenedFile,
+    confinement_of,
+)
 from dc_core.destination import ProbeResult, RetryableError
 from dc_core.errors import ConfigError
-from dc_core.logs import Logger
+from dc_core.logs import BurstLog, Logger
 from dc_core.params import param
 from dc_destinations.aws import (
-    CREDENTIAL_CODES,
     CREDENTIALS_MISSING,
+    S3_CREDENTIAL_CODES,
+    BotoCoreError,
+    ClientError,
     aws_session,
+    bucket_problem,
     check_credentials,
+    endpoint_url,
+    make_client,
     region_problem,
+    warn_if_signed_in_clear,
 )
-from dc_destinations.confined_files import OpenedFile
-from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
-
-try:
-    import botocore.config
-    import botocore.exceptions
-except ImportError as exc:  # an optional dependency: say which extra brings it
-    raise ImportError(f"the file destinations need boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
 
 PART_SIZE_METADATA = "dc-part-size"
 """Metadata key (``x-amz-meta-dc-part-size``) holding the part size of a multipart upload."""
 
 _MIB = 1024 * 1024
 _READ_CHUNK = _MIB
-_BUCKET = re.compile(r"[a-z0-9][a-z0-9.-]{1,61}[a-z0-9]")
 _ETAG = re.compile(r"[0-9a-f]{32}(-(\d+))?")
-# S3 names a wrong key ID its own way, on top of the codes every AWS service uses.
-_CREDENTIAL_CODES = CREDENTIAL_CODES | {"InvalidAccessKeyId", "InvalidToken", "TokenRefreshRequired", "403"}
 _BUSY_CODES = frozenset({"SlowDown", "Throttling", "ThrottlingException", "RequestTimeout", "RequestTimeTooSkewed"})
 _ABSENT_CODES = frozenset({"404", "NoSuchKey", "NotFound"})
 # Part sizes other tools use, tried first when an object's ETag has parts of an unknown size.
 _USUAL_PART_SIZES = (8 * _MIB, 16 * _MIB, 5 * _MIB, 64 * _MIB, 32 * _MIB, 128 * _MIB)
 _MOST_CANDIDATES = 6
-
-
-def _bucket_problem(bucket: str) -> str | None:
-    if _BUCKET.fullmatch(bucket) and ".." not in bucket:
-        return None
-    if bucket == "dc_bucket":
-        return 'a bucket name: the original\'s default "dc_bucket" is not one (no "_" in bucket names), use "dc-bucket"'
-    return "a bucket name (3 to 63 lowercase letters, digits, '.', '-')"
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
@@ -79,7 +73,7 @@ class ObjectStoreParams:
     use_ssl: bool = param(True, doc="HTTPS to an endpoint given without a scheme (false: plain HTTP)")
     bucket: str = param(
         "dc-bucket",
-        check=_bucket_problem,
+        check=bucket_problem,
         doc='Bucket of the objects (the original\'s default "dc_bucket" is not a valid bucket name)',
     )
     region: str = param("us-east-1", check=region_problem, doc="Region of the bucket (signs the requests)")
@@ -111,57 +105,44 @@ class ObjectStoreParams:
         shown = (f for f in dataclasses.fields(self) if not f.metadata.get("secret"))
         return f"{type(self).__name__}({', '.join(f'{f.name}={getattr(self, f.name)!r}' for f in shown)})"
 
+    def url(self) -> str | None:
+        """The store's URL: ``endpoint`` as a URL as it is, host:port with the scheme ``use_ssl`` says."""
+        return endpoint_url(self.endpoint, self.use_ssl)
 
-def endpoint_url(params: ObjectStoreParams) -> str | None:
-    """The URL of ``params.endpoint``: a URL as it is, host:port with the scheme ``use_ssl`` says."""
-    if not params.endpoint:
-        return None
-    if "://" in params.endpoint:
-        return params.endpoint
-    return f"{'https' if params.use_ssl else 'http'}://{params.endpoint}"
+    def _warn_if_in_clear(self, logger: Logger, destination: str) -> bool:
+        """The shared warning (:func:`dc_destinations.aws.warn_if_signed_in_clear`) for a store over plain HTTP."""
+        key = self.access_key_id or "(boto3's chain)"
+        return warn_if_signed_in_clear(
+            logger,
+            destination,
+            self.url(),
+            signed=f"requests signed with access key {key} and the files",
+            fix="use an https endpoint (use_ssl: true, or an https:// URL)",
+        )
 
-
-def warn_if_store_in_clear(logger: Logger, destination: str, params: ObjectStoreParams) -> bool:
-    """The shared warning (dc_destinations.tls) for a remote store reached over plain HTTP.
-
-    S3 signs each request with the secret key rather than sending it, but the access key, the signed
-    requests and every file travel readable, and a signed request can be replayed within minutes.
-    """
-    url = endpoint_url(params)
-    if url is None:  # AWS's own endpoint: https, checked by boto3
-        return False
-    key = params.access_key_id or "(boto3's chain)"
-    return warn_if_credentials_in_clear(
-        logger,
-        destination,
-        url_host(url),
-        credentials=f"requests signed with access key {key} and the files",
-        verified_tls=url_is_verified_tls(url),
-        fix="use an https endpoint (use_ssl: true, or an https:// URL)",
-    )
-
-
-def store_client(params: ObjectStoreParams, name: str, timeout: float = 30.0) -> Any:
-    """A boto3 S3 client of the storage; building it reads configuration only, nothing is sent."""
-    url = endpoint_url(params)
-    config = botocore.config.Config(
-        region_name=params.region,
-        connect_timeout=timeout,
-        read_timeout=timeout,
-        # One immediate retry of a failed request; the destination server's backoff does the rest.
-        retries={"total_max_attempts": 2, "mode": "standard"},
-        # MinIO, SeaweedFS and Ceph rarely resolve bucket.host names: path-style unless it is AWS.
-        s3={"addressing_style": "path" if url and ".amazonaws.com" not in url else "auto"},
-        user_agent_extra="dc-destinations",
-    )
-    session = aws_session(
-        name=name,
-        region=params.region,
-        access_key=params.access_key_id,
-        secret_key=params.secret_access_key,
-        timeout=timeout,
-    )
-    return session.client("s3", endpoint_url=url, config=config)
+    def client(self, logger: Logger, destination: str, timeout: float = 30.0) -> Any:
+        """A boto3 S3 client of the storage for ``destination``, after the warning about a store in
+        clear; making it reads configuration only, nothing is sent."""
+        self._warn_if_in_clear(logger, destination)
+        url = self.url()
+        session = aws_session(
+            name=destination,
+            region=self.region,
+            access_key=self.access_key_id,
+            secret_key=self.secret_access_key,
+            timeout=timeout,
+        )
+        return make_client(
+            "s3",
+            session=session,
+            region=self.region,
+            endpoint=url,
+            timeout=timeout,
+            # One immediate retry of a failed request; the destination server's backoff does the rest.
+            attempts=2,
+            # MinIO, SeaweedFS and Ceph rarely resolve bucket.host names: path-style unless it is AWS.
+            addressing_style="path" if url and ".amazonaws.com" not in url else "auto",
+        )
 
 
 # -- where the files are named ---------------------------------------------------------------------
@@ -229,6 +210,66 @@ def file_pairs(data: Mapping[str, Any], params: ObjectStoreParams) -> list[FileP
     return pairs
 
 
+class _Closable(Protocol):
+    def close(self) -> None: ...
+
+
+HeldT = TypeVar("HeldT", bound=_Closable)
+ResultT = TypeVar("ResultT")
+
+
+class RecordFiles:
+    """The files records name, as the destinations that deal with files (MinIO, FilesMetrics) take
+    them: through the confinement, refusals counted and logged per burst, and whatever a batch
+    opened closed when the batch ends."""
+
+    def __init__(self, context: Any) -> None:
+        self.confinement: Confinement | None = None
+        self.refused = 0
+        self._refused_log = BurstLog(
+            context.logger.warning, f"destination {context.name}: files or keys named by records refused"
+        )
+
+    def configure(self, params: ConfinementParams) -> Confinement:
+        self.confinement = confinement_of(params)
+        return self.confinement
+
+    def batch(self, send: Callable[[list[HeldT]], ResultT]) -> ResultT:
+        """``send(held)``; what it puts in ``held`` (it holds opened files) is closed however it ends."""
+        self._refused_log.tick()
+        held: list[HeldT] = []
+        try:
+            return send(held)
+        finally:
+            for item in held:
+                item.close()
+
+    def open(
+        self, pair: FilePair, problems: list[str], opened: OpenedFile | None = None
+    ) -> tuple[bool, OpenedFile | None]:
+        """Check the pair's key and open its file (``opened``: the same file, opened already); the file
+        is None when there is none. (False, None) with the reason added to ``problems`` when the pair
+        names no key or no path, the key or the file is refused, or the file cannot be read."""
+        assert self.confinement is not None, "open() before configure()"
+        if pair.key is None:
+            problems.append(f"no object key at {pair.upload_field} for {pair.local_path or pair.src_field}")
+            return False, None
+        if not pair.local_path:
+            problems.append(f"{pair.src_field} holds no file path")
+            return False, None
+        try:
+            self.confinement.check_key(pair.key)
+            return True, opened if opened is not None else self.confinement.open(pair.local_path)
+        except FileRefused as exc:
+            self.refused += 1
+            reason = f"refused: {exc} ({pair.src_field})"
+            self._refused_log.event(1, reason)
+            problems.append(reason)
+        except OSError as exc:
+            problems.append(f"cannot read {pair.local_path} ({pair.src_field}): {exc.strerror or exc}")
+        return False, None
+
+
 # -- checksums ---------------------------------------------------------------------------------------
 
 
@@ -274,7 +315,7 @@ class NoLocalFile:
 
 
 LocalFile = str | OpenedFile
-"""A local file by path, or opened by :class:`dc_destinations.confined_files.Confinement` (read through its
+"""A local file by path, or opened by :class:`dc_core.confined_files.Confinement` (read through its
 descriptor, whatever its path names meanwhile)."""
 
 
@@ -361,11 +402,11 @@ def store_where(bucket: str, client: Any) -> str:
 
 def store_failure(exc: Exception, where: str, doing: str) -> StoreFailure:
     """What to tell the operator about ``exc``, raised while ``doing`` something in ``where``."""
-    if isinstance(exc, botocore.exceptions.ClientError):
+    if isinstance(exc, ClientError):
         error = exc.response.get("Error", {})
         code, text = str(error.get("Code", "")), str(error.get("Message", ""))
         status = int(exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0) or 0)
-        if code in _CREDENTIAL_CODES or status == 403:
+        if code in S3_CREDENTIAL_CODES or status == 403:
             return StoreFailure(
                 "credentials",
                 f"the store refused the credentials for {where}: {code or status}: {text} "
@@ -394,7 +435,7 @@ def probe_bucket(client: Any, bucket: str, where: str) -> ProbeResult:
     A HEAD answer has no body, hence no error code but its status."""
     try:
         client.head_bucket(Bucket=bucket)
-    except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+    except (BotoCoreError, ClientError) as exc:
         error = getattr(exc, "response", {}).get("Error", {})
         if str(error.get("Code", "")) in ("404", "NoSuchBucket"):
             return ProbeResult(False, f"no {where}", "create the bucket (create_bucket), or correct bucket / endpoint")
@@ -409,11 +450,11 @@ def stored_object(client: Any, bucket: str, key: str) -> dict[str, Any] | None:
     :class:`RetryableError` about this object) when the store cannot say."""
     try:
         head: dict[str, Any] = client.head_object(Bucket=bucket, Key=key)
-    except botocore.exceptions.ClientError as exc:
+    except ClientError as exc:
         if str(exc.response.get("Error", {}).get("Code", "")) in _ABSENT_CODES:
             return None
         _raise_failure(exc, store_where(bucket, client), f"look up {key}")
-    except botocore.exceptions.BotoCoreError as exc:
+    except BotoCoreError as exc:
         _raise_failure(exc, store_where(bucket, client), f"look up {key}")
     return head
 

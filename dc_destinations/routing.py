@@ -18,11 +18,11 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from dc_core.confined_files import ConfinementParams
 from dc_core.destination import OutgoingRecord
 from dc_core.records import dump_parsed
 from dc_core.timefmt import format_stamp
 from dc_destinations.config import DestinationConfig
-from dc_destinations.confined_files import ConfinementParams
 from dc_destinations.record_ids import new_record_id
 
 RECORD_ID_KEY = "record_id"

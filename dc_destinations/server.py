@@ -29,9 +29,11 @@ from typing import Any
 from rclpy.qos import QoSProfile
 from rclpy.utilities import get_rmw_implementation_identifier
 
+from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
-from dc_core.errors import ConfigError, PluginError
-from dc_core.handoff import RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
+from dc_core.errors import PluginError
+from dc_core.handoff import ENDED_SUFFIX, RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
+from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
@@ -39,10 +41,9 @@ from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.rmw_features import no_sequence_numbers_line, publication_sequence_numbers
 from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
-from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, resolve_topic
+from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, published_topics, resolve_topic
 from dc_core.worker import Outcome
 from dc_destinations.config import NODE_NAME, DestinationServerConfig, parse_destination_server
-from dc_destinations.confined_files import ConfinementParams, default_roots
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC
 from dc_destinations.health import summary as health_summary
@@ -130,6 +131,7 @@ class DestinationServer(ManagedServer):
         self._buffer_check_timer: Any = None
         self._buffer_checking = False
         self.acks: AckPublisher | None = None
+        self._ended_subscription: Any = None
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
@@ -191,7 +193,7 @@ class DestinationServer(ManagedServer):
 
     def _with_default_roots(self, config: DestinationServerConfig, servers: dict[str, Any]) -> list[Any]:
         """The destinations, those reading files without ``allowed_roots`` given the measurement
-        server's save folder of this same file (dc_destinations.confined_files.default_roots)."""
+        server's save folder of this same file (dc_core.confined_files.default_roots)."""
         destinations = []
         roots: list[str] | None = None
         for d in config.destinations:
@@ -205,21 +207,12 @@ class DestinationServer(ManagedServer):
         return destinations
 
     def _published_by_dc(self, servers: dict[str, dict[str, Any]], namespace: str) -> dict[str, int]:
-        """Topics the measurement and group servers of this configuration publish, with their history depth.
-
-        A section that does not parse is not this server's to refuse (dc-bringup validated the file
-        first): its topics are then taken as other nodes' ones, and a warning says so.
-        """
-        from dc_group.config import published_topics as group_outputs
-        from dc_measurements.config import published_topics as measurement_outputs
-
-        topics: dict[str, int] = {}
-        for server, published in (("measurement_server", measurement_outputs), ("group_server", group_outputs)):
-            if server in servers:
-                try:
-                    topics.update(published(servers[server], server, namespace))
-                except ConfigError as exc:
-                    self.get_logger().warning(f"{server}'s outputs unknown, its section does not parse: {exc}")
+        """Topics the measurement and group servers of this configuration publish in ``namespace``, with
+        their history depth (dc_core.topics.published_topics); what does not read is said and taken as
+        other nodes' topics."""
+        topics, problems = published_topics(servers, namespace)
+        for problem in problems:
+            self.get_logger().warning(problem)
         return topics
 
     def cleanup_server(self) -> None:
@@ -275,6 +268,11 @@ class DestinationServer(ManagedServer):
             resent = self.intake.subscribe_batches(StringStamped, RESEND_TOPIC, self._on_resent, resend_qos())
             resent.raw = True
             self._subscription_of[RESEND_TOPIC] = resent
+            # The publishers of DC's servers that ended holding records (dc_core.handoff_marks); on the
+            # executor, which runs on this thread too, between the intake's turns.
+            self._ended_subscription = self.create_subscription(
+                StringStamped, ENDED_TOPIC, self._on_ended, ended_qos(depth=10)
+            )
         self.get_logger().info(
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
@@ -325,6 +323,9 @@ class DestinationServer(ManagedServer):
     def _destroy_subscriptions(self) -> None:
         subscriptions = list(self._subscription_of.values())
         self._subscription_of.clear()
+        if self._ended_subscription is not None:
+            self.destroy_subscription(self._ended_subscription)
+            self._ended_subscription = None
         for subscription in subscriptions:
             self.intake.unsubscribe(subscription)
         if self._hop_log_timer is not None:
@@ -401,6 +402,34 @@ class DestinationServer(ManagedServer):
             for source_ns, low in lows.items():
                 self.acks.tracker.saw(topic, -source_ns, low)
         self._hand_over(received)
+
+    def _on_ended(self, msg: Any) -> None:
+        """A server announces its publishers of an earlier run that ended holding records not acknowledged:
+        what of theirs never arrived is counted, and that it was is committed (then acknowledged)."""
+        parsed = parse_ended(msg.data)
+        if parsed is None or self.hop is None:
+            return
+        server, ended = parsed
+        settled: list[_Received] = []
+        losses: list[str] = []
+        total = 0
+        for one in ended:
+            if one.topic not in self._internal_topics or one.topic not in self._subscription_of:
+                continue  # not read here (any more): nothing of it was expected
+            counted = self.hop.writer_ended(one.topic, one.writer, one.high, one.acked)
+            settled.append(([], HopKey(one.topic + ENDED_SUFFIX, -one.writer, one.high)))
+            if counted is not None:
+                first, lost = counted
+                total += lost
+                losses.append(f"{one.topic} {lost} (publisher {one.writer:x}, numbers {first}..{one.high})")
+        if total:
+            self.get_logger().warning(
+                f"{total} records of {server} never arrived, not acknowledged when its process ended (killed?); "
+                f"counted in missing: {', '.join(losses)}"
+            )
+        elif losses:
+            self.get_logger().info(f"{server}'s publishers of its last run ended; all their records arrived")
+        self._hand_over(settled)
 
     def _on_resent(self, taken: list[tuple[bytes, Any]]) -> None:
         """Records sent again by their publisher (dc_core.handoff), each handled as if from its own topic."""

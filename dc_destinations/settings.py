@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 from dc_core.errors import ConfigError
 from dc_core.node_params import MetricsHttpParams, http_port_param
-from dc_core.params import param
+from dc_core.params import compat_param, param
 
 WHEN_FULL_POLICIES = ("drop_oldest", "drop_newest")
 
@@ -27,7 +27,7 @@ def _size_problem(text: str) -> str | None:
 class DeliveryParams(MetricsHttpParams):
     flush: float = param(1.0, minimum=0.01, doc="Seconds between two delivery rounds of a destination's queue")
     grace: float = param(1.0, minimum=0.0, doc="Seconds to keep delivering at shutdown before leaving the rest on disk")
-    log_level: str = param("info", doc="Accepted for compatibility; use dc-bringup --log-level")
+    log_level: str = compat_param("info", "the log level is dc-bringup's --log-level")
     storage_path: str = param(
         "",
         doc="Buffer folder, owned by one destination server (default: $XDG_DATA_HOME/dc/buffer/domain-<ROS_DOMAIN_ID>/"
@@ -38,13 +38,15 @@ class DeliveryParams(MetricsHttpParams):
         choices=("normal", "full"),
         doc="normal: committed records survive a process crash; full: they also survive a power cut",
     )
-    storage_checksum: str = param("off", doc="Accepted for compatibility; SQLite checks its own pages")
-    storage_backlog_mem_limit: str = param("5M", doc="Accepted for compatibility; the backlog is streamed from disk")
+    storage_checksum: str = compat_param("off", "SQLite checks its own pages")
+    storage_backlog_mem_limit: str = compat_param("5M", "the backlog is streamed from disk")
     scheduler_cap: float = param(2000.0, minimum=0.0, doc="Longest wait between two retries, seconds")
     scheduler_base: float = param(5.0, minimum=0.0, doc="Base of the exponential retry backoff, seconds")
     http_port: int = http_port_param(2020)
-    in_storage_type: str = param("filesystem", doc="Accepted for compatibility; DC always buffers on disk")
-    in_storage_pause_on_chunks_overlimit: str = param("off", doc="Accepted for compatibility")
+    in_storage_type: str = compat_param("filesystem", "DC always buffers on disk")
+    in_storage_pause_on_chunks_overlimit: str = compat_param(
+        "off", "beyond intake_queue_limit new records are dropped and counted, the intake never pauses"
+    )
     intake_queue_limit: int = param(
         20000,
         minimum=1,

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from dc_core.errors import DcError
 from dc_core.logs import Logger
-from dc_core.paths import expand_env
+from dc_core.paths import data_home, expand_env, instance_dir
 from dc_core.private_files import PRIVATE_FILE, create_private, make_folders
 from dc_destinations.settings import DeliveryParams
 
@@ -42,21 +42,15 @@ LOCK_SUFFIX = ".lock"
 STORAGE_PATH_PARAMETER = "destination_server.ros__parameters.flb.storage_path"
 
 
-def _data_home() -> Path:
-    return Path(os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share"))
-
-
 def legacy_storage_dir() -> Path:
     """The one default folder of DC before buffers were separated by domain and namespace."""
-    return _data_home() / "dc" / "buffer"
+    return data_home() / "dc" / "buffer"
 
 
 def default_storage_dir(namespace: str = "/", domain_id: str | None = None) -> Path:
     """The buffer folder of a destination server in ``namespace`` and ROS domain ``domain_id``
     (default: ``$ROS_DOMAIN_ID``, else 0, as rclpy's)."""
-    domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
-    parts = [part for part in namespace.split("/") if part]
-    return legacy_storage_dir() / f"domain-{domain}" / ("ns." + ".".join(parts) if parts else "default")
+    return instance_dir("buffer", namespace, domain_id)
 
 
 def storage_dir(settings: DeliveryParams, logger: Logger, namespace: str = "/") -> Path:

@@ -21,7 +21,7 @@ from urllib.parse import urlsplit
 
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
-from dc_core.params import param, parse_params
+from dc_core.params import compat_param, param, parse_params
 
 # The keys of the nested `tls:` section (TCP's original spelling) that mean a certificate was meant.
 _FILE_KEYS = ("ca_file", "crt_file", "key_file", "key_passwd", "vhost")
@@ -33,7 +33,7 @@ class _NestedTls:
 
     active: bool = param(False, doc="Use TLS")
     verify: bool = param(True, doc="Check the server's certificate and host name")
-    debug: int = param(1, minimum=0, maximum=4, doc="Accepted for the original's files; no effect")
+    debug: int = compat_param(1, "TLS failures are always logged with OpenSSL's reason", minimum=0, maximum=4)
     ca_file: str = param("", doc="CA certificates (PEM) to trust instead of the system's")
     crt_file: str = param("", doc="Client certificate (PEM), for servers that require one")
     key_file: str = param("", doc="Private key of crt_file (PEM), if not in crt_file")
@@ -58,7 +58,9 @@ class TlsParams:
     """
 
     tls: bool | dict[str, Any] = param(
-        False, doc="Connect with TLS; the original TCP output's `tls:` section (active, verify, ...) is accepted too"
+        False,
+        section=_NestedTls,
+        doc="Connect with TLS; the original TCP output's `tls:` section (active, verify, ...) is accepted too",
     )
     tls_verify: bool = param(True, doc="Check the server's certificate and host name (with `tls`)")
     tls_ca_file: str = param("", doc="CA certificates (PEM) to trust instead of the system's (with `tls`)")

@@ -12,9 +12,8 @@ from dc_core.errors import ConfigError
 from dc_core.handoff import HandoffParams
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, param, parse_params
-from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
-from dc_core.topics import GROUP_TOPIC_PREFIX, resolve_topic
+from dc_core.topics import group_topic, resolve_topic
 
 NODE_NAME = "group_server"
 # How long past the slop an incomplete set is kept when sync_timeout is not set: the latest
@@ -103,11 +102,6 @@ class GroupServerConfig:
         return {group.output: list(group.tags) for group in self.groups}
 
 
-def published_topics(section: dict[str, Any], path: str = "group_server", namespace: str = "/") -> dict[str, int]:
-    """Each group's output topic with the depth of the history it keeps (the destination server asks, for its hop)."""
-    return dict.fromkeys(sorted(parse_group_server(section, path, namespace).outputs), RECORD_HISTORY_DEPTH)
-
-
 def parse_group_server(section: dict[str, Any], path: str = "group_server", namespace: str = "/") -> GroupServerConfig:
     """Build the group server configuration from its ``ros__parameters`` mapping; topic names come out
     fully qualified, as the server in ``namespace`` resolves them."""
@@ -161,7 +155,7 @@ def _parse_group(name: str, section: Any, path: str, namespace: str) -> GroupCon
     return GroupConfig(
         name=name,
         inputs=tuple(inputs),
-        output=resolve_topic(params.output or GROUP_TOPIC_PREFIX + name, namespace, NODE_NAME),
+        output=resolve_topic(params.output or group_topic(name), namespace, NODE_NAME),
         sync_delay=params.sync_delay,
         sync_timeout=timeout,
         emit_partial=params.on_sync_timeout == "emit_partial",

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 from dc_core.handoff import HandoffSender, destination_inputs
+from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.qos import RECORD_HISTORY_DEPTH, VOLATILE_RECORD_QOS, record_qos
 from dc_core.record_history import SizedRecordPublisher, history_metrics
@@ -52,7 +53,12 @@ class GroupServer(ManagedServer):
         namespace = self.get_namespace()
         config = parse_group_server(servers[NODE_NAME], NODE_NAME, namespace)
         self.apply_node_params(config.node, config.warnings)
-        handoff = self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers, namespace))
+        handoff = self.handoff = HandoffSender(
+            self,
+            config.node.handoff,
+            destination_inputs(servers, namespace),
+            marks=marks_folder(namespace, self.get_name()),
+        )
         for group in config.groups:
             pipeline = GroupPipeline(group, self.get_logger())
             self.pipelines[group.name] = pipeline

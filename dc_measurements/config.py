@@ -16,10 +16,11 @@ from dc_core.handoff import HandoffParams
 from dc_core.jsonpath import impossible_path, schema_types_at
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
-from dc_core.paths import expand_env, expand_values
+from dc_core.paths import DEFAULT_SAVE_BASE_PATH, expand_env, expand_values
 from dc_core.plugins import parse_plugin_section
+from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
-from dc_core.topics import MEASUREMENT_TOPIC_PREFIX, resolve_topic
+from dc_core.topics import measurement_topic, resolve_topic
 
 NODE_NAME = "measurement_server"
 
@@ -45,7 +46,7 @@ class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
     measurement_plugins: list[str] = param([], doc="Ids of the measurements to load")
     condition_plugins: list[str] = param([], doc="Ids of the conditions to load")
     save_local_base_path: str = param(
-        "$HOME/ros2/data/%Y/%m/%d/%H", doc="Local base folder for saved files ($ENV, =param, strftime)"
+        DEFAULT_SAVE_BASE_PATH, doc="Local base folder for saved files ($ENV, =param, strftime)"
     )
     all_base_path: str = param("", doc="Prefix for local and remote paths ($ENV, =custom_param)")
     custom_str_params_list: list[str] = param([], doc="Ids of custom string parameters added to records")
@@ -75,7 +76,9 @@ class MeasurementCommonParams:
     include_measurement_name: bool = param(True, doc='Add "name": <id>')
     include_measurement_plugin: bool = param(False, doc='Add "plugin": <plugin type>')
     history_depth: int = param(
-        1000, minimum=1, doc="Records the output topic keeps for a destination_server that (re)starts late"
+        RECORD_HISTORY_DEPTH,
+        minimum=1,
+        doc="Records the output topic keeps for a destination_server that (re)starts late",
     )
     history_bytes: int = param(
         DEFAULT_HISTORY_BYTES,
@@ -118,7 +121,7 @@ class MeasurementConfig:
 
 def output_topic(measurement_id: str, common: MeasurementCommonParams, namespace: str = "/") -> str:
     """Fully qualified, as the server in ``namespace`` publishes it: what other sections name is compared with it."""
-    return resolve_topic(common.topic_output or MEASUREMENT_TOPIC_PREFIX + measurement_id, namespace, NODE_NAME)
+    return resolve_topic(common.topic_output or measurement_topic(measurement_id), namespace, NODE_NAME)
 
 
 @dataclass(frozen=True)
@@ -189,22 +192,6 @@ def _value_names(text: str) -> set[str]:
     return names
 
 
-def published_topics(section: dict[str, Any], path: str = "measurement_server", namespace: str = "/") -> dict[str, int]:
-    """Each measurement's output topic with the depth of the history it keeps, from the common
-    parameters alone: no plugin is imported (the destination server asks, for its hop)."""
-    node_params = parse_params(
-        MeasurementServerParams, section, path, ignore=set(section) - field_names(MeasurementServerParams)
-    )
-    topics = {}
-    for mid in node_params.measurement_plugins:
-        body = _plugin_section(section, mid, path)
-        common = parse_params(
-            MeasurementCommonParams, body, f"{path}.{mid}", ignore=set(body) - field_names(MeasurementCommonParams)
-        )
-        topics[output_topic(mid, common, namespace)] = common.history_depth
-    return topics
-
-
 def parse_measurement_server(
     section: dict[str, Any], path: str = "measurement_server", namespace: str = "/"
 ) -> MeasurementServerConfig:
@@ -244,6 +231,7 @@ def parse_measurement_server(
         condition = parse_plugin_section(
             "conditions", _plugin_section(section, cid, path), f"{path}.{cid}", ConditionCommonParams
         )
+        warnings.extend(condition.notes)
         conditions[cid] = ConditionConfig(cid, condition.common, condition.plugin_class, condition.params)
 
     measurements: list[MeasurementConfig] = []
@@ -253,6 +241,7 @@ def parse_measurement_server(
         measurement = parse_plugin_section(
             "measurements", _plugin_section(section, mid, path), mpath, MeasurementCommonParams
         )
+        warnings.extend(measurement.notes)
         common, cls, plugin_params = measurement.common, measurement.plugin_class, measurement.params
         for key in ("if_all_conditions", "if_any_conditions", "if_none_conditions"):
             for cid in getattr(common, key):

@@ -1,7 +1,8 @@
 """image_services: the original DC's image services, served by one lifecycle node with the Camera's code.
 
-``/dc/service/detect_barcodes`` (dc_interfaces/srv/DetectBarcode), ``/dc/service/draw_image``
-(DrawImage) and ``/dc/service/save_image`` (SaveImage), for nodes written against the original. DC's
+``dc/service/detect_barcodes`` (dc_interfaces/srv/DetectBarcode), ``dc/service/draw_image``
+(DrawImage) and ``dc/service/save_image`` (SaveImage) in the server's namespace (``/dc/service/…``
+without one, as the original's), for nodes written against the original. DC's
 own Camera measurement does not need them (it reads and draws in-process). dc-bringup starts this
 server when the parameter file has an ``image_services`` section::
 
@@ -25,6 +26,7 @@ from dc_core.errors import ConfigError
 from dc_core.lifecycle import ManagedServer, run_server
 from dc_core.node_params import ServerNodeParams
 from dc_core.params import did_you_mean, param, parse_params
+from dc_core.topics import topic_problem
 
 NODE_NAME = "image_services"
 SERVICES = ("detect_barcodes", "draw_image", "save_image")
@@ -38,7 +40,14 @@ def _services_problem(names: list[str]) -> str | None:
 @dataclass(frozen=True, kw_only=True)
 class ImageServicesParams(ServerNodeParams):
     services: list[str] = param(list(SERVICES), doc="The services to offer", check=_services_problem)
-    service_namespace: str = param("/dc/service", doc="Where the services are (the original's /dc/service)")
+    # Relative, as DC's topics: two robots' image_services under --namespace r1 and r2 offer
+    # /r1/dc/service/… and /r2/dc/service/…, not both the same /dc/service/… services.
+    service_namespace: str = param(
+        "dc/service",
+        doc="Where the services are: relative, in the server's namespace (/dc/service without one, the original's); "
+        "absolute when written so",
+        check=lambda name: topic_problem(name) and "a ROS 2 name",
+    )
     detection_modules: list[str] = param(
         ["barcode"], doc='What detect_barcodes reads: "qr" and/or "barcode" (as the Camera measurement)'
     )
@@ -68,6 +77,14 @@ def parse_image_services(section: dict[str, Any], path: str = NODE_NAME) -> Imag
     if problem:
         raise ConfigError(f"{path}.detection_modules", f"expected {problem}")
     return ImageServicesConfig(node, [])
+
+
+def service_name(service_namespace: str, name: str) -> str:
+    """The name a service is created with: relative to the node's namespace unless ``service_namespace`` is absolute."""
+    base = service_namespace.rstrip("/")
+    if base:
+        return f"{base}/{name}"
+    return "/" + name if service_namespace.startswith("/") else name
 
 
 def image_message(array: Any, header: Any = None) -> Any:
@@ -106,7 +123,6 @@ class ImageServices(ManagedServer):
         from dc_interfaces.srv import DetectBarcode, DrawImage, SaveImage
 
         assert self.config is not None
-        prefix = "/" + self.config.node.service_namespace.strip("/")
         handlers = {
             "detect_barcodes": (DetectBarcode, self._detect),
             "draw_image": (DrawImage, self._draw),
@@ -115,9 +131,10 @@ class ImageServices(ManagedServer):
         for name in self.config.node.services:
             service_type, handler = handlers[name]
             self._offered_services.append(
-                self.create_service(service_type, f"{prefix}/{name}".replace("//", "/"), handler)
+                self.create_service(service_type, service_name(self.config.node.service_namespace, name), handler)
             )
-        self.get_logger().info(f"serving {', '.join(f'{prefix}/{n}' for n in self.config.node.services)}")
+        # As rcl resolved them (namespace, remaps): the names a client must call.
+        self.get_logger().info(f"serving {', '.join(s.service_name for s in self._offered_services)}")
 
     def deactivate_server(self) -> None:
         for service in self._offered_services:
@@ -196,7 +213,7 @@ class ImageServices(ManagedServer):
     def _save(self, request: Any, response: Any) -> Any:
         import cv2
 
-        from dc_destinations.confined_files import FileRefused
+        from dc_core.confined_files import FileRefused
         from dc_measurements.camera.images import ImageError
 
         try:
@@ -219,8 +236,8 @@ class ImageServices(ManagedServer):
 
 def save_confinement(node: ImageServicesParams, measurement_server: dict[str, Any] | None) -> Any:
     """Where save_image may write: ``save_roots`` ($ENV expanded), else the measurement server's save folder."""
+    from dc_core.confined_files import Confinement, default_roots
     from dc_core.paths import expand_env
-    from dc_destinations.confined_files import Confinement, default_roots
 
     if node.save_roots:
         roots = [expand_env(root, f"{NODE_NAME}.save_roots[{i}]") for i, root in enumerate(node.save_roots)]

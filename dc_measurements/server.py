@@ -12,6 +12,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.errors import PluginError
 from dc_core.handoff import HandoffSender, destination_inputs
+from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
@@ -19,7 +20,7 @@ from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
 from dc_core.record_history import SizedRecordPublisher, history_metrics
 from dc_core.rostime import now_ns
-from dc_core.topics import CONDITION_TOPIC_PREFIX
+from dc_core.topics import condition_topic
 from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
@@ -71,7 +72,12 @@ class MeasurementServer(ManagedServer):
         namespace = self.get_namespace()
         config = parse_measurement_server(section, NODE_NAME, namespace)
         self.config = config
-        self.handoff = HandoffSender(self, config.node.handoff, destination_inputs(servers, namespace))
+        self.handoff = HandoffSender(
+            self,
+            config.node.handoff,
+            destination_inputs(servers, namespace),
+            marks=marks_folder(namespace, self.get_name()),
+        )
         log = self.get_logger()
         self.apply_node_params(config.node, config.warnings)
 
@@ -82,7 +88,7 @@ class MeasurementServer(ManagedServer):
         log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
 
         for name, ccfg in config.conditions.items():
-            publisher = self.create_publisher(ConditionMsg, CONDITION_TOPIC_PREFIX + name, CONDITION_QOS)
+            publisher = self.create_publisher(ConditionMsg, condition_topic(name), CONDITION_QOS)
             self._condition_publishers.append(publisher)
             context = _MeasurementContext(name, self.get_logger().get_child(name), self, paths)
             condition = ccfg.plugin_class(context, ccfg.plugin_params)

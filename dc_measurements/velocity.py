@@ -15,20 +15,10 @@ import threading
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol, TypeVar
 
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
+from dc_core.qos import SENSOR_QOS
 from dc_core.rostime import now_ns
-from dc_core.topics import topic_problem
-
-# Best effort matches reliable and best-effort publishers alike: real robots publish /odom best
-# effort, teleop and Nav2 publish /cmd_vel reliable. A reliable subscription would miss the former.
-SENSOR_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
-
-
-def topic_param(default: str, doc: str) -> Any:
-    return param(default, doc=doc, check=lambda name: topic_problem(name) and "a ROS 2 topic name")
 
 
 def repeat_last_param() -> Any:

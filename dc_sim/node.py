@@ -122,7 +122,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--duration", type=_positive, help="exit after this many simulated seconds")
     parser.add_argument("--loop", action="store_true", help="repeat the route instead of stopping at its end")
-    parser.add_argument("--namespace", default="", help="namespace of the node and its topics (not of /tf)")
+    parser.add_argument(
+        "--namespace",
+        default="",
+        help="namespace of the node and its topics; /tf and /tf_static stay absolute unless remapped "
+        "(--ros-args -r /tf:=tf -r /tf_static:=tf_static puts them in it)",
+    )
     parser.add_argument("--odom-qos", choices=sorted(ODOM_QOS), default="best_effort", help="reliability of odom")
     parser.add_argument("--truth", type=Path, help="append the ground truth here, a JSON line per 0.1 s")
     parser.add_argument(

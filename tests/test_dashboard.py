@@ -555,3 +555,22 @@ def _span(dsn: dict[str, Any]) -> tuple[str, str]:
     low, high = row
     third = (high - low) / 3
     return ((low + third).strftime("%Y-%m-%dT%H:%M:%S"), (high - third).strftime("%Y-%m-%dT%H:%M:%S"))
+
+
+def test_params_gives_the_metrics_url_of_each_server_whose_http_server_it_enables(tmp_path: Path) -> None:
+    """dc dashboard --params: dc_bringup reads the file for the dashboard, which does not import it."""
+    import argparse
+
+    from dc_bringup.cli import _metrics_urls
+    from dc_dashboard.settings import from_sources
+
+    params = yaml.safe_load((REPO / "params" / "demos" / "uptime_stdout.yaml").read_text())
+    params["destination_server"]["ros__parameters"]["flb"].update(http_server=True, http_port=2999)
+    params_file = tmp_path / "params.yaml"
+    params_file.write_text(yaml.safe_dump(params))
+    args = argparse.Namespace(params=str(params_file), metrics=["http://10.0.0.1:2020/api/v1/metrics"])
+    settings = from_sources(args, environ={}, params_metrics=_metrics_urls)
+    assert settings.metrics == (
+        ("http://10.0.0.1:2020/api/v1/metrics", "http://10.0.0.1:2020/api/v1/metrics"),
+        ("destination_server", "http://127.0.0.1:2999/api/v1/metrics"),
+    )

@@ -326,3 +326,54 @@ def test_dotted_keys_of_ros_parameter_files(tmp_path: Path) -> None:
     config = parse_destination_server(load_params_file(params)["destination_server"])
     assert config.node.flb.flush == 2.0
     assert config.destinations[0].plugin_class is Null
+
+
+NO_EFFECT = "accepted for the original's files, has no effect because"
+
+
+@pytest.mark.parametrize(
+    ("section", "path"),
+    [
+        (
+            {**stdout_section(), "flb": {"flush": 1, "storage_checksum": "on"}},
+            "destination_server.flb.storage_checksum",
+        ),
+        (
+            {
+                "destination_plugins": ["pg"],
+                "pg": {"plugin": "dc_destinations/PgSQL", "inputs": [UPTIME], "async": True},
+            },
+            "destination_server.pg.async",
+        ),
+        (
+            {
+                "destination_plugins": ["fm"],
+                "fm": {
+                    "plugin": "dc_destinations/FilesMetrics",
+                    "inputs": [UPTIME],
+                    "file_storage": ["minio"],
+                    "minio": {"src_fields": ["local_paths.pgm"], "upload_fields": ["remote_paths.pgm"]},
+                    "pgsql": {"time_key": "date"},
+                },
+            },
+            "destination_server.fm.pgsql.time_key",
+        ),
+        (
+            {
+                "destination_plugins": ["tcp"],
+                "tcp": {"plugin": "dc_destinations/TCP", "inputs": [UPTIME], "tls": {"active": "on", "debug": 2}},
+            },
+            "destination_server.tcp.tls.debug",
+        ),
+    ],
+    ids=["server flb section", "plugin key by its alias", "nested section", "the tls section an alias holds"],
+)
+def test_a_compatibility_key_without_effect_is_said_once(section: dict[str, Any], path: str) -> None:
+    warnings = parse_destination_server(section).warnings
+    said = [w for w in warnings if NO_EFFECT in w]
+    assert len(said) == 1 and said[0].startswith(f"{path}: {NO_EFFECT} "), warnings
+
+
+def test_a_compatibility_key_left_out_is_not_mentioned() -> None:
+    section = {"destination_plugins": ["pg"], "pg": {"plugin": "dc_destinations/PgSQL", "inputs": [UPTIME]}}
+    assert parse_destination_server(section).warnings == []

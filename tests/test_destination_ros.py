@@ -253,6 +253,20 @@ def test_a_tag_routed_nowhere_is_a_warning_once_then_counted(
     assert "tags ['dsik']" in warnings[0] and "destinations listening here: disk, flb_pgsql" in warnings[0]
 
 
+def test_a_compatibility_key_without_effect_is_logged_once_at_configure(
+    running: Running, capfd: pytest.CaptureFixture[str]
+) -> None:
+    params = Path(running.server.params_file)
+    params.write_text(params.read_text().replace("grace: 2.0", 'grace: 2.0\n      storage_checksum: "on"'))
+    assert running.server.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    said = [line for line in capfd.readouterr().err.splitlines() if "storage_checksum" in line]
+    assert len(said) == 1 and said[0].startswith("[WARN]"), said
+    assert (
+        "destination_server.flb.storage_checksum: accepted for the original's files, has no effect because "
+        "SQLite checks its own pages"
+    ) in said[0]
+
+
 def test_reactivation_resumes_delivery(running: Running) -> None:
     server = running.server
     assert server.trigger_configure() == TransitionCallbackReturn.SUCCESS

@@ -115,7 +115,13 @@ measurement_server:
       history_depth: {history_depth}
       enable_validator: false
       tags: ["file"]
-destination_server:
+{file_destination(tmp_path, out / "numbers.jsonl", ["/dc/measurement/numbers"])}""")
+    return params, out / "numbers.jsonl"
+
+
+def file_destination(tmp_path: Path, output: Path, inputs: list[str]) -> str:
+    """The destination_server section of these tests: a File destination, buffer in ``tmp_path``, metrics on."""
+    return f"""destination_server:
   ros__parameters:
     flb:
       storage_path: "{tmp_path / "buffer"}"
@@ -125,11 +131,10 @@ destination_server:
     destination_plugins: ["file"]
     file:
       plugin: "dc_destinations/File"
-      path: "{out}"
-      file: "numbers.jsonl"
-      inputs: ["/dc/measurement/numbers"]
-""")
-    return params, out / "numbers.jsonl"
+      path: "{output.parent}"
+      file: "{output.name}"
+      inputs: {json.dumps(inputs)}
+"""
 
 
 def numbers_in(path: Path) -> Counter[int]:

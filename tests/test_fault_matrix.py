@@ -21,6 +21,8 @@ promise when they meet.
 | kill -9 of destination_server (processes) | 2 `test_kill_9_mid_stream[processes-destination_server]` | delivered = sent, `missing` 0 (the acknowledged hand-off) | test_e2e_handoff.py::test_kill_9_of_destination_server_at_1000_records_per_s_loses_none |
 | kill -9 of measurement_server (processes) | 2 `test_kill_9_mid_stream[processes-measurement_server]` | delivered + hop `missing` = sent | (none before: this file) |
 | kill -9 of the one process (--single-process) | 2 `test_kill_9_mid_stream[single-process-the whole process]` | delivered + hop `missing` = sent | test_e2e_handoff.py::test_single_process_kill_9_counts_what_your_node_published_meanwhile |
+| kill -9 of measurement_server (group_server) holding records of its own (timer samples, groups of them) not acknowledged: destination_server SIGSTOPped (processes); the buffer's disk full, commits failing (--single-process) | 2b `test_kill_9_of_a_server_holding_its_own_records[processes-measurement_server]`, `[single-process-measurement_server]`, `[processes-group_server]` | per topic delivered + hop `missing` = the killed publisher's last number (the observer saw all of them, or all but the one being published); one warning; the dead publishers' marks retired; `dc status` names the loss | (none before: this file) |
+| (no fault) a stop with records held unacknowledged, and a start | 2b `test_a_stop_and_a_start_count_nothing_lost` | `missing` 0: the marks the stop left are announced and destination_server has every record | — |
 | SIGSTOP of destination_server beyond --bond-timeout | 3 `test_sigstop_then_a_burst_of_30_sigterms` | delivered = sent, `missing` 0 | (none before: this file) |
 | a burst of 30 SIGTERMs | 3, to the destination_server restarted after the SIGSTOP | same | test_signals.py::test_fifty_bursts_of_thirty_sigterms_never_hang_a_server_process |
 | damaged pages at rest | 4 `test_damaged_pages_and_a_sender_raising_at_the_next_start[at rest]` | delivered + `lost_to_damage` = sent | test_e2e_delivery_failures.py::test_damaged_pages_of_a_waiting_backlog_cost_only_their_records |
@@ -28,7 +30,7 @@ promise when they meet.
 | a destination thread raising (the sender) | 4, at the start that salvages the damaged file | same | test_e2e_never_silent.py::test_a_delivery_thread_that_dies_is_logged_and_its_server_restarted_without_loss |
 
 Small counts and short backoffs (flb.scheduler_base 0.2 s, scheduler_cap 2 s) keep the file short:
-7 tests, ~3 minutes on the shared 2-CPU machine while other suites ran.
+11 tests, ~4.5 minutes on the shared 2-CPU machine while other suites ran.
 """
 
 from __future__ import annotations
@@ -62,7 +64,7 @@ from tests.test_e2e_delivery_failures import (
     wait_metric,
     write_params,
 )
-from tests.test_e2e_delivery_restart import numbers_in, ranges
+from tests.test_e2e_delivery_restart import file_destination, numbers_in, ranges
 from tests.test_e2e_delivery_restart import publish as publish_numbers
 from tests.test_e2e_delivery_restart import write_params as write_file_params
 from tests.test_e2e_handoff import active_pid, delivered_or_counted, hop_missing, single_process_pid
@@ -297,6 +299,234 @@ def test_kill_9_mid_stream(tmp_path: Path, mode: str, server: str) -> None:
         assert twice <= 2 * 500, twice
     if missing:
         assert any("never arrived" in s for s in run.stderr), "a loss is logged"
+
+
+# -- 2b. kill -9 of a server holding records of its own it published, not acknowledged -------------------
+
+TICKS = 8  # Dummy measurements, 10 records/s each: DC's own records, nobody else's numbers to count by
+# What DC's servers published, as a bystander node saw it: each record's hand-off key (dc_core.handoff).
+OBSERVER = """
+import sys
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from dc_interfaces.msg import StringStamped
+out = open(sys.argv[1], "a", buffering=1)
+rclpy.init()
+node = rclpy.create_node("observer")
+qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+for topic in sys.argv[2:]:
+    node.create_subscription(StringStamped, topic, lambda m, t=topic: out.write(f"{t} {m.header.frame_id}\\n"), qos)
+rclpy.spin(node)
+"""
+
+
+def ticks_params(tmp_path: Path, server: str) -> tuple[Path, Path, list[str]]:
+    """measurement_server with TICKS Dummy measurements every 100 ms into a File destination; with
+    ``server`` group_server, the File destination reads groups of two of them instead."""
+    names = [f"tick{i}" for i in range(TICKS)]
+    topics = [f"/dc/measurement/{name}" for name in names]
+    groups = ""
+    if server == "group_server":
+        pairs = [f"pair{i}" for i in range(TICKS // 2)]
+        groups = f"""group_server:
+  ros__parameters:
+    groups: {json.dumps(pairs)}
+""" + "".join(
+            f"""    {pair}:
+      inputs: {json.dumps(topics[2 * i : 2 * i + 2])}
+      sync_delay: 0.2
+      tags: ["file"]
+"""
+            for i, pair in enumerate(pairs)
+        )
+        topics = [f"/dc/group/{pair}" for pair in pairs]
+    measurements = "".join(
+        f"""    {name}:
+      plugin: "dc_measurements/Dummy"
+      polling_interval: 100
+      record: '{{"m": "{name}"}}'
+      tags: ["file"]
+"""
+        for name in names
+    )
+    params = tmp_path / "params.yaml"
+    params.write_text(f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: {json.dumps(names)}
+{measurements}{groups}{file_destination(tmp_path, tmp_path / "out" / "ticks.jsonl", topics)}""")
+    return params, tmp_path / "out" / "ticks.jsonl", topics
+
+
+def observed_high(lines_file: Path) -> dict[str, int]:
+    """Per topic, the highest hand-off number the observer saw (a publisher numbers its records 1, 2, 3...)."""
+    from dc_core.handoff import parse_frame_key
+
+    high: dict[str, int] = {}
+    if lines_file.exists():
+        for line in lines_file.read_text().splitlines():
+            topic, _, frame_id = line.partition(" ")
+            parsed = parse_frame_key(frame_id)
+            if parsed is not None:
+                high[topic] = max(high.get(topic, 0), parsed[1])
+    return high
+
+
+def marks_folder(run: Bringup, server: str) -> Path:
+    home = Path(run.env["XDG_DATA_HOME"])
+    return home / "dc" / "handoff" / f"domain-{run.env['ROS_DOMAIN_ID']}" / "default" / server
+
+
+def marks_of(run: Bringup, server: str) -> dict[str, int]:
+    """Per topic, the highest number ``server``'s publishers wrote in their hand-off marks."""
+    from dc_core.handoff_marks import HEADER
+
+    high: dict[str, int] = {}
+    for path in marks_folder(run, server).glob("*.mark"):
+        data = path.read_bytes()
+        high[data[HEADER.size :].decode()] = HEADER.unpack_from(data)[1]
+    return high
+
+
+def ticks_before(output: Path, moment: float) -> Counter[str]:
+    """Per topic, the distinct records in the File output stamped before ``moment`` (the killed
+    publisher's); one delivered again (at least once: the same ``record_id``) counts once."""
+    seen: set[str] = set()
+    counts: Counter[str] = Counter()
+    if output.exists():
+        for line in output.read_text().splitlines():
+            if line.endswith("}"):
+                record = json.loads(line)
+                if float(record["date"]) < moment and record["record_id"] not in seen:
+                    seen.add(record["record_id"])
+                    topic = f"/dc/measurement/{record['m']}" if "m" in record else f"/dc/group/{record['name']}"
+                    counts[topic] += 1
+    return counts
+
+
+@pytest.mark.parametrize(
+    ("mode", "server"),
+    [("processes", "measurement_server"), ("single-process", "measurement_server"), ("processes", "group_server")],
+)
+def test_kill_9_of_a_server_holding_its_own_records(tmp_path: Path, mode: str, server: str) -> None:
+    """measurement_server publishes records of its own (timer samples; group_server: groups of them)
+    that destination_server has not acknowledged (processes: destination_server is stopped with
+    SIGSTOP; single process: the buffer's disk is full, its commits fail, the records wait in memory)
+    when it is killed with -9. Its successor announces where the killed one got to: what never
+    arrived is counted in `missing`."""
+    params, output, topics = ticks_params(tmp_path, server)
+    single = mode == "single-process"
+    args = ["--bond-timeout", "30", *(["--single-process"] if single else [])]
+    keys = tmp_path / "observed"
+    with contextlib.ExitStack() as stack:
+        if single:
+            disk = stack.enter_context(tmpfs(tmp_path / "disk"))
+            params.write_text(params.read_text().replace(str(tmp_path / "buffer"), str(disk)))
+        run = stack.enter_context(Bringup(params, tmp_path / "home", args=args))
+        run.wait_ready()
+        observer = subprocess.Popen(
+            [sys.executable, "-c", OBSERVER, str(keys), *topics], env=run.env, stderr=subprocess.DEVNULL
+        )
+        try:
+            run.wait_until(
+                lambda: len(ticks_before(output, time.time())) == len(observed_high(keys)) == len(topics),
+                30,
+                "every topic in the file and seen by the observer",
+            )
+            if single:
+                fill(disk / "filler")  # nothing committed, so nothing acknowledged, from now on
+                run.wait_stderr("group commit failed", 30)
+                victim = single_process_pid(run)
+            else:
+                destination = active_pid(run, "destination_server")
+                os.kill(destination, signal.SIGSTOP)  # nothing acknowledged from now on
+                victim = active_pid(run, server)
+            stopped_at = observed_high(keys)
+            run.wait_until(
+                lambda: all(observed_high(keys).get(t, 0) >= stopped_at.get(t, 0) + 20 for t in topics),
+                30,
+                "2 s of records held",
+            )
+            # Stopped first, so that the observer has seen all it published when it dies.
+            os.kill(victim, signal.SIGSTOP)
+            killed_at = time.time()
+            seen: list[dict[str, int]] = [{}]
+
+            def quiet() -> bool:
+                now = observed_high(keys)
+                settled = now == seen[0]
+                seen[0] = now
+                return settled
+
+            run.wait_until(quiet, 30, "the observer seeing nothing more")
+            # Written before each record is published: the observer saw them all, or all but the one
+            # being published when the SIGSTOP came (taken, never sent: lost too).
+            produced = marks_of(run, server)
+            assert all(0 <= produced[t] - seen[0][t] <= 1 for t in topics), (produced, seen[0])
+            os.kill(victim, signal.SIGKILL)
+            if single:
+                (disk / "filler").unlink()  # the restarted process has room
+            up_again = "DC is up in one process (pid" if single else f"{server} active (pid "
+            run.wait_until(lambda: sum(up_again in s for s in run.stderr) >= 2, 60, "the server up again")
+            if not single:
+                os.kill(destination, signal.SIGCONT)
+
+            def settled() -> bool:
+                missing = hop_missing(run.stderr)
+                delivered = ticks_before(output, killed_at)
+                return all(delivered[t] + missing.get(t, 0) >= produced[t] for t in topics)
+
+            try:
+                run.wait_until(settled, 30, "every record of the killed server delivered or counted")
+            finally:
+                delivered = ticks_before(output, killed_at)
+                missing = hop_missing(run.stderr)
+                print(
+                    f"\nkill -9 of {server} ({mode}) holding its own records: produced "
+                    f"{sum(produced.values())}, delivered {sum(delivered.values())}, missing {sum(missing.values())}"
+                )
+            # Counted and acknowledged: the killed publishers' marks are retired, the living ones' stay.
+            run.wait_until(
+                lambda: len(list(marks_folder(run, server).glob("*.mark"))) == len(topics),
+                15,
+                "the killed server's marks retired",
+            )
+            table = dc("status", "--port", metrics_port(run), env=run.env).stdout
+        finally:
+            observer.terminate()
+            observer.wait(10)
+        warnings = [s for s in run.stderr if "not acknowledged when its process ended" in s]
+    for topic in topics:
+        assert delivered[topic] + missing.get(topic, 0) == produced[topic], (topic, delivered, missing, produced)
+    assert sum(missing.values()) > 0, "the kill lost records: what this test is about"
+    # One line, with the number: the announcement came once (transient local, one destination_server).
+    assert len(warnings) == 1 and f"{sum(missing.values())} records of {server}" in warnings[0], warnings
+    assert "publisher(s) ended holding records)" in table, table
+
+
+def test_a_stop_and_a_start_count_nothing_lost(tmp_path: Path) -> None:
+    """Without a fault: the marks a stop leaves (records held when the last acks came too late) are
+    announced at the next start, and destination_server, which has every record, counts none."""
+    params, output, topics = ticks_params(tmp_path, "measurement_server")
+    home = tmp_path / "home"
+    with Bringup(params, home) as first:
+        first.wait_ready()
+        first.wait_until(lambda: min(ticks_before(output, time.time()).values(), default=0) >= 20, 30, "records")
+    stopped_at = time.time()
+    left = list(marks_folder(first, "measurement_server").glob("*.mark"))
+    with Bringup(params, home, env={"ROS_DOMAIN_ID": str(first.domain_id)}) as second:
+        second.wait_ready()
+        second.wait_until(
+            lambda: len(list(marks_folder(second, "measurement_server").glob("*.mark"))) == len(topics),
+            15,
+            "the first run's marks retired",
+        )
+        second.wait_until(lambda: min(ticks_before(output, time.time()).values()) >= 30, 30, "the second run's records")
+        missing = hop_missing(second.stderr)
+    print(f"\nstop and start: {len(left)} marks left by the stop; missing {missing}")
+    assert sum(missing.values()) == 0, missing
+    assert not any("never arrived" in line for line in second.stderr)
+    assert len(ticks_before(output, stopped_at)) == len(topics)
 
 
 # -- 3. SIGSTOP beyond the bond timeout, then a burst of SIGTERMs -------------------------------------

@@ -28,13 +28,13 @@ from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_bringup.local_servers.seaweedfs import SeaweedS3Server, missing_reason
+from dc_core.confined_files import Confinement, FileRefused, check_key, default_roots
 from dc_core.destination import OutgoingRecord
 from dc_core.errors import ConfigError
 from dc_core.handoff import RESEND_TOPIC, frame_key, new_writer_id, resend_qos
 from dc_core.lifecycle import ServerLoop
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext, RecordingLogger
-from dc_destinations.confined_files import Confinement, FileRefused, check_key, default_roots
 from dc_destinations.minio import MinIO, MinIOParams
 from dc_destinations.server import DestinationServer
 from dc_interfaces.msg import StringStamped

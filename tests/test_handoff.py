@@ -148,6 +148,8 @@ class _Logger:
     def error(self, line: str) -> None:
         self.lines.append(line)
 
+    warning = info = error
+
 
 class _Node:
     def __init__(self) -> None:

@@ -110,6 +110,7 @@ def test_a_handled_record_arriving_again_is_a_duplicate() -> None:
         "gaps": 0,
         "writers": 1,
         "unkeyed": 0,
+        "writers_ended": 0,
     }
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -47,9 +48,20 @@ def services(tmp_path_factory: pytest.TempPathFactory, save_root: Path) -> Itera
         stderr=subprocess.PIPE,
         text=True,
     )
+    try:
+        with client(int(env["ROS_DOMAIN_ID"])) as pair:
+            yield pair
+    finally:
+        server.terminate()
+        server.wait(15)
+
+
+@contextlib.contextmanager
+def client(domain_id: int) -> Iterator[tuple[Any, SingleThreadedExecutor]]:
+    """A node of its own context in ``domain_id`` to call the services from, and its executor."""
     context = Context()
-    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]))
-    node = rclpy.create_node("test_image_services", context=context)
+    rclpy.init(context=context, domain_id=domain_id)
+    node = rclpy.create_node(f"test_image_services_client_{domain_id}", context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
@@ -58,8 +70,6 @@ def services(tmp_path_factory: pytest.TempPathFactory, save_root: Path) -> Itera
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
-        server.terminate()
-        server.wait(15)
 
 
 def call(services: tuple[Any, SingleThreadedExecutor], service_type: Any, name: str, request: Any) -> Any:
@@ -168,17 +178,43 @@ def test_dc_bringup_starts_the_image_services_when_the_file_has_their_section(tm
     with Bringup(params, tmp_path / "home") as bringup:
         bringup.wait_ready()
         assert any("image_services active" in line for line in bringup.stderr)
-        context = Context()
-        rclpy.init(context=context, domain_id=bringup.domain_id)
-        node = rclpy.create_node("test_bringup_image_services", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        try:
+        with client(bringup.domain_id) as services:
             frame = label_frame(LABEL, 640, 480)
             request = DetectBarcode.Request(frame=image_message(frame))
-            response = call((node, executor), DetectBarcode, "/dc/service/detect_barcodes", request)
+            response = call(services, DetectBarcode, "/dc/service/detect_barcodes", request)
             assert {b.data for b in response.barcodes} == {LABEL.qr, LABEL.linear}
-        finally:
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.shutdown(context=context)
+
+
+@pytest.mark.e2e
+def test_namespaced_image_services_serve_in_their_namespace_unless_written_absolute(tmp_path: Path) -> None:
+    """Two robots' DCs in one domain: r1's default services are its own (/r1/dc/service/…), not the
+    /dc/service/… every DC would share; r2's file writes /dc/service, honoured as written and warned about."""
+    from tests.bringup_util import Bringup
+
+    section = "image_services:\n  ros__parameters:\n    services: [draw_image]\n"
+    (tmp_path / "r1.yaml").write_text(section)
+    (tmp_path / "r2.yaml").write_text(section + '    service_namespace: "/dc/service"\n')
+    r1 = Bringup(tmp_path / "r1.yaml", tmp_path / "r1", args=["--single-process", "--namespace", "r1"])
+    r2 = Bringup(
+        tmp_path / "r2.yaml",
+        tmp_path / "r2",
+        args=["--single-process", "--namespace", "r2"],
+        env={"ROS_DOMAIN_ID": str(r1.domain_id)},
+    )
+    with r1, r2:
+        r1.wait_ready()
+        r2.wait_ready()
+        with client(r1.domain_id) as services:
+            request = DrawImage.Request(frame=image_message(np.zeros((48, 64, 3), dtype=np.uint8)), shape="rectangle")
+            request.box_width, request.box_height = 10, 10
+            assert call(services, DrawImage, "/r1/dc/service/draw_image", request).success
+            assert call(services, DrawImage, "/dc/service/draw_image", request).success
+            names = services[0].get_service_names_and_types()
+            assert {name for name, _ in names if name.endswith("/draw_image")} == {
+                "/r1/dc/service/draw_image",
+                "/dc/service/draw_image",
+            }
+    assert not any("service_namespace" in line for line in r1.stderr), "\n".join(r1.stderr)
+    (warning,) = [line for line in r2.stderr if "service_namespace" in line]
+    assert "image_services.service_namespace: /dc/service is absolute: outside namespace /r2" in warning
+    assert "write dc/service (relative)" in warning

@@ -94,3 +94,13 @@ def test_both_spellings_in_one_section_as_the_seed_qr_demo_writes_them(tmp_path:
     assert resolve_custom_params(config.custom_str_params) == [("robot_name", "R2D2", False)]
     assert any(w.startswith("measurement_server.robot_name: ignored") for w in report.warnings), report.warnings
     assert any(w.startswith("measurement_server.destinations: ignored") for w in report.warnings), report.warnings
+
+
+def test_a_measurement_key_without_effect_is_said_once() -> None:
+    config = parse_measurement_server(
+        {"measurement_plugins": ["map"], "map": {"plugin": "dc_measurements/Map", "quiet": False}}
+    )
+    assert config.warnings == [
+        "measurement_server.map.quiet: accepted for the original's files, has no effect because "
+        "there is no map_saver output"
+    ]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 import json
 import re
+import textwrap
 import threading
 import time
 import urllib.error
@@ -576,20 +577,22 @@ def gaps(times: list[float]) -> list[float]:
     return [b - a for a, b in itertools.pairwise(times)]
 
 
-def test_a_collection_sleeping_2_s_delays_neither_a_fast_measurement_nor_the_heartbeat(
-    harness: Harness,
-    sleepy_plugin: None,
-) -> None:
-    slow, fast = unique("sleepy"), unique("uptime")
+def run_beside_a_fast_measurement(
+    harness: Harness, slow: str, slow_section: str
+) -> tuple[MeasurementServer, list[Any]]:
+    """Run measurement ``slow`` (its YAML section, polled every 500 ms) beside an Uptime polled every
+    100 ms and a 0.2 s heartbeat until ``slow`` published twice; assert that its collections, 2 s each,
+    left neither the fast measurement nor the heartbeat waiting (they would on the main thread). The
+    server is left active; returns it and the records of ``slow``."""
+    fast = unique("uptime")
     server = harness.start_server(f"""
 measurement_server:
   ros__parameters:
     heartbeat_period: 0.2
     measurement_plugins: ["{slow}", "{fast}"]
     {slow}:
-      plugin: "test/Sleepy"
       polling_interval: 500
-      enable_validator: false
+{textwrap.indent(textwrap.dedent(slow_section).strip(), "      ")}
     {fast}:
       plugin: "dc_measurements/Uptime"
       polling_interval: 100
@@ -610,11 +613,7 @@ measurement_server:
             fast_times.append(time.monotonic())
         return len(slow_out) >= 2
 
-    harness.spin_until(fast_arrivals, "two records of the sleeping measurement", timeout=15.0)
-    plugin = server.runners[slow].plugin
-    assert isinstance(plugin, SleepyMeasurement)
-    assert [r["collection"] for r in records(slow_out)] == [1, 2]
-    assert all(name.startswith("measurement_server-worker") for name in plugin.threads), plugin.threads
+    harness.spin_until(fast_arrivals, f"two records of {slow}", timeout=15.0)
     # 100 ms and 200 ms periods: a collection on the main thread would leave 2 s gaps in both.
     assert len(fast_times) >= 30
     assert max(gaps(fast_times)) < 1.0, gaps(fast_times)
@@ -622,12 +621,51 @@ measurement_server:
     # Polls that came while a collection ran were skipped, not queued behind it.
     assert server.runners[slow].stats.overrun >= 4
     assert server.metrics_document()["measurements"][slow]["overrun"] == server.runners[slow].stats.overrun
+    return server, slow_out
+
+
+def test_a_collection_sleeping_2_s_delays_neither_a_fast_measurement_nor_the_heartbeat(
+    harness: Harness,
+    sleepy_plugin: None,
+) -> None:
+    slow = unique("sleepy")
+    server, slow_out = run_beside_a_fast_measurement(
+        harness,
+        slow,
+        """
+        plugin: "test/Sleepy"
+        enable_validator: false
+        """,
+    )
+    plugin = server.runners[slow].plugin
+    assert isinstance(plugin, SleepyMeasurement)
+    assert [r["collection"] for r in records(slow_out)] == [1, 2]
+    assert all(name.startswith("measurement_server-worker") for name in plugin.threads), plugin.threads
 
     # Deactivate waits for the collection under way; nothing of it is published afterwards.
     assert server.trigger_deactivate() == SUCCESS
     published = len(slow_out)
     harness.spin_for(0.5)
     assert len(slow_out) == published
+
+
+def test_a_tcp_health_connect_that_hangs_delays_neither_a_fast_measurement_nor_the_heartbeat(
+    harness: Harness, silent_port: int
+) -> None:
+    """TCPHealth waits its 2 s timeout for a port that drops SYNs: on the worker, not the main loop."""
+    health = unique("tcp_health")
+    server, health_out = run_beside_a_fast_measurement(
+        harness,
+        health,
+        f"""
+        plugin: "dc_measurements/TCPHealth"
+        name: "blackholed"
+        port: {silent_port}
+        timeout: 2000
+        """,
+    )
+    assert [r["active"] for r in records(health_out)] == [False, False]
+    assert server.trigger_deactivate() == SUCCESS
 
 
 def test_worker_hands_outcomes_back_on_the_thread_that_runs_them() -> None:

@@ -7,11 +7,11 @@ from rclpy.expand_topic_name import expand_topic_name
 
 from dc_core.errors import ConfigError
 from dc_core.handoff import destination_inputs
-from dc_core.topics import resolve_topic
+from dc_core.topics import published_topics, resolve_topic
 from dc_destinations.config import parse_destination_server
 from dc_destinations.server import internal_prefixes
 from dc_group.config import parse_group_server
-from dc_measurements.config import parse_measurement_server, published_topics
+from dc_measurements.config import parse_measurement_server
 
 NAMES = ["dc/measurement/a", "/dc/measurement/a", "~/private", "~", "{node}/x", "a/{ns}", "b/{namespace}/c"]
 
@@ -53,7 +53,7 @@ def test_without_a_namespace_the_defaults_are_the_absolute_names_of_before() -> 
 def test_in_a_namespace_relative_and_default_names_follow_it_and_absolute_ones_stay() -> None:
     measurements = parse_measurement_server(MEASUREMENTS, namespace="/r1")
     assert [m.output_topic for m in measurements.measurements] == ["/r1/dc/measurement/uptime", "/dc/measurement/cpu"]
-    assert published_topics(MEASUREMENTS, namespace="/r1").keys() == {
+    assert published_topics({"measurement_server": MEASUREMENTS}, "/r1")[0].keys() == {
         "/r1/dc/measurement/uptime",
         "/dc/measurement/cpu",
     }

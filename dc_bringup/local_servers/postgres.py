@@ -11,7 +11,6 @@ as root the cluster belongs to the ``postgres`` system user and every command ru
 from __future__ import annotations
 
 import contextlib
-import getpass
 import glob
 import os
 import pwd
@@ -300,8 +299,3 @@ class PostgresServer:
 
     def _log_tail(self) -> str:
         return log_tail(self.log_file)
-
-
-def current_user() -> str:
-    """Who owns a cluster started by this process: postgres as root, else the current user."""
-    return _SYSTEM_USER if os.geteuid() == 0 else getpass.getuser()

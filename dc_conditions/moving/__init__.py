@@ -13,20 +13,17 @@ from dataclasses import dataclass
 from typing import Any
 
 from nav_msgs.msg import Odometry
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from dc_core.condition import Condition, ConditionContext
 from dc_core.errors import PluginError
 from dc_core.params import param
-
-# Best effort matches both reliable and best-effort odometry publishers (drivers and simulators
-# differ); a lost message only delays the decision by one count.
-ODOMETRY_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+from dc_core.qos import SENSOR_QOS
+from dc_core.topics import topic_param
 
 
 @dataclass(frozen=True, kw_only=True)
 class MovingParams:
-    odom_topic: str = param("/odom", doc="nav_msgs/msg/Odometry topic whose twist gives the speed")
+    odom_topic: str = topic_param("/odom", doc="nav_msgs/msg/Odometry topic whose twist gives the speed")
     speed_threshold: float = param(0.2, minimum=0.0, doc="Speed (m/s) above which a message counts as moving")
     count_limit: int = param(8, minimum=1, doc="Bound of the counter (messages), in both directions")
     count_hysteresis: int = param(
@@ -94,7 +91,8 @@ class Moving(Condition[MovingParams]):
         with self._lock:
             self._hysteresis = self._new_hysteresis()
         topic = self.params.odom_topic
-        self._subscription = self.context.subscribe(Odometry, topic, self._on_odometry, ODOMETRY_QOS)
+        # (A lost message only delays the decision by one count.)
+        self._subscription = self.context.subscribe(Odometry, topic, self._on_odometry, SENSOR_QOS)
 
     def on_cleanup(self) -> None:
         if self._subscription is not None:

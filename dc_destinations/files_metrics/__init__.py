@@ -15,46 +15,34 @@ rows are upserted on ``(local_path, storage_type)``, so retries add no duplicate
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from dc_core.confined_files import ConfinementParams, OpenedFile, delete_opened
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.logs import BurstLog
-from dc_core.params import param, port_problem
-from dc_destinations.confined_files import (
-    Confinement,
-    ConfinementParams,
-    FileRefused,
-    OpenedFile,
-    confinement_of,
-    delete_opened,
-)
+from dc_core.params import compat_param, param
 from dc_destinations.files_metrics.media import DurationProbe, content_type, is_video
 from dc_destinations.files_metrics.table import FileRow, FilesTable
 from dc_destinations.object_files import (
     FilePair,
     NoLocalFile,
     ObjectStoreParams,
+    RecordFiles,
     StoreUnavailable,
     file_pairs,
     probe_bucket,
-    store_client,
     store_where,
     verify_stored,
-    warn_if_store_in_clear,
 )
 from dc_destinations.pgsql import record_time
 from dc_destinations.pgsql.connection import (
-    SSLMODES,
     KeptConnection,
-    ServerSettings,
-    check_server,
-    effective_sslmode,
-    effective_sslrootcert,
+    PostgresServerParams,
     is_record_error,
     probe_table,
     require_psycopg,
@@ -75,7 +63,7 @@ def _storages_problem(storages: list[str]) -> str | None:
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class StorageSection(ObjectStoreParams):
-    input_names: list[str] = param([], doc="Found in the seed's demos: accepted, no effect")
+    input_names: list[str] = compat_param([], "records come from the destination's inputs")
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
@@ -101,48 +89,12 @@ def _s3_not_given() -> S3Section:
 
 
 @dataclass(frozen=True, kw_only=True)
-class FilesMetricsDatabaseParams:
-    host: str = param("127.0.0.1", doc="Host name or IP address of the PostgreSQL server")
-    port: int | str = param(5432, check=port_problem, doc='TCP port of the server (the original wrote "5432")')
-    user: str = param("", doc="Role to log in as; empty: the system user running DC (libpq's default)")
-    password: str = param("", secret=True, doc="Password of `user` (never logged)")
-    database: str = param("", doc="Database to connect to; empty: the same name as the user (libpq's default)")
+class FilesMetricsDatabaseParams(PostgresServerParams):
     table: str = param(
         "files_metrics", check=table_problem, doc='Table of the rows ("schema.table" accepted); created if absent'
     )
-    timestamp_key: str = param(
-        "",
-        aliases=("timestamp_Key",),
-        doc="Record key whose value (epoch seconds or ISO 8601 text) fills `timestamp`; empty: the record's stamp",
-    )
-    time_format: str = param("double", doc="Found in the seed's files: accepted, no effect")
-    time_key: str = param("date", doc="Found in the seed's files: accepted, no effect")
-    ssl: bool = param(
-        False,
-        doc="TLS that checks the server (sslmode verify-full, the system's CAs or sslrootcert); "
-        "false: TLS when the server offers it, unchecked (prefer)",
-    )
-    sslmode: str = param("", choices=SSLMODES, doc="libpq's sslmode, overriding `ssl` (verify-full checks the host)")
-    sslrootcert: str = param(
-        "",
-        doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full); empty with ssl: the system's",
-    )
-    connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
-
-    def __post_init__(self) -> None:
-        check_server(self.host, self.ssl, self.sslmode, self.sslrootcert)
-
-    def server(self) -> ServerSettings:
-        return ServerSettings(
-            host=self.host,
-            port=int(self.port),
-            user=self.user,
-            password=self.password,
-            database=self.database,
-            sslmode=effective_sslmode(self.ssl, self.sslmode),
-            sslrootcert=effective_sslrootcert(self.ssl, self.sslmode, self.sslrootcert),
-            connect_timeout=self.connect_timeout,
-        )
+    time_format: str = compat_param("double", "`timestamp` comes from timestamp_key or the record's stamp")
+    time_key: str = compat_param("date", "`timestamp` comes from timestamp_key or the record's stamp")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -158,7 +110,7 @@ class FilesMetricsParams(ConfinementParams):
         maximum=60.0,
         doc="Seconds a file neither on disk nor stored is looked for again before its record is dead-lettered",
     )
-    plugin_path: str = param("", doc="The original's Go plugin file: accepted, no effect")
+    plugin_path: str = compat_param("", "there is no Go plugin to load")
     minio: StorageSection = param(default_factory=_minio_not_given, doc="The MinIO storage, if file_storage lists it")
     s3: S3Section = param(default_factory=_s3_not_given, doc="The S3 storage, if file_storage lists it")
     pgsql: FilesMetricsDatabaseParams = param(
@@ -216,11 +168,7 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         self._stores: list[_Store] = []
         self._probe = DurationProbe(context.logger)
         self._files_deleted = 0
-        self._files_refused = 0
-        self._confinement: Confinement | None = None
-        self._refused_log = BurstLog(
-            context.logger.warning, f"destination {context.name}: files or keys named by records refused"
-        )
+        self._files = RecordFiles(context)
         self.address = ""
 
     def __repr__(self) -> str:
@@ -229,7 +177,7 @@ class FilesMetrics(Destination[FilesMetricsParams]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         require_psycopg(self.context.name, "FilesMetrics")
-        self._confinement = confinement_of(self.params)
+        self._files.configure(self.params)
         table = FilesTable(self.params.pgsql.table)
         self._table = table
         self._database = KeptConnection(
@@ -244,13 +192,9 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         warn_if_password_in_clear(
             self.context.logger, name, self._database.settings, f"destination_server.{name}.pgsql"
         )
-        for storage in self.params.file_storage:
-            warn_if_store_in_clear(self.context.logger, f"{name}.{storage}", self.params.section(storage))
         self._stores = [
-            _Store(
-                name, self.params.section(name), store_client(self.params.section(name), f"{self.context.name}-{name}")
-            )
-            for name in self.params.file_storage
+            _Store(storage, section, section.client(self.context.logger, f"{name}.{storage}"))
+            for storage, section in ((s, self.params.section(s)) for s in self.params.file_storage)
         ]
 
     def probe(self) -> ProbeResult:
@@ -283,17 +227,11 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         self._stores = []
 
     def counters(self) -> dict[str, int]:
-        return {"files_deleted": self._files_deleted, "files_refused": self._files_refused}
+        return {"files_deleted": self._files_deleted, "files_refused": self._files.refused}
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
-        self._refused_log.tick()
-        plans: list[_Plan] = []
-        try:
-            return self._send(batch, plans)
-        finally:
-            for plan in plans:
-                plan.close()
+        return self._files.batch(functools.partial(self._send, batch))
 
     def _send(self, batch: Sequence[OutgoingRecord], plans: list[_Plan]) -> SendOutcome | None:
         database = self._database
@@ -341,26 +279,8 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         self, record: OutgoingRecord, store: _Store, pair: FilePair, plan: _Plan, durations: dict[str, float | None]
     ) -> None:
         bucket = store.section.bucket
-        if pair.key is None:
-            plan.refused.append(f"no object key at {pair.upload_field} for {pair.local_path or pair.src_field}")
-            return
-        if not pair.local_path:
-            plan.refused.append(f"{pair.src_field} holds no file path")
-            return
-        assert self._confinement is not None
-        opened = plan.opened.get(pair.local_path)
-        try:
-            self._confinement.check_key(pair.key)
-            if opened is None:
-                opened = self._confinement.open(pair.local_path)
-        except FileRefused as exc:
-            self._files_refused += 1
-            reason = f"refused: {exc} ({pair.src_field})"
-            self._refused_log.event(1, reason)
-            plan.refused.append(reason)
-            return
-        except OSError as exc:
-            plan.refused.append(f"cannot read {pair.local_path} ({pair.src_field}): {exc.strerror or exc}")
+        usable, opened = self._files.open(pair, plan.refused, plan.opened.get(pair.local_path))
+        if not usable or pair.key is None:
             return
         if opened is not None:
             plan.opened[pair.local_path] = opened

@@ -23,30 +23,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-try:
-    import botocore.config
-    import botocore.exceptions
-except ImportError as exc:  # an optional dependency: say which extra brings it
-    raise ImportError(f"the KinesisStreams destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
-
-from dc_core.destination import (
-    Destination,
-    OutgoingRecord,
-    ProbeResult,
-    RejectedError,
-    RetryableError,
-    SendOutcome,
-)
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.params import param
 from dc_core.records import MalformedRecord, dump_record
-from dc_destinations.aws import (
-    CREDENTIAL_CODES,
-    CREDENTIALS_MISSING,
-    NETWORK_ERRORS,
-    AwsCredentialsParams,
-    endpoint_url,
-    region_problem,
-)
+from dc_destinations.aws import CREDENTIAL_CODES, AwsClientParams, BotoCoreError, ClientError
 
 # The service's limits (Kinesis Data Streams quotas): a record's data plus its partition key, and a
 # PutRecords request's records and bytes (data plus partition keys).
@@ -89,15 +69,13 @@ def _template_problem(template: str) -> str | None:
 
 
 @dataclass(frozen=True, kw_only=True)
-class KinesisParams(AwsCredentialsParams):
-    region: str = param("us-east-1", check=region_problem, doc="AWS region of the stream")
+class KinesisParams(AwsClientParams):
     stream: str = param(check=_stream_problem, doc="Name (or ARN) of the Kinesis data stream")
     partition_key: str = param(
         "{name}",
         check=_template_problem,
         doc="Partition key template over the record's top-level keys; the record_id when a key is missing",
     )
-    log_key: str = param("", doc="Send only this key's value instead of the whole record; empty: the whole record")
     time_key: str = param(
         "date",
         aliases=("json_date_key",),
@@ -106,9 +84,6 @@ class KinesisParams(AwsCredentialsParams):
     time_key_format: str = param(
         "", doc="strftime format (UTC; %3N, %6N, %9N, %L for fractions) of the time key; empty: time_format"
     )
-    endpoint: str = param("", doc="Kinesis endpoint (host name or URL); empty: the region's")
-    auto_retry_requests: bool = param(True, doc="Retry a failed request once at once, before the backoff")
-    timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
 
 
 class _Unsendable(Exception):
@@ -129,20 +104,8 @@ class KinesisStreams(Destination[KinesisParams]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         p = self.params
-        endpoint = endpoint_url(p.endpoint)
-        # Named in every message: which stream, where, so an operator sees what to fix.
-        self.where = f"stream {p.stream} in {p.region}" + (f" at {endpoint}" if endpoint else "")
-        p.warn_if_in_clear(self.context.logger, self.context.name, p.endpoint)
-        config = botocore.config.Config(
-            region_name=p.region,
-            connect_timeout=p.timeout,
-            read_timeout=p.timeout,
-            # Fluent Bit's auto_retry_requests: one immediate retry; the destination server's backoff does the rest.
-            retries={"total_max_attempts": 2 if p.auto_retry_requests else 1, "mode": "standard"},
-            user_agent_extra="dc-destinations",
-        )
-        # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
-        self._client = self._session().client("kinesis", endpoint_url=endpoint, config=config)
+        self.where = p.where(f"stream {p.stream}")
+        self._client = p.client("kinesis", self.context.logger, self.context.name)
 
     def probe(self) -> ProbeResult:
         """DescribeStreamSummary with the real credentials: the stream exists and is writable-state."""
@@ -167,10 +130,6 @@ class KinesisStreams(Destination[KinesisParams]):
         if self._client is not None:
             self._client.close()
             self._client = None
-
-    def _session(self) -> Any:
-        p = self.params
-        return p.session(self.context.name, p.region, p.timeout)
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
@@ -253,7 +212,7 @@ class KinesisStreams(Destination[KinesisParams]):
             response = self._client.put_records(
                 Records=[{"Data": data, "PartitionKey": key} for _, data, key in entries], **target
             )
-        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+        except (BotoCoreError, ClientError) as exc:
             retryable, message = self._describe(exc)
             self._problem(message)
             if retryable:
@@ -272,41 +231,30 @@ class KinesisStreams(Destination[KinesisParams]):
     # -- messages ----------------------------------------------------------------------------------
     def _describe(self, exc: Exception) -> tuple[bool, str]:
         """Whether a whole-request failure may pass, and what to tell the operator."""
-        p = self.params
-        if isinstance(exc, botocore.exceptions.ClientError):
+        common = self.params.common_failure(exc, "Kinesis", self.where)
+        if common is not None:
+            return True, common
+        if isinstance(exc, ClientError):
             error = exc.response.get("Error", {})
             code, text = str(error.get("Code", "")), str(error.get("Message", ""))
             status = exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0)
-            if exc.operation_name == "AssumeRole":
-                return True, self._scrub(f"cannot assume role {p.role_arn}: {code}: {text} (for {self.where})")
             if code == "ResourceNotFoundException":
-                return True, self._scrub(f"no {self.where}: create it or correct `stream` / `region` ({text})")
+                return True, self.params.scrub(f"no {self.where}: create it or correct `stream` / `region` ({text})")
             if code in CREDENTIAL_CODES:
-                return True, self._scrub(
+                return True, self.params.scrub(
                     f"AWS refused the credentials for {self.where}: {code}: {text} "
                     "(check the access key, role_arn and the policy's kinesis:PutRecords)"
                 )
             if code in _REJECT_CODES:
-                return False, self._scrub(f"Kinesis refused the request: {code}: {text} ({self.where})")
-            return True, self._scrub(f"PutRecords failed: {code or status}: {text} ({self.where})")
-        if isinstance(exc, CREDENTIALS_MISSING):
-            return True, (
-                f"no AWS credentials for {self.where}: set them in the environment, a profile, an instance "
-                "role, or aws_access_key_id / aws_secret_access_key"
-            )
-        if isinstance(exc, NETWORK_ERRORS):
-            return True, self._scrub(f"cannot reach Kinesis for {self.where}: {exc}")
-        return True, self._scrub(f"PutRecords failed: {type(exc).__name__}: {exc} ({self.where})")
+                return False, self.params.scrub(f"Kinesis refused the request: {code}: {text} ({self.where})")
+            return True, self.params.scrub(f"PutRecords failed: {code or status}: {text} ({self.where})")
+        return True, self.params.scrub(f"PutRecords failed: {type(exc).__name__}: {exc} ({self.where})")
 
     def _problem(self, message: str) -> None:
         """Log a whole-request failure once when it starts (the server logs the retries per burst)."""
         if message != self._last_problem:
             self.context.logger.error(message)
             self._last_problem = message
-
-    def _scrub(self, text: str) -> str:
-        secret = self.params.aws_secret_access_key
-        return text.replace(secret, "***") if secret else text
 
 
 def _strftime(stamp_ns: int, fmt: str) -> str:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import functools
 import mimetypes
 import os
 import threading
@@ -31,45 +32,34 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, NoReturn
 
+from dc_core.confined_files import ConfinementParams, OpenedFile, delete_opened
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.logs import BurstLog
-from dc_core.params import param
-from dc_destinations.confined_files import (
-    Confinement,
-    ConfinementParams,
-    FileRefused,
-    OpenedFile,
-    confinement_of,
-    delete_opened,
+from dc_core.params import compat_param, param
+from dc_destinations.aws import (
+    MAX_PART_BYTES,
+    MAX_PARTS,
+    MAX_PUT_BYTES,
+    MIN_PART_BYTES,
+    BotoCoreError,
+    ClientError,
+    size_problem,
 )
 from dc_destinations.object_files import (
     PART_SIZE_METADATA,
     FilePair,
     ObjectStoreParams,
+    RecordFiles,
     StoreUnavailable,
     file_pairs,
     part_digests,
     probe_bucket,
-    store_client,
     store_failure,
     store_where,
     stored_object,
     verify_stored,
-    warn_if_store_in_clear,
 )
 from dc_destinations.settings import parse_size
-
-try:
-    import botocore.exceptions
-except ImportError as exc:  # an optional dependency: say which extra brings it
-    raise ImportError(f"the MinIO destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
-
-# S3's limits: parts of 5 MiB to 5 GiB (the last one smaller), at most 10000 of them, 5 GiB in one PUT.
-MIN_PART_BYTES = 5 * 1024 * 1024
-MAX_PART_BYTES = 5 * 1024 * 1024 * 1024
-MAX_PARTS = 10_000
-MAX_PUT_BYTES = 5 * 1024 * 1024 * 1024
 
 # Types of DC's own files that mimetypes does not know everywhere (it reads the system's tables) or
 # takes for something else (.ts, IpCamera's video segments, is a Qt translation file to it).
@@ -78,21 +68,13 @@ _ALREADY_THERE = ("BucketAlreadyOwnedByYou", "BucketAlreadyExists")
 _NO_BUCKET = ("404", "NoSuchBucket", "NotFound")
 
 
-def _size_problem(text: str) -> str | None:
-    try:
-        size = parse_size(text)
-    except ConfigError:
-        size = None
-    return None if size else 'a size such as "64M", "16M" or a number of bytes'
-
-
 @dataclass(frozen=True, kw_only=True, repr=False)
 class MinIOParams(ObjectStoreParams, ConfinementParams):
     create_bucket: bool = param(True, doc="Create the bucket at the first upload if it does not exist")
     multipart_threshold: str = param(
-        "64M", check=_size_problem, doc="Files larger than this are uploaded in parts, resumably (at most 5G)"
+        "64M", check=size_problem, doc="Files larger than this are uploaded in parts, resumably (at most 5G)"
     )
-    part_size: str = param("16M", check=_size_problem, doc="Size of the parts of a multipart upload (5M to 5G)")
+    part_size: str = param("16M", check=size_problem, doc="Size of the parts of a multipart upload (5M to 5G)")
     complete_after: float = param(
         1.0, minimum=0.0, maximum=60.0, doc="Seconds a file must be left unmodified before it is uploaded"
     )
@@ -100,8 +82,8 @@ class MinIOParams(ObjectStoreParams, ConfinementParams):
         False, doc="Delete each local file once its object is verified (one storage; FilesMetrics for several)"
     )
     timeout: float = param(30.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
-    verbose_plugin: bool = param(False, doc="Accepted for compatibility: no effect")
-    plugin_path: str = param("", doc="Accepted for compatibility: no effect (there is no Go plugin to load)")
+    verbose_plugin: bool = compat_param(False, "DC logs at dc-bringup's --log-level (there is no Go plugin)")
+    plugin_path: str = compat_param("", "there is no Go plugin to load")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -176,22 +158,17 @@ class MinIO(Destination[MinIOParams]):
                 "files_missing",
                 "files_deleted",
                 "delete_failures",
-                "files_refused",
             ),
             0,
         )
         self.where = ""
-        self._confinement: Confinement | None = None
-        self._refused_log = BurstLog(
-            context.logger.warning, f"destination {context.name}: files or keys named by records refused"
-        )
+        self._files = RecordFiles(context)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
-        self._confinement = confinement_of(self.params)
-        self._client = store_client(self.params, self.context.name, self.params.timeout)
-        warn_if_store_in_clear(self.context.logger, self.context.name, self.params)
+        self._files.configure(self.params)
+        self._client = self.params.client(self.context.logger, self.context.name, self.params.timeout)
         self.where = store_where(self.params.bucket, self._client)
 
     def probe(self) -> ProbeResult:
@@ -202,9 +179,9 @@ class MinIO(Destination[MinIOParams]):
         # The store is not probed here: an unreachable store must not hold up activation, and the
         # first batch says clearly what is wrong.
         fields = ", ".join(self.params.src_fields)
-        assert self._confinement is not None
+        assert self._files.confinement is not None
         self.context.logger.info(
-            f"uploading the files of {fields} to {self.where}, from {self._confinement.describe()} only"
+            f"uploading the files of {fields} to {self.where}, from {self._files.confinement.describe()} only"
         )
 
     def on_deactivate(self) -> None:
@@ -216,7 +193,7 @@ class MinIO(Destination[MinIOParams]):
             self._client = None
 
     def counters(self) -> dict[str, int]:
-        return dict(self._counts)
+        return {**self._counts, "files_refused": self._files.refused}
 
     def _pause(self, seconds: float) -> bool:
         """Wait for files to be complete; True when interrupted (the destination is stopping)."""
@@ -224,13 +201,7 @@ class MinIO(Destination[MinIOParams]):
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
-        self._refused_log.tick()
-        records: list[_Record] = []
-        try:
-            return self._send(batch, records)
-        finally:
-            for record in records:
-                record.close()
+        return self._files.batch(functools.partial(self._send, batch))
 
     def _send(self, batch: Sequence[OutgoingRecord], records: list[_Record]) -> SendOutcome | None:
         outcome = SendOutcome()
@@ -267,14 +238,14 @@ class MinIO(Destination[MinIOParams]):
         bucket = self.params.bucket
         try:
             self._client.head_bucket(Bucket=bucket)
-        except botocore.exceptions.ClientError as exc:
+        except ClientError as exc:
             if str(exc.response.get("Error", {}).get("Code", "")) in _NO_BUCKET:
                 self._create_bucket()
             elif store_failure(exc, self.where, "").kind != "credentials":
                 self._fail(exc, "look up the bucket")
             # else: looking at a bucket needs s3:ListBucket, which an uploader may lack; if the
             # credentials are wrong, the first object says so.
-        except botocore.exceptions.BotoCoreError as exc:
+        except BotoCoreError as exc:
             self._fail(exc, "look up the bucket")
         self._bucket_ready = True
 
@@ -284,39 +255,22 @@ class MinIO(Destination[MinIOParams]):
             request["CreateBucketConfiguration"] = {"LocationConstraint": self.params.region}
         try:
             self._client.create_bucket(**request)
-        except botocore.exceptions.ClientError as exc:
+        except ClientError as exc:
             if str(exc.response.get("Error", {}).get("Code", "")) not in _ALREADY_THERE:
                 self._fail(exc, "create the bucket")
             return
-        except botocore.exceptions.BotoCoreError as exc:
+        except BotoCoreError as exc:
             self._fail(exc, "create the bucket")
         self.context.logger.info(f"created {self.where}")
 
     def _open(self, pair: FilePair, record: _Record) -> tuple[bool, OpenedFile | None]:
         """The pair's file opened if it passes the checks (confined_files); (False, None) when refused or unreadable."""
-        assert self._confinement is not None and pair.key is not None
-        try:
-            self._confinement.check_key(pair.key)
-            return True, self._confinement.open(pair.local_path)
-        except FileRefused as exc:
-            self._counts["files_refused"] += 1
-            reason = f"refused: {exc} ({pair.src_field})"
-            self._refused_log.event(1, reason)
-            record.rejects.append(reason)
-        except OSError as exc:
-            record.rejects.append(f"cannot read {pair.local_path} ({pair.src_field}): {exc.strerror or exc}")
-        return False, None
+        return self._files.open(pair, record.rejects)
 
     def _look(self, index: int, record: OutgoingRecord) -> _Record:
         """The record's files as they are now; a missing file is looked up in the store."""
         looked = _Record(index)
         for pair in file_pairs(record.data, self.params):
-            if pair.key is None:
-                looked.rejects.append(f"no object key at {pair.upload_field} for {pair.local_path or pair.src_field}")
-                continue
-            if not pair.local_path:
-                looked.rejects.append(f"{pair.src_field} holds no file path")
-                continue
             usable, opened = self._open(pair, looked)
             if not usable:
                 continue
@@ -435,7 +389,7 @@ class MinIO(Destination[MinIOParams]):
                     )
             else:
                 self._multipart(opened, key, size, content_type)
-        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+        except (BotoCoreError, ClientError) as exc:
             self._fail(exc, f"upload {key}")
         return size
 
@@ -485,7 +439,7 @@ class MinIO(Destination[MinIOParams]):
                 for upload in page.get("Uploads", [])
                 if upload.get("Key") == key
             ]
-        except botocore.exceptions.ClientError as exc:
+        except ClientError as exc:
             if store_failure(exc, self.where, "").kind in ("credentials", "object"):
                 return None, {}  # not allowed to list uploads, or not implemented: upload afresh
             raise
@@ -516,7 +470,7 @@ class MinIO(Destination[MinIOParams]):
                 continue
             # Cut in other parts (another part_size, another file), or a second upload of the key:
             # never completed, its parts would be kept (and billed) until a lifecycle rule removes them.
-            with contextlib.suppress(botocore.exceptions.ClientError):
+            with contextlib.suppress(ClientError):
                 self._client.abort_multipart_upload(Bucket=p.bucket, Key=key, UploadId=upload["UploadId"])
         return chosen, kept
 

@@ -32,16 +32,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, SendOutcome
-from dc_core.params import param, port_problem
+from dc_core.params import compat_param, param
 from dc_core.records import MalformedRecord
 from dc_destinations.pgsql.connection import (
     MAX_IDENTIFIER,
-    SSLMODES,
     KeptConnection,
-    ServerSettings,
-    check_server,
-    effective_sslmode,
-    effective_sslrootcert,
+    PostgresServerParams,
     is_record_error,
     one_line,
     probe_table,
@@ -65,52 +61,14 @@ _BINARY_TYPES = (
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
-class PgSQLParams:
-    host: str = param("127.0.0.1", doc="Host name or IP address of the PostgreSQL server")
-    port: int = param(5432, check=port_problem, doc="TCP port of the PostgreSQL server")
-    user: str = param("", doc="Role to log in as; empty: the system user running DC (libpq's default)")
-    password: str = param("", secret=True, doc="Password of `user` (never logged)")
-    database: str = param("", doc="Database to connect to; empty: the same name as the user (libpq's default)")
+class PgSQLParams(PostgresServerParams):
     table: str = param("dc", check=table_problem, doc='Table of the rows ("schema.table" accepted); created if absent')
-    timestamp_key: str = param(
-        "",
-        aliases=("timestamp_Key",),
-        doc="Record key whose value (epoch seconds or ISO 8601 text) fills `time`; empty: the record's stamp",
+    async_: bool = compat_param(
+        False, "each batch is written by the destination's own sender thread", aliases=("async",)
     )
-    ssl: bool = param(
-        False,
-        doc="TLS that checks the server (sslmode verify-full, the system's CAs or sslrootcert); "
-        "false: TLS when the server offers it, unchecked (prefer)",
-    )
-    sslmode: str = param("", choices=SSLMODES, doc="libpq's sslmode, overriding `ssl` (verify-full checks the host)")
-    sslrootcert: str = param(
-        "",
-        doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full); empty with ssl: the system's",
-    )
-    connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
-    async_: bool = param(False, aliases=("async",), doc="The original's `async`: accepted, no effect")
-    min_pool_size: int | str = param("1", doc="Accepted for the original's files; no effect (one connection)")
-    max_pool_size: int | str = param("4", doc="Accepted for the original's files; no effect (one connection)")
-    cockroachdb: bool = param(False, doc="Accepted for the original's files; no effect")
-
-    def __post_init__(self) -> None:
-        check_server(self.host, self.ssl, self.sslmode, self.sslrootcert)
-
-    @property
-    def effective_sslmode(self) -> str:
-        return effective_sslmode(self.ssl, self.sslmode)
-
-    def server(self) -> ServerSettings:
-        return ServerSettings(
-            host=self.host,
-            port=self.port,
-            user=self.user,
-            password=self.password,
-            database=self.database,
-            sslmode=self.effective_sslmode,
-            sslrootcert=effective_sslrootcert(self.ssl, self.sslmode, self.sslrootcert),
-            connect_timeout=self.connect_timeout,
-        )
+    min_pool_size: int | str = compat_param("1", "DC keeps one connection per destination")
+    max_pool_size: int | str = compat_param("4", "DC keeps one connection per destination")
+    cockroachdb: bool = compat_param(False, "DC writes PostgreSQL's SQL whatever the server")
 
     def __repr__(self) -> str:
         # Written by hand: the generated repr would show `async_`, and the password must stay out.

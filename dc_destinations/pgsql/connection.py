@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 from dc_core.destination import ConfigurationProblem, ProbeResult, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
-from dc_core.params import host_problem
+from dc_core.params import host_problem, param, port_problem
 from dc_destinations.tls import warn_if_credentials_in_clear
 
 T = TypeVar("T")
@@ -52,11 +52,8 @@ def table_problem(table: str) -> str | None:
     return None
 
 
-def check_server(host: str, ssl: bool, sslmode: str, sslrootcert: str) -> None:
+def check_server(ssl: bool, sslmode: str, sslrootcert: str) -> None:
     """The checks of a server section that a single parameter cannot make; ConfigError naming the key."""
-    expected = host_problem(host)
-    if expected is not None:
-        raise ConfigError("host", f'expected {expected}, got "{host}"')
     if ssl and sslmode in ("disable", "allow", "prefer"):
         raise ConfigError("sslmode", f'"{sslmode}" contradicts ssl: true (use require, verify-ca or verify-full)')
     if sslrootcert and effective_sslmode(ssl, sslmode) not in ("verify-ca", "verify-full", "require"):
@@ -110,6 +107,52 @@ def warn_if_password_in_clear(logger: Logger, destination: str, settings: Server
         fix=f"set {section}.ssl: true and no sslmode (verify-full against the system's CAs), "
         f"with {section}.sslrootcert for a private CA",
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class PostgresServerParams:
+    """Where and how a destination logs in to PostgreSQL (PgSQL, FilesMetrics' ``pgsql``), checked together."""
+
+    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the PostgreSQL server")
+    port: int | str = param(5432, check=port_problem, doc='TCP port of the server (the original wrote "5432")')
+    user: str = param("", doc="Role to log in as; empty: the system user running DC (libpq's default)")
+    password: str = param("", secret=True, doc="Password of `user` (never logged)")
+    database: str = param("", doc="Database to connect to; empty: the same name as the user (libpq's default)")
+    timestamp_key: str = param(
+        "",
+        aliases=("timestamp_Key",),
+        doc="Record key whose value (epoch seconds or ISO 8601 text) fills the row's time; empty: the record's stamp",
+    )
+    ssl: bool = param(
+        False,
+        doc="TLS that checks the server (sslmode verify-full, the system's CAs or sslrootcert); "
+        "false: TLS when the server offers it, unchecked (prefer)",
+    )
+    sslmode: str = param("", choices=SSLMODES, doc="libpq's sslmode, overriding `ssl` (verify-full checks the host)")
+    sslrootcert: str = param(
+        "",
+        doc="CA certificates (PEM) that signed the server's certificate (verify-ca/full); empty with ssl: the system's",
+    )
+    connect_timeout: int = param(10, minimum=2, maximum=3600, doc="Seconds to connect (and log in)")
+
+    def __post_init__(self) -> None:
+        check_server(self.ssl, self.sslmode, self.sslrootcert)
+
+    @property
+    def effective_sslmode(self) -> str:
+        return effective_sslmode(self.ssl, self.sslmode)
+
+    def server(self) -> ServerSettings:
+        return ServerSettings(
+            host=self.host,
+            port=int(self.port),
+            user=self.user,
+            password=self.password,
+            database=self.database,
+            sslmode=self.effective_sslmode,
+            sslrootcert=effective_sslrootcert(self.ssl, self.sslmode, self.sslrootcert),
+            connect_timeout=self.connect_timeout,
+        )
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)

@@ -439,6 +439,14 @@ def test_the_originals_keys_are_accepted() -> None:
     assert "password" not in repr(plugin.params)
 
 
+def test_the_port_as_the_originals_files_write_it_is_a_number() -> None:
+    """PgSQL and FilesMetrics share their server parameters: FilesMetrics took "5432", PgSQL does too."""
+    p = parse_params(PgSQLParams, {"port": "5433"}, "x")
+    assert p.server().port == 5433
+    with pytest.raises(ConfigError, match=r"x\.port: expected a TCP port from 1 to 65535"):
+        parse_params(PgSQLParams, {"port": "54x"}, "x")
+
+
 def test_defaults() -> None:
     p = parse_params(PgSQLParams, {}, "x")
     assert (p.host, p.port, p.user, p.database, p.table, p.timestamp_key) == ("127.0.0.1", 5432, "", "", "dc", "")

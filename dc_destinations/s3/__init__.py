@@ -31,12 +31,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-try:
-    import botocore.config
-    import botocore.exceptions
-except ImportError as exc:  # an optional dependency: say which extra brings it
-    raise ImportError(f"the S3 destination needs boto3: pip install 'ros2-dc[aws]' ({exc})") from exc
-
 from dc_core.destination import (
     ConfigurationProblem,
     Destination,
@@ -46,22 +40,21 @@ from dc_core.destination import (
     SendOutcome,
 )
 from dc_core.errors import ConfigError
-from dc_core.params import param
+from dc_core.params import compat_param, param
 from dc_core.records import MalformedRecord, dump_record
 from dc_destinations.aws import (
-    CREDENTIAL_CODES,
     CREDENTIALS_MISSING,
-    NETWORK_ERRORS,
-    AwsCredentialsParams,
-    endpoint_url,
-    region_problem,
+    MAX_PART_BYTES,
+    MAX_PARTS,
+    MIN_PART_BYTES,
+    S3_CREDENTIAL_CODES,
+    AwsClientParams,
+    BotoCoreError,
+    ClientError,
+    bucket_problem,
+    size_problem,
 )
 from dc_destinations.settings import parse_size
-
-# S3's multipart limits: every part but the last at least 5 MiB, at most 5 GiB, at most 10000 parts.
-MIN_PART_BYTES = 5 * 1024 * 1024
-MAX_PART_BYTES = 5 * 1024 * 1024 * 1024
-MAX_PARTS = 10_000
 
 CANNED_ACLS = (
     "",
@@ -87,23 +80,8 @@ STORAGE_CLASSES = (
     "SNOW",
     "EXPRESS_ONEZONE",
 )
-# Answers about who is calling, on top of Kinesis' list: S3 names a wrong key ID its own way.
-_S3CREDENTIAL_CODES = CREDENTIAL_CODES | {"InvalidAccessKeyId", "InvalidToken", "TokenRefreshRequired"}
-_BUCKET = re.compile(r"[a-z0-9][a-z0-9.-]{1,61}[a-z0-9]")
 _TAG_PART = re.compile(r"\$TAG\[(\d+)\]")
 _DURATION = re.compile(r"(\d+(?:\.\d+)?)\s*([smhd]?)", re.IGNORECASE)
-
-
-def _bucket_problem(bucket: str) -> str | None:
-    return None if _BUCKET.fullmatch(bucket) else "a bucket name (3 to 63 lowercase letters, digits, '.', '-')"
-
-
-def _size_problem(text: str) -> str | None:
-    try:
-        size = parse_size(text)
-    except ConfigError:
-        size = None
-    return None if size else 'a size such as "100M", "50M" or a number of bytes'
 
 
 def _duration_problem(text: str) -> str | None:
@@ -115,9 +93,8 @@ def _key_format_problem(text: str) -> str | None:
 
 
 @dataclass(frozen=True, kw_only=True)
-class S3Params(AwsCredentialsParams):
-    bucket: str = param(check=_bucket_problem, doc="Bucket the objects are written to (it must exist)")
-    region: str = param("us-east-1", check=region_problem, doc="AWS region of the bucket")
+class S3Params(AwsClientParams):
+    bucket: str = param(check=bucket_problem, doc="Bucket the objects are written to (it must exist)")
     s3_key_format: str = param(
         "/fluent-bit-logs/$TAG/%Y/%m/%d/%H/%M/%S",
         check=_key_format_problem,
@@ -125,23 +102,27 @@ class S3Params(AwsCredentialsParams):
     )
     s3_key_format_tag_delimiters: str = param(".", doc="Characters that split $TAG into $TAG[0], $TAG[1]…")
     static_file_path: bool = param(False, doc="Do not append -$UUID to a key format without $UUID")
-    total_file_size: str = param("100M", check=_size_problem, doc="Most bytes (before compression) of one object")
+    total_file_size: str = param("100M", check=size_problem, doc="Most bytes (before compression) of one object")
     upload_chunk_size: str = param(
-        "50M", check=_size_problem, doc="Objects above this size are uploaded in parts of this size (5M to 5G)"
+        "50M", check=size_problem, doc="Objects above this size are uploaded in parts of this size (5M to 5G)"
     )
     use_put_object: bool = param(False, doc="Always one PutObject request, never a multipart upload")
-    upload_timeout: str = param("10m", check=_duration_problem, doc="Accepted for compatibility: not used")
-    store_dir: str = param("/tmp/fluent-bit/s3", doc="Accepted for compatibility: not used (the buffer keeps records)")
-    store_dir_limit_size: str = param("0", doc="Accepted for compatibility: not used")
-    preserve_data_ordering: bool = param(True, doc="Accepted for compatibility: batches are always sent in order")
+    upload_timeout: str = compat_param(
+        "10m",
+        "each batch is written when the destination server sends it (flb.flush, batch_size)",
+        check=_duration_problem,
+    )
+    store_dir: str = compat_param("/tmp/fluent-bit/s3", "the destination server's buffer keeps the records")
+    store_dir_limit_size: str = compat_param(
+        "0", "the destination server's buffer keeps the records (storage_total_limit_size bounds it)"
+    )
+    preserve_data_ordering: bool = compat_param(True, "batches are always sent in order")
     compression: str = param("", choices=("", "gzip"), doc="gzip: compressed objects (.gz, Content-Encoding: gzip)")
     content_type: str = param("", doc="Content-Type of the objects; empty: application/x-ndjson")
     canned_acl: str = param("", choices=CANNED_ACLS, doc="Canned ACL of the objects; empty: the bucket's default")
     storage_class: str = param("", choices=STORAGE_CLASSES, doc="Storage class of the objects; empty: STANDARD")
     send_content_md5: bool = param(False, doc="Send Content-MD5 with each request (buckets with object lock)")
-    log_key: str = param("", doc="Write only this key's value on each line instead of the whole record")
-    endpoint: str = param("", doc="S3 endpoint (host name or URL; path-style requests); empty: the region's")
-    auto_retry_requests: bool = param(True, doc="Retry a failed request once at once, before the backoff")
+    # An object takes longer than a Kinesis request: AwsClientParams' timeout with S3's default.
     timeout: float = param(30.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
 
     def __post_init__(self) -> None:
@@ -185,30 +166,15 @@ class S3(Destination[S3Params]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         p = self.params
-        endpoint = endpoint_url(p.endpoint)
-        # Named in every message: which bucket, where, so an operator sees what to fix.
-        self.where = f"bucket {p.bucket} in {p.region}" + (f" at {endpoint}" if endpoint else "")
-        p.warn_if_in_clear(self.context.logger, self.context.name, p.endpoint)
-        config = botocore.config.Config(
-            region_name=p.region,
-            connect_timeout=p.timeout,
-            read_timeout=p.timeout,
-            # Fluent Bit's auto_retry_requests: one immediate retry; the destination server's backoff does the rest.
-            retries={"total_max_attempts": 2 if p.auto_retry_requests else 1, "mode": "standard"},
-            # S3-compatible stores (SeaweedFS, MinIO, Ceph) rarely resolve bucket.host names: path-style there.
-            s3={"addressing_style": "path" if endpoint else "auto"},
-            user_agent_extra="dc-destinations",
-        )
-        session = p.session(self.context.name, p.region, p.timeout)
-        # Creating a client reads the configuration and credentials chain only: nothing is sent yet.
-        self._client = session.client("s3", endpoint_url=endpoint, config=config)
+        self.where = p.where(f"bucket {p.bucket}")
+        self._client = p.client("s3", self.context.logger, self.context.name)
 
     def probe(self) -> ProbeResult:
         """HEAD of the bucket with the real credentials: it exists and they may see it (a write
         permission is only proven by dc check --write-test)."""
         try:
             self._client.head_bucket(Bucket=self.params.bucket)
-        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+        except (BotoCoreError, ClientError) as exc:
             fix = _fix_for(exc)
             code = str(getattr(exc, "response", {}).get("Error", {}).get("Code", ""))
             if code in ("404", "NoSuchBucket"):
@@ -312,7 +278,7 @@ class S3(Destination[S3Params]):
                 self._client.put_object(Bucket=p.bucket, Key=key, Body=data, **extra, **self._md5(data))
             else:
                 self._multipart(key, data, extra)
-        except (botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError) as exc:
+        except (BotoCoreError, ClientError) as exc:
             message = self._describe(exc, key)
             self._problem(message)
             fix = _fix_for(exc)
@@ -342,7 +308,7 @@ class S3(Destination[S3Params]):
         except BaseException:
             # The parts already stored would be billed until a lifecycle rule removes them.
             # An unreachable store cannot abort either: the failure being raised says so.
-            with contextlib.suppress(botocore.exceptions.BotoCoreError, botocore.exceptions.ClientError):
+            with contextlib.suppress(BotoCoreError, ClientError):
                 self._client.abort_multipart_upload(Bucket=p.bucket, Key=key, UploadId=upload_id)
             raise
 
@@ -354,29 +320,24 @@ class S3(Destination[S3Params]):
     # -- messages ----------------------------------------------------------------------------------
     def _describe(self, exc: Exception, key: str) -> str:
         """What to tell the operator about a failed upload (every failure is retried)."""
-        p = self.params
-        if isinstance(exc, botocore.exceptions.ClientError):
+        common = self.params.common_failure(exc, "S3", self.where)
+        if common is not None:
+            return common
+        if isinstance(exc, ClientError):
             error = exc.response.get("Error", {})
             code, text = str(error.get("Code", "")), str(error.get("Message", ""))
             status = exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0)
-            if exc.operation_name == "AssumeRole":
-                return self._scrub(f"cannot assume role {p.role_arn}: {code}: {text} (for {self.where})")
             if code == "NoSuchBucket":
-                return self._scrub(f"no {self.where}: create it or correct `bucket` / `region` / `endpoint` ({text})")
-            if code in _S3CREDENTIAL_CODES:
-                return self._scrub(
+                return self.params.scrub(
+                    f"no {self.where}: create it or correct `bucket` / `region` / `endpoint` ({text})"
+                )
+            if code in S3_CREDENTIAL_CODES:
+                return self.params.scrub(
                     f"S3 refused the credentials for {self.where}: {code}: {text} "
                     "(check the access key, secret key, role_arn and the policy's s3:PutObject)"
                 )
-            return self._scrub(f"cannot write {key} to {self.where}: {code or status}: {text}")
-        if isinstance(exc, CREDENTIALS_MISSING):
-            return (
-                f"no AWS credentials for {self.where}: set them in the environment, a profile, an instance "
-                "role, or aws_access_key_id / aws_secret_access_key"
-            )
-        if isinstance(exc, NETWORK_ERRORS):
-            return self._scrub(f"cannot reach S3 for {self.where}: {exc}")
-        return self._scrub(f"cannot write {key} to {self.where}: {type(exc).__name__}: {exc}")
+            return self.params.scrub(f"cannot write {key} to {self.where}: {code or status}: {text}")
+        return self.params.scrub(f"cannot write {key} to {self.where}: {type(exc).__name__}: {exc}")
 
     def _problem(self, message: str) -> None:
         """Log a failure once when it starts (the server logs the retries per burst)."""
@@ -384,20 +345,16 @@ class S3(Destination[S3Params]):
             self.context.logger.error(message)
             self._last_problem = message
 
-    def _scrub(self, text: str) -> str:
-        secret = self.params.aws_secret_access_key
-        return text.replace(secret, "***") if secret else text
-
 
 def _fix_for(exc: Exception) -> str:
     """What to check when a failed upload is one retrying alone does not mend (dc_destinations.health)."""
     if isinstance(exc, CREDENTIALS_MISSING):
         return "give credentials: access_key_id and secret_access_key, or boto3's default chain"
-    if not isinstance(exc, botocore.exceptions.ClientError):
+    if not isinstance(exc, ClientError):
         return ""
     code = str(exc.response.get("Error", {}).get("Code", ""))
     if code == "NoSuchBucket":
         return "create the bucket, or correct bucket / region / endpoint"
-    if code in _S3CREDENTIAL_CODES or code == "AccessDenied":
+    if code in S3_CREDENTIAL_CODES:
         return "check the access key, secret key, role_arn and the policy's s3:PutObject"
     return ""

@@ -18,7 +18,7 @@ from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import host_problem, param, port_problem
+from dc_core.params import compat_param, host_problem, param, port_problem
 from dc_destinations.tls import TlsParams, client_context, ssl_reason
 
 # "json" is the original's name for the same JSON lines.
@@ -39,7 +39,7 @@ class TcpParams(TlsParams):
     tls_vhost: str = param("", doc="Host name the certificate is checked against and sent as SNI; empty: host")
     connect_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds to connect (and the TLS handshake)")
     write_timeout: float = param(10.0, minimum=0.1, maximum=3600, doc="Seconds a write may block")
-    workers: int = param(2, minimum=0, doc="Accepted for the original's files; one sender per destination")
+    workers: int = compat_param(2, "each destination has one sender, the destination server's", minimum=0)
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -25,9 +25,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from dc_core.errors import PluginError
 from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement, MeasurementContext
-from dc_core.params import param
+from dc_core.params import compat_param, param
 from dc_core.rostime import now_ns, stamp_ns
-from dc_core.topics import topic_problem
+from dc_core.topics import topic_param
 from dc_core.worker import Outcome
 from dc_measurements.saved_files import PendingFiles, ReservedPaths, file_locations
 
@@ -46,9 +46,8 @@ def _modules_problem(modules: list[str]) -> str | None:
 @dataclass(frozen=True, kw_only=True)
 class CameraParams:
     cam_name: str = param(doc="Name of the camera, given as camera_name in every record")
-    cam_topic: str = param(
+    cam_topic: str = topic_param(
         doc="Image topic (sensor_msgs/Image, or sensor_msgs/CompressedImage: see image_type)",
-        check=lambda name: topic_problem(name) and "a ROS 2 topic name",
     )
     image_type: str = param(
         "auto",
@@ -87,7 +86,7 @@ class CameraParams:
         doc="A compressed frame whose header gives more pixels is refused without being decoded "
         "(counted in frames_too_large); 50 MP decodes to 150 MB",
     )
-    node_name: str = param("", doc="Accepted for the original's configurations (it named a node); unused")
+    node_name: str = compat_param("", "the Camera subscribes through the measurement server's node")
 
 
 @dataclass

@@ -49,13 +49,12 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-# The names configurations use, declared with the measurement's parameters (without OpenCV's import).
-from dc_measurements.camera import DETECTION_MODULES
-
 Image = npt.NDArray[Any]  # uint8; OpenCV's stubs type every array it returns as integer-or-float
 
 QR_TYPES = frozenset({"QRCODE"})
 BARCODE_TYPES = frozenset({"QRCODE", "EAN13", "EAN8", "UPCA", "UPCE", "CODE128", "CODE39", "DATAMATRIX"})
+# Keyed by the names configurations use (the camera's DETECTION_MODULES, declared there without importing
+# OpenCV; this module is imported by the camera, not the other way round).
 MODULE_TYPES: Mapping[str, frozenset[str]] = MappingProxyType({"qr": QR_TYPES, "barcode": BARCODE_TYPES})
 
 ZXING = "zxing-cpp"
@@ -332,7 +331,7 @@ class BarcodeDetector:
         unknown = [module for module in modules if module not in MODULE_TYPES]
         if unknown:
             raise ValueError(
-                f"unknown detection module(s) {', '.join(map(repr, unknown))}; known: {', '.join(DETECTION_MODULES)}"
+                f"unknown detection module(s) {', '.join(map(repr, unknown))}; known: {', '.join(MODULE_TYPES)}"
             )
         types: frozenset[str] = frozenset()
         for module in modules:

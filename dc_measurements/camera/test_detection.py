@@ -10,7 +10,7 @@ import numpy.typing as npt
 import pytest
 import zxingcpp
 
-from dc_measurements.camera import detection
+from dc_measurements.camera import DETECTION_MODULES, detection
 from dc_measurements.camera.detection import BarcodeDetector, Detection, draw_detections
 
 Image = npt.NDArray[Any]  # uint8; OpenCV's stubs type every array it returns as integer-or-float
@@ -172,6 +172,10 @@ def test_draw_detections_on_a_mono_image_gives_bgr() -> None:
 def test_an_unknown_module_is_refused_with_the_known_ones() -> None:
     with pytest.raises(ValueError, match=r"unknown detection module\(s\) 'ocr'; known: qr, barcode"):
         BarcodeDetector(["qr", "ocr"])
+
+
+def test_the_detector_knows_the_modules_a_configuration_may_name() -> None:
+    assert tuple(detection.MODULE_TYPES) == DETECTION_MODULES
 
 
 def test_the_libraries_in_use_are_reported() -> None:

@@ -16,7 +16,8 @@ from geometry_msgs.msg import Twist, TwistStamped
 
 from dc_core.params import param
 from dc_core.rostime import stamp_ns
-from dc_measurements.velocity import LatestTwistMeasurement, repeat_last_param, topic_param
+from dc_core.topics import topic_param
+from dc_measurements.velocity import LatestTwistMeasurement, repeat_last_param
 
 AUTO = "auto"
 TWIST = "geometry_msgs/msg/Twist"
@@ -26,7 +27,7 @@ _MESSAGE_TYPES = {TWIST: Twist, TWIST_STAMPED: TwistStamped}
 
 @dataclass(frozen=True, kw_only=True)
 class CmdVelParams:
-    topic: str = topic_param("/cmd_vel", "geometry_msgs/msg/Twist or TwistStamped topic of the commands")
+    topic: str = topic_param("/cmd_vel", doc="geometry_msgs/msg/Twist or TwistStamped topic of the commands")
     message_type: str = param(
         AUTO,
         choices=(AUTO, TWIST, TWIST_STAMPED),

@@ -16,11 +16,12 @@ from nav_msgs.msg import Odometry
 
 from dc_core.errors import PluginError
 from dc_core.measurement import Measurement, MeasurementContext
-from dc_core.params import param
+from dc_core.params import compat_param, param
+from dc_core.qos import SENSOR_QOS
 from dc_core.rostime import stamp_ns
 from dc_core.tf import TransformBuffer, TransformError
 from dc_core.tf_listener import TfListener
-from dc_measurements.velocity import SENSOR_QOS, topic_param
+from dc_core.topics import topic_param
 
 # Odometry stamped this far behind the previous message means its time restarted (a bag replayed
 # without use_sim_time), not a late message: one topic from one publisher, so stamps are monotonic.
@@ -32,10 +33,8 @@ class DistanceTraveledParams:
     source: str = param("tf", choices=("tf", "odom"), doc="Where poses come from: TF (the frames below) or odometry")
     global_frame: str = param("map", doc="Frame the robot's path is measured in (source tf)")
     robot_base_frame: str = param("base_link", doc="The robot's frame (source tf)")
-    odom_topic: str = topic_param("/odom", "nav_msgs/msg/Odometry topic (source odom)")
-    transform_timeout: float = param(
-        0.1, minimum=0.0, doc="Accepted for the original's configurations; poses are taken as TF updates arrive"
-    )
+    odom_topic: str = topic_param("/odom", doc="nav_msgs/msg/Odometry topic (source odom)")
+    transform_timeout: float = compat_param(0.1, "poses are taken as TF updates arrive", minimum=0.0)
     min_step: float = param(
         0.01,
         minimum=0.0,

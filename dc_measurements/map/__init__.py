@@ -26,23 +26,22 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from dc_core.errors import PluginError
 from dc_core.measurement import Measurement, MeasurementContext
-from dc_core.params import param
+from dc_core.params import compat_param, param
 from dc_core.rostime import now_ns
+from dc_core.topics import topic_param
 from dc_core.worker import Outcome
 from dc_measurements.map.files import map_yaml, pgm_bytes, png_bytes, trinary_image
 from dc_measurements.saved_files import PendingFiles, ReservedPaths, file_locations
-from dc_measurements.velocity import topic_param
 
 MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 VOLATILE_MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 _SUFFIXES = (".yaml", ".pgm", ".png")
 MAP_BASE64_ESTIMATE = 1024 * 1024
-_WAIT_STEP_S = 0.02
 
 
 @dataclass(frozen=True, kw_only=True)
 class MapParams:
-    topic: str = topic_param("/map", "nav_msgs/msg/OccupancyGrid topic")
+    topic: str = topic_param("/map", doc="nav_msgs/msg/OccupancyGrid topic")
     transient_local: bool = param(
         True,
         doc="Subscribe transient-local, as map servers publish (a map published before DC started arrives); "
@@ -55,7 +54,7 @@ class MapParams:
     save_map_timeout: float = param(
         3.0, minimum=0.0, doc="Seconds a poll waits for a first map when none has arrived yet"
     )
-    quiet: bool = param(True, doc="Accepted for the original's configurations (there is no map_saver output)")
+    quiet: bool = compat_param(True, "there is no map_saver output")
     save_base64: bool = param(False, doc="Also put the PNG (base64) and the YAML text in the record")
     free_thresh: float = param(0.25, minimum=0.0, maximum=1.0, doc="Occupancy at or below which a cell is free")
     occupied_thresh: float = param(0.65, minimum=0.0, maximum=1.0, doc="Occupancy at or above which a cell is occupied")

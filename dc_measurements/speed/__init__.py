@@ -8,12 +8,13 @@ from typing import Any
 from nav_msgs.msg import Odometry
 
 from dc_core.rostime import stamp_ns
-from dc_measurements.velocity import LatestTwistMeasurement, repeat_last_param, topic_param
+from dc_core.topics import topic_param
+from dc_measurements.velocity import LatestTwistMeasurement, repeat_last_param
 
 
 @dataclass(frozen=True, kw_only=True)
 class SpeedParams:
-    odom_topic: str = topic_param("/odom", "nav_msgs/msg/Odometry topic whose twist is the robot's velocity")
+    odom_topic: str = topic_param("/odom", doc="nav_msgs/msg/Odometry topic whose twist is the robot's velocity")
     repeat_last: bool = repeat_last_param()
 
 

@@ -14,7 +14,7 @@ from dc_core.params import param
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.sequence_numbers import TopicWriters
 from dc_core.stamped_cdr import read_stamped_record
-from dc_core.topics import ros_topic, topic_problem
+from dc_core.topics import ros_topic, topic_param
 
 _LOGGED_TEXT = 2000
 # Malformed records logged one by one at the start of a burst; the rest are counted in a summary.
@@ -23,9 +23,8 @@ _MALFORMED_LINES_PER_BURST = 10
 
 @dataclass(frozen=True, kw_only=True)
 class StringStampedParams:
-    topic: str = param(
+    topic: str = topic_param(
         doc="Input topic (dc_interfaces/msg/StringStamped) where your nodes publish ('-' is read as '_')",
-        check=lambda name: topic_problem(name) and "a ROS 2 topic name",
     )
     timer_based: bool = param(
         True,

@@ -2,19 +2,13 @@
 
 from __future__ import annotations
 
-import ipaddress
 import socket
 import time
-from collections.abc import Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
-from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.measurement import Measurement, MeasurementContext
+from dc_core.measurement import Measurement
 from dc_core.params import param
-
-_AddrInfo = Sequence[tuple[socket.AddressFamily, socket.SocketKind, int, str, tuple[Any, ...]]]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -28,20 +22,9 @@ class TcpHealthParams:
 class TcpHealth(Measurement[TcpHealthParams]):
     """Whether a TCP server accepts connections on host:port (a real connect with a timeout)."""
 
-    def __init__(self, context: MeasurementContext, params: TcpHealthParams) -> None:
-        super().__init__(context, params)
-        self._resolver: ThreadPoolExecutor | None = None
-        self._pending: Future[_AddrInfo] | None = None
-
-    def on_configure(self) -> None:
-        if not _is_ip_literal(self.params.host):
-            # getaddrinfo cannot be cancelled; running it in a worker keeps collect within `timeout`.
-            self._resolver = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{self.context.name}-dns")
-
-    def on_cleanup(self) -> None:
-        if self._resolver is not None:
-            self._resolver.shutdown(wait=False, cancel_futures=True)
-            self._resolver = None
+    # Resolving and connecting wait (up to `timeout`, or longer for a resolver that hangs): on the
+    # server's worker, the wait holds up no other measurement, record or heartbeat.
+    collect_in_worker = True
 
     def collect(self) -> dict[str, Any]:
         p = self.params
@@ -49,10 +32,18 @@ class TcpHealth(Measurement[TcpHealthParams]):
 
     def _connects(self) -> bool:
         deadline = time.monotonic() + self.params.timeout / 1000.0
-        addresses = self._resolve(deadline)
+        host, port = self.params.host, self.params.port
+        try:
+            # getaddrinfo takes no timeout (an IP address returns at once): one that answers after the
+            # deadline counts as not connecting.
+            addresses = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        except OSError as exc:
+            self.context.logger.debug(f"{self.context.name}: cannot resolve {host}: {exc}")
+            return False
         for family, kind, proto, _, address in addresses:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
+                self.context.logger.debug(f"{self.context.name}: {host}:{port} not reached within the timeout")
                 return False
             with socket.socket(family, kind, proto) as sock:
                 sock.settimeout(remaining)
@@ -63,31 +54,3 @@ class TcpHealth(Measurement[TcpHealthParams]):
                     continue
                 return True
         return False
-
-    def _resolve(self, deadline: float) -> _AddrInfo:
-        host, port = self.params.host, self.params.port
-        if self._resolver is None:
-            return _getaddrinfo(host, port)
-        if self._pending is None or self._pending.done():
-            self._pending = self._resolver.submit(_getaddrinfo, host, port)
-        # A resolution still hanging from an earlier collect is awaited, not queued again.
-        try:
-            return self._pending.result(timeout=max(0.0, deadline - time.monotonic()))
-        except FutureTimeout:
-            self.context.logger.debug(f"{self.context.name}: resolving {host} timed out")
-            return []
-        except OSError as exc:
-            self.context.logger.debug(f"{self.context.name}: cannot resolve {host}: {exc}")
-            return []
-
-
-def _is_ip_literal(host: str) -> bool:
-    try:
-        ipaddress.ip_address(host)
-    except ValueError:
-        return False
-    return True
-
-
-def _getaddrinfo(host: str, port: int) -> _AddrInfo:
-    return socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)

@@ -15,7 +15,6 @@ or backslash (a bucket synchronised to a disk would turn those into paths).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
 import stat
 from collections.abc import Iterator, Sequence
@@ -24,7 +23,7 @@ from typing import Any
 
 from dc_core.errors import ConfigError
 from dc_core.params import param
-from dc_core.paths import expand_env, expand_values, fixed_prefix
+from dc_core.paths import DEFAULT_SAVE_BASE_PATH, expand_env, expand_values, fixed_prefix
 
 # Read-only, never the controlling terminal, never blocking on a FIFO, never through a final symlink.
 _OPEN_FLAGS = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC
@@ -100,12 +99,9 @@ def default_roots(measurement_server: dict[str, Any] | None) -> list[str]:
 
     Raises ConfigError (with the measurement server's YAML path) when it does not expand.
     """
-    from dc_measurements.config import MeasurementServerParams
-
     section = measurement_server or {}
     where = "measurement_server.save_local_base_path"
-    default = next(f.default for f in dataclasses.fields(MeasurementServerParams) if f.name == "save_local_base_path")
-    value = section.get("save_local_base_path", default)
+    value = section.get("save_local_base_path", DEFAULT_SAVE_BASE_PATH)
     if not isinstance(value, str):
         raise ConfigError(where, f"expected a string, got {value!r}")
 
