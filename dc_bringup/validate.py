@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,10 +51,13 @@ def _parse(server: str, section: dict[str, Any], namespace: str) -> Any:
     return getattr(module, function)(section, server)
 
 
-def validate_params_file(path: str | Path, namespace: str = "", ros_args: Sequence[str] = ()) -> ValidationReport:
+def validate_params_file(
+    path: str | Path, namespace: str = "", ros_args: Sequence[str] = (), environ: Mapping[str, str] | None = None
+) -> ValidationReport:
     """Parse every server section as the servers in ``namespace`` read it (topic names fully qualified
-    there, the ``--ros-args`` parameters over the file's); raise ConfigError on the first error, return warnings."""
-    loaded = load_params(path, namespace, param_sections(ros_args))
+    there, the ``--ros-args`` parameters over the file's); raise ConfigError on the first error, return warnings.
+    ``environ``: what ``${NAME}`` references read (the process' environment by default)."""
+    loaded = load_params(path, namespace, param_sections(ros_args), environ)
     sections = loaded.servers
     report = ValidationReport()
     if loaded.ignored:
@@ -239,7 +242,7 @@ def _shared_metrics_ports(configs: dict[str, Any]) -> list[str]:
             if endpoint.port != 0 and endpoint.port == other.port and (endpoint.listen == other.listen or wildcard):
                 warnings.append(
                     f"{endpoint.path}.http_port: {endpoint.port} is also {other.path}.http_port: {endpoint.server} "
-                    "will not serve its metrics"
+                    "serves its metrics on another, free port (dc status finds it)"
                 )
     return warnings
 

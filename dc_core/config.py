@@ -185,7 +185,12 @@ class ParamsFile:
     """Server name -> its parameters before ``${NAME}`` references are replaced (what may be shown)."""
 
 
-def load_params(path: str | Path, namespace: str = "", ros_sections: Sequence[ParamSection] = ()) -> ParamsFile:
+def load_params(
+    path: str | Path,
+    namespace: str = "",
+    ros_sections: Sequence[ParamSection] = (),
+    environ: Mapping[str, str] | None = None,
+) -> ParamsFile:
     """The servers a DC parameter file runs under ``namespace``, and each one's parameters.
 
     A server runs when DC's file has a section naming it (wildcards in the namespace allowed:
@@ -220,7 +225,7 @@ def load_params(path: str | Path, namespace: str = "", ros_sections: Sequence[Pa
             given = section.params if section in own else {k: v for k, v in section.params.items() if k in has}
             merged = merge_params(merged, given)
         raw[server] = merged
-        servers[server] = expand_references(merged, server)
+        servers[server] = expand_references(merged, server, environ)
     ignored = [s.node for s in sections if not any(node_name_matches(s.node, fqns[server]) for server in running)]
     return ParamsFile(servers, ignored, raw)
 
@@ -230,6 +235,31 @@ def load_params_file(
 ) -> dict[str, dict[str, Any]]:
     """Server name -> its parameters (:func:`load_params`)."""
     return load_params(path, namespace, ros_sections).servers
+
+
+class UnsetShown(Mapping[str, str]):
+    """The environment, where a variable that is not set reads as ``<NAME unset>`` and is remembered in
+    ``unset``: for the tools that read a parameter file without running it (``dc status --params``)
+    in a shell that lacks the service's secrets."""
+
+    def __init__(self, environ: Mapping[str, str] = os.environ) -> None:
+        self._environ = environ
+        self.unset: set[str] = set()
+
+    def __getitem__(self, name: str) -> str:
+        if name in self._environ:
+            return self._environ[name]
+        self.unset.add(name)
+        return f"<{name} unset>"
+
+    def __contains__(self, name: object) -> bool:
+        return True
+
+    def __iter__(self) -> Any:
+        return iter(self._environ)
+
+    def __len__(self) -> int:
+        return len(self._environ)
 
 
 def expand_references(value: Any, path: str, environ: Mapping[str, str] | None = None) -> Any:

@@ -19,9 +19,10 @@ from __future__ import annotations
 
 import abc
 import functools
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 from dc_core.errors import DcError
 from dc_core.plugin import ParamsT, Plugin
@@ -184,6 +185,13 @@ class StoredRecord(OutgoingRecord):
         return f"StoredRecord(record_id={self.record_id!r}, topic={self.topic!r}, stamp_ns={self.stamp_ns!r})"
 
 
+class Closable(Protocol):
+    def close(self) -> None: ...
+
+
+ClosableT = TypeVar("ClosableT", bound=Closable)
+
+
 @dataclass(frozen=True)
 class ProbeResult:
     """What a destination's read-only probe found (``dc check``). Nothing secret in either text."""
@@ -194,7 +202,13 @@ class ProbeResult:
 
 
 class Destination(Plugin[ParamsT]):
-    """Base class of destination plugins."""
+    """Base class of destination plugins.
+
+    The destination server never runs ``send`` at the same time as ``on_deactivate`` or
+    ``on_cleanup`` (dc_destinations.sender.Gate): a plugin needs no lock of its own for what those
+    share. What it keeps open between batches it hands to :meth:`keep` once; the default
+    ``on_deactivate`` and ``on_cleanup`` close it.
+    """
 
     def probe(self) -> ProbeResult | None:
         """A cheap, read-only check that this destination can be reached with its real settings
@@ -211,3 +225,31 @@ class Destination(Plugin[ParamsT]):
     @abc.abstractmethod
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         """Deliver ``batch``; see the module documentation for the outcomes."""
+
+    def keep(self, resource: ClosableT) -> ClosableT:
+        """``resource`` (a connection, dc_destinations.connection.Connection), closed on deactivate and cleanup."""
+        kept: list[Closable] = self.__dict__.setdefault("_dc_kept", [])
+        if not any(r is resource for r in kept):
+            kept.append(resource)
+        return resource
+
+    def close_kept(self) -> None:
+        """Close what :meth:`keep` was given; a plugin overriding the hooks calls it (or ``super()``)."""
+        for resource in self.__dict__.get("_dc_kept", []):
+            resource.close()
+
+    def on_deactivate(self) -> None:
+        self.close_kept()
+
+    def on_cleanup(self) -> None:
+        self.close_kept()
+
+    @property
+    def stopping(self) -> threading.Event:
+        """Set when the server stops delivery while ``send`` still runs past the grace; cleared at the start.
+
+        A ``send`` that waits for something (a rate's next slot, a file to be complete) waits on it,
+        so that it returns at once, its records retried at the next start.
+        """
+        event: threading.Event = self.__dict__.setdefault("_dc_stopping", threading.Event())
+        return event

@@ -11,15 +11,18 @@ text format.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from http.server import BaseHTTPRequestHandler
+from pathlib import Path
 from typing import Any
 
 from dc_core.http_limits import BoundedHTTPServer
 from dc_core.logs import Logger
+from dc_core.metrics_registry import announce, withdraw
 from dc_core.supervision import Supervisor
 
 # Where a StatusServer made without a supervisor (tests) says its thread died.
@@ -130,6 +133,7 @@ class StatusServer:
         self._server = _Server((listen, port), health, metrics, prometheus, logger, max_connections, timeout)
         host, bound_port = self._server.server_address[:2]
         self.address: tuple[str, int] = (str(host), int(bound_port))
+        self.announcement: Path | None = None  # its file in the runtime folder, when written down
         self.supervisor = supervisor if supervisor is not None else Supervisor(_STDERR_LOGGER)
         self._thread = self.supervisor.start_thread(
             lambda: self._server.serve_forever(poll_interval=0.2), name="dc-status-http"
@@ -141,6 +145,8 @@ class StatusServer:
         return self._server.refused
 
     def stop(self) -> None:
+        withdraw(self.announcement)
+        self.announcement = None
         self._server.shutdown()
         self._server.server_close()
         self._thread.join(timeout=2.0)
@@ -155,26 +161,49 @@ def start_status_server(
     metrics: Callable[[], dict[str, Any]],
     prometheus: Callable[[], str],
     supervisor: Supervisor | None = None,
+    announce_as: tuple[str, int, str] | None = None,
 ) -> StatusServer | None:
-    """A :class:`StatusServer`, its address logged; ``None`` (and an error logged) if it cannot bind.
+    """A :class:`StatusServer`, its address logged; ``None`` (and a warning logged) if it cannot bind.
 
-    Metrics are for operators: a taken port must not stop a server from doing its work.
+    Metrics are for operators: a taken port must not stop a server from doing its work. A port taken
+    (another DC on this machine, in another ROS domain or namespace, has the same defaults) is a
+    warning and the server serves on a free port instead. With ``announce_as`` (server name, ROS
+    domain id, namespace) the address is written down for `dc status` (dc_core.metrics_registry)
+    until :meth:`StatusServer.stop`.
     """
-    try:
-        server = StatusServer(
+
+    def bind(at: int) -> StatusServer:
+        return StatusServer(
             listen,
-            port,
+            at,
             health=health,
             metrics=metrics,
             prometheus=prometheus,
             logger=logger,
             supervisor=supervisor if supervisor is not None else Supervisor(logger),
         )
+
+    try:
+        try:
+            server = bind(port)
+        except OSError as exc:
+            if exc.errno != errno.EADDRINUSE or port == 0:
+                raise
+            server = bind(0)
+            logger.warning(
+                f"metrics HTTP server: {listen}:{port} is taken (another DC on this machine?); serving on "
+                f"{server.address[0]}:{server.address[1]} instead (dc status finds it)"
+            )
     except OSError as exc:
-        logger.error(f"metrics HTTP server on {listen}:{port} not started: {exc}")
+        logger.warning(f"metrics HTTP server on {listen}:{port} not started, the server runs without it: {exc}")
         return None
     host, bound = server.address
     logger.info(f"metrics HTTP server on http://{host}:{bound}/api/v1/")
+    if announce_as is not None:
+        name, domain_id, namespace = announce_as
+        # A wildcard listen is reached on loopback from this machine.
+        reach = "127.0.0.1" if host in ("0.0.0.0", "") else "::1" if host == "::" else host
+        server.announcement = announce(name, domain_id, namespace, reach, bound)
     return server
 
 

@@ -41,22 +41,23 @@ def has_path(document: Any, path: str) -> bool:
     return True
 
 
-def flatten(document: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """JSON-pointer style flattening (``{"/a/b": 1, "/l/0": 2}``), as the original's ``flatten``."""
+def flatten(document: Mapping[str, Any], prefix: str = "", separator: str = "/") -> dict[str, Any]:
+    """JSON-pointer style flattening (``{"/a/b": 1, "/l/0": 2}``), as the original's ``flatten``; every
+    path starts with ``prefix`` and ``separator``. Empty objects and arrays are leaves."""
     out: dict[str, Any] = {}
 
     def walk(node: Any, path: str) -> None:
         if isinstance(node, Mapping) and node:
             for key, value in node.items():
-                walk(value, f"{path}/{key}")
+                walk(value, f"{path}{separator}{key}")
         elif isinstance(node, list) and node:
             for i, value in enumerate(node):
-                walk(value, f"{path}/{i}")
+                walk(value, f"{path}{separator}{i}")
         else:
             out[path] = node
 
     for key, value in document.items():
-        walk(value, f"{prefix}/{key}")
+        walk(value, f"{prefix}{separator}{key}")
     return out
 
 

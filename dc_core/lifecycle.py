@@ -2,8 +2,15 @@
 
 Every DC server is an rclpy ``LifecycleNode``. Subclasses implement ``configure_server`` (parse and
 build; raise to fail), ``activate_server`` (timers, connections), ``deactivate_server`` (stop intake,
-flush) and ``cleanup_server`` (release). A failing transition is logged with its reason and reported
-as FAILURE; the process keeps running and can be configured again.
+flush) and ``cleanup_server`` (release). A failing transition is logged with its reason and its
+result is what the node's state then is (ROS 2's lifecycle design):
+
+- configure or activate that fails is undone and reported as FAILURE: the node is back where it was;
+- a teardown (deactivate, cleanup, or the undo of a failed step) that stops part-way leaves the node
+  in no state it could go on from: ERROR, and ``on_error`` releases what it can — ``unconfigured``
+  if that works, ``finalized`` if not (the lifecycle manager restarts the process either way);
+- a teardown that went to its end but one part of which failed (a plugin's own ``on_deactivate``,
+  :class:`PartialTeardown`) succeeds, with that part logged at ERROR.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from typing import Any
 import rclpy
 import rclpy.utilities
 from dc_lifecycle_interfaces.msg import Heartbeat
+from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import State
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
@@ -39,11 +47,15 @@ from rclpy.signals import SignalHandlerOptions
 
 from dc_core.config import load_params
 from dc_core.declared_params import declare_read_only
+from dc_core.diagnostics import DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, ERROR, OK, WARN, scrub
+from dc_core.diagnostics import array as diagnostic_array
+from dc_core.diagnostics import status as diagnostic_status
 from dc_core.errors import ConfigError, DcError
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import Intake
 from dc_core.logs import Logger, SeverityLogger
 from dc_core.node_params import (
+    DEFAULT_DIAGNOSTICS_PERIOD_S,
     DEFAULT_HEARTBEAT_PERIOD_S,
     DEFAULT_RECORD_LINGER_S,
     MetricsHttpParams,
@@ -70,6 +82,12 @@ EXECUTOR_TURN_MAX_CALLBACKS = 256
 # The longest a server's loop sleeps when nothing happens: signals and work wake it at once, this
 # only bounds a wait should a wake-up ever be missed.
 IDLE_WAIT_S = 5.0
+
+
+class PartialTeardown(DcError):
+    """Raised by ``deactivate_server`` or ``cleanup_server`` that went to its end when one part of it
+    failed (a plugin's own hook): the server is torn down and can go on, so the transition succeeds
+    and the part is logged at ERROR. Any other exception of a teardown means it stopped part-way."""
 
 
 @dataclass
@@ -149,6 +167,10 @@ class ManagedServer(LifecycleNode):
         # clock: under use_sim_time a paused or finished bag stops ROS time, not the process.
         self._steady_clock = Clock(clock_type=ClockType.STEADY_TIME)
         self._heartbeat_timer = self.create_timer(heartbeat_period, self._send_heartbeat, clock=self._steady_clock)
+        # Like the heartbeat in every state: a server that cannot configure says so there too.
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
+        self._diagnostics_timer: Any = None
+        self.set_diagnostics_period(DEFAULT_DIAGNOSTICS_PERIOD_S)
         self._metrics_http: StatusServer | None = None
         # Slow work of plugins (dc_core.worker): a finished job wakes the loop through a guard
         # condition, made with the worker (rclpy's EventsExecutor stops firing timers beside one).
@@ -179,6 +201,7 @@ class ManagedServer(LifecycleNode):
         for warning in warnings:
             self.get_logger().warning(warning)
         self.set_heartbeat_period(node.heartbeat_period)
+        self.set_diagnostics_period(node.diagnostics_period)
         self.record_linger_s = node.record_linger
         if node.use_sim_time and not self.get_parameter("use_sim_time").value:
             # rclpy's time source starts following /clock when the parameter changes.
@@ -236,7 +259,12 @@ class ManagedServer(LifecycleNode):
             metrics=lambda: {**document(), "threads": self.supervisor.metrics()},
             prometheus=lambda: prometheus() + self.supervisor.prometheus(),
             supervisor=self.supervisor,
+            announce_as=self.metrics_announce_as(),
         )
+
+    def metrics_announce_as(self) -> tuple[str, int, str]:
+        """How this server's metrics address is written down for `dc status` (dc_core.metrics_registry)."""
+        return self.get_name(), self.context.get_domain_id(), self.get_namespace()
 
     def stop_metrics_http(self) -> None:
         if self._metrics_http is not None:
@@ -268,6 +296,45 @@ class ManagedServer(LifecycleNode):
         self.destroy_timer(self._heartbeat_timer)
         self._heartbeat_timer = self.create_timer(period, self._send_heartbeat, clock=self._steady_clock)
 
+    # -- /diagnostics (dc_core.diagnostics) ---------------------------------------------------------
+    def set_diagnostics_period(self, period: float) -> None:
+        """Publish on /diagnostics every ``period`` seconds (0: not at all)."""
+        if self._diagnostics_timer is not None:
+            self._diagnostics_timer.cancel()
+            self.destroy_timer(self._diagnostics_timer)
+            self._diagnostics_timer = None
+        if period > 0:
+            self._diagnostics_timer = self.create_timer(period, self.publish_diagnostics, clock=self._steady_clock)
+
+    def publish_diagnostics(self) -> None:
+        statuses = [self._server_status(), *self.diagnostic_statuses()]
+        self._diagnostics_pub.publish(diagnostic_array(statuses, self.get_clock().now().to_msg()))
+
+    def _server_status(self) -> Any:
+        state = self.lifecycle_state
+        reason = self.supervisor.unhealthy_reason or self.unhealthy_reason()
+        if reason:
+            level, message = ERROR, scrub(reason)
+        elif state != "active":
+            level, message = WARN, f"not active: {state}"
+        else:
+            level, message = OK, "active"
+        values = {
+            "state": state,
+            "namespace": self.get_namespace(),
+            "thread_failures": self.supervisor.thread_failures,
+            "unhealthy": scrub(reason or ""),
+        }
+        return diagnostic_status(f"{self.get_name()}: server", level, message, values)
+
+    def unhealthy_reason(self) -> str:
+        """Why the server is unhealthy beyond a thread that died (a subclass knows more), or ""."""
+        return ""
+
+    def diagnostic_statuses(self) -> list[Any]:
+        """The server's statuses besides its own (the destination server's: one per destination)."""
+        return []
+
     @property
     def lifecycle_state(self) -> str:
         label: str = self._state_machine.current_state[1]
@@ -287,22 +354,41 @@ class ManagedServer(LifecycleNode):
         raise NotImplementedError
 
     def _guard(self, what: str, step: Any, undo: Any = None) -> TransitionCallbackReturn:
+        """``step``, FAILURE if it raises and ``undo`` (a teardown) then ran to its end, ERROR if not."""
         started = time.monotonic()
         try:
             step()
-        except DcError as exc:
-            self.get_logger().error(f"{what} failed: {exc}")
         except Exception as exc:  # a plugin bug must fail the transition, not the process
-            self.get_logger().error(f"{what} failed: {exc!r}\n{traceback.format_exc()}")
+            self._log_failure(what, exc)
         else:
             self.get_logger().debug(f"{what} done in {time.monotonic() - started:.3f} s")
             return TransitionCallbackReturn.SUCCESS
-        if undo is not None:
-            try:
-                undo()
-            except Exception as exc:
-                self.get_logger().error(f"undoing {what} failed too: {exc!r}")
+        if undo is not None and self._teardown(f"undoing {what}", undo) == TransitionCallbackReturn.ERROR:
+            return TransitionCallbackReturn.ERROR
         return TransitionCallbackReturn.FAILURE
+
+    def _teardown(self, what: str, step: Any) -> TransitionCallbackReturn:
+        """A teardown: SUCCESS when it went to its end (a :class:`PartialTeardown` logged at ERROR),
+        ERROR when it stopped part-way — the node is then neither what it was nor what it was to become."""
+        started = time.monotonic()
+        try:
+            step()
+        except PartialTeardown as exc:
+            self.get_logger().error(f"{what}: done, but {exc}")
+        except Exception as exc:
+            self._log_failure(what, exc)
+            self.get_logger().error(
+                f"{what} stopped part-way: the transition ends in ERROR (on_error releases the rest)"
+            )
+            return TransitionCallbackReturn.ERROR
+        self.get_logger().debug(f"{what} done in {time.monotonic() - started:.3f} s")
+        return TransitionCallbackReturn.SUCCESS
+
+    def _log_failure(self, what: str, exc: Exception) -> None:
+        if isinstance(exc, DcError):
+            self.get_logger().error(f"{what} failed: {exc}")
+        else:
+            self.get_logger().error(f"{what} failed: {exc!r}\n{traceback.format_exc()}")
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         return self._guard("configure", self.configure_server, self.cleanup_server)
@@ -314,18 +400,31 @@ class ManagedServer(LifecycleNode):
         return result
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        result = self._guard("deactivate", self.deactivate_server)
-        super().on_deactivate(state)
+        result = self._teardown("deactivate", self.deactivate_server)
+        super().on_deactivate(state)  # the lifecycle publishers stop in any case
         return result
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        return self._guard("cleanup", self.cleanup_server)
+        return self._teardown("cleanup", self.cleanup_server)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """After a transition from ``state`` ended in ERROR: release everything (cleanup). SUCCESS
+        takes the node to ``unconfigured``, FAILURE to ``finalized`` (rclpy's lifecycle)."""
+        # After a failed configure whose undo stopped part-way, that undo was the cleanup: tried once more.
+        result = self._teardown(f"cleanup after the failed transition from {state.label}", self.cleanup_server)
+        if result == TransitionCallbackReturn.SUCCESS:
+            self.get_logger().error(f"{self.get_name()} is unconfigured after an error; it must be configured again")
+            return TransitionCallbackReturn.SUCCESS
+        self.get_logger().fatal(
+            f"{self.get_name()} is finalized: it cannot go on; only a restart of its process brings it back"
+        )
+        return TransitionCallbackReturn.FAILURE
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
         if state.label == "active":
-            self._guard("deactivate", self.deactivate_server)
+            self._teardown("deactivate", self.deactivate_server)
         if state.label in ("active", "inactive"):
-            self._guard("cleanup", self.cleanup_server)
+            self._teardown("cleanup", self.cleanup_server)
         return TransitionCallbackReturn.SUCCESS
 
 

@@ -8,6 +8,7 @@ from typing import Any
 from dc_core.params import param
 
 DEFAULT_HEARTBEAT_PERIOD_S = 1.0
+DEFAULT_DIAGNOSTICS_PERIOD_S = 1.0
 # measurement, group and image servers: at 1,000 forwarded records/s 0.03 s cost a sixth less CPU per
 # record than 0.01 s, while a timer due meanwhile waits 30 ms at most (docs/performance.md).
 DEFAULT_RECORD_LINGER_S = 0.03
@@ -36,6 +37,12 @@ class ServerNodeParams:
         DEFAULT_HEARTBEAT_PERIOD_S, minimum=0.05, doc="Seconds between heartbeats to the lifecycle manager"
     )
     record_linger: float = record_linger_param(DEFAULT_RECORD_LINGER_S)
+    # One a second is what diagnostic_updater publishes at by default.
+    diagnostics_period: float = param(
+        DEFAULT_DIAGNOSTICS_PERIOD_S,
+        minimum=0.0,
+        doc="Seconds between the server's statuses on /diagnostics (docs/diagnostics.md; 0: none published)",
+    )
 
 
 def http_port_param(default: int) -> Any:
@@ -47,6 +54,9 @@ def http_port_param(default: int) -> Any:
 class MetricsHttpParams:
     """The metrics HTTP server of a server: a subclass sets its own default ``http_port``."""
 
-    http_server: bool = param(False, doc="Serve health and counters over HTTP (JSON and Prometheus) while active")
+    # On by default (loopback only) so that `dc status` and `dc top` work on any job without edits.
+    http_server: bool = param(
+        True, doc="Serve health and counters over HTTP (JSON and Prometheus) while active, on loopback by default"
+    )
     http_listen: str = param("127.0.0.1", doc="Address of the metrics HTTP server (loopback by default)")
     http_port: int = http_port_param(0)

@@ -254,26 +254,16 @@ class Store:
     def files(self, connection: Any, filters: Filters) -> FilesPage:
         from psycopg import sql
 
-        conditions: list[sql.Composable] = [sql.SQL("true")]
-        params: dict[str, Any] = {}
-        if filters.robot:
-            conditions.append(sql.SQL("robot_name = %(robot)s"))
-            params["robot"] = filters.robot
-        if filters.start:
-            conditions.append(sql.SQL("timestamp >= %(start)s"))
-            params["start"] = filters.start
-        if filters.end:
-            conditions.append(sql.SQL("timestamp <= %(end)s"))
-            params["end"] = filters.end
-        if filters.run:
+        conditions, params = _filtered(
+            filters,
+            robot_column=sql.SQL("robot_name"),
+            time_column=sql.SQL("timestamp"),
             # files_metrics has no run: the record that brought the file has (unique index on record_id).
-            conditions.append(
-                sql.SQL("EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s)").format(
-                    t=self.table, run=indexes.RUN_OF("r")
-                )
-            )
-            params["run"] = filters.run
-        scope = sql.SQL(" AND ").join(conditions)
+            run_condition=sql.SQL(
+                "EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s)"
+            ).format(t=self.table, run=indexes.RUN_OF("r")),
+        )
+        scope = sql.SQL(" AND ").join([sql.SQL("true"), *conditions])
         counts_query = sql.SQL(
             "SELECT count(*), count(*) FILTER (WHERE uploaded), count(*) FILTER (WHERE verified_at IS NOT NULL),"
             " count(*) FILTER (WHERE deleted), count(*) FILTER (WHERE NOT uploaded), coalesce(sum(size), 0)"
@@ -322,21 +312,13 @@ class Store:
     def _where(self, filters: Filters, name: str) -> tuple[Any, dict[str, Any]]:
         from psycopg import sql
 
-        parts: list[sql.Composable] = [sql.SQL("(data->>'name') = %(name)s")]
-        params: dict[str, Any] = {"name": name}
-        if filters.robot:
-            parts.append(sql.SQL("{} = %(robot)s").format(indexes.ROBOT))
-            params["robot"] = filters.robot
-        if filters.run:
-            parts.append(sql.SQL("{} = %(run)s").format(indexes.RUN))
-            params["run"] = filters.run
-        if filters.start:
-            parts.append(sql.SQL("time >= %(start)s"))
-            params["start"] = filters.start
-        if filters.end:
-            parts.append(sql.SQL("time <= %(end)s"))
-            params["end"] = filters.end
-        return sql.SQL(" AND ").join(parts), params
+        parts, params = _filtered(
+            filters,
+            robot_column=indexes.ROBOT,
+            time_column=sql.SQL("time"),
+            run_condition=sql.SQL("{} = %(run)s").format(indexes.RUN),
+        )
+        return sql.SQL(" AND ").join([sql.SQL("(data->>'name') = %(name)s"), *parts]), {"name": name, **params}
 
     def _bucketed(
         self,
@@ -475,3 +457,30 @@ WITH RECURSIVE tags(tag) AS (
     SELECT (SELECT tag FROM {t} WHERE tag > tags.tag ORDER BY tag LIMIT 1) FROM tags WHERE tags.tag IS NOT NULL
 )
 SELECT tag, (SELECT max(time) FROM {t} WHERE tag = tags.tag) FROM tags WHERE tag IS NOT NULL LIMIT 50"""
+
+
+def _filtered(
+    filters: Filters, *, robot_column: Any, time_column: Any, run_condition: Any
+) -> tuple[list[Any], dict[str, Any]]:
+    """The conditions the dashboard's filters set (robot, run, time range) and their query parameters.
+
+    ``robot_column`` and ``time_column`` are the table's columns (psycopg.sql), ``run_condition`` the
+    whole condition on ``%(run)s``: the tables name them differently, the filters mean the same on each.
+    """
+    from psycopg import sql
+
+    conditions: list[sql.Composable] = []
+    params: dict[str, Any] = {}
+    if filters.robot:
+        conditions.append(sql.SQL("{} = %(robot)s").format(robot_column))
+        params["robot"] = filters.robot
+    if filters.run:
+        conditions.append(run_condition)
+        params["run"] = filters.run
+    if filters.start:
+        conditions.append(sql.SQL("{} >= %(start)s").format(time_column))
+        params["start"] = filters.start
+    if filters.end:
+        conditions.append(sql.SQL("{} <= %(end)s").format(time_column))
+        params["end"] = filters.end
+    return conditions, params

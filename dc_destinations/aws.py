@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar, TypeVar
 
+from dc_core.destination import Destination
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
 from dc_core.params import param
@@ -218,6 +219,42 @@ class AwsClientParams(AwsCredentialsParams):
         """``text`` without the secret key (an error message may quote a request)."""
         secret = self.aws_secret_access_key
         return text.replace(secret, "***") if secret else text
+
+
+AwsParamsT = TypeVar("AwsParamsT", bound=AwsClientParams)
+
+
+class AwsDestination(Destination[AwsParamsT]):
+    """What KinesisStreams and S3 share around their one boto3 client of ``service``.
+
+    The client is made at configure time (reading the configuration and credentials chain only:
+    nothing is sent) and kept (Destination.keep): deactivate and cleanup close its connections, and
+    botocore opens them again on the next request. A failure is logged once when it starts and once
+    when it ends; the destination server logs the retries per burst.
+    """
+
+    service: ClassVar[str]
+
+    def __init__(self, context: Any, params: AwsParamsT, *, target: str) -> None:
+        """``target``: what the records go to ("stream dc", "bucket logs"), named in every message."""
+        super().__init__(context, params)
+        self._client: Any = None
+        self._last_problem = ""
+        self.where = params.where(target)
+
+    def on_configure(self) -> None:
+        self._client = self.keep(self.params.client(self.service, self.context.logger, self.context.name))
+
+    def _problem(self, message: str) -> None:
+        if message != self._last_problem:
+            self.context.logger.error(message)
+            self._last_problem = message
+
+    def _works_again(self, what: str) -> None:
+        """After a logged failure: say once that ``what`` ("records accepted") goes through again."""
+        if self._last_problem:
+            self.context.logger.info(f"{self.where}: {what} again")
+            self._last_problem = ""
 
 
 def make_client(

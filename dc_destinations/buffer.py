@@ -31,7 +31,7 @@ import threading
 import time
 import zlib
 from collections import Counter
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, closing, contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -280,9 +280,15 @@ class Buffer(Protocol):
         """One more failed attempt for each row; returns their attempt counts."""
 
     def dead_letter(
-        self, destination: str, failures: Sequence[tuple[BufferedRow, str]], *, now_ns: int | None = None
+        self,
+        destination: str,
+        failures: Sequence[tuple[BufferedRow, str]],
+        *,
+        now_ns: int | None = None,
+        tried_now: Collection[int] = (),
     ) -> int:
-        """Move rows to the dead letters with their error text; returns how many moved."""
+        """Move rows to the dead letters with their error text; returns how many moved. ``tried_now``: rows
+        whose failed attempt the queue has not counted yet (refused at once), counted in the dead letter's."""
 
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of a queue beyond ``max_bytes``; returns how many."""
@@ -920,7 +926,12 @@ class SqliteBuffer:
         return {int(row_id): int(attempts) for row_id, attempts in rows}
 
     def dead_letter(
-        self, destination: str, failures: Sequence[tuple[BufferedRow, str]], *, now_ns: int | None = None
+        self,
+        destination: str,
+        failures: Sequence[tuple[BufferedRow, str]],
+        *,
+        now_ns: int | None = None,
+        tried_now: Collection[int] = (),
     ) -> int:
         """Move rows to the dead-letter table with their error text; returns how many moved."""
         if not failures:
@@ -943,7 +954,7 @@ class SqliteBuffer:
                         row.stamp_ns,
                         row.enqueued_ns,
                         failed,
-                        gone[0],
+                        gone[0] + (row.row_id in tried_now),
                         error,
                         row.size,
                         row.payload,

@@ -61,45 +61,30 @@ def open_buffer(path: Path) -> SqliteBuffer:
 
 
 def queue_stats(path: Path) -> list[QueueStats]:
-    buffer = open_buffer(path)
-    try:
+    with contextlib.closing(open_buffer(path)) as buffer:
         return [buffer.stats(name) for name in buffer.destinations()]
-    finally:
-        buffer.close()
 
 
 def list_dead_letters(path: Path, destination: str | None = None, limit: int = 1000) -> list[DeadLetter]:
-    buffer = open_buffer(path)
-    try:
+    with contextlib.closing(open_buffer(path)) as buffer:
         return buffer.list_dead_letters(destination, limit=limit)
-    finally:
-        buffer.close()
 
 
 def show_dead_letter(path: Path, dead_letter_id: int) -> DeadLetter | None:
-    buffer = open_buffer(path)
-    try:
+    with contextlib.closing(open_buffer(path)) as buffer:
         return buffer.get_dead_letter(dead_letter_id)
-    finally:
-        buffer.close()
 
 
 def replay(path: Path, ids: Sequence[int] | None = None, destination: str | None = None) -> int:
     """Move dead letters back to their queues (all of them when neither ``ids`` nor ``destination``)."""
-    buffer = open_buffer(path)
-    try:
+    with contextlib.closing(open_buffer(path)) as buffer:
         return buffer.replay_dead_letters(destination, ids)
-    finally:
-        buffer.close()
 
 
 def purge(path: Path, ids: Sequence[int] | None = None, destination: str | None = None) -> int:
     """Delete dead letters for good (all of them when neither ``ids`` nor ``destination``)."""
-    buffer = open_buffer(path)
-    try:
+    with contextlib.closing(open_buffer(path)) as buffer:
         return buffer.purge_dead_letters(destination, ids)
-    finally:
-        buffer.close()
 
 
 def salvage(source: Path, into: Path) -> SalvageReport:
@@ -107,11 +92,8 @@ def salvage(source: Path, into: Path) -> SalvageReport:
     (created if needed); ``source`` is only read."""
     if not source.is_file():
         raise BufferAdminError(f"no file {source}")
-    buffer = SqliteBuffer(into, repair=False)
-    try:
+    with contextlib.closing(SqliteBuffer(into, repair=False)) as buffer:
         return buffer.salvage(source)
-    finally:
-        buffer.close()
 
 
 def _utc(ns: int) -> str:

@@ -102,6 +102,8 @@ class DeliveryPipeline:
         self._damaged = False
         self._last_log_tick = 0.0
         self._status: StatusServer | None = None
+        # (server, ROS domain id, namespace) under which the server writes its metrics address down.
+        self.metrics_announce_as: tuple[str, int, str] | None = None
         self._sections: dict[str, Callable[[], Any]] = {}
         self.storage_file: Path | None = None
         self._lock: BufferLock | None = None
@@ -193,6 +195,7 @@ class DeliveryPipeline:
         for name, sender in senders.items():
             route = self._routes[name]
             route.wakeup.clear()
+            route.destination.stopping.clear()
             route.thread = self.supervisor.start_thread(sender.run, name=f"dc-sender-{name}")
         pending = buffer.pending_salvage()
         if pending is not None:
@@ -222,6 +225,7 @@ class DeliveryPipeline:
             if route.thread is not None:
                 route.thread.join(timeout=max(self._closing.deadline - self._clock(), 0.0) + 1.0)
                 if route.thread.is_alive():
+                    route.destination.stopping.set()  # a send that waits (a rate's slot) returns now
                     self.logger.warning(
                         f"destination {route.name}: send() still running after the {grace:g} s grace; "
                         "its batch stays in the buffer and will be sent again"
@@ -250,6 +254,18 @@ class DeliveryPipeline:
         if self._lock_taken_by_start:
             self.release_storage()
             self._lock_taken_by_start = False
+
+    def between_sends(self, name: str, hook: Callable[[], None]) -> bool:
+        """``hook()`` (the destination ``name``'s deactivate or cleanup) never while its ``send`` runs.
+
+        Now, and True, unless a ``send`` still runs past the stop's grace: then False, and ``hook``
+        runs on the sender's thread as soon as that ``send`` returns (dc_destinations.sender.Gate).
+        """
+        route = self._routes.get(name)
+        if route is None:
+            hook()
+            return True
+        return route.gate.run(hook)
 
     # -- intake ---------------------------------------------------------------------------------
 
@@ -461,12 +477,25 @@ class DeliveryPipeline:
     def healthy(self) -> bool:
         """Writer and senders alive, no thread of the server died, records reaching the disk (a failing
         group commit keeps every new record in memory only), and the buffer file undamaged at its last check."""
+        return not self.unhealthy_reason()
+
+    def unhealthy_reason(self) -> str:
+        """Why :meth:`healthy` is False ("" while healthy)."""
         committer = self._committer
-        if committer is None or not committer.running or committer.failing is not None or self._damaged:
-            return False
-        if self.supervisor.unhealthy:
-            return False
-        return all(route.thread is not None and route.thread.is_alive() for route in self._routes.values())
+        if committer is None or not committer.running:
+            return "the buffer writer is not running"
+        if committer.failing is not None:
+            return f"records cannot be committed to the buffer: {committer.failing[1]}"
+        if self._damaged:
+            return "the buffer file was found damaged at its last check"
+        if self.supervisor.unhealthy_reason:
+            return self.supervisor.unhealthy_reason
+        dead = [name for name in self._routes if not self.sender_alive(name)]
+        return f"sender thread of {', '.join(dead)} not running" if dead else ""
+
+    def sender_alive(self, name: str) -> bool:
+        thread = self._routes[name].thread
+        return thread is not None and thread.is_alive()
 
     def destination_health(self) -> dict[str, dict[str, Any]]:
         """Per destination: ok, retrying or failing, and while not ok since when and why (dc_destinations.health)."""
@@ -505,6 +534,7 @@ class DeliveryPipeline:
             metrics=self.status_document,
             prometheus=self.prometheus,
             supervisor=self.supervisor,
+            announce_as=self.metrics_announce_as,
         )
 
 

@@ -19,7 +19,11 @@ For a destination plugin's author, this is the whole story of delivery:
    server's Retry-After) lengthens that wait to at least it, and never beyond ``scheduler_cap``.
    A record retried more than ``retry_limit`` times (-1: never given up) is dead-lettered with its
    last error.
-5. ``send`` is called again with the same records (same ``record_id``) after a retry or a crash
+5. ``send`` never runs at the same time as the destination's ``on_deactivate`` or ``on_cleanup``
+   (:class:`Gate`): a plugin needs no lock for the connection they share. A stop whose grace ends
+   while ``send`` still runs sets the destination's ``stopping`` event and leaves those hooks to
+   run on the sender's thread as soon as ``send`` returns: the server's transition is not held up.
+6. ``send`` is called again with the same records (same ``record_id``) after a retry or a crash
    of the server between ``send`` and the deletion: a destination that can deduplicate on
    ``record_id`` delivers exactly once.
 
@@ -36,7 +40,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from dc_core.destination import (
     Destination,
@@ -53,6 +57,56 @@ from dc_destinations.buffer import Buffer, BufferClosed, BufferCorrupted, Buffer
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S, DestinationHealth, attention_needed
 from dc_destinations.metrics import DestinationMetrics
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_size
+
+_T = TypeVar("_T")
+
+
+class Gate:
+    """``send`` and the destination's other hooks one at a time: what :meth:`run` is given waits for
+    the ``send`` under way, without holding up its caller (see the module documentation, 5.)."""
+
+    def __init__(self, logger: Logger) -> None:
+        self._busy = threading.Lock()
+        self._owed: list[Callable[[], None]] = []
+        self._owed_lock = threading.Lock()
+        self._logger = logger
+
+    def send(self, send: Callable[[], _T]) -> _T:
+        with self._busy:
+            result = send()
+        self._settle()
+        return result
+
+    def run(self, hook: Callable[[], None]) -> bool:
+        """``hook()`` now when no ``send`` runs: True, and what it raises passes. Otherwise False, and
+        ``hook`` runs on the sender's thread once the ``send`` returns, what it raises logged there."""
+        if self._busy.acquire(blocking=False):
+            try:
+                hook()
+            finally:
+                self._busy.release()
+            self._settle()
+            return True
+        with self._owed_lock:
+            self._owed.append(hook)
+        # The send may have ended between the acquire and the append: settled here then.
+        self._settle()
+        return False
+
+    def _settle(self) -> None:
+        # Whoever releases the gate, or adds to _owed, runs what is owed unless the other holds the
+        # gate: that one then runs it after its release. Nothing owed is left behind.
+        while self._owed and self._busy.acquire(blocking=False):
+            try:
+                with self._owed_lock:
+                    owed, self._owed = self._owed, []
+                for hook in owed:
+                    try:
+                        hook()
+                    except Exception as exc:
+                        self._logger.error(f"{exc} (run once the send() that outlived the grace returned)")
+            finally:
+                self._busy.release()
 
 
 @dataclass
@@ -71,6 +125,7 @@ class Route:
     dead_letter_drop_log: BurstLog
     malformed_log: BurstLog
     health: DestinationHealth
+    gate: Gate
     wakeup: threading.Event = field(default_factory=threading.Event)
     # Records committed since the sender last found its queue empty: it wakes at batch_size.
     pending_hint: int = 0
@@ -99,6 +154,7 @@ class Route:
                 logger.error, f"destination {name}: records not stored, they are not valid UTF-8 JSON"
             ),
             health=DestinationHealth(name, params.unhealthy_after or DEFAULT_UNHEALTHY_AFTER_S, logger),
+            gate=Gate(logger),
         )
 
     def tick_logs(self) -> None:
@@ -357,7 +413,7 @@ class Sender:
             self.bound_dead_letters()
         if not records:
             return False
-        retry, reject, problem, self._retry_after = _outcome_of(route.destination, records)
+        retry, reject, problem, self._retry_after = route.gate.send(lambda: _outcome_of(route.destination, records))
         if retry or reject:
             confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
         else:
@@ -394,7 +450,8 @@ class Sender:
             if retried:
                 route.failure_log.event(retried, first_error)
         if dead:
-            moved = buffer.dead_letter(route.name, dead)
+            # A refused record was tried once more than its queue row counted (only retries are counted there).
+            moved = buffer.dead_letter(route.name, dead, tried_now={sent_rows[i].row_id for i in reject})
             route.metrics.add("dead_lettered", moved)
             route.dead_letter_log.event(moved, f"{dead[0][1]}; see `dc buffer list`")
             self.bound_dead_letters()

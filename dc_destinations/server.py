@@ -31,10 +31,12 @@ from rclpy.utilities import get_rmw_implementation_identifier
 
 from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
-from dc_core.errors import PluginError
+from dc_core.diagnostics import ERROR, OK, WARN, scrub, secret_values
+from dc_core.diagnostics import status as diagnostic_status
+from dc_core.errors import DcError
 from dc_core.handoff import ENDED_SUFFIX, RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
-from dc_core.lifecycle import ManagedServer, run_server
+from dc_core.lifecycle import ManagedServer, PartialTeardown, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
 from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
@@ -45,7 +47,7 @@ from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, publish
 from dc_core.worker import Outcome
 from dc_destinations.config import NODE_NAME, DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
-from dc_destinations.health import HEALTH_QOS, HEALTH_TOPIC
+from dc_destinations.health import FAILING, HEALTH_QOS, HEALTH_TOPIC, RETRYING
 from dc_destinations.health import summary as health_summary
 from dc_destinations.hop import HopIntake, HopKey, hop_key, keyed_hop_key, source_key
 from dc_destinations.record_ids import new_record_id
@@ -146,6 +148,9 @@ class DestinationServer(ManagedServer):
         self._health_pub = self.create_publisher(StringStamped, HEALTH_TOPIC, HEALTH_QOS)
         self._health_sent = ""
         self._rmw_checked = False
+        self._sent_before: dict[str, tuple[float, int]] = {}  # for records/s on /diagnostics
+        self._diagnosing = False
+        self._destination_metrics: dict[str, dict[str, Any]] | None = None
 
     # -- configure / cleanup -----------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -188,6 +193,7 @@ class DestinationServer(ManagedServer):
         )
         # At configure: a buffer another process owns fails configure, with the owner named.
         self.pipeline.claim_storage(self.get_namespace())
+        self.pipeline.metrics_announce_as = self.metrics_announce_as()
         self.pipeline.add_metrics_section("intake", self.intake_metrics)
         self.pipeline.add_metrics_section("hop", self.hop_metrics)
 
@@ -220,7 +226,8 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)  # no-op unless a failed activation left it running
         self._stop_acks()
-        for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):
+        # Without a config (a configure that failed parsing it) there is no plugin to clean up.
+        for error in self._plugin_hooks("on_cleanup") if self.config is not None else []:
             self.get_logger().error(error)
         self.plugins.clear()
         self._debug.clear()
@@ -233,6 +240,7 @@ class DestinationServer(ManagedServer):
     # -- activate / deactivate ---------------------------------------------------------------------
     def activate_server(self) -> None:
         assert self.pipeline is not None and self.routing is not None
+        self._diagnosing = False  # a job the last deactivation's worker stop left without its outcome
         for what, plugin in self._named_plugins():
             run_hook(what, plugin, "on_activate")
         # Acks follow commits from the first one on: measurement_server and group_server keep each
@@ -311,9 +319,23 @@ class DestinationServer(ManagedServer):
         if self.pipeline is not None and self.config is not None:
             self.pipeline.stop(self.config.node.flb.grace)
         self._stop_acks()
-        errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
+        errors = self._plugin_hooks("on_deactivate")
         if errors:
-            raise PluginError("; ".join(errors))
+            # The server's own part is torn down: it can go on (dc_core.lifecycle).
+            raise PartialTeardown("; ".join(errors))
+
+    def _plugin_hooks(self, hook: str) -> list[str]:
+        """``hook`` of every plugin, never while its send() runs (DeliveryPipeline.between_sends)."""
+        pipeline = self.pipeline
+        if pipeline is None:
+            return run_hook_on_each(self._named_plugins(), hook)
+        errors: list[str] = []
+        for name, (what, plugin) in zip(self.plugins, self._named_plugins(), strict=True):
+            try:
+                pipeline.between_sends(name, functools.partial(run_hook, what, plugin, hook))
+            except DcError as exc:
+                errors.append(str(exc))
+        return errors
 
     def _named_plugins(self) -> list[tuple[str, Destination[Any]]]:
         assert self.config is not None
@@ -549,6 +571,79 @@ class DestinationServer(ManagedServer):
             msg.data = text
             self._health_pub.publish(msg)
             self._health_sent = text
+
+    # -- /diagnostics (dc_core.diagnostics, docs/diagnostics.md) -------------------------------------
+    def unhealthy_reason(self) -> str:
+        if self.pipeline is None or self.lifecycle_state != "active":
+            return ""
+        return self.pipeline.unhealthy_reason()
+
+    def publish_diagnostics(self) -> None:
+        pipeline = self.pipeline
+        if pipeline is None or self.lifecycle_state != "active":
+            super().publish_diagnostics()
+            return
+        if self._diagnosing:
+            return  # the previous one still waits for the buffer: this one would say the same
+        self._diagnosing = True
+
+        def done(outcome: Outcome[dict[str, dict[str, Any]]]) -> None:
+            self._diagnosing = False
+            self._destination_metrics = outcome.value if outcome.error is None else None
+            if outcome.error is not None:
+                self.get_logger().error(f"destination metrics for /diagnostics failed: {outcome.error!r}")
+            super(DestinationServer, self).publish_diagnostics()
+
+        # On the worker: the buffer's counts wait for a group commit in progress, the intake must not.
+        self.worker.submit(pipeline.metrics, done)
+
+    def diagnostic_statuses(self) -> list[Any]:
+        pipeline, config, metrics = self.pipeline, self.config, self._destination_metrics
+        self._destination_metrics = None
+        if pipeline is None or config is None or metrics is None or self.lifecycle_state != "active":
+            return []
+        secrets = [value for d in config.destinations for value in secret_values(d.plugin_params)]
+        now = time.monotonic()
+        statuses = []
+        for name, values in metrics.items():
+            health = values["health"]
+            state = health["state"]
+            sent = int(values["sent"])
+            before = self._sent_before.get(name)
+            self._sent_before[name] = (now, sent)
+            rate = (sent - before[1]) / (now - before[0]) if before is not None and now > before[0] else None
+            if not pipeline.sender_alive(name):
+                level, message = ERROR, "its sender thread is not running: records wait in the buffer"
+            elif state == FAILING:
+                level, message = ERROR, f"failing: {scrub(health['reason'], secrets)}"
+            elif state == RETRYING:
+                level, message = WARN, f"retrying: {scrub(health['reason'], secrets)}"
+            else:
+                level, message = OK, "delivering"
+            statuses.append(
+                diagnostic_status(
+                    f"{self.get_name()}: {name}",
+                    level,
+                    message,
+                    {
+                        "state": state,
+                        "pending": values["buffered"],
+                        "oldest_pending_s": values["oldest_pending_age_s"],
+                        "records_per_s": rate,
+                        "sent": sent,
+                        "retried": values["retried"],
+                        "failed": values["failed"],
+                        "dropped": values["dropped"],
+                        "dead_letters": values["dead_letters"],
+                        "failing_for_s": health.get("for_s"),
+                        "fix": health.get("fix", ""),
+                        "last_error": scrub(values["last_error"], secrets),
+                        "last_error_time": values["last_error_time"],
+                        "last_delivery": values["last_delivery"],
+                    },
+                )
+            )
+        return statuses
 
     def _hand_over(self, received: list[_Received]) -> None:
         """Submit records with their copies and keys; the keys are remembered once the pipeline took them.

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from typing import Any
 
+from dc_core.jsonpath import flatten
 from dc_core.records import MalformedRecord, parse_record
 from dc_group.config import GroupConfig
 
@@ -138,18 +139,5 @@ def _prune(node: Any, patterns: list[tuple[str, ...]]) -> Any:
 
 def flatten_dotted(document: dict[str, Any]) -> dict[str, Any]:
     """``{"a": {"b": 1, "l": [2]}}`` -> ``{"a.b": 1, "a.l.0": 2}``; empty objects and arrays stay."""
-    out: dict[str, Any] = {}
-
-    def walk(node: Any, prefix: str) -> None:
-        if isinstance(node, dict) and node:
-            for key, value in node.items():
-                walk(value, f"{prefix}.{key}" if prefix else str(key))
-        elif isinstance(node, list) and node:
-            for index, value in enumerate(node):
-                walk(value, f"{prefix}.{index}")
-        else:
-            out[prefix] = node
-
-    for key, value in document.items():
-        walk(value, str(key))
-    return out
+    # flatten's paths all start with the separator: one "." too many here.
+    return {path[1:]: value for path, value in flatten(document, separator=".").items()}

@@ -10,10 +10,9 @@ from typing import Any
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from dc_core.errors import PluginError
 from dc_core.handoff import HandoffSender, destination_inputs
 from dc_core.handoff_marks import marks_folder
-from dc_core.lifecycle import ManagedServer, ServerPluginContext, run_server
+from dc_core.lifecycle import ManagedServer, PartialTeardown, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env, expand_values
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
@@ -321,7 +320,8 @@ class MeasurementServer(ManagedServer):
             self.handoff.stop()
         errors = run_hook_on_each(self._named_plugins(), "on_deactivate")
         if errors:
-            raise PluginError("; ".join(errors))
+            # The server's own part is torn down: it can go on (dc_core.lifecycle).
+            raise PartialTeardown("; ".join(errors))
 
     def _named_plugins(self) -> list[tuple[str, Plugin[Any]]]:
         """Measurements, then conditions, each with what names it in a message."""

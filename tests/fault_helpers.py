@@ -16,13 +16,16 @@ import pytest
 HOOKS = Path(__file__).resolve().parent / "fault_hooks"
 
 
-def fault_env(tmp_path: Path, target: str) -> dict[str, str]:
+def fault_env(tmp_path: Path, target: str, hang_s: float = 0.0, skip: int = 0) -> dict[str, str]:
     """The environment of a `dc-bringup` whose processes make ``target`` (``module:Class.method``)
-    raise once (tests/fault_hooks/sitecustomize.py); the marker file says it did."""
+    raise once, or with ``hang_s`` block that long once, after ``skip`` calls in each process ran
+    normally (tests/fault_hooks/sitecustomize.py); the marker file says it did."""
     return {
         "PYTHONPATH": os.pathsep.join([*filter(None, [os.environ.get("PYTHONPATH")]), str(HOOKS)]),
         "DC_TEST_FAULT": target,
         "DC_TEST_FAULT_ONCE": str(tmp_path / "fault-raised"),
+        **({"DC_TEST_FAULT_HANG": str(hang_s)} if hang_s else {}),
+        **({"DC_TEST_FAULT_SKIP": str(skip)} if skip else {}),
     }
 
 

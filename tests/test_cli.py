@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -16,6 +17,7 @@ import pytest
 from dc_bringup.cli import STATUS_COLUMNS
 from tests.bringup_util import BIN, REPO, dc
 from tests.domains import fresh_domain_id
+from tests.http_receiver import free_port
 
 PLUGIN_SRC = REPO / "tests" / "data" / "dc_example_plugin"
 
@@ -294,9 +296,18 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
             "destination_server:\n  ros__parameters:\n    flb:\n      http_server: true\n"
             f"      http_port: {server.server_address[1]}\n    destination_plugins: []\n"
         )
-        result = dc("status", "--params", str(params))
+        # Its own runtime folder: no server of this session's domain is found running.
+        env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}
+        result = dc("status", "--params", str(params), "--wide", env=env)
+        narrow = dc("status", "--params", str(params), env=env)
     finally:
         server.shutdown()
+    assert narrow.returncode == 0, narrow.stderr
+    assert max(len(line) for line in narrow.stdout.splitlines()) <= 100, narrow.stdout
+    narrow_header, narrow_row, error_line, *_ = narrow.stdout.splitlines()
+    assert narrow_header.split()[:4] == ["destination", "health", "received", "sent"]
+    assert narrow_row.split() == ["pg", "failing", "10", "7", "3", "12.5", "2", "0", "1"]
+    assert re.fullmatch(r"  last error: 6\d s ago: HTTP 503 Service Unavailable", error_line), error_line
     assert result.returncode == 0, result.stderr
     header, row, *rest = result.stdout.splitlines()
     titles = header.split()
@@ -305,7 +316,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     assert cells[:5] == ["pg", "failing", "10", "3", "600"] and "12.5" in cells
     assert titles[-5:] == ["sent", "s", "ago", "last", "error"]
     assert 3.0 <= float(cells[len(STATUS_COLUMNS)]) < 30.0, row  # seconds since last_delivery, the last column
-    assert row.endswith("60 s ago: HTTP 503 Service Unavailable")
+    assert re.search(r"  6\d s ago: HTTP 503 Service Unavailable$", row), row
     assert any("corrupt files set aside 1" in line for line in rest)
     assert any("COMMITS FAILING for 42.0 s" in line and "disk is full" in line for line in rest), rest
     assert any(line.startswith("intake: received 10, malformed 2") for line in rest)
@@ -444,6 +455,31 @@ group_server:
     result = dc("validate", str(params))
     assert result.returncode == 0, result.stderr
     assert (
-        "measurement_server.http_port: 2022 is also group_server.http_port: measurement_server will not serve its"
-        " metrics" in result.stderr
+        "measurement_server.http_port: 2022 is also group_server.http_port: measurement_server serves its metrics"
+        " on another, free port (dc status finds it)" in result.stderr
     )
+
+
+def test_pub_with_nobody_subscribed_says_so_and_fails_unless_no_wait(ros_env: dict[str, str]) -> None:
+    alone = dc("pub", "/nobody_listens", '{"n": 1}', "--wait-matched", "0.5", env=ros_env)
+    assert alone.returncode == 3, alone.stdout + alone.stderr
+    assert "nobody subscribes to /nobody_listens (waited 0.5 s); nothing published" in alone.stderr
+    assert "published" not in alone.stdout
+    anyway = dc("pub", "/nobody_listens", '{"n": 1}', "--no-wait", env=ros_env)
+    assert anyway.returncode == 0, anyway.stderr
+    assert "published 1 record(s) on /nobody_listens" in anyway.stdout
+
+
+def test_status_params_reads_a_file_whose_secret_is_not_set_in_this_shell(tmp_path: Path) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text(
+        "destination_server:\n  ros__parameters:\n    flb:\n      http_server: true\n"
+        f"      http_port: {free_port()}\n    destination_plugins: [web]\n"
+        '    web:\n      plugin: dc_destinations/HTTP\n      inputs: ["/x"]\n'
+        '      http_user: dc\n      http_passwd: "${DC_TEST_PASSWORD_NOT_IN_THIS_SHELL}"\n'
+    )
+    env = {k: v for k, v in os.environ.items() if k != "DC_TEST_PASSWORD_NOT_IN_THIS_SHELL"}
+    result = dc("status", "--params", str(params), env=env)
+    # It went on to ask the server (none listens here), instead of failing on the variable.
+    assert result.returncode == 1 and "cannot reach destination_server" in result.stderr, result.stderr
+    assert "not set in this shell, shown as unset: DC_TEST_PASSWORD_NOT_IN_THIS_SHELL" in result.stderr

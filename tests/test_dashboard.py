@@ -557,9 +557,14 @@ def _span(dsn: dict[str, Any]) -> tuple[str, str]:
     return ((low + third).strftime("%Y-%m-%dT%H:%M:%S"), (high - third).strftime("%Y-%m-%dT%H:%M:%S"))
 
 
-def test_params_gives_the_metrics_url_of_each_server_whose_http_server_it_enables(tmp_path: Path) -> None:
-    """dc dashboard --params: dc_bringup reads the file for the dashboard, which does not import it."""
+def test_params_gives_the_metrics_url_of_each_server_whose_http_server_it_enables(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """dc dashboard --params: dc_bringup reads the file for the dashboard, which does not import it; the
+    destination server's only (the measurement server's endpoint, on by default, has no delivery)."""
     import argparse
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # no server of this session's domain found running
 
     from dc_bringup.cli import _metrics_urls
     from dc_dashboard.settings import from_sources

@@ -588,6 +588,33 @@ def test_retry_limit_dead_letters_after_the_last_retry(tmp_path: Path) -> None:
         assert pipeline.metrics()["sink"]["retried"] == 2
     finally:
         pipeline.stop(grace=0.5)
+    assert [d.attempts for d in _dead_letters(tmp_path)] == [3]
+
+
+def test_dc_buffer_list_counts_the_try_that_was_refused(tmp_path: Path) -> None:
+    """A record refused at its first try was tried once: `dc buffer list` said "tries 0"."""
+    from tests.test_buffer import _cli
+
+    sink = Recorder(behaviour=reject_all)
+    pipeline = DeliveryPipeline(settings(tmp_path), {"sink": (sink, DestinationDeliveryParams())}, LOG)
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(1))
+        wait_until(lambda: pipeline.metrics()["sink"]["dead_lettered"] == 1, what="dead letter")
+    finally:
+        pipeline.stop(grace=0.5)
+    assert [d.attempts for d in _dead_letters(tmp_path)] == [sink.calls] == [1]
+    code, text = _cli(tmp_path, "list")
+    header, row = text.splitlines()[:2]
+    assert code == 0 and "tries" in header and row.split()[:4][3] == "1", text  # id, destination, failed at, tries
+
+
+def _dead_letters(tmp_path: Path) -> list[Any]:
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    try:
+        return buffer.list_dead_letters()
+    finally:
+        buffer.close()
 
 
 def test_a_dead_destination_does_not_delay_another(tmp_path: Path) -> None:

@@ -222,7 +222,7 @@ def test_a_wrong_postgresql_password_is_failing_at_once_and_is_active_says_degra
             health = json.loads(refused.value.read())
             assert health["status"] == "degraded" and health["destinations"]["pg"]["state"] == "failing"
 
-            status = dc("status", "--params", str(params), env=run.env)
+            status = dc("status", "--wide", "--params", str(params), env=run.env)
             assert status.returncode == 0, status.stderr
             assert any(
                 text.startswith("destination pg FAILING for ") and "check the user" in text

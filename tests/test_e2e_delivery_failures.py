@@ -119,7 +119,7 @@ def finish(publisher: subprocess.Popen[str], timeout: float = 60) -> None:
 
 def status(run: Bringup) -> dict[str, Any]:
     """`dc status --json` of this run's destination_server (its metrics port is in the log)."""
-    line = run.wait_stderr("metrics HTTP server on http://")
+    line = run.wait_stderr("destination_server]: metrics HTTP server on http://")
     match = re.search(r"http://[^:/]+:(\d+)/", line)
     assert match, line
     result = dc("status", "--json", "--port", match.group(1), env=run.env)
@@ -313,7 +313,8 @@ def test_damaged_pages_of_a_waiting_backlog_cost_only_their_records(tmp_path: Pa
         lost = metrics["lost_to_damage"]
         assert metrics["salvaged"] + lost == total, metrics
         run.wait_until(lambda: len(seqs(receiver)) + lost >= total, 60, "the salvaged records at the receiver")
-        table = dc("status", "--port", re.findall(r"http://[^:/]+:(\d+)/", run.wait_stderr("metrics HTTP"))[0])
+        logged = run.wait_stderr("destination_server]: metrics HTTP server on http://")
+        table = dc("status", "--wide", "--port", re.findall(r"http://[^:/]+:(\d+)/", logged)[0])
         document = status(run)
     delivered = set(seqs(receiver))
     assert delivered <= set(range(total))
@@ -359,7 +360,9 @@ def test_damage_of_the_file_in_use_shows_in_health_and_dc_status(tmp_path: Path)
         while not (document := status(run))["buffer"]["buffer_damaged"]:
             assert time.monotonic() < deadline, document["buffer"]
             time.sleep(0.2)
-        port = re.findall(r"http://[^:/]+:(\d+)/", run.wait_stderr("metrics HTTP"))[0]
+        port = re.findall(
+            r"http://[^:/]+:(\d+)/", run.wait_stderr("destination_server]: metrics HTTP server on http://")
+        )[0]
         with pytest.raises(urllib.error.HTTPError) as health:
             urllib.request.urlopen(f"http://127.0.0.1:{port}/api/v1/health", timeout=5)
         table = dc("status", "--port", port, env=run.env)

@@ -159,7 +159,11 @@ def publish(env: dict[str, str], first: int, count: int, rate: float, *flags: st
 
 def hop_metrics(log_lines: list[str]) -> dict[str, Any]:
     """The `hop` section of /api/v1/metrics of the destination_server that logged last."""
-    address = [m.group(1) for line in log_lines if (m := re.search(r"metrics HTTP server on (http://\S+)", line))]
+    address = [
+        m.group(1)
+        for line in log_lines
+        if "destination_server" in line and (m := re.search(r"metrics HTTP server on (http://\S+)", line))
+    ]
     with urllib.request.urlopen(address[-1] + "metrics", timeout=5) as response:
         document: dict[str, Any] = json.load(response)
     return dict(document["hop"]["/dc/measurement/numbers"])

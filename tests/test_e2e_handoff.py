@@ -55,7 +55,11 @@ def handoff_metrics(lines: list[str]) -> dict[str, Any]:
 
 def hop_missing(lines: list[str]) -> dict[str, int]:
     """Per input topic, `missing` in the hop section of the destination_server that logged last."""
-    address = [m.group(1) for line in lines if (m := re.search(r"metrics HTTP server on (http://\S+)", line))]
+    address = [
+        m.group(1)
+        for line in lines
+        if "destination_server" in line and (m := re.search(r"metrics HTTP server on (http://\S+)", line))
+    ]
     with urllib.request.urlopen(address[-1] + "metrics", timeout=5) as response:
         document: dict[str, Any] = json.load(response)
     return {topic: int(counts["missing"]) for topic, counts in document["hop"].items()}

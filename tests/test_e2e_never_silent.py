@@ -65,7 +65,7 @@ def _web_metrics_of_the_last_start(run: Bringup) -> dict[str, Any]:
     deadline = time.monotonic() + 30
     while True:
         # The restart may still be under way: the last port logged, once it answers.
-        line = [line for line in run.stderr if "metrics HTTP server on http://" in line][-1]
+        line = [line for line in run.stderr if "destination_server]: metrics HTTP server on http://" in line][-1]
         match = re.search(r"http://[^:/]+:(\d+)/", line)
         assert match, line
         result = dc("status", "--json", "--port", match.group(1), env=run.env)

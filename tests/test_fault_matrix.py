@@ -185,7 +185,7 @@ def status_of_last_start(run: Bringup, check: Callable[[dict[str, Any]], bool], 
 
 def metrics_port(run: Bringup) -> str:
     """The port of the metrics server of the destination_server that logged last."""
-    line = [line for line in run.stderr if "metrics HTTP server on http://" in line][-1]
+    line = [line for line in run.stderr if "destination_server]: metrics HTTP server on http://" in line][-1]
     match = re.search(r"http://[^:/]+:(\d+)/", line)
     assert match, line
     return match.group(1)

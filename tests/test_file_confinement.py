@@ -449,7 +449,7 @@ def test_records_on_the_resend_topic_from_a_publisher_that_is_not_dc_do_not_reac
 
 
 def status(run: Bringup) -> dict[str, Any]:
-    line = run.wait_stderr("metrics HTTP server on http://")
+    line = run.wait_stderr("destination_server]: metrics HTTP server on http://")
     match = re.search(r"http://[^:/]+:(\d+)/", line)
     assert match, line
     result = dc("status", "--json", "--port", match.group(1), env=run.env)

@@ -127,11 +127,11 @@ def test_configuration_errors_name_the_yaml_path(section: dict[str, Any], path: 
     assert message in info.value.message
 
 
-def test_the_metrics_http_server_is_off_by_default_and_on_loopback() -> None:
+def test_the_metrics_http_server_is_on_by_default_on_loopback() -> None:
     default = parse_group_server({"groups": ["g"], "g": {"inputs": ["/a"]}})
-    assert (default.node.http_server, default.node.http_listen, default.node.http_port) == (False, "127.0.0.1", 2021)
-    enabled = parse_group_server({"groups": ["g"], "g": {"inputs": ["/a"]}, "http_server": True, "http_port": 0})
-    assert (enabled.node.http_server, enabled.node.http_port) == (True, 0)
+    assert (default.node.http_server, default.node.http_listen, default.node.http_port) == (True, "127.0.0.1", 2021)
+    disabled = parse_group_server({"groups": ["g"], "g": {"inputs": ["/a"]}, "http_server": False, "http_port": 0})
+    assert (disabled.node.http_server, disabled.node.http_port) == (False, 0)
 
 
 def test_groups_feeding_each_other_in_a_loop_are_refused() -> None:

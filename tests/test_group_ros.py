@@ -278,19 +278,24 @@ def test_counters_are_served_over_http_while_active(start: Any) -> None:
         urllib.request.urlopen(f"{base}/health", timeout=5)
 
 
-def test_a_taken_metrics_port_is_logged_and_grouping_goes_on(start: Any, capfd: pytest.CaptureFixture[str]) -> None:
+def test_a_taken_metrics_port_is_a_warning_and_a_free_one_serves(start: Any, capfd: pytest.CaptureFixture[str]) -> None:
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
         h = start({"pair": {"inputs": ["a", "b"], "sync_delay": 0.5}}, http_server=True, http_port=port)
         activate(h)
-        assert h.server.http_address is None
+        assert h.server.http_address is not None
+        host, bound = h.server.http_address
+        assert bound != port
         h.listen("pair")
         h.publish("a", {"v": 1}, 9 * S)
         h.publish("b", {"w": 2}, 9 * S)
         h.wait_for_output("pair")
-    assert f"metrics HTTP server on 127.0.0.1:{port} not started" in capfd.readouterr().err
+        document = json.loads(get(f"http://{host}:{bound}/api/v1/metrics")[1])
+        assert document["groups"]["pair"]["published"] == 1
+    err = capfd.readouterr().err
+    assert f"127.0.0.1:{port} is taken (another DC on this machine?); serving on 127.0.0.1:{bound} instead" in err
 
 
 def test_a_group_feeds_another_group(start: Any) -> None:

@@ -23,7 +23,14 @@ import urllib.request
 from pathlib import Path
 
 from dc_bringup.local_servers import ServerError
-from dc_bringup.local_servers.processes import free_port, log_tail, pid_from_file, stop_server
+from dc_bringup.local_servers.processes import (
+    free_port,
+    log_tail,
+    pid_from_file,
+    port_of_last_start,
+    remember_port,
+    stop_server,
+)
 
 INSTALL_HINT = "InfluxDB is not installed (apt install influxdb)"
 
@@ -54,10 +61,7 @@ class InfluxServer:
         self.database = database
         self.user = user
         self.password = password
-        port_file = self.state_dir / "port"
-        if port == 0 and port_file.is_file():
-            port = int(port_file.read_text().split()[0] or 0)  # the same port as the last start: settings stay valid
-        self.port = port or free_port()
+        self.port = port_of_last_start(self.state_dir, port)
         self._process: subprocess.Popen[bytes] | None = None
 
     def __repr__(self) -> str:  # without the password
@@ -80,7 +84,7 @@ class InfluxServer:
         if not self.running():
             self.state_dir.mkdir(parents=True, exist_ok=True)
             config = self._write_config()
-            (self.state_dir / "port").write_text(f"{self.port}\n")
+            remember_port(self.state_dir, self.port)
             with self.log_file.open("ab") as log:
                 # A session of its own: a Ctrl-C in the terminal that ran `dc servers start` does not reach it.
                 self._process = subprocess.Popen(

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from dc_bringup.local_servers import ServerError
-from dc_bringup.local_servers.processes import alive, free_port, kill, log_tail
+from dc_bringup.local_servers.processes import alive, kill, log_tail, port_of_last_start, remember_port
 
 INSTALL_HINT = "PostgreSQL is not installed (apt install postgresql)"
 _SUPERUSER = "postgres"
@@ -76,10 +76,7 @@ class PostgresServer:
         self.user = user
         self.password = password
         self.database = database
-        port_file = self.state_dir / "port"
-        if port == 0 and port_file.is_file():
-            port = int(port_file.read_text().strip() or 0)  # the same port as the last start: settings stay valid
-        self.port = port or free_port()
+        self.port = port_of_last_start(self.state_dir, port)
         self._as_root = os.geteuid() == 0
 
     def __repr__(self) -> str:  # without the password
@@ -109,7 +106,7 @@ class PostgresServer:
         if not (self.data_dir / "PG_VERSION").is_file():
             self._initdb(bin_dir)
         self._write_settings()
-        (self.state_dir / "port").write_text(f"{self.port}\n")
+        remember_port(self.state_dir, self.port)
         deadline = time.monotonic() + timeout
         started = self._run(
             [str(bin_dir / "pg_ctl"), "start", "-w", "-t", str(max(1, int(timeout))), "-D", str(self.data_dir),

@@ -1,4 +1,4 @@
-"""What the local servers share about their processes: pids from files, stopping, log tails, free ports."""
+"""What the local servers share about their processes: pids from files, stopping, log tails, ports."""
 
 from __future__ import annotations
 
@@ -17,6 +17,20 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def port_of_last_start(state_dir: Path, port: int) -> int:
+    """``port``; with 0, the port the server in ``state_dir`` had at its last start (the settings written
+    for it stay valid), else a free one."""
+    port_file = state_dir / "port"
+    if port == 0 and port_file.is_file():
+        port = int(port_file.read_text().strip() or 0)
+    return port or free_port()
+
+
+def remember_port(state_dir: Path, port: int) -> None:
+    """Write what :func:`port_of_last_start` reads at the next start."""
+    (state_dir / "port").write_text(f"{port}\n")
 
 
 def alive(pid: int) -> bool:

@@ -14,7 +14,6 @@ import io
 import json
 import os
 import re
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -24,6 +23,7 @@ from dc_core.errors import PluginError
 from dc_core.params import param
 from dc_core.paths import expand_env
 from dc_core.private_files import folder_mode, make_folders, mode_problem, parse_mode
+from dc_destinations.connection import Connection
 
 FORMATS = ("json", "plain", "csv", "ltsv", "out_file", "template")
 _TEMPLATE_FIELD = re.compile(r"\{([^{}]+)\}")
@@ -73,9 +73,9 @@ class File(Destination[FileParams]):
         self.file_path = ""
         self.file_mode = 0o600
         self.delimiter = ""
-        self._fd: int | None = None
+        # Opened again when the file was moved or deleted (log rotation): then a new one is started.
+        self._fd = self.keep(Connection("", self._open, self._close, timeout=0, usable=self._same_file))
         self._columns: list[str] | None = None
-        self._lock = threading.Lock()
 
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
@@ -120,29 +120,21 @@ class File(Destination[FileParams]):
                 # Not fatal: send() retries, and the folder may become writable (a disk mounted late).
                 self.context.logger.warning(f"cannot create {folder}: {exc.strerror}; records stay buffered")
 
-    def on_deactivate(self) -> None:
-        with self._lock:
-            self._close()
-
-    def on_cleanup(self) -> None:
-        self.on_deactivate()
-
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
-        with self._lock:
-            try:
-                fd = self._open()
-                fmt = self.params.format
-                if fmt == "csv":
-                    text, rejected = self._render_csv(fd, batch)
-                elif fmt in ("json", "plain"):  # the default, a line per record: without a call per line
-                    text, rejected = "".join([f"{r.to_json()}\n" for r in batch]), {}
-                else:
-                    text, rejected = "".join(self._line(r) for r in batch), {}
-                self._append(fd, text.encode())
-            except OSError as exc:
-                self._close()
-                raise RetryableError(f"cannot write {self.file_path}: {exc.strerror or exc}") from exc
+        try:
+            fd = self._fd.get()
+            fmt = self.params.format
+            if fmt == "csv":
+                text, rejected = self._render_csv(fd, batch)
+            elif fmt in ("json", "plain"):  # the default, a line per record: without a call per line
+                text, rejected = "".join([f"{r.to_json()}\n" for r in batch]), {}
+            else:
+                text, rejected = "".join(self._line(r) for r in batch), {}
+            self._append(fd, text.encode())
+        except OSError as exc:
+            self._fd.close()
+            raise RetryableError(f"cannot write {self.file_path}: {exc.strerror or exc}") from exc
         return SendOutcome(reject=rejected) if rejected else None
 
     def _line(self, record: OutgoingRecord) -> str:
@@ -194,18 +186,14 @@ class File(Destination[FileParams]):
 
     # -- file handling -----------------------------------------------------------------------------
     def _open(self) -> int:
-        if self._fd is not None and self._same_file(self._fd):
-            return self._fd
-        self._close()
         folder = os.path.dirname(self.file_path)
         if self.params.mkdir:
             make_folders(folder, folder_mode(self.file_mode))
         fd, created = _open_append(self.file_path, self.file_mode)
-        self._fd = fd
         if created:
             # The new directory entry must be durable too, or a crash can lose the whole file.
             _fsync_dir(folder)
-        return self._fd
+        return fd
 
     def _same_file(self, fd: int) -> bool:
         """False when the file was moved or deleted (log rotation): then a new one is started."""
@@ -230,12 +218,9 @@ class File(Destination[FileParams]):
                 os.ftruncate(fd, start)
             raise
 
-    def _close(self) -> None:
-        if self._fd is not None:
-            fd, self._fd = self._fd, None
-            self._columns = None
-            with contextlib.suppress(OSError):
-                os.close(fd)
+    def _close(self, fd: int) -> None:
+        self._columns = None
+        os.close(fd)
 
 
 def _open_append(path: str, mode: int) -> tuple[int, bool]:

@@ -44,10 +44,10 @@ from dc_destinations.pgsql.connection import (
     KeptConnection,
     PostgresServerParams,
     is_record_error,
+    keep_database,
     probe_table,
     require_psycopg,
     table_problem,
-    warn_if_password_in_clear,
 )
 
 STORAGES = ("minio", "s3")
@@ -180,20 +180,16 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         self._files.configure(self.params)
         table = FilesTable(self.params.pgsql.table)
         self._table = table
-        self._database = KeptConnection(
+        self._database = keep_database(
+            self,
             self.params.pgsql.server(),
-            application_name=f"dc {self.context.name}",
-            logger=self.context.logger,
             prepare=self._prepare_table,
             prepared=f"table {table.name}",
+            section=f"destination_server.{self.context.name}.pgsql",
         )
         self.address = self._database.address
-        name = self.context.name
-        warn_if_password_in_clear(
-            self.context.logger, name, self._database.settings, f"destination_server.{name}.pgsql"
-        )
         self._stores = [
-            _Store(storage, section, section.client(self.context.logger, f"{name}.{storage}"))
+            _Store(storage, section, section.client(self.context.logger, f"{self.context.name}.{storage}"))
             for storage, section in ((s, self.params.section(s)) for s in self.params.file_storage)
         ]
 
@@ -218,12 +214,8 @@ class FilesMetrics(Destination[FilesMetricsParams]):
             f"tracking the files of {storages} in table {self.params.pgsql.table} of {self.address}"
         )
 
-    def on_deactivate(self) -> None:
-        if self._database is not None:
-            self._database.close()
-
     def on_cleanup(self) -> None:
-        self.on_deactivate()
+        super().on_cleanup()
         self._stores = []
 
     def counters(self) -> dict[str, int]:

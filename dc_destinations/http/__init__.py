@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import base64
 import gzip
-import http.client
 import re
 import ssl
-import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -30,7 +28,7 @@ from dc_core.destination import (
 )
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
-from dc_destinations.http_client import connection_to, is_retryable_status, masked, one_line, retry_after_seconds
+from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
 from dc_destinations.probes import connect_probe
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
@@ -41,8 +39,6 @@ _HEADER_TOKEN = r"[!#$%&'*+.^_`|~0-9A-Za-z-]+"
 _HEADER_COLON = re.compile(rf"^({_HEADER_TOKEN}):[ \t]*(.*)$")
 _HEADER_SPACE = re.compile(rf"^({_HEADER_TOKEN})[ \t]+(.*)$")  # Fluent Bit's `Header Name value`
 _EXCERPT_CHARS = 200
-# Bytes of a response body read to keep the connection reusable; a longer body closes it instead.
-_BODY_READ_LIMIT = 64 * 1024
 
 
 def _uri_problem(uri: str) -> str | None:
@@ -138,9 +134,8 @@ class Http(Destination[HttpParams]):
         super().__init__(context, params)
         self._headers: list[tuple[str, str]] = []
         self._secrets: list[str] = []
-        self._connection: http.client.HTTPConnection | None = None
-        self._tls: ssl.SSLContext | None = None
-        self._lock = threading.Lock()
+        self._connection: HttpConnection | None = None
+        self._tls: ssl.SSLContext | None = None  # for the probe's own connection
         self._encode: Callable[[Sequence[OutgoingRecord]], bytes] = _json_encoder("json")
         self.url = ""
 
@@ -173,7 +168,12 @@ class Http(Destination[HttpParams]):
         headers.extend((str(name), _header_value(value)) for name, value in p.headers.items())
         self._headers = _merge_headers(headers, keep_duplicates=p.allow_duplicated_headers)
         self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_encoder(p.format)
-        self._tls = client_context(p, self._key_path(""), self.context.logger)
+        tls = self._tls = client_context(p, self._key_path(""), self.context.logger)
+        self._connection = self.keep(
+            HttpConnection(
+                p.host, p.port, timeout=p.timeout, tls=tls, where=self.url, what="cannot POST to", secrets=self._secrets
+            )
+        )
         self._warn_if_credentials_in_clear()
 
     def _warn_if_credentials_in_clear(self) -> None:
@@ -214,38 +214,21 @@ class Http(Destination[HttpParams]):
         # or slow to answer must not hold up activation.
         self.context.logger.info(f"posting {self.params.format} batches to {self.url}")
 
-    def on_deactivate(self) -> None:
-        with self._lock:
-            self._close()
-
-    def on_cleanup(self) -> None:
-        self.on_deactivate()
-
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
-        body = self._body(batch)
-        with self._lock:
-            reused = self._connection is not None
-            try:
-                status, reason, excerpt, retry_after = self._post(body)
-            except (OSError, http.client.HTTPException) as first:
-                self._close()
-                if not (reused and _is_stale_connection(first)):
-                    raise RetryableError(self._network_error(first)) from None
-                # A kept-alive connection the server closed while idle fails at the first use; this
-                # is not a failure of the destination, so try once more on a fresh connection.
-                try:
-                    status, reason, excerpt, retry_after = self._post(body)
-                except (OSError, http.client.HTTPException) as second:
-                    self._close()
-                    raise RetryableError(self._network_error(second)) from None
+        assert self._connection is not None, "send() before on_configure()"
+        answer = self._connection.post(self.params.uri, self._headers, self._body(batch))
+        status = answer.status
         if 200 <= status < 300:
             return None
+        excerpt = one_line(answer.body.decode("utf-8", errors="replace"), _EXCERPT_CHARS)
+        if not self.params.log_response_payload:
+            excerpt = ""
         # The server's reason first: `dc buffer list` shows the start of the message.
-        message = f"HTTP {status} {reason}" + (f": {excerpt}" if excerpt else "") + f" ({self.url})"
-        message = self._scrub(message)
+        message = f"HTTP {status} {answer.reason}" + (f": {excerpt}" if excerpt else "")
+        message = self._connection.scrub(message + f" ({self.url})")
         if is_retryable_status(status):
-            wait = retry_after_seconds(retry_after)
+            wait = retry_after_seconds(answer.retry_after)
             if wait is None or self.params.retry_after_max <= 0:
                 raise RetryableError(message)
             wait = min(wait, self.params.retry_after_max)
@@ -266,47 +249,8 @@ class Http(Destination[HttpParams]):
             body = gzip.compress(body, compresslevel=6, mtime=0)
         return body
 
-    def _post(self, body: bytes) -> tuple[int, str, str, str | None]:
-        connection = self._open()
-        connection.putrequest("POST", self.params.uri, skip_accept_encoding=True)
-        for name, value in self._headers:
-            connection.putheader(name, value)
-        connection.putheader("Content-Length", str(len(body)))
-        connection.endheaders(body)
-        response = connection.getresponse()
-        data = response.read(_BODY_READ_LIMIT)
-        if not response.isclosed():
-            self._close()  # an endless answer: drop the connection rather than read it all
-        elif response.will_close:
-            self._close()
-        excerpt = self._excerpt(data) if self.params.log_response_payload else ""
-        return response.status, response.reason, excerpt, response.getheader("Retry-After")
-
-    def _open(self) -> http.client.HTTPConnection:
-        if self._connection is None:
-            self._connection = connection_to(self.params.host, self.params.port, self.params.timeout, self._tls)
-        return self._connection
-
     def _key_path(self, key: str) -> str:
         return f"destination_server.{self.context.name}" + (f".{key}" if key else "")
-
-    def _close(self) -> None:
-        if self._connection is not None:
-            connection, self._connection = self._connection, None
-            connection.close()
-
-    # -- messages ----------------------------------------------------------------------------------
-    def _network_error(self, exc: BaseException) -> str:
-        detail = str(exc) or type(exc).__name__
-        if isinstance(exc, TimeoutError):
-            detail = f"no answer within {self.params.timeout:g} s"
-        return self._scrub(f"cannot POST to {self.url}: {detail}")
-
-    def _excerpt(self, data: bytes) -> str:
-        return self._scrub(one_line(data.decode("utf-8", errors="replace"), _EXCERPT_CHARS))
-
-    def _scrub(self, text: str) -> str:
-        return masked(text, self._secrets)
 
 
 def _merge_headers(headers: list[tuple[str, str]], *, keep_duplicates: bool) -> list[tuple[str, str]]:
@@ -321,10 +265,6 @@ def _merge_headers(headers: list[tuple[str, str]], *, keep_duplicates: bool) -> 
         last.pop(name.lower(), None)
         last[name.lower()] = (name, value)
     return list(last.values())
-
-
-def _is_stale_connection(exc: BaseException) -> bool:
-    return isinstance(exc, (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError))
 
 
 def _json_encoder(fmt: str) -> Callable[[Sequence[OutgoingRecord]], bytes]:

@@ -22,7 +22,6 @@ import json
 import math
 import re
 import ssl
-import threading
 import urllib.parse
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
@@ -40,13 +39,12 @@ from dc_core.destination import (
 )
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
-from dc_destinations.http_client import connection_to, is_retryable_status, masked, one_line, retry_after_seconds
+from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 APIS = ("auto", "v1", "v2")
 _INT64 = (-(2**63), 2**63 - 1)
 _EXCERPT_CHARS = 300
-_BODY_READ_LIMIT = 64 * 1024
 # Points remembered to give simultaneous records distinct sequence tags (see Sequencer).
 _SEQUENCE_MEMORY = 10_000
 # Statuses of a write refused for some of its points (v1: 400; v2 also 422 for schema conflicts).
@@ -290,9 +288,8 @@ class InfluxDB(Destination[InfluxDBParams]):
 
     def __init__(self, context: Any, params: InfluxDBParams) -> None:
         super().__init__(context, params)
-        self._connection: http.client.HTTPConnection | None = None
-        self._lock = threading.Lock()
-        self._tls: ssl.SSLContext | None = None
+        self._connection: HttpConnection | None = None
+        self._tls: ssl.SSLContext | None = None  # for the probe's own connection
         self._headers: list[tuple[str, str]] = []
         self._secrets: list[str] = []
         self._sequencer = Sequencer()
@@ -309,7 +306,7 @@ class InfluxDB(Destination[InfluxDBParams]):
             self.path = "/write?" + urllib.parse.urlencode({"db": p.database, "precision": "ns"})
         host = f"[{p.host}]" if ":" in p.host else p.host
         self.url = f"{'https' if p.tls_on else 'http'}://{host}:{p.port}{self.path}"
-        self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
+        tls = self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
         self._headers = [("Content-Type", "text/plain; charset=utf-8"), ("User-Agent", "dc-destinations")]
         if p.http_token:
             self._headers.append(("Authorization", f"Token {p.http_token}"))
@@ -320,6 +317,10 @@ class InfluxDB(Destination[InfluxDBParams]):
             self._secrets = [s for s in (p.http_passwd, token) if s]
         if p.tls_key_passwd:
             self._secrets.append(p.tls_key_passwd)
+        what = "cannot write to InfluxDB at"
+        connection = HttpConnection(p.host, p.port, timeout=p.timeout, tls=tls, where=self.url, what=what)
+        connection.secrets = self._secrets
+        self._connection = self.keep(connection)
         warn_if_credentials_in_clear(
             self.context.logger,
             self.context.name,
@@ -335,13 +336,6 @@ class InfluxDB(Destination[InfluxDBParams]):
         # The connection opens with the first batch, in the sender's thread: a server that is down
         # must not hold up activation.
         self.context.logger.info(f"writing points to {self.url} (InfluxDB {self.params.api_version} API)")
-
-    def on_deactivate(self) -> None:
-        with self._lock:
-            self._close()
-
-    def on_cleanup(self) -> None:
-        self.on_deactivate()
 
     # -- sending -----------------------------------------------------------------------------------
     def lines(self, batch: Sequence[OutgoingRecord]) -> tuple[dict[int, str], dict[int, str]]:
@@ -396,25 +390,13 @@ class InfluxDB(Destination[InfluxDBParams]):
 
     def _write(self, lines: list[str]) -> tuple[int, str]:
         """POST the lines: (status, message) for a refused write, raising for whole-batch failures."""
-        body = ("\n".join(lines) + "\n").encode("utf-8")
-        with self._lock:
-            reused = self._connection is not None
-            try:
-                status, reason, text, retry_after = self._post(body)
-            except (OSError, http.client.HTTPException) as first:
-                self._close()
-                if not (reused and isinstance(first, (http.client.RemoteDisconnected, ConnectionError))):
-                    raise RetryableError(self._network_error(first)) from None
-                # A kept-alive connection the server closed while idle fails at its first use.
-                try:
-                    status, reason, text, retry_after = self._post(body)
-                except (OSError, http.client.HTTPException) as second:
-                    self._close()
-                    raise RetryableError(self._network_error(second)) from None
+        assert self._connection is not None, "send() before on_configure()"
+        answer = self._connection.post(self.path, self._headers, ("\n".join(lines) + "\n").encode("utf-8"))
+        status = answer.status
         if 200 <= status < 300:
             return status, ""
-        error = self._scrub(_server_error(text))
-        message = f"HTTP {status} {reason}" + (f": {error}" if error else "") + f" ({self.url})"
+        error = self._connection.scrub(_server_error(answer.body.decode("utf-8", errors="replace")))
+        message = f"HTTP {status} {answer.reason}" + (f": {error}" if error else "") + f" ({self.url})"
         p = self.params
         if status in (401, 403):
             who = f"sent user {p.http_user!r}" if p.http_user and not p.http_token else "sent a token"
@@ -437,73 +419,46 @@ class InfluxDB(Destination[InfluxDBParams]):
                 fix="create the bucket, or correct bucket / org / api",
             )
         if is_retryable_status(status):
-            raise RetryableError(message, retry_after=retry_after)
+            raise RetryableError(message, retry_after=retry_after_seconds(answer.retry_after))
         if status in _POINT_ERRORS:
             return status, message
         raise RejectedError(message)
 
-    def _post(self, body: bytes) -> tuple[int, str, str, float | None]:
-        """(status, reason, body text, Retry-After seconds) of one POST."""
-        connection = self._open()
-        connection.putrequest("POST", self.path, skip_accept_encoding=True)
-        for name, value in self._headers:
-            connection.putheader(name, value)
-        connection.putheader("Content-Length", str(len(body)))
-        connection.endheaders(body)
-        response = connection.getresponse()
-        data = response.read(_BODY_READ_LIMIT)
-        if not response.isclosed() or response.will_close:
-            self._close()
-        text = data.decode("utf-8", errors="replace")
-        return response.status, response.reason, text, retry_after_seconds(response.getheader("Retry-After"))
-
     def probe(self) -> ProbeResult:
-        """A read with the real credentials: v2 lists the bucket by name, v1 the databases."""
+        """A read with the real credentials: v2 lists the bucket by name, v1 the databases.
+
+        Over a connection of its own, closed after: the kept one is left to ``send``.
+        """
         p = self.params
         if p.api_version == "v2":
             query = urllib.parse.urlencode({"name": p.bucket, "org": p.org} if p.org else {"name": p.bucket})
             path, target = f"/api/v2/buckets?{query}", f"bucket {p.bucket!r}"
         else:
             path, target = "/query?" + urllib.parse.urlencode({"q": "SHOW DATABASES"}), f"database {p.database!r}"
-        connection = connection_to(p.host, p.port, p.timeout, self._tls)
+        own = HttpConnection(
+            p.host, p.port, timeout=p.timeout, tls=self._tls, where=self.url, what="cannot read from InfluxDB at"
+        )
+        own.secrets = self._secrets
         headers = {name: value for name, value in self._headers if name.lower() != "content-type"}
         try:
+            connection = own.get()
             connection.request("GET", path, headers=headers)
             response = connection.getresponse()
             status, text = response.status, response.read(1 << 20).decode("utf-8", errors="replace")
         except (OSError, http.client.HTTPException) as exc:
-            return ProbeResult(False, self._network_error(exc), "check host, port and tls")
+            return ProbeResult(False, own.failure(own.what, exc), "check host, port and tls")
         finally:
-            connection.close()
+            own.close()
         hint = "http_token" if p.api_version == "v2" else "http_user and http_passwd"
         if status in (401, 403):
             return ProbeResult(False, f"InfluxDB refused the credentials: HTTP {status} ({self.url})", f"check {hint}")
         if status != 200:
-            error = self._scrub(_server_error(text))
+            error = own.scrub(_server_error(text))
             return ProbeResult(False, f"InfluxDB answered HTTP {status}: {error} ({self.url})", "check api, org")
         if f'"{p.bucket if p.api_version == "v2" else p.database}"' not in text:
             create = "create the bucket" if p.api_version == "v2" else f"CREATE DATABASE {p.database}"
             return ProbeResult(False, f"no {target} in InfluxDB {p.host}:{p.port}", f"{create}, or correct the name")
         return ProbeResult(True, f"{target} found, credentials accepted ({p.host}:{p.port})")
-
-    def _open(self) -> http.client.HTTPConnection:
-        if self._connection is None:
-            self._connection = connection_to(self.params.host, self.params.port, self.params.timeout, self._tls)
-        return self._connection
-
-    def _close(self) -> None:
-        if self._connection is not None:
-            connection, self._connection = self._connection, None
-            connection.close()
-
-    def _network_error(self, exc: BaseException) -> str:
-        detail = str(exc) or type(exc).__name__
-        if isinstance(exc, TimeoutError):
-            detail = f"no answer within {self.params.timeout:g} s"
-        return self._scrub(f"cannot write to InfluxDB at {self.url}: {detail}")
-
-    def _scrub(self, text: str) -> str:
-        return masked(text, self._secrets)
 
 
 def _server_error(text: str) -> str:

@@ -18,15 +18,14 @@ from __future__ import annotations
 import datetime as dt
 import re
 import string
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
+from dc_core.destination import OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.params import param
 from dc_core.records import MalformedRecord, dump_record
-from dc_destinations.aws import CREDENTIAL_CODES, AwsClientParams, BotoCoreError, ClientError
+from dc_destinations.aws import CREDENTIAL_CODES, AwsClientParams, AwsDestination, BotoCoreError, ClientError
 
 # The service's limits (Kinesis Data Streams quotas): a record's data plus its partition key, and a
 # PutRecords request's records and bytes (data plus partition keys).
@@ -90,23 +89,16 @@ class _Unsendable(Exception):
     """This record cannot be put into Kinesis as it is: rejected alone, with the reason."""
 
 
-class KinesisStreams(Destination[KinesisParams]):
+class KinesisStreams(AwsDestination[KinesisParams]):
     """Put records into an Amazon Kinesis data stream (PutRecords); failed records are retried alone."""
 
+    service = "kinesis"
+
     def __init__(self, context: Any, params: KinesisParams) -> None:
-        super().__init__(context, params)
-        self._client: Any = None
+        super().__init__(context, params, target=f"stream {params.stream}")
         self._fields = _template_fields(params.partition_key)
-        self._last_problem = ""
-        self._lock = threading.Lock()
-        self.where = ""
 
     # -- lifecycle -------------------------------------------------------------------------------
-    def on_configure(self) -> None:
-        p = self.params
-        self.where = p.where(f"stream {p.stream}")
-        self._client = p.client("kinesis", self.context.logger, self.context.name)
-
     def probe(self) -> ProbeResult:
         """DescribeStreamSummary with the real credentials: the stream exists and is writable-state."""
         try:
@@ -125,11 +117,6 @@ class KinesisStreams(Destination[KinesisParams]):
         # The stream is not probed here: an unreachable service must not hold up activation, and the
         # first batch says clearly what is wrong.
         self.context.logger.info(f"putting records into {self.where}, partition key {self.params.partition_key!r}")
-
-    def on_cleanup(self) -> None:
-        if self._client is not None:
-            self._client.close()
-            self._client = None
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
@@ -153,27 +140,26 @@ class KinesisStreams(Destination[KinesisParams]):
                 request_bytes = 0
             requests[-1].append((i, data, key))
             request_bytes += size
-        with self._lock:
-            for n, entries in enumerate(requests):
-                if not entries:
-                    continue
-                try:
-                    results = self._put(entries)
-                except RetryableError as exc:
-                    if n == 0 and not outcome.reject:
-                        raise  # nothing of the batch went: the whole batch is retried
-                    # This request and the ones not sent yet are retried; those already put are confirmed.
-                    for later in requests[n:]:
-                        outcome.retry.update((i, str(exc)) for i, _, _ in later)
-                    break
-                except RejectedError as exc:
-                    outcome.reject.update((i, str(exc)) for i, _, _ in entries)
-                    continue
-                for (i, _, _), result in zip(entries, results, strict=True):
-                    if result.get("ErrorCode"):
-                        # Throughput exceeded, internal failure, a KMS hiccup: the service's per-record
-                        # refusals all pass with time, so the record is retried alone.
-                        outcome.retry[i] = f"{result['ErrorCode']}: {result.get('ErrorMessage', '')} ({self.where})"
+        for n, entries in enumerate(requests):
+            if not entries:
+                continue
+            try:
+                results = self._put(entries)
+            except RetryableError as exc:
+                if n == 0 and not outcome.reject:
+                    raise  # nothing of the batch went: the whole batch is retried
+                # This request and the ones not sent yet are retried; those already put are confirmed.
+                for later in requests[n:]:
+                    outcome.retry.update((i, str(exc)) for i, _, _ in later)
+                break
+            except RejectedError as exc:
+                outcome.reject.update((i, str(exc)) for i, _, _ in entries)
+                continue
+            for (i, _, _), result in zip(entries, results, strict=True):
+                if result.get("ErrorCode"):
+                    # Throughput exceeded, internal failure, a KMS hiccup: the service's per-record
+                    # refusals all pass with time, so the record is retried alone.
+                    outcome.retry[i] = f"{result['ErrorCode']}: {result.get('ErrorMessage', '')} ({self.where})"
         if outcome.retry or outcome.reject:
             return outcome
         return None
@@ -218,9 +204,7 @@ class KinesisStreams(Destination[KinesisParams]):
             if retryable:
                 raise RetryableError(message) from None
             raise RejectedError(message) from None
-        if self._last_problem:
-            self.context.logger.info(f"{self.where}: records accepted again")
-            self._last_problem = ""
+        self._works_again("records accepted")
         results: list[dict[str, Any]] = response.get("Records", [])
         if len(results) != len(entries):
             raise RetryableError(
@@ -249,12 +233,6 @@ class KinesisStreams(Destination[KinesisParams]):
                 return False, self.params.scrub(f"Kinesis refused the request: {code}: {text} ({self.where})")
             return True, self.params.scrub(f"PutRecords failed: {code or status}: {text} ({self.where})")
         return True, self.params.scrub(f"PutRecords failed: {type(exc).__name__}: {exc} ({self.where})")
-
-    def _problem(self, message: str) -> None:
-        """Log a whole-request failure once when it starts (the server logs the retries per burst)."""
-        if message != self._last_problem:
-            self.context.logger.error(message)
-            self._last_problem = message
 
 
 def _strftime(stamp_ns: int, fmt: str) -> str:

@@ -26,7 +26,6 @@ import contextlib
 import functools
 import mimetypes
 import os
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -145,7 +144,6 @@ class MinIO(Destination[MinIOParams]):
         self._client: Any = None
         self._bucket_ready = False
         self._last_problem = ""
-        self._stopping = threading.Event()
         self._part_bytes = parse_size(params.part_size) or MIN_PART_BYTES
         self._threshold = parse_size(params.multipart_threshold) or MAX_PUT_BYTES
         self._counts = dict.fromkeys(
@@ -175,7 +173,6 @@ class MinIO(Destination[MinIOParams]):
         return probe_bucket(self._client, self.params.bucket, self.where)
 
     def on_activate(self) -> None:
-        self._stopping.clear()
         # The store is not probed here: an unreachable store must not hold up activation, and the
         # first batch says clearly what is wrong.
         fields = ", ".join(self.params.src_fields)
@@ -183,9 +180,6 @@ class MinIO(Destination[MinIOParams]):
         self.context.logger.info(
             f"uploading the files of {fields} to {self.where}, from {self._files.confinement.describe()} only"
         )
-
-    def on_deactivate(self) -> None:
-        self._stopping.set()  # a batch waiting for files to be complete stops waiting
 
     def on_cleanup(self) -> None:
         if self._client is not None:
@@ -197,7 +191,7 @@ class MinIO(Destination[MinIOParams]):
 
     def _pause(self, seconds: float) -> bool:
         """Wait for files to be complete; True when interrupted (the destination is stopping)."""
-        return self._stopping.wait(seconds)
+        return self.stopping.wait(seconds)
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:

@@ -10,7 +10,6 @@ lost or never made is reported to the buffer as a retryable failure, then made a
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import socket
 import ssl
@@ -38,6 +37,7 @@ from dc_core.destination import (
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
 from dc_core.records import MalformedRecord
+from dc_destinations.connection import Connection
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 # MQTT topic names are UTF-8 strings of at most 65535 bytes, and a published one has no wildcard.
@@ -167,8 +167,12 @@ class Mqtt(Destination[MqttParams]):
         super().__init__(context, params)
         self._keys = template_keys(params.topic)
         self._tls: ssl.SSLContext | None = None
-        self._connection: _Connection | None = None
-        self._lock = threading.Lock()
+        # Opened again once paho says it is lost (connected False).
+        self._connection = self.keep(
+            Connection(
+                "", self._connect, _Connection.close, timeout=params.connect_timeout, usable=lambda c: c.connected
+            )
+        )
         self.client_id = ""
         self.address = ""
 
@@ -176,7 +180,8 @@ class Mqtt(Destination[MqttParams]):
     def on_configure(self) -> None:
         p = self.params
         host = f"[{p.host}]" if ":" in p.host else p.host
-        self.address = f"{'mqtts' if p.tls_on else 'mqtt'}://{host}:{p.port}"
+        self.address = self._connection.where = f"{'mqtts' if p.tls_on else 'mqtt'}://{host}:{p.port}"
+        self._connection.secrets = [p.password, p.tls_key_passwd]
         self.client_id = p.client_id or default_client_id(self.context.name, p.host)
         self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
         warn_if_credentials_in_clear(
@@ -196,27 +201,11 @@ class Mqtt(Destination[MqttParams]):
 
     def probe(self) -> ProbeResult:
         """An MQTT CONNECT with the real credentials (and TLS), then a DISCONNECT; nothing published.
-        Under a client id of its own with a clean session: the running DC's, taken over, would be
-        disconnected by the broker, and a kept session would be left behind."""
-        own_id, own_params = self.client_id, self.params
-        self.client_id = f"{own_id}-check"
-        self.params = dataclasses.replace(own_params, clean_session=True)
-        try:
-            with self._lock:
-                self._connect()
-                self._close()
-        finally:
-            self.client_id, self.params = own_id, own_params
-        return ProbeResult(
-            True, f"connected to {self.address}" + (f" as {own_params.username}" if own_params.username else "")
-        )
-
-    def on_deactivate(self) -> None:
-        with self._lock:
-            self._close()
-
-    def on_cleanup(self) -> None:
-        self.on_deactivate()
+        On a connection of its own, under a client id of its own with a clean session: the running
+        DC's, taken over, would be disconnected by the broker, and a kept session would be left behind."""
+        self._connect(client_id=f"{self.client_id}-check", clean_session=True).close()
+        p = self.params
+        return ProbeResult(True, f"connected to {self.address}" + (f" as {p.username}" if p.username else ""))
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
@@ -229,9 +218,7 @@ class Mqtt(Destination[MqttParams]):
                 outcome.reject[index] = str(exc)
         if not messages:
             return outcome
-        with self._lock:
-            connection = self._connect()
-            self._publish(connection, messages, outcome)
+        self._publish(self._connection.get(), messages, outcome)
         return outcome if outcome.retry or outcome.reject else None
 
     def topic_of(self, record: OutgoingRecord) -> str:
@@ -277,26 +264,24 @@ class Mqtt(Destination[MqttParams]):
         if lost is not None or not connection.connected:
             reason = f"connection to {self.address} lost before the broker acknowledged: {lost or 'closed'}"
             if len(waiting) == len(messages) and not outcome.reject:
-                self._close()
+                self._connection.close()
                 raise RetryableError(self._scrub(reason))
         else:
             reason = f"no acknowledgement from {self.address} within {p.publish_timeout:g} s"
         # A broker that does not acknowledge in time, or a broken connection: start afresh next
         # time, so paho does not pile up the messages that DC's buffer will send again anyway.
-        self._close()
+        self._connection.close()
         for index, _info in waiting:
             outcome.retry[index] = self._scrub(reason)
 
     # -- connection --------------------------------------------------------------------------------
-    def _connect(self) -> _Connection:
-        if self._connection is not None and self._connection.connected:
-            return self._connection
-        self._close()
+    def _connect(self, *, client_id: str | None = None, clean_session: bool | None = None) -> _Connection:
+        """A connected client; ``client_id`` and ``clean_session`` other than the parameters' for the probe."""
         p = self.params
         client = mqtt.Client(
             CallbackAPIVersion.VERSION2,
-            client_id=self.client_id,
-            clean_session=p.clean_session,
+            client_id=self.client_id if client_id is None else client_id,
+            clean_session=p.clean_session if clean_session is None else clean_session,
             protocol=mqtt.MQTTv311,
             reconnect_on_failure=False,  # DC's buffer retries, with its backoff
         )
@@ -312,10 +297,7 @@ class Mqtt(Destination[MqttParams]):
         try:
             client.connect(p.host, p.port, keepalive=p.keepalive)
         except (OSError, ValueError) as exc:
-            detail = str(exc) or type(exc).__name__
-            if isinstance(exc, TimeoutError):
-                detail = f"no answer within {p.connect_timeout:g} s"
-            raise RetryableError(self._scrub(f"cannot connect to MQTT broker {self.address}: {detail}")) from None
+            raise RetryableError(self._connection.failure("cannot connect to MQTT broker", exc)) from None
         client.loop_start()
         deadline = time.monotonic() + p.connect_timeout
         with connection.changed:
@@ -331,7 +313,6 @@ class Mqtt(Destination[MqttParams]):
             if connack is not None and str(connack).lower() in _AUTH_REASONS:
                 raise ConfigurationProblem(message, fix="check username and password, and the broker's ACL")
             raise RetryableError(message)
-        self._connection = connection
         resumed = " (session resumed)" if connection.session_present else ""
         self.context.logger.info(f"connected to {self.address} as client {self.client_id!r}{resumed}")
         return connection
@@ -348,17 +329,9 @@ class Mqtt(Destination[MqttParams]):
             message += f" (check `username` and `password`; sent {who})"
         return message
 
-    def _close(self) -> None:
-        if self._connection is not None:
-            connection, self._connection = self._connection, None
-            connection.close()
-
     def _scrub(self, text: str) -> str:
         """The passwords masked, should a library or broker ever quote them."""
-        for secret in (self.params.password, self.params.tls_key_passwd):
-            if secret:
-                text = text.replace(secret, "***")
-        return text
+        return self._connection.scrub(text)
 
 
 def _topic_text(key: str, value: Any) -> str:

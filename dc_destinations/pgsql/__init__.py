@@ -39,15 +39,17 @@ from dc_destinations.pgsql.connection import (
     KeptConnection,
     PostgresServerParams,
     is_record_error,
+    keep_database,
     one_line,
     probe_table,
     require_psycopg,
     table_problem,
-    warn_if_password_in_clear,
 )
 
 _EPOCH = dt.datetime(1970, 1, 1)
 _COLUMNS = ("tag", "time", "data", "record_id")
+# A batch's rows: (index in the batch, the values of _COLUMNS).
+_Rows = list[tuple[int, tuple[str, dt.datetime, str, str]]]
 # The column types of a table DC creates (a `tag` of type text too): a COPY into such a table can be
 # binary, which costs the client and the server about half the CPU of text (docs/performance.md).
 # Any other types (a table made by hand: json, timestamptz, varchar(n)) get text, converted by the
@@ -104,17 +106,14 @@ class PgSQL(Destination[PgSQLParams]):
         require_psycopg(self.context.name, "PgSQL")
         from psycopg import sql
 
-        self._database = KeptConnection(
+        self._database = keep_database(
+            self,
             self.params.server(),
-            application_name=f"dc {self.context.name}",
-            logger=self.context.logger,
             prepare=self._prepare_table,
             prepared=f"table {self.params.table}",
+            section=f"destination_server.{self.context.name}",
         )
         self.address = self._database.address
-        warn_if_password_in_clear(
-            self.context.logger, self.context.name, self._database.settings, f"destination_server.{self.context.name}"
-        )
         self._insert = sql.SQL(
             "INSERT INTO {} (tag, time, data, record_id) VALUES (%s, %s, %s::jsonb, %s)"
             " ON CONFLICT (record_id) DO NOTHING"
@@ -139,19 +138,12 @@ class PgSQL(Destination[PgSQLParams]):
         # must not hold up activation.
         self.context.logger.info(f"inserting into table {self.params.table} of {self.address}")
 
-    def on_deactivate(self) -> None:
-        if self._database is not None:
-            self._database.close()
-
-    def on_cleanup(self) -> None:
-        self.on_deactivate()
-
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         assert self._database is not None, "send() before on_configure()"
         database = self._database
         tag = self.context.name
-        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]] = []
+        rows: _Rows = []
         rejected: dict[int, str] = {}
         for i, record in enumerate(batch):
             try:
@@ -164,12 +156,7 @@ class PgSQL(Destination[PgSQLParams]):
             rejected.update(database.run(lambda connection: self._insert_rows(database, connection, rows)))
         return SendOutcome(reject=rejected) if rejected else None
 
-    def _insert_rows(
-        self,
-        database: KeptConnection,
-        connection: Any,
-        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]],
-    ) -> dict[int, str]:
+    def _insert_rows(self, database: KeptConnection, connection: Any, rows: _Rows) -> dict[int, str]:
         import psycopg
 
         if self._direct:
@@ -211,24 +198,13 @@ class PgSQL(Destination[PgSQLParams]):
                 raise
             return self._refused(database, connection, rows, exc)
 
-    def _refused(
-        self,
-        database: KeptConnection,
-        connection: Any,
-        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]],
-        exc: Exception,
-    ) -> dict[int, str]:
+    def _refused(self, database: KeptConnection, connection: Any, rows: _Rows, exc: Exception) -> dict[int, str]:
         """The server refused a record of the batch: which one, when it is alone; else each row on its own."""
         if len(rows) == 1:
             return {rows[0][0]: database.refusal(exc)}
         return self._insert_one_by_one(database, connection, rows)
 
-    def _insert_one_by_one(
-        self,
-        database: KeptConnection,
-        connection: Any,
-        rows: list[tuple[int, tuple[str, dt.datetime, str, str]]],
-    ) -> dict[int, str]:
+    def _insert_one_by_one(self, database: KeptConnection, connection: Any, rows: _Rows) -> dict[int, str]:
         """Which rows does the server refuse? Each again in its own savepoint, in one transaction."""
         import psycopg
 

@@ -8,12 +8,11 @@ the server and never the password. What they write, and how their table is prepa
 from __future__ import annotations
 
 import contextlib
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from dc_core.destination import ConfigurationProblem, ProbeResult, RetryableError
+from dc_core.destination import ConfigurationProblem, Destination, ProbeResult, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
 from dc_core.params import host_problem, param, port_problem
@@ -184,7 +183,8 @@ class KeptConnection:
 
     ``prepare(connection)`` runs on every new connection before any work (checking or creating a
     table); a psycopg error there is reported as "cannot prepare <what>", and a RetryableError it
-    raises passes as it is. Thread-safe: one piece of work at a time.
+    raises passes as it is. No lock: the destination server never runs ``send`` beside deactivate or
+    cleanup (dc_destinations.sender.Gate).
     """
 
     def __init__(
@@ -202,7 +202,6 @@ class KeptConnection:
         self._prepare = prepare
         self._prepared = prepared
         self._connection: Any = None  # psycopg.Connection
-        self._lock = threading.Lock()
 
     @property
     def address(self) -> str:
@@ -215,29 +214,27 @@ class KeptConnection:
         """``work(connection)``; a psycopg error it lets through becomes a scrubbed RetryableError."""
         import psycopg
 
-        with self._lock:
-            first = True
-            while True:
-                reused = self._connection is not None
-                try:
-                    return work(self._connect())
-                except psycopg.Error as exc:
-                    lost = self._lost(exc)
-                    self._close()  # the next attempt starts afresh, preparation included
-                    if first and reused and lost:
-                        # A kept connection that the server closed while idle (a restart) fails at
-                        # its first use: not a failure of this work, so once more on a new one.
-                        first = False
-                        continue
-                    message = self.describe(exc)
-                    fix = self.fix_for(exc)
-                    if fix:
-                        raise ConfigurationProblem(message, fix=fix) from None
-                    raise RetryableError(message) from None
+        first = True
+        while True:
+            reused = self._connection is not None
+            try:
+                return work(self._connect())
+            except psycopg.Error as exc:
+                lost = self._lost(exc)
+                self._close()  # the next attempt starts afresh, preparation included
+                if first and reused and lost:
+                    # A kept connection that the server closed while idle (a restart) fails at
+                    # its first use: not a failure of this work, so once more on a new one.
+                    first = False
+                    continue
+                message = self.describe(exc)
+                fix = self.fix_for(exc)
+                if fix:
+                    raise ConfigurationProblem(message, fix=fix) from None
+                raise RetryableError(message) from None
 
     def close(self) -> None:
-        with self._lock:
-            self._close()
+        self._close()
 
     # -- messages ----------------------------------------------------------------------------------
     def describe(self, exc: BaseException) -> str:
@@ -364,6 +361,25 @@ def is_record_error(exc: BaseException) -> bool:
 def one_line(text: str) -> str:
     text = " ".join(text.split())
     return text if len(text) <= MESSAGE_CHARS else text[: MESSAGE_CHARS - 1] + "…"
+
+
+def keep_database(
+    destination: Destination[Any],
+    settings: ServerSettings,
+    *,
+    prepare: Callable[[Any], None],
+    prepared: str,
+    section: str,
+) -> KeptConnection:
+    """The PostgreSQL connection of ``destination`` (PgSQL, FilesMetrics), handed to its ``keep``; the
+    warning about a password sent in clear said now, at configure, once (``section``: the YAML path of
+    the connection's keys)."""
+    name, logger = destination.context.name, destination.context.logger
+    database = destination.keep(
+        KeptConnection(settings, application_name=f"dc {name}", logger=logger, prepare=prepare, prepared=prepared)
+    )
+    warn_if_password_in_clear(logger, name, settings, section)
+    return database
 
 
 def probe_table(database: KeptConnection, table: Any, name: str) -> ProbeResult:

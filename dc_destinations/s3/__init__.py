@@ -26,19 +26,11 @@ import datetime as dt
 import gzip
 import hashlib
 import re
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import (
-    ConfigurationProblem,
-    Destination,
-    OutgoingRecord,
-    ProbeResult,
-    RetryableError,
-    SendOutcome,
-)
+from dc_core.destination import ConfigurationProblem, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, param
 from dc_core.records import MalformedRecord, dump_record
@@ -49,6 +41,7 @@ from dc_destinations.aws import (
     MIN_PART_BYTES,
     S3_CREDENTIAL_CODES,
     AwsClientParams,
+    AwsDestination,
     BotoCoreError,
     ClientError,
     bucket_problem,
@@ -138,18 +131,16 @@ class _Unsendable(Exception):
     """This record cannot be written as a line: rejected alone, with the reason."""
 
 
-class S3(Destination[S3Params]):
+class S3(AwsDestination[S3Params]):
     """Write each batch of records as an object of JSON lines to Amazon S3 or an S3-compatible store."""
 
+    service = "s3"
+
     def __init__(self, context: Any, params: S3Params) -> None:
-        super().__init__(context, params)
-        self._client: Any = None
-        self._last_problem = ""
-        self._lock = threading.Lock()
+        super().__init__(context, params, target=f"bucket {params.bucket}")
         self._max_object_bytes = parse_size(params.total_file_size) or 0
         self._chunk_bytes = parse_size(params.upload_chunk_size) or MIN_PART_BYTES
         self._tag_parts = self._split_tag(context.name)
-        self.where = ""
 
     def _split_tag(self, tag: str) -> list[str]:
         delimiters = self.params.s3_key_format_tag_delimiters
@@ -164,11 +155,6 @@ class S3(Destination[S3Params]):
         return parts
 
     # -- lifecycle -------------------------------------------------------------------------------
-    def on_configure(self) -> None:
-        p = self.params
-        self.where = p.where(f"bucket {p.bucket}")
-        self._client = p.client("s3", self.context.logger, self.context.name)
-
     def probe(self) -> ProbeResult:
         """HEAD of the bucket with the real credentials: it exists and they may see it (a write
         permission is only proven by dc check --write-test)."""
@@ -191,11 +177,6 @@ class S3(Destination[S3Params]):
         # first batch says clearly what is wrong.
         self.context.logger.info(f"writing objects to {self.where}, keys {self.params.s3_key_format!r}")
 
-    def on_cleanup(self) -> None:
-        if self._client is not None:
-            self._client.close()
-            self._client = None
-
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         outcome = SendOutcome()
@@ -213,20 +194,19 @@ class S3(Destination[S3Params]):
                 size = 0
             objects[-1].append((i, line))
             size += len(line)
-        with self._lock:
-            for n, lines in enumerate(objects):
-                if not lines:
-                    continue
-                key = self.object_key(batch[lines[0][0]], n)
-                try:
-                    self._upload(key, b"".join(line for _, line in lines))
-                except RetryableError as exc:
-                    if n == 0 and not outcome.reject:
-                        raise  # nothing of the batch went: the whole batch is retried
-                    # This object and the ones not written yet are retried; those written are confirmed.
-                    for later in objects[n:]:
-                        outcome.retry.update((i, str(exc)) for i, _ in later)
-                    break
+        for n, lines in enumerate(objects):
+            if not lines:
+                continue
+            key = self.object_key(batch[lines[0][0]], n)
+            try:
+                self._upload(key, b"".join(line for _, line in lines))
+            except RetryableError as exc:
+                if n == 0 and not outcome.reject:
+                    raise  # nothing of the batch went: the whole batch is retried
+                # This object and the ones not written yet are retried; those written are confirmed.
+                for later in objects[n:]:
+                    outcome.retry.update((i, str(exc)) for i, _ in later)
+                break
         if outcome.retry or outcome.reject:
             return outcome
         return None
@@ -285,9 +265,7 @@ class S3(Destination[S3Params]):
             if fix:
                 raise ConfigurationProblem(message, fix=fix) from None
             raise RetryableError(message) from None
-        if self._last_problem:
-            self.context.logger.info(f"{self.where}: objects written again")
-            self._last_problem = ""
+        self._works_again("objects written")
 
     def _multipart(self, key: str, data: bytes, extra: dict[str, str]) -> None:
         p = self.params
@@ -338,12 +316,6 @@ class S3(Destination[S3Params]):
                 )
             return self.params.scrub(f"cannot write {key} to {self.where}: {code or status}: {text}")
         return self.params.scrub(f"cannot write {key} to {self.where}: {type(exc).__name__}: {exc}")
-
-    def _problem(self, message: str) -> None:
-        """Log a failure once when it starts (the server logs the retries per burst)."""
-        if message != self._last_problem:
-            self.context.logger.error(message)
-            self._last_problem = message
 
 
 def _fix_for(exc: Exception) -> str:

@@ -17,7 +17,6 @@ import http.client
 import json
 import ssl
 import string
-import threading
 import time
 import urllib.error
 import urllib.parse
@@ -162,7 +161,6 @@ class Slack(Destination[SlackParams]):
         self._formatter = _RecordFormatter()
         self._opener = urllib.request.build_opener(_NoRedirect())
         self._secrets: list[str] = []
-        self._stopping = threading.Event()
         self._next_post_at = 0.0  # monotonic: the rate's next free slot
         self._template_failing = False
         self.url = ""
@@ -198,14 +196,7 @@ class Slack(Destination[SlackParams]):
         return result
 
     def on_activate(self) -> None:
-        self._stopping.clear()
         self.context.logger.info(f"posting records to the Slack webhook {self.url}")
-
-    def on_deactivate(self) -> None:
-        self._stopping.set()  # a send waiting for the rate's slot returns at once, its records retried
-
-    def on_cleanup(self) -> None:
-        self.on_deactivate()
 
     # -- sending -----------------------------------------------------------------------------------
     def text(self, record: OutgoingRecord) -> str:
@@ -272,7 +263,8 @@ class Slack(Destination[SlackParams]):
         now = time.monotonic()
         if free_at > deadline:
             return f"held back by rate {self.params.rate:g} message(s)/s: the rest of the batch follows ({self.url})"
-        if free_at > now and self._stopping.wait(free_at - now):
+        # The server's stop, once its grace is over, ends the wait: the records are retried.
+        if free_at > now and self.stopping.wait(free_at - now):
             return f"destination stopping before its turn to post ({self.url})"
         return None
 

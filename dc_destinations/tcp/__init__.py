@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import socket
 import ssl
-import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -19,6 +18,7 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, host_problem, param, port_problem
+from dc_destinations.connection import Connection
 from dc_destinations.tls import TlsParams, client_context, ssl_reason
 
 # "json" is the original's name for the same JSON lines.
@@ -61,10 +61,12 @@ class Tcp(Destination[TcpParams]):
 
     def __init__(self, context: Any, params: TcpParams) -> None:
         super().__init__(context, params)
-        self._socket: socket.socket | None = None
+        # The receiver may have hung up (restart, idle timeout) since the last batch: a new connection then.
+        self._socket = self.keep(
+            Connection("", self._connect, socket.socket.close, timeout=params.write_timeout, usable=self._peer_alive)
+        )
         self._tls: ssl.SSLContext | None = None
         self._encode: Callable[[OutgoingRecord], bytes] = _json_line
-        self._lock = threading.Lock()
         self._tls_failing = False
         self.address = ""
 
@@ -72,7 +74,8 @@ class Tcp(Destination[TcpParams]):
     def on_configure(self) -> None:
         p = self.params
         host = f"[{p.host}]" if ":" in p.host else p.host
-        self.address = f"{host}:{p.port}"
+        self.address = self._socket.where = f"{host}:{p.port}"
+        self._socket.secrets = [p.tls_key_passwd]
         self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_line
         self._tls = client_context(p, self._key_path(""), self.context.logger)
 
@@ -83,27 +86,15 @@ class Tcp(Destination[TcpParams]):
         self.context.logger.info(f"writing {self.params.format} records to {self.address} over {scheme}")
 
     def probe(self) -> ProbeResult:
-        """A connection as the first batch opens it (TLS handshake included), closed unused."""
-        with self._lock:
-            self._connect().close()
+        """A connection of its own, opened as the first batch opens one (TLS handshake included) and
+        closed unused; the kept connection is left to ``send``."""
+        self._connect().close()
         return ProbeResult(True, f"connected to {self.address}" + (" over TLS" if self._tls is not None else ""))
-
-    def on_deactivate(self) -> None:
-        with self._lock:
-            self._close()
-
-    def on_cleanup(self) -> None:
-        self.on_deactivate()
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         frames = [self._encode(record) for record in batch]
-        with self._lock:
-            if self._socket is not None and not self._peer_alive(self._socket):
-                self._close()  # the receiver hung up (restart, idle timeout): write to a new connection
-            if self._socket is None:
-                self._socket = self._connect()
-            written, error = self._write(self._socket, frames)
+        written, error = self._write(self._socket.get(), frames)
         if error is None:
             return None
         if written == 0:
@@ -124,8 +115,8 @@ class Tcp(Destination[TcpParams]):
                 sent += sock.send(data[sent:])
         except OSError as exc:  # ssl.SSLError is an OSError too
             # A frame cut short leaves the stream mid-record: only a new connection is clean.
-            self._close()
-            return sum(1 for end in ends if end <= sent), self._network_error("cannot write to", exc)
+            self._socket.close()
+            return sum(1 for end in ends if end <= sent), self._failure("cannot write to", exc)
         return len(frames), None
 
     def _peer_alive(self, sock: socket.socket) -> bool:
@@ -148,7 +139,7 @@ class Tcp(Destination[TcpParams]):
         try:
             sock = socket.create_connection((p.host, p.port), timeout=p.connect_timeout)
         except OSError as exc:
-            raise RetryableError(self._network_error("cannot connect to", exc)) from None
+            raise RetryableError(self._failure("cannot connect to", exc, p.connect_timeout)) from None
         try:
             if self._tls is not None:
                 server_name = p.tls_vhost or p.host
@@ -166,27 +157,19 @@ class Tcp(Destination[TcpParams]):
             raise RetryableError(message) from None
         except (OSError, ssl.SSLError) as exc:
             sock.close()
-            raise RetryableError(self._network_error("TLS handshake failed with", exc)) from None
+            raise RetryableError(self._failure("TLS handshake failed with", exc, p.write_timeout)) from None
         self._tls_failing = False
         sock.settimeout(p.write_timeout)
         # Records go out as they are written rather than waiting to fill a segment.
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         return sock
 
-    def _close(self) -> None:
-        if self._socket is not None:
-            sock, self._socket = self._socket, None
-            sock.close()
-
     # -- messages ----------------------------------------------------------------------------------
     def _key_path(self, key: str) -> str:
         return f"destination_server.{self.context.name}" + (f".{key}" if key else "")
 
-    def _network_error(self, what: str, exc: BaseException) -> str:
-        if isinstance(exc, TimeoutError):
-            timeout = self.params.connect_timeout if what == "cannot connect to" else self.params.write_timeout
-            return f"{what} {self.address}: no progress within {timeout:g} s"
-        return f"{what} {self.address}: {ssl_reason(exc)}"
+    def _failure(self, what: str, exc: BaseException, timeout: float | None = None) -> str:
+        return self._socket.failure(what, exc, detail=ssl_reason(exc), timeout=timeout, waiting="no progress")
 
 
 def _json_line(record: OutgoingRecord) -> bytes:

@@ -11,6 +11,10 @@ import psutil
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
 
+# The shortest window the first sample is averaged over: collected at activation, a window of a few
+# milliseconds holds no clock tick (10 ms each) and said 0 % whatever the load.
+FIRST_WINDOW_S = 0.2
+
 
 @dataclass(frozen=True, kw_only=True)
 class CpuParams:
@@ -37,12 +41,14 @@ class Cpu(Measurement[CpuParams]):
         # Own snapshots instead of psutil.cpu_percent(None), whose state is module-wide and would be
         # shared (and reset) by every Cpu instance in the process.
         self._last_busy, self._last_total = _busy_and_total(psutil.cpu_times())
+        self._window_start: float | None = time.monotonic()  # None once a first sample was taken
         self._last_processes: dict[tuple[int, float], _ProcessSample] = {}
         self._last_average = 0.0
 
     def on_activate(self) -> None:
         # Start the averaging window now, so the first collect covers a real interval.
         self._last_busy, self._last_total = _busy_and_total(psutil.cpu_times())
+        self._window_start = time.monotonic()
         if self.params.max_processes != -1:
             self._process_usage()
 
@@ -53,6 +59,10 @@ class Cpu(Measurement[CpuParams]):
         return record
 
     def _average(self) -> float:
+        if self._window_start is not None:
+            # Once per activation, at most FIRST_WINDOW_S: the one record that would otherwise lie.
+            time.sleep(max(0.0, self._window_start + FIRST_WINDOW_S - time.monotonic()))
+            self._window_start = None
         busy, total = _busy_and_total(psutil.cpu_times())
         d_busy, d_total = busy - self._last_busy, total - self._last_total
         if d_total <= 0:

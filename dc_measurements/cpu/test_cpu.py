@@ -104,3 +104,9 @@ def test_two_cpu_measurements_do_not_share_their_window(busy_child: subprocess.P
     assert first.collect()["average"] > 0
     # A collect of one instance does not reset the other's averaging window.
     assert second.collect()["average"] > 0
+
+
+def test_cpu_sample_taken_at_activation_is_not_zero(busy_child: subprocess.Popen[bytes]) -> None:
+    plugin = configured(Cpu, max_processes=-1)  # configured and activated
+    # At once, as the measurement server's first collect after activation: a busy child is running.
+    assert plugin.collect()["average"] > 0

@@ -4,7 +4,10 @@ Python imports ``sitecustomize`` at start when it is on the path: a test puts th
 PYTHONPATH of `dc-bringup`, whose server processes inherit it. With ``DC_TEST_FAULT`` set to
 ``module:Class.method``, that method raises ``RuntimeError`` the first time it is called in any of
 those processes, once: the marker file ``DC_TEST_FAULT_ONCE`` is created atomically by the one that
-raises, so a restarted process runs normally. Nothing here is imported without ``DC_TEST_FAULT``.
+raises, so a restarted process runs normally. With ``DC_TEST_FAULT_HANG`` set to a number of
+seconds, that first call blocks that long instead (then runs the method): a hang. With
+``DC_TEST_FAULT_SKIP`` set to n, the first n calls in each process run normally (a fault at the
+second activate, not at start-up). Nothing here is imported without ``DC_TEST_FAULT``.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import os
 _SPEC = os.environ.get("DC_TEST_FAULT")
 if _SPEC:
     import importlib
+    import time
     from typing import Any
 
     _module_name, _, _qualified = _SPEC.partition(":")
@@ -21,11 +25,19 @@ if _SPEC:
     _owner = getattr(importlib.import_module(_module_name), _class_name)
     _original = getattr(_owner, _method_name)
     _marker = os.environ["DC_TEST_FAULT_ONCE"]
+    _hang_s = float(os.environ.get("DC_TEST_FAULT_HANG", "0"))
+    _skip = [int(os.environ.get("DC_TEST_FAULT_SKIP", "0"))]
 
     def _raise_once(self: Any, *args: Any, **kwargs: Any) -> Any:
+        if _skip[0] > 0:
+            _skip[0] -= 1
+            return _original(self, *args, **kwargs)
         try:
             os.close(os.open(_marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
         except FileExistsError:
+            return _original(self, *args, **kwargs)
+        if _hang_s:
+            time.sleep(_hang_s)  # the hang itself: nothing to wait for
             return _original(self, *args, **kwargs)
         raise RuntimeError(f"injected by the test into {_SPEC}")
 
