@@ -530,6 +530,16 @@ def build_parser() -> argparse.ArgumentParser:
         "file's parameters, -r __ns:=/NS as --namespace, -r remaps of the robot's topics"
     )
 
+    p = sub.add_parser(
+        "check", help="preflight: validate, probe every destination, collect each measurement once, judge conditions"
+    )
+    p.add_argument("params_file")
+    p.add_argument("--namespace", default="", help="check it as dc-bringup --namespace reads it")
+    p.add_argument("--write-test", action="store_true", help="also send one test record to every destination")
+    from dc_bringup.preflight import cmd_check
+
+    p.set_defaults(func=cmd_check)
+
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
     p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
     p.add_argument("json", help="the record, a JSON object")

@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from dc_core.config import load_params
-from dc_core.errors import ConfigError, DcError
-from dc_core.jsonpath import impossible_path
+from dc_core.errors import ConfigError
 from dc_core.params import did_you_mean
-from dc_core.paths import expand_env
 from dc_core.ros_args import param_sections, topic_remaps
 from dc_core.topics import outside_namespace, resolve_topic, ros_namespace, ros_topic
 
@@ -205,43 +202,8 @@ def _cross_checks(configs: dict[str, Any]) -> list[str]:
                     warnings.append(f"{where}: {tag!r} names no destination" + did_you_mean(tag, names))
     elif tagged and any(tags for _, tags in tagged):
         warnings.append("records are tagged but there is no destination_server section: they go nowhere")
-    if measurements is not None:
-        warnings.extend(_impossible_condition_keys(measurements))
     warnings.extend(_shared_metrics_ports(configs))
     return warnings
-
-
-def _impossible_condition_keys(measurements: Any) -> list[str]:
-    """Conditions on a key path the measurement's schema rules out: never active for it, silently."""
-    warnings = []
-    for m in measurements.measurements:
-        schema = _schema_of(m)
-        if schema is None:
-            continue
-        for cid in dict.fromkeys(m.conditions):
-            condition = measurements.conditions[cid]
-            key = getattr(condition.plugin_params, "key", None)
-            if condition.common.topic or not isinstance(key, str):
-                continue  # it judges another topic's records, or no key of the sample
-            reason = impossible_path(schema, key)
-            if reason is not None:
-                warnings.append(
-                    f"measurement_server.{cid}.key: {key!r} is never in the records of {m.name} ({reason}): "
-                    f"{cid} cannot be active for {m.name}"
-                )
-    return warnings
-
-
-def _schema_of(measurement: Any) -> dict[str, Any] | None:
-    """The schema a measurement's samples follow, when one is known and readable."""
-    try:
-        if measurement.common.json_schema_path:
-            loaded: dict[str, Any] = json.loads(Path(expand_env(measurement.common.json_schema_path)).read_text())
-            return loaded
-        schema: dict[str, Any] | None = measurement.plugin_class.load_schema()
-        return schema
-    except (OSError, ValueError, DcError):
-        return None  # the server says what is wrong with it
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,10 @@ class Condition(Plugin[ParamsT]):
     # True when the answer depends on earlier samples: such a condition should judge the samples of
     # one measurement only (configuration checks warn when several list it).
     remembers_samples: ClassVar[bool] = False
+    # The JSON types (schema names) the value at ``key`` must have for the condition to be active;
+    # empty: any. A condition on a field the measurement's schema types otherwise is refused at
+    # configure time, for it could never be active.
+    value_types: ClassVar[frozenset[str]] = frozenset()
 
     @abc.abstractmethod
     def evaluate(self, sample: Mapping[str, Any] | None) -> bool:

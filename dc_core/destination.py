@@ -192,6 +192,15 @@ class Closable(Protocol):
 ClosableT = TypeVar("ClosableT", bound=Closable)
 
 
+@dataclass(frozen=True)
+class ProbeResult:
+    """What a destination's read-only probe found (``dc check``). Nothing secret in either text."""
+
+    ok: bool
+    reason: str  # what was checked ("connected, table dc exists, INSERT allowed") or what failed
+    fix: str = ""  # when not ok: what the operator should check or change
+
+
 class Destination(Plugin[ParamsT]):
     """Base class of destination plugins.
 
@@ -200,6 +209,18 @@ class Destination(Plugin[ParamsT]):
     share. What it keeps open between batches it hands to :meth:`keep` once; the default
     ``on_deactivate`` and ``on_cleanup`` close it.
     """
+
+    def probe(self) -> ProbeResult | None:
+        """A cheap, read-only check that this destination can be reached with its real settings
+        and credentials, for ``dc check``; None (the default): the plugin has no probe.
+
+        Called after ``on_configure`` and before ``on_cleanup``, never activated, on the caller's
+        thread: it may block for about the destination's own timeouts. It writes nothing (``dc check
+        --write-test`` sends a record through ``send`` for that). It may raise
+        :class:`RetryableError` or :class:`ConfigurationProblem` (whose ``fix`` is shown) instead of
+        returning a failed result.
+        """
+        return None
 
     @abc.abstractmethod
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from dc_core.params import did_you_mean
+
 
 class PathNotFound(LookupError):
     """The key path does not lead to a value."""
@@ -66,11 +68,33 @@ def impossible_path(schema: Mapping[str, Any], path: str) -> str | None:
     forbids others (``additionalProperties: false``, no ``patternProperties``), or where it says a
     value is not an object or array at all. Combinators (``anyOf``, ``$ref``...) end the check.
     """
+    return _walk_schema(schema, path)[1]
+
+
+def schema_types_at(schema: Mapping[str, Any], path: str) -> set[str] | None:
+    """The JSON types ``schema`` allows for the value at ``path`` (``integer`` counted as a
+    ``number``), or None when the schema does not say (no ``type``, a combinator, an open object)."""
+    node, reason = _walk_schema(schema, path)
+    if reason is not None or not isinstance(node, Mapping) or _opaque(node):
+        return None
+    declared = node.get("type")
+    types = {declared} if isinstance(declared, str) else set(declared) if isinstance(declared, list) else None
+    if types is None:
+        return None
+    return types | {"number"} if "integer" in types else types
+
+
+def _opaque(node: Mapping[str, Any]) -> bool:
+    return any(k in node for k in ("anyOf", "oneOf", "allOf", "$ref", "not", "if"))
+
+
+def _walk_schema(schema: Mapping[str, Any], path: str) -> tuple[Any, str | None]:
+    """(the schema of the value at ``path`` or None when unknown, why no value can be there or None)."""
     node: Any = schema
     walked: list[str] = []
     for part in [p for p in path.strip("/").split("/") if p != ""]:
-        if not isinstance(node, Mapping) or any(k in node for k in ("anyOf", "oneOf", "allOf", "$ref", "not", "if")):
-            return None
+        if not isinstance(node, Mapping) or _opaque(node):
+            return None, None
         properties = node.get("properties")
         where = "/".join(walked) or "the record"
         if isinstance(properties, Mapping) and part in properties:
@@ -78,15 +102,16 @@ def impossible_path(schema: Mapping[str, Any], path: str) -> str | None:
         elif node.get("type") == "array" or "items" in node:
             items = node.get("items")
             if not part.lstrip("-").isdigit():
-                return f"{where} is an array: {part!r} is not an index"
+                return None, f"{where} is an array: {part!r} is not an index"
             node = items if isinstance(items, Mapping) else None
         elif node.get("additionalProperties") is False and not node.get("patternProperties"):
             known = sorted(properties) if isinstance(properties, Mapping) else []
-            return f"{where} has no key {part!r}; its keys: {', '.join(known) or 'none'}"
+            hint = did_you_mean(part, known)
+            return None, f"{where} has no key {part!r}{hint}; its keys: {', '.join(known) or 'none'}"
         elif node.get("type") in ("string", "number", "integer", "boolean", "null"):
-            return f"{where} is a {node['type']}, not an object"
+            return None, f"{where} is a {node['type']}, not an object"
         else:
             extra = node.get("additionalProperties")
             node = extra if isinstance(extra, Mapping) else None
         walked.append(part)
-    return None
+    return node, None

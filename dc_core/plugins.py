@@ -105,8 +105,8 @@ def parse_plugin_section(
     and the plugin's own ``Params``; every error names its YAML path under ``path``, and the keys they
     accept without effect are named in the result's ``notes``.
 
-    With ``shared``, a key none of them knows is reported once, as an unknown parameter of the
-    plugin, with a suggestion taken from all of them; without, the plugin's ``Params`` report it.
+    A key none of them knows is reported once, as an unknown parameter of the plugin, with a
+    suggestion taken from all of them.
     """
     common_keys = field_names(common_cls)
     common = parse_params(common_cls, body, path, ignore=set(body) - common_keys)
@@ -117,11 +117,12 @@ def parse_plugin_section(
     others = set(common_keys)
     for cls in shared_classes:
         others |= field_names(cls)
-    if shared_classes:
-        known = others | field_names(params_class)
-        for key in body:
-            if key not in known:
-                raise ConfigError(f"{path}.{key}", f"unknown parameter of {plugin}{did_you_mean(str(key), known)}")
+    # Checked over the common and the plugin's keys together: the plugin's Params alone would
+    # suggest nothing for a misspelled common key (polling_intervall).
+    known = others | field_names(params_class)
+    for key in body:
+        if key not in known:
+            raise ConfigError(f"{path}.{key}", f"unknown parameter of {plugin}{did_you_mean(str(key), known)}")
     shared_params: tuple[Any, ...] = tuple(
         parse_params(cls, body, path, ignore=set(body) - field_names(cls)) for cls in shared_classes
     )

@@ -29,7 +29,7 @@ from dc_core.confined_files import (
     OpenedFile,
     confinement_of,
 )
-from dc_core.destination import RetryableError
+from dc_core.destination import ProbeResult, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import BurstLog, Logger
 from dc_core.params import param
@@ -428,6 +428,21 @@ def store_failure(exc: Exception, where: str, doing: str) -> StoreFailure:
             whole_store=True,
         )
     return StoreFailure("network", f"cannot reach {where}: {exc}", whole_store=True)
+
+
+def probe_bucket(client: Any, bucket: str, where: str) -> ProbeResult:
+    """HEAD of the bucket with the real credentials (``dc check``): it exists and they may see it.
+    A HEAD answer has no body, hence no error code but its status."""
+    try:
+        client.head_bucket(Bucket=bucket)
+    except (BotoCoreError, ClientError) as exc:
+        error = getattr(exc, "response", {}).get("Error", {})
+        if str(error.get("Code", "")) in ("404", "NoSuchBucket"):
+            return ProbeResult(False, f"no {where}", "create the bucket (create_bucket), or correct bucket / endpoint")
+        failure = store_failure(exc, where, "read the bucket")
+        fixes = {"credentials": "check access_key_id and secret_access_key", "network": "check endpoint and use_ssl"}
+        return ProbeResult(False, failure.message, fixes.get(failure.kind, ""))
+    return ProbeResult(True, f"{where} exists, credentials accepted")
 
 
 def stored_object(client: Any, bucket: str, key: str) -> dict[str, Any] | None:

@@ -6,14 +6,17 @@ opens no file and starts nothing. ``dc validate`` and ``dc-bringup`` call it bef
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-from dc_core.errors import ConfigError
+from dc_core.errors import ConfigError, DcError
 from dc_core.handoff import HandoffParams
+from dc_core.jsonpath import impossible_path, schema_types_at
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
-from dc_core.paths import DEFAULT_SAVE_BASE_PATH, expand_values
+from dc_core.paths import DEFAULT_SAVE_BASE_PATH, expand_env, expand_values
 from dc_core.plugins import parse_plugin_section
 from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
@@ -289,6 +292,7 @@ def parse_measurement_server(
             + did_you_mean(key, options),
         )
 
+    _refuse_impossible_conditions(measurements, conditions, path)
     users: dict[str, list[str]] = {}
     for m in measurements:
         for cid in dict.fromkeys(m.conditions):
@@ -306,3 +310,46 @@ def parse_measurement_server(
         if not m.conditions and c.init_max_measurements == -1:
             warnings.append(f"{path}.{m.name}: init_max_measurements is -1 and no condition is set: it never publishes")
     return MeasurementServerConfig(node_params, custom, measurements, conditions, warnings)
+
+
+def _refuse_impossible_conditions(
+    measurements: list[MeasurementConfig], conditions: dict[str, ConditionConfig], path: str
+) -> None:
+    """A condition on a key the measurement's schema rules out, or on a value of a type the condition
+    never accepts, could never be active for it: the measurement would stay silent (or the condition
+    be pointless) for ever, with nothing in the logs. Refused, naming the schema's keys."""
+    for m in measurements:
+        schema = _schema_of(m)
+        if schema is None:
+            continue
+        for cid in dict.fromkeys(m.conditions):
+            condition = conditions[cid]
+            key = getattr(condition.plugin_params, "key", None)
+            if condition.common.topic or not isinstance(key, str):
+                continue  # it judges another topic's records, or no key of the sample
+            reason = impossible_path(schema, key)
+            if reason is None:
+                wanted: frozenset[str] = getattr(condition.plugin_class, "value_types", frozenset())
+                types = schema_types_at(schema, key)
+                if wanted and types is not None and not wanted & types:
+                    reason = (
+                        f"the schema says {' or '.join(sorted(types))}; "
+                        f"{condition.common.plugin} needs {' or '.join(sorted(wanted))}"
+                    )
+            if reason is not None:
+                raise ConfigError(
+                    f"{path}.{cid}.key",
+                    f"{key!r}: {cid} could never be active for {m.name} ({reason})",
+                )
+
+
+def _schema_of(measurement: MeasurementConfig) -> dict[str, Any] | None:
+    """The schema a measurement's samples follow, when one is known and readable."""
+    try:
+        if measurement.common.json_schema_path:
+            loaded: dict[str, Any] = json.loads(Path(expand_env(measurement.common.json_schema_path)).read_text())
+            return loaded
+        schema: dict[str, Any] | None = measurement.plugin_class.load_schema()  # type: ignore[attr-defined]
+        return schema
+    except (OSError, ValueError, DcError):
+        return None  # the server says what is wrong with it

@@ -134,20 +134,43 @@ controller_server:
 """
 
 
-def test_validate_warns_about_a_condition_key_the_schema_rules_out_and_ignores_other_nodes(tmp_path: Path) -> None:
+def test_validate_refuses_a_condition_the_schema_rules_out_and_ignores_other_nodes(tmp_path: Path) -> None:
     params = tmp_path / "p.yaml"
     params.write_text(UPTIME_GATED.format(key="tme"))
     result = dc("validate", str(params))
-    assert result.returncode == 0, result.stderr
+    assert result.returncode == 2, result.stderr
     assert (
-        "measurement_server.booted.key: 'tme' is never in the records of uptime (the record has no key 'tme'; "
-        "its keys: time): booted cannot be active for uptime" in result.stderr
+        "measurement_server.booted.key: 'tme': booted could never be active for uptime (the record has no key "
+        """'tme' (did you mean "time"?); its keys: time)""" in result.stderr
     )
+    params.write_text(UPTIME_GATED.format(key="time"))
+    result = dc("validate", str(params))
+    assert result.returncode == 0, result.stderr
     assert "elsewhere" not in result.stderr, "a condition on another topic judges that topic's records"
     # Nav2 and other nodes keep their parameters in the same file: ignored, said once, not an error.
     assert "sections for nodes DC does not run, ignored (other nodes' parameters): controller_server" in result.stderr
-    params.write_text(UPTIME_GATED.format(key="time"))
-    assert "never in the records" not in dc("validate", str(params)).stderr
+
+
+def test_validate_refuses_a_condition_on_a_field_of_another_type(tmp_path: Path) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text(UPTIME_GATED.format(key="time").replace("IntegerSuperior", "BoolEqual").replace("10", "true"))
+    result = dc("validate", str(params))
+    assert result.returncode == 2, result.stderr
+    assert (
+        "measurement_server.booted.key: 'time': booted could never be active for uptime (the schema says "
+        "integer or number; dc_conditions/BoolEqual needs boolean)" in result.stderr
+    )
+
+
+def test_validate_suggests_a_misspelled_common_parameter(tmp_path: Path) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text(UPTIME_GATED.format(key="time").replace("if_all_conditions", "if_all_condition"))
+    result = dc("validate", str(params))
+    assert result.returncode == 2
+    assert (
+        "measurement_server.uptime.if_all_condition: unknown parameter of dc_measurements/Uptime (did you mean "
+        '"if_all_conditions"?)' in result.stderr
+    )
 
 
 def test_validate_warns_about_dangling_inputs_and_unknown_tags(tmp_path: Path) -> None:

@@ -20,6 +20,8 @@ class BoolEqualParams:
 class BoolEqual(Condition[BoolEqualParams]):
     """Bool at the key path equals `value` (a number or string is not a bool: inactive)."""
 
+    value_types = frozenset({"boolean"})
+
     def evaluate(self, sample: Mapping[str, Any] | None) -> bool:
         params: BoolEqualParams = self.params
         return as_bool(value_at(sample, params.key)) == params.value

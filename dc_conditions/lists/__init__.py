@@ -50,6 +50,8 @@ class ListStringEqualParams:
 
 
 class _ListEqual(Condition[Any]):
+    value_types = frozenset({"array"})
+
     @staticmethod
     @abc.abstractmethod
     def read_item(item: Any) -> Any:

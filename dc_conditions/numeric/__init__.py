@@ -51,6 +51,8 @@ class IntegerBoundParams:
 class _NumericCondition(Condition[Any]):
     relation: ClassVar[Relation] = "equal"
     integers_only: ClassVar[bool] = False
+    # An "integer" field is a number; a "number" one may hold 3.0, which the Integer conditions take.
+    value_types = frozenset({"number", "integer"})
 
     def evaluate(self, sample: Mapping[str, Any] | None) -> bool:
         raw = value_at(sample, self.params.key)

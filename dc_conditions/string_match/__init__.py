@@ -22,6 +22,8 @@ class StringMatchParams:
 class StringMatch(Condition[StringMatchParams]):
     """String at the key path fully matches `regex` (a non-string value is inactive)."""
 
+    value_types = frozenset({"string"})
+
     def __init__(self, context: ConditionContext, params: StringMatchParams) -> None:
         super().__init__(context, params)
         self._pattern: re.Pattern[str] | None = None

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import PluginError
 from dc_core.params import param
 from dc_core.paths import expand_env
@@ -89,6 +89,27 @@ class File(Destination[FileParams]):
         self.delimiter = p.delimiter or {"csv": ",", "ltsv": "\t"}.get(p.format, "")
         if p.format == "csv" and len(self.delimiter) != 1:
             raise PluginError(f"{self.context.name}.delimiter: csv needs one character, got {p.delimiter!r}")
+
+    def probe(self) -> ProbeResult:
+        """The file, or its folder, or the nearest folder that exists (mkdir), writable by this user."""
+        if os.path.exists(self.file_path):
+            if os.access(self.file_path, os.W_OK):
+                return ProbeResult(True, f"{self.file_path} exists and is writable")
+            return ProbeResult(False, f"{self.file_path} is not writable", "give this user write access to it")
+        folder = os.path.dirname(self.file_path) or "."
+        existing = folder
+        while not os.path.isdir(existing):
+            if not self.params.mkdir or os.path.dirname(existing) == existing:
+                break
+            existing = os.path.dirname(existing) or "."
+        if not os.path.isdir(existing):
+            return ProbeResult(False, f"folder {folder} does not exist", "create it, or set mkdir: true")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            return ProbeResult(
+                False, f"{self.file_path} cannot be created: {existing} is not writable", "give this user write access"
+            )
+        made = "" if existing == folder else f" ({folder} is created)"
+        return ProbeResult(True, f"{self.file_path} can be created{made}")
 
     def on_activate(self) -> None:
         folder = os.path.dirname(self.file_path)

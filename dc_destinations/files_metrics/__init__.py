@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dc_core.confined_files import ConfinementParams, OpenedFile, delete_opened
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, param
 from dc_destinations.files_metrics.media import DurationProbe, content_type, is_video
@@ -35,6 +35,8 @@ from dc_destinations.object_files import (
     RecordFiles,
     StoreUnavailable,
     file_pairs,
+    probe_bucket,
+    store_where,
     verify_stored,
 )
 from dc_destinations.pgsql import record_time
@@ -43,6 +45,7 @@ from dc_destinations.pgsql.connection import (
     PostgresServerParams,
     is_record_error,
     keep_database,
+    probe_table,
     require_psycopg,
     table_problem,
 )
@@ -189,6 +192,19 @@ class FilesMetrics(Destination[FilesMetricsParams]):
             _Store(storage, section, section.client(self.context.logger, f"{self.context.name}.{storage}"))
             for storage, section in ((s, self.params.section(s)) for s in self.params.file_storage)
         ]
+
+    def probe(self) -> ProbeResult:
+        """The table's database (as PgSQL's probe) and every storage's bucket; the first failure."""
+        assert self._database is not None and self._table is not None, "probe() before on_configure()"
+        results = [probe_table(self._database, self._table.identifier, self._table.name)]
+        results += [
+            probe_bucket(s.client, s.section.bucket, f"{s.name}: {store_where(s.section.bucket, s.client)}")
+            for s in self._stores
+        ]
+        failed = [r for r in results if not r.ok]
+        if failed:
+            return failed[0]
+        return ProbeResult(True, "; ".join(r.reason for r in results))
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a database that is down

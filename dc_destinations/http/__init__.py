@@ -12,15 +12,24 @@ from __future__ import annotations
 import base64
 import gzip
 import re
+import ssl
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qsl
 
-from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.destination import (
+    Destination,
+    OutgoingRecord,
+    ProbeResult,
+    RejectedError,
+    RetryableError,
+    SendOutcome,
+)
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
+from dc_destinations.probes import connect_probe
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
 FORMATS = ("json", "json_lines", "json_stream", "msgpack")
@@ -126,6 +135,7 @@ class Http(Destination[HttpParams]):
         self._headers: list[tuple[str, str]] = []
         self._secrets: list[str] = []
         self._connection: HttpConnection | None = None
+        self._tls: ssl.SSLContext | None = None  # for the probe's own connection
         self._encode: Callable[[Sequence[OutgoingRecord]], bytes] = _json_encoder("json")
         self.url = ""
 
@@ -158,7 +168,7 @@ class Http(Destination[HttpParams]):
         headers.extend((str(name), _header_value(value)) for name, value in p.headers.items())
         self._headers = _merge_headers(headers, keep_duplicates=p.allow_duplicated_headers)
         self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_encoder(p.format)
-        tls = client_context(p, self._key_path(""), self.context.logger)
+        tls = self._tls = client_context(p, self._key_path(""), self.context.logger)
         self._connection = self.keep(
             HttpConnection(
                 p.host, p.port, timeout=p.timeout, tls=tls, where=self.url, what="cannot POST to", secrets=self._secrets
@@ -191,6 +201,13 @@ class Http(Destination[HttpParams]):
             verified_tls=p.tls_verified,
             fix=fix,
         )
+
+    def probe(self) -> ProbeResult:
+        """Connect (and the TLS handshake) only: no request is sent, for no method is safe on every
+        receiver (a HEAD or GET on the uri may have effects on some); credentials are not checked."""
+        p = self.params
+        server_name = getattr(p, "tls_vhost", "") or p.host
+        return connect_probe(p.host, p.port, p.timeout, self._tls, server_name=server_name, what=self.url)
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a server that is down

@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import http.client
 import json
 import math
 import re
+import ssl
 import urllib.parse
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
@@ -30,6 +32,7 @@ from dc_core.destination import (
     ConfigurationProblem,
     Destination,
     OutgoingRecord,
+    ProbeResult,
     RejectedError,
     RetryableError,
     SendOutcome,
@@ -286,6 +289,7 @@ class InfluxDB(Destination[InfluxDBParams]):
     def __init__(self, context: Any, params: InfluxDBParams) -> None:
         super().__init__(context, params)
         self._connection: HttpConnection | None = None
+        self._tls: ssl.SSLContext | None = None  # for the probe's own connection
         self._headers: list[tuple[str, str]] = []
         self._secrets: list[str] = []
         self._sequencer = Sequencer()
@@ -302,7 +306,7 @@ class InfluxDB(Destination[InfluxDBParams]):
             self.path = "/write?" + urllib.parse.urlencode({"db": p.database, "precision": "ns"})
         host = f"[{p.host}]" if ":" in p.host else p.host
         self.url = f"{'https' if p.tls_on else 'http'}://{host}:{p.port}{self.path}"
-        tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
+        tls = self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
         self._headers = [("Content-Type", "text/plain; charset=utf-8"), ("User-Agent", "dc-destinations")]
         if p.http_token:
             self._headers.append(("Authorization", f"Token {p.http_token}"))
@@ -419,6 +423,42 @@ class InfluxDB(Destination[InfluxDBParams]):
         if status in _POINT_ERRORS:
             return status, message
         raise RejectedError(message)
+
+    def probe(self) -> ProbeResult:
+        """A read with the real credentials: v2 lists the bucket by name, v1 the databases.
+
+        Over a connection of its own, closed after: the kept one is left to ``send``.
+        """
+        p = self.params
+        if p.api_version == "v2":
+            query = urllib.parse.urlencode({"name": p.bucket, "org": p.org} if p.org else {"name": p.bucket})
+            path, target = f"/api/v2/buckets?{query}", f"bucket {p.bucket!r}"
+        else:
+            path, target = "/query?" + urllib.parse.urlencode({"q": "SHOW DATABASES"}), f"database {p.database!r}"
+        own = HttpConnection(
+            p.host, p.port, timeout=p.timeout, tls=self._tls, where=self.url, what="cannot read from InfluxDB at"
+        )
+        own.secrets = self._secrets
+        headers = {name: value for name, value in self._headers if name.lower() != "content-type"}
+        try:
+            connection = own.get()
+            connection.request("GET", path, headers=headers)
+            response = connection.getresponse()
+            status, text = response.status, response.read(1 << 20).decode("utf-8", errors="replace")
+        except (OSError, http.client.HTTPException) as exc:
+            return ProbeResult(False, own.failure(own.what, exc), "check host, port and tls")
+        finally:
+            own.close()
+        hint = "http_token" if p.api_version == "v2" else "http_user and http_passwd"
+        if status in (401, 403):
+            return ProbeResult(False, f"InfluxDB refused the credentials: HTTP {status} ({self.url})", f"check {hint}")
+        if status != 200:
+            error = own.scrub(_server_error(text))
+            return ProbeResult(False, f"InfluxDB answered HTTP {status}: {error} ({self.url})", "check api, org")
+        if f'"{p.bucket if p.api_version == "v2" else p.database}"' not in text:
+            create = "create the bucket" if p.api_version == "v2" else f"CREATE DATABASE {p.database}"
+            return ProbeResult(False, f"no {target} in InfluxDB {p.host}:{p.port}", f"{create}, or correct the name")
+        return ProbeResult(True, f"{target} found, credentials accepted ({p.host}:{p.port})")
 
 
 def _server_error(text: str) -> str:

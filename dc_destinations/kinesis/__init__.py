@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.destination import OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.params import param
 from dc_core.records import MalformedRecord, dump_record
 from dc_destinations.aws import CREDENTIAL_CODES, AwsClientParams, AwsDestination, BotoCoreError, ClientError
@@ -99,6 +99,20 @@ class KinesisStreams(AwsDestination[KinesisParams]):
         self._fields = _template_fields(params.partition_key)
 
     # -- lifecycle -------------------------------------------------------------------------------
+    def probe(self) -> ProbeResult:
+        """DescribeStreamSummary with the real credentials: the stream exists and is writable-state."""
+        try:
+            summary = self._client.describe_stream_summary(StreamName=self.params.stream)["StreamDescriptionSummary"]
+        except Exception as exc:  # botocore's errors and the network's; _describe words each
+            _, message = self._describe(exc)
+            code = str(getattr(exc, "response", {}).get("Error", {}).get("Code", ""))
+            fix = "create the stream, or correct stream / region" if code == "ResourceNotFoundException" else ""
+            return ProbeResult(False, message, fix or "check the credentials, region and endpoint")
+        status = summary.get("StreamStatus", "")
+        if status not in ("ACTIVE", "UPDATING"):
+            return ProbeResult(False, f"{self.where} is {status}, not ACTIVE", "wait for the stream, or recreate it")
+        return ProbeResult(True, f"{self.where} is {status}, credentials accepted")
+
     def on_activate(self) -> None:
         # The stream is not probed here: an unreachable service must not hold up activation, and the
         # first batch says clearly what is wrong.

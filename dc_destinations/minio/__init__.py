@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any, NoReturn
 
 from dc_core.confined_files import ConfinementParams, OpenedFile, delete_opened
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, param
 from dc_destinations.aws import (
@@ -52,6 +52,7 @@ from dc_destinations.object_files import (
     StoreUnavailable,
     file_pairs,
     part_digests,
+    probe_bucket,
     store_failure,
     store_where,
     stored_object,
@@ -167,6 +168,9 @@ class MinIO(Destination[MinIOParams]):
         self._files.configure(self.params)
         self._client = self.params.client(self.context.logger, self.context.name, self.params.timeout)
         self.where = store_where(self.params.bucket, self._client)
+
+    def probe(self) -> ProbeResult:
+        return probe_bucket(self._client, self.params.bucket, self.where)
 
     def on_activate(self) -> None:
         # The store is not probed here: an unreachable store must not hold up activation, and the

@@ -26,7 +26,14 @@ try:
 except ImportError as exc:  # an optional dependency: say which extra brings it
     raise ImportError(f"the MQTT destination needs paho-mqtt: pip install 'ros2-dc[mqtt]' ({exc})") from exc
 
-from dc_core.destination import ConfigurationProblem, Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import (
+    ConfigurationProblem,
+    Destination,
+    OutgoingRecord,
+    ProbeResult,
+    RetryableError,
+    SendOutcome,
+)
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
 from dc_core.records import MalformedRecord
@@ -192,6 +199,14 @@ class Mqtt(Destination[MqttParams]):
         p = self.params
         self.context.logger.info(f"publishing to {self.address} on {p.topic!r} with QoS {p.qos}")
 
+    def probe(self) -> ProbeResult:
+        """An MQTT CONNECT with the real credentials (and TLS), then a DISCONNECT; nothing published.
+        On a connection of its own, under a client id of its own with a clean session: the running
+        DC's, taken over, would be disconnected by the broker, and a kept session would be left behind."""
+        self._connect(client_id=f"{self.client_id}-check", clean_session=True).close()
+        p = self.params
+        return ProbeResult(True, f"connected to {self.address}" + (f" as {p.username}" if p.username else ""))
+
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         outcome = SendOutcome()
@@ -260,12 +275,13 @@ class Mqtt(Destination[MqttParams]):
             outcome.retry[index] = self._scrub(reason)
 
     # -- connection --------------------------------------------------------------------------------
-    def _connect(self) -> _Connection:
+    def _connect(self, *, client_id: str | None = None, clean_session: bool | None = None) -> _Connection:
+        """A connected client; ``client_id`` and ``clean_session`` other than the parameters' for the probe."""
         p = self.params
         client = mqtt.Client(
             CallbackAPIVersion.VERSION2,
-            client_id=self.client_id,
-            clean_session=p.clean_session,
+            client_id=self.client_id if client_id is None else client_id,
+            clean_session=p.clean_session if clean_session is None else clean_session,
             protocol=mqtt.MQTTv311,
             reconnect_on_failure=False,  # DC's buffer retries, with its backoff
         )

@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, SendOutcome
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, SendOutcome
 from dc_core.params import compat_param, param
 from dc_core.records import MalformedRecord
 from dc_destinations.pgsql.connection import (
@@ -41,6 +41,7 @@ from dc_destinations.pgsql.connection import (
     is_record_error,
     keep_database,
     one_line,
+    probe_table,
     require_psycopg,
     table_problem,
 )
@@ -127,6 +128,10 @@ class PgSQL(Destination[PgSQLParams]):
             "INSERT INTO {} (tag, time, data, record_id) SELECT tag, time, data, record_id FROM {}"
             " ON CONFLICT (record_id) DO NOTHING"
         ).format(self._table(), staging)
+
+    def probe(self) -> ProbeResult:
+        assert self._database is not None, "probe() before on_configure()"
+        return probe_table(self._database, self._table(), self.params.table)
 
     def on_activate(self) -> None:
         # The connection opens with the first batch, in the sender's thread: a database that is down

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from dc_core.destination import ConfigurationProblem, Destination, RetryableError
+from dc_core.destination import ConfigurationProblem, Destination, ProbeResult, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
 from dc_core.params import host_problem, param, port_problem
@@ -380,3 +380,38 @@ def keep_database(
     )
     warn_if_password_in_clear(logger, name, settings, section)
     return database
+
+
+def probe_table(database: KeptConnection, table: Any, name: str) -> ProbeResult:
+    """A connection of its own with the real credentials, and the catalog read: does the table
+    exist and may this user insert into it (or, if not, create it, as the first batch would).
+    ``table`` is its psycopg ``sql.Identifier``; nothing is written (``dc check``)."""
+    import psycopg
+
+    try:
+        with psycopg.connect(autocommit=True, **database.connect_options()) as connection:
+            row = connection.execute(
+                """SELECT to_regclass(%(t)s) IS NOT NULL,
+                          CASE WHEN to_regclass(%(t)s) IS NULL THEN false
+                               ELSE has_table_privilege(to_regclass(%(t)s), 'INSERT') END,
+                          has_schema_privilege(current_schema(), 'CREATE'), current_user""",
+                {"t": table.as_string(connection)},
+            ).fetchone()
+    except psycopg.Error as exc:
+        return ProbeResult(False, f"cannot connect: {database.describe(exc)}", database.fix_for(exc))
+    assert row is not None
+    exists, may_insert, may_create, user = row
+    where = database.address
+    if exists and may_insert:
+        return ProbeResult(True, f"connected to {where} as {user}; may insert into table {name}")
+    if exists:
+        return ProbeResult(
+            False, f"{user} may not insert into table {name} ({where})", f"GRANT INSERT ON {name} TO {user}"
+        )
+    if may_create:
+        return ProbeResult(True, f"connected to {where} as {user}; table {name} is created at the first batch")
+    return ProbeResult(
+        False,
+        f"table {name} does not exist in {where} and {user} may not create it",
+        f"create the table, or GRANT CREATE ON SCHEMA to {user}",
+    )

@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import ConfigurationProblem, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import ConfigurationProblem, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, param
 from dc_core.records import MalformedRecord, dump_record
@@ -155,6 +155,23 @@ class S3(AwsDestination[S3Params]):
         return parts
 
     # -- lifecycle -------------------------------------------------------------------------------
+    def probe(self) -> ProbeResult:
+        """HEAD of the bucket with the real credentials: it exists and they may see it (a write
+        permission is only proven by dc check --write-test)."""
+        try:
+            self._client.head_bucket(Bucket=self.params.bucket)
+        except (BotoCoreError, ClientError) as exc:
+            fix = _fix_for(exc)
+            code = str(getattr(exc, "response", {}).get("Error", {}).get("Code", ""))
+            if code in ("404", "NoSuchBucket"):
+                return ProbeResult(
+                    False, f"no {self.where}", "create the bucket, or correct bucket / region / endpoint"
+                )
+            if code == "403":  # a HEAD answer has no body, hence no error code but the status
+                fix = "check the access key, secret key, role_arn and the policy's s3:ListBucket"
+            return ProbeResult(False, self._describe(exc, "(HEAD bucket)"), fix or "check endpoint and region")
+        return ProbeResult(True, f"{self.where} exists, credentials accepted")
+
     def on_activate(self) -> None:
         # The bucket is not probed here: an unreachable store must not hold up activation, and the
         # first batch says clearly what is wrong.

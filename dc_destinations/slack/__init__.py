@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import ssl
 import string
 import time
 import urllib.error
@@ -25,10 +26,18 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RejectedError, RetryableError, SendOutcome
+from dc_core.destination import (
+    Destination,
+    OutgoingRecord,
+    ProbeResult,
+    RejectedError,
+    RetryableError,
+    SendOutcome,
+)
 from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_destinations.http_client import is_retryable_status, masked, one_line, retry_after_seconds
+from dc_destinations.probes import connect_probe
 from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
 
 # Longest wait inside one send(): longer would hold up the destination's stop and hide progress.
@@ -173,6 +182,18 @@ class Slack(Destination[SlackParams]):
             verified_tls=url_is_verified_tls(self.params.webhook),
             fix="use an https:// webhook URL",
         )
+
+    def probe(self) -> ProbeResult:
+        """A connection (and TLS handshake) to the webhook's host only: a webhook has no read-only
+        request, and any POST to it posts a message in the channel. The webhook itself is unchecked."""
+        parts = urllib.parse.urlsplit(self.params.webhook)
+        host = parts.hostname or ""
+        tls = ssl.create_default_context() if parts.scheme == "https" else None
+        port = parts.port or (443 if tls is not None else 80)
+        result = connect_probe(host, port, self.params.timeout, tls, what=self.url)
+        if result.ok:
+            return ProbeResult(True, result.reason + " (the webhook itself is checked by --write-test only)")
+        return result
 
     def on_activate(self) -> None:
         self.context.logger.info(f"posting records to the Slack webhook {self.url}")

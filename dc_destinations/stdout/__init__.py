@@ -7,7 +7,7 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError
 from dc_core.params import param
 
 # Every Stdout destination of the process shares the one standard output; a batch must not be
@@ -26,6 +26,9 @@ class StdoutParams:
 
 class Stdout(Destination[StdoutParams]):
     """Print each record as one JSON line on standard output."""
+
+    def probe(self) -> ProbeResult:
+        return ProbeResult(True, "prints records on standard output")
 
     def send(self, batch: Sequence[OutgoingRecord]) -> None:
         text = "".join(record.to_json() + "\n" for record in batch)

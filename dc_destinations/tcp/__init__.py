@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, host_problem, param, port_problem
 from dc_destinations.connection import Connection
@@ -84,6 +84,12 @@ class Tcp(Destination[TcpParams]):
         # must not hold up activation.
         scheme = "TLS" if self._tls is not None else "TCP"
         self.context.logger.info(f"writing {self.params.format} records to {self.address} over {scheme}")
+
+    def probe(self) -> ProbeResult:
+        """A connection of its own, opened as the first batch opens one (TLS handshake included) and
+        closed unused; the kept connection is left to ``send``."""
+        self._connect().close()
+        return ProbeResult(True, f"connected to {self.address}" + (" over TLS" if self._tls is not None else ""))
 
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
