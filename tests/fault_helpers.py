@@ -16,9 +16,7 @@ import pytest
 HOOKS = Path(__file__).resolve().parent / "fault_hooks"
 
 
-def fault_env(
-    tmp_path: Path, target: str, hang_s: float = 0.0, skip: int = 0, only_in: str = ""
-) -> dict[str, str]:
+def fault_env(tmp_path: Path, target: str, hang_s: float = 0.0, skip: int = 0, only_in: str = "") -> dict[str, str]:
     """The environment of a `dc-bringup` whose processes make ``target`` (``module:Class.method``)
     raise once, or with ``hang_s`` block that long once, after ``skip`` calls in each process ran
     normally, in the process of server module ``only_in`` alone when given
