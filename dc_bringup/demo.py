@@ -14,7 +14,6 @@ import contextlib
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -28,7 +27,7 @@ from typing import Any
 import yaml
 
 from dc_bringup.local_servers import LocalServer, ServerError
-from dc_bringup.local_servers.processes import free_port, log_tail
+from dc_bringup.local_servers.processes import free_port, log_tail, port_free
 from dc_bringup.local_servers.run import DEFAULT_PORTS, environment, environment_lines, make_server
 from dc_bringup.processes import die_with_parent
 from dc_core.errors import DcError
@@ -134,7 +133,7 @@ class Demo:
             if server.running():  # left by a demo that was killed: the password it was given is gone with it
                 self.say(f"dc demo: stopping the {name} server an earlier dc demo left running")
                 server.stop()
-            if not _port_free(server.port):  # `make servers` runs, say: the demo does not need the usual port
+            if not port_free(server.port):  # `make servers` runs, say: the demo does not need the usual port
                 server = make_server(name, folder, free_port())
             try:
                 server.start()
@@ -214,15 +213,6 @@ def _stop_child(child: Child, timeout: float, say: Callable[[str], Any]) -> None
         say(f"dc demo: {child.name} did not stop within {timeout:g} s: killed")
         child.process.kill()
         child.process.wait()
-
-
-def _port_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
 
 
 def _answers(url: str) -> bool:

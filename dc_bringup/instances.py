@@ -29,6 +29,9 @@ from dc_bringup.validate import SERVER_MODULES
 DISCOVERY_S = 3.5
 # Once a node of another DC is seen, how long to wait for its other processes' nodes, to name them all.
 MORE_NODES_S = 2.0
+# ... and, while its lifecycle manager (the process to stop) is not among them, up to this long: on a
+# loaded machine the other processes' participants are discovered seconds apart.
+MANAGER_WAIT_S = 6.0
 # Every node has a /rosout publisher: its GUID tells the node's process.
 _ROSOUT = "/rosout"
 _FASTDDS_VENDOR = b"\x01\x0f"

@@ -353,8 +353,8 @@ class LifecycleManager(Node):
 
     def another_instance(self) -> list[instances.SeenNode]:
         """The nodes of another DC in this domain and namespace, graph discovery given DISCOVERY_S
-        from this manager's start (and, once one is seen, a little more for the others of that DC:
-        each of its processes is discovered on its own)."""
+        from this manager's start (and, once one is seen, a little more for the others of that DC —
+        each of its processes is discovered on its own — longer while its manager is not among them)."""
         own_names = {NODE_NAME: 1, f"{NODE_NAME}_services": 1}
         first_seen: float | None = None
         while True:
@@ -364,8 +364,11 @@ class LifecycleManager(Node):
             now = time.monotonic()
             if found and first_seen is None:
                 first_seen = now
-            if (first_seen is None and now - self._discovery_from >= instances.DISCOVERY_S) or (
-                first_seen is not None and now - first_seen >= instances.MORE_NODES_S
+            if first_seen is None:
+                if now - self._discovery_from >= instances.DISCOVERY_S:
+                    return found
+            elif now - first_seen >= instances.MANAGER_WAIT_S or (
+                now - first_seen >= instances.MORE_NODES_S and any(n.name == NODE_NAME for n in found)
             ):
                 return found
             self.spin_for(0.05)

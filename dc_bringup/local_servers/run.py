@@ -18,6 +18,7 @@ from typing import Any
 import yaml
 
 from dc_bringup.local_servers import LocalServer, ServerError
+from dc_bringup.local_servers.processes import free_port, port_free
 from dc_core.signals import stop_on_signals
 
 SERVER_NAMES = ("postgres", "s3", "influxdb")
@@ -47,7 +48,11 @@ def run(names: list[str], state_dir: Path, stop: threading.Event, say: Any = pri
     started: list[tuple[str, LocalServer]] = []
     try:
         for name in names:
-            server = make_server(name, state_dir, DEFAULT_PORTS[name])
+            port = DEFAULT_PORTS[name]
+            if not port_free(port):  # a `dc demo` holds it, say: the settings written below name the one used
+                say(f"{name}: port {port} is taken, using a free one")
+                port = free_port()
+            server = make_server(name, state_dir, port)
             server.start()
             started.append((name, server))
             say(f"{name}: listening on 127.0.0.1:{server.port}")
