@@ -171,6 +171,10 @@ class ManagedServer(LifecycleNode):
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
         self._diagnostics_timer: Any = None
         self.set_diagnostics_period(DEFAULT_DIAGNOSTICS_PERIOD_S)
+        # A thread that dies is said on /diagnostics at once, from the loop: the manager may restart
+        # the server before the next period, and the ERROR would never be seen.
+        self._diagnostics_now = self.create_guard_condition(self._diagnostics_on_failure)
+        self.supervisor.add_listener(lambda _reason: self._diagnostics_now.trigger())
         self._metrics_http: StatusServer | None = None
         # Slow work of plugins (dc_core.worker): a finished job wakes the loop through a guard
         # condition, made with the worker (rclpy's EventsExecutor stops firing timers beside one).
@@ -305,6 +309,10 @@ class ManagedServer(LifecycleNode):
             self._diagnostics_timer = None
         if period > 0:
             self._diagnostics_timer = self.create_timer(period, self.publish_diagnostics, clock=self._steady_clock)
+
+    def _diagnostics_on_failure(self) -> None:
+        if self._diagnostics_timer is not None:  # diagnostics_period 0: not at all
+            self.publish_diagnostics()
 
     def publish_diagnostics(self) -> None:
         statuses = [self._server_status(), *self.diagnostic_statuses()]

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+import socket
 import stat
 import subprocess
 import time
@@ -13,6 +15,7 @@ import psycopg
 import pytest
 import yaml
 
+from dc_bringup.local_servers.run import DEFAULT_PORTS
 from tests.bringup_util import BIN
 
 pytestmark = pytest.mark.e2e
@@ -20,6 +23,10 @@ pytestmark = pytest.mark.e2e
 
 def test_servers_run_until_interrupted_with_their_settings_kept_private(tmp_path: Path) -> None:
     state = Path(os.environ.get("TMPDIR", "/tmp")) / f"dc-servers-{os.getpid()}"  # postgres must enter it
+    # PostgreSQL's usual port held (by this test, or by a `dc demo` of another test): a free one is taken.
+    holder = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    with contextlib.suppress(OSError):
+        holder.bind(("127.0.0.1", DEFAULT_PORTS["postgres"]))
     run = subprocess.Popen(
         [str(BIN / "dc"), "servers", "run", "postgres", "influxdb", "--state-dir", str(state)],
         stdout=subprocess.PIPE,
@@ -48,10 +55,13 @@ def test_servers_run_until_interrupted_with_their_settings_kept_private(tmp_path
             capture_output=True, text=True, check=True,
         )  # fmt: skip
         assert sourced.stdout.split() == [str(pg["port"]), pg["password"]]
+        assert pg["port"] != DEFAULT_PORTS["postgres"]
     finally:
         run.send_signal(signal.SIGINT)
         output, _ = run.communicate(timeout=60)
+        holder.close()
     assert run.returncode == 0, output
+    assert f"postgres: port {DEFAULT_PORTS['postgres']} is taken, using a free one" in output
     assert "postgres: stopped" in output and "influxdb: stopped" in output
     assert pg["password"] not in output  # the settings file has it, the terminal does not
     subprocess.run(["rm", "-rf", str(state)], check=False)
