@@ -57,7 +57,8 @@ def test_every_server_runs_in_one_process_driven_by_dc_lifecycle_and_stops_in_or
         assert rss_kb[run.process.pid] < rss_kb[child] / 2, rss_kb
 
         paused = dc("lifecycle", "pause", env=run.env)
-        assert paused.stdout.strip() == "pause: done", paused
+        # Fast DDS may print its own transport errors (shared-memory port locks) to stdout before the answer.
+        assert paused.stdout.strip().splitlines()[-1] == "pause: done", paused
         assert dc("lifecycle", "is-active", env=run.env).stdout.startswith("not active: servers inactive")
         assert dc("lifecycle", "resume", env=run.env).stdout.strip() == "resume: done"
         before = len(run.records())
