@@ -46,6 +46,10 @@ from tests.hostile_records import hostile_stream
 
 DEADLINE_S = 15.0
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+# The server's record writers are transient-local: a listener of the same durability gets what was
+# published before its writer had matched it (discovery is not symmetric: the listener can see the
+# writer before the writer sees the listener, and a volatile one then misses the first records).
+RECORD_LISTENER = record_qos(1000)
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
 REPO = Path(__file__).resolve().parent.parent
@@ -91,7 +95,7 @@ class Harness:
     def listen(self, topic: str) -> list[Any]:
         """Every StringStamped received on ``topic`` (the list fills while spinning)."""
         messages = self.received.setdefault(topic, [])
-        self.peer.create_subscription(StringStamped, topic, messages.append, RELIABLE)
+        self.peer.create_subscription(StringStamped, topic, messages.append, RECORD_LISTENER)
         return messages
 
     def wait_publisher(self, topic: str) -> None:
