@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from typing import Any, cast
 
 from dc_core.errors import DcError
-from dc_core.params import describe_params
+from dc_core.params import describe_params, url_host
 from dc_core.plugins import GROUPS, describe, list_plugins, load_plugin
 
 
@@ -213,7 +213,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     documents: dict[str, Any] = {}
     unreachable = False
     for server, host, port in targets:
-        url = f"http://{f'[{host}]' if ':' in host else host}:{port}/api/v1/metrics"
+        url = f"http://{url_host(host)}:{port}/api/v1/metrics"
         try:
             documents[server] = _get_json(url)
         except (urllib.error.URLError, OSError) as exc:
