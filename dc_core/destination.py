@@ -73,11 +73,16 @@ class RejectedError(DcError):
 class SendOutcome:
     """Per-record result of a batch: indexes into the batch with the reason. Others succeeded.
 
+    ``retry``: the destination failed with these records; they are tried again after the backoff.
+    ``waiting``: these records cannot be confirmed *yet*, through no failure (FilesMetrics waits for
+    another destination to upload a record's file): tried again like ``retry`` and counted against
+    ``retry_limit``, but no failure: the destination stays healthy and no error is reported.
     ``retry_after``: as for :class:`RetryableError`, the server's wish before ``retry`` is tried again.
     """
 
     retry: dict[int, str] = field(default_factory=dict)
     reject: dict[int, str] = field(default_factory=dict)
+    waiting: dict[int, str] = field(default_factory=dict)
     retry_after: float | None = None
 
 

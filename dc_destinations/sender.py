@@ -413,42 +413,47 @@ class Sender:
             self.bound_dead_letters()
         if not records:
             return False
-        retry, reject, problem, self._retry_after = route.gate.send(lambda: _outcome_of(route.destination, records))
-        if retry or reject:
-            confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
+        retry, waiting, reject, problem, self._retry_after = route.gate.send(
+            lambda: _outcome_of(route.destination, records)
+        )
+        again = {**waiting, **retry}  # back to the queue: failed, or not ready yet
+        if again or reject:
+            confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in again and i not in reject]
         else:
             confirmed = [row.row_id for row in sent_rows]
         # The destination answered unless everything must be retried; a refusal that names a fix is a
-        # failure of the destination's set-up, whatever becomes of the records.
+        # failure of the destination's set-up, whatever becomes of the records. A wait is no failure.
         if problem is not None or (retry and not confirmed):
             route.health.failed(next(iter(retry.values()), ""), problem)
         else:
             route.health.succeeded()
-        if defer_delete and not retry and not reject:
+        if defer_delete and not again and not reject:
             self._confirmed += confirmed
             return False
         if confirmed:
             buffer.delete(route.name, confirmed)
             route.metrics.add("sent", len(confirmed))
-        if not retry and not reject:
+        if not again and not reject:
             return False
-        route.metrics.add("failed")
-        first_error = next(iter({**reject, **retry}.values()))
-        route.metrics.set_error(first_error)
+        if retry or reject:
+            route.metrics.add("failed")
+            route.metrics.set_error(next(iter({**reject, **retry}.values())))
         dead: list[tuple[BufferedRow, str]] = [(sent_rows[i], reason) for i, reason in reject.items()]
         retried = 0
-        if retry:
-            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in retry])
+        if again:
+            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in again])
             limit = route.params.retry_limit
-            for i, reason in retry.items():
+            failed_again = 0
+            for i, reason in again.items():
                 row = sent_rows[i]
                 if limit >= 0 and attempts.get(row.row_id, 0) > limit:
                     dead.append((row, f"retry_limit {limit} exhausted: {reason}"))
                 else:
                     retried += 1
+                    failed_again += i in retry
             route.metrics.add("retried", retried)
-            if retried:
-                route.failure_log.event(retried, first_error)
+            if failed_again:
+                route.failure_log.event(failed_again, next(iter(retry.values())))
         if dead:
             # A refused record was tried once more than its queue row counted (only retries are counted there).
             moved = buffer.dead_letter(route.name, dead, tried_now={sent_rows[i].row_id for i in reject})
@@ -480,25 +485,30 @@ class _Batch:
 
 def _outcome_of(
     destination: Destination[Any], records: list[OutgoingRecord]
-) -> tuple[dict[int, str], dict[int, str], tuple[str, str] | None, float | None]:
-    """``send(records)`` as (retry, reject, problem, retry_after): batch indexes with their reasons (the
-    rest were confirmed), (what, fix) when the failure is one retrying cannot mend
-    (dc_destinations.health), and the seconds the server asked to wait, when it said."""
+) -> tuple[dict[int, str], dict[int, str], dict[int, str], tuple[str, str] | None, float | None]:
+    """``send(records)`` as (retry, waiting, reject, problem, retry_after): batch indexes with their
+    reasons (the rest were confirmed; see SendOutcome), (what, fix) when the failure is one retrying
+    cannot mend (dc_destinations.health), and the seconds the server asked to wait, when it said."""
     try:
         outcome = destination.send(records)
     except RejectedError as exc:
-        return {}, dict.fromkeys(range(len(records)), f"rejected: {exc}"), attention_needed(exc), None
+        return {}, {}, dict.fromkeys(range(len(records)), f"rejected: {exc}"), attention_needed(exc), None
     except RetryableError as exc:
-        return dict.fromkeys(range(len(records)), str(exc)), {}, attention_needed(exc), _seconds(exc.retry_after)
+        return dict.fromkeys(range(len(records)), str(exc)), {}, {}, attention_needed(exc), _seconds(exc.retry_after)
     except Exception as exc:
-        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}, attention_needed(exc), None
+        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}, {}, attention_needed(exc), None
     if not isinstance(outcome, SendOutcome):
-        return {}, {}, None, None
+        return {}, {}, {}, None, None
     retry = {i: reason for i, reason in outcome.retry.items() if 0 <= i < len(records)}
     reject = {
         i: f"rejected: {reason}" for i, reason in outcome.reject.items() if 0 <= i < len(records) and i not in retry
     }
-    return retry, reject, None, _seconds(outcome.retry_after) if retry else None
+    waiting = {
+        i: reason
+        for i, reason in outcome.waiting.items()
+        if 0 <= i < len(records) and i not in retry and i not in reject
+    }
+    return retry, waiting, reject, None, _seconds(outcome.retry_after) if retry else None
 
 
 def _seconds(value: Any) -> float | None:
