@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from html import escape
 from typing import Any
 from urllib.parse import quote
@@ -15,6 +15,18 @@ from dc_dashboard.queries import Distance, FilesPage, Inspection, SystemStats, T
 
 # Shown where there is no value (a dash, not a zero that would be a measurement).
 NONE = "\u2013"
+
+# What fills a panel whose kind of record the table holds none of (not a filter's doing).
+NOT_COLLECTED = {
+    "distance_traveled": "dc_measurements/DistanceTraveled",
+    "cpu": "dc_measurements/Cpu",
+    "memory": "dc_measurements/Memory",
+}
+
+
+def not_collected(kind: str) -> str:
+    return f"no {kind} records in this table: collect {NOT_COLLECTED[kind]} into it to fill this panel"
+
 
 PAGES = (("/", "Overview"), ("/system", "System"), ("/camera", "Camera"), ("/files", "Files"), ("/health", "Health"))
 
@@ -152,12 +164,18 @@ def when(value: dt.datetime | None) -> str:
     return value.strftime("%Y-%m-%d %H:%M:%S") if value else NONE
 
 
-def overview(trajectory: Trajectory, distance: Distance, row_estimate: int) -> str:
+def overview(trajectory: Trajectory, distance: Distance, row_estimate: int, collected: Collection[str]) -> str:
+    """``collected``: the kinds of record the table holds at all (dc_dashboard.catalog.KINDS)."""
     map_record = trajectory.map
     map_url = image_url(str(map_record["key"])) if map_record and map_record.get("key") else ""
     runs = len({(r, u) for r, u, _ in distance.per_run}) or len(trajectory.series)
+    has_distance = "distance_traveled" in collected
     cards = (
-        stat("distance", f"{distance.total_m:,.1f} m", "distance traveled")
+        stat(
+            "distance",
+            f"{distance.total_m:,.1f} m" if has_distance else NONE,
+            "distance traveled" if has_distance else "distance traveled: not collected",
+        )
         + stat("positions", f"{trajectory.positions:,}", "positions stored")
         + stat("runs", f"{runs:,}", "runs")
         + stat("rows", f"≈{row_estimate:,}", "rows in the table (all robots)")
@@ -179,21 +197,29 @@ def overview(trajectory: Trajectory, distance: Distance, row_estimate: int) -> s
         "<table id=distance-table><tr><th>robot</th><th>run</th><th class=num>metres in the range</th></tr>"
         f"{per_run}</table>"
         if per_run
+        else f'<p class="no">{escape(not_collected("distance_traveled"))}</p>'
+        if not has_distance
         else '<p class="no">no distance_traveled records for these filters</p>'
     )
+    distance_empty = not_collected("distance_traveled") if not has_distance else "nothing stored for these filters"
     return (
         f'<div class="cards">{cards}</div>'
         f'<div class="panel"><h2>Trajectory</h2><p class="no">{map_note}</p>'
         f"{trajectory_chart(trajectory.series, map_record, map_url)}</div>"
         f'<div class="two"><div class="panel"><h2>Distance traveled over time</h2>'
-        f"{time_chart(distance.series, chart_id='distance-chart', unit='m')}</div>"
+        f"{time_chart(distance.series, chart_id='distance-chart', unit='m', empty=distance_empty)}</div>"
         f'<div class="panel"><h2>Per run</h2>{table}</div></div>'
     )
 
 
-def system(stats: SystemStats) -> str:
+def system(stats: SystemStats, collected: Collection[str]) -> str:
+    """``collected``: the kinds of record the table holds at all (dc_dashboard.catalog.KINDS)."""
+
     def pct(value: float | None) -> str:
         return NONE if value is None else f"{value:.1f} %"
+
+    def empty(kind: str) -> str:
+        return "nothing stored for these filters" if kind in collected else not_collected(kind)
 
     cards = (
         stat("cpu-average", pct(stats.cpu_average), "CPU, average")
@@ -205,9 +231,10 @@ def system(stats: SystemStats) -> str:
     return (
         f'<div class="cards">{cards}</div>'
         f'<div class="panel"><h2>CPU (all cores, %)</h2>'
-        f"{time_chart(stats.cpu, chart_id='cpu-chart', unit='%', y_range=(0, 100))}</div>"
+        f"{time_chart(stats.cpu, chart_id='cpu-chart', unit='%', y_range=(0, 100), empty=empty('cpu'))}</div>"
         f'<div class="panel"><h2>Memory used (%)</h2>'
-        f"{time_chart(stats.memory, chart_id='memory-chart', unit='%', y_range=(0, 100))}</div>"
+        f"{time_chart(stats.memory, chart_id='memory-chart', unit='%', y_range=(0, 100), empty=empty('memory'))}"
+        "</div>"
     )
 
 

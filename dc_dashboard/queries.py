@@ -82,6 +82,11 @@ class Catalog:
     row_estimate: int
     read_at: float = field(default_factory=time.monotonic)
 
+    @property
+    def collected(self) -> frozenset[str]:
+        """The kinds of record (catalog.KINDS) the table holds at all, whatever the filters."""
+        return frozenset(kind for kind, found in self.sources.items() if found)
+
 
 class Store:
     """The dashboard's reader of DC's tables; opens a connection per page (closed when the page is done)."""

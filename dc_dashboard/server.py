@@ -90,7 +90,8 @@ class Dashboard:
     def _overview(self, connection: Any, filters: Filters) -> str:
         trajectory = self.store.trajectory(connection, filters)
         distance = self.store.distance(connection, filters)
-        body = pages.overview(trajectory, distance, self.store.catalog(connection).row_estimate)
+        catalog = self.store.catalog(connection)
+        body = pages.overview(trajectory, distance, catalog.row_estimate, catalog.collected)
         if trajectory.map and trajectory.map.get("key"):
             problem = self.images.check_bucket()
             if problem:
@@ -98,7 +99,7 @@ class Dashboard:
         return body
 
     def _system(self, connection: Any, filters: Filters) -> str:
-        return pages.system(self.store.system(connection, filters))
+        return pages.system(self.store.system(connection, filters), self.store.catalog(connection).collected)
 
     def _camera(self, connection: Any, filters: Filters) -> str:
         inspections, more = self.store.inspections(connection, filters)

@@ -341,6 +341,40 @@ def test_pages_render_the_numbers_and_say_what_is_wrong(database: PostgresSettin
     assert "secret-pw" not in html
 
 
+def test_an_empty_panel_names_what_to_collect_and_blames_filters_only_when_they_are_the_cause(
+    database: PostgresSettings,
+) -> None:
+    import dataclasses
+
+    import psycopg
+
+    # The original's QR demo stores positions but no distance, CPU or memory: the panels said "0.0 m"
+    # and "nothing stored for these filters".
+    positions_only = dataclasses.replace(database, table="dc_positions_only")
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("CREATE TABLE dc_positions_only (tag varchar, time timestamp, data jsonb, record_id text)")
+        with connection.cursor() as cursor:
+            cursor.executemany(
+                "INSERT INTO dc_positions_only VALUES (%s, %s, %s::jsonb, %s)",
+                [row for row in _run_rows("C3PO", "1", T0, 3, cpu=1.0) if '"name": "robot"' in row[2]],
+            )
+    dashboard = Dashboard(DashboardSettings(positions_only, S3Settings()))
+    status, html = dashboard.render("/", "")
+    assert status == 200 and 'id="stat-distance"><span class="value">\u2013</span>' in html, html
+    assert "distance traveled: not collected" in html
+    assert "collect dc_measurements/DistanceTraveled into it" in html and "for these filters" not in html
+    status, html = dashboard.render("/system", "")
+    assert status == 200
+    assert "collect dc_measurements/Cpu into it" in html and "collect dc_measurements/Memory into it" in html
+
+    # Where the table holds them, an empty panel is the filters' doing, and says so.
+    everything = Dashboard(DashboardSettings(database, S3Settings()))
+    status, html = everything.render("/system", "robot=NOBODY")
+    assert status == 200 and "nothing stored for these filters" in html and "collect dc_measurements" not in html
+    status, html = everything.render("/", "robot=NOBODY")
+    assert "no distance_traveled records for these filters" in html and "not collected" not in html
+
+
 # -- in a browser, over what the demo stored --------------------------------------------------------------
 
 
