@@ -56,6 +56,7 @@ class Dashboard:
             "/system": ("System: CPU and memory", self._system),
             "/camera": ("Camera: inspected images and the codes read", self._camera),
             "/files": ("Files: uploaded, verified, deleted", self._files),
+            "/explore": ("Explorer: any measurement", self._explore),
             "/health": ("Health: DC's delivery", self._health),
         }
         if path not in views:
@@ -106,6 +107,9 @@ class Dashboard:
         body = pages.camera(inspections, more, filters)
         problem = self.images.check_bucket() if inspections else None
         return (pages.notice(problem, element_id="s3-error") if problem else "") + body
+
+    def _explore(self, connection: Any, filters: Filters) -> str:
+        return pages.explore(self.store.explore(connection, filters), filters)
 
     def _files(self, connection: Any, filters: Filters) -> str:
         return pages.files(self.store.files(connection, filters), filters)
