@@ -105,6 +105,7 @@ class DeliveryPipeline:
         # (server, ROS domain id, namespace) under which the server writes its metrics address down.
         self.metrics_announce_as: tuple[str, int, str] | None = None
         self._sections: dict[str, Callable[[], Any]] = {}
+        self._prometheus_sections: list[Callable[[], str]] = []
         self.storage_file: Path | None = None
         self._lock: BufferLock | None = None
         self._lock_taken_by_start = False
@@ -463,6 +464,10 @@ class DeliveryPipeline:
         """Add ``name: supplier()`` to the JSON of ``/api/v1/metrics`` (e.g. the server's intake counters)."""
         self._sections[name] = supplier
 
+    def add_prometheus_section(self, render: Callable[[], str]) -> None:
+        """Append ``render()`` (Prometheus text, e.g. the server's hop counters) to ``/api/v1/metrics/prometheus``."""
+        self._prometheus_sections.append(render)
+
     def status_document(self) -> dict[str, Any]:
         """What ``/api/v1/metrics`` serves."""
         document: dict[str, Any] = {
@@ -519,7 +524,8 @@ class DeliveryPipeline:
         return {"status": status, "destinations": destinations}
 
     def prometheus(self) -> str:
-        return prometheus_text(self.metrics(), self.buffer_metrics()) + self.supervisor.prometheus()
+        sections = "".join(render() for render in self._prometheus_sections)
+        return prometheus_text(self.metrics(), self.buffer_metrics()) + sections + self.supervisor.prometheus()
 
     @property
     def http_address(self) -> tuple[str, int] | None:

@@ -204,3 +204,28 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         [("", buffer.get("intake_pending_bytes") or 0)],
     )
     return text.text()
+
+
+# (key in HopIntake.stats(), Prometheus kind, help text): the hop into destination_server, per input topic.
+HOP_COUNTERS = (
+    ("received", "counter", "Records received on the input topic, replays included"),
+    ("duplicates", "counter", "Records dropped as copies of one already handled (replays, records sent again)"),
+    ("missing", "counter", "Records known lost before destination_server: numbers that never arrived"),
+    ("gaps", "counter", "Jumps in a publisher's numbers, and ended hand-off publishers, that missing counts"),
+    ("writers", "counter", "Publishers recognised since the start (a restarted publisher is a new one)"),
+    ("unkeyed", "counter", "Records without a source timestamp or sequence number: not deduplicated"),
+    ("writers_ended", "counter", "Hand-off publishers announced ended holding records not acknowledged"),
+)
+
+
+def hop_prometheus_text(hop: dict[str, dict[str, int]], announcements_refused: int) -> str:
+    """The hop counters (dc_destinations.hop) per input topic, and the hand-off announcements refused."""
+    text = PrometheusText()
+    text.counter_table("dc_hop", "topic", hop, HOP_COUNTERS)
+    text.family(
+        "dc_hop_handoff_announcements_refused_total",
+        "counter",
+        "Announcements on dc/handoff_ended refused: a publisher there was not one of DC's servers",
+        [("", announcements_refused)],
+    )
+    return text.text()
