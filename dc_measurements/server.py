@@ -10,6 +10,8 @@ from typing import Any
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from dc_core.diagnostics import OK, WARN
+from dc_core.diagnostics import status as diagnostic_status
 from dc_core.handoff import HandoffSender, destination_inputs
 from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, PartialTeardown, ServerPluginContext, run_server
@@ -25,7 +27,7 @@ from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
 from dc_measurements.config import NODE_NAME, MeasurementServerConfig, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
-from dc_measurements.metrics import measurement_prometheus_text
+from dc_measurements.metrics import measurement_diagnosis, measurement_prometheus_text
 from dc_measurements.runner import MeasurementRunner
 from dc_measurements.validation import RecordValidator
 
@@ -47,6 +49,9 @@ class _MeasurementContext(ServerPluginContext):
         self.server.emit_from_event(self.name, record, stamp_ns, group_key)
 
 
+LEVELS = {"ok": OK, "warn": WARN}
+
+
 class MeasurementServer(ManagedServer):
     def __init__(self, params_file: str) -> None:
         super().__init__(NODE_NAME, params_file)
@@ -63,6 +68,7 @@ class MeasurementServer(ManagedServer):
         self._init_timer: Any = None
         self._clock_wait_logged = False
         self.handoff: HandoffSender | None = None
+        self._diagnosed: dict[str, tuple[float, dict[str, int]]] = {}  # measurement -> (when, counters) last said
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -229,6 +235,22 @@ class MeasurementServer(ManagedServer):
             "handoff": handoff.metrics() if handoff is not None else {},
             "history": history_metrics(list(self._record_publishers.values())),
         }
+
+    def diagnostic_statuses(self) -> list[Any]:
+        """One status per measurement while active: WARN when records were lost or not made since the last."""
+        if self.lifecycle_state != "active":
+            self._diagnosed.clear()
+            return []
+        now = time.monotonic()
+        statuses = []
+        for name, counters in self.metrics_document()["measurements"].items():
+            before = self._diagnosed.get(name)
+            self._diagnosed[name] = (now, counters)
+            level, message, values = measurement_diagnosis(
+                counters, before[1] if before else None, now - before[0] if before else None
+            )
+            statuses.append(diagnostic_status(f"{self.get_name()}: {name}", LEVELS[level], message, values))
+        return statuses
 
     @staticmethod
     def _topic_record_callback(runtime: ConditionRuntime) -> Any:
