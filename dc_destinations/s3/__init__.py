@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import datetime as dt
 import gzip
 import hashlib
 import re
@@ -33,6 +32,7 @@ from typing import Any
 from dc_core.destination import ConfigurationProblem, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, param
+from dc_core.paths import expand_time
 from dc_core.records import MalformedRecord, dump_record
 from dc_destinations.aws import (
     CREDENTIALS_MISSING,
@@ -232,7 +232,7 @@ class S3(AwsDestination[S3Params]):
         uuid = hashlib.sha256(first.record_id.encode("utf-8")).hexdigest()[:16]
         seconds = first.stamp_ns // 1_000_000_000
         # strftime first, so that a '%' in the tag stays as it is.
-        key = dt.datetime.fromtimestamp(seconds, tz=dt.UTC).strftime(p.s3_key_format)
+        key = expand_time(p.s3_key_format, seconds)
         key = _TAG_PART.sub(lambda m: self._tag_parts[int(m.group(1))], key)
         key = key.replace("$TAG", self.context.name).replace("$UUID", uuid).replace("$INDEX", str(index))
         if "$UUID" not in p.s3_key_format and not p.static_file_path:
