@@ -22,6 +22,7 @@ from dc_bringup.local_servers.seaweedfs import missing_reason as seaweed_missing
 from dc_core.destination import OutgoingRecord
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext, RecordingLogger
+from dc_dashboard.settings import PostgresSettings
 from dc_destinations.files_metrics.table import FileRow, FilesTable
 from dc_destinations.minio import MinIO, MinIOParams
 from dc_destinations.record_ids import new_record_id
@@ -50,13 +51,8 @@ def connect(pg: PostgresServer) -> Any:
     import psycopg
 
     s = pg.settings()
-    return psycopg.connect(
-        host=str(s["host"]),
-        port=int(s["port"]),
-        user=str(s["user"]),
-        password=str(s["password"]),
-        dbname=str(s["database"]),
-    )
+    where = PostgresSettings(str(s["host"]), int(s["port"]), str(s["user"]), str(s["password"]), str(s["database"]))
+    return psycopg.connect(**where.connect_kwargs())
 
 
 def upload(s3: SeaweedS3Server, tmp_path: Path, robot: str, name: str) -> tuple[str, str]:
