@@ -145,13 +145,19 @@ def reconcile(
     for rid, data in records:
         for key in named_keys(data, storage):
             named.setdefault(key, str(rid))
-    files = connection.execute(
-        sql.SQL(
-            "SELECT id, remote_path, uploaded, record_id FROM {} WHERE robot_name = %(robot)s "
-            "AND timestamp >= %(since)s AND timestamp < %(until)s AND (bucket IS NULL OR bucket = %(bucket)s)"
-        ).format(sql.Identifier(*files_table.split("."))),
-        {**window, "bucket": bucket},
-    ).fetchall()
+    # A robot without FilesMetrics has no such table: nothing to compare on that side.
+    has_files = connection.execute("SELECT to_regclass(%s) IS NOT NULL", (files_table,)).fetchone()[0]
+    files = (
+        connection.execute(
+            sql.SQL(
+                "SELECT id, remote_path, uploaded, record_id FROM {} WHERE robot_name = %(robot)s "
+                "AND timestamp >= %(since)s AND timestamp < %(until)s AND (bucket IS NULL OR bucket = %(bucket)s)"
+            ).format(sql.Identifier(*files_table.split("."))),
+            {**window, "bucket": bucket},
+        ).fetchall()
+        if has_files
+        else []
+    )
     file_keys: dict[str, tuple[Any, bool, str]] = {}
     for row_id, remote_path, uploaded, row_record in files:
         file_key = _object_key(str(remote_path), bucket)

@@ -147,6 +147,9 @@ def test_reconcile_lists_the_three_kinds_of_orphans_of_one_robot_and_repairs_the
     code, report = reconcile(capsys, "--since", since)
     assert report["uploaded_but_missing"] == [] and len(report["objects_without_row"]) == 1, "the rest only listed"
 
+    code, report = reconcile(capsys, "--since", since, "--files-table", "no_files_metrics_here")
+    assert report["checked"]["files_metrics_rows"] == 0 and report["uploaded_but_missing"] == [], "no FilesMetrics"
+    assert [o["key"] for o in report["rows_without_object"]] == ["c3po/never-uploaded.pgm"]
     code, report = reconcile(capsys, "--since", (now + dt.timedelta(minutes=5)).isoformat())
     assert code == 0, "nothing in a later range"
     assert report["objects_without_row"] == report["rows_without_object"] == report["uploaded_but_missing"] == []
