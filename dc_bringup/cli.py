@@ -501,6 +501,12 @@ def _metrics_urls(params: str) -> list[tuple[str, str]]:
     return [(t.server, t.url) for t in targets if t.server == "destination_server"]
 
 
+def cmd_reconcile(args: argparse.Namespace) -> int:
+    from dc_bringup.reconcile import run
+
+    return run(args)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from dc_bringup.demo import main
 
@@ -628,6 +634,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_arguments(p)
     p.set_defaults(func=cmd_dashboard)
+
+    p = sub.add_parser(
+        "reconcile",
+        help="objects without a row, rows without an object, files marked uploaded but missing: for a robot and "
+        "a time range, between the bucket, the records table and files_metrics (--repair: see dc reconcile --help)",
+    )
+    from dc_bringup.reconcile import add_arguments as add_reconcile_arguments
+
+    add_reconcile_arguments(p)
+    p.set_defaults(func=cmd_reconcile)
 
     p = sub.add_parser(
         "demo", help="the QR-code demo into PostgreSQL and S3 with the dashboard, all started and stopped together"

@@ -13,6 +13,7 @@ from their subscription callbacks.
 from __future__ import annotations
 
 import abc
+import datetime as dt
 import json
 import sys
 from dataclasses import dataclass, field
@@ -31,6 +32,11 @@ class BasePaths:
     save_local_base_path: str = ""
     all_base_path: str = ""
     remote_prefixes: dict[str, str] = field(default_factory=dict)
+    # The zone strftime tokens are expanded in (measurement_server.paths_timezone); None: local time.
+    zone: dt.tzinfo | None = dt.UTC
+    # Folders after the remote prefix in every object key instead of all_base_path, strftime tokens
+    # included (measurement_server.key_layout: hive gives "robot=<name>/date=%Y-%m-%d"); empty: none.
+    key_partitions: str = ""
 
 
 class MeasurementContext(PluginContext, Protocol):

@@ -16,7 +16,7 @@ from dc_core.handoff import HandoffSender, destination_inputs
 from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, PartialTeardown, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
-from dc_core.paths import expand_env, expand_values
+from dc_core.paths import expand_env
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
 from dc_core.qos import record_qos
 from dc_core.record_history import SizedRecordPublisher, history_metrics
@@ -29,6 +29,7 @@ from dc_measurements.config import NODE_NAME, MeasurementServerConfig, parse_mea
 from dc_measurements.metadata import next_run_id, resolve_custom_params
 from dc_measurements.metrics import measurement_diagnosis, measurement_prometheus_text
 from dc_measurements.runner import MeasurementRunner
+from dc_measurements.saved_files import base_paths
 from dc_measurements.validation import RecordValidator
 
 INIT_MATCH_WAIT_S = 2.0
@@ -87,7 +88,7 @@ class MeasurementServer(ManagedServer):
         self.apply_node_params(config.node, config.warnings)
 
         custom = resolve_custom_params(config.custom_str_params)
-        paths = self._base_paths(section, config, custom)
+        paths = base_paths(section, config, custom)
         # Last of the checks that can fail: a failed configure does not use up a run id.
         run_id = next_run_id(config.node.run_id)
         log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
@@ -142,28 +143,6 @@ class MeasurementServer(ManagedServer):
             return self.create_lifecycle_publisher(StringStamped, topic, record_qos(depth))
 
         return create
-
-    def _base_paths(
-        self, section: dict[str, Any], config: MeasurementServerConfig, custom: list[tuple[str, str, bool]]
-    ) -> BasePaths:
-        node = config.node
-
-        def top_level_string(name: str) -> str | None:
-            value = section.get(name)
-            return value if isinstance(value, str) else None
-
-        custom_values = {cid: value for cid, (_, value, _) in zip(config.custom_str_params, custom, strict=True)}
-        save = expand_values(
-            expand_env(node.save_local_base_path, f"{NODE_NAME}.save_local_base_path"),
-            top_level_string,
-            f"{NODE_NAME}.save_local_base_path",
-        )
-        all_base = expand_values(
-            expand_env(node.all_base_path, f"{NODE_NAME}.all_base_path"),
-            custom_values.get,
-            f"{NODE_NAME}.all_base_path",
-        )
-        return BasePaths(save_local_base_path=save, all_base_path=all_base)
 
     def _validator(
         self, name: str, plugin: Measurement[Any], enabled: bool, schema_path: str

@@ -448,7 +448,7 @@ def test_path_expansion() -> None:
     assert expand_values("base/=robot/={site}", {"robot": "C3PO", "site": "lyon"}.get) == "base/C3PO/lyon"
     with pytest.raises(ConfigError, match="'=missing' names no string parameter"):
         expand_values("=missing", lambda name: None)
-    assert expand_time("%Y-%m-%dT%H", when=0, utc=True) == "1970-01-01T00"
+    assert expand_time("%Y-%m-%dT%H", when=0) == "1970-01-01T00"
 
 
 def test_a_condition_that_remembers_samples_shared_by_two_measurements_is_warned_about() -> None:
