@@ -227,7 +227,9 @@ class Recorder(Measurement[RecorderParams]):
         types = dict(node.get_topic_names_and_types())
         for topic in missing:
             typenames = types.get(topic.name)
-            if not typenames:
+            # Only once it has a publisher: the QoS to subscribe with is the publishers' (and a topic this
+            # very server subscribes to, for a condition, is in the graph before anyone publishes it).
+            if not typenames or not node.count_publishers(topic.name):
                 continue
             typename = typenames[0]
             try:
