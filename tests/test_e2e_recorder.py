@@ -28,7 +28,8 @@ from tests.bringup_util import BIN, Bringup
 pytestmark = pytest.mark.e2e
 
 RATE = 4.0
-DURATION_S = 40.0
+# Incidents of the robot's stops to wait for (the first may be its standing at the start).
+STOPS = 3
 
 PARAMS = """
 measurement_server:
@@ -46,7 +47,7 @@ measurement_server:
       if_none_conditions: ["moving"]
       polling_interval: 100
       pre_trigger: 1.0
-      post_trigger: 1.0
+      post_trigger: 1.5
       tags: ["out"]
 destination_server:
   ros__parameters:
@@ -55,6 +56,13 @@ destination_server:
       plugin: "dc_destinations/Stdout"
       inputs: ["/dc/measurement/incidents"]
 """
+
+
+OPERATOR = {"service", "operator saw a bump"}
+
+
+def reasons(record: dict[str, Any]) -> set[str]:
+    return {t["reason"] for t in record["triggers"]}
 
 
 def stamp_of(message: Odometry) -> int:
@@ -89,27 +97,37 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
         )
         spinning = threading.Thread(target=executor.spin, daemon=True)
         spinning.start()
+        sim: subprocess.Popen[str] | None = None
         try:
-            sim = subprocess.run(
-                [
-                    *(str(BIN / "dc"), "sim", "--clock", "--rate", str(RATE), "--duration", str(DURATION_S)),
-                    *("--camera-fps", "0"),
-                ],
+            # The server polls on the simulated clock: the simulator runs until the operator's window closed.
+            sim = subprocess.Popen(
+                [str(BIN / "dc"), "sim", "--clock", "--rate", str(RATE), "--camera-fps", "0"],
                 env=dc.env,
-                capture_output=True,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
                 text=True,
-                timeout=DURATION_S / RATE + 60,
             )
-            assert sim.returncode == 0, sim.stderr
-            # The last window closes post_trigger after the robot's last stop (it stands at the route's end).
-            end_ns = time.time_ns()
+            dc.wait_until(lambda: len(dc.named("incidents")) >= STOPS, 60, f"{STOPS} incidents")
+            # An operator's two triggers at once (whichever comes second is inside the window of the first):
+            # one file, both reasons. Each answers: opened, or extended (a robot's stop may have opened it).
+            calls = [
+                subprocess.Popen([str(BIN / "dc"), "trigger", "incidents", *more], env=dc.env, stdout=subprocess.PIPE)
+                for more in ([], ["--reason", "operator saw a bump"])
+            ]
+            for call in calls:
+                assert call.wait(30) == 0
             dc.wait_until(
-                lambda: any(r["end"] * 1e9 >= end_ns - 5e9 for r in dc.named("incidents")) or False,
+                lambda: any(reasons(r) >= OPERATOR for r in dc.named("incidents")),
                 15,
-                "the incident of the last stop",
+                "the operator's incident",
             )
             records = dc.named("incidents")
+            sim.terminate()
+            assert sim.wait(10) in (0, -15), sim.stderr.read() if sim.stderr else ""
         finally:
+            if sim is not None and sim.poll() is None:
+                sim.kill()
+                sim.wait()
             executor.shutdown()
             node.destroy_node()
             rclpy.shutdown(context=context)
@@ -136,7 +154,10 @@ def test_each_stop_gives_one_file_with_the_odom_of_its_window(run: Run) -> None:
     assert len(incidents) >= 2, [r["triggers"] for r in run.records]
     log_stamps = [stamp for _, stamp in run.odom]
     for record in incidents:
-        assert [t["reason"] for t in record["triggers"]] == ["conditions"]
+        if OPERATOR & reasons(record):
+            continue
+        # One stop's each, or two stops closer than post_trigger in one window.
+        assert {t["reason"] for t in record["triggers"]} == {"conditions"}
         path = run.home / record["local_paths"]["mcap"]
         recorded = read_odom_stamps(path)
         assert recorded, json.dumps(run.records)
@@ -152,6 +173,13 @@ def test_each_stop_gives_one_file_with_the_odom_of_its_window(run: Run) -> None:
         assert topics["/tf"]["messages"] > 0 and topics["/tf_static"]["messages"] >= 1
         assert topics["/never_published"]["absent"] is True
         assert record["size"] == path.stat().st_size and not record["cut_by_memory_bound"]
+
+
+def test_dc_trigger_and_a_trigger_inside_the_window_give_one_file_with_both_reasons(run: Run) -> None:
+    (record,) = [r for r in run.records if OPERATOR & reasons(r)]
+    assert reasons(record) >= OPERATOR
+    assert record["end"] == pytest.approx(record["triggers"][-1]["time"] + 1.5)
+    assert (run.home / record["local_paths"]["mcap"]).is_file()
 
 
 def test_the_files_are_read_by_the_mcap_package_with_their_schemas(run: Run) -> None:

@@ -16,6 +16,7 @@ import functools
 import importlib
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -29,7 +30,7 @@ from dc_core.params import param
 from dc_core.topics import ros_topic, topic_problem
 from dc_core.worker import Outcome
 from dc_measurements.recorder.definitions import Definitions
-from dc_measurements.recorder.mcap_file import COMPRESSIONS, Channel, write_mcap
+from dc_measurements.recorder.mcap_file import COMPRESSIONS, Channel, Written, write_mcap
 from dc_measurements.recorder.ring import LATCHED_KEEP, NEVER, Entry, Ring
 from dc_measurements.recorder.window import Incident, Windows
 from dc_measurements.recorder.window import Outcome as TriggerOutcome
@@ -41,6 +42,9 @@ DEPTH = 100
 # How often the graph is asked for topics not seen yet (costs a graph walk: not every poll).
 DISCOVERY_PERIOD_S = 1.0
 MB = 1024 * 1024
+# A window is written this long after its end: a message received just before the end may still wait in its
+# subscription's queue for the server's loop to take it (its receive time is the middleware's).
+CLOSE_GRACE_NS = 250_000_000
 
 
 def _topics_problem(topics: list[str]) -> str | None:
@@ -81,6 +85,17 @@ class RecorderParams:
     trigger_service: bool = param(
         True, doc="Offer the dc/recorder/<name>/trigger service (std_srvs/Trigger) and topic (std_msgs/String)"
     )
+
+
+@dataclass
+class _Closing:
+    """A window whose end has passed, written at ``write_at_ns`` (CLOSE_GRACE_NS later)."""
+
+    incident: Incident
+    entries: list[Entry]
+    cut: bool
+    lost: list[int]
+    write_at_ns: int
 
 
 @dataclass
@@ -141,7 +156,9 @@ class Recorder(Measurement[RecorderParams]):
             int(p.pre_trigger * 1e9), int(p.post_trigger * 1e9), int(p.cooldown * 1e9), p.max_incidents_per_hour
         )
         self._received = [0] * len(p.topics)
-        self._definitions: Definitions | None = None
+        self._definitions = Definitions()
+        self._without_definition_warned: set[str] = set()
+        self._closing: deque[_Closing] = deque()
         self._reserved = ReservedPaths()
         self._lock = threading.Lock()
         self._conditions_met = False
@@ -169,7 +186,6 @@ class Recorder(Measurement[RecorderParams]):
             raise PluginError(f"{self.context.name}: the Recorder needs the server's ROS node")
         for topic in self._topics:
             topic.name = node.resolve_topic_name(ros_topic(topic.name))
-        self._definitions = Definitions()
         if p.trigger_service:
             from std_msgs.msg import String
             from std_srvs.srv import Trigger
@@ -196,27 +212,28 @@ class Recorder(Measurement[RecorderParams]):
         self._ring.clear()
 
     def on_deactivate(self) -> None:
+        # An open window closes now; it and those waiting for their last messages are written here (the
+        # records' publisher is already inactive): not lost with the ring, their records said in the log.
         incident = self._windows.open
-        if incident is None:
-            return
-        # The window closes now and is written here (the records' publisher is already inactive): what it
-        # holds is not lost with the ring, and its record is said in the log instead of published.
-        incident.end_ns = min(incident.end_ns, time.time_ns())
-        self._windows.due(incident.end_ns)
-        job, sample, base = self._prepare(incident)
-        try:
-            sample["size"] = job()
-        except Exception as exc:
-            self.write_errors += 1
-            self.context.logger.error(f"measurement {self.context.name}: incident not saved at deactivate: {exc}")
-            return
-        finally:
-            self._reserved.release(base)
-        self.unpublished += 1
-        self.context.logger.warning(
-            f"measurement {self.context.name}: window closed early by deactivate, saved as "
-            f"{sample['local_paths']['mcap']}; its record is not published: {sample}"
-        )
+        if incident is not None:
+            incident.end_ns = min(incident.end_ns, time.time_ns())
+            self._windows.due(incident.end_ns)
+            self._closing.append(self._snapshot(incident, 0))
+        while self._closing:
+            job, sample, base = self._prepare(self._closing.popleft())
+            try:
+                self._note_written(sample, job())
+            except Exception as exc:
+                self.write_errors += 1
+                self.context.logger.error(f"measurement {self.context.name}: incident not saved at deactivate: {exc}")
+                continue
+            finally:
+                self._reserved.release(base)
+            self.unpublished += 1
+            self.context.logger.warning(
+                f"measurement {self.context.name}: incident saved at deactivate as {sample['local_paths']['mcap']}, "
+                f"its window closed early; its record is not published: {sample}"
+            )
 
     # -- intake ----------------------------------------------------------------------------------
     def _discover(self) -> None:
@@ -242,16 +259,9 @@ class Recorder(Measurement[RecorderParams]):
                 topic.typename = typename
                 continue
             qos, latched, offered = _qos_of_publishers(node, topic.name)
-            assert self._definitions is not None
-            definition = self._definitions.get(typename)
-            if definition is None:
-                self.context.logger.warning(
-                    f"measurement {self.context.name}: no message definition found for {typename} ({topic.name}): "
-                    "its messages are recorded without a schema"
-                )
             topic.typename = typename
             topic.latched = latched
-            topic.channel = Channel(topic.name, typename, definition, offered)
+            topic.channel = Channel(topic.name, typename, offered)
             index = self._topics.index(topic)
             topic.subscription = self.context.subscribe(
                 message_class, topic.name, functools.partial(self._on_message, index, latched), qos, raw=True
@@ -296,31 +306,44 @@ class Recorder(Measurement[RecorderParams]):
         if time.monotonic() >= self._next_discovery:
             self._next_discovery = time.monotonic() + DISCOVERY_PERIOD_S
             self._discover()
-        self._close(self._windows.due(now_ns))
+        incident = self._windows.due(now_ns)
+        if incident is not None:
+            self._closing.append(self._snapshot(incident, now_ns + CLOSE_GRACE_NS))
+        while self._closing and self._closing[0].write_at_ns <= now_ns:
+            self._close(self._closing.popleft())
 
     def collect(self) -> dict[str, Any] | None:
         return None  # conditions_trigger: the server polls, it never collects
 
     # -- writing ---------------------------------------------------------------------------------
-    def _close(self, incident: Incident | None) -> None:
-        if incident is None:
-            return
-        job, sample, base = self._prepare(incident)
-        self.writing += 1
-        self.context.worker.submit(job, functools.partial(self._written, sample, base))
-
-    def _prepare(self, incident: Incident) -> tuple[Callable[[], int], dict[str, Any], str]:
-        """What writes the incident's file, its record (without the file's size), and the path reserved."""
+    def _snapshot(self, incident: Incident, write_at_ns: int) -> _Closing:
+        """The window's messages taken so far: from now on the ring may let them go (the snapshot keeps them)."""
         self._ring.hold_from_ns = NEVER
         entries = self._ring.window(incident.start_ns, incident.end_ns)
         lost = self._ring.take_lost_in_window()
-        cut = self._cut_before_open or any(lost)
+        return _Closing(incident, entries, self._cut_before_open or any(lost), lost, write_at_ns)
+
+    def _close(self, closing: _Closing) -> None:
+        job, sample, base = self._prepare(closing)
+        self.writing += 1
+        self.context.worker.submit(job, functools.partial(self._written, sample, base))
+
+    def _prepare(self, closing: _Closing) -> tuple[Callable[[], Written], dict[str, Any], str]:
+        """What writes the incident's file, its record (without the file's size), and the path reserved.
+
+        Messages of the window taken after the snapshot (received before its end, still queued then) join it.
+        """
+        incident = closing.incident
+        taken = {id(e) for e in closing.entries}
+        late = [e for e in self._ring.between(incident.start_ns, incident.end_ns) if id(e) not in taken]
+        entries = closing.entries + late
         channels = [t.channel for t in self._topics]
         locations = file_locations(self.context.paths, self.params.save_path, incident.start_ns / 1e9)
         locations = self._reserved.reserve(locations, (_SUFFIX,))
         local, remote = locations.with_suffix(_SUFFIX)
-        sample = self._sample(incident, entries, lost, cut, local, remote)
-        return functools.partial(write_mcap, local, channels, entries, self.params.compression), sample, locations.local
+        sample = self._sample(incident, entries, closing.lost, closing.cut, local, remote)
+        job = functools.partial(write_mcap, local, channels, entries, self.params.compression, self._definitions.get)
+        return job, sample, locations.local
 
     def _sample(
         self, incident: Incident, entries: list[Entry], lost: list[int], cut: bool, local: str, remote: dict[str, str]
@@ -340,8 +363,6 @@ class Recorder(Measurement[RecorderParams]):
                 "lost_to_memory_bound": lost[index],
                 "absent": topic.subscription is None,
             }
-            if topic.channel is not None and topic.channel.definition is None:
-                entry["definition_missing"] = True
             topics.append(entry)
         absent = [t.name for t in self._topics if t.subscription is None]
         if absent and not self._absent_warned:
@@ -362,15 +383,29 @@ class Recorder(Measurement[RecorderParams]):
             sample["remote_paths"] = {key: {"mcap": path} for key, path in remote.items()}
         return sample
 
-    def _written(self, sample: dict[str, Any], base: str, outcome: Outcome[int]) -> None:
+    def _note_written(self, sample: dict[str, Any], written: Written) -> None:
+        """The file's size in the record, and the types whose definition it lacks (warned once each)."""
+        sample["size"] = written.size
+        for entry in sample["topics"]:
+            if entry["type"] in written.without_definition:
+                entry["definition_missing"] = True
+        for typename in set(written.without_definition) - self._without_definition_warned:
+            self._without_definition_warned.add(typename)
+            self.context.logger.warning(
+                f"measurement {self.context.name}: no message definition found for {typename}: its messages are "
+                "in the files without a schema (said once)"
+            )
+
+    def _written(self, sample: dict[str, Any], base: str, outcome: Outcome[Written]) -> None:
         self.writing -= 1
         self._reserved.release(base)
         try:
-            sample["size"] = outcome.get()
+            written = outcome.get()
         except Exception as exc:
             self.write_errors += 1
             self._save_log.event(1, f"{sample['local_paths']['mcap']}: {exc}")
             return
+        self._note_written(sample, written)
         self.incidents += 1
         self.context.emit(sample, stamp_ns=int(sample["triggers"][0]["time"] * 1e9))
 

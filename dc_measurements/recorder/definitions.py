@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import re
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -40,21 +41,26 @@ class Definitions:
     """Definitions by type name, built once per type (a recorder asks once per topic)."""
 
     def __init__(self) -> None:
-        from rosbags.typesys import Stores, get_typestore
-
-        self._store: Any = get_typestore(Stores.EMPTY)
+        self._store: Any = None
         self._jazzy: Any = None
         self._done: dict[str, str | None] = {}
+        # Files are written on several worker threads; the type store is not for concurrent use.
+        self._lock = threading.Lock()
 
     def get(self, typename: str) -> str | None:
-        if typename not in self._done:
-            self._done[typename] = self._build(typename)
-        return self._done[typename]
+        with self._lock:
+            if typename not in self._done:
+                self._done[typename] = self._build(typename)
+            return self._done[typename]
 
     def _build(self, typename: str) -> str | None:
         from rosbags.typesys import get_types_from_msg
         from rosbags.typesys.base import TypesysError
 
+        if self._store is None:  # parsing .msg files costs: on the first file, on the worker
+            from rosbags.typesys import Stores, get_typestore
+
+            self._store = get_typestore(Stores.EMPTY)
         missing = typename
         for _ in range(200):  # each round adds one type; no message uses that many
             try:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,13 +23,25 @@ COMPRESSIONS = ("zstd", "lz4", "none")
 class Channel:
     topic: str
     typename: str
-    definition: str | None  # None: no definition found, the channel has no schema
     offered_qos_profiles: str = ""
 
 
-def write_mcap(path: str, channels: list[Channel | None], entries: list[Entry], compression: str) -> int:
+@dataclass(frozen=True)
+class Written:
+    size: int
+    # Types no definition was found for: their channels have no schema (the messages are in the file).
+    without_definition: list[str]
+
+
+def write_mcap(
+    path: str,
+    channels: list[Channel | None],
+    entries: list[Entry],
+    compression: str,
+    definition: Callable[[str], str | None],
+) -> Written:
     """Write ``entries`` (topic index into ``channels``; a topic not subscribed is None and has none) to
-    ``path``; returns the file's size."""
+    ``path``, each type's schema from ``definition(type name)``."""
     from mcap.writer import CompressionType, Writer
 
     target = Path(path)
@@ -40,14 +53,18 @@ def write_mcap(path: str, channels: list[Channel | None], entries: list[Entry], 
             writer.start(profile="ros2", library="dc")
             channel_ids: dict[int, int] = {}
             schema_ids: dict[str, int] = {}
+            without: list[str] = []
             for index, channel in enumerate(channels):
                 if channel is None:
                     continue
-                schema_id = schema_ids.get(channel.typename, 0)
-                if channel.definition is not None and not schema_id:
-                    schema_id = schema_ids[channel.typename] = writer.register_schema(
-                        channel.typename, "ros2msg", channel.definition.encode()
+                if channel.typename not in schema_ids:
+                    text = definition(channel.typename)
+                    if text is None:
+                        without.append(channel.typename)
+                    schema_ids[channel.typename] = (
+                        0 if text is None else writer.register_schema(channel.typename, "ros2msg", text.encode())
                     )
+                schema_id = schema_ids[channel.typename]
                 channel_ids[index] = writer.register_channel(
                     channel.topic, "cdr", schema_id, {"offered_qos_profiles": channel.offered_qos_profiles}
                 )
@@ -61,4 +78,4 @@ def write_mcap(path: str, channels: list[Channel | None], entries: list[Entry], 
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
-    return size
+    return Written(size, without)

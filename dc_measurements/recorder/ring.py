@@ -63,11 +63,14 @@ class Ring:
         return self._entries[0][0] if self._entries else None
 
     def window(self, start_ns: int, end_ns: int) -> list[Entry]:
-        """The entries received in [start_ns, end_ns], oldest first, then the latched ones received before
-        ``start_ns`` (those dated ``start_ns``, their publish time kept)."""
-        inside = [e for e in self._entries if start_ns <= e[0] <= end_ns]
+        """The latched entries received before ``start_ns`` (dated ``start_ns``, their publish time kept),
+        then :meth:`between`."""
         earlier = [(start_ns, e[1], e[2], e[3]) for kept in self._latched.values() for e in kept if e[0] < start_ns]
-        return earlier + inside
+        return earlier + self.between(start_ns, end_ns)
+
+    def between(self, start_ns: int, end_ns: int) -> list[Entry]:
+        """The entries received in [start_ns, end_ns], in the order they were taken."""
+        return [e for e in self._entries if start_ns <= e[0] <= end_ns]
 
     def take_lost_in_window(self) -> list[int]:
         lost, self.lost_in_window = self.lost_in_window, [0] * len(self.lost_in_window)

@@ -242,7 +242,7 @@ def test_the_service_the_topic_and_the_conditions_rising_edge_trigger(ros: Ros, 
     logger = ros.harness.context(plugin).logger
     ros.harness.stop(plugin)  # deactivate writes what the window holds, and says so
     assert len(list(tmp_path.rglob("*.mcap"))) == 1 and plugin.counters()["incidents_unpublished"] == 1
-    assert any("closed early by deactivate" in w for w in logger.at("warning"))
+    assert any("saved at deactivate" in w for w in logger.at("warning"))
 
 
 def test_the_memory_bound_cuts_the_window_and_the_record_says_so(ros: Ros, tmp_path: Path) -> None:
@@ -277,3 +277,29 @@ def test_the_memory_bound_cuts_the_window_and_the_record_says_so(ros: Ros, tmp_p
     # Every message received is still in the ring or counted as let go (none is older than pre_trigger).
     assert plugin.counters()["messages"] == len(plugin._ring) + plugin.counters()["lost_to_bound"]
     ros.harness.stop(plugin)
+
+
+def test_a_type_without_definition_is_written_without_schema_and_named(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    from dc_measurements.recorder.definitions import Definitions
+    from dc_measurements.recorder.mcap_file import Channel, write_mcap
+
+    definitions = Definitions()
+    channels: list[Channel | None] = [
+        Channel("/odom", "nav_msgs/msg/Odometry"),
+        Channel("/custom", "no_such_pkg/msg/Thing"),
+        None,  # a topic never seen
+    ]
+    path = tmp_path / "x.mcap"
+    entries = [(2 * S, 1 * S, 0, b"\x00\x01\x00\x00odom"), (3 * S, 0, 1, b"\x00\x01\x00\x00raw")]
+    written = write_mcap(str(path), channels, entries, "zstd", definitions.get)
+    assert written.without_definition == ["no_such_pkg/msg/Thing"] and written.size == path.stat().st_size
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        read = [
+            (channel.topic, schema.name if schema else None, message.data)
+            for schema, channel, message in reader.iter_messages()
+        ]
+    assert read == [("/odom", "nav_msgs/msg/Odometry", entries[0][3]), ("/custom", None, entries[1][3])]
+    assert not list(tmp_path.glob("*.part"))
