@@ -164,6 +164,7 @@ class Recorder(Measurement[RecorderParams]):
         self._conditions_met = False
         self._next_discovery = 0.0
         self._absent_warned = False
+        self._bound_warned = False
         self._cut_before_open = False
         self._services: list[Any] = []
         self._save_log = BurstLog(context.logger.error, f"measurement {context.name}: incidents not saved")
@@ -303,6 +304,7 @@ class Recorder(Measurement[RecorderParams]):
         if met and not self._conditions_met:
             self.trigger("conditions", now_ns)
         self._conditions_met = met
+        self._check_bound(now_ns)
         if time.monotonic() >= self._next_discovery:
             self._next_discovery = time.monotonic() + DISCOVERY_PERIOD_S
             self._discover()
@@ -311,6 +313,21 @@ class Recorder(Measurement[RecorderParams]):
             self._closing.append(self._snapshot(incident, now_ns + CLOSE_GRACE_NS))
         while self._closing and self._closing[0].write_at_ns <= now_ns:
             self._close(self._closing.popleft())
+
+    def _check_bound(self, now_ns: int) -> None:
+        """Said once: the bound lets messages go while no window needs them, so it holds less than pre_trigger."""
+        if self._bound_warned or self._windows.open is not None or not any(self._ring.lost_to_bound):
+            return
+        oldest = self._ring.oldest_ns()
+        if oldest is None:
+            return
+        self._bound_warned = True
+        held = (now_ns - oldest) / 1e9
+        self.context.logger.warning(
+            f"measurement {self.context.name}: max_memory_mb ({self.params.max_memory_mb:g} MiB) holds only "
+            f"{held:.1f} s of the topics at their current rates, less than pre_trigger ({self.params.pre_trigger:g} "
+            "s): incidents start later than asked (said once)"
+        )
 
     def collect(self) -> dict[str, Any] | None:
         return None  # conditions_trigger: the server polls, it never collects

@@ -270,6 +270,8 @@ def test_the_memory_bound_cuts_the_window_and_the_record_says_so(ros: Ros, tmp_p
     drive(ros, plugin, lambda: bool(emitted), publish)
     record = emitted[0].record
     assert plugin._ring.bytes <= plugin._ring.max_bytes
+    (warning,) = [w for w in ros.harness.context(plugin).logger.at("warning") if "max_memory_mb" in w]
+    assert "less than pre_trigger (10 s)" in warning
     assert record["cut_by_memory_bound"] is True
     (entry,) = record["topics"]
     assert 0 < entry["messages"] <= 30
