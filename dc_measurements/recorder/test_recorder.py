@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import stat
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -179,6 +180,7 @@ def test_an_incident_file_holds_the_window_of_odom_the_static_tf_and_the_reasons
     }
     assert by_topic[static_topic]["messages"] == 1 and by_topic[static_topic]["type"] == "tf2_msgs/msg/TFMessage"
     assert record["size"] == Path(path).stat().st_size and not record["cut_by_memory_bound"]
+    assert stat.S_IMODE(Path(path).stat().st_mode) == 0o600  # the robot's data, DC's account's alone
 
     # The /odom messages of the window: those published in it, give or take one at each edge (the
     # receive time the ring keeps comes a little after the publish time measured here).
