@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import functools
 import importlib
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -160,7 +159,6 @@ class Recorder(Measurement[RecorderParams]):
         self._without_definition_warned: set[str] = set()
         self._closing: deque[_Closing] = deque()
         self._reserved = ReservedPaths()
-        self._lock = threading.Lock()
         self._conditions_met = False
         self._next_discovery = 0.0
         self._absent_warned = False
@@ -247,20 +245,19 @@ class Recorder(Measurement[RecorderParams]):
             typenames = types.get(topic.name)
             # Only once it has a publisher: the QoS to subscribe with is the publishers' (and a topic this
             # very server subscribes to, for a condition, is in the graph before anyone publishes it).
-            if not typenames or not node.count_publishers(topic.name):
-                continue
+            if topic.typename or not typenames or not node.count_publishers(topic.name):
+                continue  # (a typename without subscription: a type that is not installed, said once)
             typename = typenames[0]
+            topic.typename = typename
             try:
                 message_class = _message_class(typename)
             except (ImportError, AttributeError, ValueError) as exc:
                 self.context.logger.warning(
                     f"measurement {self.context.name}: {topic.name} ({typename}) not recorded: "
-                    f"type not installed ({exc})"
+                    f"its type is not installed here ({exc})"
                 )
-                topic.typename = typename
                 continue
             qos, latched, offered = _qos_of_publishers(node, topic.name)
-            topic.typename = typename
             topic.latched = latched
             topic.channel = Channel(topic.name, typename, offered)
             index = self._topics.index(topic)
@@ -378,10 +375,10 @@ class Recorder(Measurement[RecorderParams]):
                 "messages": counts[index],
                 "bytes": sizes[index],
                 "lost_to_memory_bound": lost[index],
-                "absent": topic.subscription is None,
+                "absent": not topic.typename,
             }
             topics.append(entry)
-        absent = [t.name for t in self._topics if t.subscription is None]
+        absent = [t.name for t in self._topics if not t.typename]
         if absent and not self._absent_warned:
             self._absent_warned = True
             self.context.logger.warning(
@@ -438,4 +435,5 @@ class Recorder(Measurement[RecorderParams]):
             "incidents": self.incidents,
             "write_errors": self.write_errors,
             "incidents_unpublished": self.unpublished,
+            "incidents_being_written": self.writing,
         }
