@@ -18,6 +18,7 @@ from dc_core.measurement import BasePaths
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext
 from dc_destinations.minio import MinIO, MinIOParams
+from dc_destinations.minio.test_minio import store_settings
 from dc_measurements.recorder import Recorder
 from tests.destination_helpers import STAMP_NS
 from tests.robot_helpers import odometry, ros_session, unique
@@ -62,14 +63,8 @@ def test_an_incident_file_is_uploaded_verified_and_deleted_like_any_saved_file(
     path = Path(record["local_paths"]["mcap"])
     content = path.read_bytes()
 
-    s = server.settings()
     params = {
-        "endpoint": f"127.0.0.1:{server.port}",
-        "use_ssl": False,
-        "access_key_id": s["aws_access_key_id"],
-        "secret_access_key": s["aws_secret_access_key"],
-        "bucket": s["bucket"],
-        "region": s["region"],
+        **store_settings(server),
         "src_fields": ["local_paths.mcap"],
         "upload_fields": ["remote_paths.minio.mcap"],
         "allowed_roots": [tempfile.gettempdir()],
