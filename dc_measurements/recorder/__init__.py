@@ -44,6 +44,10 @@ MB = 1024 * 1024
 # A window is written this long after its end: a message received just before the end may still wait in its
 # subscription's queue for the server's loop to take it (its receive time is the middleware's).
 CLOSE_GRACE_NS = 250_000_000
+# A file that cannot be written (a full disk, a folder that cannot be made) is tried again this much later,
+# its window's messages kept in memory meanwhile, WRITE_TRIES times in all; then the window is dropped, counted.
+WRITE_RETRY_NS = 5_000_000_000
+WRITE_TRIES = 3
 
 
 def _topics_problem(topics: list[str]) -> str | None:
@@ -95,6 +99,7 @@ class _Closing:
     cut: bool
     lost: list[int]
     write_at_ns: int
+    failures: int = 0
 
 
 @dataclass
@@ -158,6 +163,8 @@ class Recorder(Measurement[RecorderParams]):
         self._definitions = Definitions()
         self._without_definition_warned: set[str] = set()
         self._closing: deque[_Closing] = deque()
+        # Windows whose file could not be written (a full disk): kept, tried again WRITE_RETRY_NS later.
+        self._retrying: deque[_Closing] = deque()
         self._reserved = ReservedPaths()
         self._conditions_met = False
         self._next_discovery = 0.0
@@ -170,6 +177,7 @@ class Recorder(Measurement[RecorderParams]):
         self.write_errors = 0
         self.writing = 0
         self.unpublished = 0
+        self.incidents_dropped = 0
 
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
@@ -218,13 +226,18 @@ class Recorder(Measurement[RecorderParams]):
             incident.end_ns = min(incident.end_ns, time.time_ns())
             self._windows.due(incident.end_ns)
             self._closing.append(self._snapshot(incident, 0))
+        self._closing.extend(self._retrying)
+        self._retrying.clear()
         while self._closing:
             job, sample, base = self._prepare(self._closing.popleft())
             try:
                 self._note_written(sample, job())
             except Exception as exc:
                 self.write_errors += 1
-                self.context.logger.error(f"measurement {self.context.name}: incident not saved at deactivate: {exc}")
+                self.incidents_dropped += 1
+                self.context.logger.error(
+                    f"measurement {self.context.name}: incident not saved at deactivate, dropped: {exc}: {sample}"
+                )
                 continue
             finally:
                 self._reserved.release(base)
@@ -310,6 +323,8 @@ class Recorder(Measurement[RecorderParams]):
             self._closing.append(self._snapshot(incident, now_ns + CLOSE_GRACE_NS))
         while self._closing and self._closing[0].write_at_ns <= now_ns:
             self._close(self._closing.popleft())
+        while self._retrying and self._retrying[0].write_at_ns <= now_ns:
+            self._close(self._retrying.popleft())
 
     def _check_bound(self, now_ns: int) -> None:
         """Said once: the bound lets messages go while no window needs them, so it holds less than pre_trigger."""
@@ -340,7 +355,7 @@ class Recorder(Measurement[RecorderParams]):
     def _close(self, closing: _Closing) -> None:
         job, sample, base = self._prepare(closing)
         self.writing += 1
-        self.context.worker.submit(job, functools.partial(self._written, sample, base))
+        self.context.worker.submit(job, functools.partial(self._written, closing, sample, base))
 
     def _prepare(self, closing: _Closing) -> tuple[Callable[[], Written], dict[str, Any], str]:
         """What writes the incident's file, its record (without the file's size), and the path reserved.
@@ -350,7 +365,7 @@ class Recorder(Measurement[RecorderParams]):
         incident = closing.incident
         taken = {id(e) for e in closing.entries}
         late = [e for e in self._ring.between(incident.start_ns, incident.end_ns) if id(e) not in taken]
-        entries = closing.entries + late
+        entries = closing.entries = closing.entries + late
         channels = [t.channel for t in self._topics]
         locations = file_locations(self.context.paths, self.params.save_path, incident.start_ns / 1e9)
         locations = self._reserved.reserve(locations, (_SUFFIX,))
@@ -410,14 +425,23 @@ class Recorder(Measurement[RecorderParams]):
                 "in the files without a schema (said once)"
             )
 
-    def _written(self, sample: dict[str, Any], base: str, outcome: Outcome[Written]) -> None:
+    def _written(self, closing: _Closing, sample: dict[str, Any], base: str, outcome: Outcome[Written]) -> None:
         self.writing -= 1
         self._reserved.release(base)
         try:
             written = outcome.get()
         except Exception as exc:
             self.write_errors += 1
-            self._save_log.event(1, f"{sample['local_paths']['mcap']}: {exc}")
+            closing.failures += 1
+            if closing.failures < WRITE_TRIES:
+                closing.write_at_ns = time.time_ns() + WRITE_RETRY_NS
+                self._retrying.append(closing)
+                self._save_log.event(1, f"{sample['local_paths']['mcap']}: {exc} (kept, tried again)")
+            else:
+                self.incidents_dropped += 1
+                self._save_log.event(
+                    1, f"{sample['local_paths']['mcap']}: {exc}; dropped after {WRITE_TRIES} tries: {sample}"
+                )
             return
         self._note_written(sample, written)
         self.incidents += 1
@@ -436,4 +460,5 @@ class Recorder(Measurement[RecorderParams]):
             "write_errors": self.write_errors,
             "incidents_unpublished": self.unpublished,
             "incidents_being_written": self.writing,
+            "incidents_dropped": self.incidents_dropped,
         }

@@ -307,3 +307,43 @@ def test_a_type_without_definition_is_written_without_schema_and_named(tmp_path:
         ]
     assert read == [("/odom", "nav_msgs/msg/Odometry", entries[0][3]), ("/custom", None, entries[1][3])]
     assert not list(tmp_path.glob("*.part"))
+
+
+def test_a_file_that_cannot_be_written_is_kept_and_tried_again_then_dropped_counted(
+    ros: Ros, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import dc_measurements.recorder as recorder_module
+
+    monkeypatch.setattr(recorder_module, "WRITE_RETRY_NS", 0)
+    topic = unique("/odom")
+    publisher = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    plugin = ros.harness.make(Recorder, {"topics": [topic], "pre_trigger": 5.0, "post_trigger": 0.0})
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    # A file where the incidents' folder should be (a full disk fails the same way): no file can be written.
+    blocker = tmp_path / "incidents"
+    blocker.write_text("not a folder")
+    plugin.on_configure()
+    plugin.on_activate()
+    assert ros.spin_until(lambda: publisher.get_subscription_count() == 1)
+    for i in range(5):
+        publisher.publish(odometry(float(i), 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 5)
+    counters = plugin.counters
+    emitted = ros.harness.context(plugin).emitted
+
+    def poll() -> None:
+        plugin.on_poll(None)
+        ros.harness.run_finished_work(plugin)
+
+    plugin.trigger("first")
+    assert ros.spin_until(lambda: counters()["incidents_dropped"] == 1, poll)
+    assert counters()["write_errors"] == recorder_module.WRITE_TRIES and not emitted
+
+    plugin.trigger("second")
+    assert ros.spin_until(lambda: counters()["write_errors"] == recorder_module.WRITE_TRIES + 1, poll)
+    blocker.unlink()  # room again: the kept window is written at its next try
+    assert ros.spin_until(lambda: bool(emitted), poll)
+    assert emitted[0].record["messages"] == 5 and emitted[0].record["triggers"][0]["reason"] == "second"
+    # Every window opened is in a file or counted as dropped.
+    assert counters()["triggers"] == counters()["incidents"] + counters()["incidents_dropped"] == 2
+    ros.harness.stop(plugin)
