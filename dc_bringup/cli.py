@@ -462,6 +462,51 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     return 0 if response.success else 1
 
 
+def cmd_trigger(args: argparse.Namespace) -> int:
+    """Trigger a Recorder measurement: its service without a reason (the answer says what came of it), its
+    reason topic with one (std_msgs/String, delivered once acknowledged; the outcome is in its log and counters)."""
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
+    name = f"{namespace}/dc/recorder/{args.name}/trigger"
+    rclpy.init()
+    node = rclpy.create_node("dc_trigger")
+    try:
+        if args.reason is None:
+            client = node.create_client(Trigger, name)
+            if not client.wait_for_service(timeout_sec=args.timeout):
+                print(f"dc trigger: no recorder answers at {name} (is dc-bringup running it?)", file=sys.stderr)
+                return 2
+            future = client.call_async(Trigger.Request())
+            rclpy.spin_until_future_complete(node, future, timeout_sec=args.timeout)
+            if not future.done():
+                print(f"dc trigger: {name} did not answer in {args.timeout:g} s", file=sys.stderr)
+                return 2
+            response = future.result()
+            print(f"{args.name}: {response.message}")
+            return 0 if response.success else 1
+        publisher = node.create_publisher(String, name, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        deadline = time.monotonic() + args.timeout
+        while not publisher.get_subscription_count():
+            if time.monotonic() > deadline:
+                print(f"dc trigger: no recorder listens on {name} (is dc-bringup running it?)", file=sys.stderr)
+                return 2
+            time.sleep(0.05)
+        publisher.publish(String(data=args.reason))
+        if not publisher.wait_for_all_acked(Duration(seconds=args.timeout)):
+            print(f"dc trigger: {name} did not acknowledge the reason in {args.timeout:g} s", file=sys.stderr)
+            return 2
+        print(f"{args.name}: triggered ({args.reason})")
+        return 0
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+
+
 def _last_failure(node: Any, manager: str, timeout: float) -> str:
     """What the manager's last command failed at, as its is_active tells it ("" if it does not)."""
     import rclpy
@@ -620,6 +665,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the manager and its answer")
     p.set_defaults(func=cmd_lifecycle)
+
+    p = sub.add_parser("trigger", help="trigger a Recorder measurement: the raw data around now, as an MCAP file")
+    p.add_argument("name", help="the Recorder measurement's name in the parameter file")
+    p.add_argument("--reason", help="the reason kept in the incident's record (default: service)")
+    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the recorder and its answer")
+    p.set_defaults(func=cmd_trigger)
 
     p = sub.add_parser(
         "servers", help="run the local PostgreSQL, S3 (SeaweedFS) and InfluxDB for trying DC, until Ctrl-C"

@@ -63,6 +63,11 @@ class Measurement(Plugin[ParamsT]):
     # so the server writes it with orjson (dump_parsed, ~0.7 us) rather than json (~3.4 us); the
     # text is the same. A sample holding anything else (a NaN, a tuple, a UUID) must leave it False.
     samples_are_parsed_json: ClassVar[bool] = False
+    # True: the measurement's conditions are its trigger, not a gate. Each poll the server calls
+    # on_poll() with whether they hold (None: it has none) and never collect(); the records the plugin
+    # emits are published whatever the conditions say then (an incident recorded after the robot
+    # moved on is still an incident).
+    conditions_trigger: ClassVar[bool] = False
     context: MeasurementContext
 
     def __init__(self, context: MeasurementContext, params: ParamsT) -> None:
@@ -84,6 +89,9 @@ class Measurement(Plugin[ParamsT]):
         ``None`` means "now" and "the configured group_key".
         """
         return self.collect(), None, None
+
+    def on_poll(self, conditions_met: bool | None) -> None:
+        """One polling period of a ``conditions_trigger`` measurement, on the main thread."""
 
     def record_bytes_estimate(self) -> int | None:
         """The usual size of a record in bytes, for a plugin whose records are large (images in base64).
