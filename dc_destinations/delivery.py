@@ -37,10 +37,11 @@ from dc_destinations.buffer import (
 )
 from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
 from dc_destinations.health import FAILING
+from dc_destinations.links import LinuxNetwork, Network, link_buckets, warn_missing_interfaces
 from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.sender import Closing, Route, Sender
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params, link_rates
 from dc_destinations.storage import (
     SYNC_PROMISE,
     BufferLock,
@@ -71,6 +72,7 @@ class DeliveryPipeline:
         wait: Callable[[float], bool] | None = None,
         uniform: Callable[[float, float], float] | None = None,
         supervisor: Supervisor | None = None,
+        network: Network | None = None,
     ) -> None:
         self.settings = settings
         self.logger = logger
@@ -80,11 +82,25 @@ class DeliveryPipeline:
         self._clock = clock
         self._wait = wait
         self._uniform = uniform
-        self._routes: dict[str, Route] = {}
-        for name, (destination, params) in destinations.items():
-            check_destination_params(params, f"destination_server.{name}")
-            self._routes[name] = Route.of(name, destination, params, logger)
         self._closing = Closing()
+        self._routes: dict[str, Route] = {}
+        # The network only_when reads: the kernel's unless a test gives its own (dc_destinations.links).
+        network = network if network is not None else LinuxNetwork()
+        links = link_buckets(link_rates(settings, "destination_server.flb"), settings.burst_s)
+        for name, (destination, params) in destinations.items():
+            check_destination_params(params, f"destination_server.{name}", settings.links)
+            route = Route.of(
+                name,
+                destination,
+                params,
+                logger,
+                network=network,
+                links=links,
+                burst_s=settings.burst_s,
+                stop=self._closing.event,
+            )
+            warn_missing_interfaces(route.rules, name, logger)
+            self._routes[name] = route
         self._buffer: SqliteBuffer | None = None
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
@@ -287,6 +303,16 @@ class DeliveryPipeline:
             return False
         return self._committer.submit_records(received)
 
+    def conditions(self) -> list[str]:
+        """The DC conditions some destination's only_when reads (the server subscribes to them)."""
+        return sorted({name for route in self._routes.values() for name in route.rules.params.conditions})
+
+    def set_condition(self, name: str, value: bool) -> None:
+        """A condition's state heard on dc/condition/<name>: the senders it holds look again at once."""
+        for route in self._routes.values():
+            if route.rules.condition_changed(name, value):
+                route.wakeup.set()
+
     def hop_keys(self) -> list[HopKey]:
         """The hop keys kept in the buffer, oldest first (empty before :meth:`start`)."""
         if self._buffer is None or self._buffer.closed:
@@ -417,6 +443,7 @@ class DeliveryPipeline:
             values.update(buffered=None, buffered_bytes=None, dead_letters=None, oldest_pending_age_s=None)
             values["plugin"] = _plugin_counters(route)
             values["health"] = route.health.snapshot()
+            values["held"] = route.held
             if self._buffer is not None and not self._buffer.closed:
                 try:
                     stats = self._buffer.stats(name)

@@ -161,6 +161,12 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
             samples,
         )
     text.family(
+        "dc_delivery_held",
+        "gauge",
+        "1 while the destination's only_when holds its records in the buffer (the reason is in the JSON metrics)",
+        [(prometheus_labels(destination=d), int(bool(v.get("held")))) for d, v in sorted(destinations.items())],
+    )
+    text.family(
         "dc_delivery_buffer_quarantined_total",
         "counter",
         "Corrupt buffer files moved aside",
