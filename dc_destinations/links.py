@@ -34,6 +34,9 @@ from dc_core.params import param
 HOLD_POLL_S = 0.25
 """How often a held sender looks at its rules again (a condition change wakes it at once)."""
 
+LOOK_S = 0.1
+"""How long an answer of the rules is reused before the kernel's tables are read again."""
+
 _WINDOW = re.compile(r"^\s*(\d{1,2}):(\d{2})\s*-\s*(\d{1,2}):(\d{2})\s*$")
 _RTF_UP = 0x1
 _IFF_UP = 0x1
@@ -144,6 +147,7 @@ class SendRules:
         network: Network,
         *,
         now: Callable[[], dt.datetime] | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.params = params
         self._network = network
@@ -153,6 +157,10 @@ class SendRules:
         )
         # The conditions' last states heard (dc/condition/<name>); unheard: the rule does not hold.
         self._conditions: dict[str, bool] = {}
+        # The last answer and when: a sender at full speed reads the kernel's tables once per
+        # LOOK_S, not once per batch (340 µs a look: 0.7 µs per record of a 500-record batch).
+        self._clock = clock
+        self._answer: tuple[float, str] | None = None
 
     @property
     def active(self) -> bool:
@@ -167,9 +175,20 @@ class SendRules:
         if name not in self.params.conditions:
             return False
         self._conditions[name] = value
+        self._answer = None
         return True
 
     def held(self) -> str:
+        """Why the destination may not send now ("" when it may), looked at again after LOOK_S."""
+        now = self._clock()
+        answer = self._answer
+        if answer is not None and now - answer[0] < LOOK_S:
+            return answer[1]
+        reason = self._look()
+        self._answer = (now, reason)
+        return reason
+
+    def _look(self) -> str:
         p = self.params
         if p.empty:
             return ""

@@ -470,7 +470,7 @@ class Sender:
             self.bound_dead_letters()
         if not records:
             return False
-        if route.pacer.active and not route.pacer.take(_bytes_of(records)):
+        if route.pacer.active and not route.pacer.take(sum(row.size for row in sent_rows)):
             raise _Stopping
         retry, reject, problem, self._retry_after = route.gate.send(lambda: _outcome_of(route.destination, records))
         if retry or reject:
@@ -529,15 +529,6 @@ class Sender:
 
 class _Stopping(Exception):
     """The pipeline stopped while a send waited for its cap: its records stay in the queue."""
-
-
-def _bytes_of(records: list[OutgoingRecord]) -> int:
-    """What a batch weighs against a cap: its records' JSON, as UTF-8."""
-    total = 0
-    for record in records:
-        text = record.to_json()
-        total += len(text) if text.isascii() else len(text.encode())
-    return total
 
 
 @dataclass

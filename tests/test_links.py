@@ -9,6 +9,7 @@ a TCP proxy between the HTTP destination and a real HTTP receiver (tests/throttl
 from __future__ import annotations
 
 import datetime as dt
+import itertools
 import logging
 import threading
 import time
@@ -18,6 +19,7 @@ from typing import Any
 
 import pytest
 
+from dc_bringup.cli import _print_delivery
 from dc_core.destination import Destination, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import parse_params
@@ -50,7 +52,8 @@ class FakeNetwork:
 
 def rules(network: FakeNetwork, now: dt.datetime | None = None, **only_when: Any) -> SendRules:
     params = parse_params(OnlyWhenParams, only_when, "destination_server.d.only_when")
-    return SendRules(params, network, now=(lambda: now) if now else None)
+    # A clock a second further at each look: every held() reads the network again.
+    return SendRules(params, network, now=(lambda: now) if now else None, clock=itertools.count().__next__)
 
 
 def test_only_when_says_why_it_holds() -> None:
@@ -138,7 +141,9 @@ def test_bad_rules_and_caps_are_configure_errors(section: dict[str, Any], path: 
     assert raised.value.path == path and says in raised.value.message
 
 
-def test_unknown_interface_is_a_warning_and_holds(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_unknown_interface_is_a_warning_and_holds(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
+) -> None:
     params = DestinationDeliveryParams(only_when=OnlyWhenParams(interfaces_up=["wlan7"]))
     sink = Collecting()
     with caplog.at_level(logging.WARNING):
@@ -149,8 +154,13 @@ def test_unknown_interface_is_a_warning_and_holds(tmp_path: Path, caplog: pytest
         pipeline.submit("d", record(1))
         poll(lambda: pipeline.metrics()["d"]["held"] == "held: interface wlan7 does not exist", 3, "held")
         assert sink.received == []
+        assert 'dc_delivery_held{destination="d"} 1' in pipeline.prometheus()
+        _print_delivery(pipeline.status_document(), wide=False)  # what `dc status` prints of it
     finally:
         pipeline.stop(0.2)
+    shown = capsys.readouterr().out
+    assert "destination d held: interface wlan7 does not exist" in shown
+    assert "held" in shown.splitlines()[2]  # the health column of its row
 
 
 def test_token_bucket_keeps_its_rate_and_serves_records_before_files() -> None:
@@ -161,15 +171,15 @@ def test_token_bucket_keeps_its_rate_and_serves_records_before_files() -> None:
     assert bucket.take(4_000, stop)  # the burst, at once
     assert time.monotonic() - start < 0.05
 
-    # Files ask first; records asking while they wait still go first.
+    # Files ask first for less; records asking while they wait still go first.
     def upload() -> None:
-        if bucket.take(4_000, stop, kind=FILES):
+        if bucket.take(2_000, stop, kind=FILES):
             order.append("files")
 
     files = threading.Thread(target=upload)
     files.start()
     time.sleep(0.02)  # the files' waiter is queued (ordering only: no result depends on its length)
-    assert bucket.take(2_000, stop, kind=RECORDS)
+    assert bucket.take(4_000, stop, kind=RECORDS)
     order.append("records")
     files.join(2)
     assert order == ["records", "files"]
@@ -300,6 +310,7 @@ def test_records_pass_the_files_on_a_shared_link(tmp_path: Path, receiver: Recei
             pipeline.submit("files", record(n))
         poll(lambda: files.sent > 0, 2, "the files under way")
         start = time.monotonic()
+        files_start = start
         for n in range(20):  # meanwhile a record each 0.1 s
             sent[n] = time.monotonic()
             pipeline.submit("web", record(n, pad=400))
@@ -313,6 +324,7 @@ def test_records_pass_the_files_on_a_shared_link(tmp_path: Path, receiver: Recei
     latencies = sorted(r.time - sent[rec["n"]] for r in receiver.accepted() for rec in _records_of(r))
     assert latencies[-1] < 1.0, latencies[-5:]
     assert files.sent == 2 * 64 * 1024
+    assert end - files_start >= (files.sent - 0.25 * rate) / rate * 0.9  # the files went at the link's pace
     records_bytes = link.sent_between(start, end + 1)
     assert files.sent + records_bytes >= 0.9 * rate * (end - start) or end - start < 4.0
 

@@ -61,6 +61,11 @@ class ThrottleProxy:
         if self._server is not None:
             self._server.close()
         await self._drop_all()
+        # The connections' tasks end here, not with a warning when the loop is collected.
+        others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for task in others:
+            task.cancel()
+        await asyncio.gather(*others, return_exceptions=True)
 
     async def _drop_all(self) -> None:
         for writer in list(self._writers):
