@@ -146,6 +146,7 @@ STATUS_COLUMNS = [
     ("retried", "retried"),
     ("failed", "failed"),
     ("dropped", "dropped"),
+    ("evicted", "evicted"),  # by flb.disk_budget_mb
     ("malformed", "malformed"),
     ("dead_lettered", "dead-lettered"),
     ("dead_letters", "dead now"),

@@ -290,6 +290,12 @@ class Buffer(Protocol):
         """Move rows to the dead letters with their error text; returns how many moved. ``tried_now``: rows
         whose failed attempt the queue has not counted yet (refused at once), counted in the dead letter's."""
 
+    def queued_bytes(self) -> dict[str, int]:
+        """Bytes of records waiting per destination."""
+
+    def evict_oldest(self, destination: str, nbytes: int) -> tuple[int, int]:
+        """Delete a queue's oldest records, at least ``nbytes``: (records, bytes) deleted."""
+
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of a queue beyond ``max_bytes``; returns how many."""
 
@@ -967,6 +973,40 @@ class SqliteBuffer:
                 )
                 moved += 1
         return moved
+
+    def queued_bytes(self) -> dict[str, int]:
+        """Bytes of records waiting in each destination's queue, from the queues' own totals (no scan)."""
+        with self._locked() as conn:
+            return {str(name): int(size) for name, size in conn.execute("SELECT name, bytes FROM queues")}
+
+    def evict_oldest(self, destination: str, nbytes: int) -> tuple[int, int]:
+        """Delete the oldest records of ``destination``'s queue, at least ``nbytes`` of them (all there
+        are, if fewer): (records, bytes) deleted. They are not counted as sent or dropped here.
+
+        Rows a sender has read are left alone: they may be in a send() now, and are counted sent or
+        dead-lettered when it returns; the oldest of the others go."""
+        with self._transaction() as conn:
+            qid = self._qid(conn, destination)
+            freed = count = 0
+            last_id = None
+            first = after = self._max_read.get(destination, 0)
+            while freed < nbytes:
+                head = conn.execute(
+                    f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)
+                ).fetchall()
+                if not head:
+                    break
+                for row_id, size in head:
+                    freed += int(size)
+                    count += 1
+                    last_id = row_id
+                    if freed >= nbytes:
+                        break
+                after = head[-1][0]
+            if last_id is not None:
+                conn.execute(f"DELETE FROM q_{qid} WHERE id > ? AND id <= ?", (first, last_id))
+                conn.execute("UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?", (count, freed, qid))
+        return count, freed
 
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of ``destination`` until theirs fit in ``max_bytes``.

@@ -36,6 +36,7 @@ from dc_destinations.buffer import (
     SqliteBuffer,
 )
 from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
+from dc_destinations.disk_budget import eviction_plan
 from dc_destinations.health import FAILING
 from dc_destinations.links import LinuxNetwork, Network, link_buckets, warn_missing_interfaces
 from dc_destinations.metrics import prometheus_text
@@ -425,11 +426,32 @@ class DeliveryPipeline:
         if now - self._last_log_tick < 0.5:
             return
         self._last_log_tick = now
+        self._keep_budget()
         if self._committer is not None:
             self._committer.intake_drop_log.tick()
             self._committer.commit_log.tick()
         for route in self._routes.values():
             route.tick_logs()
+
+    def _keep_budget(self) -> None:
+        """On the writer thread, twice a second: evict what flb.disk_budget_mb does not hold
+        (dc_destinations.disk_budget), counted in ``evicted`` and logged once per burst."""
+        budget = int(self.settings.disk_budget_mb * 1024 * 1024)
+        buffer = self._buffer
+        if not budget or buffer is None or buffer.closed:
+            return
+        try:
+            queued = {name: size for name, size in buffer.queued_bytes().items() if name in self._routes}
+            retention = {name: route.params.retention_priority for name, route in self._routes.items()}
+            for name, nbytes in eviction_plan(queued, retention, budget):
+                records, freed = buffer.evict_oldest(name, nbytes)
+                route = self._routes[name]
+                route.metrics.add("evicted", records)
+                route.evict_log.event(records, f"{freed} bytes; see `dc status`")
+        except (BufferClosed, BufferCorrupted):
+            return
+        except sqlite3.Error as exc:  # a full disk: tried again at the next tick, said by the commit failing
+            self.logger.warning(f"delivery buffer: keeping disk_budget_mb failed: {exc}")
 
     # -- observability ------------------------------------------------------------------------------
 

@@ -125,6 +125,7 @@ class Route:
     dead_letter_log: BurstLog
     dead_letter_drop_log: BurstLog
     malformed_log: BurstLog
+    evict_log: BurstLog
     health: DestinationHealth
     gate: Gate
     logger: Logger
@@ -179,6 +180,11 @@ class Route:
             malformed_log=BurstLog(
                 logger.error, f"destination {name}: records not stored, they are not valid UTF-8 JSON"
             ),
+            evict_log=BurstLog(
+                logger.warning,
+                f"destination {name}: oldest records evicted unsent to keep the buffer within flb.disk_budget_mb "
+                f"(retention_priority {params.retention_priority})",
+            ),
             health=DestinationHealth(name, params.unhealthy_after or DEFAULT_UNHEALTHY_AFTER_S, logger),
             gate=Gate(logger),
             logger=logger,
@@ -192,6 +198,7 @@ class Route:
         self.dead_letter_log.tick()
         self.dead_letter_drop_log.tick()
         self.malformed_log.tick()
+        self.evict_log.tick()
 
 
 @dataclass

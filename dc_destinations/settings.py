@@ -78,6 +78,12 @@ class DeliveryParams(MetricsHttpParams):
         doc='Shared caps: link name -> bytes per second ("125k" for 1 Mbit/s LTE), for the destinations whose '
         "link names it",
     )
+    disk_budget_mb: float = param(
+        0.0,
+        minimum=0.0,
+        doc="Most MB of records the buffer holds for all destinations together; over it the oldest records of the "
+        "lowest retention_priority are evicted and counted (0 = no budget; at least 1)",
+    )
     burst_s: float = param(
         1.0, minimum=0.01, doc="Seconds of its rate a cap may send at once after a quiet spell (the burst)"
     )
@@ -123,6 +129,9 @@ class DestinationDeliveryParams:
     max_bytes_per_s: str = param(
         "", doc='Most bytes per second this destination sends ("125k", "1M"; "" = no cap of its own)'
     )
+    retention_priority: int = param(
+        0, doc="Under flb.disk_budget_mb, the records of a lower retention_priority are evicted first"
+    )
     link: str = param("", doc="Name of the link (in flb.links) whose cap this destination shares")
     priority: int = param(
         0, doc="Order among the destinations waiting for a shared link: higher first (records before files always)"
@@ -153,7 +162,14 @@ def parse_rate(text: str, path: str) -> float | None:
 
 
 def link_rates(settings: DeliveryParams, path: str) -> dict[str, float]:
-    """``flb.links`` as bytes per second; ``path`` is the ``flb`` section's YAML path."""
+    """``flb.links`` as bytes per second; ``path`` is the ``flb`` section's YAML path. Checks
+    ``disk_budget_mb`` too (the other check of the section that needs more than one key's range)."""
+    if 0 < settings.disk_budget_mb < 1:
+        raise ConfigError(
+            f"{path}.disk_budget_mb",
+            f"a budget of {settings.disk_budget_mb:g} MB is smaller than one batch of records may be: "
+            "give at least 1, or 0 for no budget",
+        )
     rates = {}
     for name, text in settings.links.items():
         rate = parse_rate(str(text), f"{path}.links.{name}")

@@ -26,6 +26,7 @@ from dc_core.params import parse_params
 from dc_core.testing import FakeContext
 from dc_destinations.config import parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.disk_budget import eviction_plan
 from dc_destinations.http import Http, HttpParams
 from dc_destinations.links import FILES, RECORDS, LinuxNetwork, OnlyWhenParams, SendRules, TokenBucket
 from dc_destinations.record_ids import new_record_id
@@ -394,3 +395,63 @@ def test_a_condition_releases_held_records_at_once(tmp_path: Path) -> None:
         assert time.monotonic() - changed < 0.2  # woken by the change, not by the next look
     finally:
         pipeline.stop(0.2)
+
+
+# -- the disk budget ------------------------------------------------------------------------------
+
+
+def test_eviction_plan_gives_up_the_lowest_retention_priority_first() -> None:
+    queued = {"images": 300, "health": 500, "maps": 100}
+    retention = {"images": 0, "maps": 0, "health": 5}
+    assert eviction_plan(queued, retention, 900) == []
+    assert eviction_plan(queued, retention, 700) == [("images", 200)]
+    assert eviction_plan(queued, retention, 300) == [("images", 300), ("maps", 100), ("health", 200)]
+
+
+def test_disk_budget_evicts_by_retention_and_counts_it(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Two held destinations fill a 1 MB budget 1.2 times over: the low retention priority gives up
+    its oldest records, the high keeps all; every record is delivered, buffered or evicted."""
+    held = OnlyWhenParams(conditions=["docked"])
+    images, health = Collecting("images"), Collecting("health")
+    pipeline = DeliveryPipeline(
+        fast(tmp_path, disk_budget_mb=1.0),
+        {
+            "images": (images, DestinationDeliveryParams(only_when=held, retention_priority=0)),
+            "health": (health, DestinationDeliveryParams(only_when=held, retention_priority=5)),
+        },
+        LOG,
+    )
+    pipeline.start()
+    try:
+        with caplog.at_level(logging.WARNING):
+            for n in range(60):  # 60 records of ~10 kB each
+                pipeline.submit("images", record(n, pad=10_000))
+                pipeline.submit("health", record(n, pad=10_000))
+            assert pipeline.flush_intake(5)
+            poll(lambda: within(pipeline.metrics(), 1024 * 1024), 3, "the buffer within its budget")
+        metrics = pipeline.metrics()
+        assert metrics["health"]["evicted"] == 0 and metrics["health"]["buffered"] == 60
+        assert metrics["images"]["evicted"] > 0
+        assert "oldest records evicted unsent to keep the buffer within flb.disk_budget_mb" in caplog.text
+        pipeline.set_condition("docked", True)
+        poll(lambda: len(images.received) + len(health.received) == 120 - metrics["images"]["evicted"], 3, "sent")
+        # The oldest went: what arrived of images is its newest records, in order.
+        kept = [r.data["n"] for r in images.received]
+        assert kept == list(range(60 - len(kept), 60))
+        after = pipeline.metrics()
+    finally:
+        pipeline.stop(0.2)
+    for name in ("images", "health"):
+        m = after[name]
+        assert m["received"] == m["sent"] + m["evicted"] + m["dropped"] + m["buffered"] == 60
+    assert 'dc_delivery_evicted_total{destination="images"}' in pipeline.prometheus()
+
+
+def within(metrics: dict[str, Any], budget: int) -> bool:
+    return sum(m["buffered_bytes"] or 0 for m in metrics.values()) <= budget
+
+
+def test_a_budget_below_one_batch_is_refused() -> None:
+    with pytest.raises(ConfigError) as raised:
+        parse_destination_server(server_section({"disk_budget_mb": 0.5}))
+    assert raised.value.path == "destination_server.flb.disk_budget_mb" and "smaller than" in raised.value.message
