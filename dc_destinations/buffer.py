@@ -863,22 +863,7 @@ class SqliteBuffer:
         need = used + incoming - max_bytes
         dropped_oldest = 0
         if need > 0:
-            freed = 0
-            last_id = None
-            after = -1
-            while freed < need:
-                head = conn.execute(
-                    f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)
-                ).fetchall()
-                if not head:
-                    break
-                for row_id, size in head:
-                    freed += size
-                    dropped_oldest += 1
-                    last_id = row_id
-                    if freed >= need:
-                        break
-                after = head[-1][0]
+            dropped_oldest, freed, last_id = _walk_head(conn, qid, need, after=-1)
             if last_id is not None:
                 conn.execute(f"DELETE FROM q_{qid} WHERE id <= ?", (last_id,))
                 conn.execute(
@@ -987,22 +972,8 @@ class SqliteBuffer:
         dead-lettered when it returns; the oldest of the others go."""
         with self._transaction() as conn:
             qid = self._qid(conn, destination)
-            freed = count = 0
-            last_id = None
-            first = after = self._max_read.get(destination, 0)
-            while freed < nbytes:
-                head = conn.execute(
-                    f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)
-                ).fetchall()
-                if not head:
-                    break
-                for row_id, size in head:
-                    freed += int(size)
-                    count += 1
-                    last_id = row_id
-                    if freed >= nbytes:
-                        break
-                after = head[-1][0]
+            first = self._max_read.get(destination, 0)
+            count, freed, last_id = _walk_head(conn, qid, nbytes, after=first)
             if last_id is not None:
                 conn.execute(f"DELETE FROM q_{qid} WHERE id > ? AND id <= ?", (first, last_id))
                 conn.execute("UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?", (count, freed, qid))
@@ -1124,6 +1095,25 @@ def _plain_transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]
 
 
 _NO_ROWID = -(2**63) - 1  # progress of a table not begun: every rowid is above it
+
+
+def _walk_head(conn: sqlite3.Connection, qid: int, need: int, *, after: int) -> tuple[int, int, int | None]:
+    """The oldest rows of queue ``qid`` after id ``after`` whose sizes reach ``need`` (all of them if
+    fewer): (rows, bytes, last row id), read 512 at a time so that memory does not grow with the queue."""
+    count = freed = 0
+    last_id = None
+    while freed < need:
+        head = conn.execute(f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)).fetchall()
+        if not head:
+            break
+        for row_id, size in head:
+            freed += int(size)
+            count += 1
+            last_id = row_id
+            if freed >= need:
+                break
+        after = head[-1][0]
+    return count, freed, last_id
 
 
 class SalvageStopped(DeliveryBufferError):
