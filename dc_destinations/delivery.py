@@ -559,6 +559,9 @@ class DeliveryPipeline:
         """What ``/api/v1/health`` serves: ``status`` ok, degraded (a destination failing) or error
         (see :meth:`healthy`), and each destination's state."""
         destinations = self.destination_health()
+        for name, route in self._routes.items():
+            if route.held:  # not a fault: what its only_when asks, said so that nobody looks for one
+                destinations[name] = {**destinations[name], "held": route.held}
         if not self.healthy():
             status = "error"
         elif any(state["state"] == FAILING for state in destinations.values()):
