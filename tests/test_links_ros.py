@@ -14,6 +14,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from dc_core.diagnostics import OK
 from dc_core.qos import CONDITION_QOS
 from dc_destinations.server import DestinationServer
 from dc_interfaces.msg import Condition, StringStamped
@@ -51,6 +52,9 @@ def test_a_condition_on_its_topic_holds_and_releases_a_destination(tmp_path: Pat
             assert pipeline is not None
             assert running.spin_until(lambda: pipeline.metrics()["disk"]["buffered"] == 1)
             assert pipeline.metrics()["disk"]["held"] == "held: condition docked not heard yet"
+            server._destination_metrics = pipeline.metrics()  # what publish_diagnostics' worker hands over
+            (status,) = [d for d in server.diagnostic_statuses() if d.name.endswith(": disk")]
+            assert (status.level, status.message) == (OK, "held: condition docked not heard yet")
             assert running.lines() == []
             docked.publish(Condition(data=True))
             heard = time.monotonic()
