@@ -146,6 +146,7 @@ STATUS_COLUMNS = [
     ("retried", "retried"),
     ("failed", "failed"),
     ("dropped", "dropped"),
+    ("evicted", "evicted"),  # by flb.disk_budget_mb
     ("malformed", "malformed"),
     ("dead_lettered", "dead-lettered"),
     ("dead_letters", "dead now"),
@@ -282,6 +283,8 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
             how_long = f" for {_cell(float(lasted))} s" if isinstance(lasted, int | float) else ""
             fix = f" — {health['fix']}" if health.get("fix") else ""
             print(f"destination {name} {str(health['state']).upper()}{how_long}: {health.get('reason')}{fix}")
+        elif isinstance(values, dict) and values.get("held"):
+            print(f"destination {name} {values['held']} (only_when; docs/constrained_links.md)")
     for name, values in sorted(destinations.items()):
         own = values.get("plugin") if isinstance(values, dict) else None
         if own:
@@ -342,6 +345,8 @@ def _with_ages(values: dict[str, Any], now: float) -> dict[str, Any]:
     row = dict(values)
     health = row.get("health")
     row["health_state"] = health.get("state") if isinstance(health, dict) else None
+    if row["health_state"] == "ok" and row.get("held"):
+        row["health_state"] = "held"  # by its only_when: the reason is printed under the table
     delivered, failed = row.get("last_delivery"), row.get("last_error_time")
     if isinstance(delivered, int | float):
         row["last_delivery_age_s"] = max(now - delivered, 0.0)

@@ -249,6 +249,14 @@ class Destination(Plugin[ParamsT]):
     def on_cleanup(self) -> None:
         self.close_kept()
 
+    def pace(self, nbytes: int) -> bool:
+        """Wait until ``nbytes`` more may go within this destination's caps (``max_bytes_per_s``, its
+        link's), after the records waiting for them; False when the server stops meanwhile (the
+        send should then end, its records retried). Called by a plugin before each piece of what it
+        sends besides the records themselves (MinIO: each file or part). Returns at once uncapped."""
+        pace: Callable[[int], bool] | None = self.__dict__.get("_dc_pace")
+        return pace is None or pace(nbytes)
+
     @property
     def stopping(self) -> threading.Event:
         """Set when the server stops delivery while ``send`` still runs past the grace; cleared at the start.

@@ -27,6 +27,7 @@ COUNTERS = (
     "dead_letters_dropped",
     "salvaged",
     "lost_to_damage",
+    "evicted",
 )
 
 
@@ -42,6 +43,7 @@ class _Counts:
     dead_letters_dropped: int = 0
     salvaged: int = 0
     lost_to_damage: int = 0
+    evicted: int = 0
 
 
 class DestinationMetrics:
@@ -98,6 +100,7 @@ DELIVERY_COUNTERS = (
     ("dead_letters_dropped", "counter", "Oldest dead letters deleted by dead_letter_limit_size"),
     ("salvaged", "counter", "Records read back from a damaged buffer file into the new buffer"),
     ("lost_to_damage", "counter", "Records of a damaged buffer file that could not be read"),
+    ("evicted", "counter", "Records deleted from the buffer unsent to keep it within flb.disk_budget_mb"),
 )
 # (metric name, key in DeliveryPipeline.metrics(), help text)
 _QUEUE_GAUGES = (
@@ -160,6 +163,12 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
             f"1 while the destination is {state} (dc_destinations.health), else 0",
             samples,
         )
+    text.family(
+        "dc_delivery_held",
+        "gauge",
+        "1 while the destination's only_when holds its records in the buffer (the reason is in the JSON metrics)",
+        [(prometheus_labels(destination=d), int(bool(v.get("held")))) for d, v in sorted(destinations.items())],
+    )
     text.family(
         "dc_delivery_buffer_quarantined_total",
         "counter",

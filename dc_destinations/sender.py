@@ -55,8 +55,9 @@ from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.backoff import Backoff
 from dc_destinations.buffer import Buffer, BufferClosed, BufferCorrupted, BufferedRow, QueueLimit
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S, DestinationHealth, attention_needed
+from dc_destinations.links import FILES, HOLD_POLL_S, Network, Pacer, SendRules, TokenBucket
 from dc_destinations.metrics import DestinationMetrics
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_size
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_rate, parse_size
 
 _T = TypeVar("_T")
 
@@ -124,15 +125,41 @@ class Route:
     dead_letter_log: BurstLog
     dead_letter_drop_log: BurstLog
     malformed_log: BurstLog
+    evict_log: BurstLog
     health: DestinationHealth
     gate: Gate
+    logger: Logger
+    rules: SendRules
+    pacer: Pacer
     wakeup: threading.Event = field(default_factory=threading.Event)
+    # Why the destination may not send now (its only_when, dc_destinations.links); "" while it may.
+    held: str = ""
     # Records committed since the sender last found its queue empty: it wakes at batch_size.
     pending_hint: int = 0
     thread: threading.Thread | None = None
 
     @classmethod
-    def of(cls, name: str, destination: Destination[Any], params: DestinationDeliveryParams, logger: Logger) -> Route:
+    def of(
+        cls,
+        name: str,
+        destination: Destination[Any],
+        params: DestinationDeliveryParams,
+        logger: Logger,
+        *,
+        network: Network,
+        links: dict[str, TokenBucket],
+        burst_s: float,
+        stop: threading.Event,
+    ) -> Route:
+        buckets = []
+        rate = parse_rate(params.max_bytes_per_s, f"destination_server.{name}.max_bytes_per_s")
+        if rate is not None:
+            buckets.append(TokenBucket(rate, max(rate * burst_s, 1.0)))
+        if params.link:
+            buckets.append(links[params.link])
+        pacer = Pacer(buckets, params.priority, stop)
+        # Files a plugin sends itself (MinIO's) go through the same caps, after the records waiting.
+        destination.__dict__["_dc_pace"] = lambda n: pacer.take(n, FILES)
         return cls(
             name=name,
             destination=destination,
@@ -153,8 +180,16 @@ class Route:
             malformed_log=BurstLog(
                 logger.error, f"destination {name}: records not stored, they are not valid UTF-8 JSON"
             ),
+            evict_log=BurstLog(
+                logger.warning,
+                f"destination {name}: oldest records evicted unsent to keep the buffer within flb.disk_budget_mb "
+                f"(retention_priority {params.retention_priority})",
+            ),
             health=DestinationHealth(name, params.unhealthy_after or DEFAULT_UNHEALTHY_AFTER_S, logger),
             gate=Gate(logger),
+            logger=logger,
+            rules=SendRules(params.only_when, network),
+            pacer=pacer,
         )
 
     def tick_logs(self) -> None:
@@ -163,6 +198,7 @@ class Route:
         self.dead_letter_log.tick()
         self.dead_letter_drop_log.tick()
         self.malformed_log.tick()
+        self.evict_log.tick()
 
 
 @dataclass
@@ -231,6 +267,12 @@ class Sender:
             if closing and self._clock() >= self.closing.deadline:
                 return
             try:
+                if route.rules.active and self._held():
+                    ahead = None
+                    if closing:
+                        return
+                    self._wait_held()
+                    continue
                 batch = self._still_next(ahead, ahead_after) if ahead is not None else None
                 ahead = None
                 if batch is None:
@@ -262,7 +304,7 @@ class Sender:
                 ahead = reader.submit(self._read_after, ahead_after)
             try:
                 must_retry = self.deliver(rows, batch, defer_delete=True)
-            except BufferClosed:
+            except (BufferClosed, _Stopping):
                 return
             except BufferCorrupted:
                 ahead = None
@@ -355,6 +397,28 @@ class Sender:
             return None
         return batch
 
+    def _held(self) -> bool:
+        """Whether the destination's only_when holds its records now; a change is logged once, and
+        the confirmed rows are deleted before holding (raises what that raises)."""
+        route = self.route
+        reason = route.rules.held()
+        if reason != route.held:
+            if reason:
+                route.logger.info(f"destination {route.name} {reason}; its records wait in the buffer")
+            else:
+                was = route.held.removeprefix("held: ")
+                route.logger.info(f"destination {route.name} sending again (was held: {was})")
+            route.held = reason
+        if reason:
+            self._settle()
+        return bool(reason)
+
+    def _wait_held(self) -> None:
+        """Until the rules are looked at again: a condition's change, or HOLD_POLL_S for the others."""
+        self.route.wakeup.wait(HOLD_POLL_S)
+        self.route.wakeup.clear()
+        self.route.tick_logs()
+
     def _idle(self) -> None:
         """Wait for batch_size records to be committed, or flush seconds."""
         self.route.pending_hint = 0
@@ -413,6 +477,8 @@ class Sender:
             self.bound_dead_letters()
         if not records:
             return False
+        if route.pacer.active and not route.pacer.take(sum(row.size for row in sent_rows)):
+            raise _Stopping
         retry, waiting, reject, problem, self._retry_after = route.gate.send(
             lambda: _outcome_of(route.destination, records)
         )
@@ -471,6 +537,10 @@ class Sender:
         if deleted:
             route.metrics.add("dead_letters_dropped", deleted)
             route.dead_letter_drop_log.event(deleted, "the newest are kept; see `dc buffer list`")
+
+
+class _Stopping(Exception):
+    """The pipeline stopped while a send waited for its cap: its records stay in the queue."""
 
 
 @dataclass

@@ -41,11 +41,17 @@ from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
 from dc_core.lifecycle import ManagedServer, PartialTeardown, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
-from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
+from dc_core.qos import CONDITION_QOS, RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.rmw_features import no_sequence_numbers_line, publication_sequence_numbers
 from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
-from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, published_topics, resolve_topic
+from dc_core.topics import (
+    GROUP_TOPIC_PREFIX,
+    MEASUREMENT_TOPIC_PREFIX,
+    condition_topic,
+    published_topics,
+    resolve_topic,
+)
 from dc_core.worker import Outcome
 from dc_destinations.config import NODE_NAME, DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
@@ -55,6 +61,7 @@ from dc_destinations.hop import HopIntake, HopKey, hop_key, keyed_hop_key, sourc
 from dc_destinations.metrics import hop_prometheus_text
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
+from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 
 PREVIEW_CHARS = 200
@@ -144,6 +151,7 @@ class DestinationServer(ManagedServer):
         # is made anew, so that the DC servers' announcements (transient local) come again.
         self._ended_refused = False
         self._announcers_named: set[bytes] = set()  # foreign publishers of ENDED_TOPIC logged already
+        self._condition_subscriptions: list[Any] = []
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
@@ -298,6 +306,12 @@ class DestinationServer(ManagedServer):
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
         )
+        pipeline = self.pipeline
+        for name in pipeline.conditions():  # only_when's conditions, as the measurement server publishes them
+            on_state = functools.partial(lambda name, msg: pipeline.set_condition(name, bool(msg.data)), name)
+            self._condition_subscriptions.append(
+                self.create_subscription(ConditionMsg, condition_topic(name), on_state, CONDITION_QOS)
+            )
         acks.send()  # a hello: the publishers send again what this server has not acknowledged
         if not self._rmw_checked:
             self._rmw_checked = True
@@ -371,6 +385,9 @@ class DestinationServer(ManagedServer):
             self._ended_subscription = None
         for subscription in subscriptions:
             self.intake.unsubscribe(subscription)
+        for subscription in self._condition_subscriptions:
+            self.destroy_subscription(subscription)
+        self._condition_subscriptions.clear()
         if self._hop_log_timer is not None:
             self.destroy_timer(self._hop_log_timer)
             self._hop_log_timer = None
@@ -678,6 +695,8 @@ class DestinationServer(ManagedServer):
                 level, message = ERROR, f"failing: {scrub(health['reason'], secrets)}"
             elif state == RETRYING:
                 level, message = WARN, f"retrying: {scrub(health['reason'], secrets)}"
+            elif values.get("held"):
+                level, message = OK, values["held"]  # as the configuration asks: no fault
             else:
                 level, message = OK, "delivering"
             statuses.append(
@@ -687,6 +706,7 @@ class DestinationServer(ManagedServer):
                     message,
                     {
                         "state": state,
+                        "held": values.get("held", ""),
                         "pending": values["buffered"],
                         "oldest_pending_s": values["oldest_pending_age_s"],
                         "records_per_s": rate,

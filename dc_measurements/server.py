@@ -8,8 +8,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
 from dc_core.diagnostics import OK, WARN
 from dc_core.diagnostics import status as diagnostic_status
 from dc_core.handoff import HandoffSender, destination_inputs
@@ -18,7 +16,7 @@ from dc_core.lifecycle import ManagedServer, PartialTeardown, ServerPluginContex
 from dc_core.measurement import BasePaths, Measurement
 from dc_core.paths import expand_env
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
-from dc_core.qos import record_qos
+from dc_core.qos import CONDITION_QOS, record_qos
 from dc_core.record_history import SizedRecordPublisher, history_metrics
 from dc_core.rostime import now_ns
 from dc_core.topics import condition_topic
@@ -36,7 +34,6 @@ INIT_MATCH_WAIT_S = 2.0
 # How long deactivate waits for collections running on the worker.
 WORKER_DRAIN_S = 5.0
 # Late subscribers (a dashboard, a test) get the current state of a condition at once.
-CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 @dataclass

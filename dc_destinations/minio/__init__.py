@@ -378,6 +378,7 @@ class MinIO(Destination[MinIOParams]):
         content_type = _CONTENT_TYPES.get(extension) or mimetypes.guess_type(path)[0] or "application/octet-stream"
         try:
             if size <= self._threshold:
+                self._paced(size, key)
                 (digest,) = part_digests(opened, None)
                 with _reopened(opened) as body:
                     self._client.put_object(
@@ -393,6 +394,11 @@ class MinIO(Destination[MinIOParams]):
         except (BotoCoreError, ClientError) as exc:
             self._fail(exc, f"upload {key}")
         return size
+
+    def _paced(self, nbytes: int, key: str) -> None:
+        """Within the destination's caps (max_bytes_per_s, link): a part waits for its bytes' turn."""
+        if not self.pace(nbytes):
+            raise RetryableError(f"{key} not uploaded: the destination is stopping")
 
     def _multipart(self, opened: OpenedFile, key: str, size: int, content_type: str, metadata: dict[str, str]) -> None:
         p = self.params
@@ -416,6 +422,7 @@ class MinIO(Destination[MinIOParams]):
                     self._counts["parts_reused"] += 1
                 else:
                     f.seek((number - 1) * part_size)
+                    self._paced(min(part_size, size - (number - 1) * part_size), key)
                     answer = self._client.upload_part(
                         Bucket=p.bucket,
                         Key=key,
