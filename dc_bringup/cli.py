@@ -662,7 +662,12 @@ def build_parser() -> argparse.ArgumentParser:
         "servers", help="run the local PostgreSQL, S3 (SeaweedFS) and InfluxDB for trying DC, until Ctrl-C"
     )
     p.add_argument("action", choices=["run"], help="run: start them, wait for Ctrl-C, stop them")
-    p.add_argument("names", nargs="*", metavar="server", help="postgres, s3, influxdb (default: all three)")
+    p.add_argument(
+        "names",
+        nargs="*",
+        metavar="server",
+        help="postgres, s3, influxdb (default: these three); nats: a 3-node JetStream cluster (docs/fleet.md)",
+    )
     p.add_argument("--state-dir", default="var/dc/servers", help="their data, logs and settings.yaml")
     p.set_defaults(func=cmd_servers)
 

@@ -23,6 +23,7 @@ from tests.nats_server import missing_reason
 if missing_reason() is not None:
     pytest.skip(str(missing_reason()), allow_module_level=True)
 
+from dc_bringup.local_servers.nats import NatsCluster
 from dc_core.destination import ConfigurationProblem, OutgoingRecord, RetryableError
 from dc_core.errors import ConfigError, PluginError
 from dc_core.params import parse_params
@@ -31,7 +32,7 @@ from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.jetstream import Nats, NatsParams
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
-from tests.nats_server import Cluster, NatsServer, read_stream, stream_leader
+from tests.nats_server import NatsServer, read_stream, stream_leader
 
 USER, PASSWORD = "robot", "n4ts-s3cret"
 MAX_PAYLOAD = 4096
@@ -160,7 +161,8 @@ def test_a_server_outage_loses_nothing_and_stores_nothing_twice(server: NatsServ
     finally:
         stop.set()
         producer.join()
-        server.start() if server.process is None else None
+        if not server.running():
+            server.start()
         pipeline.stop()
     assert metrics["dead_lettered"] == 0 and metrics["dropped"] == 0
     assert metrics["sent"] + metrics["dead_lettered"] + metrics["dropped"] == len(sent), "delivered + counted = sent"
@@ -262,7 +264,8 @@ def test_settings_refused_at_configure_with_their_yaml_path(settings: dict[str, 
 
 def test_a_three_node_cluster_keeps_every_record_once_when_the_leader_is_killed(tmp_path: Path) -> None:
     """R3 stream; the node leading it killed with -9 while records flow at ~500/s."""
-    cluster = Cluster(tmp_path / "cluster").start()
+    cluster = NatsCluster(tmp_path / "cluster")
+    cluster.start()
     try:
         dest = destination(cluster.urls, "FLEET", stream_replicas=3, username="", password="")
         pipeline = Pipeline(tmp_path / "buffer", dest)
@@ -276,13 +279,13 @@ def test_a_three_node_cluster_keeps_every_record_once_when_the_leader_is_killed(
                 if second == 10:
                     pipeline.wait(lambda m: m["sent"] >= 300)
                     killed = stream_leader(cluster.urls, "FLEET")
-                    cluster.by_name(killed).stop(kill=True)
+                    cluster.node(killed).stop(kill=True)
                 time.sleep(0.1)
             metrics = pipeline.wait(lambda m: m["sent"] == len(sent) and m["buffered"] == 0, timeout=60)
         finally:
             pipeline.stop()
         assert killed
-        alive = [s.url for s in cluster.servers if s.process is not None]
+        alive = [n.url for n in cluster.nodes if n.running()]
         ids = [m.msg_id for m in read_stream(alive, "FLEET")]
         assert metrics["dead_lettered"] == 0
         assert sorted(ids) == sorted(r.record_id for r in sent), "every record stored, none twice"
