@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,6 +40,20 @@ class StoredMessage:
     msg_id: str
 
 
+async def settled_stream_info(js: Any, stream: str, timeout: float = 30.0) -> Any:
+    """The stream's info once its cluster answers (a 503 while a restarted node catches up)."""
+    import nats.js.errors
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return await js.stream_info(stream)
+        except (nats.js.errors.ServiceUnavailableError, TimeoutError):
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.1)
+
+
 def read_stream(urls: list[str], stream: str, **auth: Any) -> list[StoredMessage]:
     """Every message the stream holds, in order (read with direct gets by sequence)."""
 
@@ -48,7 +63,7 @@ def read_stream(urls: list[str], stream: str, **auth: Any) -> list[StoredMessage
         nc = await nats.connect(servers=urls, **auth)
         try:
             js = nc.jetstream()
-            info = await js.stream_info(stream)
+            info = await settled_stream_info(js, stream)
             found = []
             for seq in range(info.state.first_seq, info.state.last_seq + 1):
                 if seq == 0:
@@ -71,7 +86,7 @@ def stream_leader(urls: list[str], stream: str) -> str:
 
         nc = await nats.connect(servers=urls)
         try:
-            info = await nc.jetstream().stream_info(stream)
+            info = await settled_stream_info(nc.jetstream(), stream)
             return str(info.cluster.leader) if info.cluster and info.cluster.leader else ""
         finally:
             await nc.close()

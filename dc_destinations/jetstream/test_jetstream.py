@@ -77,12 +77,11 @@ def stored(server: NatsServer, stream: str) -> list[Any]:
 class Pipeline:
     """DC's real delivery pipeline (SQLite buffer, sender, backoff) around one destination."""
 
-    def __init__(self, tmp_path: Path, dest: Nats) -> None:
+    def __init__(self, tmp_path: Path, dest: Nats, unhealthy_after: float = 0.0) -> None:
         self.dest = dest
         settings = DeliveryParams(storage_path=str(tmp_path), flush=0.05, scheduler_base=0.05, scheduler_cap=0.3)
-        self.pipeline = DeliveryPipeline(
-            settings, {"fleet": (dest, DestinationDeliveryParams())}, logging.getLogger("tests.nats")
-        )
+        delivery = DestinationDeliveryParams(unhealthy_after=unhealthy_after)
+        self.pipeline = DeliveryPipeline(settings, {"fleet": (dest, delivery)}, logging.getLogger("tests.nats"))
         dest.on_activate()
         self.pipeline.start()
 
@@ -263,12 +262,13 @@ def test_settings_refused_at_configure_with_their_yaml_path(settings: dict[str, 
 
 
 def test_a_three_node_cluster_keeps_every_record_once_when_the_leader_is_killed(tmp_path: Path) -> None:
-    """R3 stream; the node leading it killed with -9 while records flow at ~500/s."""
+    """R3 stream; the node leading it killed with -9 while records flow at ~500/s; then a second node
+    killed (no quorum): the records wait, the destination is failing, and all arrive once both are back."""
     cluster = NatsCluster(tmp_path / "cluster")
     cluster.start()
     try:
-        dest = destination(cluster.urls, "FLEET", stream_replicas=3, username="", password="")
-        pipeline = Pipeline(tmp_path / "buffer", dest)
+        dest = destination(cluster.urls, "FLEET", stream_replicas=3, username="", password="", publish_timeout=2.0)
+        pipeline = Pipeline(tmp_path / "buffer", dest, unhealthy_after=1.0)
         sent: list[OutgoingRecord] = []
         try:
             killed = ""
@@ -281,12 +281,22 @@ def test_a_three_node_cluster_keeps_every_record_once_when_the_leader_is_killed(
                     killed = stream_leader(cluster.urls, "FLEET")
                     cluster.node(killed).stop(kill=True)
                 time.sleep(0.1)
+            pipeline.wait(lambda m: m["sent"] == len(sent) and m["buffered"] == 0, timeout=60)
+
+            next(n for n in cluster.nodes if n.running()).stop(kill=True)  # one node left: no quorum
+            late = [record(10_000 + i) for i in range(20)]
+            sent.extend(late)
+            pipeline.submit(late)
+            failing = pipeline.wait(lambda m: m["health"]["state"] == "failing", timeout=30)
+            assert failing["buffered"] == 20 and failing["retried"] > 0
+            for node in cluster.nodes:
+                if not node.running():
+                    node.start()
             metrics = pipeline.wait(lambda m: m["sent"] == len(sent) and m["buffered"] == 0, timeout=60)
         finally:
             pipeline.stop()
         assert killed
-        alive = [n.url for n in cluster.nodes if n.running()]
-        ids = [m.msg_id for m in read_stream(alive, "FLEET")]
+        ids = [m.msg_id for m in read_stream(cluster.urls, "FLEET")]
         assert metrics["dead_lettered"] == 0
         assert sorted(ids) == sorted(r.record_id for r in sent), "every record stored, none twice"
     finally:
