@@ -301,3 +301,33 @@ def test_a_three_node_cluster_keeps_every_record_once_when_the_leader_is_killed(
         assert sorted(ids) == sorted(r.record_id for r in sent), "every record stored, none twice"
     finally:
         cluster.stop()
+
+
+def test_an_nkey_seed_file_and_a_token_authenticate_and_a_wrong_token_is_masked(tmp_path: Path) -> None:
+    import os
+
+    import nkeys
+
+    seed = nkeys.encode_seed(os.urandom(32), nkeys.PREFIX_BYTE_USER)
+    public = nkeys.from_seed(bytearray(seed)).public_key.decode()
+    seed_file = tmp_path / "robot.nk"
+    seed_file.write_bytes(seed)
+    unsigned = {"username": "", "password": ""}
+    with NatsServer(tmp_path / "nkey", config=f"authorization {{ users: [ {{ nkey: {public} }} ] }}") as server:
+        dest = destination([server.url], "SIGNED", nkey_seed_file=str(seed_file), **unsigned)
+        assert dest.send([record(0)]) is None, "the seed signed the server's nonce"
+        dest.on_cleanup()
+        assert len(read_stream([server.url], "SIGNED", nkeys_seed=str(seed_file))) == 1
+
+    token = "t0ken-s3cret-42"
+    with NatsServer(tmp_path / "token", config=f"authorization {{ token: {token} }}") as server:
+        dest = destination([server.url], "TOKEN", token=token, **unsigned)
+        assert dest.send([record(0)]) is None
+        dest.on_cleanup()
+        logger = RecordingLogger()
+        wrong = destination([server.url], "TOKEN", logger, token="wrong-" + token, **unsigned)
+        with pytest.raises(ConfigurationProblem) as raised:
+            wrong.send([record(1)])
+        wrong.on_cleanup()
+    assert "refused the connection" in str(raised.value)
+    assert token not in str(raised.value) + json.dumps(logger.lines)
