@@ -312,7 +312,7 @@ def test_an_nkey_seed_file_and_a_token_authenticate_and_a_wrong_token_is_masked(
     public = nkeys.from_seed(bytearray(seed)).public_key.decode()
     seed_file = tmp_path / "robot.nk"
     seed_file.write_bytes(seed)
-    unsigned = {"username": "", "password": ""}
+    unsigned: dict[str, Any] = {"username": "", "password": ""}
     with NatsServer(tmp_path / "nkey", config=f"authorization {{ users: [ {{ nkey: {public} }} ] }}") as server:
         dest = destination([server.url], "SIGNED", nkey_seed_file=str(seed_file), **unsigned)
         assert dest.send([record(0)]) is None, "the seed signed the server's nonce"
