@@ -31,9 +31,12 @@ def nats_server_binary() -> str | None:
 
 
 class NatsNode:
-    """One nats-server with JetStream on 127.0.0.1:``port``; ``config``: lines added to its configuration."""
+    """One nats-server with JetStream on 127.0.0.1:``port``; ``config``: lines added to its configuration,
+    ``jetstream``: to its JetStream block (``domain: robot1``)."""
 
-    def __init__(self, state_dir: Path, port: int = 0, *, name: str = "n1", config: str = "") -> None:
+    def __init__(
+        self, state_dir: Path, port: int = 0, *, name: str = "n1", config: str = "", jetstream: str = ""
+    ) -> None:
         self.state_dir = state_dir
         self.name = name
         self.port = port or free_port()
@@ -41,6 +44,7 @@ class NatsNode:
         self.log = state_dir / "server.log"
         self.config_file = state_dir / "server.conf"
         self.config = config
+        self.jetstream = jetstream
         self.process: subprocess.Popen[bytes] | None = None
 
     def start(self, timeout: float = 30.0) -> None:
@@ -50,7 +54,7 @@ class NatsNode:
         self.state_dir.mkdir(parents=True, exist_ok=True)
         self.config_file.write_text(
             f"server_name: {self.name}\nlisten: 127.0.0.1:{self.port}\n"
-            f"jetstream {{ store_dir: {self.state_dir / 'store'} }}\n{self.config}\n"
+            f"jetstream {{ store_dir: {self.state_dir / 'store'}, {self.jetstream} }}\n{self.config}\n"
         )
         with self.log.open("ab") as log:
             self.process = subprocess.Popen(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 import time
 from collections.abc import Iterator
@@ -304,8 +305,6 @@ def test_a_three_node_cluster_keeps_every_record_once_when_the_leader_is_killed(
 
 
 def test_an_nkey_seed_file_and_a_token_authenticate_and_a_wrong_token_is_masked(tmp_path: Path) -> None:
-    import os
-
     import nkeys
 
     seed = nkeys.encode_seed(os.urandom(32), nkeys.PREFIX_BYTE_USER)
@@ -331,3 +330,63 @@ def test_an_nkey_seed_file_and_a_token_authenticate_and_a_wrong_token_is_masked(
         wrong.on_cleanup()
     assert "refused the connection" in str(raised.value)
     assert token not in str(raised.value) + json.dumps(logger.lines)
+
+
+@pytest.mark.parametrize(
+    "hub_down",
+    [
+        False,
+        pytest.param(
+            True,
+            marks=pytest.mark.skipif(
+                not os.environ.get("DC_SLOW_TESTS"),
+                reason="~40 s: the hub's source retries with a backoff after a restart (DC_SLOW_TESTS=1 runs it)",
+            ),
+        ),
+    ],
+)
+def test_a_leaf_node_on_the_robot_stores_and_forwards(tmp_path: Path, hub_down: bool) -> None:
+    """The edge option of docs/fleet.md: DC publishes into a JetStream leaf node on the robot (its own
+    domain); the hub's stream sources the robot's; with ``hub_down``, the hub stopped meanwhile loses nothing."""
+    import asyncio
+
+    from nats.js.api import ExternalStream, StreamSource
+
+    from dc_bringup.local_servers.processes import free_port
+
+    leaf_port = free_port()
+    hub = NatsServer(
+        tmp_path / "hub", name="hub", jetstream="domain: hub", config=f"leafnodes {{ listen: 127.0.0.1:{leaf_port} }}"
+    )
+    remote = f'leafnodes {{ remotes: [ {{ url: "nats-leaf://127.0.0.1:{leaf_port}" }} ] }}'
+    robot = NatsServer(tmp_path / "robot", name="robot1", jetstream="domain: robot1", config=remote)
+
+    async def hub_stream_sourcing_the_robot() -> None:
+        import nats
+
+        nc = await nats.connect(hub.url)
+        try:
+            source = StreamSource(name="ROBOT", external=ExternalStream(api="$JS.robot1.API"))
+            await nc.jetstream().add_stream(name="FLEET", sources=[source])
+        finally:
+            await nc.close()
+
+    with hub, robot:
+        dest = destination([robot.url], "ROBOT", stream_subjects=["dc.>"], subject="dc.{robot_name}.{name}")
+        sent = [record(n) for n in range(100)]
+        assert dest.send(sent[:1]) is None  # the robot's stream made, then the fleet's sourcing it
+        asyncio.run(hub_stream_sourcing_the_robot())
+        deadline = time.monotonic() + 30
+        while len(read_stream([hub.url], "FLEET")) < 1 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert len(read_stream([hub.url], "FLEET")) == 1, "the fleet's stream sources the robot's"
+        if hub_down:
+            hub.stop()  # the link, or the data centre, is down
+        assert dest.send(sent[1:]) is None, "acknowledged by the robot's own stream"
+        dest.on_cleanup()
+        if hub_down:
+            hub.start()
+        deadline = time.monotonic() + 90
+        while len(stored := read_stream([hub.url], "FLEET")) < 100 and time.monotonic() < deadline:
+            time.sleep(0.1)
+    assert sorted(m.msg_id for m in stored) == sorted(r.record_id for r in sent)
