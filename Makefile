@@ -122,7 +122,7 @@ $(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
 #    demo, installed as any third-party plugin package would be (after DC, into its environment).
 EXAMPLE_PLUGIN := examples/dc_uptime_custom
 $(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-lifecycle-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml $(EXAMPLE_PLUGIN)/pyproject.toml
-	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql,recorder]'
+	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql,recorder,nats]'
 	$(PIP) install -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
 	touch $@
 

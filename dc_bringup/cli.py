@@ -551,6 +551,49 @@ def _metrics_urls(params: str) -> list[tuple[str, str]]:
     return [(t.server, t.url) for t in targets if t.server == "destination_server"]
 
 
+def cmd_ingest(args: argparse.Namespace) -> int:
+    """The fleet's ingest worker (dc_destinations.ingest): a JetStream consumer into DC's destinations."""
+    import logging
+    from pathlib import Path
+
+    from dc_core.config import load_params_file
+    from dc_core.logs import SeverityLogger
+    from dc_core.supervision import Supervisor
+    from dc_destinations.config import parse_destination_server
+    from dc_destinations.ingest import Ingest, IngestOptions, WorkerContext, connect_options_from_env, run_ingest
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logger = SeverityLogger(logging.getLogger("dc.ingest"))
+    try:
+        section = load_params_file(args.params).get("destination_server", {})
+        config = parse_destination_server(section)
+        destinations: dict[str, Any] = {}
+        for d in config.destinations:
+            # Outside ROS, as dc check configures them: a context without a node.
+            plugin_logger = SeverityLogger(logging.getLogger(f"dc.ingest.{d.name}"))
+            context = WorkerContext(d.name, plugin_logger, Supervisor(plugin_logger))
+            destination = d.plugin_class(context, d.plugin_params)
+            destination.on_configure()
+            destinations[d.name] = destination
+    except DcError as exc:
+        print(f"dc ingest: {exc}", file=sys.stderr)
+        return 2
+    options = IngestOptions(
+        servers=[u for s in args.servers for u in s.split(",") if u] or ["nats://127.0.0.1:4222"],
+        stream=args.stream,
+        consumer=args.consumer,
+        filter=args.filter,
+        batch=args.batch,
+        ack_wait=args.ack_wait,
+        max_in_flight=args.max_in_flight,
+        connect=connect_options_from_env(),
+    )
+    run_ingest(Ingest(config, destinations, options, Path(args.storage_path), logger))
+    for destination in destinations.values():
+        destination.on_cleanup()
+    return 0
+
+
 def cmd_reconcile(args: argparse.Namespace) -> int:
     from dc_bringup.reconcile import run
 
@@ -682,7 +725,12 @@ def build_parser() -> argparse.ArgumentParser:
         "servers", help="run the local PostgreSQL, S3 (SeaweedFS) and InfluxDB for trying DC, until Ctrl-C"
     )
     p.add_argument("action", choices=["run"], help="run: start them, wait for Ctrl-C, stop them")
-    p.add_argument("names", nargs="*", metavar="server", help="postgres, s3, influxdb (default: all three)")
+    p.add_argument(
+        "names",
+        nargs="*",
+        metavar="server",
+        help="postgres, s3, influxdb (default: these three); nats: a 3-node JetStream cluster (docs/fleet.md)",
+    )
     p.add_argument("--state-dir", default="var/dc/servers", help="their data, logs and settings.yaml")
     p.set_defaults(func=cmd_servers)
 
@@ -712,6 +760,23 @@ def build_parser() -> argparse.ArgumentParser:
         "--state-dir", default="var/dc/demo", help="the children's logs and the servers' data (default var/dc/demo)"
     )
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "ingest",
+        help="the fleet side: a NATS JetStream consumer into the destinations of a params file (docs/fleet.md)",
+    )
+    p.add_argument("params", help="parameter file whose destination_server section names the destinations")
+    p.add_argument("--servers", action="append", default=[], help="NATS URL(s), comma-separated or repeated")
+    p.add_argument("--stream", default="DC", help="JetStream stream (default DC)")
+    p.add_argument("--consumer", default="ingest", help="durable pull consumer, shared by the workers (default ingest)")
+    p.add_argument("--filter", default="dc.>", help="subjects to take (default dc.>)")
+    p.add_argument("--batch", type=int, default=500, help="messages fetched at once (default 500)")
+    p.add_argument(
+        "--ack-wait", type=float, default=60.0, help="seconds before an unacknowledged message is redelivered"
+    )
+    p.add_argument("--max-in-flight", type=int, default=5000, help="messages taken and not yet acknowledged, at most")
+    p.add_argument("--storage-path", required=True, help="folder of this worker's buffer (one per worker)")
+    p.set_defaults(func=cmd_ingest)
 
     # Listed for `dc --help`; main() hands `dc sim ...` to the simulator's own parser.
     sub.add_parser("sim", help="a simulated robot: odometry, TF, /map, /cmd_vel (dc sim --help)", add_help=False)

@@ -21,9 +21,12 @@ from dc_bringup.local_servers import LocalServer, ServerError
 from dc_bringup.local_servers.processes import free_port, port_free
 from dc_core.signals import stop_on_signals
 
-SERVER_NAMES = ("postgres", "s3", "influxdb")
-# Fixed ports (the usual ones plus 10000), so the demos' parameter files can name them.
-DEFAULT_PORTS = {"postgres": 15432, "s3": 18333, "influxdb": 18086}
+SERVER_NAMES = ("postgres", "s3", "influxdb", "nats")
+# Started when no name is given; the NATS cluster is for the fleet path, asked for by name (docs/fleet.md).
+DEFAULT_NAMES = ("postgres", "s3", "influxdb")
+# Fixed ports (the usual ones plus 10000), so the demos' parameter files can name them; nats: the
+# first of its three nodes' (14222, 14223, 14224).
+DEFAULT_PORTS = {"postgres": 15432, "s3": 18333, "influxdb": 18086, "nats": 14222}
 
 
 def make_server(name: str, state_dir: Path, port: int) -> LocalServer:
@@ -40,6 +43,10 @@ def make_server(name: str, state_dir: Path, port: int) -> LocalServer:
         from dc_bringup.local_servers.influxdb import InfluxServer
 
         return InfluxServer(state_dir / name, port=port)
+    if name == "nats":
+        from dc_bringup.local_servers.nats import NatsCluster
+
+        return NatsCluster(state_dir / name, port=port)
     raise ServerError(f"unknown server {name!r} (known: {', '.join(SERVER_NAMES)})")
 
 
@@ -94,4 +101,4 @@ def _write_private(path: Path, text: str) -> None:
 
 def main(args: Any) -> int:
     stop = stop_on_signals()  # handlers that take no lock (dc_core.signals)
-    return run(list(args.names or SERVER_NAMES), Path(args.state_dir), stop)
+    return run(list(args.names or DEFAULT_NAMES), Path(args.state_dir), stop)

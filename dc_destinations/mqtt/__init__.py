@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import socket
 import ssl
-import string
 import threading
 import time
 from collections.abc import Sequence
@@ -38,11 +37,14 @@ from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
 from dc_core.records import MalformedRecord
 from dc_destinations.connection import Connection
+from dc_destinations.templates import fill_template
+from dc_destinations.templates import template_keys as shared_template_keys
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
 # MQTT topic names are UTF-8 strings of at most 65535 bytes, and a published one has no wildcard.
 _TOPIC_MAX_BYTES = 65535
 _WILDCARDS = ("+", "#", "\0")
+_NO_WILDCARDS = "a topic without the wildcards '+' and '#'"
 # CONNACK reasons that mean the credentials (or their rights) are wrong, not the network.
 _AUTH_REASONS = ("not authorized", "bad user name or password", "bad username or password")
 # How often a waiting send looks again at the acknowledgements, besides being woken by them.
@@ -50,23 +52,9 @@ _WAIT_SLICE_S = 0.05
 
 
 def template_keys(template: str) -> list[str]:
-    """The record keys a topic template names (``"dc/{robot}/{name}"`` → robot, name).
-
-    Raises ValueError with what is wrong: a positional ``{}``, a conversion or format spec, an
-    attribute or index (``{a.b}``, ``{a[0]}``), or an unbalanced brace.
-    """
-    keys: list[str] = []
-    for literal, field, spec, conversion in string.Formatter().parse(template):
-        if any(w in literal for w in _WILDCARDS):
-            raise ValueError("a topic without the wildcards '+' and '#'")
-        if field is None:
-            continue
-        if not field or field.isdigit():
-            raise ValueError("placeholders that name a record key, like {name}")
-        if spec or conversion or any(c in field for c in ".["):
-            raise ValueError(f"plain placeholders like {{name}}, got {{{field}...}}")
-        keys.append(field)
-    return keys
+    """The record keys a topic template names (``"dc/{robot}/{name}"`` → robot, name); ValueError saying
+    what was expected (dc_destinations.templates), a wildcard included."""
+    return shared_template_keys(template, forbidden="".join(_WILDCARDS), forbidden_problem=_NO_WILDCARDS)
 
 
 def _topic_problem(template: str) -> str | None:
@@ -223,12 +211,7 @@ class Mqtt(Destination[MqttParams]):
 
     def topic_of(self, record: OutgoingRecord) -> str:
         """The record's topic; ValueError saying why when the record cannot have one."""
-        values: dict[str, str] = {}
-        for key in self._keys:
-            if key not in record.data:
-                raise ValueError(f"the record has no {key!r} for the topic template {self.params.topic!r}")
-            values[key] = _topic_text(key, record.data[key])
-        topic = self.params.topic.format_map(values)
+        topic = fill_template(self.params.topic, self._keys, record.data, "topic")
         if any(w in topic for w in _WILDCARDS):
             raise ValueError(f"topic {topic!r} holds a wildcard ('+', '#') or a NUL, which MQTT forbids in a publish")
         if topic.startswith("$"):
@@ -332,15 +315,6 @@ class Mqtt(Destination[MqttParams]):
     def _scrub(self, text: str) -> str:
         """The passwords masked, should a library or broker ever quote them."""
         return self._connection.scrub(text)
-
-
-def _topic_text(key: str, value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (str, int, float)):
-        return str(value)
-    kind = "null" if value is None else type(value).__name__
-    raise ValueError(f"the record's {key!r} is {kind}, not text or a number, so it cannot go in a topic")
 
 
 def _acknowledged(info: mqtt.MQTTMessageInfo) -> bool:

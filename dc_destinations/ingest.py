@@ -1,0 +1,347 @@
+"""``dc ingest``: the fleet side. Records read from a JetStream durable pull consumer are delivered by
+DC's own destinations, and acknowledged to JetStream only once every destination confirmed them.
+
+The design (docs/fleet.md): the destinations of a ``destination_server`` section run as they do on
+a robot, behind DC's delivery pipeline (buffer, one sender per destination, backoff, dead letters,
+counters, health). Each destination is wrapped in :class:`Settling`, which sees every outcome of its
+``send``: a record is *settled* for a destination once it confirmed it or refused it for good (a
+dead letter, kept in this worker's buffer and counted, as on a robot). When every destination has
+settled a record, its JetStream message is acknowledged; until then JetStream keeps it, and
+redelivers it after ``ack_wait`` to whichever worker asks (another one if this one died). So:
+
+- several ``dc ingest`` processes on one consumer share its messages (JetStream hands each
+  message to one of them at a time);
+- one killed with -9 loses nothing: what it had not acknowledged is redelivered; what it had
+  delivered but not yet acknowledged is delivered twice, and a store keyed on ``record_id``
+  (PgSQL's unique index) keeps it once.
+
+The local buffer is the price of reusing the pipeline unchanged (~10 µs of SQLite per record and
+destination); it also gives each destination an independent queue, so a slow one does not hold up
+the others' confirmations, only the acknowledgement of the records it has not settled.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dc_core.destination import Destination, OutgoingRecord, RejectedError, SendOutcome
+from dc_core.logs import Logger
+from dc_core.params import NoParams
+from dc_core.records import MalformedRecord, parse_record
+from dc_core.supervision import Supervisor
+from dc_destinations.config import DestinationServerConfig
+from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.record_ids import new_record_id
+
+
+class Settlements:
+    """Which destinations still owe each record in flight a confirmation; ``on_settled(key)`` once none does.
+
+    Thread-safe: senders report from their threads.
+    """
+
+    def __init__(self, destinations: Sequence[str], on_settled: Callable[[Any], None]) -> None:
+        self._destinations = frozenset(destinations)
+        self._owed: dict[str, tuple[Any, set[str]]] = {}
+        self._lock = threading.Lock()
+        self._on_settled = on_settled
+
+    def add(self, record_id: str, key: Any) -> bool:
+        """Track ``record_id``; False when it is in flight already (a redelivery): ``key`` replaces the old."""
+        with self._lock:
+            known = self._owed.get(record_id)
+            if known is not None:
+                self._owed[record_id] = (key, known[1])
+                return False
+            self._owed[record_id] = (key, set(self._destinations))
+            return True
+
+    def settled(self, destination: str, record_ids: Sequence[str]) -> None:
+        done = []
+        with self._lock:
+            for record_id in record_ids:
+                entry = self._owed.get(record_id)
+                if entry is None:
+                    continue  # from this worker's buffer before a restart: its message is someone else's now
+                entry[1].discard(destination)
+                if not entry[1]:
+                    del self._owed[record_id]
+                    done.append(entry[0])
+        for key in done:
+            self._on_settled(key)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._owed)
+
+    def waiting(self) -> list[Any]:
+        """The keys of the records not settled yet."""
+        with self._lock:
+            return [key for key, _ in self._owed.values()]
+
+
+class Settling(Destination[NoParams]):
+    """A destination as DC configured it, whose every outcome is also reported to :class:`Settlements`."""
+
+    def __init__(self, inner: Destination[Any], name: str, settlements: Settlements) -> None:
+        super().__init__(inner.context, NoParams())
+        self.inner = inner
+        self.name = name
+        self.settlements = settlements
+
+    def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        try:
+            outcome = self.inner.send(batch)
+        except RejectedError:
+            self.settlements.settled(self.name, [r.record_id for r in batch])  # dead letters: settled
+            raise
+        retried = outcome.retry if isinstance(outcome, SendOutcome) else {}
+        self.settlements.settled(self.name, [r.record_id for i, r in enumerate(batch) if i not in retried])
+        return outcome
+
+    @property
+    def stopping(self) -> threading.Event:
+        return self.inner.stopping
+
+    def probe(self) -> Any:
+        return self.inner.probe()
+
+    def counters(self) -> dict[str, int]:
+        return self.inner.counters()
+
+    def on_activate(self) -> None:
+        self.inner.on_activate()
+
+    def on_deactivate(self) -> None:
+        self.inner.on_deactivate()
+
+    def on_cleanup(self) -> None:
+        self.inner.on_cleanup()
+
+
+@dataclass
+class WorkerContext:
+    """What a destination's context offers outside ROS (``dc check`` configures them alike): its name,
+    a logger, and threads under a supervisor that logs and counts a thread that dies."""
+
+    name: str
+    logger: Logger
+    supervisor: Supervisor
+
+    def start_thread(self, target: Callable[[], Any], name: str) -> threading.Thread:
+        return self.supervisor.start_thread(target, name=name)
+
+
+@dataclass
+class IngestOptions:
+    servers: list[str]
+    stream: str
+    consumer: str
+    filter: str = "dc.>"
+    batch: int = 500
+    ack_wait: float = 60.0
+    max_in_flight: int = 5000
+    connect: dict[str, Any] = field(default_factory=dict)  # credentials and TLS for nats.connect
+
+
+@dataclass
+class IngestCounters:
+    received: int = 0
+    redelivered: int = 0
+    acknowledged: int = 0
+    malformed: int = 0
+    fetch_failures: int = 0
+
+
+class Ingest:
+    """One ingest worker: see the module documentation."""
+
+    def __init__(
+        self,
+        config: DestinationServerConfig,
+        destinations: dict[str, Destination[Any]],
+        options: IngestOptions,
+        storage_path: Path,
+        logger: Logger,
+    ) -> None:
+        import dataclasses
+
+        self.options = options
+        self.logger = logger
+        self.counters = IngestCounters()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._settled: asyncio.Queue[Any] | None = None
+        self.settlements = Settlements(list(destinations), self._on_settled)
+        wrapped = {
+            d.name: (Settling(destinations[d.name], d.name, self.settlements), d.delivery) for d in config.destinations
+        }
+        settings = dataclasses.replace(config.node.flb, storage_path=str(storage_path))
+        self.pipeline = DeliveryPipeline(settings, wrapped, logger)
+        self._names = list(wrapped)
+        self.stop_requested = asyncio.Event()
+
+    def _on_settled(self, msg: Any) -> None:
+        # From a sender's thread: the ack goes out on the loop.
+        assert self._loop is not None and self._settled is not None
+        self._loop.call_soon_threadsafe(self._settled.put_nowait, msg)
+
+    async def run(self) -> IngestCounters:
+        import nats
+        import nats.errors
+        from nats.js.api import AckPolicy, ConsumerConfig
+
+        self._loop = asyncio.get_running_loop()
+        self._settled = asyncio.Queue()
+        o = self.options
+        nc = await nats.connect(servers=o.servers, name=f"dc ingest {o.consumer}", **o.connect)
+        js = nc.jetstream()
+        config = ConsumerConfig(
+            durable_name=o.consumer,
+            ack_policy=AckPolicy.EXPLICIT,
+            ack_wait=o.ack_wait,
+            max_ack_pending=max(o.max_in_flight * 4, 1000),
+            filter_subject=o.filter,
+        )
+        sub = await js.pull_subscribe(o.filter, durable=o.consumer, stream=o.stream, config=config)
+        self.pipeline.start()
+        acker = asyncio.create_task(self._acknowledge())
+        self.logger.info(
+            f"ingesting {o.filter} of stream {o.stream} as consumer {o.consumer} from {', '.join(o.servers)}"
+        )
+        try:
+            while not self.stop_requested.is_set():
+                room = o.max_in_flight - len(self.settlements)
+                if room <= 0:
+                    await asyncio.sleep(0.02)
+                    continue
+                try:
+                    messages = await sub.fetch(min(o.batch, room), timeout=1.0)
+                except (TimeoutError, nats.errors.TimeoutError):
+                    continue  # nothing to take within the second
+                except Exception as exc:  # a server lost, a cluster electing: nats-py reconnects meanwhile
+                    self.counters.fetch_failures += 1
+                    self.logger.warning(f"cannot fetch from stream {o.stream}: {exc!r}; trying again in 1 s")
+                    await asyncio.sleep(1.0)
+                    continue
+                for malformed in self._take(messages):
+                    await malformed.term()  # never redelivered: it can never be delivered
+        finally:
+            self.pipeline.stop(self.pipeline.settings.grace)
+            # What is not settled goes back at once rather than after ack_wait: another worker takes it.
+            for msg in self.settlements.waiting():
+                try:
+                    await msg.nak()
+                except Exception as exc:  # the connection may be gone: JetStream redelivers after ack_wait
+                    self.logger.warning(f"cannot give back a message: {exc}")
+            await self._drain_acks()
+            acker.cancel()
+            await nc.close()
+        return self.counters
+
+    def _take(self, messages: list[Any]) -> list[Any]:
+        """Hand the messages' records to the pipeline; the messages that hold no DC record."""
+        malformed = []
+        for msg in messages:
+            self.counters.received += 1
+            record = self._record_of(msg)
+            if record is None:
+                malformed.append(msg)
+                continue
+            if not self.settlements.add(record.record_id, msg):
+                self.counters.redelivered += 1  # still in this worker's queues: acknowledged when settled
+                continue
+            for name in self._names:
+                self.pipeline.submit(name, record)
+        return malformed
+
+    def _record_of(self, msg: Any) -> OutgoingRecord | None:
+        try:
+            text = msg.data.decode("utf-8")
+            data = parse_record(text)
+        except (UnicodeDecodeError, MalformedRecord) as exc:
+            self.counters.malformed += 1
+            self.logger.error(
+                f"message {msg.metadata.sequence.stream} on {msg.subject} is not a DC record ({exc}): terminated"
+            )
+            return None
+        record_id = (msg.headers or {}).get("Nats-Msg-Id") or str(data.get("record_id") or "") or new_record_id()
+        stamp_ns = int(msg.metadata.timestamp.timestamp() * 1e9)
+        return OutgoingRecord(record_id, msg.subject, stamp_ns, data, json_text=text)
+
+    async def _acknowledge(self) -> None:
+        assert self._settled is not None
+        while True:
+            msg = await self._settled.get()
+            await self._ack(msg)
+
+    async def _drain_acks(self) -> None:
+        assert self._settled is not None
+        while not self._settled.empty():
+            await self._ack(self._settled.get_nowait())
+
+    async def _ack(self, msg: Any) -> None:
+        try:
+            await msg.ack()
+            self.counters.acknowledged += 1
+        except Exception as exc:  # redelivered after ack_wait, delivered again: a duplicate the store removes
+            self.logger.warning(f"cannot acknowledge message {msg.metadata.sequence.stream}: {exc}")
+
+
+def connect_options_from_env(environ: dict[str, str] | None = None) -> dict[str, Any]:
+    """nats.connect's credentials from the environment, never from the command line (it is visible in ps)."""
+    env = os.environ if environ is None else environ
+    options: dict[str, Any] = {}
+    if env.get("NATS_USER"):
+        options.update(user=env["NATS_USER"], password=env.get("NATS_PASSWORD") or None)
+    if env.get("NATS_TOKEN"):
+        options["token"] = env["NATS_TOKEN"]
+    if env.get("NATS_CREDS"):
+        options["user_credentials"] = env["NATS_CREDS"]
+    if env.get("NATS_NKEY"):
+        options["nkeys_seed"] = env["NATS_NKEY"]
+    return options
+
+
+def run_ingest(ingest: Ingest, report_every: float = 10.0) -> IngestCounters:
+    """Run ``ingest`` until SIGTERM or SIGINT; its counters and the destinations' logged every ``report_every`` s."""
+
+    async def main() -> IngestCounters:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, ingest.stop_requested.set)
+
+        async def report() -> None:
+            while True:
+                await asyncio.sleep(report_every)
+                ingest.logger.info(f"ingest: {summary(ingest)}")
+
+        reporter = asyncio.create_task(report())
+        try:
+            return await ingest.run()
+        finally:
+            reporter.cancel()
+
+    started = time.monotonic()
+    counters = asyncio.run(main())
+    ingest.logger.info(f"ingest stopped after {time.monotonic() - started:.0f} s: {summary(ingest)}")
+    return counters
+
+
+def summary(ingest: Ingest) -> str:
+    c = ingest.counters
+    parts = [
+        f"received {c.received}, acknowledged {c.acknowledged}, taken again while in flight {c.redelivered}, "
+        f"malformed {c.malformed}, fetch failures {c.fetch_failures}"
+    ]
+    for name, m in ingest.pipeline.metrics().items():
+        waiting = "" if m["buffered"] is None else f", buffered {m['buffered']}"
+        parts.append(f"{name}: sent {m['sent']}, dead_lettered {m['dead_lettered']}{waiting}")
+    return "; ".join(parts)
