@@ -54,6 +54,18 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_new_plugin(args: argparse.Namespace) -> int:
+    from dc_bringup.new_plugin import main
+
+    return main(args.kind, args.name, args.dir)
+
+
+def cmd_check_plugin(args: argparse.Namespace) -> int:
+    from dc_bringup.plugin_contract import main
+
+    return main(args.names)
+
+
 def cmd_pub(args: argparse.Namespace) -> int:
     from dc_core.records import MalformedRecord, parse_record
 
@@ -539,6 +551,16 @@ def build_parser() -> argparse.ArgumentParser:
     from dc_bringup.preflight import cmd_check
 
     p.set_defaults(func=cmd_check)
+
+    p = sub.add_parser("new-plugin", help="a new plugin package (or a plugin added to one) that passes check-plugin")
+    p.add_argument("kind", choices=["measurement", "condition", "destination"])
+    p.add_argument("name", help="PACKAGE/Class, the plugin type written in YAML (my_robot_dc/Battery)")
+    p.add_argument("--dir", default=".", help="where the package's folder is (or is made): DIR/<package-with-dashes>")
+    p.set_defaults(func=cmd_new_plugin)
+
+    p = sub.add_parser("check-plugin", help="DC's plugin contract on installed plugins, DC's own or not")
+    p.add_argument("names", nargs="+", metavar="NAME", help="plugin types as written in YAML (my_robot_dc/Battery)")
+    p.set_defaults(func=cmd_check_plugin)
 
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
     p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
