@@ -645,6 +645,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--state-dir", default="var/dc/servers", help="their data, logs and settings.yaml")
     p.set_defaults(func=cmd_servers)
 
+    p = sub.add_parser("service", help="DC as a systemd service: the unit, its environment file for secrets")
+    from dc_bringup.service import add_arguments as add_service_arguments
+    from dc_bringup.service import main as service_main
+
+    add_service_arguments(p)
+    p.set_defaults(func=service_main)
+
     p = sub.add_parser("dashboard", help="what DC stored in PostgreSQL and S3, and its health, in a browser")
     from dc_dashboard.cli import add_arguments
 
