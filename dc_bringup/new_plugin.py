@@ -107,7 +107,18 @@ SCHEMA = """\
 }
 """
 
-MEASUREMENT_PAGE = """\
+# The destination of the pages' examples: the records of one measurement on stdout.
+STDOUT_OF = """\
+destination_server:
+  ros__parameters:
+    destination_plugins: ["stdout"]
+    stdout:
+      plugin: "dc_destinations/Stdout"
+      inputs: ["/dc/measurement/{measurement}"]
+"""
+
+MEASUREMENT_PAGE = (
+    """\
 # {cls} (`{name}`)
 
 Counts its own collections: the first record holds `start`, each next one one more. Replace this
@@ -132,13 +143,9 @@ measurement_server:
       start: 1
       polling_interval: 1000
       tags: ["stdout"]
-destination_server:
-  ros__parameters:
-    destination_plugins: ["stdout"]
-    stdout:
-      plugin: "dc_destinations/Stdout"
-      inputs: ["/dc/measurement/{folder}"]
-```
+"""
+    + STDOUT_OF.format(measurement="{folder}")
+    + """```
 
 ## Example output
 
@@ -148,6 +155,7 @@ destination_server:
 
 Schema ([`schema.json`](schema.json)): `count`, an integer from 0, required.
 """
+)
 
 MEASUREMENT_TEST = '''\
 """{cls}: what a destination receives from it."""
@@ -208,7 +216,8 @@ class {cls}(Condition[{cls}Params]):
         return value > self.params.threshold
 '''
 
-CONDITION_PAGE = """\
+CONDITION_PAGE = (
+    """\
 # {cls} (`{name}`)
 
 Active when the number at `key` is above `threshold`. A missing key or a value that is not a
@@ -242,14 +251,11 @@ measurement_server:
       polling_interval: 1000
       if_all_conditions: ["{folder}"]
       tags: ["stdout"]
-destination_server:
-  ros__parameters:
-    destination_plugins: ["stdout"]
-    stdout:
-      plugin: "dc_destinations/Stdout"
-      inputs: ["/dc/measurement/busy_load"]
-```
 """
+    + STDOUT_OF.format(measurement="busy_load")
+    + """```
+"""
+)
 
 CONDITION_TEST = '''\
 """{cls}: active above the threshold, inactive otherwise."""

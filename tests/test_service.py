@@ -67,6 +67,17 @@ def environment_of(settings: dict[str, list[str]]) -> dict[str, str]:
     return env
 
 
+def as_systemd_would_run(
+    service: tuple[Path, Path, Path], env_file_text: str
+) -> tuple[list[str], dict[str, list[str]], dict[str, str]]:
+    """The unit's ExecStart, its [Service] settings and the environment systemd adds, with this environment file."""
+    _, unit_path, env_file = service
+    env_file.write_text(env_file_text)
+    settings = service_section(unit_path.read_text())
+    (command,) = settings["ExecStart"]
+    return shlex.split(command), settings, environment_of(settings)
+
+
 @pytest.fixture(scope="module")
 def service(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
     """(parameter file, unit, environment file) of `dc service install` run into a folder of the test."""
@@ -123,13 +134,10 @@ def test_systemd_analyze_verify_accepts_the_unit(service: tuple[Path, Path, Path
 def test_its_exec_start_runs_delivers_and_stops_with_exit_0_on_sigterm(
     service: tuple[Path, Path, Path], tmp_path: Path
 ) -> None:
-    params, unit_path, env_file = service
-    env_file.write_text("DC_SITE=dock-3\n")
-    settings = service_section(unit_path.read_text())
-    (command,) = settings["ExecStart"]
+    command, settings, env = as_systemd_would_run(service, "DC_SITE=dock-3\n")
     ros_logs = tmp_path / "ros-log"
-    env = {**environment_of(settings), "ROS_LOG_DIR": str(ros_logs)}
-    with Bringup(params, tmp_path / "home", command=shlex.split(command), env=env) as run:
+    env["ROS_LOG_DIR"] = str(ros_logs)
+    with Bringup(service[0], tmp_path / "home", command=command, env=env) as run:
         assert run.wait_records(1, timeout=60)[0]["site"] == "dock-3"
         assert run.process is not None
         run.process.send_signal(signal.SIGTERM)  # KillMode=mixed: the main process alone gets it
@@ -138,16 +146,11 @@ def test_its_exec_start_runs_delivers_and_stops_with_exit_0_on_sigterm(
     assert not ros_logs.exists() or not any(ros_logs.rglob("*.log"))
 
 
-def test_a_missing_secret_ends_with_the_status_the_unit_does_not_restart_on(
-    service: tuple[Path, Path, Path], tmp_path: Path
-) -> None:
-    _, unit_path, env_file = service
-    env_file.write_text("# DC_SITE=\n")
-    settings = service_section(unit_path.read_text())
-    (command,) = settings["ExecStart"]
+def test_a_missing_secret_ends_with_the_status_the_unit_does_not_restart_on(service: tuple[Path, Path, Path]) -> None:
+    command, settings, env = as_systemd_would_run(service, "# DC_SITE=\n")
     run = subprocess.run(
-        shlex.split(command),
-        env={**os.environ, **environment_of(settings)},
+        command,
+        env={**os.environ, **env},
         capture_output=True,
         text=True,
         timeout=60,
