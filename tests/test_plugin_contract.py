@@ -10,6 +10,7 @@ covered by adding its folder and entry point.
 
 from __future__ import annotations
 
+import importlib
 import re
 import tomllib
 from importlib.metadata import EntryPoint
@@ -39,7 +40,7 @@ def source_page(plugin: InstalledPlugin) -> Path:
     module = plugin.target.partition(":")[0]
     top = module.partition(".")[0]
     installed = plugin.page
-    package_root = Path(__import__(top).__file__ or "").parent.parent
+    package_root = Path(importlib.import_module(top).__file__ or "").parent.parent
     return OWN_DISTRIBUTIONS[plugin.distribution] / installed.relative_to(package_root)
 
 
