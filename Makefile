@@ -1,14 +1,21 @@
 # DC — developer entry points.
 #
-#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, dc_lifecycle_interfaces, tf2_msgs (cmake) + DC (editable, with the test, camera, destination and recorder extras)
-#                    + the example plugin package examples/dc_uptime_custom
-#   make test-deps   Debian packages the tests need (installed only if missing)
-#   make test        ruff, mypy, pytest
-#   make run         dc-bringup with params/default.yaml (PARAMS=... to change)
-#   make servers     the local PostgreSQL, S3 and InfluxDB the storage destinations and demos use
-#   make demo        see it: the QR-code demo into PostgreSQL and S3 with the dashboard on http://127.0.0.1:8088/
-#   make clean       remove build/ and the install stamps (keeps the venv)
-#   make distclean   clean + remove the venv
+#   make install        what `make run` needs, and only that: venv + ROS 2 Jazzy wheels + dc_interfaces,
+#                       dc_lifecycle_interfaces, tf2_msgs (cmake) + DC (editable) with its core dependencies
+#   make install-demos  install + the extras the demos need (`demo`: OpenCV, zxing-cpp and pyzbar for the camera
+#                       and the simulated robot's codes, psycopg, boto3, SeaweedFS) + the example plugin package
+#                       examples/dc_uptime_custom
+#   make install-test   install + the extras the tests need (`test`: pytest, mypy, ruff, moto, Selenium…; camera,
+#                       mqtt, aws, msgpack, pgsql, recorder, nats) + the example plugin package
+#   make test-deps      Debian packages the tests need (installed only if missing)
+#   make test           install-test, test-deps; then ruff, mypy, pytest
+#   make run            install; then dc-bringup with params/default.yaml (PARAMS=... to change)
+#   make servers        install-demos + PostgreSQL and InfluxDB (Debian); the local PostgreSQL, S3 and InfluxDB
+#                       the storage destinations and demos use
+#   make demo           install-demos + PostgreSQL and libzbar0 (Debian); see it: the QR-code demo into PostgreSQL
+#                       and S3 with the dashboard on http://127.0.0.1:8088/
+#   make clean          remove build/ and the install stamps (keeps the venv)
+#   make distclean      clean + remove the venv
 #
 # `install` is stamp-driven: each step reruns only when its inputs change, so a second run is a no-op.
 
@@ -41,6 +48,10 @@ ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces ros-jazzy-di
 # IpCamera, the servers the destinations deliver to (mosquitto, PostgreSQL, InfluxDB 1.x), the
 # headless browser and its driver that test the dashboard as a user sees it.
 TEST_DEBS := libzbar0 ffmpeg mosquitto postgresql influxdb chromium chromium-driver
+# `make demo` (dc demo): its PostgreSQL (its S3 server is SeaweedFS, from pip) and the camera's zbar library.
+DEMO_DEBS := libzbar0 postgresql
+# `make servers` (dc servers run): PostgreSQL and InfluxDB (and SeaweedFS, from pip).
+SERVERS_DEBS := postgresql influxdb
 
 # Included by every interface package's CMakeLists.txt.
 IFACE_CMAKE := interfaces/cmake/dc_wheels_python_includes.cmake
@@ -62,9 +73,11 @@ unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
 SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
 
-.PHONY: install test-deps run test servers demo clean distclean
+.PHONY: install install-demos install-test test-deps demo-deps servers-deps run test servers demo clean distclean
 
 install: $(VENV)/.stamp-dc
+install-demos: $(VENV)/.stamp-demos
+install-test: $(VENV)/.stamp-test
 
 # 1. venv + ROS wheels.
 $(VENV)/.stamp-ros: $(CONSTRAINTS)
@@ -118,17 +131,38 @@ $(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
 	fi
 	touch $@
 
-# 3. DC itself, editable, with the test tools; then the example plugin package of the custom uptime
-#    demo, installed as any third-party plugin package would be (after DC, into its environment).
-EXAMPLE_PLUGIN := examples/dc_uptime_custom
-$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-lifecycle-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml $(EXAMPLE_PLUGIN)/pyproject.toml
-	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql,recorder,nats]'
-	$(PIP) install -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
+# 3. DC itself, editable, with its core dependencies: what the default job (`make run`) needs.
+$(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-lifecycle-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml
+	$(PIP) install -c $(CONSTRAINTS) -e .
 	touch $@
 
-test-deps:
+# 4. The extras of the demos and of the tests, each over step 3; then the example plugin package of the custom
+#    uptime demo, installed as any third-party plugin package would be (after DC, into its environment).
+EXAMPLE_PLUGIN := examples/dc_uptime_custom
+# $(call install_extras,EXTRAS,what they bring): DC with these extras, then the example plugin package.
+define install_extras
+	@echo "installing into .venv: $(2); and $(EXAMPLE_PLUGIN)"
+	$(PIP) install -c $(CONSTRAINTS) -e '.[$(1)]'
+	$(PIP) install -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
+	touch $@
+endef
+
+DEMO_EXTRAS := demo
+DEMO_EXTRAS_BRING := the demos' extras: OpenCV, zxing-cpp, pyzbar (camera, simulated codes), psycopg (PostgreSQL), \
+	boto3 (S3), SeaweedFS (local S3 server), mcap (the incident recorder)
+$(VENV)/.stamp-demos: $(VENV)/.stamp-dc $(EXAMPLE_PLUGIN)/pyproject.toml
+	$(call install_extras,$(DEMO_EXTRAS),$(DEMO_EXTRAS_BRING))
+
+TEST_EXTRAS := test,camera,mqtt,aws,msgpack,pgsql,recorder,nats
+TEST_EXTRAS_BRING := the tests' extras: pytest, mypy, ruff, moto, Selenium, SeaweedFS, NATS server, OpenCV, \
+	zxing-cpp, pyzbar, paho-mqtt, boto3, msgpack, psycopg, mcap, nats-py
+$(VENV)/.stamp-test: $(VENV)/.stamp-dc $(EXAMPLE_PLUGIN)/pyproject.toml
+	$(call install_extras,$(TEST_EXTRAS),$(TEST_EXTRAS_BRING))
+
+# Debian packages, each installed only if missing: $(call install_debs,PACKAGES)
+define install_debs
 	@missing=""; \
-	for deb in $(TEST_DEBS); do \
+	for deb in $(1); do \
 		dpkg -s "$$deb" 2>/dev/null | grep -q '^Status: install ok installed' || missing="$$missing $$deb"; \
 	done; \
 	if [ -n "$$missing" ]; then \
@@ -136,6 +170,16 @@ test-deps:
 		$(SUDO) apt-get update; \
 		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $$missing; \
 	fi
+endef
+
+test-deps:
+	$(call install_debs,$(TEST_DEBS))
+
+demo-deps:
+	$(call install_debs,$(DEMO_DEBS))
+
+servers-deps:
+	$(call install_debs,$(SERVERS_DEBS))
 
 # Quiet recipe: stdout carries only the records (dc-bringup logs to stderr).
 run: install
@@ -144,15 +188,15 @@ run: install
 		$(VENV)/bin/dc-bringup $(PARAMS)
 
 # The local PostgreSQL, S3 (SeaweedFS) and InfluxDB of the storage demos, until Ctrl-C.
-servers: install test-deps
+servers: install-demos servers-deps
 	$(VENV)/bin/dc servers run
 
 # The servers, the simulated robot, dc-bringup with the QR-code storage demo and the dashboard, until Ctrl-C.
-demo: install test-deps
+demo: install-demos demo-deps
 	@mkdir -p $(ROS_LOG_DIR)
 	ROS_AUTOMATIC_DISCOVERY_RANGE=$(RUN_DISCOVERY_RANGE) ROS_LOG_DIR=$(ROS_LOG_DIR) $(VENV)/bin/dc demo
 
-test: install test-deps
+test: install-test test-deps
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy

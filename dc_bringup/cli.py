@@ -54,6 +54,18 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_new_plugin(args: argparse.Namespace) -> int:
+    from dc_bringup.new_plugin import main
+
+    return main(args.kind, args.name, args.dir)
+
+
+def cmd_check_plugin(args: argparse.Namespace) -> int:
+    from dc_bringup.plugin_contract import main
+
+    return main(args.names)
+
+
 def cmd_pub(args: argparse.Namespace) -> int:
     from dc_core.records import MalformedRecord, parse_record
 
@@ -639,6 +651,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     p.set_defaults(func=cmd_check)
 
+    p = sub.add_parser("new-plugin", help="a new plugin package (or a plugin added to one) that passes check-plugin")
+    p.add_argument("kind", choices=["measurement", "condition", "destination"])
+    p.add_argument("name", help="PACKAGE/Class, the plugin type written in YAML (my_robot_dc/Battery)")
+    p.add_argument("--dir", default=".", help="where the package's folder is (or is made): DIR/<package-with-dashes>")
+    p.set_defaults(func=cmd_new_plugin)
+
+    p = sub.add_parser("check-plugin", help="DC's plugin contract on installed plugins, DC's own or not")
+    p.add_argument("names", nargs="+", metavar="NAME", help="plugin types as written in YAML (my_robot_dc/Battery)")
+    p.set_defaults(func=cmd_check_plugin)
+
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
     p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
     p.add_argument("json", help="the record, a JSON object")
@@ -733,6 +755,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--state-dir", default="var/dc/servers", help="their data, logs and settings.yaml")
     p.set_defaults(func=cmd_servers)
+
+    p = sub.add_parser("service", help="DC as a systemd service: the unit, its environment file for secrets")
+    from dc_bringup.service import add_arguments as add_service_arguments
+    from dc_bringup.service import main as service_main
+
+    add_service_arguments(p)
+    p.set_defaults(func=service_main)
 
     p = sub.add_parser("dashboard", help="what DC stored in PostgreSQL and S3, and its health, in a browser")
     from dc_dashboard.cli import add_arguments

@@ -32,8 +32,6 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from dc_destinations.object_files import RECORD_ID_METADATA, ROBOT_NAME_METADATA, stored_object
-
 _REMOTE_PATHS = "remote_paths"
 
 
@@ -129,6 +127,9 @@ def reconcile(
 ) -> Report:
     """Compare the stores (``connection``: psycopg, ``s3``: a boto3 client) and optionally repair."""
     from psycopg import sql
+
+    # Here, not at the top: `dc --help` builds this command's parser without the aws extra.
+    from dc_destinations.object_files import RECORD_ID_METADATA, ROBOT_NAME_METADATA, stored_object
 
     report = Report(robot, since, until)
     connection.execute("SET TIME ZONE 'UTC'")  # a timestamp without zone is UTC in DC's tables

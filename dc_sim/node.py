@@ -174,6 +174,20 @@ def parse_args(argv: Sequence[str]) -> SimOptions:
     )
 
 
+def _codes_drawable(logger: Any) -> bool:
+    """Whether zxing-cpp, which draws the shelves' codes, is installed: `make install` alone (the default job)
+    leaves it out, and the robot without its camera still serves the demos that do not read codes."""
+    try:
+        import zxingcpp  # noqa: F401
+    except ImportError:
+        logger.warning(
+            "no camera/image_raw: drawing the shelves' codes needs zxing-cpp "
+            "(make install-demos, or pip install 'ros2-dc[camera]')"
+        )
+        return False
+    return True
+
+
 def _time_message(stamp_ns: int) -> Any:
     return Time(sec=stamp_ns // NS, nanosec=stamp_ns % NS)
 
@@ -243,7 +257,7 @@ class SimRobot(Node):
         self._truth: IO[str] | None = options.truth.open("a", encoding="utf-8") if options.truth else None
         self._camera: CameraView | None = None
         self._camera_timer: Any = None
-        if options.camera_fps > 0:
+        if options.camera_fps > 0 and _codes_drawable(self.get_logger()):
             self._camera = CameraView(self.follower.waypoints, *options.camera_size)
             self._image_publisher = self.create_publisher(Image, "camera/image_raw", CAMERA_QOS)
             self._camera_timer = self.create_timer(

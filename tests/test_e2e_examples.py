@@ -84,7 +84,7 @@ def test_the_uptime_demo_prints_uptime_every_5_s_with_the_robot_name_and_machine
 
 
 def test_the_custom_uptime_demo_publishes_records_that_fail_its_schema_and_calls_the_hook(tmp_path: Path) -> None:
-    # The plugin comes from the separate package examples/dc_uptime_custom (make install installs it).
+    # The plugin comes from the separate package examples/dc_uptime_custom (make install-demos and make install-test install it).
     with Bringup(REPO / "params" / "demos" / "uptime_custom_stdout.yaml", tmp_path) as run:
         records = run.wait_records(2, timeout=60)
         run.wait_until(
