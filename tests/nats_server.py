@@ -54,6 +54,20 @@ async def settled_stream_info(js: Any, stream: str, timeout: float = 30.0) -> An
             await asyncio.sleep(0.1)
 
 
+async def _get_msg(js: Any, stream: str, seq: int, timeout: float = 30.0) -> Any:
+    """A direct get, again while the cluster answers 503 (a leader elected after nodes came back)."""
+    from nats.js.errors import ServiceUnavailableError
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return await js.get_msg(stream, seq)
+        except ServiceUnavailableError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.2)
+
+
 def read_stream(urls: list[str], stream: str, **auth: Any) -> list[StoredMessage]:
     """Every message the stream holds, in order (read with direct gets by sequence)."""
 
@@ -68,7 +82,7 @@ def read_stream(urls: list[str], stream: str, **auth: Any) -> list[StoredMessage
             for seq in range(info.state.first_seq, info.state.last_seq + 1):
                 if seq == 0:
                     continue
-                msg = await js.get_msg(stream, seq)
+                msg = await _get_msg(js, stream, seq)
                 assert msg.subject is not None and msg.data is not None
                 found.append(StoredMessage(msg.subject, msg.data, (msg.headers or {}).get("Nats-Msg-Id", "")))
             return found
