@@ -22,7 +22,6 @@ from tests.destination_helpers import running_postgres
 if missing_reason() is not None:
     pytest.skip(f"no local PostgreSQL: {missing_reason()}", allow_module_level=True)
 
-import psycopg  # an optional dependency
 
 PAGE = (Path(__file__).resolve().parent.parent / "docs" / "data-model.md").read_text()
 DAY = dt.datetime(2026, 11, 25, tzinfo=dt.UTC)
@@ -69,18 +68,6 @@ def destination(server: PostgresServer, table: str, logger: RecordingLogger) -> 
     return dest
 
 
-def connect(server: PostgresServer) -> Any:
-    s = server.settings()
-    return psycopg.connect(
-        host="127.0.0.1",
-        port=server.port,
-        user=str(s["user"]),
-        password=str(s["password"]),
-        dbname="dc",
-        autocommit=True,
-    )
-
-
 @pytest.fixture(scope="module")
 def filled(server: PostgresServer) -> PostgresServer:
     batch = [
@@ -114,7 +101,7 @@ def filled(server: PostgresServer) -> PostgresServer:
 
 
 def run(server: PostgresServer, name: str, zone: str = "UTC") -> list[tuple[Any, ...]]:
-    with connect(server) as connection:
+    with server.connect() as connection:
         connection.execute(f"SET TIME ZONE '{zone}'")
         return list(connection.execute(queries()[name].encode()).fetchall())
 
@@ -156,7 +143,7 @@ def test_codes_read_per_shelf_per_day(filled: PostgresServer) -> None:
 
 
 def test_the_documented_migration_makes_a_table_dc_writes_to_without_a_hint(server: PostgresServer) -> None:
-    with connect(server) as connection:
+    with server.connect() as connection:
         connection.execute("CREATE SCHEMA original")
         connection.execute("CREATE TABLE original.dc (tag varchar, time timestamp, data jsonb, record_id text)")
         connection.execute("CREATE UNIQUE INDEX dc_record_id ON original.dc (record_id)")
