@@ -482,6 +482,16 @@ def test_partition_by_day_makes_partitions_ahead_and_drops_the_expired(
     assert any("dropped partitions" in m and f"daily_p{old:%Y%m%d}" in m for m in logger.at("info"))
 
 
+def test_a_week_partition_is_an_iso_week_of_utc_days() -> None:
+    from dc_destinations.pgsql.table import Partitions, period_start
+
+    thursday_late = dt.datetime(2026, 11, 26, 23, 30, tzinfo=dt.timezone(dt.timedelta(hours=-8)))  # Friday, UTC
+    assert period_start(thursday_late, "week") == dt.date(2026, 11, 23), "the Monday of the UTC day"
+    assert period_start(thursday_late, "day") == dt.date(2026, 11, 27)
+    ahead = Partitions("telemetry.records", "week", 0).ahead(dt.date(2026, 11, 29))
+    assert ahead == {dt.date(2026, 11, 23), dt.date(2026, 11, 30), dt.date(2026, 12, 7)}
+
+
 def test_partition_by_on_a_table_that_is_not_partitioned_names_the_migration(
     server: PostgresServer, destinations: list[PgSQL]
 ) -> None:
