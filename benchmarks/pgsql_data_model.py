@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 7]
                                                     [--insert-records 50000] [--insert-runs 3] [--label NAME]
+                                                    [--run-index]
 
 Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers) and:
 
@@ -12,7 +13,9 @@ Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers) and:
   ``front_camera`` (two codes) every 20 s — 0.85 records/s, the rate issue 29 measured — in runs of
   2 hours (run 12 is the last of the day), with the keys the measurement server adds. Then
   ``VACUUM ANALYZE``, and each query of docs/data-model.md as written there (robot-007, run 12):
-  one warm-up, then --runs runs, wall time at the client (execute and fetch), median and max.
+  one warm-up, then --runs runs, wall time at the client (execute and fetch), median and max, and
+  the server's execution time of one more run (``EXPLAIN ANALYZE``). With --run-index, the path
+  query again after ``CREATE INDEX … (robot_name, run_id, name, time)``.
 - insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
   500) into a fresh table of the original's shape (``tag, time timestamp, data, record_id``: what
   DC wrote until now), of DC's new shape, and of DC's new shape partitioned by day; the three take
@@ -26,6 +29,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import os
 import re
 import shutil
 import statistics
@@ -111,8 +115,10 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
     return int(rows), time.monotonic() - started
 
 
-def time_queries(server: PostgresServer, runs: int) -> dict[str, dict[str, float]]:
+def time_queries(server: PostgresServer, runs: int, only: str = "", suffix: str = "") -> dict[str, dict[str, float]]:
     found = dict(re.findall(r"<!-- query: (\w+) -->\n```sql\n(.*?)```", PAGE.read_text(), re.S))
+    if only:
+        found = {only + suffix: found[only]}
     figures = {}
     with server.connect() as connection:
         for name, query in found.items():
@@ -123,9 +129,15 @@ def time_queries(server: PostgresServer, runs: int) -> dict[str, dict[str, float
                 started = time.perf_counter()
                 got = connection.execute(text).fetchall()
                 times.append((time.perf_counter() - started) * 1000)
-            figures[name] = {"median_ms": statistics.median(times), "max_ms": max(times), "rows": len(got)}
-            print(f"{name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms  ({len(got)} rows)",
-                  flush=True)  # fmt: skip
+            explained = connection.execute(b"EXPLAIN (ANALYZE, FORMAT JSON) " + text).fetchone()[0][0]
+            figures[name] = {
+                "median_ms": statistics.median(times),
+                "max_ms": max(times),
+                "server_ms": explained["Execution Time"],  # the server's own time, without the client's
+                "rows": len(got),
+            }
+            print(f"{name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
+                  f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)", flush=True)  # fmt: skip
     return figures
 
 
@@ -190,14 +202,23 @@ def main() -> None:
     parser.add_argument("--insert-records", type=int, default=50_000)
     parser.add_argument("--insert-runs", type=int, default=3)
     parser.add_argument("--label", default="")
+    parser.add_argument("--run-index", action="store_true", help="then add an index with run_id and time path again")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="dc-bench-model-"))
     server = PostgresServer(folder, password="bench-model-1")
     try:
         server.start()
-        inserts = time_inserts(server, args.insert_records, args.insert_runs)
+        inserts = time_inserts(server, args.insert_records, args.insert_runs) if args.insert_runs else {}
         rows, seconds = generate(server, args.robots, args.hours)
+        load = os.getloadavg()[0]
         queries = time_queries(server, args.runs)
+        if args.run_index:
+            # The index a team that asks mostly by run adds (docs/data-model.md): the path query again.
+            with server.connect() as connection:
+                connection.execute("CREATE INDEX dc_robot_run_name_time ON dc (robot_name, run_id, name, time)")
+                connection.execute("ANALYZE dc")
+            queries.update(time_queries(server, args.runs, "path", "_with_run_index"))
+        load = max(load, os.getloadavg()[0])
     finally:
         server.stop()
         shutil.rmtree(folder, ignore_errors=True)
@@ -208,6 +229,7 @@ def main() -> None:
         "rows": rows,
         "generate_s": seconds,
         "queries": queries,
+        "load_average_1min": load,  # the machine is shared: the highest 1-minute load seen while timing
         "insert": inserts,
     }
     label = f"_{args.label}" if args.label else ""
