@@ -314,15 +314,16 @@ class PgSQL(Destination[PgSQLParams]):
             )
             shape = read_shape(connection, table)
             assert shape is not None
-        elif not shape.typed:
-            if shape.conflict_key is None:
-                add_record_id(connection, table, p.table)
-                self.context.logger.info(f"table {p.table} of {self.address}: record_id column and index added")
-                shape = read_shape(connection, table)
-                assert shape is not None
-            if not self._hinted:
-                self._hinted = True
-                self.context.logger.warning(legacy_hint(p.table))
+        elif shape.conflict_key is None:
+            # A table made by the original, or by hand: the column and index that make a retried
+            # batch add nothing twice.
+            add_record_id(connection, table, p.table, shape.partitioned)
+            self.context.logger.info(f"table {p.table} of {self.address}: record_id column and unique index added")
+            shape = read_shape(connection, table)
+            assert shape is not None
+        if not shape.typed and not self._hinted:
+            self._hinted = True
+            self.context.logger.warning(legacy_hint(p.table))
         if p.partition_by != "none" and not shape.partitioned:
             raise not_partitioned_problem(p.table, self.address)
         self._shape = shape

@@ -133,16 +133,19 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str) -> N
         )
 
 
-def add_record_id(connection: Any, table: Any, name: str) -> None:
-    """A table made by the original (or by hand) gets the record_id column and unique index it lacks."""
+def add_record_id(connection: Any, table: Any, name: str, partitioned: bool) -> None:
+    """A table made by the original (or by hand) gets the record_id column and unique index it lacks
+    (with time in a partitioned table, whose unique indexes must hold the partition key)."""
     from psycopg import sql
 
     with connection.transaction():
         connection.execute(sql.SQL("ALTER TABLE {} ADD COLUMN IF NOT EXISTS record_id text").format(table))
         connection.execute(
-            sql.SQL("CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (record_id)").format(
-                _index_name(name.rsplit(".", 1)[-1], "record_id"), table
-            )
+            sql.SQL(
+                "CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} ("
+                + ("record_id, time" if partitioned else "record_id")
+                + ")"
+            ).format(_index_name(name.rsplit(".", 1)[-1], "record_id"), table)
         )
 
 
