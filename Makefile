@@ -1,6 +1,6 @@
 # DC — developer entry points.
 #
-#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, dc_lifecycle_interfaces, tf2_msgs (cmake) + DC (editable, with the test, camera and destination extras)
+#   make install     venv + ROS 2 Jazzy wheels + dc_interfaces, dc_lifecycle_interfaces, tf2_msgs (cmake) + DC (editable, with the test, camera, destination and recorder extras)
 #                    + the example plugin package examples/dc_uptime_custom
 #   make test-deps   Debian packages the tests need (installed only if missing)
 #   make test        ruff, mypy, pytest
@@ -122,7 +122,7 @@ $(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
 #    demo, installed as any third-party plugin package would be (after DC, into its environment).
 EXAMPLE_PLUGIN := examples/dc_uptime_custom
 $(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-lifecycle-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml $(EXAMPLE_PLUGIN)/pyproject.toml
-	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql]'
+	$(PIP) install -c $(CONSTRAINTS) -e '.[test,camera,mqtt,aws,msgpack,pgsql,recorder]'
 	$(PIP) install -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
 	touch $@
 

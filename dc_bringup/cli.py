@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from typing import Any, cast
 
 from dc_core.errors import DcError
-from dc_core.params import describe_params
+from dc_core.params import describe_params, url_host
 from dc_core.plugins import GROUPS, describe, list_plugins, load_plugin
 
 
@@ -146,6 +146,7 @@ STATUS_COLUMNS = [
     ("retried", "retried"),
     ("failed", "failed"),
     ("dropped", "dropped"),
+    ("evicted", "evicted"),  # by flb.disk_budget_mb
     ("malformed", "malformed"),
     ("dead_lettered", "dead-lettered"),
     ("dead_letters", "dead now"),
@@ -213,7 +214,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     documents: dict[str, Any] = {}
     unreachable = False
     for server, host, port in targets:
-        url = f"http://{f'[{host}]' if ':' in host else host}:{port}/api/v1/metrics"
+        url = f"http://{url_host(host)}:{port}/api/v1/metrics"
         try:
             documents[server] = _get_json(url)
         except (urllib.error.URLError, OSError) as exc:
@@ -282,6 +283,8 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
             how_long = f" for {_cell(float(lasted))} s" if isinstance(lasted, int | float) else ""
             fix = f" — {health['fix']}" if health.get("fix") else ""
             print(f"destination {name} {str(health['state']).upper()}{how_long}: {health.get('reason')}{fix}")
+        elif isinstance(values, dict) and values.get("held"):
+            print(f"destination {name} {values['held']} (only_when; docs/constrained_links.md)")
     for name, values in sorted(destinations.items()):
         own = values.get("plugin") if isinstance(values, dict) else None
         if own:
@@ -342,6 +345,8 @@ def _with_ages(values: dict[str, Any], now: float) -> dict[str, Any]:
     row = dict(values)
     health = row.get("health")
     row["health_state"] = health.get("state") if isinstance(health, dict) else None
+    if row["health_state"] == "ok" and row.get("held"):
+        row["health_state"] = "held"  # by its only_when: the reason is printed under the table
     delivered, failed = row.get("last_delivery"), row.get("last_error_time")
     if isinstance(delivered, int | float):
         row["last_delivery_age_s"] = max(now - delivered, 0.0)
@@ -462,6 +467,51 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     return 0 if response.success else 1
 
 
+def cmd_trigger(args: argparse.Namespace) -> int:
+    """Trigger a Recorder measurement: its service without a reason (the answer says what came of it), its
+    reason topic with one (std_msgs/String, delivered once acknowledged; the outcome is in its log and counters)."""
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
+    name = f"{namespace}/dc/recorder/{args.name}/trigger"
+    rclpy.init()
+    node = rclpy.create_node("dc_trigger")
+    try:
+        if args.reason is None:
+            client = node.create_client(Trigger, name)
+            if not client.wait_for_service(timeout_sec=args.timeout):
+                print(f"dc trigger: no recorder answers at {name} (is dc-bringup running it?)", file=sys.stderr)
+                return 2
+            future = client.call_async(Trigger.Request())
+            rclpy.spin_until_future_complete(node, future, timeout_sec=args.timeout)
+            if not future.done():
+                print(f"dc trigger: {name} did not answer in {args.timeout:g} s", file=sys.stderr)
+                return 2
+            response = future.result()
+            print(f"{args.name}: {response.message}")
+            return 0 if response.success else 1
+        publisher = node.create_publisher(String, name, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        deadline = time.monotonic() + args.timeout
+        while not publisher.get_subscription_count():
+            if time.monotonic() > deadline:
+                print(f"dc trigger: no recorder listens on {name} (is dc-bringup running it?)", file=sys.stderr)
+                return 2
+            time.sleep(0.05)
+        publisher.publish(String(data=args.reason))
+        if not publisher.wait_for_all_acked(Duration(seconds=args.timeout)):
+            print(f"dc trigger: {name} did not acknowledge the reason in {args.timeout:g} s", file=sys.stderr)
+            return 2
+        print(f"{args.name}: triggered ({args.reason})")
+        return 0
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+
+
 def _last_failure(node: Any, manager: str, timeout: float) -> str:
     """What the manager's last command failed at, as its is_active tells it ("" if it does not)."""
     import rclpy
@@ -499,6 +549,12 @@ def _metrics_urls(params: str) -> list[tuple[str, str]]:
 
     targets = metrics_targets(params, "", "127.0.0.1", None, "dc dashboard")
     return [(t.server, t.url) for t in targets if t.server == "destination_server"]
+
+
+def cmd_reconcile(args: argparse.Namespace) -> int:
+    from dc_bringup.reconcile import run
+
+    return run(args)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -615,6 +671,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the manager and its answer")
     p.set_defaults(func=cmd_lifecycle)
 
+    p = sub.add_parser("trigger", help="trigger a Recorder measurement: the raw data around now, as an MCAP file")
+    p.add_argument("name", help="the Recorder measurement's name in the parameter file")
+    p.add_argument("--reason", help="the reason kept in the incident's record (default: service)")
+    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the recorder and its answer")
+    p.set_defaults(func=cmd_trigger)
+
     p = sub.add_parser(
         "servers", help="run the local PostgreSQL, S3 (SeaweedFS) and InfluxDB for trying DC, until Ctrl-C"
     )
@@ -628,6 +691,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_arguments(p)
     p.set_defaults(func=cmd_dashboard)
+
+    p = sub.add_parser(
+        "reconcile",
+        help="objects without a row, rows without an object, files marked uploaded but missing: for a robot and "
+        "a time range, between the bucket, the records table and files_metrics (--repair: see dc reconcile --help)",
+    )
+    from dc_bringup.reconcile import add_arguments as add_reconcile_arguments
+
+    add_reconcile_arguments(p)
+    p.set_defaults(func=cmd_reconcile)
 
     p = sub.add_parser(
         "demo", help="the QR-code demo into PostgreSQL and S3 with the dashboard, all started and stopped together"

@@ -3,9 +3,12 @@
 What docs/demos.md and docs/dashboard.md do in four terminals, in one process: the local PostgreSQL
 and S3 servers (:mod:`dc_bringup.local_servers`), the simulated robot (``dc sim``), ``dc-bringup``
 with params/demos/tb3_qrcodes_minio_pgsql.yaml and its destination server's metrics on, and
-``dc dashboard`` over what they store. The children write to log files under the state folder, not
-to the terminal. A child that exits stops the demo; Ctrl-C, SIGTERM or ``--duration`` stops
-everything in the reverse order of the start, each child with a bounded wait, then SIGKILL.
+``dc dashboard`` over what they store. So that every page of the dashboard shows real data, the
+demo's copy of that file also collects what the original's demo did not (distance traveled, CPU,
+memory, into the same table), and the dashboard's indexes are built once DC has created its tables.
+The children write to log files under the state folder, not to the terminal. A child that exits
+stops the demo; Ctrl-C, SIGTERM or ``--duration`` stops everything in the reverse order of the
+start, each child with a bounded wait, then SIGKILL.
 """
 
 from __future__ import annotations
@@ -32,10 +35,22 @@ from dc_bringup.local_servers.run import DEFAULT_PORTS, environment, environment
 from dc_bringup.processes import die_with_parent
 from dc_core.errors import DcError
 from dc_core.signals import stop_on_signals
+from dc_dashboard import settings as dashboard_settings
 
 # The demo files live in the checkout, beside the packages (an editable install, as `make install` does).
 DEMO_PARAMS = Path(__file__).resolve().parents[1] / "params" / "demos" / "tb3_qrcodes_minio_pgsql.yaml"
 SERVERS = ("postgres", "s3")  # what the demo delivers to; InfluxDB would only cost start time
+# Measurements added to the demo file for the dashboard's Overview (distance) and System (CPU, memory) pages.
+DASHBOARD_MEASUREMENTS: dict[str, dict[str, Any]] = {
+    "distance_traveled": {
+        "plugin": "dc_measurements/DistanceTraveled",
+        "polling_interval": 2000,
+        "global_frame": "odom",
+        "robot_base_frame": "base_link",
+    },
+    "cpu": {"plugin": "dc_measurements/Cpu", "polling_interval": 5000},
+    "memory": {"plugin": "dc_measurements/Memory", "polling_interval": 5000},
+}
 # Seconds a child gets after SIGINT before SIGKILL. dc-bringup stops its three servers one after
 # the other, the destination server delivering what it holds for up to flb.grace.
 STOP_TIMEOUT_S = {"dashboard": 5.0, "dc-bringup": 45.0, "sim": 10.0}
@@ -111,9 +126,11 @@ class Demo:
             env,
         )  # fmt: skip
         url = f"http://127.0.0.1:{self.options.port}/"
-        announced = False
+        announced = indexed = False
+        postgres = dashboard_settings.from_sources(None, env).postgres
         while not self.stop.wait(0.5):
             self._check()
+            indexed = indexed or self._index_tables(postgres)
             if not announced and _answers(url):
                 announced = True
                 self.say(
@@ -157,13 +174,49 @@ class Demo:
         return env
 
     def _params_with_metrics(self, port: int) -> Path:
-        """The demo file with the destination server's HTTP server on: the dashboard's health page reads it."""
+        """The demo file with the destination server's HTTP server on (the dashboard's health page reads
+        it) and :data:`DASHBOARD_MEASUREMENTS` stored in PostgreSQL."""
         params = yaml.safe_load(DEMO_PARAMS.read_text())
         flb = params["destination_server"]["ros__parameters"]["flb"]
         flb.update(http_server=True, http_listen="127.0.0.1", http_port=port)
+        measurements = params["measurement_server"]["ros__parameters"]
+        pgsql = params["destination_server"]["ros__parameters"]["flb_pgsql"]
+        for name, section in DASHBOARD_MEASUREMENTS.items():
+            topic = f"/dc/measurement/{name}"
+            measurements["measurement_plugins"].append(name)
+            measurements[name] = {
+                **section,
+                "group_key": name,
+                "topic_output": topic,
+                "tags": ["flb_pgsql"],
+                "include_measurement_name": True,
+            }
+            pgsql["inputs"].append(topic)
         path = self.state_dir / DEMO_PARAMS.name
         path.write_text(yaml.safe_dump(params, sort_keys=False))
         return path
+
+    def _index_tables(self, postgres: Any) -> bool:
+        """True once DC's two tables exist with the dashboard's indexes (built here, when both exist: a
+        demo of DC's own shows no missing-index banner)."""
+        import psycopg
+
+        from dc_dashboard import indexes
+
+        try:
+            with psycopg.connect(**postgres.connect_kwargs(), autocommit=True) as connection:
+                both = connection.execute(
+                    "SELECT to_regclass(%s) IS NOT NULL AND to_regclass(%s) IS NOT NULL",
+                    (postgres.table, postgres.files_table),
+                ).fetchone()
+        except psycopg.Error:
+            return False
+        if not (both and both[0]):
+            return False
+        built = indexes.create(postgres, say=lambda line: None) == 0
+        if built:
+            self.say("dc demo: the dashboard's indexes are built")
+        return built
 
     def _start(self, name: str, command: list[str], env: dict[str, str]) -> None:
         log = self.state_dir / f"{name}.log"

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.errors import DcError
+from dc_core.params import url_host
 
 # What a terminal of a laptop or an SSH session shows without wrapping; `--wide` shows everything.
 WIDTH = 100
@@ -35,8 +36,7 @@ class Target:
 
     @property
     def url(self) -> str:
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/api/v1/metrics"
+        return f"http://{url_host(self.host)}:{self.port}/api/v1/metrics"
 
 
 def metrics_targets(

@@ -73,11 +73,16 @@ class RejectedError(DcError):
 class SendOutcome:
     """Per-record result of a batch: indexes into the batch with the reason. Others succeeded.
 
+    ``retry``: the destination failed with these records; they are tried again after the backoff.
+    ``waiting``: these records cannot be confirmed *yet*, through no failure (FilesMetrics waits for
+    another destination to upload a record's file): tried again like ``retry`` and counted against
+    ``retry_limit``, but no failure: the destination stays healthy and no error is reported.
     ``retry_after``: as for :class:`RetryableError`, the server's wish before ``retry`` is tried again.
     """
 
     retry: dict[int, str] = field(default_factory=dict)
     reject: dict[int, str] = field(default_factory=dict)
+    waiting: dict[int, str] = field(default_factory=dict)
     retry_after: float | None = None
 
 
@@ -243,6 +248,14 @@ class Destination(Plugin[ParamsT]):
 
     def on_cleanup(self) -> None:
         self.close_kept()
+
+    def pace(self, nbytes: int) -> bool:
+        """Wait until ``nbytes`` more may go within this destination's caps (``max_bytes_per_s``, its
+        link's), after the records waiting for them; False when the server stops meanwhile (the
+        send should then end, its records retried). Called by a plugin before each piece of what it
+        sends besides the records themselves (MinIO: each file or part). Returns at once uncapped."""
+        pace: Callable[[int], bool] | None = self.__dict__.get("_dc_pace")
+        return pace is None or pace(nbytes)
 
     @property
     def stopping(self) -> threading.Event:

@@ -85,13 +85,22 @@ class Intake:
         """Whether there is anything to wait on."""
         return bool(self._callback_of)
 
-    def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile) -> Subscription:
-        """A subscription of the node (``ros2 node info`` lists it there) served by this intake."""
-        return self._subscribe(msg_type, topic, callback, qos)
+    def subscribe(
+        self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile, *, raw: bool = False
+    ) -> Subscription:
+        """A subscription of the node (``ros2 node info`` lists it there) served by this intake.
 
-    def _subscribe(self, msg_type: Any, topic: str, callback: Callable[..., None], qos: QoSProfile) -> Subscription:
+        ``raw``: the callback gets the serialised message (bytes, CDR), not deserialised.
+        """
+        return self._subscribe(msg_type, topic, callback, qos, raw=raw)
+
+    def _subscribe(
+        self, msg_type: Any, topic: str, callback: Callable[..., None], qos: QoSProfile, *, raw: bool = False
+    ) -> Subscription:
         # rclpy would call the callback itself only through an executor, which never runs this group.
-        subscription = self._node.create_subscription(msg_type, topic, _never_called, qos, callback_group=self._group)
+        subscription = self._node.create_subscription(
+            msg_type, topic, _never_called, qos, callback_group=self._group, raw=raw
+        )
         self._callback_of[subscription] = callback
         return subscription
 

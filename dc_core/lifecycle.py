@@ -102,8 +102,10 @@ class ServerPluginContext:
     def node(self) -> Any:
         return self.server
 
-    def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile) -> Any:
-        subscription = self.server.intake.subscribe(msg_type, topic, callback, qos)
+    def subscribe(
+        self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile, *, raw: bool = False
+    ) -> Any:
+        subscription = self.server.intake.subscribe(msg_type, topic, callback, qos, raw=raw)
         try:
             check_remapped_type(self.server, msg_type, topic, subscription.topic_name)
         except ConfigError:

@@ -13,6 +13,7 @@ from their subscription callbacks.
 from __future__ import annotations
 
 import abc
+import datetime as dt
 import json
 import sys
 from dataclasses import dataclass, field
@@ -31,6 +32,11 @@ class BasePaths:
     save_local_base_path: str = ""
     all_base_path: str = ""
     remote_prefixes: dict[str, str] = field(default_factory=dict)
+    # The zone strftime tokens are expanded in (measurement_server.paths_timezone); None: local time.
+    zone: dt.tzinfo | None = dt.UTC
+    # Folders after the remote prefix in every object key instead of all_base_path, strftime tokens
+    # included (measurement_server.key_layout: hive gives "robot=<name>/date=%Y-%m-%d"); empty: none.
+    key_partitions: str = ""
 
 
 class MeasurementContext(PluginContext, Protocol):
@@ -57,6 +63,11 @@ class Measurement(Plugin[ParamsT]):
     # so the server writes it with orjson (dump_parsed, ~0.7 us) rather than json (~3.4 us); the
     # text is the same. A sample holding anything else (a NaN, a tuple, a UUID) must leave it False.
     samples_are_parsed_json: ClassVar[bool] = False
+    # True: the measurement's conditions are its trigger, not a gate. Each poll the server calls
+    # on_poll() with whether they hold (None: it has none) and never collect(); the records the plugin
+    # emits are published whatever the conditions say then (an incident recorded after the robot
+    # moved on is still an incident).
+    conditions_trigger: ClassVar[bool] = False
     context: MeasurementContext
 
     def __init__(self, context: MeasurementContext, params: ParamsT) -> None:
@@ -78,6 +89,9 @@ class Measurement(Plugin[ParamsT]):
         ``None`` means "now" and "the configured group_key".
         """
         return self.collect(), None, None
+
+    def on_poll(self, conditions_met: bool | None) -> None:
+        """One polling period of a ``conditions_trigger`` measurement, on the main thread."""
 
     def record_bytes_estimate(self) -> int | None:
         """The usual size of a record in bytes, for a plugin whose records are large (images in base64).

@@ -92,6 +92,11 @@ def host_problem(host: str) -> str | None:
     return None if host and not any(c.isspace() or c in "/?#" for c in host) else "a host name or IP address"
 
 
+def url_host(host: str) -> str:
+    """``host`` as a URL writes it: an IPv6 address in brackets (RFC 3986)."""
+    return f"[{host}]" if ":" in host else host
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class NoParams:
     """Parameters of a plugin that has none of its own."""

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import os
 import re
 import time
+import zoneinfo
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -44,10 +46,40 @@ def expand_values(text: str, lookup: Callable[[str], str | None], path: str = ""
     return _VALUE.sub(repl, text)
 
 
-def expand_time(text: str, when: float | None = None, utc: bool = False) -> str:
-    """strftime expansion (local time unless ``utc``)."""
+PATHS_TIMEZONES = "utc, local or a zone name such as Europe/Paris"
+
+
+def zone_problem(name: str) -> str | None:
+    """Why ``name`` is no ``paths_timezone`` (None when it is one): a check for dc_core.params."""
+    try:
+        path_zone(name)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def path_zone(name: str) -> dt.tzinfo | None:
+    """The zone of ``paths_timezone``: UTC for ``utc``, None for ``local`` (the machine's zone at each
+    moment, as the original), else the IANA zone so named; ValueError for a name the system does not know."""
+    if name.lower() == "utc":
+        return dt.UTC
+    if name.lower() == "local":
+        return None
+    try:
+        return zoneinfo.ZoneInfo(name)
+    except (zoneinfo.ZoneInfoNotFoundError, ValueError):
+        raise ValueError(f"expected {PATHS_TIMEZONES}; no time zone is named {name!r}") from None
+
+
+def expand_time(text: str, when: float | None = None, zone: dt.tzinfo | None = dt.UTC) -> str:
+    """strftime expansion of ``when`` (now by default) in ``zone`` (None: the machine's local time).
+
+    Every strftime of a saved file's path or an object key goes through here, so that all of them
+    say the same hour for the same moment."""
     moment = time.time() if when is None else when
-    return time.strftime(text, time.gmtime(moment) if utc else time.localtime(moment))
+    if zone is None:
+        return time.strftime(text, time.localtime(moment))
+    return dt.datetime.fromtimestamp(moment, zone).strftime(text)
 
 
 def fixed_prefix(path: str) -> str:

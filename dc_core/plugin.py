@@ -49,8 +49,12 @@ class PluginContext(Protocol):
     def node(self) -> Any:
         """The server's rclpy node (``None`` without ROS): for what the context does not offer."""
 
-    def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile) -> Any:
+    def subscribe(
+        self, msg_type: Any, topic: str, callback: MessageCallback, qos: QoSProfile, *, raw: bool = False
+    ) -> Any:
         """Subscribe to any ROS message type; ``callback(message, message_info)`` on the main thread.
+
+        ``raw``: ``message`` is the serialised message (bytes), not deserialised (no cost per field).
 
         The server takes these messages itself, outside rclpy's executor, which costs a fraction
         per message (docs/performance.md). Returns the subscription, for :meth:`unsubscribe`.

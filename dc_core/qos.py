@@ -18,6 +18,9 @@ RECORD_HISTORY_DEPTH = 1000
 # best-effort publishers alike. Real robots publish /odom best effort, teleop and Nav2 publish /cmd_vel
 # reliable; a reliable subscription would miss the former. A lost message costs one sample.
 SENSOR_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+# A condition's state on dc/condition/<name>: its last value kept for late subscribers (the
+# destination server's only_when reads it from another process).
+CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def record_qos(depth: int = RECORD_HISTORY_DEPTH) -> QoSProfile:

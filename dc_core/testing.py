@@ -83,10 +83,10 @@ class FakeContext:
     _worker: Worker | None = None
     _supervisor: Supervisor | None = None
 
-    def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: Any) -> Any:
+    def subscribe(self, msg_type: Any, topic: str, callback: MessageCallback, qos: Any, *, raw: bool = False) -> Any:
         node = self._require_node("subscribe")
         # rclpy hands a callback of two parameters the message and its MessageInfo, as the intake does.
-        return node.create_subscription(msg_type, topic, lambda msg, info: callback(msg, info), qos)
+        return node.create_subscription(msg_type, topic, lambda msg, info: callback(msg, info), qos, raw=raw)
 
     def unsubscribe(self, subscription: Any) -> None:
         self._require_node("unsubscribe").destroy_subscription(subscription)

@@ -62,3 +62,26 @@ def sources_of(latest: Mapping[str, list[Mapping[str, Any]]]) -> Sources:
                 if (name, path) not in found[kind]:
                     found[kind].append((name, path))
     return found
+
+
+# Keys DC writes on every record that are not measurements: plotting them tells nothing.
+_BOOKKEEPING = {"date", "run_id", "id", "record_id", "schema_version"}
+MAX_FIELDS = 16
+
+
+def numeric_fields(records: list[Mapping[str, Any]], depth: int = 3) -> list[tuple[str, ...]]:
+    """JSON paths of the numbers in a record name's newest records (the explorer's plots), at most MAX_FIELDS."""
+    found: list[tuple[str, ...]] = []
+
+    def walk(value: Mapping[str, Any], path: tuple[str, ...], left: int) -> None:
+        for key, item in value.items():
+            if len(found) >= MAX_FIELDS:
+                return
+            if _number(item) and key not in _BOOKKEEPING and (*path, key) not in found:
+                found.append((*path, key))
+            elif isinstance(item, dict) and left > 1:
+                walk(item, (*path, key), left - 1)
+
+    for record in records:
+        walk(record, (), depth)
+    return found

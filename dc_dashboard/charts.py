@@ -49,13 +49,18 @@ def _number(value: float) -> str:
 
 
 def time_chart(
-    series: Sequence[Series], *, chart_id: str, unit: str, y_range: tuple[float, float] | None = None
+    series: Sequence[Series],
+    *,
+    chart_id: str,
+    unit: str,
+    y_range: tuple[float, float] | None = None,
+    empty: str = "nothing stored for these filters",
 ) -> str:
-    """A line per series over time; points are (epoch seconds, value)."""
+    """A line per series over time; points are (epoch seconds, value); ``empty``: said when there are none."""
     width, height, left, right, top, bottom = 900, 260, 56, 16, 14, 34
     points = [p for s in series for p in s.points]
     if not points:
-        return _empty(chart_id, width, 120, "nothing stored for these filters")
+        return _empty(chart_id, width, 120, empty)
     t0, t1 = min(p[0] for p in points), max(p[0] for p in points)
     if y_range is None:
         v0, v1 = min(p[1] for p in points), max(p[1] for p in points)

@@ -29,6 +29,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=10.0,
         help="seconds a connection may stay silent while its request is read or answer written (default 10)",
     )
+    add_store_arguments(p)
+    health = p.add_argument_group("DC's health")
+    health.add_argument(
+        "--metrics",
+        action="append",
+        metavar="URL",
+        help="a server's metrics, e.g. http://127.0.0.1:2020/api/v1/metrics",
+    )
+    health.add_argument("--params", help="read the metrics URLs from this parameter file (as dc status --params)")
+    p.add_argument(
+        "--create-indexes",
+        action="store_true",
+        help="create the indexes the dashboard needs (CREATE INDEX CONCURRENTLY) and exit",
+    )
+    p.add_argument("--print-index-sql", action="store_true", help="print those CREATE INDEX statements and exit")
+
+
+def add_store_arguments(p: argparse.ArgumentParser) -> None:
+    """Where DC's PostgreSQL tables and S3 bucket are (dc dashboard, dc reconcile): read by settings.from_sources."""
     pg = p.add_argument_group("PostgreSQL (default: the DC_POSTGRES_* variables of servers.env)")
     pg.add_argument("--pg-host", help="$DC_POSTGRES_HOST, else 127.0.0.1")
     pg.add_argument("--pg-port", type=int, help="$DC_POSTGRES_PORT, else 5432")
@@ -45,20 +64,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s3.add_argument("--s3-access-key-id", help="$DC_S3_AWS_ACCESS_KEY_ID")
     s3.add_argument("--s3-secret-access-key", help="$DC_S3_AWS_SECRET_ACCESS_KEY (better in the environment)")
     s3.add_argument("--s3-bucket", help="$DC_S3_BUCKET")
-    health = p.add_argument_group("DC's health")
-    health.add_argument(
-        "--metrics",
-        action="append",
-        metavar="URL",
-        help="a server's metrics, e.g. http://127.0.0.1:2020/api/v1/metrics",
-    )
-    health.add_argument("--params", help="read the metrics URLs from this parameter file (as dc status --params)")
-    p.add_argument(
-        "--create-indexes",
-        action="store_true",
-        help="create the indexes the dashboard needs (CREATE INDEX CONCURRENTLY) and exit",
-    )
-    p.add_argument("--print-index-sql", action="store_true", help="print those CREATE INDEX statements and exit")
 
 
 def run(args: argparse.Namespace, params_metrics: ParamsMetrics | None = None) -> int:

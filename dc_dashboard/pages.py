@@ -3,20 +3,40 @@
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Sequence
+import json
+from collections.abc import Collection, Sequence
 from html import escape
 from typing import Any
 from urllib.parse import quote
 
 from dc_dashboard.charts import time_chart, trajectory_chart
-from dc_dashboard.filters import FILE_STATES, Filters, format_time
+from dc_dashboard.filters import FILE_STATES, REFRESH_S, Filters, format_time
 from dc_dashboard.health import ServerHealth
-from dc_dashboard.queries import Distance, FilesPage, Inspection, SystemStats, Trajectory
+from dc_dashboard.queries import Distance, Exploration, FilesPage, Inspection, SystemStats, Trajectory
 
 # Shown where there is no value (a dash, not a zero that would be a measurement).
 NONE = "\u2013"
 
-PAGES = (("/", "Overview"), ("/system", "System"), ("/camera", "Camera"), ("/files", "Files"), ("/health", "Health"))
+# What fills a panel whose kind of record the table holds none of (not a filter's doing).
+NOT_COLLECTED = {
+    "distance_traveled": "dc_measurements/DistanceTraveled",
+    "cpu": "dc_measurements/Cpu",
+    "memory": "dc_measurements/Memory",
+}
+
+
+def not_collected(kind: str) -> str:
+    return f"no {kind} records in this table: collect {NOT_COLLECTED[kind]} into it to fill this panel"
+
+
+PAGES = (
+    ("/", "Overview"),
+    ("/system", "System"),
+    ("/camera", "Camera"),
+    ("/files", "Files"),
+    ("/explore", "Explorer"),
+    ("/health", "Health"),
+)
 
 STYLE = """
 :root { --ink:#1d2330; --muted:#5d6778; --line:#dde2ea; --bg:#f5f7fa; --card:#fff; --accent:#0072B2;
@@ -35,12 +55,16 @@ nav a:hover { color:#fff; }
 nav a.active { color:#fff; border-bottom-color:#56B4E9; }
 form.filters { display:flex; flex-wrap:wrap; gap:14px; align-items:end; padding:14px 24px; background:var(--card);
                border-bottom:1px solid var(--line); }
+form.filters.page { background:none; border:0; padding:0 0 14px; }
+pre { margin:0; white-space:pre-wrap; }
 form.filters label { display:flex; flex-direction:column; font-size:12px; color:var(--muted); gap:3px; }
 form.filters select, form.filters input { font:inherit; padding:5px 8px; border:1px solid #c4ccd8; border-radius:6px;
                background:#fff; min-width:140px; }
 button, .button { font:inherit; background:var(--accent); color:#fff; border:0; border-radius:6px; padding:6px 16px;
                cursor:pointer; text-decoration:none; }
 a.reset { color:var(--muted); font-size:13px; padding-bottom:7px; }
+.quick { display:flex; gap:10px; padding-bottom:7px; font-size:13px; }
+.quick a { color:var(--accent); text-decoration:none; } .quick a.active { font-weight:700; }
 main { padding:20px 24px 40px; max-width:1280px; }
 h1 { font-size:21px; margin:4px 0 16px; }
 h2 { font-size:16px; margin:0 0 10px; }
@@ -106,6 +130,7 @@ def layout(
     return (
         "<!doctype html><html lang=en><head><meta charset=utf-8>"
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        f"{f'<meta http-equiv=refresh content={filters.refresh}>' if filters.refresh else ''}"
         f"<title>{escape(title)} · DC dashboard</title><style>{STYLE}</style></head><body>"
         f'<header><span class="brand">DC<small>dashboard</small></span><nav>{nav}</nav></header>'
         f"{form}<main><h1>{escape(title)}</h1>{notes}{body}</main>"
@@ -122,7 +147,27 @@ def _filter_form(path: str, filters: Filters, robots: Sequence[str], runs: Seque
         ]
         return "".join(items)
 
-    hidden = f'<input type="hidden" name="state" value="{escape(filters.state)}">' if filters.state else ""
+    kept = {"state": filters.state, "name": filters.name, "code": filters.code}
+    hidden = "".join(
+        f'<input type="hidden" name="{key}" value="{escape(value)}">' for key, value in kept.items() if value
+    )
+    refresh = "".join(
+        f'<option value="{seconds}"{" selected" if seconds == filters.refresh else ""}>'
+        f"{f'every {seconds} s' if seconds else 'off'}</option>"
+        for seconds in REFRESH_S
+    )
+    # Quick ranges keep the page's own keys (name, code, state), drop the dates and any older-page key.
+    quick = [
+        (f"last-{key}", label, filters.query(last=key, start=None, end=None, before=None))
+        for key, label in (("15m", "last 15 min"), ("1h", "last hour"), ("24h", "last 24 h"), ("7d", "last 7 days"))
+    ]
+    if runs:  # runs are listed newest first: the robot's current (or last) run
+        quick.append(("run", "this run", filters.query(run=runs[0], last="", start=None, end=None, before=None)))
+    links = "".join(
+        f'<a id="quick-{key}" class="{"active" if key == f"last-{filters.last}" else ""}" '
+        f'href="{path}{escape(query)}">{label}</a>'
+        for key, label, query in quick
+    )
     return (
         f'<form class="filters" method="get" action="{path}">'
         f'<label>Robot<select name="robot" id="filter-robot" onchange="this.form.run.value=\'\';this.form.submit()">'
@@ -132,8 +177,11 @@ def _filter_form(path: str, filters: Filters, robots: Sequence[str], runs: Seque
         f'<label>From (UTC)<input type="datetime-local" step="1" name="start" id="filter-start" '
         f'value="{format_time(filters.start)}"></label>'
         f'<label>To (UTC)<input type="datetime-local" step="1" name="end" id="filter-end" '
-        f'value="{format_time(filters.end)}"></label>{hidden}'
-        f'<button type="submit" id="filter-apply">Apply</button><a class="reset" href="{path}">reset</a></form>'
+        f'value="{format_time(filters.end)}"></label>'
+        f'<label>Refresh<select name="refresh" id="filter-refresh" onchange="this.form.submit()">{refresh}</select>'
+        f"</label>{hidden}"
+        f'<button type="submit" id="filter-apply">Apply</button><a class="reset" href="{path}">reset</a>'
+        f'<span class="quick">{links}</span></form>'
     )
 
 
@@ -152,12 +200,18 @@ def when(value: dt.datetime | None) -> str:
     return value.strftime("%Y-%m-%d %H:%M:%S") if value else NONE
 
 
-def overview(trajectory: Trajectory, distance: Distance, row_estimate: int) -> str:
+def overview(trajectory: Trajectory, distance: Distance, row_estimate: int, collected: Collection[str]) -> str:
+    """``collected``: the kinds of record the table holds at all (dc_dashboard.catalog.KINDS)."""
     map_record = trajectory.map
     map_url = image_url(str(map_record["key"])) if map_record and map_record.get("key") else ""
     runs = len({(r, u) for r, u, _ in distance.per_run}) or len(trajectory.series)
+    has_distance = "distance_traveled" in collected
     cards = (
-        stat("distance", f"{distance.total_m:,.1f} m", "distance traveled")
+        stat(
+            "distance",
+            f"{distance.total_m:,.1f} m" if has_distance else NONE,
+            "distance traveled" if has_distance else "distance traveled: not collected",
+        )
         + stat("positions", f"{trajectory.positions:,}", "positions stored")
         + stat("runs", f"{runs:,}", "runs")
         + stat("rows", f"≈{row_estimate:,}", "rows in the table (all robots)")
@@ -179,21 +233,29 @@ def overview(trajectory: Trajectory, distance: Distance, row_estimate: int) -> s
         "<table id=distance-table><tr><th>robot</th><th>run</th><th class=num>metres in the range</th></tr>"
         f"{per_run}</table>"
         if per_run
+        else f'<p class="no">{escape(not_collected("distance_traveled"))}</p>'
+        if not has_distance
         else '<p class="no">no distance_traveled records for these filters</p>'
     )
+    distance_empty = not_collected("distance_traveled") if not has_distance else "nothing stored for these filters"
     return (
         f'<div class="cards">{cards}</div>'
         f'<div class="panel"><h2>Trajectory</h2><p class="no">{map_note}</p>'
         f"{trajectory_chart(trajectory.series, map_record, map_url)}</div>"
         f'<div class="two"><div class="panel"><h2>Distance traveled over time</h2>'
-        f"{time_chart(distance.series, chart_id='distance-chart', unit='m')}</div>"
+        f"{time_chart(distance.series, chart_id='distance-chart', unit='m', empty=distance_empty)}</div>"
         f'<div class="panel"><h2>Per run</h2>{table}</div></div>'
     )
 
 
-def system(stats: SystemStats) -> str:
+def system(stats: SystemStats, collected: Collection[str]) -> str:
+    """``collected``: the kinds of record the table holds at all (dc_dashboard.catalog.KINDS)."""
+
     def pct(value: float | None) -> str:
         return NONE if value is None else f"{value:.1f} %"
+
+    def empty(kind: str) -> str:
+        return "nothing stored for these filters" if kind in collected else not_collected(kind)
 
     cards = (
         stat("cpu-average", pct(stats.cpu_average), "CPU, average")
@@ -205,9 +267,10 @@ def system(stats: SystemStats) -> str:
     return (
         f'<div class="cards">{cards}</div>'
         f'<div class="panel"><h2>CPU (all cores, %)</h2>'
-        f"{time_chart(stats.cpu, chart_id='cpu-chart', unit='%', y_range=(0, 100))}</div>"
+        f"{time_chart(stats.cpu, chart_id='cpu-chart', unit='%', y_range=(0, 100), empty=empty('cpu'))}</div>"
         f'<div class="panel"><h2>Memory used (%)</h2>'
-        f"{time_chart(stats.memory, chart_id='memory-chart', unit='%', y_range=(0, 100))}</div>"
+        f"{time_chart(stats.memory, chart_id='memory-chart', unit='%', y_range=(0, 100), empty=empty('memory'))}"
+        "</div>"
     )
 
 
@@ -222,8 +285,10 @@ def camera(inspections: Sequence[Inspection], more: bool, filters: Filters) -> s
             or '<span class="no">no code read</span>'
         )
         image = (
+            # The link opens the image at its full size (zoom), in the browser's own viewer.
+            f'<a class="zoom" href="{image_url(item.key)}" target="_blank" rel="noopener">'
             f'<img class="inspected" loading="lazy" src="{image_url(item.key)}" '
-            f'alt="inspected image of {escape(item.camera)}">'
+            f'alt="inspected image of {escape(item.camera)}"></a>'
             if item.key
             else '<p class="notice warn">not uploaded to S3</p>'
         )
@@ -245,8 +310,105 @@ def camera(inspections: Sequence[Inspection], more: bool, filters: Filters) -> s
         f'<div class="gallery">{"".join(figures)}</div>'
         if figures
         else '<p class="no">no inspected images for these filters</p>'
+        if not filters.code
+        else f'<p class="no">no inspected image with a code holding {escape(filters.code)} for these filters</p>'
     )
-    return f'<div class="cards">{cards}</div>{gallery}{older}'
+    search = _page_form(
+        "/camera",
+        filters,
+        f'<label>Code read (contains)<input type="search" name="code" id="code-search" '
+        f'value="{escape(filters.code)}" placeholder="PAL-1000"></label>',
+        drop="code",
+    )
+    return f'{search}<div class="cards">{cards}</div>{gallery}{older}'
+
+
+def _page_form(path: str, filters: Filters, fields: str, *, drop: str) -> str:
+    """A page's own search form: its ``fields`` plus the shared filters as hidden inputs (``drop``: the field's key)."""
+    shared = {
+        "robot": filters.robot,
+        "run": filters.run,
+        "start": "" if filters.last else format_time(filters.start),
+        "end": "" if filters.last else format_time(filters.end),
+        "last": filters.last,
+        "refresh": str(filters.refresh) if filters.refresh else "",
+        "name": filters.name,
+        "code": filters.code,
+    }
+    hidden = "".join(
+        f'<input type="hidden" name="{key}" value="{escape(value)}">'
+        for key, value in shared.items()
+        if value and key != drop
+    )
+    return (
+        f'<form class="filters page" method="get" action="{path}">{fields}{hidden}'
+        '<button type="submit">Search</button></form>'
+    )
+
+
+def explore(exploration: Exploration, filters: Filters) -> str:
+    """Any record name: a chart per numeric field and the newest records, for the filters."""
+    options = "".join(
+        f'<option value="{escape(n)}"{" selected" if n == filters.name else ""}>{escape(n)}</option>'
+        for n in exploration.names
+    )
+    chooser = _page_form(
+        "/explore",
+        filters,
+        '<label>Record name<select name="name" id="explore-name" onchange="this.form.submit()">'
+        f'<option value="">choose one</option>{options}</select></label>',
+        drop="name",
+    )
+    if not filters.name:
+        names = "".join(
+            f'<li><a href="/explore{escape(filters.query(name=n, before=None))}">{escape(n)}</a></li>'
+            for n in exploration.names
+        )
+        return chooser + (
+            f'<div class="panel"><h2>Record names in this table</h2><ul id="explore-names">{names}</ul></div>'
+            if names
+            else '<p class="no">no records in this table yet</p>'
+        )
+    charts = "".join(
+        f'<div class="panel"><h2>{escape(label)}</h2>{time_chart(series, chart_id=f"explore-chart-{i}", unit="")}</div>'
+        for i, (label, series) in enumerate(exploration.charts)
+    )
+    if not exploration.charts:
+        charts = f'<p class="no">the newest {escape(filters.name)} records hold no numbers to plot</p>'
+    rows = "".join(
+        f"<tr><td class=when>{when(t)}</td><td>{escape(robot)}</td><td>{escape(run)}</td>"
+        f"<td class=path><details><summary>{escape(_summary(data))}</summary><pre>{escape(_shown(data))}</pre>"
+        "</details></td></tr>"
+        for t, robot, run, data in exploration.records
+    )
+    older = (
+        f'<p><a class="button" id="older" '
+        f'href="/explore{escape(filters.query(before=exploration.records[-1][0]))}">older</a></p>'
+        if exploration.more and exploration.records
+        else ""
+    )
+    table = (
+        '<table id="explore-records"><tr><th>time</th><th>robot</th><th>run</th><th>record</th></tr>'
+        f"{rows}</table>{older}"
+        if rows
+        else f'<p class="no">no {escape(filters.name)} records for these filters</p>'
+    )
+    return f'{chooser}{charts}<div class="panel"><h2>Newest records</h2>{table}</div>'
+
+
+# A record shown in the explorer's table: enough to read it, never a page of base64.
+_SHOWN_CHARS = 2000
+
+
+def _summary(data: Any) -> str:
+    """One line of a record: what a row shows until it is opened."""
+    text = json.dumps(data, ensure_ascii=False, sort_keys=True, separators=(", ", ": "))
+    return text if len(text) <= 160 else text[:160] + " …"
+
+
+def _shown(data: Any) -> str:
+    text = json.dumps(data, indent=1, ensure_ascii=False, sort_keys=True)
+    return text if len(text) <= _SHOWN_CHARS else text[:_SHOWN_CHARS] + f"\n… ({len(text):,} characters)"
 
 
 def files(page: FilesPage, filters: Filters) -> str:

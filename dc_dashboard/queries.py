@@ -15,13 +15,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dc_dashboard import indexes
-from dc_dashboard.catalog import Sources, sources_of
+from dc_dashboard.catalog import Sources, numeric_fields, sources_of
 from dc_dashboard.errors import DashboardError, first_line
 from dc_dashboard.filters import Filters
 from dc_dashboard.settings import PostgresSettings
 
 POINTS = 600  # per series of a chart: more than an SVG of 900 px wide can show apart
 CAMERA_PAGE = 12
+EXPLORE_PAGE = 50
 FILES_PAGE = 200
 CATALOG_TTL_S = 30.0
 
@@ -68,6 +69,16 @@ class Inspection:
 
 
 @dataclass
+class Exploration:
+    """The explorer's view of one record name: its newest records and a chart per numeric field."""
+
+    names: list[str]  # every record name of the table (at most 100)
+    records: list[tuple[dt.datetime, str, str, Any]]  # time, robot, run, data: newest first
+    more: bool  # older records than these exist (the page's "older" link)
+    charts: list[tuple[str, list[Series]]]  # field path ("cpu.average"), a series per robot and run
+
+
+@dataclass
 class FilesPage:
     rows: list[dict[str, Any]]
     counts: dict[str, int]
@@ -80,7 +91,14 @@ class Catalog:
     sources: Sources
     missing_indexes: list[str]
     row_estimate: int
+    # Record name -> the JSON paths of the numbers its newest records hold (the explorer plots them).
+    fields: dict[str, list[tuple[str, ...]]] = field(default_factory=dict)
     read_at: float = field(default_factory=time.monotonic)
+
+    @property
+    def collected(self) -> frozenset[str]:
+        """The kinds of record (catalog.KINDS) the table holds at all, whatever the filters."""
+        return frozenset(kind for kind, found in self.sources.items() if found)
 
 
 class Store:
@@ -140,7 +158,10 @@ class Store:
             counted = connection.execute(bounded).fetchone()
             rows = max(rows, int(counted[0]) if counted else 0)
         catalog = Catalog(
-            sources=sources_of(latest), missing_indexes=indexes.missing(connection, self.settings), row_estimate=rows
+            sources=sources_of(latest),
+            missing_indexes=indexes.missing(connection, self.settings),
+            row_estimate=rows,
+            fields={name: numeric_fields(records) for name, records in latest.items()},
         )
         self._catalog = catalog
         return catalog
@@ -240,6 +261,12 @@ class Store:
             if filters.before:
                 where = sql.SQL("{} AND time < %(before)s").format(where)
                 params["before"] = filters.before
+            if filters.code:  # any code read whose content holds the text, any case
+                where = sql.SQL(
+                    "{} AND EXISTS (SELECT 1 FROM jsonb_path_query(data #> %(p)s, '$.inspected.*[*].data') AS c(v)"
+                    " WHERE (c.v #>> '{{}}') ILIKE %(code)s ESCAPE '\\')"
+                ).format(where)
+                params["code"] = "%" + _like_escaped(filters.code) + "%"
             params["p"] = list(path)
             query = sql.SQL(
                 "SELECT time, {robot}, {run}, data #> %(p)s FROM {t} WHERE {w} ORDER BY time DESC LIMIT %(n)s"
@@ -250,6 +277,35 @@ class Store:
                     found.append(_inspection(when, robot or "", run or "", record))
         found.sort(key=lambda i: i.time, reverse=True)
         return found[:CAMERA_PAGE], len(found) > CAMERA_PAGE
+
+    def explore(self, connection: Any, filters: Filters) -> Exploration:
+        """Any record name's newest records (before ``filters.before``) and its numeric fields over time."""
+        from psycopg import sql
+
+        catalog = self.catalog(connection)
+        names = sorted(catalog.fields)
+        if not filters.name:
+            return Exploration(names, [], False, [])
+        where, params = self._where(filters, filters.name)
+        if filters.before:
+            where = sql.SQL("{} AND time < %(before)s").format(where)
+            params["before"] = filters.before
+        query = sql.SQL("SELECT time, {robot}, {run}, data FROM {t} WHERE {w} ORDER BY time DESC LIMIT %(n)s").format(
+            robot=indexes.ROBOT, run=indexes.RUN, t=self.table, w=where
+        )
+        rows = connection.execute(query, {**params, "n": EXPLORE_PAGE + 1}).fetchall()
+        records = [(when, robot or "", run or "", data) for when, robot, run, data in rows]
+        paths = catalog.fields.get(filters.name, [])
+        charts: list[tuple[str, list[Series]]] = []
+        for first in range(0, len(paths), 2):  # two fields per query
+            pair = paths[first : first + 2]
+            series: list[list[Series]] = [[] for _ in pair]
+            for label, t, a, b, _ in self._bucketed(connection, filters, filters.name, pair):
+                _append(series[0], label, (t, a))
+                if len(pair) == 2:
+                    _append(series[1], label, (t, b))
+            charts += [(".".join(path), lines) for path, lines in zip(pair, series, strict=True)]
+        return Exploration(names, records[:EXPLORE_PAGE], len(records) > EXPLORE_PAGE, charts)
 
     def files(self, connection: Any, filters: Filters) -> FilesPage:
         from psycopg import sql
@@ -416,6 +472,11 @@ def _remote_key(record: dict[str, Any], file_key: str) -> str:
             if isinstance(paths, dict) and isinstance(paths.get(file_key), str):
                 return str(paths[file_key])
     return ""
+
+
+def _like_escaped(text: str) -> str:
+    """``text`` matched literally inside an ILIKE pattern (ESCAPE '\\')."""
+    return text.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
 
 
 def _epoch(value: dt.datetime) -> float:

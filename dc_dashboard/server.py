@@ -56,6 +56,7 @@ class Dashboard:
             "/system": ("System: CPU and memory", self._system),
             "/camera": ("Camera: inspected images and the codes read", self._camera),
             "/files": ("Files: uploaded, verified, deleted", self._files),
+            "/explore": ("Explorer: any measurement", self._explore),
             "/health": ("Health: DC's delivery", self._health),
         }
         if path not in views:
@@ -90,7 +91,8 @@ class Dashboard:
     def _overview(self, connection: Any, filters: Filters) -> str:
         trajectory = self.store.trajectory(connection, filters)
         distance = self.store.distance(connection, filters)
-        body = pages.overview(trajectory, distance, self.store.catalog(connection).row_estimate)
+        catalog = self.store.catalog(connection)
+        body = pages.overview(trajectory, distance, catalog.row_estimate, catalog.collected)
         if trajectory.map and trajectory.map.get("key"):
             problem = self.images.check_bucket()
             if problem:
@@ -98,13 +100,16 @@ class Dashboard:
         return body
 
     def _system(self, connection: Any, filters: Filters) -> str:
-        return pages.system(self.store.system(connection, filters))
+        return pages.system(self.store.system(connection, filters), self.store.catalog(connection).collected)
 
     def _camera(self, connection: Any, filters: Filters) -> str:
         inspections, more = self.store.inspections(connection, filters)
         body = pages.camera(inspections, more, filters)
         problem = self.images.check_bucket() if inspections else None
         return (pages.notice(problem, element_id="s3-error") if problem else "") + body
+
+    def _explore(self, connection: Any, filters: Filters) -> str:
+        return pages.explore(self.store.explore(connection, filters), filters)
 
     def _files(self, connection: Any, filters: Filters) -> str:
         return pages.files(self.store.files(connection, filters), filters)

@@ -32,7 +32,9 @@ class PostgresSettings:
             "host": self.host,
             "port": self.port,
             "connect_timeout": self.connect_timeout,
-            "options": f"-c statement_timeout={self.statement_timeout_ms}",
+            # UTC session: the filters' dates are UTC and so is what a timestamptz column gives back,
+            # whatever zone the server or the database was set to.
+            "options": f"-c statement_timeout={self.statement_timeout_ms} -c TimeZone=UTC",
             "application_name": "dc-dashboard",
         }
         for key in ("user", "password", "database"):

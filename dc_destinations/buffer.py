@@ -290,6 +290,12 @@ class Buffer(Protocol):
         """Move rows to the dead letters with their error text; returns how many moved. ``tried_now``: rows
         whose failed attempt the queue has not counted yet (refused at once), counted in the dead letter's."""
 
+    def queued_bytes(self) -> dict[str, int]:
+        """Bytes of records waiting per destination."""
+
+    def evict_oldest(self, destination: str, nbytes: int) -> tuple[int, int]:
+        """Delete a queue's oldest records, at least ``nbytes``: (records, bytes) deleted."""
+
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of a queue beyond ``max_bytes``; returns how many."""
 
@@ -857,22 +863,7 @@ class SqliteBuffer:
         need = used + incoming - max_bytes
         dropped_oldest = 0
         if need > 0:
-            freed = 0
-            last_id = None
-            after = -1
-            while freed < need:
-                head = conn.execute(
-                    f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)
-                ).fetchall()
-                if not head:
-                    break
-                for row_id, size in head:
-                    freed += size
-                    dropped_oldest += 1
-                    last_id = row_id
-                    if freed >= need:
-                        break
-                after = head[-1][0]
+            dropped_oldest, freed, last_id = _walk_head(conn, qid, need, after=-1)
             if last_id is not None:
                 conn.execute(f"DELETE FROM q_{qid} WHERE id <= ?", (last_id,))
                 conn.execute(
@@ -967,6 +958,26 @@ class SqliteBuffer:
                 )
                 moved += 1
         return moved
+
+    def queued_bytes(self) -> dict[str, int]:
+        """Bytes of records waiting in each destination's queue, from the queues' own totals (no scan)."""
+        with self._locked() as conn:
+            return {str(name): int(size) for name, size in conn.execute("SELECT name, bytes FROM queues")}
+
+    def evict_oldest(self, destination: str, nbytes: int) -> tuple[int, int]:
+        """Delete the oldest records of ``destination``'s queue, at least ``nbytes`` of them (all there
+        are, if fewer): (records, bytes) deleted. They are not counted as sent or dropped here.
+
+        Rows a sender has read are left alone: they may be in a send() now, and are counted sent or
+        dead-lettered when it returns; the oldest of the others go."""
+        with self._transaction() as conn:
+            qid = self._qid(conn, destination)
+            first = self._max_read.get(destination, 0)
+            count, freed, last_id = _walk_head(conn, qid, nbytes, after=first)
+            if last_id is not None:
+                conn.execute(f"DELETE FROM q_{qid} WHERE id > ? AND id <= ?", (first, last_id))
+                conn.execute("UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?", (count, freed, qid))
+        return count, freed
 
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of ``destination`` until theirs fit in ``max_bytes``.
@@ -1084,6 +1095,25 @@ def _plain_transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]
 
 
 _NO_ROWID = -(2**63) - 1  # progress of a table not begun: every rowid is above it
+
+
+def _walk_head(conn: sqlite3.Connection, qid: int, need: int, *, after: int) -> tuple[int, int, int | None]:
+    """The oldest rows of queue ``qid`` after id ``after`` whose sizes reach ``need`` (all of them if
+    fewer): (rows, bytes, last row id), read 512 at a time so that memory does not grow with the queue."""
+    count = freed = 0
+    last_id = None
+    while freed < need:
+        head = conn.execute(f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)).fetchall()
+        if not head:
+            break
+        for row_id, size in head:
+            freed += int(size)
+            count += 1
+            last_id = row_id
+            if freed >= need:
+                break
+        after = head[-1][0]
+    return count, freed, last_id
 
 
 class SalvageStopped(DeliveryBufferError):

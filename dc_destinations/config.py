@@ -22,7 +22,7 @@ from dc_core.plugins import parse_plugin_section
 from dc_core.timefmt import TIME_FORMATS
 from dc_core.topics import resolve_topic
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params, link_rates
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
 NODE_NAME = "destination_server"
@@ -132,7 +132,9 @@ def _flb_section(section: dict[str, Any], path: str, warnings: list[str]) -> dic
     return _numeric_strings_to_numbers(flb, DeliveryParams)
 
 
-def _parse_destination(name: str, body: Any, path: str, namespace: str, warnings: list[str]) -> DestinationConfig:
+def _parse_destination(
+    name: str, body: Any, path: str, namespace: str, warnings: list[str], links: dict[str, str]
+) -> DestinationConfig:
     if body is None:
         raise ConfigError(path, "section missing (listed in destination_plugins but not configured)")
     if not isinstance(body, dict):
@@ -143,7 +145,7 @@ def _parse_destination(name: str, body: Any, path: str, namespace: str, warnings
     common, plugin_class, plugin_params = parsed.common, parsed.plugin_class, parsed.params
     (delivery,) = parsed.shared
     warnings.extend(parsed.notes)
-    check_destination_params(delivery, path)
+    check_destination_params(delivery, path, links)
     if not common.inputs:
         raise ConfigError(f"{path}.inputs", "expected at least one topic")
     for i, topic in enumerate(common.inputs):
@@ -163,6 +165,7 @@ def parse_destination_server(
     node_values = {key: section[key] for key in node_keys if key in section}
     node_values["flb"] = _flb_section(section, path, warnings)
     node = parse_params(DestinationServerParams, node_values, path)
+    link_rates(node.flb, f"{path}.flb")
     warnings.extend(no_effect_notes(DestinationServerParams, node_values, path))
 
     seen: set[str] = set()
@@ -176,7 +179,7 @@ def parse_destination_server(
         warnings.append(f"{path}.destination_plugins is empty: records are delivered nowhere")
 
     destinations = [
-        _parse_destination(name, section.get(name), f"{path}.{name}", namespace, warnings)
+        _parse_destination(name, section.get(name), f"{path}.{name}", namespace, warnings, node.flb.links)
         for name in node.destination_plugins
     ]
     # A destination without its own unhealthy_after has the server's.

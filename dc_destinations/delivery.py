@@ -36,11 +36,13 @@ from dc_destinations.buffer import (
     SqliteBuffer,
 )
 from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
+from dc_destinations.disk_budget import eviction_plan
 from dc_destinations.health import FAILING
+from dc_destinations.links import LinuxNetwork, Network, link_buckets, warn_missing_interfaces
 from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.sender import Closing, Route, Sender
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params, link_rates
 from dc_destinations.storage import (
     SYNC_PROMISE,
     BufferLock,
@@ -71,6 +73,7 @@ class DeliveryPipeline:
         wait: Callable[[float], bool] | None = None,
         uniform: Callable[[float, float], float] | None = None,
         supervisor: Supervisor | None = None,
+        network: Network | None = None,
     ) -> None:
         self.settings = settings
         self.logger = logger
@@ -80,11 +83,25 @@ class DeliveryPipeline:
         self._clock = clock
         self._wait = wait
         self._uniform = uniform
-        self._routes: dict[str, Route] = {}
-        for name, (destination, params) in destinations.items():
-            check_destination_params(params, f"destination_server.{name}")
-            self._routes[name] = Route.of(name, destination, params, logger)
         self._closing = Closing()
+        self._routes: dict[str, Route] = {}
+        # The network only_when reads: the kernel's unless a test gives its own (dc_destinations.links).
+        network = network if network is not None else LinuxNetwork()
+        links = link_buckets(link_rates(settings, "destination_server.flb"), settings.burst_s)
+        for name, (destination, params) in destinations.items():
+            check_destination_params(params, f"destination_server.{name}", settings.links)
+            route = Route.of(
+                name,
+                destination,
+                params,
+                logger,
+                network=network,
+                links=links,
+                burst_s=settings.burst_s,
+                stop=self._closing.event,
+            )
+            warn_missing_interfaces(route.rules, name, logger)
+            self._routes[name] = route
         self._buffer: SqliteBuffer | None = None
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
@@ -105,6 +122,7 @@ class DeliveryPipeline:
         # (server, ROS domain id, namespace) under which the server writes its metrics address down.
         self.metrics_announce_as: tuple[str, int, str] | None = None
         self._sections: dict[str, Callable[[], Any]] = {}
+        self._prometheus_sections: list[Callable[[], str]] = []
         self.storage_file: Path | None = None
         self._lock: BufferLock | None = None
         self._lock_taken_by_start = False
@@ -287,6 +305,16 @@ class DeliveryPipeline:
             return False
         return self._committer.submit_records(received)
 
+    def conditions(self) -> list[str]:
+        """The DC conditions some destination's only_when reads (the server subscribes to them)."""
+        return sorted({name for route in self._routes.values() for name in route.rules.params.conditions})
+
+    def set_condition(self, name: str, value: bool) -> None:
+        """A condition's state heard on dc/condition/<name>: the senders it holds look again at once."""
+        for route in self._routes.values():
+            if route.rules.condition_changed(name, value):
+                route.wakeup.set()
+
     def hop_keys(self) -> list[HopKey]:
         """The hop keys kept in the buffer, oldest first (empty before :meth:`start`)."""
         if self._buffer is None or self._buffer.closed:
@@ -399,11 +427,32 @@ class DeliveryPipeline:
         if now - self._last_log_tick < 0.5:
             return
         self._last_log_tick = now
+        self._keep_budget()
         if self._committer is not None:
             self._committer.intake_drop_log.tick()
             self._committer.commit_log.tick()
         for route in self._routes.values():
             route.tick_logs()
+
+    def _keep_budget(self) -> None:
+        """On the writer thread, twice a second: evict what flb.disk_budget_mb does not hold
+        (dc_destinations.disk_budget), counted in ``evicted`` and logged once per burst."""
+        budget = int(self.settings.disk_budget_mb * 1024 * 1024)
+        buffer = self._buffer
+        if not budget or buffer is None or buffer.closed:
+            return
+        try:
+            queued = {name: size for name, size in buffer.queued_bytes().items() if name in self._routes}
+            retention = {name: route.params.retention_priority for name, route in self._routes.items()}
+            for name, nbytes in eviction_plan(queued, retention, budget):
+                records, freed = buffer.evict_oldest(name, nbytes)
+                route = self._routes[name]
+                route.metrics.add("evicted", records)
+                route.evict_log.event(records, f"{freed} bytes; see `dc status`")
+        except (BufferClosed, BufferCorrupted):
+            return
+        except sqlite3.Error as exc:  # a full disk: tried again at the next tick, said by the commit failing
+            self.logger.warning(f"delivery buffer: keeping disk_budget_mb failed: {exc}")
 
     # -- observability ------------------------------------------------------------------------------
 
@@ -417,6 +466,7 @@ class DeliveryPipeline:
             values.update(buffered=None, buffered_bytes=None, dead_letters=None, oldest_pending_age_s=None)
             values["plugin"] = _plugin_counters(route)
             values["health"] = route.health.snapshot()
+            values["held"] = route.held
             if self._buffer is not None and not self._buffer.closed:
                 try:
                     stats = self._buffer.stats(name)
@@ -462,6 +512,10 @@ class DeliveryPipeline:
     def add_metrics_section(self, name: str, supplier: Callable[[], Any]) -> None:
         """Add ``name: supplier()`` to the JSON of ``/api/v1/metrics`` (e.g. the server's intake counters)."""
         self._sections[name] = supplier
+
+    def add_prometheus_section(self, render: Callable[[], str]) -> None:
+        """Append ``render()`` (Prometheus text, e.g. the server's hop counters) to ``/api/v1/metrics/prometheus``."""
+        self._prometheus_sections.append(render)
 
     def status_document(self) -> dict[str, Any]:
         """What ``/api/v1/metrics`` serves."""
@@ -510,6 +564,9 @@ class DeliveryPipeline:
         """What ``/api/v1/health`` serves: ``status`` ok, degraded (a destination failing) or error
         (see :meth:`healthy`), and each destination's state."""
         destinations = self.destination_health()
+        for name, route in self._routes.items():
+            if route.held:  # not a fault: what its only_when asks, said so that nobody looks for one
+                destinations[name] = {**destinations[name], "held": route.held}
         if not self.healthy():
             status = "error"
         elif any(state["state"] == FAILING for state in destinations.values()):
@@ -519,7 +576,8 @@ class DeliveryPipeline:
         return {"status": status, "destinations": destinations}
 
     def prometheus(self) -> str:
-        return prometheus_text(self.metrics(), self.buffer_metrics()) + self.supervisor.prometheus()
+        sections = "".join(render() for render in self._prometheus_sections)
+        return prometheus_text(self.metrics(), self.buffer_metrics()) + sections + self.supervisor.prometheus()
 
     @property
     def http_address(self) -> tuple[str, int] | None:

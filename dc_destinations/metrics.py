@@ -27,6 +27,7 @@ COUNTERS = (
     "dead_letters_dropped",
     "salvaged",
     "lost_to_damage",
+    "evicted",
 )
 
 
@@ -42,6 +43,7 @@ class _Counts:
     dead_letters_dropped: int = 0
     salvaged: int = 0
     lost_to_damage: int = 0
+    evicted: int = 0
 
 
 class DestinationMetrics:
@@ -98,6 +100,7 @@ DELIVERY_COUNTERS = (
     ("dead_letters_dropped", "counter", "Oldest dead letters deleted by dead_letter_limit_size"),
     ("salvaged", "counter", "Records read back from a damaged buffer file into the new buffer"),
     ("lost_to_damage", "counter", "Records of a damaged buffer file that could not be read"),
+    ("evicted", "counter", "Records deleted from the buffer unsent to keep it within flb.disk_budget_mb"),
 )
 # (metric name, key in DeliveryPipeline.metrics(), help text)
 _QUEUE_GAUGES = (
@@ -161,6 +164,12 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
             samples,
         )
     text.family(
+        "dc_delivery_held",
+        "gauge",
+        "1 while the destination's only_when holds its records in the buffer (the reason is in the JSON metrics)",
+        [(prometheus_labels(destination=d), int(bool(v.get("held")))) for d, v in sorted(destinations.items())],
+    )
+    text.family(
         "dc_delivery_buffer_quarantined_total",
         "counter",
         "Corrupt buffer files moved aside",
@@ -202,5 +211,30 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
         "gauge",
         "Bytes of the records waiting for the next group commit (intake_queue_limit_bytes)",
         [("", buffer.get("intake_pending_bytes") or 0)],
+    )
+    return text.text()
+
+
+# (key in HopIntake.stats(), Prometheus kind, help text): the hop into destination_server, per input topic.
+HOP_COUNTERS = (
+    ("received", "counter", "Records received on the input topic, replays included"),
+    ("duplicates", "counter", "Records dropped as copies of one already handled (replays, records sent again)"),
+    ("missing", "counter", "Records known lost before destination_server: numbers that never arrived"),
+    ("gaps", "counter", "Jumps in a publisher's numbers, and ended hand-off publishers, that missing counts"),
+    ("writers", "counter", "Publishers recognised since the start (a restarted publisher is a new one)"),
+    ("unkeyed", "counter", "Records without a source timestamp or sequence number: not deduplicated"),
+    ("writers_ended", "counter", "Hand-off publishers announced ended holding records not acknowledged"),
+)
+
+
+def hop_prometheus_text(hop: dict[str, dict[str, int]], announcements_refused: int) -> str:
+    """The hop counters (dc_destinations.hop) per input topic, and the hand-off announcements refused."""
+    text = PrometheusText()
+    text.counter_table("dc_hop", "topic", hop, HOP_COUNTERS)
+    text.family(
+        "dc_hop_handoff_announcements_refused_total",
+        "counter",
+        "Announcements on dc/handoff_ended refused: a publisher there was not one of DC's servers",
+        [("", announcements_refused)],
     )
     return text.text()

@@ -18,6 +18,7 @@ import dataclasses
 import hashlib
 import os
 import re
+import urllib.parse
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NoReturn, Protocol, TypeVar
@@ -29,7 +30,7 @@ from dc_core.confined_files import (
     OpenedFile,
     confinement_of,
 )
-from dc_core.destination import ProbeResult, RetryableError
+from dc_core.destination import OutgoingRecord, ProbeResult, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import BurstLog, Logger
 from dc_core.params import param
@@ -49,6 +50,13 @@ from dc_destinations.aws import (
 
 PART_SIZE_METADATA = "dc-part-size"
 """Metadata key (``x-amz-meta-dc-part-size``) holding the part size of a multipart upload."""
+RECORD_ID_METADATA = "dc-record-id"
+ROBOT_NAME_METADATA = "dc-robot-name"
+RUN_ID_METADATA = "dc-run-id"
+RECORD_COUNT_METADATA = "dc-record-count"
+# What a metadata value keeps as it is: printable ASCII but "%", which percent-encodes the rest
+# (an HTTP header carries no other byte reliably).
+_METADATA_SAFE = "".join(chr(c) for c in range(0x20, 0x7F) if chr(c) not in "%")
 
 _MIB = 1024 * 1024
 _READ_CHUNK = _MIB
@@ -208,6 +216,21 @@ def file_pairs(data: Mapping[str, Any], params: ObjectStoreParams) -> list[FileP
         key_text = key.removeprefix("/") if isinstance(key, str) else ""
         pairs.append(FilePair(src_field, upload_field, local if isinstance(local, str) else "", key_text or None))
     return pairs
+
+
+def record_metadata(records: Sequence[OutgoingRecord]) -> dict[str, str]:
+    """User metadata pointing an object back at the records it came from (``x-amz-meta-dc-*``): the
+    first record's ``record_id``, and the robot and run when every record names the same one; with
+    more than one record, their number. Values outside printable ASCII are percent-encoded (UTF-8)."""
+    metadata = {RECORD_ID_METADATA: records[0].record_id}
+    for key, meta in (("robot_name", ROBOT_NAME_METADATA), ("run_id", RUN_ID_METADATA)):
+        values = {field_value(record.data, key) for record in records}
+        (value,) = values if len(values) == 1 else (None,)
+        if isinstance(value, (str, int)) and not isinstance(value, bool) and str(value):
+            metadata[meta] = str(value)
+    if len(records) > 1:
+        metadata[RECORD_COUNT_METADATA] = str(len(records))
+    return {key: urllib.parse.quote(value, safe=_METADATA_SAFE) for key, value in metadata.items()}
 
 
 class _Closable(Protocol):

@@ -55,8 +55,9 @@ from dc_core.records import MalformedRecord, parse_record
 from dc_destinations.backoff import Backoff
 from dc_destinations.buffer import Buffer, BufferClosed, BufferCorrupted, BufferedRow, QueueLimit
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S, DestinationHealth, attention_needed
+from dc_destinations.links import FILES, HOLD_POLL_S, Network, Pacer, SendRules, TokenBucket
 from dc_destinations.metrics import DestinationMetrics
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_size
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_rate, parse_size
 
 _T = TypeVar("_T")
 
@@ -124,15 +125,41 @@ class Route:
     dead_letter_log: BurstLog
     dead_letter_drop_log: BurstLog
     malformed_log: BurstLog
+    evict_log: BurstLog
     health: DestinationHealth
     gate: Gate
+    logger: Logger
+    rules: SendRules
+    pacer: Pacer
     wakeup: threading.Event = field(default_factory=threading.Event)
+    # Why the destination may not send now (its only_when, dc_destinations.links); "" while it may.
+    held: str = ""
     # Records committed since the sender last found its queue empty: it wakes at batch_size.
     pending_hint: int = 0
     thread: threading.Thread | None = None
 
     @classmethod
-    def of(cls, name: str, destination: Destination[Any], params: DestinationDeliveryParams, logger: Logger) -> Route:
+    def of(
+        cls,
+        name: str,
+        destination: Destination[Any],
+        params: DestinationDeliveryParams,
+        logger: Logger,
+        *,
+        network: Network,
+        links: dict[str, TokenBucket],
+        burst_s: float,
+        stop: threading.Event,
+    ) -> Route:
+        buckets = []
+        rate = parse_rate(params.max_bytes_per_s, f"destination_server.{name}.max_bytes_per_s")
+        if rate is not None:
+            buckets.append(TokenBucket(rate, max(rate * burst_s, 1.0)))
+        if params.link:
+            buckets.append(links[params.link])
+        pacer = Pacer(buckets, params.priority, stop)
+        # Files a plugin sends itself (MinIO's) go through the same caps, after the records waiting.
+        destination.__dict__["_dc_pace"] = lambda n: pacer.take(n, FILES)
         return cls(
             name=name,
             destination=destination,
@@ -153,8 +180,16 @@ class Route:
             malformed_log=BurstLog(
                 logger.error, f"destination {name}: records not stored, they are not valid UTF-8 JSON"
             ),
+            evict_log=BurstLog(
+                logger.warning,
+                f"destination {name}: oldest records evicted unsent to keep the buffer within flb.disk_budget_mb "
+                f"(retention_priority {params.retention_priority})",
+            ),
             health=DestinationHealth(name, params.unhealthy_after or DEFAULT_UNHEALTHY_AFTER_S, logger),
             gate=Gate(logger),
+            logger=logger,
+            rules=SendRules(params.only_when, network),
+            pacer=pacer,
         )
 
     def tick_logs(self) -> None:
@@ -163,6 +198,7 @@ class Route:
         self.dead_letter_log.tick()
         self.dead_letter_drop_log.tick()
         self.malformed_log.tick()
+        self.evict_log.tick()
 
 
 @dataclass
@@ -231,6 +267,12 @@ class Sender:
             if closing and self._clock() >= self.closing.deadline:
                 return
             try:
+                if route.rules.active and self._held():
+                    ahead = None
+                    if closing:
+                        return
+                    self._wait_held()
+                    continue
                 batch = self._still_next(ahead, ahead_after) if ahead is not None else None
                 ahead = None
                 if batch is None:
@@ -262,7 +304,7 @@ class Sender:
                 ahead = reader.submit(self._read_after, ahead_after)
             try:
                 must_retry = self.deliver(rows, batch, defer_delete=True)
-            except BufferClosed:
+            except (BufferClosed, _Stopping):
                 return
             except BufferCorrupted:
                 ahead = None
@@ -355,6 +397,28 @@ class Sender:
             return None
         return batch
 
+    def _held(self) -> bool:
+        """Whether the destination's only_when holds its records now; a change is logged once, and
+        the confirmed rows are deleted before holding (raises what that raises)."""
+        route = self.route
+        reason = route.rules.held()
+        if reason != route.held:
+            if reason:
+                route.logger.info(f"destination {route.name} {reason}; its records wait in the buffer")
+            else:
+                was = route.held.removeprefix("held: ")
+                route.logger.info(f"destination {route.name} sending again (was held: {was})")
+            route.held = reason
+        if reason:
+            self._settle()
+        return bool(reason)
+
+    def _wait_held(self) -> None:
+        """Until the rules are looked at again: a condition's change, or HOLD_POLL_S for the others."""
+        self.route.wakeup.wait(HOLD_POLL_S)
+        self.route.wakeup.clear()
+        self.route.tick_logs()
+
     def _idle(self) -> None:
         """Wait for batch_size records to be committed, or flush seconds."""
         self.route.pending_hint = 0
@@ -413,42 +477,49 @@ class Sender:
             self.bound_dead_letters()
         if not records:
             return False
-        retry, reject, problem, self._retry_after = route.gate.send(lambda: _outcome_of(route.destination, records))
-        if retry or reject:
-            confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in retry and i not in reject]
+        if route.pacer.active and not route.pacer.take(sum(row.size for row in sent_rows)):
+            raise _Stopping
+        retry, waiting, reject, problem, self._retry_after = route.gate.send(
+            lambda: _outcome_of(route.destination, records)
+        )
+        again = {**waiting, **retry}  # back to the queue: failed, or not ready yet
+        if again or reject:
+            confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in again and i not in reject]
         else:
             confirmed = [row.row_id for row in sent_rows]
         # The destination answered unless everything must be retried; a refusal that names a fix is a
-        # failure of the destination's set-up, whatever becomes of the records.
+        # failure of the destination's set-up, whatever becomes of the records. A wait is no failure.
         if problem is not None or (retry and not confirmed):
             route.health.failed(next(iter(retry.values()), ""), problem)
         else:
             route.health.succeeded()
-        if defer_delete and not retry and not reject:
+        if defer_delete and not again and not reject:
             self._confirmed += confirmed
             return False
         if confirmed:
             buffer.delete(route.name, confirmed)
             route.metrics.add("sent", len(confirmed))
-        if not retry and not reject:
+        if not again and not reject:
             return False
-        route.metrics.add("failed")
-        first_error = next(iter({**reject, **retry}.values()))
-        route.metrics.set_error(first_error)
+        if retry or reject:
+            route.metrics.add("failed")
+            route.metrics.set_error(next(iter({**reject, **retry}.values())))
         dead: list[tuple[BufferedRow, str]] = [(sent_rows[i], reason) for i, reason in reject.items()]
         retried = 0
-        if retry:
-            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in retry])
+        if again:
+            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in again])
             limit = route.params.retry_limit
-            for i, reason in retry.items():
+            failed_again = 0
+            for i, reason in again.items():
                 row = sent_rows[i]
                 if limit >= 0 and attempts.get(row.row_id, 0) > limit:
                     dead.append((row, f"retry_limit {limit} exhausted: {reason}"))
                 else:
                     retried += 1
+                    failed_again += i in retry
             route.metrics.add("retried", retried)
-            if retried:
-                route.failure_log.event(retried, first_error)
+            if failed_again:
+                route.failure_log.event(failed_again, next(iter(retry.values())))
         if dead:
             # A refused record was tried once more than its queue row counted (only retries are counted there).
             moved = buffer.dead_letter(route.name, dead, tried_now={sent_rows[i].row_id for i in reject})
@@ -468,6 +539,10 @@ class Sender:
             route.dead_letter_drop_log.event(deleted, "the newest are kept; see `dc buffer list`")
 
 
+class _Stopping(Exception):
+    """The pipeline stopped while a send waited for its cap: its records stay in the queue."""
+
+
 @dataclass
 class _Batch:
     """Rows read from the queue and what is to be done with them."""
@@ -480,25 +555,30 @@ class _Batch:
 
 def _outcome_of(
     destination: Destination[Any], records: list[OutgoingRecord]
-) -> tuple[dict[int, str], dict[int, str], tuple[str, str] | None, float | None]:
-    """``send(records)`` as (retry, reject, problem, retry_after): batch indexes with their reasons (the
-    rest were confirmed), (what, fix) when the failure is one retrying cannot mend
-    (dc_destinations.health), and the seconds the server asked to wait, when it said."""
+) -> tuple[dict[int, str], dict[int, str], dict[int, str], tuple[str, str] | None, float | None]:
+    """``send(records)`` as (retry, waiting, reject, problem, retry_after): batch indexes with their
+    reasons (the rest were confirmed; see SendOutcome), (what, fix) when the failure is one retrying
+    cannot mend (dc_destinations.health), and the seconds the server asked to wait, when it said."""
     try:
         outcome = destination.send(records)
     except RejectedError as exc:
-        return {}, dict.fromkeys(range(len(records)), f"rejected: {exc}"), attention_needed(exc), None
+        return {}, {}, dict.fromkeys(range(len(records)), f"rejected: {exc}"), attention_needed(exc), None
     except RetryableError as exc:
-        return dict.fromkeys(range(len(records)), str(exc)), {}, attention_needed(exc), _seconds(exc.retry_after)
+        return dict.fromkeys(range(len(records)), str(exc)), {}, {}, attention_needed(exc), _seconds(exc.retry_after)
     except Exception as exc:
-        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}, attention_needed(exc), None
+        return dict.fromkeys(range(len(records)), f"{type(exc).__name__}: {exc}"), {}, {}, attention_needed(exc), None
     if not isinstance(outcome, SendOutcome):
-        return {}, {}, None, None
+        return {}, {}, {}, None, None
     retry = {i: reason for i, reason in outcome.retry.items() if 0 <= i < len(records)}
     reject = {
         i: f"rejected: {reason}" for i, reason in outcome.reject.items() if 0 <= i < len(records) and i not in retry
     }
-    return retry, reject, None, _seconds(outcome.retry_after) if retry else None
+    waiting = {
+        i: reason
+        for i, reason in outcome.waiting.items()
+        if 0 <= i < len(records) and i not in retry and i not in reject
+    }
+    return retry, waiting, reject, None, _seconds(outcome.retry_after) if retry else None
 
 
 def _seconds(value: Any) -> float | None:

@@ -13,6 +13,8 @@ A record on DC's own topics (dc/measurement/*, dc/group/* in its namespace or at
 destination that reads the files records name only while every publisher of that topic is one of DC's servers
 (``trust_tags_from``, docs/security.md): a message does not say which publisher sent it, so one
 foreign publisher on the topic makes all its records untrusted for those destinations meanwhile.
+The announcements of ended hand-off publishers (``dc/handoff_ended``), which make this server count
+records as missing, are taken by the same check whatever ``trust_tags_from`` says.
 """
 
 from __future__ import annotations
@@ -39,19 +41,27 @@ from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
 from dc_core.lifecycle import ManagedServer, PartialTeardown, run_server
 from dc_core.logs import BurstLog
 from dc_core.plugin import run_hook, run_hook_on_each
-from dc_core.qos import RECORD_HISTORY_DEPTH, subscription_qos
+from dc_core.qos import CONDITION_QOS, RECORD_HISTORY_DEPTH, subscription_qos
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.rmw_features import no_sequence_numbers_line, publication_sequence_numbers
 from dc_core.stamped_cdr import read_keyed_string_stamped, read_string_stamped
-from dc_core.topics import GROUP_TOPIC_PREFIX, MEASUREMENT_TOPIC_PREFIX, published_topics, resolve_topic
+from dc_core.topics import (
+    GROUP_TOPIC_PREFIX,
+    MEASUREMENT_TOPIC_PREFIX,
+    condition_topic,
+    published_topics,
+    resolve_topic,
+)
 from dc_core.worker import Outcome
 from dc_destinations.config import NODE_NAME, DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.health import FAILING, HEALTH_QOS, HEALTH_TOPIC, RETRYING
 from dc_destinations.health import summary as health_summary
 from dc_destinations.hop import HopIntake, HopKey, hop_key, keyed_hop_key, source_key
+from dc_destinations.metrics import hop_prometheus_text
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import RoutingTable
+from dc_interfaces.msg import Condition as ConditionMsg
 from dc_interfaces.msg import StringStamped
 
 PREVIEW_CHARS = 200
@@ -93,6 +103,8 @@ class IntakeStats:
     unrouted: Counter[tuple[str, str]] = field(default_factory=Counter)
     # Copies not made for a file destination: the record's publisher was not one of DC's servers.
     untrusted_tags: Counter[tuple[str, str]] = field(default_factory=Counter)
+    # Announcements of ended hand-off publishers not acted on: a publisher of that topic was not DC's.
+    handoff_announcements_refused: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         unrouted: dict[str, dict[str, int]] = {}
@@ -107,6 +119,7 @@ class IntakeStats:
             "routed": self.routed,
             "unrouted": unrouted,
             "untrusted_tags": untrusted,
+            "handoff_announcements_refused": self.handoff_announcements_refused,
         }
 
 
@@ -134,6 +147,11 @@ class DestinationServer(ManagedServer):
         self._buffer_checking = False
         self.acks: AckPublisher | None = None
         self._ended_subscription: Any = None
+        # An announcement was refused: once every publisher of ENDED_TOPIC is DC's again, the subscription
+        # is made anew, so that the DC servers' announcements (transient local) come again.
+        self._ended_refused = False
+        self._announcers_named: set[bytes] = set()  # foreign publishers of ENDED_TOPIC logged already
+        self._condition_subscriptions: list[Any] = []
         self._malformed_log = BurstLog(
             self.get_logger().error, "records not delivered, malformed", each=MALFORMED_LINES_PER_BURST
         )
@@ -142,6 +160,8 @@ class DestinationServer(ManagedServer):
         )
         self._guarded_topics: set[str] = set()
         self._foreign_seen: dict[str, float] = {}  # topic -> when a foreign publisher was last seen on it
+        # topic -> the foreign publishers seen on it (gid -> node), for the lines that name them
+        self._foreign_nodes: dict[str, dict[bytes, str]] = {}
         self._waited_for: set[bytes] = set()  # publishers of unknown node waited for once already
         # Each destination's health for the lifecycle manager's is_active: sent when it changes, kept
         # for a manager that (re)subscribes.
@@ -196,6 +216,9 @@ class DestinationServer(ManagedServer):
         self.pipeline.metrics_announce_as = self.metrics_announce_as()
         self.pipeline.add_metrics_section("intake", self.intake_metrics)
         self.pipeline.add_metrics_section("hop", self.hop_metrics)
+        self.pipeline.add_prometheus_section(
+            lambda: hop_prometheus_text(self.hop_metrics(), self.stats.handoff_announcements_refused)
+        )
 
     def _with_default_roots(self, config: DestinationServerConfig, servers: dict[str, Any]) -> list[Any]:
         """The destinations, those reading files without ``allowed_roots`` given the measurement
@@ -278,17 +301,29 @@ class DestinationServer(ManagedServer):
             self._subscription_of[RESEND_TOPIC] = resent
             # The publishers of DC's servers that ended holding records (dc_core.handoff_marks); on the
             # executor, which runs on this thread too, between the intake's turns.
-            self._ended_subscription = self.create_subscription(
-                StringStamped, ENDED_TOPIC, self._on_ended, ended_qos(depth=10)
-            )
+            self._subscribe_ended()
         self.get_logger().info(
             f"listening on {', '.join(self.routing.topics) or 'no topic'}"
             + (f"; with the publishers' history: {', '.join(with_history)}" if with_history else "")
         )
+        pipeline = self.pipeline
+        for name in pipeline.conditions():  # only_when's conditions, as the measurement server publishes them
+            on_state = functools.partial(lambda name, msg: pipeline.set_condition(name, bool(msg.data)), name)
+            self._condition_subscriptions.append(
+                self.create_subscription(ConditionMsg, condition_topic(name), on_state, CONDITION_QOS)
+            )
         acks.send()  # a hello: the publishers send again what this server has not acknowledged
         if not self._rmw_checked:
             self._rmw_checked = True
             self._say_what_the_rmw_lacks()
+
+    def _subscribe_ended(self) -> None:
+        if self._ended_subscription is not None:
+            self.destroy_subscription(self._ended_subscription)
+        self._ended_refused = False
+        self._ended_subscription = self.create_subscription(
+            StringStamped, ENDED_TOPIC, self._on_ended, ended_qos(depth=10)
+        )
 
     def _say_what_the_rmw_lacks(self) -> None:
         """Once, at the first activation: what a middleware without publication sequence numbers changes."""
@@ -350,6 +385,9 @@ class DestinationServer(ManagedServer):
             self._ended_subscription = None
         for subscription in subscriptions:
             self.intake.unsubscribe(subscription)
+        for subscription in self._condition_subscriptions:
+            self.destroy_subscription(subscription)
+        self._condition_subscriptions.clear()
         if self._hop_log_timer is not None:
             self.destroy_timer(self._hop_log_timer)
             self._hop_log_timer = None
@@ -428,8 +466,13 @@ class DestinationServer(ManagedServer):
     def _on_ended(self, msg: Any) -> None:
         """A server announces its publishers of an earlier run that ended holding records not acknowledged:
         what of theirs never arrived is counted, and that it was is committed (then acknowledged)."""
+        if self.hop is None:
+            return
+        if not self._publishers_trusted(ENDED_TOPIC):
+            self._refuse_announcement()
+            return
         parsed = parse_ended(msg.data)
-        if parsed is None or self.hop is None:
+        if parsed is None:
             return
         server, ended = parsed
         settled: list[_Received] = []
@@ -452,6 +495,22 @@ class DestinationServer(ManagedServer):
         elif losses:
             self.get_logger().info(f"{server}'s publishers of its last run ended; all their records arrived")
         self._hand_over(settled)
+
+    def _refuse_announcement(self) -> None:
+        """An announcement while a publisher of ENDED_TOPIC is not one of DC's servers: any of them may have
+        sent it, and it would make this server count records as missing and settle their publisher for good
+        (a later real end of it would go uncounted). Nothing of it is used; DC's own announcements come
+        again once the foreign publishers left (:meth:`_tick_logs`)."""
+        self.stats.handoff_announcements_refused += 1
+        self._ended_refused = True
+        for gid, node in self._foreign_nodes.get(ENDED_TOPIC, {}).items():
+            if gid not in self._announcers_named:
+                self._announcers_named.add(gid)
+                self.get_logger().warning(
+                    f"{ENDED_TOPIC}: announcement of ended publishers refused, counted in "
+                    f"handoff_announcements_refused: {node} publishes there and is not one of DC's servers "
+                    f"(docs/security.md); announcements are taken again {FOREIGN_MEMORY_S:g} s after it left"
+                )
 
     def _on_resent(self, taken: list[tuple[bytes, Any]]) -> None:
         """Records sent again by their publisher (dc_core.handoff), each handled as if from its own topic."""
@@ -524,6 +583,13 @@ class DestinationServer(ManagedServer):
         # Between records too: a publisher that sends and leaves at once is still seen here.
         for topic in self._guarded_topics:
             self._publishers_trusted(topic)
+        if self._ended_subscription is not None:
+            trusted = self._publishers_trusted(ENDED_TOPIC)
+            if trusted:
+                self._announcers_named.clear()
+            if trusted and self._ended_refused:
+                self.get_logger().info(f"{ENDED_TOPIC}: every publisher is DC's again; its announcements taken again")
+                self._subscribe_ended()
         self._report_health()
 
     def _publishers_trusted(self, topic: str) -> bool:
@@ -540,14 +606,21 @@ class DestinationServer(ManagedServer):
             self._waited_for.update(unknown)
         if foreign or unknown:
             self._foreign_seen[topic] = time.monotonic()
+            named = self._foreign_nodes.setdefault(topic, {})
+            named.update(foreign)
+            named.update((gid, "a node the graph does not name") for gid in unknown)
             return False
         seen = self._foreign_seen.get(topic)
-        return seen is None or now - seen >= FOREIGN_MEMORY_S
+        if seen is not None and now - seen < FOREIGN_MEMORY_S:
+            return False
+        self._foreign_nodes.pop(topic, None)  # gone: what names them is not kept
+        return True
 
-    def _foreign_publishers(self, topic: str) -> tuple[bool, list[bytes]]:
-        """Whether a publisher of ``topic`` is not DC's, and the gids of those whose node the graph does
-        not name yet (not waited for before; one already waited for counts as not DC's)."""
+    def _foreign_publishers(self, topic: str) -> tuple[dict[bytes, str], list[bytes]]:
+        """The publishers of ``topic`` that are not DC's (gid -> node), and the gids of those whose node
+        the graph does not name yet (not waited for before; one already waited for counts as not DC's)."""
         namespace = self.get_namespace()
+        foreign: dict[bytes, str] = {}
         unknown = []
         for info in self.get_publishers_info_by_topic(topic):
             if info.node_name in DC_PUBLISHERS and info.node_namespace == namespace:
@@ -556,8 +629,12 @@ class DestinationServer(ManagedServer):
             if info.node_name == "_NODE_NAME_UNKNOWN_" and gid not in self._waited_for:
                 unknown.append(gid)
                 continue
-            return True, unknown
-        return False, unknown
+            foreign[gid] = (
+                "a node the graph does not name"
+                if info.node_name == "_NODE_NAME_UNKNOWN_"
+                else f"node {info.node_namespace.rstrip('/')}/{info.node_name}"
+            )
+        return foreign, unknown
 
     def _report_health(self) -> None:
         pipeline = self.pipeline
@@ -618,6 +695,8 @@ class DestinationServer(ManagedServer):
                 level, message = ERROR, f"failing: {scrub(health['reason'], secrets)}"
             elif state == RETRYING:
                 level, message = WARN, f"retrying: {scrub(health['reason'], secrets)}"
+            elif values.get("held"):
+                level, message = OK, values["held"]  # as the configuration asks: no fault
             else:
                 level, message = OK, "delivering"
             statuses.append(
@@ -627,6 +706,7 @@ class DestinationServer(ManagedServer):
                     message,
                     {
                         "state": state,
+                        "held": values.get("held", ""),
                         "pending": values["buffered"],
                         "oldest_pending_s": values["oldest_pending_age_s"],
                         "records_per_s": rate,

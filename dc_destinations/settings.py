@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from dc_core.errors import ConfigError
 from dc_core.node_params import MetricsHttpParams, http_port_param
 from dc_core.params import compat_param, param
+from dc_destinations.links import OnlyWhenParams
 
 WHEN_FULL_POLICIES = ("drop_oldest", "drop_newest")
 
@@ -72,6 +73,21 @@ class DeliveryParams(MetricsHttpParams):
         doc="Seconds a record may wait in memory so that records arriving together share one commit",
     )
 
+    links: dict[str, str] = param(
+        default_factory=dict,
+        doc='Shared caps: link name -> bytes per second ("125k" for 1 Mbit/s LTE), for the destinations whose '
+        "link names it",
+    )
+    disk_budget_mb: float = param(
+        0.0,
+        minimum=0.0,
+        doc="Most MB of records the buffer holds for all destinations together; over it the oldest records of the "
+        "lowest retention_priority are evicted and counted (0 = no budget; at least 1)",
+    )
+    burst_s: float = param(
+        1.0, minimum=0.01, doc="Seconds of its rate a cap may send at once after a quiet spell (the burst)"
+    )
+
     @property
     def intake_limit_bytes(self) -> int | None:
         """``intake_queue_limit_bytes`` in bytes; None: no byte limit."""
@@ -106,6 +122,20 @@ class DestinationDeliveryParams:
         doc="Seconds without a successful send before this destination is reported failing"
         " (0 = destination_server's unhealthy_after)",
     )
+    only_when: OnlyWhenParams = param(
+        default_factory=OnlyWhenParams,
+        doc="When this destination may send; outside it records wait in the buffer (docs/constrained_links.md)",
+    )
+    max_bytes_per_s: str = param(
+        "", doc='Most bytes per second this destination sends ("125k", "1M"; "" = no cap of its own)'
+    )
+    retention_priority: int = param(
+        0, doc="Under flb.disk_budget_mb, the records of a lower retention_priority are evicted first"
+    )
+    link: str = param("", doc="Name of the link (in flb.links) whose cap this destination shares")
+    priority: int = param(
+        0, doc="Order among the destinations waiting for a shared link: higher first (records before files always)"
+    )
 
 
 def parse_size(text: str, path: str = "") -> int | None:
@@ -119,7 +149,43 @@ def parse_size(text: str, path: str = "") -> int | None:
     return int(float(number) * _UNITS[unit.lower()])
 
 
-def check_destination_params(params: DestinationDeliveryParams, path: str) -> None:
-    """Checks :func:`parse_params` cannot express; ``path`` is the destination's YAML path."""
+def parse_rate(text: str, path: str) -> float | None:
+    """Bytes per second of a cap ("125k", "1M", a number); None for "" (no cap); a cap of 0 is refused."""
+    if not text.strip():
+        return None
+    rate = parse_size(text, path)
+    if rate is None or rate <= 0:
+        raise ConfigError(
+            path, f'a cap of "{text.strip()}" would never send: give a rate such as "125k", or "" for none'
+        )
+    return float(rate)
+
+
+def link_rates(settings: DeliveryParams, path: str) -> dict[str, float]:
+    """``flb.links`` as bytes per second; ``path`` is the ``flb`` section's YAML path. Checks
+    ``disk_budget_mb`` too (the other check of the section that needs more than one key's range)."""
+    if 0 < settings.disk_budget_mb < 1:
+        raise ConfigError(
+            f"{path}.disk_budget_mb",
+            f"a budget of {settings.disk_budget_mb:g} MB is smaller than one batch of records may be: "
+            "give at least 1, or 0 for no budget",
+        )
+    rates = {}
+    for name, text in settings.links.items():
+        rate = parse_rate(str(text), f"{path}.links.{name}")
+        if rate is None:
+            raise ConfigError(f"{path}.links.{name}", 'expected a rate such as "125k"')
+        rates[str(name)] = rate
+    return rates
+
+
+def check_destination_params(params: DestinationDeliveryParams, path: str, links: dict[str, str] | None = None) -> None:
+    """Checks :func:`parse_params` cannot express; ``path`` is the destination's YAML path, ``links``
+    the server's ``flb.links`` when known."""
     parse_size(params.storage_total_limit_size, f"{path}.storage_total_limit_size")
     parse_size(params.dead_letter_limit_size, f"{path}.dead_letter_limit_size")
+    parse_rate(params.max_bytes_per_s, f"{path}.max_bytes_per_s")
+    if links is not None and params.link and params.link not in links:
+        raise ConfigError(
+            f"{path}.link", f'no link "{params.link}" in flb.links ({", ".join(sorted(links)) or "none defined"})'
+        )

@@ -16,13 +16,16 @@ from dc_core.handoff import HandoffParams
 from dc_core.jsonpath import impossible_path, schema_types_at
 from dc_core.node_params import MetricsHttpParams, ServerNodeParams, http_port_param
 from dc_core.params import did_you_mean, field_names, param, parse_params
-from dc_core.paths import DEFAULT_SAVE_BASE_PATH, expand_env, expand_values
+from dc_core.paths import DEFAULT_SAVE_BASE_PATH, PATHS_TIMEZONES, expand_env, expand_values, zone_problem
 from dc_core.plugins import parse_plugin_section
 from dc_core.qos import RECORD_HISTORY_DEPTH
 from dc_core.record_history import DEFAULT_HISTORY_BYTES
 from dc_core.topics import measurement_topic, resolve_topic
 
 NODE_NAME = "measurement_server"
+KEY_LAYOUTS = ("path", "hive")
+# The custom string parameter whose value names the robot in Hive-style keys (robot=<name>/...).
+ROBOT_NAME_PARAM = "robot_name"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -49,6 +52,18 @@ class MeasurementServerParams(ServerNodeParams, MetricsHttpParams):
         DEFAULT_SAVE_BASE_PATH, doc="Local base folder for saved files ($ENV, =param, strftime)"
     )
     all_base_path: str = param("", doc="Prefix for local and remote paths ($ENV, =custom_param)")
+    paths_timezone: str = param(
+        "utc",
+        check=zone_problem,
+        doc=f"Zone of the strftime tokens of saved files' paths and object keys: {PATHS_TIMEZONES} "
+        "(local: the original's behaviour)",
+    )
+    key_layout: str = param(
+        "path",
+        choices=KEY_LAYOUTS,
+        doc="Object keys of saved files: path (all_base_path/remote prefix/save_path, the original's) or hive "
+        "(remote prefix/robot=<robot_name>/date=YYYY-MM-DD/save_path)",
+    )
     custom_str_params_list: list[str] = param([], doc="Ids of custom string parameters added to records")
     run_id: RunIdParams = param(default_factory=RunIdParams, doc="Run identifier")
     handoff: HandoffParams = param(
@@ -220,6 +235,12 @@ def parse_measurement_server(
         custom[cid] = parse_params(CustomStrParam, raw_custom[cid], cpath)
         if not custom[cid].value and not custom[cid].value_from_file:
             raise ConfigError(cpath, "needs 'value' or 'value_from_file'")
+    if node_params.key_layout == "hive" and ROBOT_NAME_PARAM not in custom:
+        raise ConfigError(
+            f"{path}.key_layout",
+            f"hive keys start with robot=<name>: add a custom string parameter {ROBOT_NAME_PARAM} "
+            f"(custom_str_params_list: [{ROBOT_NAME_PARAM}])",
+        )
     for key in raw_custom:
         # `force_override` at this level is the original's global switch (never used there either).
         if key not in custom and key != "force_override":

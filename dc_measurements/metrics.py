@@ -30,3 +30,31 @@ def measurement_prometheus_text(document: dict[str, Any]) -> str:
     counters = [(key, "counter", MEASUREMENT_COUNTERS.get(key, f"Plugin counter {key}")) for key in keys]
     text.counter_table("dc_measurement", "measurement", measurements, counters)
     return text.text()
+
+
+# Counters whose growth means records were lost or not made: a measurement with any of them is WARN.
+PROBLEM_COUNTERS = ("errors", "invalid", "malformed", "lost", "overrun")
+
+
+def measurement_diagnosis(
+    counters: dict[str, int], before: dict[str, int] | None, seconds: float | None
+) -> tuple[str, str, dict[str, Any]]:
+    """(``"ok"`` or ``"warn"``, message, values) of one measurement for /diagnostics.
+
+    ``before``: its counters at the previous status, ``seconds`` since then (None at the first):
+    the level says what happened in between, not since the start.
+    """
+    grew = {key: counters.get(key, 0) - (before or {}).get(key, 0) for key in counters}
+    values: dict[str, Any] = dict(counters)
+    values["records_per_s"] = round(grew["published"] / seconds, 3) if seconds else ""
+    problems = [f"{grew[key]} {key}" for key in PROBLEM_COUNTERS if grew.get(key, 0) > 0]
+    if problems:
+        since = f"in the last {seconds:.0f} s" if seconds else "since configure"
+        return "warn", f"{', '.join(problems)} {since} (the server's log says why)", values
+    if grew.get("published", 0):
+        return "ok", "publishing", values
+    if grew.get("gated", 0):
+        return "ok", "collecting; its conditions hold the records back", values
+    if grew.get("empty", 0):
+        return "ok", "collecting; nothing to report", values
+    return "ok", "idle: nothing collected since the previous status", values

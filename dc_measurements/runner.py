@@ -75,7 +75,8 @@ class MeasurementRunner:
         # The node's clock (simulated time under use_sim_time): stamps of samples collected on the worker.
         self._clock_ns = clock_ns
         common = config.common
-        self.gate = Gate(common.init_max_measurements, common.condition_max_measurements, bool(config.conditions))
+        gated = bool(config.conditions) and not plugin.conditions_trigger
+        self.gate = Gate(common.init_max_measurements, common.condition_max_measurements, gated)
         self.stats = RunnerStats()
         self._empty_warned = False
         self._collecting = False
@@ -115,6 +116,9 @@ class MeasurementRunner:
 
     def tick(self) -> None:
         """One polling period of a timer-driven measurement, collected on this thread."""
+        if self.plugin.conditions_trigger:
+            self._poll_trigger()
+            return
         plan = self._plan()
         if plan is not None:
             self._collected(plan, self._collect_outcome(self.plugin.collect_stamped))
@@ -126,6 +130,9 @@ class MeasurementRunner:
         back. A period that comes while the previous collection still runs is skipped and counted
         as ``overrun``: collections of one measurement never overlap.
         """
+        if self.plugin.conditions_trigger:
+            self._poll_trigger()
+            return
         self._overrun_log.tick()
         if self._collecting:
             self.stats.overrun += 1
@@ -150,6 +157,14 @@ class MeasurementRunner:
             self._collected(plan, self._collect_outcome(outcome.get))
 
         worker.submit(collect, on_done)
+
+    def _poll_trigger(self) -> None:
+        met = self._evaluate(None) if self.config.conditions else None
+        try:
+            self.plugin.on_poll(met)
+        except Exception as exc:  # one failing poll must not stop the measurement
+            self.stats.errors += 1
+            self._logger.error(f"measurement {self.config.name}: poll failed: {exc!r}")
 
     def _plan(self) -> _Plan | None:
         """Whether this period collects, and the verdict of conditions judged without the sample."""

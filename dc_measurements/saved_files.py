@@ -3,7 +3,9 @@
 Local path: ``save_local_base_path / all_base_path / save_path``; remote path per ``remote_keys``
 entry: ``all_base_path / <its remote_prefixes entry> / save_path`` without a leading ``/`` (the
 object key a storage destination uploads to). strftime tokens (in all three) are expanded with the
-time the file is saved (the node's clock: simulated time under ``use_sim_time``), in local time, as the original.
+time the file is saved (the node's clock: simulated time under ``use_sim_time``), in UTC unless
+``paths_timezone`` says otherwise (``local``: the original's local time). With ``key_layout: hive`` the
+object key is ``<remote prefix>/robot=<name>/date=YYYY-MM-DD/save_path``: all_base_path stays local.
 """
 
 from __future__ import annotations
@@ -11,13 +13,15 @@ from __future__ import annotations
 import os
 import tempfile
 import threading
+import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from dc_core.measurement import BasePaths
-from dc_core.paths import expand_time
+from dc_core.paths import expand_env, expand_time, expand_values, path_zone
+from dc_measurements.config import NODE_NAME, ROBOT_NAME_PARAM, MeasurementServerConfig
 
 
 @dataclass(frozen=True)
@@ -31,14 +35,52 @@ class FileLocations:
         return self.local + suffix, {key: path + suffix for key, path in self.remote.items()}
 
 
+def base_paths(
+    section: dict[str, Any], config: MeasurementServerConfig, custom: list[tuple[str, str, bool]]
+) -> BasePaths:
+    """The server's base paths, expanded but for strftime tokens (``custom``: resolve_custom_params')."""
+    node = config.node
+
+    def top_level_string(name: str) -> str | None:
+        value = section.get(name)
+        return value if isinstance(value, str) else None
+
+    custom_values = {cid: value for cid, (_, value, _) in zip(config.custom_str_params, custom, strict=True)}
+    save = expand_values(
+        expand_env(node.save_local_base_path, f"{NODE_NAME}.save_local_base_path"),
+        top_level_string,
+        f"{NODE_NAME}.save_local_base_path",
+    )
+    all_base = expand_values(
+        expand_env(node.all_base_path, f"{NODE_NAME}.all_base_path"),
+        custom_values.get,
+        f"{NODE_NAME}.all_base_path",
+    )
+    partitions = ""
+    if node.key_layout == "hive":
+        # Quoted: a "/" or "=" in a robot's name must not make another folder or partition; "%%"
+        # keeps the quoting's "%" from strftime.
+        robot = urllib.parse.quote(custom_values[ROBOT_NAME_PARAM], safe="").replace("%", "%%")
+        partitions = f"robot={robot}/date=%Y-%m-%d"
+    return BasePaths(
+        save_local_base_path=save,
+        all_base_path=all_base,
+        zone=path_zone(node.paths_timezone),
+        key_partitions=partitions,
+    )
+
+
 def file_locations(paths: BasePaths, save_path: str, when_s: float) -> FileLocations:
-    relative = expand_time(save_path, when_s)
-    common = expand_time(paths.all_base_path, when_s)
-    local = os.path.join(expand_time(paths.save_local_base_path, when_s), common, relative)
-    remote = {
-        key: "/".join(part.strip("/") for part in (common, expand_time(prefix, when_s), relative) if part.strip("/"))
-        for key, prefix in paths.remote_prefixes.items()
-    }
+    def expand(text: str) -> str:
+        return expand_time(text, when_s, paths.zone)
+
+    relative = expand(save_path)
+    common = expand(paths.all_base_path)
+    local = os.path.join(expand(paths.save_local_base_path), common, relative)
+    remote = {}
+    for key, prefix in paths.remote_prefixes.items():
+        parts = (expand(prefix), expand(paths.key_partitions)) if paths.key_partitions else (common, expand(prefix))
+        remote[key] = "/".join(part.strip("/") for part in (*parts, relative) if part.strip("/"))
     return FileLocations(local, remote)
 
 

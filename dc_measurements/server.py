@@ -8,15 +8,15 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
+from dc_core.diagnostics import OK, WARN
+from dc_core.diagnostics import status as diagnostic_status
 from dc_core.handoff import HandoffSender, destination_inputs
 from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, PartialTeardown, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
-from dc_core.paths import expand_env, expand_values
+from dc_core.paths import expand_env
 from dc_core.plugin import Plugin, run_hook, run_hook_on_each
-from dc_core.qos import record_qos
+from dc_core.qos import CONDITION_QOS, record_qos
 from dc_core.record_history import SizedRecordPublisher, history_metrics
 from dc_core.rostime import now_ns
 from dc_core.topics import condition_topic
@@ -25,15 +25,15 @@ from dc_interfaces.msg import StringStamped
 from dc_measurements.condition_runtime import ConditionRuntime
 from dc_measurements.config import NODE_NAME, MeasurementServerConfig, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
-from dc_measurements.metrics import measurement_prometheus_text
+from dc_measurements.metrics import measurement_diagnosis, measurement_prometheus_text
 from dc_measurements.runner import MeasurementRunner
+from dc_measurements.saved_files import base_paths
 from dc_measurements.validation import RecordValidator, schema_version
 
 INIT_MATCH_WAIT_S = 2.0
 # How long deactivate waits for collections running on the worker.
 WORKER_DRAIN_S = 5.0
 # Late subscribers (a dashboard, a test) get the current state of a condition at once.
-CONDITION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 @dataclass
@@ -45,6 +45,9 @@ class _MeasurementContext(ServerPluginContext):
     def emit(self, record: dict[str, Any], *, stamp_ns: int | None = None, group_key: str | None = None) -> None:
         assert isinstance(self.server, MeasurementServer)
         self.server.emit_from_event(self.name, record, stamp_ns, group_key)
+
+
+LEVELS = {"ok": OK, "warn": WARN}
 
 
 class MeasurementServer(ManagedServer):
@@ -63,6 +66,7 @@ class MeasurementServer(ManagedServer):
         self._init_timer: Any = None
         self._clock_wait_logged = False
         self.handoff: HandoffSender | None = None
+        self._diagnosed: dict[str, tuple[float, dict[str, int]]] = {}  # measurement -> (when, counters) last said
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -81,7 +85,7 @@ class MeasurementServer(ManagedServer):
         self.apply_node_params(config.node, config.warnings)
 
         custom = resolve_custom_params(config.custom_str_params)
-        paths = self._base_paths(section, config, custom)
+        paths = base_paths(section, config, custom)
         # Last of the checks that can fail: a failed configure does not use up a run id.
         run_id = next_run_id(config.node.run_id)
         log.info(f"run_id={run_id}; base save path {paths.save_local_base_path!r}")
@@ -138,28 +142,6 @@ class MeasurementServer(ManagedServer):
             return self.create_lifecycle_publisher(StringStamped, topic, record_qos(depth))
 
         return create
-
-    def _base_paths(
-        self, section: dict[str, Any], config: MeasurementServerConfig, custom: list[tuple[str, str, bool]]
-    ) -> BasePaths:
-        node = config.node
-
-        def top_level_string(name: str) -> str | None:
-            value = section.get(name)
-            return value if isinstance(value, str) else None
-
-        custom_values = {cid: value for cid, (_, value, _) in zip(config.custom_str_params, custom, strict=True)}
-        save = expand_values(
-            expand_env(node.save_local_base_path, f"{NODE_NAME}.save_local_base_path"),
-            top_level_string,
-            f"{NODE_NAME}.save_local_base_path",
-        )
-        all_base = expand_values(
-            expand_env(node.all_base_path, f"{NODE_NAME}.all_base_path"),
-            custom_values.get,
-            f"{NODE_NAME}.all_base_path",
-        )
-        return BasePaths(save_local_base_path=save, all_base_path=all_base)
 
     def _validator(
         self, name: str, plugin: Measurement[Any], enabled: bool, schema_path: str
@@ -231,6 +213,22 @@ class MeasurementServer(ManagedServer):
             "handoff": handoff.metrics() if handoff is not None else {},
             "history": history_metrics(list(self._record_publishers.values())),
         }
+
+    def diagnostic_statuses(self) -> list[Any]:
+        """One status per measurement while active: WARN when records were lost or not made since the last."""
+        if self.lifecycle_state != "active":
+            self._diagnosed.clear()
+            return []
+        now = time.monotonic()
+        statuses = []
+        for name, counters in self.metrics_document()["measurements"].items():
+            before = self._diagnosed.get(name)
+            self._diagnosed[name] = (now, counters)
+            level, message, values = measurement_diagnosis(
+                counters, before[1] if before else None, now - before[0] if before else None
+            )
+            statuses.append(diagnostic_status(f"{self.get_name()}: {name}", LEVELS[level], message, values))
+        return statuses
 
     @staticmethod
     def _topic_record_callback(runtime: ConditionRuntime) -> Any:

@@ -341,6 +341,118 @@ def test_pages_render_the_numbers_and_say_what_is_wrong(database: PostgresSettin
     assert "secret-pw" not in html
 
 
+def test_an_empty_panel_names_what_to_collect_and_blames_filters_only_when_they_are_the_cause(
+    database: PostgresSettings,
+) -> None:
+    import dataclasses
+
+    import psycopg
+
+    # The original's QR demo stores positions but no distance, CPU or memory: the panels said "0.0 m"
+    # and "nothing stored for these filters".
+    positions_only = dataclasses.replace(database, table="dc_positions_only")
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("CREATE TABLE dc_positions_only (tag varchar, time timestamp, data jsonb, record_id text)")
+        with connection.cursor() as cursor:
+            cursor.executemany(
+                "INSERT INTO dc_positions_only VALUES (%s, %s, %s::jsonb, %s)",
+                [row for row in _run_rows("C3PO", "1", T0, 3, cpu=1.0) if '"name": "robot"' in row[2]],
+            )
+    dashboard = Dashboard(DashboardSettings(positions_only, S3Settings()))
+    status, html = dashboard.render("/", "")
+    assert status == 200 and 'id="stat-distance"><span class="value">\u2013</span>' in html, html
+    assert "distance traveled: not collected" in html
+    assert "collect dc_measurements/DistanceTraveled into it" in html and "for these filters" not in html
+    status, html = dashboard.render("/system", "")
+    assert status == 200
+    assert "collect dc_measurements/Cpu into it" in html and "collect dc_measurements/Memory into it" in html
+
+    # Where the table holds them, an empty panel is the filters' doing, and says so.
+    everything = Dashboard(DashboardSettings(database, S3Settings()))
+    status, html = everything.render("/system", "robot=NOBODY")
+    assert status == 200 and "nothing stored for these filters" in html and "collect dc_measurements" not in html
+    status, html = everything.render("/", "robot=NOBODY")
+    assert "no distance_traveled records for these filters" in html and "not collected" not in html
+
+
+def test_quick_ranges_follow_the_clock_and_refresh_takes_only_the_offered_periods() -> None:
+    now = dt.datetime(2026, 11, 26, 20, 0, 0)
+    quick = Filters.parse("robot=C3PO&last=15m&start=2020-01-01T00:00:00&refresh=30", now=now)
+    assert (quick.start, quick.end, quick.refresh, quick.problems) == (now - dt.timedelta(minutes=15), None, 30, ())
+    # The link keeps the quick range, not the dates of the moment it was drawn: a refreshed page moves on.
+    assert quick.query() == "?robot=C3PO&last=15m&refresh=30"
+    wrong = Filters.parse("last=3h&refresh=7")
+    assert (wrong.last, wrong.start, wrong.refresh) == ("", None, 0)
+    assert [p.split(":")[0] for p in wrong.problems] == ["last", "refresh"]
+
+
+def test_the_explorer_shows_any_record_name_its_numbers_over_time_and_its_records(
+    database: PostgresSettings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dc_dashboard import queries
+
+    dashboard = Dashboard(DashboardSettings(database, S3Settings()))
+    status, html = dashboard.render("/explore", "robot=C3PO")
+    assert status == 200
+    listed = html.partition('<ul id="explore-names">')[2].partition("</ul>")[0]
+    for name in ("distance_traveled", "front_camera", "map", "robot", "system"):
+        assert f">{name}</a>" in listed, listed
+
+    status, html = dashboard.render("/explore", "name=system&robot=C3PO&run=2")
+    assert status == 200
+    # Every number of the record, found from its shape: group members' fields by their path.
+    for label in ("cpu.average", "cpu.processes", "memory.used"):
+        assert f"<h2>{label}</h2>" in html, label
+    assert 'id="explore-chart-0"' in html and 'class="chart empty"' not in html
+    table = html.partition('<table id="explore-records">')[2].partition("</table>")[0]
+    assert table.count("<tr><td class=when>") == 5  # C3PO's run 2: five seconds of system records
+    assert "&quot;average&quot;: 50.0" in table and "C3PO" in table
+
+    monkeypatch.setattr(queries, "EXPLORE_PAGE", 10)
+    store = Store(database)
+    with store.connection() as connection:
+        first = store.explore(connection, Filters(name="robot", robot="R2D2"))
+        assert len(first.records) == 10 and first.more
+        second = store.explore(connection, Filters(name="robot", robot="R2D2", before=first.records[-1][0]))
+    assert [r[0] for r in first.records + second.records] == sorted(
+        (r[0] for r in first.records + second.records), reverse=True
+    )
+    assert len({r[0] for r in first.records + second.records}) == 20 and not second.more
+
+
+def test_the_camera_page_finds_images_by_the_code_read_and_opens_them_full_size(database: PostgresSettings) -> None:
+    dashboard = Dashboard(DashboardSettings(database, S3Settings()))
+    status, html = dashboard.render("/camera", "code=pal-c3po-2")  # any case, any part of the code
+    assert status == 200 and html.count("<figure>") == 1 and "PAL-C3PO-2" in html
+    assert '<a class="zoom" href="/image?key=C3PO%2Finspected%2F2.jpg" target="_blank"' in html
+    status, html = dashboard.render("/camera", "code=PAL-%25")  # a % is a character, not a pattern
+    assert status == 200 and "<figure>" not in html and "no inspected image with a code holding PAL-%" in html
+    status, html = dashboard.render("/", "refresh=30&last=24h")
+    assert "<meta http-equiv=refresh content=30>" in html and 'id="quick-last-24h" class="active"' in html
+
+
+def test_the_filters_dates_are_utc_whatever_zone_the_database_is_set_to(database: PostgresSettings) -> None:
+    import psycopg
+
+    # A table of DC's new shape (timestamptz) in a database whose zone is not UTC.
+    zoned = PostgresSettings(**{**database.__dict__, "table": "dc_zoned"})
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("CREATE TABLE dc_zoned (tag varchar, time timestamptz, data jsonb, record_id text)")
+        connection.execute(
+            "INSERT INTO dc_zoned SELECT tag, time AT TIME ZONE 'UTC', data, record_id FROM dc"
+            " WHERE data->>'name' = 'distance_traveled' AND data->>'robot_name' = 'R2D2'"
+        )
+        connection.execute(f"ALTER DATABASE {database.database} SET timezone = 'Pacific/Honolulu'")
+    try:
+        store = Store(zoned)
+        with store.connection() as connection:
+            metres = store.distance(connection, Filters(start=T0, end=T0 + dt.timedelta(seconds=5))).total_m
+        assert metres == 5.0  # the same five seconds as in the UTC table (not 10 hours off: nothing)
+    finally:
+        with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+            connection.execute(f"ALTER DATABASE {database.database} RESET timezone")
+
+
 # -- in a browser, over what the demo stored --------------------------------------------------------------
 
 
@@ -400,6 +512,7 @@ def _insert_inspection(dsn: dict[str, Any], s3: Any, robot: str, run: str) -> No
 def test_the_dashboard_in_a_browser_over_the_pgsql_minio_demo(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import psycopg
     from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
 
     for missing in (postgres.missing_reason(), seaweedfs.missing_reason()):
         if missing is not None:
@@ -500,6 +613,21 @@ def test_the_dashboard_in_a_browser_over_the_pgsql_minio_demo(tmp_path: Path, mo
             )  # fmt: skip
             assert browser.find_elements(By.CSS_SELECTOR, "figcaption .code")
             _screenshot(browser, shots, "camera")
+
+            # Searching by a code read, as a user types it: the page keeps only the images with it.
+            code = browser.execute_script("return document.querySelector('figcaption .code').lastChild.textContent")
+            browser.find_element(By.ID, "code-search").send_keys(code.lower())
+            browser.find_element(By.ID, "code-search").submit()
+            run.wait_until(lambda: "code=" in browser.current_url, 10, "the code search")
+            assert code in browser.find_element(By.CSS_SELECTOR, "figcaption .code").text
+
+            # Any record name, chosen in the explorer's list: its numbers over time and its records.
+            browser.get(base + "/explore?robot=C3PO")
+            Select(browser.find_element(By.ID, "explore-name")).select_by_visible_text("system")
+            run.wait_until(lambda: "name=system" in browser.current_url, 10, "the explorer on system")
+            assert browser.find_elements(By.CSS_SELECTOR, "#explore-chart-0 polyline.series")
+            assert len(browser.find_elements(By.CSS_SELECTOR, "#explore-records tr")) > 1
+            _screenshot(browser, shots, "explorer")
 
             browser.get(base + "/files")
             assert len(browser.find_elements(By.CSS_SELECTOR, "#files-table tr")) > 1

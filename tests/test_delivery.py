@@ -53,7 +53,7 @@ class Recorder(Destination[None]):
         outcome = self.behaviour(call, batch) if self.behaviour else None
         with self.lock:
             if isinstance(outcome, SendOutcome):
-                failed = set(outcome.retry) | set(outcome.reject)
+                failed = set(outcome.retry) | set(outcome.reject) | set(outcome.waiting)
                 self.delivered.extend(r for i, r in enumerate(batch) if i not in failed)
             else:
                 self.delivered.extend(batch)
@@ -239,6 +239,37 @@ def test_retryable_failures_back_off_exponentially_then_deliver(tmp_path: Path) 
         assert metrics["retried"] >= 3
         assert metrics["dead_lettered"] == 0
         assert "503" in metrics["last_error"] and metrics["last_error_time"] <= metrics["last_delivery"]
+    finally:
+        pipeline.stop(grace=1.0)
+
+
+def test_a_record_waiting_for_another_destination_is_retried_without_a_failure(tmp_path: Path) -> None:
+    # FilesMetrics' wait for MinIO's upload: the dashboard and dc status showed it as a failing destination.
+    health_states: list[str] = []
+    pipeline: DeliveryPipeline
+
+    def not_uploaded_yet(call: int, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        health_states.append(pipeline.destination_health()["sink"]["state"])
+        return SendOutcome(waiting={0: "waiting for minio to store a.pgm: no object a.pgm"}) if call <= 3 else None
+
+    sink = Recorder(behaviour=not_uploaded_yet)
+    waits = RecordedWaits()
+    pipeline = DeliveryPipeline(
+        settings(tmp_path), {"sink": (sink, DestinationDeliveryParams(batch_size=2))}, LOG, wait=waits
+    )
+    pipeline.start()
+    try:
+        pipeline.submit("sink", record(0))
+        pipeline.submit("sink", record(1))
+        pipeline.flush_intake(5)
+        sink.wait_for(2)
+        wait_until(lambda: pipeline.metrics()["sink"]["sent"] == 2)
+        assert sink.calls == 4
+        metrics = pipeline.metrics()["sink"]
+        assert (metrics["failed"], metrics["retried"], metrics["dead_lettered"]) == (0, 3, 0)
+        assert metrics["last_error"] == "" and metrics["last_error_time"] is None
+        assert set(health_states) == {"ok"} and pipeline.destination_health()["sink"]["state"] == "ok"
+        assert len(waits.delays) == 3, "tried again after the backoff, as a retry"
     finally:
         pipeline.stop(grace=1.0)
 

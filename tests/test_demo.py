@@ -1,5 +1,5 @@
 """`dc demo` (make demo) as a user runs it: one command, the dashboard shows the robot's path and an
-inspected shelf image, and Ctrl-C leaves no process behind."""
+inspected shelf image, every page real data and no false alarm, and Ctrl-C leaves no process behind."""
 
 from __future__ import annotations
 
@@ -61,6 +61,30 @@ def _an_inspected_image(base: str) -> bool:
     return False
 
 
+def _false_alarms(base: str) -> list[str]:
+    """What a page of the demo shows that is not real data, or alarms in a healthy run."""
+    found = []
+    overview = _get(base + "/")[0].decode()
+    if "not collected" in overview or 'id="stat-distance"><span class="value">0.0 m' in overview:
+        found.append("Overview: no distance traveled")
+    system = _get(base + "/system")[0].decode()
+    for chart in ("cpu-chart", "memory-chart"):
+        if f'<svg id="{chart}" class="chart empty"' in system or f'id="{chart}"' not in system:
+            found.append(f"System: {chart} empty")
+    health = _get(base + "/health")[0].decode()
+    if "indexes the dashboard needs" in health:
+        found.append("Health: the missing-index banner")
+    # destination, health, received, sent, pending, oldest pending, retried, failed: ok and 0 failed.
+    for destination in ("flb_pgsql", "flb_minio", "flb_files_metrics"):
+        row = re.search(
+            rf"<tr><td>{destination}</td><td>(.*?)</td>(?:<td class=num>[^<]*</td>){{5}}<td class=num>([^<]*)</td>",
+            health,
+        )
+        if row is None or "health ok" not in row.group(1) or row.group(2) != "0":
+            found.append(f"Health: {destination} {row.groups() if row else 'absent'}")
+    return found
+
+
 def _descendants(pid: int) -> set[int]:
     """Every process below ``pid``, from /proc's children lists."""
     found: set[int] = set()
@@ -94,12 +118,14 @@ def test_dc_demo_shows_the_qr_demo_in_the_dashboard_and_stops_everything(tmp_pat
     reader.start()
     try:
         deadline = time.monotonic() + 120
-        points = inspected = False
-        while not (points and inspected) and demo.poll() is None and time.monotonic() < deadline:
+        points = inspected = every_page = False
+        while not (points and inspected and every_page) and demo.poll() is None and time.monotonic() < deadline:
             time.sleep(1)
             points = points or _trajectory_points(base) > 0
             inspected = inspected or (points and _an_inspected_image(base))
+            every_page = every_page or (inspected and not _false_alarms(base))
         assert points and inspected, f"trajectory {points}, inspected image {inspected}\n" + "".join(output)
+        assert every_page, "\n".join(_false_alarms(base)) + "\n" + "".join(output)
         # The destination server's metrics are on: the health page has its last delivery.
         health = _get(base + "/health")[0].decode()
         assert re.search(r'id="stat-last-delivery"><span class="value">[\d,]+ s ago', health), health

@@ -99,6 +99,11 @@ def test_a_healthy_run_shows_ok_for_each_server_and_destination(tmp_path: Path) 
             )
             server = monitor.wait("destination_server: server", level(DiagnosticStatus.OK), "OK")
             measurement = monitor.wait("measurement_server: server", level(DiagnosticStatus.OK), "OK")
+            seq = monitor.wait(
+                "measurement_server: seq",
+                lambda s: s.level == DiagnosticStatus.OK and values(s)["published"] == "20",
+                "OK and 20 published",
+            )
             # diagnostics_period 0.2 from --ros-args: about five a second (one a second by default).
             before = len(monitor.seen["measurement_server: server"])
             deadline = time.monotonic() + 1.0
@@ -111,6 +116,7 @@ def test_a_healthy_run_shows_ok_for_each_server_and_destination(tmp_path: Path) 
     assert values(web)["pending"] == "0" and values(web)["state"] == "ok"
     assert values(server)["state"] == "active" and values(server)["thread_failures"] == "0"
     assert values(measurement)["namespace"] == "/"
+    assert values(seq)["malformed"] == values(seq)["lost"] == values(seq)["errors"] == "0"
     assert web.hardware_id  # the host
 
 

@@ -94,13 +94,13 @@ def test_the_influxdb_demo_writes_robot_and_system_points(
                 assert isinstance(series, list)
                 return [dict(zip(s["columns"], v, strict=True)) for s in series for v in s["values"]]
 
-            run.wait_until(lambda: len(points("distance_traveled")) >= 3, 90, "3 distance_traveled points")
-            run.wait_until(lambda: bool(points("position") and points("cpu")), 60, "position and cpu points")
-        distance = points("distance_traveled")
-        position = points("position")[-1]
-    # Nested and flattened as in the original: fields named by the record's JSON pointers; tags kept.
-    assert distance[-1]["/distance_traveled/distance_traveled"] > 0
-    assert {"/position/x", "/position/y", "/position/yaw"} <= set(position)
+            run.wait_until(lambda: len(points("dc_distance_traveled")) >= 3, 90, "3 distance_traveled points")
+            run.wait_until(lambda: bool(points("dc_position") and points("dc_cpu")), 60, "position and cpu points")
+        distance = points("dc_distance_traveled")
+        position = points("dc_position")[-1]
+    # Nested and flattened as in the original; the fields named as Telegraf's, dotted; tags kept.
+    assert distance[-1]["distance_traveled.distance_traveled"] > 0
+    assert {"position.x", "position.y", "position.yaw"} <= set(position)
     assert position["robot_name"] == "C3PO" and position["run_id"]
 
 

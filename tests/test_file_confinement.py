@@ -278,8 +278,8 @@ def test_a_file_replaced_after_the_upload_is_not_deleted(
     dest = minio(server, root)
     upload = dest._upload
 
-    def upload_then_swap(opened: Any, key: str) -> int:
-        size = upload(opened, key)
+    def upload_then_swap(opened: Any, key: str, metadata: dict[str, str]) -> int:
+        size = upload(opened, key, metadata)
         # Another file takes the name once the upload is done: the one verified is not it.
         os.replace(write(root / "other.tmp", b"P5 someone else's"), path)
         return size

@@ -188,3 +188,10 @@ def test_status_targets_for_every_shipped_parameter_file(tmp_path: Path, monkeyp
     for file in files:
         targets = metrics_targets(str(file), "", "127.0.0.1", None)
         assert targets and all(t.port >= 40000 for t in targets), (file, targets)
+
+
+def test_an_ipv6_metrics_address_is_bracketed_in_the_url() -> None:
+    from dc_bringup.live import Target
+
+    assert Target("destination_server", "::1", 2022).url == "http://[::1]:2022/api/v1/metrics"
+    assert Target("", "127.0.0.1", 2020).url == "http://127.0.0.1:2020/api/v1/metrics"

@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 
 from dc_core.errors import ConfigError
+from dc_core.measurement import Measurement
 from dc_core.paths import expand_env, expand_time, expand_values
 from dc_core.records import parse_record
 from dc_core.testing import FakeContext, RecordingLogger
@@ -41,10 +42,11 @@ def make_runner(
     samples: list[dict[str, Any] | None] | None = None,
     clock_ns: Any = None,
     schema_version: int | None = None,
+    plugin_class: type[Measurement[Any]] | None = None,
 ) -> tuple[MeasurementRunner, list[tuple[str, str, int | None]]]:
     cfg = parse_measurement_server(server({"m": body}, conditions))
     mcfg = cfg.measurements[0]
-    plugin = mcfg.plugin_class(FakeContext(), mcfg.plugin_params)
+    plugin = (plugin_class or mcfg.plugin_class)(FakeContext(), mcfg.plugin_params)
     plugin.on_configure()
     if samples is not None:
         queue = list(samples)
@@ -463,7 +465,7 @@ def test_path_expansion() -> None:
     assert expand_values("base/=robot/={site}", {"robot": "C3PO", "site": "lyon"}.get) == "base/C3PO/lyon"
     with pytest.raises(ConfigError, match="'=missing' names no string parameter"):
         expand_values("=missing", lambda name: None)
-    assert expand_time("%Y-%m-%dT%H", when=0, utc=True) == "1970-01-01T00"
+    assert expand_time("%Y-%m-%dT%H", when=0) == "1970-01-01T00"
 
 
 def test_a_condition_that_remembers_samples_shared_by_two_measurements_is_warned_about() -> None:
@@ -501,3 +503,38 @@ def test_a_condition_that_cannot_judge_its_records_says_so_once() -> None:
     assert "'tme'" in warning and "the record's keys: time" in warning
     assert len(logger.at("debug")) == 1, "later failures with the same reason stay quiet"
     assert states == [False]
+
+
+class TriggeredUptime(Uptime):
+    """Uptime whose conditions are its trigger, as the Recorder's: it notes each poll's verdict."""
+
+    conditions_trigger = True
+    schema_file = None  # (its module is a test's, with no schema beside it)
+
+    def __init__(self, context: Any, params: Any) -> None:
+        super().__init__(context, params)
+        self.polls: list[bool | None] = []
+
+    def on_poll(self, conditions_met: bool | None) -> None:
+        self.polls.append(conditions_met)
+
+
+def test_a_conditions_trigger_measurement_is_polled_with_the_verdict_and_its_records_are_not_gated() -> None:
+    runner, published = make_runner(
+        {"plugin": "dc_measurements/Uptime", "if_all_conditions": ["low"], "condition_max_measurements": 1},
+        {"low": {"plugin": "dc_conditions/DoubleInferior", "key": "percent", "value": 20.0, "topic": "/battery"}},
+        plugin_class=TriggeredUptime,
+    )
+    plugin = runner.plugin
+    assert isinstance(plugin, TriggeredUptime)
+    runner.tick()  # nothing received on /battery: not met
+    runner._conditions["low"].on_topic_record('{"percent": 10}')
+    runner.tick()
+    runner._conditions["low"].on_topic_record('{"percent": 50}')
+    runner.tick()
+    assert plugin.polls == [False, True, False]
+    assert published == [], "polled, never collected"
+    # What it emits is published whatever the conditions say now, past condition_max_measurements.
+    runner.emit({"time": 1.0})
+    runner.emit({"time": 2.0})
+    assert [r["time"] for r in records(published)] == [1.0, 2.0]

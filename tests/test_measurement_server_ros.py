@@ -26,6 +26,7 @@ import pytest
 import rclpy
 import yaml
 from dc_lifecycle_interfaces.msg import Heartbeat
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
@@ -498,6 +499,31 @@ def test_counters_are_served_over_http_while_active(harness: Harness) -> None:
     assert harness.server.http_address is None
     with pytest.raises(urllib.error.URLError):
         urllib.request.urlopen(f"{base}/health", timeout=5)
+
+
+def test_each_measurement_has_a_diagnostic_status_warn_while_it_loses_records(harness: Harness) -> None:
+    measurement = start_string_stamped(harness, timer_based=False)
+    server = harness.server
+    assert server is not None
+    measurement.publisher.publish(stamped("[1, 2]"))
+    measurement.publisher.publish(stamped('{"seq": 1}'))
+    harness.spin_until(lambda: len(measurement.received) == 1, "the valid record")
+
+    def status() -> tuple[bytes, str, dict[str, str]]:
+        (found,) = [s for s in server.diagnostic_statuses() if s.name == f"measurement_server: {measurement.name}"]
+        return found.level, found.message, {kv.key: kv.value for kv in found.values}
+
+    level, message, values = status()
+    assert level == DiagnosticStatus.WARN and message.startswith("1 malformed since configure"), message
+    assert (values["published"], values["malformed"]) == ("1", "1")
+    measurement.publisher.publish(stamped('{"seq": 2}'))
+    harness.spin_until(lambda: len(measurement.received) == 2, "the second record")
+    level, message, values = status()  # what happened since the previous status: only a good record
+    assert (level, message) == (DiagnosticStatus.OK, "publishing") and float(values["records_per_s"]) > 0
+    level, message, _ = status()
+    assert (level, message) == (DiagnosticStatus.OK, "idle: nothing collected since the previous status")
+    assert server.trigger_deactivate() == SUCCESS
+    assert [s.name for s in server.diagnostic_statuses()] == [], "only the server's own status while inactive"
 
 
 # --- the doc pages' examples run -----------------------------------------------------------------

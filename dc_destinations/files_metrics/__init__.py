@@ -149,7 +149,8 @@ class _Plan:
     """What one record's files call for: the rows to write, and why it cannot be confirmed yet or ever."""
 
     rows: list[FileRow] = field(default_factory=list)
-    waiting: list[str] = field(default_factory=list)  # may pass: retry the record
+    waiting: list[str] = field(default_factory=list)  # on disk, not stored yet: no failure, look again later
+    unsure: list[str] = field(default_factory=list)  # a store cannot say, or holds another object: retry
     missing: list[str] = field(default_factory=list)  # files neither on disk nor stored: reject, after a wait
     refused: list[str] = field(default_factory=list)  # what the record names is no file: reject at once
     opened: dict[str, OpenedFile] = field(default_factory=dict)  # local path -> the file checked and open
@@ -251,15 +252,18 @@ class FilesMetrics(Destination[FilesMetricsParams]):
                 continue
             if plan.refused or plan.missing:
                 outcome.reject[i] = "; ".join(plan.refused + plan.missing)
+            elif plan.unsure:
+                outcome.retry[i] = "; ".join(plan.unsure + plan.waiting)
             elif plan.waiting:
-                outcome.retry[i] = "; ".join(plan.waiting)
+                # The upload is another destination's (MinIO, S3Files): until it is done, the record waits.
+                outcome.waiting[i] = "; ".join(plan.waiting)
             elif self.params.delete_when_sent:
                 problems = self._delete(plan, gone)
                 if problems:
                     outcome.retry[i] = "; ".join(problems)
         if gone:
             database.run(lambda connection: self._mark_deleted(connection, gone))
-        return outcome if outcome.retry or outcome.reject else None
+        return outcome if outcome.retry or outcome.reject or outcome.waiting else None
 
     def _plan(self, record: OutgoingRecord, durations: dict[str, float | None]) -> _Plan:
         plan = _Plan()
@@ -285,7 +289,7 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         except StoreUnavailable:
             raise  # the whole store: every record of the batch waits for it
         except RetryableError as exc:
-            plan.waiting.append(f"{store.name} cannot tell whether it holds {pair.key}: {exc}")
+            plan.unsure.append(f"{store.name} cannot tell whether it holds {pair.key}: {exc}")
             return
         mime_type = content_type(pair.local_path)
         duration = None
@@ -316,8 +320,11 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         )
         if verification.verified:
             return
-        if on_filesystem:
+        if on_filesystem and verification.size is None:
             plan.waiting.append(f"waiting for {store.name} to store {pair.key}: {verification.reason}")
+        elif on_filesystem:
+            # A stored object unlike the file is no upload under way: shown as a failure until it is mended.
+            plan.unsure.append(f"{store.name} holds another {pair.key}: {verification.reason}")
         else:
             # Nobody can upload a file that is gone: waiting would last for ever.
             plan.missing.append(

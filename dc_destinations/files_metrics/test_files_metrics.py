@@ -162,8 +162,8 @@ def test_a_file_waits_for_its_upload_then_one_row_says_uploaded_and_deleted(
     batch = [record(path, "C3PO/map/a.pgm")]
 
     outcome = dest.send(batch)
-    assert outcome is not None and not outcome.reject
-    assert outcome.retry[0].startswith("waiting for minio to store C3PO/map/a.pgm: no object")
+    assert outcome is not None and not outcome.reject and not outcome.retry, "a wait is no failure"
+    assert outcome.waiting[0].startswith("waiting for minio to store C3PO/map/a.pgm: no object")
     (waiting,) = rows(pg, "lifecycle")
     assert (waiting["uploaded"], waiting["on_filesystem"], waiting["deleted"]) == (False, True, False)
     assert waiting["verified_at"] is None and waiting["etag"] is None
@@ -210,8 +210,8 @@ def test_nothing_is_deleted_until_every_storage_verified_it(
     s3.client().upload_file(str(path), s3.bucket, "two/map.pgm")
 
     outcome = dest.send(batch)
-    assert outcome is not None and list(outcome.retry) == [0]
-    assert outcome.retry[0].startswith("waiting for s3 to store two/map.pgm")
+    assert outcome is not None and list(outcome.waiting) == [0]
+    assert outcome.waiting[0].startswith("waiting for s3 to store two/map.pgm")
     assert path.exists()
     by_storage = {r["storage_type"]: r for r in rows(pg, "two_storages")}
     assert (by_storage["minio"]["uploaded"], by_storage["s3"]["uploaded"]) == (True, False)
@@ -236,7 +236,7 @@ def test_a_tampered_object_is_not_uploaded(
     for wrong, expected in ((b"short", "holds 5 bytes"), (content.upper(), "differs from")):
         client.put_object(Bucket=s3.bucket, Key="tampered/real.pgm", Body=wrong)
         outcome = dest.send(batch)
-        assert outcome is not None and expected in outcome.retry[0], outcome
+        assert outcome is not None and expected in outcome.retry[0], outcome  # a failure, not a wait
         (row,) = rows(pg, "tampered")
         assert not row["uploaded"] and row["on_filesystem"] and path.exists()
     client.put_object(Bucket=s3.bucket, Key="tampered/real.pgm", Body=content)
@@ -310,7 +310,7 @@ def test_a_file_written_during_missing_wait_is_waited_for(
     finally:
         writer.join()
     assert outcome is not None and not outcome.reject
-    assert outcome.retry[0].startswith("waiting for minio to store late/late.pgm")
+    assert outcome.waiting[0].startswith("waiting for minio to store late/late.pgm")
 
 
 def test_what_a_record_names_that_is_not_a_file_is_rejected(

@@ -1,10 +1,13 @@
 """InfluxDB destination: each batch written as line protocol, one POST to the v1 or v2 write API.
 
 DC writes the line protocol itself rather than through a client library: the rules are short, and
-owning them lets a refused point be traced back to its record. Each record is one point: the
-measurement is the record's ``name`` (or the ``measurement`` parameter), ``tag_keys`` (and with
-``auto_tags`` every text value) become tags, every other value a field — nested objects and arrays
-flattened to ``cpu.average``, ``sorted.0.pid`` —, and the time is the record's stamp in nanoseconds.
+owning them lets a refused point be traced back to its record. Each record is one point, shaped as a
+Telegraf user expects: the measurement is ``measurement_prefix`` + the record's ``name`` (or the
+``measurement`` parameter), ``tag_keys`` (and with ``auto_tags`` the record's top-level text values)
+become tags, every other value a field — nested objects and arrays flattened to ``cpu.average``,
+``sorted.0.pid``, a flattened record's JSON pointers (``/cpu/average``) the same way —, DC's
+bookkeeping keys (``record_id``, the time key…) are left out, command lines are cut, and the time is
+the record's stamp in nanoseconds.
 
 InfluxDB writes the valid points of a batch and refuses the others with ``400 partial write``; its
 message names the first refused line or field. Those records are rejected alone and the rest is sent
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import gzip
 import http.client
 import json
 import math
@@ -52,6 +56,15 @@ _POINT_ERRORS = frozenset({400, 422})
 _TYPE_CONFLICT = re.compile(r'input field \\?"(.+?)\\?" on measurement \\?"(.+?)\\?" is type (\w+)')
 _INVALID_FIELD = re.compile(r'invalid field name: input field \\?"(.+?)\\?" on measurement \\?"(.+?)\\?"')
 _UNPARSABLE = re.compile(r"unable to parse '(.*?)': ", re.DOTALL)
+CONTENT_ENCODINGS = ("gzip", "identity")
+# Keys DC adds to records for its own sake: the destination's time key (the point has its time), the
+# measurement server's shape flags, the id the buffer deduplicates with, the routing tags.
+BOOKKEEPING_KEYS = ["date", "flattened", "nested", "record_id", "schema_version", "tags"]
+# Keys holding a process's command line (Cpu's processes: sorted.N.cmd): arguments may hold secrets.
+COMMAND_LINE_KEYS = ["cmd", "cmdline", "command_line"]
+# Never tagged by auto_tags: a run is a value that changes at every start (a tag would add a series
+# per run); tag_keys: [run_id] makes it one as the original did.
+_NEVER_AUTO_TAGGED = frozenset({"run_id"})
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
@@ -65,9 +78,33 @@ class InfluxDBParams(TlsParams):
     database: str = param("fluentbit", doc="Database the points are written to (v1 API)")
     bucket: str = param("", doc="Bucket the points are written to (v2 API); a v1 `database/retention` works on 1.8+")
     org: str = param("fluent", doc="Organization of the bucket (v2 API)")
-    measurement: str = param("", doc="Measurement of every point; empty: the record's `name`")
+    measurement: str = param("", doc="Measurement of every point; empty: measurement_prefix + the record's `name`")
+    measurement_prefix: str = param(
+        "dc_", doc="Put before the record's `name` (`dc_cpu`), so that DC's never mix with Telegraf's (`cpu`); "
+        '"": the original\'s names'
+    )  # fmt: skip
     tag_keys: list[str] | str = param([], doc="Record keys written as tags (a list, or names separated by spaces)")
-    auto_tags: bool = param(False, doc="Write every text value as a tag too (Fluent Bit's auto_tags)")
+    auto_tags: bool = param(
+        False, doc="Write the record's top-level text values as tags too (Fluent Bit's auto_tags), but for run_id, "
+        "the bookkeeping keys, command lines and a flattened record's keys"
+    )  # fmt: skip
+    bookkeeping_fields: bool = param(
+        False, doc="Write bookkeeping_keys as fields too (the original wrote them on every point)"
+    )
+    bookkeeping_keys: list[str] = param(
+        BOOKKEEPING_KEYS,
+        doc="DC's own keys, left out of the points unless bookkeeping_fields (add a time_key of yours)",
+    )
+    pointer_field_names: bool = param(
+        False, doc="Keep a flattened record's JSON-pointer keys (`/cpu/average`) as field names, as the original"
+    )
+    command_line_chars: int = param(
+        64, minimum=-1, doc="Characters of a command line kept (the rest cut, marked with …); 0: not written; -1: whole"
+    )
+    command_line_keys: list[str] = param(COMMAND_LINE_KEYS, doc="Keys (their last part) holding command lines")
+    content_encoding: str = param(
+        "gzip", choices=CONTENT_ENCODINGS, doc="gzip: compressed writes (Telegraf's default); identity: plain"
+    )
     sequence_tag: str = param(
         "_seq", doc="Tag numbering records of the same series and time, which would overwrite each other; empty: none"
     )
@@ -98,6 +135,15 @@ class InfluxDBParams(TlsParams):
             raise ConfigError("sequence_tag", f"expected a tag name: {_identifier_problem(self.sequence_tag)}")
         if self.measurement and _identifier_problem(self.measurement, measurement=True):
             raise ConfigError("measurement", f"expected a measurement name: {_identifier_problem(self.measurement)}")
+        prefix_problem = _identifier_problem(self.measurement_prefix, measurement=True) or (
+            "a space, comma or double quote (a name a query must quote)"
+            if re.search(r"[\s,\"]", self.measurement_prefix)
+            else None
+        )
+        if prefix_problem:
+            raise ConfigError(
+                "measurement_prefix", f"expected the start of a measurement name, without {prefix_problem}"
+            )
 
     @property
     def api_version(self) -> str:
@@ -217,20 +263,31 @@ class Point:
 def to_point(record: OutgoingRecord, params: InfluxDBParams) -> Point:
     """The record as a point; :class:`LineError` when it has nothing to write or cannot be written."""
     data = record.data
-    measurement = params.measurement or data.get("name")
-    if not isinstance(measurement, str) or not measurement:
-        # Without a name (a measurement that does not include it), the last part of its topic.
-        measurement = record.topic.rstrip("/").rsplit("/", 1)[-1] or "dc"
+    measurement = params.measurement
+    if not measurement:
+        name = data.get("name")
+        if not isinstance(name, str) or not name:
+            # Without a name (a measurement that does not include it), the last part of its topic.
+            name = record.topic.rstrip("/").rsplit("/", 1)[-1] or "dc"
+        measurement = params.measurement_prefix + name
     _check(measurement, "the measurement", measurement=True)
     name_key = "" if params.measurement else "name"
     tag_keys = set(params.tag_list)
+    left_out = set() if params.bookkeeping_fields else set(params.bookkeeping_keys) - tag_keys
     tags: dict[str, str] = {}
     fields: list[tuple[str, str]] = []
     for key, value in data.items():
-        if key == name_key and value == measurement:
-            continue  # already the measurement
+        if (key == name_key and params.measurement_prefix + str(value) == measurement) or key in left_out:
+            continue  # the measurement already, or DC's bookkeeping
+        pointer = key.startswith("/") and not params.pointer_field_names
         if key in tag_keys or (
-            params.auto_tags and isinstance(value, str) and key != "record_id" and not _identifier_problem(value)
+            params.auto_tags
+            and isinstance(value, str)
+            and not key.startswith("/")
+            and key not in _NEVER_AUTO_TAGGED
+            and key not in params.bookkeeping_keys
+            and key not in params.command_line_keys
+            and not _identifier_problem(value)
         ):
             tag = _tag_value(value)
             if tag is not None:
@@ -238,7 +295,13 @@ def to_point(record: OutgoingRecord, params: InfluxDBParams) -> Point:
                 _check(tag, f"the value of tag {key!r}")
                 tags[_safe_key(key)] = tag
             continue
-        for field_key, scalar in flatten(value, key, params.separator):
+        start = _from_pointer(key, params.separator) if pointer else key
+        for field_key, scalar in flatten(value, start, params.separator):
+            if isinstance(scalar, str) and params.command_line_chars >= 0 and _last_part(field_key, params):
+                if params.command_line_chars == 0:
+                    continue
+                if len(scalar) > params.command_line_chars:
+                    scalar = scalar[: params.command_line_chars] + "…"
             text = field_value(scalar)
             if text is None:
                 continue
@@ -248,6 +311,16 @@ def to_point(record: OutgoingRecord, params: InfluxDBParams) -> Point:
         raise LineError("the record has no field InfluxDB can store (every value is a tag, null or empty)")
     # Sorted tags: InfluxDB's advice for the fastest writes, and the same series key for every record.
     return Point(measurement, tuple(sorted(tags.items())), tuple(fields), record.stamp_ns)
+
+
+def _from_pointer(key: str, separator: str) -> str:
+    """A flattened record's key as Telegraf names fields: ``/cpu/average`` -> ``cpu.average``."""
+    return separator.join(part.replace("~1", "/").replace("~0", "~") for part in key[1:].split("/"))
+
+
+def _last_part(field_key: str, params: InfluxDBParams) -> bool:
+    """Whether the field holds a command line (its key's last part is one of command_line_keys)."""
+    return field_key.rsplit(params.separator, 1)[-1] in params.command_line_keys
 
 
 def _check(text: str, what: str, *, measurement: bool = False) -> None:
@@ -308,6 +381,8 @@ class InfluxDB(Destination[InfluxDBParams]):
         self.url = f"{'https' if p.tls_on else 'http'}://{host}:{p.port}{self.path}"
         tls = self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
         self._headers = [("Content-Type", "text/plain; charset=utf-8"), ("User-Agent", "dc-destinations")]
+        if p.content_encoding == "gzip":
+            self._headers.append(("Content-Encoding", "gzip"))
         if p.http_token:
             self._headers.append(("Authorization", f"Token {p.http_token}"))
             self._secrets = [p.http_token]
@@ -391,7 +466,11 @@ class InfluxDB(Destination[InfluxDBParams]):
     def _write(self, lines: list[str]) -> tuple[int, str]:
         """POST the lines: (status, message) for a refused write, raising for whole-batch failures."""
         assert self._connection is not None, "send() before on_configure()"
-        answer = self._connection.post(self.path, self._headers, ("\n".join(lines) + "\n").encode("utf-8"))
+        body = ("\n".join(lines) + "\n").encode("utf-8")
+        if self.params.content_encoding == "gzip":
+            # Level 1: most of the gain (line protocol repeats its keys) for a fraction of level 9's CPU.
+            body = gzip.compress(body, compresslevel=1, mtime=0)
+        answer = self._connection.post(self.path, self._headers, body)
         status = answer.status
         if 200 <= status < 300:
             return status, ""

@@ -53,6 +53,7 @@ from dc_destinations.object_files import (
     file_pairs,
     part_digests,
     probe_bucket,
+    record_metadata,
     store_failure,
     store_where,
     stored_object,
@@ -121,6 +122,7 @@ class _Record:
     index: int
     files: list[_File] = field(default_factory=list)
     rejects: list[str] = field(default_factory=list)  # dead letter, once nothing is left to retry
+    metadata: dict[str, str] = field(default_factory=dict)  # x-amz-meta-dc-* of the record's objects
     retries: list[str] = field(default_factory=list)
 
     @property
@@ -260,7 +262,7 @@ class MinIO(Destination[MinIOParams]):
 
     def _look(self, index: int, record: OutgoingRecord) -> _Record:
         """The record's files as they are now; a missing file is looked up in the store."""
-        looked = _Record(index)
+        looked = _Record(index, metadata=record_metadata([record]))
         for pair in file_pairs(record.data, self.params):
             usable, opened = self._open(pair, looked)
             if not usable:
@@ -322,7 +324,7 @@ class MinIO(Destination[MinIOParams]):
             if not file.ready:
                 continue
             try:
-                ok = self._store(file)
+                ok = self._store(file, record.metadata)
             except StoreUnavailable:
                 raise
             except RetryableError as exc:
@@ -347,7 +349,7 @@ class MinIO(Destination[MinIOParams]):
             # Only files that passed the checks were opened: nothing else can be deleted.
             self._delete([opened[path] for path, ok in verified.items() if ok and path in opened])
 
-    def _store(self, file: _File) -> bool:
+    def _store(self, file: _File, metadata: dict[str, str]) -> bool:
         """Upload the file unless the store holds it intact already; True once verified."""
         if file.gone_but_stored:
             return True
@@ -357,7 +359,7 @@ class MinIO(Destination[MinIOParams]):
         if before.verified:
             self._counts["files_already_stored"] += 1
             return True
-        size = self._upload(file.opened, file.key)
+        size = self._upload(file.opened, file.key, metadata)
         after = verify_stored(self._client, p.bucket, file.key, file.opened)
         if not after.verified:
             self._counts["verification_failures"] += 1
@@ -366,24 +368,35 @@ class MinIO(Destination[MinIOParams]):
         self._counts["bytes_uploaded"] += size
         return True
 
-    def _upload(self, opened: OpenedFile, key: str) -> int:
+    def _upload(self, opened: OpenedFile, key: str, metadata: dict[str, str]) -> int:
         path = opened.path
         size = os.fstat(opened.fd).st_size
         content_type = file_content_type(path)
         try:
             if size <= self._threshold:
+                self._paced(size, key)
                 (digest,) = part_digests(opened, None)
                 with _reopened(opened) as body:
                     self._client.put_object(
-                        Bucket=self.params.bucket, Key=key, Body=body, ContentType=content_type, ContentMD5=_b64(digest)
+                        Bucket=self.params.bucket,
+                        Key=key,
+                        Body=body,
+                        ContentType=content_type,
+                        ContentMD5=_b64(digest),
+                        Metadata=metadata,
                     )
             else:
-                self._multipart(opened, key, size, content_type)
+                self._multipart(opened, key, size, content_type, metadata)
         except (BotoCoreError, ClientError) as exc:
             self._fail(exc, f"upload {key}")
         return size
 
-    def _multipart(self, opened: OpenedFile, key: str, size: int, content_type: str) -> None:
+    def _paced(self, nbytes: int, key: str) -> None:
+        """Within the destination's caps (max_bytes_per_s, link): a part waits for its bytes' turn."""
+        if not self.pace(nbytes):
+            raise RetryableError(f"{key} not uploaded: the destination is stopping")
+
+    def _multipart(self, opened: OpenedFile, key: str, size: int, content_type: str, metadata: dict[str, str]) -> None:
         p = self.params
         # Parts no smaller than part_size, larger only to stay within S3's 10000 parts.
         part_size = max(self._part_bytes, -(-size // MAX_PARTS))
@@ -391,7 +404,10 @@ class MinIO(Destination[MinIOParams]):
         upload_id, stored = self._resumable(key, size, part_size, digests)
         if upload_id is None:
             created = self._client.create_multipart_upload(
-                Bucket=p.bucket, Key=key, ContentType=content_type, Metadata={PART_SIZE_METADATA: str(part_size)}
+                Bucket=p.bucket,
+                Key=key,
+                ContentType=content_type,
+                Metadata={**metadata, PART_SIZE_METADATA: str(part_size)},
             )
             upload_id = created["UploadId"]
         parts = []
@@ -402,6 +418,7 @@ class MinIO(Destination[MinIOParams]):
                     self._counts["parts_reused"] += 1
                 else:
                     f.seek((number - 1) * part_size)
+                    self._paced(min(part_size, size - (number - 1) * part_size), key)
                     answer = self._client.upload_part(
                         Bucket=p.bucket,
                         Key=key,

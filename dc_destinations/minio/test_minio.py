@@ -18,6 +18,7 @@ import shlex
 import subprocess
 import tempfile
 import time
+import urllib.parse
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -171,9 +172,21 @@ def test_files_are_uploaded_byte_identical_with_their_content_type(server: Seawe
         assert stored(server, key) == path.read_bytes()
         head = client.head_object(Bucket=server.bucket, Key=key)
         assert head["ContentType"] == content_type
-        assert head["Metadata"] == {}, "a single upload: its ETag is the file's MD5, no part size to record"
+        # A single upload: its ETag is the file's MD5, no part size to record; only the way back to its record.
+        assert head["Metadata"] == {"dc-record-id": "upload/C3PO/2023/03/01/17/map-0"}
     assert pgm.exists(), "delete_when_sent is false by default"
     assert dest.counters()["files_uploaded"] == 2
+
+
+def test_an_object_points_back_at_its_record_robot_and_run(server: SeaweedS3Server, tmp_path: Path) -> None:
+    """x-amz-meta-dc-*: from an object alone, the record (PostgreSQL's record_id), robot and run it belongs to."""
+    record = map_record("back", pgm=write(tmp_path / "back.pgm", b"P5 back"))
+    record.data.update(robot_name="Rö/bot 1", run_id="12")
+    assert minio(server).send([record]) is None
+    head = server.client().head_object(Bucket=server.bucket, Key="back/back.pgm")
+    # Read back as the store answers a HEAD: non-ASCII percent-encoded, the rest as it is.
+    assert head["Metadata"] == {"dc-record-id": "back-0", "dc-robot-name": "R%C3%B6/bot 1", "dc-run-id": "12"}
+    assert urllib.parse.unquote(head["Metadata"]["dc-robot-name"]) == "Rö/bot 1"
 
 
 def test_a_missing_bucket_is_created_once(server: SeaweedS3Server, tmp_path: Path) -> None:
@@ -236,7 +249,7 @@ def test_a_file_above_the_threshold_goes_in_parts_with_the_etag_of_its_parts(
     head = server.client().head_object(Bucket=server.bucket, Key="multipart/big.pgm")
     assert head["ETag"].strip('"') == local_etag(str(big), 5 * MiB)
     assert head["ETag"].endswith('-3"')
-    assert head["Metadata"] == {"dc-part-size": str(5 * MiB)}
+    assert head["Metadata"] == {"dc-part-size": str(5 * MiB), "dc-record-id": "multipart-0"}
     assert stored(server, "multipart/big.pgm") == big.read_bytes()
 
 

@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 from dc_core.destination import ConfigurationProblem, Destination, ProbeResult, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
-from dc_core.params import host_problem, param, port_problem
+from dc_core.params import host_problem, param, port_problem, url_host
 from dc_destinations.tls import warn_if_credentials_in_clear
 
 T = TypeVar("T")
@@ -170,9 +170,8 @@ class ServerSettings:
     @property
     def address(self) -> str:
         """``postgresql://user@host:port/database``, for messages: no password in it."""
-        host = f"[{self.host}]" if ":" in self.host else self.host
         user = f"{self.user}@" if self.user else ""
-        return f"postgresql://{user}{host}:{self.port}/{self.database}"
+        return f"postgresql://{user}{url_host(self.host)}:{self.port}/{self.database}"
 
     def __repr__(self) -> str:
         return f"ServerSettings({self.address!r}, sslmode={self.sslmode!r})"

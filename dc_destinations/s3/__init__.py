@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import datetime as dt
 import gzip
 import hashlib
 import re
@@ -33,6 +32,7 @@ from typing import Any
 from dc_core.destination import ConfigurationProblem, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, param
+from dc_core.paths import expand_time
 from dc_core.records import MalformedRecord, dump_record
 from dc_destinations.aws import (
     CREDENTIALS_MISSING,
@@ -47,6 +47,7 @@ from dc_destinations.aws import (
     bucket_problem,
     size_problem,
 )
+from dc_destinations.object_files import record_metadata
 from dc_destinations.settings import parse_size
 
 CANNED_ACLS = (
@@ -199,7 +200,7 @@ class S3(AwsDestination[S3Params]):
                 continue
             key = self.object_key(batch[lines[0][0]], n)
             try:
-                self._upload(key, b"".join(line for _, line in lines))
+                self._upload(key, b"".join(line for _, line in lines), record_metadata([batch[i] for i, _ in lines]))
             except RetryableError as exc:
                 if n == 0 and not outcome.reject:
                     raise  # nothing of the batch went: the whole batch is retried
@@ -232,7 +233,7 @@ class S3(AwsDestination[S3Params]):
         uuid = hashlib.sha256(first.record_id.encode("utf-8")).hexdigest()[:16]
         seconds = first.stamp_ns // 1_000_000_000
         # strftime first, so that a '%' in the tag stays as it is.
-        key = dt.datetime.fromtimestamp(seconds, tz=dt.UTC).strftime(p.s3_key_format)
+        key = expand_time(p.s3_key_format, seconds)
         key = _TAG_PART.sub(lambda m: self._tag_parts[int(m.group(1))], key)
         key = key.replace("$TAG", self.context.name).replace("$UUID", uuid).replace("$INDEX", str(index))
         if "$UUID" not in p.s3_key_format and not p.static_file_path:
@@ -242,9 +243,9 @@ class S3(AwsDestination[S3Params]):
         # An S3 key has no leading slash: "/fluent-bit-logs/…" would make an empty first folder.
         return key.lstrip("/")
 
-    def _upload(self, key: str, data: bytes) -> None:
+    def _upload(self, key: str, data: bytes, metadata: dict[str, str]) -> None:
         p = self.params
-        extra: dict[str, str] = {"ContentType": p.content_type or "application/x-ndjson"}
+        extra: dict[str, Any] = {"ContentType": p.content_type or "application/x-ndjson", "Metadata": metadata}
         if p.compression == "gzip":
             # mtime=0: the same records give the same bytes on every attempt.
             data = gzip.compress(data, mtime=0)
@@ -267,7 +268,7 @@ class S3(AwsDestination[S3Params]):
             raise RetryableError(message) from None
         self._works_again("objects written")
 
-    def _multipart(self, key: str, data: bytes, extra: dict[str, str]) -> None:
+    def _multipart(self, key: str, data: bytes, extra: dict[str, Any]) -> None:
         p = self.params
         # Parts no smaller than upload_chunk_size, more of them only up to S3's 10000.
         part_size = max(self._chunk_bytes, -(-len(data) // MAX_PARTS))

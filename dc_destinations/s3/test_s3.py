@@ -78,6 +78,21 @@ def test_a_batch_becomes_one_object_of_json_lines_with_the_formatted_key(server:
     assert lines(objects[key]) == [r.data for r in batch]
     head = server.client().head_object(Bucket=server.bucket, Key=key)
     assert head["ContentType"] == "application/x-ndjson"
+    # The way back from the object to its records: the first one's id, and how many follow it.
+    assert head["Metadata"] == {"dc-record-id": "rec-00000", "dc-record-count": "2"}
+
+
+def test_an_object_of_one_robot_and_run_names_them_in_its_metadata(server: SeaweedS3Server) -> None:
+    dest = s3_destination(server, s3_key_format="/meta/$UUID")
+    assert dest.send([record(i, robot_name="C3PO", run_id="7") for i in range(2)]) is None
+    (key,) = server.objects("meta/")
+    head = server.client().head_object(Bucket=server.bucket, Key=key)
+    assert head["Metadata"] == {
+        "dc-record-id": "rec-00000",
+        "dc-robot-name": "C3PO",
+        "dc-run-id": "7",
+        "dc-record-count": "2",
+    }
 
 
 def test_the_default_key_format_gets_a_uuid_suffix_unless_static(server: SeaweedS3Server) -> None:

@@ -399,7 +399,8 @@ class IpCamera(Measurement[IpCameraParams]):
 
     def _relative_to_base(self, local: str, when_s: float) -> str:
         """``local`` without save_local_base_path: the original's ``remote_path``."""
-        base = expand_time(self.context.paths.save_local_base_path, when_s)
+        paths = self.context.paths
+        base = expand_time(paths.save_local_base_path, when_s, paths.zone)
         relative = local[len(base) :] if base and local.startswith(base) else local
         return relative.lstrip("/")
 

@@ -1,0 +1,82 @@
+"""The recorder's memory: every message of its topics as received, newest last, bounded in bytes.
+
+An entry is a tuple ``(receive_ns, publish_ns, topic_index, data)`` — the serialised message as the
+subscription took it, never decoded. Two rules keep the ring small:
+
+* age: what is older than ``keep_ns`` (the pre-trigger window) is let go, uncounted — unless an
+  incident's window still needs it (``hold_from_ns``);
+* bound: past ``max_bytes`` the oldest entries go first, counted per topic (``lost_to_bound``) and,
+  when an open window needed them, in ``lost_in_window`` (the incident's record says its window was cut).
+
+Messages of latched topics (transient-local publishers, ``/tf_static``) are also kept apart, the last
+``LATCHED_KEEP`` of each, whatever their age: a window gets them however long before it they came.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+Entry = tuple[int, int, int, bytes]
+# What an entry costs beyond its bytes: the tuple, two ints, the bytes object's header, the deque slot.
+ENTRY_OVERHEAD = 160
+# Each latching publisher re-sends its last message to a new subscriber: /tf_static has one per
+# static transform broadcaster. More than this many on one topic keeps the newest.
+LATCHED_KEEP = 64
+NEVER = 1 << 62
+
+
+class Ring:
+    def __init__(self, max_bytes: int, keep_ns: int, topics: int) -> None:
+        self.max_bytes = max_bytes
+        self.keep_ns = keep_ns
+        self.bytes = 0
+        self._entries: deque[Entry] = deque()
+        self._latched: dict[int, deque[Entry]] = {}
+        self.hold_from_ns = NEVER
+        self.lost_to_bound = [0] * topics
+        self.lost_in_window = [0] * topics
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def append(self, receive_ns: int, publish_ns: int, topic: int, data: bytes, latched: bool = False) -> None:
+        entry = (receive_ns, publish_ns, topic, data)
+        entries = self._entries
+        entries.append(entry)
+        self.bytes += len(data) + ENTRY_OVERHEAD
+        if latched:
+            kept = self._latched.get(topic)
+            if kept is None:
+                kept = self._latched[topic] = deque(maxlen=LATCHED_KEEP)
+            kept.append(entry)
+        expired = min(receive_ns - self.keep_ns, self.hold_from_ns)
+        while entries[0][0] < expired:
+            self.bytes -= len(entries.popleft()[3]) + ENTRY_OVERHEAD
+        while self.bytes > self.max_bytes and entries:
+            old = entries.popleft()
+            self.bytes -= len(old[3]) + ENTRY_OVERHEAD
+            self.lost_to_bound[old[2]] += 1
+            if old[0] >= self.hold_from_ns:
+                self.lost_in_window[old[2]] += 1
+
+    def oldest_ns(self) -> int | None:
+        return self._entries[0][0] if self._entries else None
+
+    def window(self, start_ns: int, end_ns: int) -> list[Entry]:
+        """The latched entries received before ``start_ns`` (dated ``start_ns``, their publish time kept),
+        then :meth:`between`."""
+        earlier = [(start_ns, e[1], e[2], e[3]) for kept in self._latched.values() for e in kept if e[0] < start_ns]
+        return earlier + self.between(start_ns, end_ns)
+
+    def between(self, start_ns: int, end_ns: int) -> list[Entry]:
+        """The entries received in [start_ns, end_ns], in the order they were taken."""
+        return [e for e in self._entries if start_ns <= e[0] <= end_ns]
+
+    def take_lost_in_window(self) -> list[int]:
+        lost, self.lost_in_window = self.lost_in_window, [0] * len(self.lost_in_window)
+        return lost
+
+    def clear(self) -> None:
+        self._entries.clear()
+        self._latched.clear()
+        self.bytes = 0

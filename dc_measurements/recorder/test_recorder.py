@@ -1,0 +1,349 @@
+"""Recorder: the ring and its bound, windows and triggers, and an MCAP file of real DDS traffic read back."""
+
+from __future__ import annotations
+
+import stat
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from nav_msgs.msg import Odometry
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from dc_core.measurement import BasePaths
+from dc_measurements.recorder import Recorder
+from dc_measurements.recorder.ring import ENTRY_OVERHEAD, Ring
+from dc_measurements.recorder.window import HOUR_NS, Outcome, Windows
+from tests.measurement_helpers import assert_valid
+from tests.robot_helpers import Ros, odometry, ros_session, tf_message, transform, unique
+
+S = 1_000_000_000
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+VOLATILE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+# -- the ring (no ROS) -----------------------------------------------------------------------------
+def test_the_ring_stays_under_its_bound_oldest_first_and_counts_what_it_let_go() -> None:
+    size = 1000
+    bound = 10 * (size + ENTRY_OVERHEAD)
+    ring = Ring(bound, keep_ns=100 * S, topics=2)
+    for i in range(50):
+        ring.append(i * S, i * S, i % 2, bytes(size))
+        assert ring.bytes <= bound
+    kept = ring.window(0, 100 * S)
+    # The newest ten are kept; the forty older ones were let go, and each is counted on its topic.
+    assert [e[0] // S for e in kept] == list(range(40, 50))
+    assert ring.lost_to_bound == [20, 20]
+    assert len(kept) + sum(ring.lost_to_bound) == 50
+
+
+def test_the_ring_lets_go_uncounted_what_is_older_than_pre_trigger_unless_a_window_holds_it() -> None:
+    ring = Ring(10**9, keep_ns=2 * S, topics=1)
+    for i in range(10):
+        ring.append(i * S, 0, 0, b"x")
+    assert [e[0] // S for e in ring.window(0, 100 * S)] == [7, 8, 9]
+    assert ring.lost_to_bound == [0]
+    ring.hold_from_ns = 7 * S  # an open window started at 7 s: its messages stay past pre_trigger
+    for i in range(10, 15):
+        ring.append(i * S, 0, 0, b"x")
+    assert [e[0] // S for e in ring.window(7 * S, 100 * S)] == list(range(7, 15))
+
+
+def test_a_window_cut_by_the_bound_is_counted_in_lost_in_window() -> None:
+    ring = Ring(3 * (10 + ENTRY_OVERHEAD), keep_ns=100 * S, topics=1)
+    ring.hold_from_ns = 0
+    for i in range(5):
+        ring.append(i * S, 0, 0, bytes(10))
+    assert ring.take_lost_in_window() == [2]
+    assert ring.take_lost_in_window() == [0]
+
+
+def test_latched_messages_come_with_a_window_however_old_dated_at_its_start() -> None:
+    ring = Ring(10**9, keep_ns=20 * S, topics=2)
+    ring.append(1 * S, 5, 1, b"static", latched=True)
+    for i in range(2, 100):
+        ring.append(i * S, 0, 0, b"odom")
+    window = ring.window(90 * S, 95 * S)
+    assert window[0] == (90 * S, 5, 1, b"static")
+    assert [e[0] // S for e in window[1:]] == [90, 91, 92, 93, 94, 95]
+
+
+# -- windows and triggers (no ROS) -----------------------------------------------------------------
+def test_a_trigger_inside_a_window_extends_it_and_cooldown_and_the_hourly_limit_are_counted() -> None:
+    windows = Windows(pre_ns=2 * S, post_ns=3 * S, cooldown_ns=10 * S, max_per_hour=2)
+    assert windows.trigger(100 * S, "a") is Outcome.OPENED
+    assert windows.trigger(102 * S, "b") is Outcome.EXTENDED
+    assert windows.due(104 * S) is None  # extended to 105
+    incident = windows.due(105 * S)
+    assert incident is not None
+    assert (incident.start_ns, incident.end_ns) == (98 * S, 105 * S)
+    assert [t.reason for t in incident.triggers] == ["a", "b"]
+    assert windows.trigger(114 * S, "c") is Outcome.COOLDOWN  # cooldown until 115
+    assert windows.trigger(115 * S, "d") is Outcome.OPENED
+    windows.due(200 * S)
+    assert windows.trigger(300 * S, "e") is Outcome.RATE_LIMITED  # two already in this hour
+    assert windows.trigger(100 * S + HOUR_NS, "f") is Outcome.OPENED  # the first one is an hour old
+    assert (windows.triggers, windows.in_cooldown, windows.over_hourly_limit) == (6, 1, 1)
+
+
+# -- with DDS --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ros() -> Iterator[Ros]:
+    with ros_session("recorder") as session:
+        yield session
+
+
+def drive(ros: Ros, plugin: Recorder, done: Any, step: Any = lambda: None) -> None:
+    """Spin and poll as the measurement server does, until ``done()``."""
+
+    def turn() -> None:
+        step()
+        plugin.on_poll(None)
+        ros.harness.run_finished_work(plugin)
+
+    assert ros.spin_until(done, turn)
+
+
+def read_with_rosbags(path: str) -> dict[str, list[tuple[int, Any]]]:
+    from rosbags.highlevel import AnyReader
+
+    read: dict[str, list[tuple[int, Any]]] = {}
+    with AnyReader([Path(path)]) as reader:
+        for connection, timestamp, data in reader.messages():
+            read.setdefault(connection.topic, []).append((timestamp, reader.deserialize(data, connection.msgtype)))
+    return read
+
+
+def test_an_incident_file_holds_the_window_of_odom_the_static_tf_and_the_reasons(ros: Ros, tmp_path: Path) -> None:
+    odom_topic, static_topic, absent_topic = unique("/odom"), unique("/tf_static"), unique("/never")
+    # A static transform published long before the recorder started: it must still be in the file.
+    static = ros.node.create_publisher(type(tf_message()), static_topic, LATCHED)
+    static.publish(tf_message(transform("map", "odom", 1.0, 2.0, 0.0)))
+    odom = ros.node.create_publisher(Odometry, odom_topic, VOLATILE)
+    plugin = ros.harness.make(
+        Recorder,
+        {
+            "topics": [odom_topic, static_topic, absent_topic],
+            "pre_trigger": 0.3,
+            "post_trigger": 0.3,
+            "cooldown": 5.0,
+            "save_path": "incidents/%Y/incident",
+            "compression": "lz4",
+        },
+        name="rec",
+    )
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path), "robot1", {"minio": "prefix"})
+    plugin.on_configure()
+    plugin.on_activate()
+    assert ros.spin_until(lambda: odom.get_subscription_count() == 1)
+    assert plugin.counters()["messages"] == 1 or ros.spin_until(lambda: plugin.counters()["messages"] == 1)
+
+    sent: list[tuple[int, int]] = []  # (index, wall time when published)
+    triggers: dict[str, int] = {}
+
+    def publish() -> None:
+        i = len(sent)
+        odom.publish(odometry(float(i), 0.0, 0.0))
+        sent.append((i, time.time_ns()))
+        time.sleep(0.005)  # a robot's 200 Hz at most
+        if i == 80:
+            triggers["first"] = time.time_ns()
+            assert plugin.trigger("first") is Outcome.OPENED
+        if i == 100:
+            triggers["second"] = time.time_ns()
+            assert plugin.trigger("second") is Outcome.EXTENDED
+
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted), publish)
+    (incident,) = emitted
+    record = incident.record
+    assert_valid(Recorder, record)
+    assert [t["reason"] for t in record["triggers"]] == ["first", "second"]
+    assert record["start"] == pytest.approx((triggers["first"] - 0.3 * S) / S)
+    assert record["end"] == pytest.approx((triggers["second"] + 0.3 * S) / S)
+    path = record["local_paths"]["mcap"]
+    year = Path(path).parent.name
+    assert path == str(tmp_path / "robot1" / "incidents" / year / "incident.mcap")
+    assert record["remote_paths"] == {"minio": {"mcap": f"robot1/prefix/incidents/{year}/incident.mcap"}}
+    by_topic = {t["topic"]: t for t in record["topics"]}
+    assert by_topic[absent_topic] == {
+        "topic": absent_topic,
+        "type": "",
+        "messages": 0,
+        "bytes": 0,
+        "lost_to_memory_bound": 0,
+        "absent": True,
+    }
+    assert by_topic[static_topic]["messages"] == 1 and by_topic[static_topic]["type"] == "tf2_msgs/msg/TFMessage"
+    assert record["size"] == Path(path).stat().st_size and not record["cut_by_memory_bound"]
+    assert stat.S_IMODE(Path(path).stat().st_mode) == 0o600  # the robot's data, DC's account's alone
+
+    # The /odom messages of the window: those published in it, give or take one at each edge (the
+    # receive time the ring keeps comes a little after the publish time measured here).
+    read = read_with_rosbags(path)
+    recorded = [int(message.pose.pose.position.x) for _, message in read[odom_topic]]
+    assert recorded == list(range(recorded[0], recorded[-1] + 1)), "a gap in the window"
+    start_ns, end_ns = triggers["first"] - 0.3 * S, triggers["second"] + 0.3 * S
+    expected = [i for i, at in sent if start_ns <= at <= end_ns]
+    assert abs(recorded[0] - expected[0]) <= 1 and abs(recorded[-1] - expected[-1]) <= 1
+    assert by_topic[odom_topic]["messages"] == len(recorded)
+    ((_, static_message),) = read[static_topic]
+    assert static_message.transforms[0].transform.translation.y == 2.0
+
+    # The mcap package reads it too: ros2 profile, ros2msg schemas, cdr messages.
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as stream:
+        reader = make_reader(stream)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        assert summary is not None
+        assert {s.name: s.encoding for s in summary.schemas.values()} == {
+            "nav_msgs/msg/Odometry": "ros2msg",
+            "tf2_msgs/msg/TFMessage": "ros2msg",
+        }
+        assert summary.statistics is not None and summary.statistics.message_count == len(recorded) + 1
+
+    # Within the cooldown after the window: counted, not recorded.
+    assert plugin.trigger("third") is Outcome.COOLDOWN
+    assert plugin.counters()["triggers_in_cooldown"] == 1 and plugin.counters()["incidents"] == 1
+    warnings = ros.harness.context(plugin).logger.at("warning")
+    assert any(absent_topic in w and "absent" in w for w in warnings)
+    ros.harness.stop(plugin)
+
+
+def test_the_service_the_topic_and_the_conditions_rising_edge_trigger(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/odom")
+    plugin = ros.harness.make(
+        Recorder, {"topics": [topic], "pre_trigger": 0.0, "post_trigger": 60.0}, name=unique("svc")
+    )
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    name = f"/dc/recorder/{ros.harness.context(plugin).name}/trigger"
+    client = ros.node.create_client(Trigger, name)
+    assert client.wait_for_service(timeout_sec=5.0)
+    future = client.call_async(Trigger.Request())
+    assert ros.spin_until(future.done)
+    assert (future.result().success, future.result().message) == (True, "opened")
+    reasons = ros.publisher(String, name, 10)
+    reasons.publish(String(data="bumper hit"))
+    assert ros.spin_until(lambda: plugin.counters()["triggers"] == 2)
+    plugin.on_poll(True)  # false -> true: a trigger
+    plugin.on_poll(True)  # still true: none
+    plugin.on_poll(False)
+    plugin.on_poll(True)  # a second rising edge
+    open_incident = plugin._windows.open
+    assert open_incident is not None
+    assert [t.reason for t in open_incident.triggers] == ["service", "bumper hit", "conditions", "conditions"]
+    ros.node.destroy_client(client)
+    logger = ros.harness.context(plugin).logger
+    ros.harness.stop(plugin)  # deactivate writes what the window holds, and says so
+    assert len(list(tmp_path.rglob("*.mcap"))) == 1 and plugin.counters()["incidents_unpublished"] == 1
+    assert any("saved at deactivate" in w for w in logger.at("warning"))
+
+
+def test_the_memory_bound_cuts_the_window_and_the_record_says_so(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/odom")
+    publisher = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    size = 1000
+    plugin = ros.harness.make(
+        Recorder,
+        # Room for about 20 odometry messages (~720 bytes serialised, plus the ring's overhead per entry).
+        {"topics": [topic], "pre_trigger": 10.0, "post_trigger": 0.5, "max_memory_mb": 20 * (size + 160) / 2**20},
+    )
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    assert ros.spin_until(lambda: publisher.get_subscription_count() == 1)
+    count = [0]
+
+    def publish() -> None:
+        publisher.publish(odometry(float(count[0]), 0.0, 0.0))
+        count[0] += 1
+        if count[0] == 60:
+            plugin.trigger("late")
+
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted), publish)
+    record = emitted[0].record
+    assert plugin._ring.bytes <= plugin._ring.max_bytes
+    (warning,) = [w for w in ros.harness.context(plugin).logger.at("warning") if "max_memory_mb" in w]
+    assert "less than pre_trigger (10 s)" in warning
+    assert record["cut_by_memory_bound"] is True
+    (entry,) = record["topics"]
+    assert 0 < entry["messages"] <= 30
+    assert plugin.counters()["lost_to_bound"] > 0
+    # Every message received is still in the ring or counted as let go (none is older than pre_trigger).
+    assert plugin.counters()["messages"] == len(plugin._ring) + plugin.counters()["lost_to_bound"]
+    ros.harness.stop(plugin)
+
+
+def test_a_type_without_definition_is_written_without_schema_and_named(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    from dc_measurements.recorder.definitions import Definitions
+    from dc_measurements.recorder.mcap_file import Channel, write_mcap
+
+    definitions = Definitions()
+    channels: list[Channel | None] = [
+        Channel("/odom", "nav_msgs/msg/Odometry"),
+        Channel("/custom", "no_such_pkg/msg/Thing"),
+        None,  # a topic never seen
+    ]
+    path = tmp_path / "x.mcap"
+    entries = [(2 * S, 1 * S, 0, b"\x00\x01\x00\x00odom"), (3 * S, 0, 1, b"\x00\x01\x00\x00raw")]
+    written = write_mcap(str(path), channels, entries, "zstd", definitions.get)
+    assert written.without_definition == ["no_such_pkg/msg/Thing"] and written.size == path.stat().st_size
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        read = [
+            (channel.topic, schema.name if schema else None, message.data)
+            for schema, channel, message in reader.iter_messages()
+        ]
+    assert read == [("/odom", "nav_msgs/msg/Odometry", entries[0][3]), ("/custom", None, entries[1][3])]
+    assert not list(tmp_path.glob("*.part"))
+
+
+def test_a_file_that_cannot_be_written_is_kept_and_tried_again_then_dropped_counted(
+    ros: Ros, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import dc_measurements.recorder as recorder_module
+
+    monkeypatch.setattr(recorder_module, "WRITE_RETRY_NS", 0)
+    topic = unique("/odom")
+    publisher = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    plugin = ros.harness.make(Recorder, {"topics": [topic], "pre_trigger": 5.0, "post_trigger": 0.0})
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    # A file where the incidents' folder should be (a full disk fails the same way): no file can be written.
+    blocker = tmp_path / "incidents"
+    blocker.write_text("not a folder")
+    plugin.on_configure()
+    plugin.on_activate()
+    assert ros.spin_until(lambda: publisher.get_subscription_count() == 1)
+    for i in range(5):
+        publisher.publish(odometry(float(i), 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 5)
+    counters = plugin.counters
+    emitted = ros.harness.context(plugin).emitted
+
+    def poll() -> None:
+        plugin.on_poll(None)
+        ros.harness.run_finished_work(plugin)
+
+    plugin.trigger("first")
+    assert ros.spin_until(lambda: counters()["incidents_dropped"] == 1, poll)
+    assert counters()["write_errors"] == recorder_module.WRITE_TRIES and not emitted
+
+    plugin.trigger("second")
+    assert ros.spin_until(lambda: counters()["write_errors"] == recorder_module.WRITE_TRIES + 1, poll)
+    blocker.unlink()  # room again: the kept window is written at its next try
+    assert ros.spin_until(lambda: bool(emitted), poll)
+    assert emitted[0].record["messages"] == 5 and emitted[0].record["triggers"][0]["reason"] == "second"
+    # Every window opened is in a file or counted as dropped.
+    assert counters()["triggers"] == counters()["incidents"] + counters()["incidents_dropped"] == 2
+    ros.harness.stop(plugin)

@@ -1,0 +1,199 @@
+"""The Recorder end to end: `dc sim` drives, a Moving-based trigger fires at each stop, dc-bringup writes MCAP files.
+
+A bare subscriber in this process logs every /odom message it receives with its receive time: each
+incident's file must hold exactly the /odom messages of its window (give or take one at each edge, the
+two subscriptions receive a message at slightly different instants), read back with rosbags and mcap.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import rclpy
+from nav_msgs.msg import Odometry
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from tests.bringup_util import BIN, Bringup
+
+pytestmark = pytest.mark.e2e
+
+RATE = 4.0
+# Incidents of the robot's stops to wait for (the first may be its standing at the start).
+STOPS = 3
+
+PARAMS = """
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["incidents"]
+    condition_plugins: ["moving"]
+    save_local_base_path: "data/"
+    moving:
+      plugin: "dc_conditions/Moving"
+      odom_topic: "/odom"
+      speed_threshold: 0.2
+    incidents:
+      plugin: "dc_measurements/Recorder"
+      topics: ["/odom", "/tf", "/tf_static", "/never_published"]
+      if_none_conditions: ["moving"]
+      polling_interval: 100
+      pre_trigger: 1.0
+      post_trigger: 1.5
+      tags: ["out"]
+destination_server:
+  ros__parameters:
+    destination_plugins: ["out"]
+    out:
+      plugin: "dc_destinations/Stdout"
+      inputs: ["/dc/measurement/incidents"]
+"""
+
+
+OPERATOR = {"service", "operator saw a bump"}
+
+
+def reasons(record: dict[str, Any]) -> set[str]:
+    return {t["reason"] for t in record["triggers"]}
+
+
+def stamp_of(message: Odometry) -> int:
+    return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
+
+
+@dataclass
+class Run:
+    records: list[dict[str, Any]]
+    odom: list[tuple[int, int]]  # (receive time ns, header stamp ns), as the bare subscriber got them
+    home: Path
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
+    tmp = tmp_path_factory.mktemp("recorder")
+    params = tmp / "incidents.yaml"
+    params.write_text(PARAMS)
+    odom: list[tuple[int, int]] = []
+    with Bringup(params, tmp / "home", args=["--use-sim-time"]) as dc:
+        dc.wait_ready()
+        context = Context()
+        rclpy.init(context=context, domain_id=dc.domain_id)
+        node = rclpy.create_node("bare_odom_log", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        node.create_subscription(
+            Odometry,
+            "/odom",
+            lambda message: odom.append((time.time_ns(), stamp_of(message))),
+            QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT),
+        )
+        spinning = threading.Thread(target=executor.spin, daemon=True)
+        spinning.start()
+        sim: subprocess.Popen[str] | None = None
+        try:
+            # The server polls on the simulated clock: the simulator runs until the operator's window closed.
+            sim = subprocess.Popen(
+                [str(BIN / "dc"), "sim", "--clock", "--rate", str(RATE), "--camera-fps", "0"],
+                env=dc.env,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            dc.wait_until(lambda: len(dc.named("incidents")) >= STOPS, 60, f"{STOPS} incidents")
+            # An operator's two triggers at once (whichever comes second is inside the window of the first):
+            # one file, both reasons. Each answers: opened, or extended (a robot's stop may have opened it).
+            calls = [
+                subprocess.Popen([str(BIN / "dc"), "trigger", "incidents", *more], env=dc.env, stdout=subprocess.PIPE)
+                for more in ([], ["--reason", "operator saw a bump"])
+            ]
+            for call in calls:
+                assert call.wait(30) == 0
+            dc.wait_until(
+                lambda: any(reasons(r) >= OPERATOR for r in dc.named("incidents")),
+                15,
+                "the operator's incident",
+            )
+            records = dc.named("incidents")
+            sim.terminate()
+            assert sim.wait(10) in (0, -15), sim.stderr.read() if sim.stderr else ""
+        finally:
+            if sim is not None and sim.poll() is None:
+                sim.kill()
+                sim.wait()
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.shutdown(context=context)
+            spinning.join(5)
+    yield Run(records, odom, dc.home)
+
+
+def read_odom_stamps(path: Path) -> list[int]:
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([path]) as reader:
+        connections = [c for c in reader.connections if c.topic == "/odom"]
+        return [
+            stamp_of(reader.deserialize(data, connection.msgtype))
+            for connection, _, data in reader.messages(connections=connections)
+        ]
+
+
+def test_each_stop_gives_one_file_with_the_odom_of_its_window(run: Run) -> None:
+    first_odom = run.odom[0][0]
+    # The robot stands at the start: that trigger may come before the recorder saw /odom. Every other
+    # incident's window lies in the bare subscriber's log.
+    incidents = [r for r in run.records if r["start"] * 1e9 > first_odom + 1e9]
+    assert len(incidents) >= 2, [r["triggers"] for r in run.records]
+    log_stamps = [stamp for _, stamp in run.odom]
+    for record in incidents:
+        if OPERATOR & reasons(record):
+            continue
+        # One stop's each, or two stops closer than post_trigger in one window.
+        assert {t["reason"] for t in record["triggers"]} == {"conditions"}
+        path = run.home / record["local_paths"]["mcap"]
+        recorded = read_odom_stamps(path)
+        assert recorded, json.dumps(run.records)
+        # No message of the window missing between its first and last.
+        first = log_stamps.index(recorded[0])
+        assert log_stamps[first : first + len(recorded)] == recorded
+        inside = [
+            i for i, (received, _) in enumerate(run.odom) if record["start"] * 1e9 <= received <= record["end"] * 1e9
+        ]
+        assert abs(first - inside[0]) <= 1 and abs(first + len(recorded) - 1 - inside[-1]) <= 1
+        topics = {t["topic"]: t for t in record["topics"]}
+        assert topics["/odom"]["messages"] == len(recorded) and topics["/odom"]["type"] == "nav_msgs/msg/Odometry"
+        assert topics["/tf"]["messages"] > 0 and topics["/tf_static"]["messages"] >= 1
+        assert topics["/never_published"]["absent"] is True
+        assert record["size"] == path.stat().st_size and not record["cut_by_memory_bound"]
+
+
+def test_dc_trigger_and_a_trigger_inside_the_window_give_one_file_with_both_reasons(run: Run) -> None:
+    (record,) = [r for r in run.records if OPERATOR & reasons(r)]
+    assert reasons(record) >= OPERATOR
+    assert record["end"] == pytest.approx(record["triggers"][-1]["time"] + 1.5)
+    assert (run.home / record["local_paths"]["mcap"]).is_file()
+
+
+def test_the_files_are_read_by_the_mcap_package_with_their_schemas(run: Run) -> None:
+    from mcap.reader import make_reader
+
+    record = run.records[-1]
+    with open(run.home / record["local_paths"]["mcap"], "rb") as stream:
+        reader = make_reader(stream)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        assert summary is not None
+        topics = {channel.topic: summary.schemas[channel.schema_id].name for channel in summary.channels.values()}
+        assert topics == {
+            "/odom": "nav_msgs/msg/Odometry",
+            "/tf": "tf2_msgs/msg/TFMessage",
+            "/tf_static": "tf2_msgs/msg/TFMessage",
+        }
