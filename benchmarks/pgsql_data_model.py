@@ -42,6 +42,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from benchmarks.storage import _client_cpu, _tree_cpu  # noqa: E402
 from dc_bringup.local_servers.postgres import PostgresServer  # noqa: E402
 from dc_core.destination import OutgoingRecord  # noqa: E402
 from dc_core.params import parse_params  # noqa: E402
@@ -163,6 +164,10 @@ def insert_records(n: int) -> list[OutgoingRecord]:
 def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     shapes = ("original", "typed", "typed_day")
     rates: dict[str, list[float]] = {s: [] for s in shapes}
+    # CPU per row (this process and the server's, over the same window): what contention on a shared
+    # machine inflates far less than the wall time.
+    cpu_us: dict[str, list[float]] = {s: [] for s in shapes}
+    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
     for k in range(rounds):
         order = shapes[k % 3 :] + shapes[: k % 3]  # each shape goes first once in three rounds
         for shape in order:
@@ -176,27 +181,33 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
             dest = destination(server, table, "day" if shape == "typed_day" else "none")
             records = insert_records(n)
             dest.send(records[:BATCH])  # connects and prepares: not timed
-            started = time.perf_counter()
+            started, cpu = time.perf_counter(), _client_cpu() + _tree_cpu(pid)
             for i in range(BATCH, n, BATCH):
                 assert dest.send(records[i : i + BATCH]) is None
             rates[shape].append((n - BATCH) / (time.perf_counter() - started))
+            cpu_us[shape].append((_client_cpu() + _tree_cpu(pid) - cpu) / (n - BATCH) * 1e6)
             dest.on_deactivate()
     medians = {s: statistics.median(r) for s, r in rates.items()}
     ratios = [[rates[s][k] / rates["original"][k] for k in range(rounds)] for s in shapes[1:]]
+    cpu_ratios = [[cpu_us[s][k] / cpu_us["original"][k] for k in range(rounds)] for s in shapes[1:]]
     result = {
+        "cpu_us_per_row": cpu_us,
+        "cpu_ratio_to_original": {s: statistics.median(r) for s, r in zip(shapes[1:], cpu_ratios, strict=True)},
         "rows_per_s": rates,
         "median_rows_per_s": medians,
         "ratio_to_original": {s: statistics.median(r) for s, r in zip(shapes[1:], ratios, strict=True)},
     }
     for s in shapes:
-        print(f"insert {s:10} {medians[s]:9,.0f} rows/s  runs {[round(r) for r in rates[s]]}", flush=True)
+        print(f"insert {s:10} {medians[s]:9,.0f} rows/s  runs {[round(r) for r in rates[s]]}"
+              f"  CPU µs/row {[round(c, 1) for c in cpu_us[s]]}", flush=True)  # fmt: skip
+    print(f"CPU ratios to the original's shape: {result['cpu_ratio_to_original']}", flush=True)
     print(f"ratios to the original's shape (median of per-round ratios): {result['ratio_to_original']}", flush=True)
     return result
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--robots", type=int, default=100)
+    parser.add_argument("--robots", type=int, default=100, help="0: the insert rate only")
     parser.add_argument("--hours", type=int, default=24)
     parser.add_argument("--runs", type=int, default=7)
     parser.add_argument("--insert-records", type=int, default=50_000)
@@ -209,6 +220,9 @@ def main() -> None:
     try:
         server.start()
         inserts = time_inserts(server, args.insert_records, args.insert_runs) if args.insert_runs else {}
+        if not args.robots:
+            print(json.dumps(inserts, indent=2))
+            return
         rows, seconds = generate(server, args.robots, args.hours)
         load = os.getloadavg()[0]
         queries = time_queries(server, args.runs)
