@@ -71,11 +71,59 @@ def validate_params_file(
             report.configs[server] = config
             report.warnings.extend(getattr(config, "warnings", []))
     report.warnings.extend(_cross_checks(report.configs))
+    report.warnings.extend(_robot_free_paths(report.configs))
     ns = ros_namespace(namespace)
     report.warnings.extend(_shared_root_topics(report.configs, ns))
     report.warnings.extend(_shared_root_services(report.configs, ns))
     report.warnings.extend(_sensor_topics_outside(report.configs, sections.get("measurement_server", {}), ns, ros_args))
     return report
+
+
+def _names_the_robot(path: str, robot_ids: set[str]) -> bool:
+    """Whether a path template holds something that differs per robot: a custom parameter naming the
+    robot (``=robot_name``), an environment variable with ROBOT in its name, or a literal folder
+    (taken for the robot's name: DC cannot tell it from another word)."""
+    for part in path.split("/"):
+        if not part or "%" in part:
+            continue
+        if part.startswith("="):
+            if part[1:] in robot_ids:
+                return True
+            continue
+        if "$" in part:
+            if "ROBOT" in part.upper():
+                return True
+            continue
+        return True
+    return False
+
+
+def _robot_free_paths(configs: dict[str, Any]) -> list[str]:
+    """Measurements whose uploaded files' keys (all_base_path/<remote prefix>/…) and local paths
+    (save_local_base_path/all_base_path/…) hold nothing that tells robots apart: several robots writing
+    to one bucket overwrite each other's objects when they save in the same second."""
+    measurements = configs.get("measurement_server")
+    if measurements is None:
+        return []
+    robot_ids = {cid for cid, p in measurements.custom_str_params.items() if "robot" in p.name.lower()}
+    robot_ids |= {p.name for p in measurements.custom_str_params.values() if "robot" in p.name.lower()}
+    base = measurements.node.all_base_path
+    if _names_the_robot(base, robot_ids):
+        return []
+    colliding = [
+        m.name
+        for m in measurements.measurements
+        if m.common.remote_keys and not any(_names_the_robot(prefix, robot_ids) for prefix in m.common.remote_prefixes)
+    ]
+    if not colliding:
+        return []
+    return [
+        f"measurement_server.all_base_path: {base!r} holds no robot name, nor do the remote_prefixes of "
+        f"{', '.join(colliding)}: the object keys (and files_metrics' local paths) of several robots sharing "
+        "a bucket can collide, and a robot overwrites another's file saved in the same second; start "
+        'all_base_path with the robot\'s name, e.g. "=robot_name/%Y/%m/%d/%H" with a custom_str_params entry '
+        "robot_name (docs/data-model.md)"
+    ]
 
 
 def _shared_root_services(configs: dict[str, Any], namespace: str) -> list[str]:

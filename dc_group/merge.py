@@ -5,7 +5,11 @@ Layout of the output (keys in this order)::
     {<key of input 1>: {...record without "tags"...}, <key of input 2>: {...}, ...,
      "missing_inputs": [<topics>]   # only in an incomplete set published with emit_partial
      "tags": [...],                 # when the group has tags
-     "name": "<group id>"}          # when include_group_name
+     "name": "<group id>",          # when include_group_name
+     "robot_name": "...", "run_id": "..."}  # from the first member that has each (members keep theirs)
+
+``robot_name`` and ``run_id`` sit at the top level of a group's record as they do in a measurement's,
+so a query (and the PgSQL destination's typed columns) finds them in one place for every record.
 
 The key of an input's record is the ``group_key`` of its message, or the last segment of its topic
 when that is empty. Two records wanting the same key, or a key the group itself writes, never
@@ -27,6 +31,8 @@ from dc_group.config import GroupConfig
 MISSING_INPUTS_KEY = "missing_inputs"
 TAGS_KEY = "tags"
 NAME_KEY = "name"
+# Identity keys lifted from the members to the group's top level.
+LIFTED_KEYS = ("robot_name", "run_id")
 
 
 @dataclass(frozen=True)
@@ -64,7 +70,7 @@ def parse_input(topic: str, group_key: str, data: str) -> InputRecord:
 
 def reserved_keys(group: GroupConfig) -> set[str]:
     """Top-level keys the group writes itself (static per configuration, so keys stay stable)."""
-    keys = {MISSING_INPUTS_KEY}
+    keys = {MISSING_INPUTS_KEY, *LIFTED_KEYS}
     if group.tags:
         keys.add(TAGS_KEY)
     if group.include_group_name:
@@ -96,6 +102,11 @@ def merge(group: GroupConfig, members: Sequence[InputRecord | None]) -> MergedRe
         document[TAGS_KEY] = list(group.tags)
     if group.include_group_name:
         document[NAME_KEY] = group.name
+    for lifted in LIFTED_KEYS:
+        # Taken before exclude_keys: a group that drops the members' copies (``*.run_id``) keeps one.
+        value = next((m.record[lifted] for m in members if m is not None and lifted in m.record), None)
+        if value is not None:
+            document[lifted] = value
     return MergedRecord(document, renamed)
 
 

@@ -67,9 +67,12 @@ def apply_metadata(
     name: str | None,
     plugin: str | None,
     custom: list[tuple[str, str, bool]],
+    schema_version: int | None = None,
 ) -> dict[str, Any]:
     if run_id is not None:
         record["run_id"] = run_id
+    if schema_version is not None:
+        record["schema_version"] = schema_version
     if tags:
         record["tags"] = list(tags)
     if name is not None:

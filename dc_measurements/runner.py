@@ -60,8 +60,10 @@ class MeasurementRunner:
         publish: PublishFn,
         logger: Logger,
         clock_ns: Callable[[], int] = time.time_ns,
+        schema_version: int | None = None,
     ) -> None:
         self.config = config
+        self._schema_version = schema_version
         self.plugin = plugin
         self.validator = validator
         self._conditions = conditions
@@ -308,6 +310,7 @@ class MeasurementRunner:
         return apply_metadata(
             record,
             run_id=self._run_id,
+            schema_version=self._schema_version,
             tags=c.tags,
             name=self.config.name if c.include_measurement_name else None,
             plugin=c.plugin if c.include_measurement_plugin else None,

@@ -28,7 +28,7 @@ from dc_measurements.metadata import next_run_id, resolve_custom_params
 from dc_measurements.metrics import measurement_diagnosis, measurement_prometheus_text
 from dc_measurements.runner import MeasurementRunner
 from dc_measurements.saved_files import base_paths
-from dc_measurements.validation import RecordValidator
+from dc_measurements.validation import RecordValidator, schema_version
 
 INIT_MATCH_WAIT_S = 2.0
 # How long deactivate waits for collections running on the worker.
@@ -127,6 +127,8 @@ class MeasurementServer(ManagedServer):
                 self._publish_fn(self.handoff.output(mcfg.output_topic, record_publisher)),
                 log,
                 clock_ns=lambda: now_ns(self),
+                # The shape the records follow: the schema they are checked against, else the plugin's.
+                schema_version=validator.version if validator is not None else schema_version(plugin.load_schema()),
             )
             run_hook(f"measurement {mcfg.name} ({c.plugin})", plugin, "on_configure")
             self.runners[mcfg.name] = runner

@@ -7,6 +7,7 @@ fails, jsonschema explains why with the best-matching error.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,23 @@ import jsonschema.exceptions
 from dc_core.errors import PluginError
 
 
+def schema_version(schema: dict[str, Any] | None) -> int | None:
+    """The version of the record shape a schema describes: its ``version`` keyword (a positive
+    integer, DC's own, ignored by validators), else a ``$id`` ending in ``/v<N>`` or ``/<N>``, else 1
+    (a plugin's first schema). None without a schema: the records are someone else's.
+
+    A measurement's records carry it as ``schema_version`` (docs/data-model.md), so a reader tells
+    the shapes of one measurement apart when a plugin changes its fields.
+    """
+    if schema is None:
+        return None
+    version = schema.get("version")
+    if isinstance(version, int) and not isinstance(version, bool) and version > 0:
+        return version
+    found = re.search(r"/v?(\d+)(?:\.json)?/?$", str(schema.get("$id", "")))
+    return int(found.group(1)) if found and int(found.group(1)) > 0 else 1
+
+
 class RecordValidator:
     def __init__(self, schema: dict[str, Any], origin: str) -> None:
         try:
@@ -24,6 +42,7 @@ class RecordValidator:
         except jsonschema.exceptions.SchemaError as exc:
             raise PluginError(f"invalid JSON schema {origin}: {exc.message}") from exc
         self._schema = schema
+        self.version = schema_version(schema)
         self._compiled = fastjsonschema.compile(schema)
         self._explainer = jsonschema.Draft7Validator(schema)
 

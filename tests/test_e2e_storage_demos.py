@@ -132,7 +132,7 @@ def test_the_postgresql_and_minio_demo_stores_rows_files_and_their_status(
     for local_path, remote_path, uploaded, _deleted, on_filesystem, size, group_name, robot_name in done:
         # Deleted only once verified in the bucket, and the bucket has those bytes.
         assert uploaded and not on_filesystem and not (tmp_path / "home" / local_path).exists()
-        key = remote_path.removeprefix(f"minio://{s3.bucket}/")
+        key = remote_path.removeprefix(f"s3://{s3.bucket}/")
         assert len(objects[key]) == size
         assert key.startswith("C3PO/2023/11/14/") and group_name in ("map", "front_camera")
         assert robot_name == "C3PO"
@@ -165,7 +165,7 @@ def test_the_qr_codes_demo_keeps_codes_in_postgresql_and_inspected_images_in_the
     assert codes and all(read for read in codes), codes
     assert any(code["type"] == "QRCODE" and code["data"] for read in codes for code in read), codes
     for local_path, remote_path, uploaded, _deleted, on_filesystem, size, robot_name in images:
-        key = remote_path.removeprefix(f"minio://{s3.bucket}/")
+        key = remote_path.removeprefix(f"s3://{s3.bucket}/")
         assert key.startswith("C3PO/") and key.endswith(".jpg"), key
         assert uploaded and not on_filesystem and not (tmp_path / "home" / local_path).exists()
         assert len(objects[key]) == size and robot_name == "C3PO"

@@ -77,7 +77,9 @@ def test_example_5_cpu_and_memory_as_a_group(tmp_path: Path) -> None:
         records = run.wait_records(2, timeout=60)
     for record in records[:2]:
         # No group_key on the measurements: each record is nested under its topic's last segment.
-        assert set(body(record)) == {"cpu", "memory", "name"}, record
+        # run_id (the counter's, on by default) at the top level too, as in a measurement's record.
+        assert set(body(record)) == {"cpu", "memory", "name", "run_id"}, record
+        assert record["run_id"] == record["cpu"]["run_id"]
         assert record["name"] == "cpu_memory"
         assert "tags" not in record["cpu"] and "tags" not in record["memory"]
         assert record["cpu"]["name"] == "cpu" and record["memory"]["name"] == "memory"
@@ -90,7 +92,7 @@ def test_group_demo_memory_and_uptime(tmp_path: Path) -> None:
     with Bringup(REPO / "params" / "demos" / "group_memory_uptime_stdout.yaml", tmp_path / "home") as run:
         records = run.wait_records(3, timeout=60)
     for record in records[:3]:
-        assert set(body(record)) == {"memory", "uptime"}, record  # include_group_name: false
+        assert set(body(record)) == {"memory", "uptime", "run_id"}, record  # include_group_name: false
         assert set(record["uptime"]) >= {"time"} and set(record["memory"]) >= {"used"}
     # One record per uptime sample (every 3 s), dated by the set's stamps, not by publication.
     assert all(2.7 < g < 3.3 for g in gaps(records[:3])), gaps(records[:3])

@@ -212,9 +212,23 @@ def test_merge_nests_records_removes_inner_tags_and_adds_the_group_metadata() ->
         "uptime": {"time": 96894, "run_id": "3"},
         "tags": ["flb_stdout"],
         "name": "memory_uptime",
+        "run_id": "3",
     }
-    assert list(merged.record) == ["memory", "uptime", "tags", "name"]
+    assert list(merged.record) == ["memory", "uptime", "tags", "name", "run_id"]
     assert merged.renamed == []
+
+
+def test_a_group_record_carries_robot_name_and_run_id_at_the_top_level() -> None:
+    # Where a query (and PgSQL's typed columns) looks for them in every record, even when the
+    # group drops the members' copies.
+    g = group({"inputs": ["/dc/measurement/a", "/dc/measurement/b"], "exclude_keys": ["*.run_id"]})
+    merged = merge(g, [None, rec("b", {"v": 2, "robot_name": "r7", "run_id": "12"})])
+    assert merged.record == {"b": {"v": 2, "robot_name": "r7"}, "missing_inputs": ["/dc/measurement/a"],
+                             "name": "g", "robot_name": "r7", "run_id": "12"}  # fmt: skip
+    flat = group({"inputs": ["/dc/measurement/a"], "nested_data": False})
+    assert merge(flat, [rec("a", {"robot_name": "r7"})]).record == {"a.robot_name": "r7", "name": "g",
+                                                                   "robot_name": "r7"}  # fmt: skip
+    assert "robot_name" not in merge(flat, [rec("a", {"v": 1})]).record
 
 
 def test_without_tags_or_name_those_keys_are_absent() -> None:

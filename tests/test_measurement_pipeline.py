@@ -18,7 +18,7 @@ from dc_measurements.config import RunIdParams, parse_measurement_server
 from dc_measurements.metadata import next_run_id, resolve_custom_params
 from dc_measurements.runner import MeasurementRunner
 from dc_measurements.uptime import Uptime
-from dc_measurements.validation import RecordValidator
+from dc_measurements.validation import RecordValidator, schema_version
 
 LOG = RecordingLogger("test")
 
@@ -41,6 +41,7 @@ def make_runner(
     custom: list[tuple[str, str, bool]] | None = None,
     samples: list[dict[str, Any] | None] | None = None,
     clock_ns: Any = None,
+    schema_version: int | None = None,
     plugin_class: type[Measurement[Any]] | None = None,
 ) -> tuple[MeasurementRunner, list[tuple[str, str, int | None]]]:
     cfg = parse_measurement_server(server({"m": body}, conditions))
@@ -69,6 +70,7 @@ def make_runner(
         lambda text, key, stamp: published.append((text, key, stamp)),
         LOG,
         **({"clock_ns": clock_ns} if clock_ns else {}),
+        schema_version=schema_version,
     )
     return runner, published
 
@@ -84,6 +86,19 @@ def test_uptime_record_has_metadata_and_no_flags() -> None:
     assert set(record) == {"time", "run_id", "tags", "name"}
     assert record["run_id"] == "7" and record["tags"] == ["flb_stdout"] and record["name"] == "m"
     assert abs(record["time"] - float(Path("/proc/uptime").read_text().split()[0])) < 2
+
+
+def test_a_record_says_the_version_of_its_schema() -> None:
+    runner, published = make_runner(
+        {"plugin": "dc_measurements/Uptime"}, schema_version=schema_version(Uptime.load_schema())
+    )
+    runner.tick()
+    (record,) = records(published)
+    assert record["schema_version"] == 1, "a plugin's schema without a version is its first"
+    assert schema_version({"version": 3, "$id": "https://x/cpu/v2"}) == 3
+    assert schema_version({"$id": "https://example.com/schemas/cpu/v2"}) == 2
+    assert schema_version({"$id": "https://example.com/schemas/cpu/4.json"}) == 4
+    assert schema_version(None) is None, "no schema (StringStamped forwards others' records): no key"
 
 
 @pytest.mark.parametrize("shape", [{}, {"nested": True}, {"flatten": True}])

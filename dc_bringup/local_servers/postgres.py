@@ -148,6 +148,19 @@ class PostgresServer:
             "database": self.database,
         }
 
+    def connect(self) -> Any:
+        """A psycopg connection in autocommit, as the server's user to its database (tests, benchmarks)."""
+        import psycopg
+
+        return psycopg.connect(
+            host="127.0.0.1",
+            port=self.port,
+            user=self.user,
+            password=self.password,
+            dbname=self.database,
+            autocommit=True,
+        )
+
     def __enter__(self) -> PostgresServer:
         self.start()
         return self

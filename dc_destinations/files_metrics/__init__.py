@@ -26,7 +26,8 @@ from dc_core.confined_files import ConfinementParams, OpenedFile, delete_opened
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import compat_param, param
-from dc_destinations.files_metrics.media import DurationProbe, content_type, is_video
+from dc_destinations.content_types import content_type
+from dc_destinations.files_metrics.media import DurationProbe, is_video
 from dc_destinations.files_metrics.table import FileRow, FilesTable
 from dc_destinations.object_files import (
     FilePair,
@@ -305,7 +306,8 @@ class FilesMetrics(Destination[FilesMetricsParams]):
                 group_name=_text(data.get("name")),
                 duration=duration,
                 local_path=pair.local_path,
-                remote_path=f"{store.name}://{bucket}/{pair.key}",
+                # The URI every S3 client reads (aws s3, boto3, DuckDB), whichever storage_type holds it.
+                remote_path=f"s3://{bucket}/{pair.key}",
                 uploaded=verification.verified,
                 on_filesystem=on_filesystem,
                 storage_type=store.name,
@@ -382,7 +384,10 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         with connection.transaction(), connection.cursor() as cursor:
             cursor.executemany(
                 self._table.mark_deleted,
-                [{"local_path": row.local_path, "storage_type": row.storage_type} for row in gone],
+                [
+                    {"local_path": row.local_path, "storage_type": row.storage_type, "robot_name": row.robot_name}
+                    for row in gone
+                ],
             )
 
     def _prepare_table(self, connection: Any) -> None:

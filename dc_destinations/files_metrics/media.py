@@ -1,31 +1,19 @@
-"""What FilesMetrics says about a file's content: its MIME type, and a video's duration (ffprobe)."""
+"""What FilesMetrics says about a file's content beyond its type (dc_destinations.content_types): a video's duration."""
 
 from __future__ import annotations
 
-import mimetypes
 import os
 import shutil
 import subprocess
 
 from dc_core.logs import Logger
 
-OCTET_STREAM = "application/octet-stream"
 # A video ffprobe cannot read in this time is reported without a duration rather than holding the batch.
 PROBE_TIMEOUT_S = 20.0
 # The containers of the videos DC records or is given (IpCamera's MPEG-TS, MP4/MOV, Matroska/WebM,
 # AVI, FLV, MPEG-PS, Ogg). A file named .mp4 holding a concat or HLS playlist would otherwise make
 # ffprobe open the files or URLs it lists.
 PROBE_FORMATS = "mpegts,mov,matroska,avi,flv,mpeg,ogg"
-
-
-def content_type(path: str) -> str:
-    """The MIME type the file's name suggests (the system's mime.types included), else octet-stream.
-
-    By name rather than by content: the file may already be gone (deleted once stored) when its row
-    is written again.
-    """
-    guessed, _encoding = mimetypes.guess_type(path, strict=False)
-    return guessed or OCTET_STREAM
 
 
 def is_video(mime_type: str) -> bool:

@@ -24,7 +24,6 @@ from __future__ import annotations
 import base64
 import contextlib
 import functools
-import mimetypes
 import os
 import time
 from collections.abc import Sequence
@@ -44,6 +43,7 @@ from dc_destinations.aws import (
     ClientError,
     size_problem,
 )
+from dc_destinations.content_types import content_type as file_content_type
 from dc_destinations.object_files import (
     PART_SIZE_METADATA,
     FilePair,
@@ -61,9 +61,6 @@ from dc_destinations.object_files import (
 )
 from dc_destinations.settings import parse_size
 
-# Types of DC's own files that mimetypes does not know everywhere (it reads the system's tables) or
-# takes for something else (.ts, IpCamera's video segments, is a Qt translation file to it).
-_CONTENT_TYPES = {".yaml": "application/yaml", ".yml": "application/yaml", ".ts": "video/mp2t"}
 _ALREADY_THERE = ("BucketAlreadyOwnedByYou", "BucketAlreadyExists")
 _NO_BUCKET = ("404", "NoSuchBucket", "NotFound")
 
@@ -374,8 +371,7 @@ class MinIO(Destination[MinIOParams]):
     def _upload(self, opened: OpenedFile, key: str, metadata: dict[str, str]) -> int:
         path = opened.path
         size = os.fstat(opened.fd).st_size
-        extension = os.path.splitext(path)[1].lower()
-        content_type = _CONTENT_TYPES.get(extension) or mimetypes.guess_type(path)[0] or "application/octet-stream"
+        content_type = file_content_type(path)
         try:
             if size <= self._threshold:
                 self._paced(size, key)

@@ -1,9 +1,13 @@
-"""PgSQL destination: each record a row ``(tag, time, data jsonb, record_id)`` of a PostgreSQL table.
+"""PgSQL destination: each record a row of a PostgreSQL table, once.
 
-The table is the original's (Fluent Bit's ``pgsql`` output: ``tag``, ``time``, ``data``) plus a
-``record_id`` column with a unique index: a batch inserted again after a failure whose outcome was
-unknown (the connection died during COMMIT) adds nothing twice (``ON CONFLICT DO NOTHING``), so the
-buffer's at-least-once delivery becomes exactly one row per record.
+A table DC creates has typed columns (``time timestamptz``, ``name``, ``robot_name``, ``run_id
+bigint`` beside the original's ``tag`` and ``data jsonb``), the indexes a data team's queries need,
+and optionally time partitions (table.py). A table that exists is used as it is: one of the
+original's shape (Fluent Bit's ``pgsql`` output: ``tag``, ``time``, ``data``) gets only the
+``record_id`` column and its unique index, the rest being a documented migration. The unique index
+on ``record_id`` makes a batch inserted again after a failure whose outcome was unknown (the
+connection died during COMMIT) add nothing twice (``ON CONFLICT DO NOTHING``), so the buffer's
+at-least-once delivery becomes exactly one row per record.
 
 A batch is one ``COPY`` of its rows straight into the table, outside any transaction block: the
 statement is its own transaction, committed before the server answers it, so a batch is all in
@@ -27,15 +31,16 @@ from __future__ import annotations
 
 import datetime as dt
 import functools
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, SendOutcome
+from dc_core.errors import ConfigError
 from dc_core.params import compat_param, param
 from dc_core.records import MalformedRecord
 from dc_destinations.pgsql.connection import (
-    MAX_IDENTIFIER,
     KeptConnection,
     PostgresServerParams,
     is_record_error,
@@ -45,32 +50,54 @@ from dc_destinations.pgsql.connection import (
     require_psycopg,
     table_problem,
 )
+from dc_destinations.pgsql.table import (
+    PARTITION_BY,
+    TYPED_COLUMNS,
+    Partitions,
+    TableShape,
+    add_record_id,
+    create_typed,
+    legacy_hint,
+    not_partitioned_problem,
+    period_start,
+    read_shape,
+)
 
 _EPOCH = dt.datetime(1970, 1, 1)
-_COLUMNS = ("tag", "time", "data", "record_id")
-# A batch's rows: (index in the batch, the values of _COLUMNS).
-_Rows = list[tuple[int, tuple[str, dt.datetime, str, str]]]
-# The column types of a table DC creates (a `tag` of type text too): a COPY into such a table can be
-# binary, which costs the client and the server about half the CPU of text (docs/performance.md).
-# Any other types (a table made by hand: json, timestamptz, varchar(n)) get text, converted by the
-# server as an INSERT's values would be.
-_BINARY_TYPES = (
-    ("character varying", "text"),
-    ("timestamp without time zone",),
-    ("jsonb",),
-    ("text",),
-)
+# A batch's rows: (index in the batch, the values of the columns written).
+_Rows = list[tuple[int, tuple[Any, ...]]]
+# Partitions are made ahead and expired at most this often, besides at every new connection.
+_MAINTENANCE_S = 3600.0
+_INT8 = 2**63
 
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class PgSQLParams(PostgresServerParams):
     table: str = param("dc", check=table_problem, doc='Table of the rows ("schema.table" accepted); created if absent')
+    partition_by: str = param(
+        "none",
+        choices=PARTITION_BY,
+        doc="A table DC creates, partitioned by range of time: a partition per UTC day or ISO week; none: one table",
+    )
+    retention_days: int = param(
+        0,
+        minimum=0,
+        maximum=36500,
+        doc="Partitions whose whole period is older than this many days are dropped; 0: kept for ever",
+    )
     async_: bool = compat_param(
         False, "each batch is written by the destination's own sender thread", aliases=("async",)
     )
     min_pool_size: int | str = compat_param("1", "DC keeps one connection per destination")
     max_pool_size: int | str = compat_param("4", "DC keeps one connection per destination")
     cockroachdb: bool = compat_param(False, "DC writes PostgreSQL's SQL whatever the server")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.retention_days and self.partition_by == "none":
+            raise ConfigError(
+                "retention_days", "retention drops whole partitions: set partition_by (day or week), or 0 here"
+            )
 
     def __repr__(self) -> str:
         # Written by hand: the generated repr would show `async_`, and the password must stay out.
@@ -79,14 +106,18 @@ class PgSQLParams(PostgresServerParams):
 
 
 class PgSQL(Destination[PgSQLParams]):
-    """Insert each record as a row (tag, time, data jsonb, record_id) of a PostgreSQL table, once."""
+    """Insert each record as a row (tag, time, data jsonb, record_id, name, robot_name, run_id) of a PostgreSQL
+    table, once."""
 
     def __init__(self, context: Any, params: PgSQLParams) -> None:
         super().__init__(context, params)
         self._database: KeptConnection | None = None  # made by on_configure, connected by the first batch
+        # The statements of the table's shape, made by _prepare_table on every new connection.
+        self._shape: TableShape | None = None
         self._insert: Any = None
         self._load: Any = None  # COPY straight into the table, as text
         self._load_binary: Any = None  # the same, binary
+        self._copy_types: list[str] | None = None
         self._stage: Any = None  # COPY into the staging table, then the INSERT … SELECT from it
         self._move: Any = None
         # Whether the current connection has its staging table (a temporary table lives as long as
@@ -96,6 +127,10 @@ class PgSQL(Destination[PgSQLParams]):
         # security may have been switched off meanwhile); and whether it may be binary.
         self._direct = False
         self._binary = False
+        self._partitions: Partitions | None = None
+        self._maintained_at = 0.0
+        self._hinted = False  # the hint to migrate a table of the original's shape: once
+        self._run_id_told = False
         self.address = ""
 
     def __repr__(self) -> str:
@@ -104,30 +139,17 @@ class PgSQL(Destination[PgSQLParams]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         require_psycopg(self.context.name, "PgSQL")
-        from psycopg import sql
-
+        p = self.params
         self._database = keep_database(
             self,
-            self.params.server(),
+            p.server(),
             prepare=self._prepare_table,
-            prepared=f"table {self.params.table}",
+            prepared=f"table {p.table}",
             section=f"destination_server.{self.context.name}",
         )
         self.address = self._database.address
-        self._insert = sql.SQL(
-            "INSERT INTO {} (tag, time, data, record_id) VALUES (%s, %s, %s::jsonb, %s)"
-            " ON CONFLICT (record_id) DO NOTHING"
-        ).format(self._table())
-        self._load = sql.SQL("COPY {} (tag, time, data, record_id) FROM STDIN").format(self._table())
-        self._load_binary = sql.SQL("COPY {} (tag, time, data, record_id) FROM STDIN (FORMAT BINARY)").format(
-            self._table()
-        )
-        staging = self._staging_table()
-        self._stage = sql.SQL("COPY {} (tag, time, data, record_id) FROM STDIN").format(staging)
-        self._move = sql.SQL(
-            "INSERT INTO {} (tag, time, data, record_id) SELECT tag, time, data, record_id FROM {}"
-            " ON CONFLICT (record_id) DO NOTHING"
-        ).format(self._table(), staging)
+        if p.partition_by != "none":
+            self._partitions = Partitions(p.table, p.partition_by, p.retention_days)
 
     def probe(self) -> ProbeResult:
         assert self._database is not None, "probe() before on_configure()"
@@ -143,22 +165,51 @@ class PgSQL(Destination[PgSQLParams]):
         assert self._database is not None, "send() before on_configure()"
         database = self._database
         tag = self.context.name
+        key = self.params.timestamp_key
         rows: _Rows = []
         rejected: dict[int, str] = {}
         for i, record in enumerate(batch):
             try:
-                rows.append(
-                    (i, (tag, record_time(record, self.params.timestamp_key), record.to_json(), record.record_id))
-                )
+                values = (tag, record_time(record, key).replace(tzinfo=dt.UTC), record.to_json(), record.record_id)
             except MalformedRecord as exc:
                 rejected[i] = f"not valid JSON: {exc}"
+                continue
+            data = record.data
+            rows.append((i, (*values, _text(data.get("name")), _text(data.get("robot_name")), self._run_id(data))))
         if rows:
             rejected.update(database.run(lambda connection: self._insert_rows(database, connection, rows)))
         return SendOutcome(reject=rejected) if rejected else None
 
+    def _run_id(self, data: dict[str, Any]) -> int | None:
+        """The record's run_id as the bigint column holds it: DC's counter; None for anything else."""
+        value = data.get("run_id")
+        if isinstance(value, str) and value.isascii() and value.isdigit():
+            number = int(value)
+        elif isinstance(value, int) and not isinstance(value, bool):
+            number = value
+        else:
+            if value is not None and not self._run_id_told:
+                self._run_id_told = True
+                self.context.logger.warning(
+                    f"run_id {str(value)[:40]!r} is not a counter: the run_id column stays NULL for such records"
+                    " (data->>'run_id' holds it); the measurement server's run_id.counter gives counters"
+                )
+            return None
+        return number if -_INT8 <= number < _INT8 else None
+
     def _insert_rows(self, database: KeptConnection, connection: Any, rows: _Rows) -> dict[int, str]:
         import psycopg
 
+        assert self._shape is not None, "rows before the table was prepared"
+        width = len(self._shape.written)
+        if width != len(rows[0][1]):
+            rows = [(i, values[:width]) for i, values in rows]
+        if self._shape.columns.get("time") == "timestamp without time zone":
+            # The original's column holds UTC without a zone: a naive value, which no session time
+            # zone shifts (an aware one would be converted to the session's zone).
+            rows = [(i, (v[0], v[1].replace(tzinfo=None), *v[2:])) for i, v in rows]
+        if self._partitions is not None:
+            self._maintain_partitions(connection, {self._period(values[1]) for _, values in rows})
         if self._direct:
             try:
                 # The connection is in autocommit: this COPY commits alone, before its answer.
@@ -167,7 +218,7 @@ class PgSQL(Destination[PgSQLParams]):
                     cursor.copy(self._load_binary if self._binary else self._load) as copy,
                 ):
                     if self._binary:
-                        copy.set_types(["varchar", "timestamp", "jsonb", "text"])
+                        copy.set_types(self._copy_types)
                     for _, values in rows:
                         copy.write_row(values)
                 return {}
@@ -198,6 +249,30 @@ class PgSQL(Destination[PgSQLParams]):
                 raise
             return self._refused(database, connection, rows, exc)
 
+    def _period(self, moment: dt.datetime) -> dt.date:
+        return period_start(moment, self.params.partition_by)
+
+    def _maintain_partitions(self, connection: Any, starts: set[dt.date]) -> None:
+        """The partitions of the batch's times made when missing; those ahead made and the expired dropped
+        at most every _MAINTENANCE_S (and on every new connection)."""
+        partitions = self._partitions
+        assert partitions is not None
+        now = time.monotonic()
+        if not self._maintained_at or now - self._maintained_at >= _MAINTENANCE_S:
+            today = dt.datetime.now(dt.UTC).date()
+            partitions.expire(connection, self._table(), today)
+            if partitions.dropped:
+                self.context.logger.info(
+                    f"dropped partitions {', '.join(partitions.dropped)} of table {self.params.table}"
+                    f" (older than retention_days {self.params.retention_days})"
+                )
+            starts = starts | partitions.ahead(today)
+            self._maintained_at = now
+        if starts - partitions.known:
+            partitions.ensure(connection, self._table(), starts)
+            if partitions.made:
+                self.context.logger.info(f"made partitions {', '.join(partitions.made)} of table {self.params.table}")
+
     def _refused(self, database: KeptConnection, connection: Any, rows: _Rows, exc: Exception) -> dict[int, str]:
         """The server refused a record of the batch: which one, when it is alone; else each row on its own."""
         if len(rows) == 1:
@@ -222,62 +297,64 @@ class PgSQL(Destination[PgSQLParams]):
 
     # -- table -------------------------------------------------------------------------------------
     def _prepare_table(self, connection: Any) -> None:
-        self._staging = self._direct = self._binary = False
-        self._ensure_table(connection)
-        types = self._column_types(connection)
-        self._staging = self._make_staging_table(connection, types)
-        self._direct = True
-        self._binary = len(types) == len(_COLUMNS) and all(
-            types[column] in allowed for column, allowed in zip(_COLUMNS, _BINARY_TYPES, strict=True)
-        )
-        if self._binary:
-            connection.adapters.register_dumper(None, json_text_binary_dumper())
-
-    def _ensure_table(self, connection: Any) -> None:
-        """The table, its record_id column and their unique index, created when missing.
+        """The table made or checked, and the statements of its shape, on every new connection.
 
         Checked in the catalog first: a role allowed to insert into an existing table but not to
         create anything still works.
         """
+        self._staging = self._direct = self._binary = False
+        p = self.params
+        table = self._table()
+        shape = read_shape(connection, table)
+        if shape is None:
+            create_typed(connection, table, p.table, p.partition_by)
+            self.context.logger.info(
+                f"table {p.table} ready in {self.address} ({', '.join(TYPED_COLUMNS)}"
+                + (f"; partitioned by {p.partition_by})" if p.partition_by != "none" else ")")
+            )
+            shape = read_shape(connection, table)
+            assert shape is not None
+        elif shape.conflict_key is None:
+            # A table made by the original, or by hand: the column and index that make a retried
+            # batch add nothing twice.
+            add_record_id(connection, table, p.table, shape.partitioned)
+            self.context.logger.info(f"table {p.table} of {self.address}: record_id column and unique index added")
+            shape = read_shape(connection, table)
+            assert shape is not None
+        if not shape.typed and not self._hinted:
+            self._hinted = True
+            self.context.logger.warning(legacy_hint(p.table))
+        if p.partition_by != "none" and not shape.partitioned:
+            raise not_partitioned_problem(p.table, self.address)
+        self._shape = shape
+        self._statements(shape)
+        self._staging = self._make_staging_table(connection, shape)
+        self._direct = True
+        self._copy_types = shape.copy_types()
+        self._binary = self._copy_types is not None
+        if self._binary:
+            connection.adapters.register_dumper(None, json_text_binary_dumper())
+        self._maintained_at = 0.0  # partitions checked again on a new connection
+
+    def _statements(self, shape: TableShape) -> None:
         from psycopg import sql
 
-        table = self._table()
-        name = self.params.table
-        found = connection.execute(
-            """SELECT to_regclass(%(t)s) IS NOT NULL,
-                      EXISTS (SELECT 1 FROM pg_index i JOIN pg_attribute a
-                                ON a.attrelid = i.indrelid AND a.attnum = i.indkey[0]
-                               WHERE i.indrelid = to_regclass(%(t)s) AND i.indisunique AND i.indnatts = 1
-                                 AND a.attname = 'record_id')""",
-            {"t": table.as_string(connection)},
-        ).fetchone()
-        if found is not None and found[1]:
-            return
-        index = sql.Identifier(f"{name.rsplit('.', 1)[-1]}_record_id"[:MAX_IDENTIFIER])
-        with connection.transaction():
-            connection.execute(
-                sql.SQL(
-                    "CREATE TABLE IF NOT EXISTS {} (tag varchar, time timestamp, data jsonb, record_id text)"
-                ).format(table)
-            )
-            # A table made by the original (or by hand) gets the column and index it lacks.
-            connection.execute(sql.SQL("ALTER TABLE {} ADD COLUMN IF NOT EXISTS record_id text").format(table))
-            connection.execute(sql.SQL("CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (record_id)").format(index, table))
-        self.context.logger.info(f"table {name} ready in {self.address} (tag, time, data, record_id)")
-
-    def _column_types(self, connection: Any) -> dict[str, str]:
-        """The types of the table's four columns (those it has), as ``format_type`` writes them."""
-        return dict(
-            connection.execute(
-                """SELECT attname, format_type(atttypid, atttypmod) FROM pg_attribute
-                    WHERE attrelid = to_regclass(%s) AND attnum > 0 AND NOT attisdropped
-                      AND attname IN ('tag', 'time', 'data', 'record_id')""",
-                (self._table().as_string(connection),),
-            ).fetchall()
+        table, staging = self._table(), self._staging_table()
+        columns = sql.SQL(", ").join(map(sql.Identifier, shape.written))
+        key = shape.conflict_key or "record_id"
+        conflict = sql.SQL(" ON CONFLICT (" + key + ") DO NOTHING")
+        values = sql.SQL(", ").join(
+            sql.SQL("%s::jsonb") if column == "data" else sql.SQL("%s") for column in shape.written
         )
+        self._insert = sql.SQL("INSERT INTO {} ({}) VALUES ({})").format(table, columns, values) + conflict
+        self._load = sql.SQL("COPY {} ({}) FROM STDIN").format(table, columns)
+        self._load_binary = sql.SQL("COPY {} ({}) FROM STDIN (FORMAT BINARY)").format(table, columns)
+        self._stage = sql.SQL("COPY {} ({}) FROM STDIN").format(staging, columns)
+        move = sql.SQL("INSERT INTO {} ({}) SELECT {} FROM {}")
+        self._move = move.format(table, columns, columns, staging) + conflict
 
-    def _make_staging_table(self, connection: Any, found: dict[str, str]) -> bool:
-        """This session's staging table, with the types of the table's four columns; False if not allowed.
+    def _make_staging_table(self, connection: Any, shape: TableShape) -> bool:
+        """This session's staging table, with the types of the table's written columns; False if not allowed.
 
         The types come from the catalog rather than ``CREATE TABLE … AS SELECT`` from the table,
         which would need the right to read it; a table made by hand with other types (``json``,
@@ -287,10 +364,12 @@ class PgSQL(Destination[PgSQLParams]):
         import psycopg
         from psycopg import sql
 
-        if any(column not in found for column in _COLUMNS):
+        found = shape.columns
+        written = shape.written
+        if any(column not in found for column in written) or shape.conflict_key is None:
             return False  # a table without them: the INSERT says what is wrong, as it always did
         definition = sql.SQL(", ").join(
-            sql.SQL("{} {}").format(sql.Identifier(column), sql.SQL(found[column])) for column in _COLUMNS
+            sql.SQL("{} {}").format(sql.Identifier(column), sql.SQL(found[column])) for column in written
         )
         try:
             connection.execute(
@@ -318,6 +397,11 @@ class PgSQL(Destination[PgSQLParams]):
         # the name of the table it feeds.
         name = "dc_staging" if self.params.table.rsplit(".", 1)[-1] != "dc_staging" else "dc_staging_2"
         return sql.Identifier("pg_temp", name)
+
+
+def _text(value: Any) -> str | None:
+    """A top-level record value as a text column holds it: strings as they are, nothing else."""
+    return value if isinstance(value, str) else None
 
 
 @functools.cache

@@ -20,7 +20,7 @@ from typing import Any
 import pytest
 
 from dc_bringup.local_servers.postgres import PostgresServer, missing_reason
-from dc_core.destination import OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import ConfigurationProblem, OutgoingRecord, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import describe_params, parse_params
 from dc_core.testing import FakeContext, RecordingLogger
@@ -80,7 +80,12 @@ def rows(server: PostgresServer, table: str) -> list[tuple[Any, ...]]:
         host=str(s["host"]), port=int(s["port"]), user=str(s["user"]), password=str(s["password"]), dbname="dc"
     ) as connection:
         query = f'SELECT tag, time, data, record_id FROM "{table}" ORDER BY time'
-        return list(connection.execute(query).fetchall())
+        return [(r[0], utc(r[1]), *r[2:]) for r in connection.execute(query).fetchall()]
+
+
+def utc(moment: dt.datetime) -> dt.datetime:
+    """A time as a naive UTC datetime, whichever of timestamptz (DC's tables) or timestamp (the original's) it came from."""
+    return moment.astimezone(dt.UTC).replace(tzinfo=None) if moment.tzinfo else moment
 
 
 @pytest.mark.parametrize("plugin", ["PgSQL", "FilesMetrics"])
@@ -365,16 +370,139 @@ def test_without_the_right_to_temporary_tables_rows_still_arrive(
 
 
 def test_a_table_made_by_the_original_gets_record_id(server: PostgresServer, destinations: list[PgSQL]) -> None:
-    s = server.settings()
-    with psycopg.connect(
-        host="127.0.0.1", port=int(s["port"]), user="dc", password=PASSWORD, dbname="dc", autocommit=True
-    ) as admin:
-        admin.execute("CREATE TABLE legacy (tag varchar, time timestamp, data jsonb)")
-        admin.execute("INSERT INTO legacy VALUES ('flb_pgsql', now(), '{\"old\": true}')")
-    dest = make(server, destinations, table="legacy")
-    batch = [record(0)]
+    with admin(server) as connection:
+        connection.execute("CREATE TABLE legacy (tag varchar, time timestamp, data jsonb)")
+        connection.execute("INSERT INTO legacy VALUES ('flb_pgsql', now(), '{\"old\": true}')")
+    logger = RecordingLogger()
+    dest = make(server, destinations, logger=logger, table="legacy")
+    batch = [record(0, name="cpu", robot_name="r1", run_id="7")]
     assert dest.send(batch) is None and dest.send(batch) is None
-    assert sorted(r[3] or "" for r in rows(server, "legacy")) == ["", batch[0].record_id]
+    dest.on_deactivate()  # a new connection: the hint is not said again
+    assert dest.send([record(1)]) is None
+    got = rows(server, "legacy")
+    assert [r[3] for r in got].count(batch[0].record_id) == 1 and len(got) == 3
+    with admin(server) as connection:
+        columns = connection.execute(
+            "SELECT attname::text, format_type(atttypid, atttypmod) FROM pg_attribute"
+            " WHERE attrelid = 'legacy'::regclass AND attnum > 0 ORDER BY attnum"
+        ).fetchall()
+    assert columns == [
+        ("tag", "character varying"),
+        ("time", "timestamp without time zone"),
+        ("data", "jsonb"),
+        ("record_id", "text"),
+    ], "used as it is: no column changed or added besides record_id"
+    hints = [m for m in logger.at("warning") if "has the original's shape" in m]
+    assert len(hints) == 1 and "docs/data-model.md#migrating-a-table-of-the-originals-shape" in hints[0]
+
+
+def table_facts(server: PostgresServer, table: str) -> tuple[list[tuple[str, str]], list[str], list[str]]:
+    """(columns and types, index definitions, partition names) of ``table``."""
+    with admin(server) as connection:
+        columns = connection.execute(
+            "SELECT attname::text, format_type(atttypid, atttypmod) FROM pg_attribute"
+            " WHERE attrelid = to_regclass(%s) AND attnum > 0 AND NOT attisdropped ORDER BY attnum",
+            (table,),
+        ).fetchall()
+        indexes = [
+            r[0]
+            for r in connection.execute(
+                "SELECT pg_get_indexdef(indexrelid) FROM pg_index WHERE indrelid = to_regclass(%s) ORDER BY 1",
+                (table,),
+            )
+        ]
+        partitions = [
+            r[0]
+            for r in connection.execute(
+                "SELECT c.relname::text FROM pg_inherits i JOIN pg_class c ON c.oid = i.inhrelid"
+                " WHERE i.inhparent = to_regclass(%s) ORDER BY 1",
+                (table,),
+            )
+        ]
+    return columns, indexes, partitions
+
+
+def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServer, destinations: list[PgSQL]) -> None:
+    logger = RecordingLogger()
+    dest = make(server, destinations, logger=logger, table="typed")
+    group = {"name": "robot", "robot_name": "r1", "run_id": "10", "cpu": {"robot_name": "r1", "run_id": "10"}}
+    batch = [record(0, name="cpu", robot_name="r1", run_id="2"), record(1, **group), record(2, run_id="run-x")]
+    assert dest.send(batch) is None and dest.send(batch) is None
+    columns, indexes, partitions = table_facts(server, "typed")
+    assert columns == [
+        ("tag", "text"),
+        ("time", "timestamp with time zone"),
+        ("data", "jsonb"),
+        ("record_id", "text"),
+        ("name", "text"),
+        ("robot_name", "text"),
+        ("run_id", "bigint"),
+    ]
+    assert any('(robot_name, name, "time")' in i for i in indexes), indexes
+    assert any('USING brin ("time")' in i for i in indexes), indexes
+    assert any("UNIQUE" in i and "(record_id)" in i for i in indexes), indexes
+    assert partitions == []
+    with admin(server) as connection:
+        connection.execute("SET TIME ZONE 'America/Los_Angeles'")  # a session in another zone sees the same rows
+        got = connection.execute(
+            "SELECT name, robot_name, run_id FROM typed WHERE time >= '2023-11-14 22:13:20Z' ORDER BY run_id"
+        ).fetchall()
+    assert got == [("cpu", "r1", 2), ("robot", "r1", 10), (None, None, None)], "run_id sorts as a number"
+    told = [m for m in logger.at("warning") if "is not a counter" in m]
+    assert len(told) == 1, logger.lines
+
+
+def test_partition_by_day_makes_partitions_ahead_and_drops_the_expired(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    today = dt.datetime.now(dt.UTC).date()
+    logger = RecordingLogger()
+    dest = make(server, destinations, logger=logger, table="daily", partition_by="day", retention_days=30)
+    old = today - dt.timedelta(days=40)
+    old_ns = int(dt.datetime.combine(old, dt.time(12), dt.UTC).timestamp() * 1e9)
+    now_ns = time.time_ns()
+    batch = [
+        OutgoingRecord(new_record_id(), "/dc/measurement/t", now_ns, {"name": "cpu"}),
+        OutgoingRecord(new_record_id(), "/dc/measurement/t", old_ns, {"name": "cpu"}),
+    ]
+    assert dest.send(batch) is None and dest.send(batch) is None, "a retried batch meets (record_id, time)"
+    _, indexes, partitions = table_facts(server, "daily")
+    expected = {f"daily_p{today + dt.timedelta(days=n):%Y%m%d}" for n in range(3)} | {f"daily_p{old:%Y%m%d}"}
+    assert set(partitions) == expected, "today, two days ahead, and the day of the late record"
+    assert any("UNIQUE" in i and '(record_id, "time")' in i for i in indexes), indexes
+    assert len(rows(server, "daily")) == 2
+    with admin(server) as connection:
+        connection.execute(
+            "CREATE TABLE daily_by_hand PARTITION OF daily FOR VALUES FROM ('2001-01-01Z') TO ('2001-01-02Z')"
+        )
+    dest.on_deactivate()  # the next connection expires what is older than 30 days
+    assert dest.send([record(5)]) is None  # 2023: made again for this record, dropped at the next pass
+    _, _, partitions = table_facts(server, "daily")
+    assert f"daily_p{old:%Y%m%d}" not in partitions and "daily_by_hand" in partitions, "only DC's own are dropped"
+    assert any("dropped partitions" in m and f"daily_p{old:%Y%m%d}" in m for m in logger.at("info"))
+
+
+def test_a_week_partition_is_an_iso_week_of_utc_days() -> None:
+    from dc_destinations.pgsql.table import Partitions, period_start
+
+    thursday_late = dt.datetime(2026, 11, 26, 23, 30, tzinfo=dt.timezone(dt.timedelta(hours=-8)))  # Friday, UTC
+    assert period_start(thursday_late, "week") == dt.date(2026, 11, 23), "the Monday of the UTC day"
+    assert period_start(thursday_late, "day") == dt.date(2026, 11, 27)
+    ahead = Partitions("telemetry.records", "week", 0).ahead(dt.date(2026, 11, 29))
+    assert ahead == {dt.date(2026, 11, 23), dt.date(2026, 11, 30), dt.date(2026, 12, 7)}
+
+
+def test_partition_by_on_a_table_that_is_not_partitioned_names_the_migration(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    make(server, destinations, table="flat").send([record(0)])
+    dest = make(server, destinations, table="flat", partition_by="week")
+    with pytest.raises(ConfigurationProblem) as caught:
+        dest.send([record(1)])
+    assert "table flat of postgresql://dc@127.0.0.1" in str(caught.value)
+    assert "is not partitioned" in str(caught.value)
+    assert "docs/data-model.md#migrating-a-table-of-the-originals-shape" in caught.value.fix
+    assert len(rows(server, "flat")) == 1
 
 
 def test_wrong_password_is_retryable_clear_and_never_shown(
@@ -465,6 +593,8 @@ def test_defaults() -> None:
         ({"sslrootcert": "/ca.pem"}, "destination_server.pg.sslrootcert: set sslmode to verify-full"),
         ({"host": "postgres://db"}, "destination_server.pg.host: expected a host name or IP address"),
         ({"connect_timeout": 1}, "destination_server.pg.connect_timeout: expected an integer >= 2"),
+        ({"partition_by": "month"}, "destination_server.pg.partition_by: expected one of"),
+        ({"retention_days": 7}, "destination_server.pg.retention_days: retention drops whole partitions"),
         ({"passwd": "x"}, 'unknown parameter of dc_destinations/FlbPgSQL (did you mean "password"?)'),
     ],
 )

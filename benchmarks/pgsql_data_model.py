@@ -1,0 +1,256 @@
+"""The records table of DC's shape at fleet scale: the team queries of docs/data-model.md, and the insert rate.
+
+    .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 7]
+                                                    [--insert-records 50000] [--insert-runs 3] [--label NAME]
+                                                    [--run-index]
+
+Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers) and:
+
+- queries: the PgSQL destination creates table ``dc`` (``partition_by: day``), then the server
+  generates --robots robots x --hours hours of records on 2026-11-25 (UTC) into it with one
+  ``INSERT … SELECT`` from ``generate_series`` per measurement (the bulk way; DC's own insert rate is
+  measured below): per robot ``position`` every 2.5 s, ``cpu`` and ``memory`` every 5 s and
+  ``front_camera`` (two codes) every 20 s — 0.85 records/s, the rate issue 29 measured — in runs of
+  2 hours (run 12 is the last of the day), with the keys the measurement server adds. Then
+  ``VACUUM ANALYZE``, and each query of docs/data-model.md as written there (robot-007, run 12):
+  one warm-up, then --runs runs, wall time at the client (execute and fetch), median and max, and
+  the server's execution time of one more run (``EXPLAIN ANALYZE``). With --run-index, the path
+  query again after ``CREATE INDEX … (robot_name, run_id, name, time)``.
+- insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
+  500) into a fresh table of the original's shape (``tag, time timestamp, data, record_id``: what
+  DC wrote until now), of DC's new shape, and of DC's new shape partitioned by day; the three take
+  turns, --insert-runs rounds; rows/s per round, median, and the ratios to the original's shape.
+
+JSON in benchmarks/results/pgsql_data_model_<date>[_<label>].json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import re
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from benchmarks.storage import _client_cpu, _tree_cpu  # noqa: E402
+from dc_bringup.local_servers.postgres import PostgresServer  # noqa: E402
+from dc_core.destination import OutgoingRecord  # noqa: E402
+from dc_core.params import parse_params  # noqa: E402
+from dc_core.testing import FakeContext, RecordingLogger  # noqa: E402
+from dc_destinations.pgsql import PgSQL, PgSQLParams  # noqa: E402
+from dc_destinations.record_ids import new_record_id  # noqa: E402
+
+DAY = "2026-11-25"
+PAGE = REPO / "docs" / "data-model.md"
+BATCH = 500
+
+# (measurement, seconds between records, the record's own fields as SQL over r (robot) and t (time))
+MEASUREMENTS = (
+    (
+        "position",
+        2.5,
+        "'x', round((r + 10 * cos(extract(epoch FROM t) / 600))::numeric, 3), "
+        "'y', round((10 * sin(extract(epoch FROM t) / 600))::numeric, 3), 'yaw', 0.5",
+    ),
+    ("cpu", 5.0, "'average', round((random() * 100)::numeric, 2), 'processes', 212"),
+    ("memory", 5.0, "'used', round((30 + random() * 20)::numeric, 2)"),
+    (
+        "front_camera",
+        20.0,
+        "'camera_name', 'front_camera', 'inspected', jsonb_build_object('barcode', jsonb_build_array("
+        "jsonb_build_object('data', 'WH1/AISLE-' || (r % 10) || '/SHELF-' || lpad(((extract(epoch FROM t)::bigint"
+        " / 20) % 40)::text, 2, '0'), 'type', 'QRCODE', 'top', 198, 'left', 148, 'width', 86, 'height', 86),"
+        " jsonb_build_object('data', 'PAL-' || (extract(epoch FROM t)::bigint % 5000), 'type', 'CODE128')))",
+    ),
+)
+
+
+def destination(server: PostgresServer, table: str, partition_by: str = "none") -> PgSQL:
+    params = parse_params(
+        PgSQLParams, {**server.settings(), "table": table, "partition_by": partition_by}, "destination_server.pg"
+    )
+    dest = PgSQL(FakeContext(name="pg", logger=RecordingLogger()), params)
+    dest.on_configure()
+    return dest
+
+
+def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, float]:
+    """The fleet's day in table dc (made by the destination); (rows, seconds)."""
+    first = int(dt.datetime.fromisoformat(f"{DAY}T00:00:00+00:00").timestamp() * 1e9)
+    dest = destination(server, "dc", "day")
+    dest.send([OutgoingRecord(new_record_id(), "/dc/x", first, {"name": "marker"})])  # table and partitions
+    dest.on_deactivate()
+    started = time.monotonic()
+    with server.connect() as connection:
+        for name, every, fields in MEASUREMENTS:
+            connection.execute(
+                f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id)
+                SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run
+                FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
+                          'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
+                          'tags', jsonb_build_array('pg')) AS data
+                      FROM generate_series(1, {robots}) AS r,
+                           generate_series(timestamptz '{DAY} 00:00Z' + r * interval '10 ms',
+                                           timestamptz '{DAY} 00:00Z' + interval '{hours} hours' - interval '1 s',
+                                           interval '{every} s') AS t,
+                           LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
+                                           1 + floor(extract(epoch FROM t - timestamptz '{DAY} 00:00Z') / 7200)::bigint
+                                             AS run) AS k) AS rows"""
+            )
+        connection.execute("VACUUM ANALYZE dc")
+        (rows,) = connection.execute("SELECT count(*) FROM dc").fetchone()
+        (size,) = connection.execute("SELECT pg_size_pretty(sum(pg_total_relation_size(c.oid))) FROM pg_inherits i"
+                                     " JOIN pg_class c ON c.oid = i.inhrelid WHERE i.inhparent = 'dc'::regclass"
+                                     ).fetchone()  # fmt: skip
+    print(f"generated {rows:,} rows in {time.monotonic() - started:.0f} s ({size} with indexes)", flush=True)
+    return int(rows), time.monotonic() - started
+
+
+def time_queries(server: PostgresServer, runs: int, only: str = "", suffix: str = "") -> dict[str, dict[str, float]]:
+    found = dict(re.findall(r"<!-- query: (\w+) -->\n```sql\n(.*?)```", PAGE.read_text(), re.S))
+    if only:
+        found = {only + suffix: found[only]}
+    figures = {}
+    with server.connect() as connection:
+        for name, query in found.items():
+            text = query.encode()
+            connection.execute(text).fetchall()  # warm-up: plan, caches
+            times = []
+            for _ in range(runs):
+                started = time.perf_counter()
+                got = connection.execute(text).fetchall()
+                times.append((time.perf_counter() - started) * 1000)
+            explained = connection.execute(b"EXPLAIN (ANALYZE, FORMAT JSON) " + text).fetchone()[0][0]
+            figures[name] = {
+                "median_ms": statistics.median(times),
+                "max_ms": max(times),
+                "server_ms": explained["Execution Time"],  # the server's own time, without the client's
+                "rows": len(got),
+            }
+            print(f"{name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
+                  f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)", flush=True)  # fmt: skip
+    return figures
+
+
+def insert_records(n: int) -> list[OutgoingRecord]:
+    start = time.time_ns()
+    out = []
+    for i in range(n):
+        rid = new_record_id()
+        data = {
+            "average": (i * 37) % 100 + 0.25,
+            "processes": 212,
+            "name": "cpu" if i % 2 else "position",
+            "robot_name": f"robot-{i % 100:03d}",
+            "run_id": str(1 + i // 10_000),
+            "schema_version": 1,
+            "tags": ["pg"],
+            "record_id": rid,
+        }
+        out.append(OutgoingRecord(rid, "/dc/measurement/cpu", start + i * 1_000_000, data))
+    return out
+
+
+def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
+    shapes = ("original", "typed", "typed_day")
+    rates: dict[str, list[float]] = {s: [] for s in shapes}
+    # CPU per row (this process and the server's, over the same window): what contention on a shared
+    # machine inflates far less than the wall time.
+    cpu_us: dict[str, list[float]] = {s: [] for s in shapes}
+    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    for k in range(rounds):
+        order = shapes[k % 3 :] + shapes[: k % 3]  # each shape goes first once in three rounds
+        for shape in order:
+            table = f"insert_{shape}_{k}"
+            if shape == "original":
+                with server.connect() as connection:
+                    connection.execute(
+                        f"CREATE TABLE {table} (tag varchar, time timestamp, data jsonb, record_id text)"
+                    )
+                    connection.execute(f"CREATE UNIQUE INDEX {table}_record_id ON {table} (record_id)")
+            dest = destination(server, table, "day" if shape == "typed_day" else "none")
+            records = insert_records(n)
+            dest.send(records[:BATCH])  # connects and prepares: not timed
+            started, cpu = time.perf_counter(), _client_cpu() + _tree_cpu(pid)
+            for i in range(BATCH, n, BATCH):
+                assert dest.send(records[i : i + BATCH]) is None
+            rates[shape].append((n - BATCH) / (time.perf_counter() - started))
+            cpu_us[shape].append((_client_cpu() + _tree_cpu(pid) - cpu) / (n - BATCH) * 1e6)
+            dest.on_deactivate()
+    medians = {s: statistics.median(r) for s, r in rates.items()}
+    ratios = [[rates[s][k] / rates["original"][k] for k in range(rounds)] for s in shapes[1:]]
+    cpu_ratios = [[cpu_us[s][k] / cpu_us["original"][k] for k in range(rounds)] for s in shapes[1:]]
+    result = {
+        "cpu_us_per_row": cpu_us,
+        "cpu_ratio_to_original": {s: statistics.median(r) for s, r in zip(shapes[1:], cpu_ratios, strict=True)},
+        "rows_per_s": rates,
+        "median_rows_per_s": medians,
+        "ratio_to_original": {s: statistics.median(r) for s, r in zip(shapes[1:], ratios, strict=True)},
+    }
+    for s in shapes:
+        print(f"insert {s:10} {medians[s]:9,.0f} rows/s  runs {[round(r) for r in rates[s]]}"
+              f"  CPU µs/row {[round(c, 1) for c in cpu_us[s]]}", flush=True)  # fmt: skip
+    print(f"CPU ratios to the original's shape: {result['cpu_ratio_to_original']}", flush=True)
+    print(f"ratios to the original's shape (median of per-round ratios): {result['ratio_to_original']}", flush=True)
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--robots", type=int, default=100, help="0: the insert rate only")
+    parser.add_argument("--hours", type=int, default=24)
+    parser.add_argument("--runs", type=int, default=7)
+    parser.add_argument("--insert-records", type=int, default=50_000)
+    parser.add_argument("--insert-runs", type=int, default=3)
+    parser.add_argument("--label", default="")
+    parser.add_argument("--run-index", action="store_true", help="then add an index with run_id and time path again")
+    args = parser.parse_args()
+    folder = Path(tempfile.mkdtemp(prefix="dc-bench-model-"))
+    server = PostgresServer(folder, password="bench-model-1")
+    try:
+        server.start()
+        inserts = time_inserts(server, args.insert_records, args.insert_runs) if args.insert_runs else {}
+        if not args.robots:
+            print(json.dumps(inserts, indent=2))
+            return
+        rows, seconds = generate(server, args.robots, args.hours)
+        load = os.getloadavg()[0]
+        queries = time_queries(server, args.runs)
+        if args.run_index:
+            # The index a team that asks mostly by run adds (docs/data-model.md): the path query again.
+            with server.connect() as connection:
+                connection.execute("CREATE INDEX dc_robot_run_name_time ON dc (robot_name, run_id, name, time)")
+                connection.execute("ANALYZE dc")
+            queries.update(time_queries(server, args.runs, "path", "_with_run_index"))
+        load = max(load, os.getloadavg()[0])
+    finally:
+        server.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+    result = {
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "robots": args.robots,
+        "hours": args.hours,
+        "rows": rows,
+        "generate_s": seconds,
+        "queries": queries,
+        "load_average_1min": load,  # the machine is shared: the highest 1-minute load seen while timing
+        "insert": inserts,
+    }
+    label = f"_{args.label}" if args.label else ""
+    out = REPO / "benchmarks" / "results" / f"pgsql_data_model_{dt.date.today()}{label}.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"written {out}")
+
+
+if __name__ == "__main__":
+    main()

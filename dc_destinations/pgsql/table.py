@@ -1,0 +1,260 @@
+"""The records table of the PgSQL destination: its shape, creating it, and its time partitions.
+
+A table DC creates has typed columns a data team queries without digging into ``data``:
+``time timestamptz NOT NULL``, ``name``, ``robot_name`` and ``run_id bigint`` (filled by DC at insert
+from the record's top-level keys), an index on ``(robot_name, name, time)`` and a BRIN index on
+``time``; with ``partition_by`` it is partitioned by range of ``time`` (a partition a UTC day or ISO
+week), partitions made ahead and dropped after ``retention_days``.
+
+A table that exists is used as it is: one of the original's shape (``tag, time timestamp, data,
+record_id``) keeps getting those four columns, and DC says once how to migrate it
+(docs/data-model.md); it never changes its columns' types or partitions it by itself.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+from dataclasses import dataclass
+from typing import Any
+
+from dc_core.destination import ConfigurationProblem
+from dc_destinations.pgsql.connection import MAX_IDENTIFIER
+
+PARTITION_BY = ("none", "day", "week")
+# Partitions made beyond the current one: records of the next periods never wait for a partition,
+# and a robot whose clock runs a little ahead still finds one.
+PARTITIONS_AHEAD = 2
+MIGRATION_DOC = "docs/data-model.md#migrating-a-table-of-the-originals-shape"
+
+LEGACY_COLUMNS = ("tag", "time", "data", "record_id")
+TYPED_COLUMNS = ("tag", "time", "data", "record_id", "name", "robot_name", "run_id")
+# The types of the columns a binary COPY may write, as format_type spells them, per column.
+_BINARY_TYPES = {
+    "tag": ("character varying", "text"),
+    "time": ("timestamp without time zone", "timestamp with time zone"),
+    "data": ("jsonb",),
+    "record_id": ("text",),
+    "name": ("text",),
+    "robot_name": ("text",),
+    "run_id": ("bigint",),
+}
+_COPY_TYPES = {
+    "character varying": "varchar",
+    "text": "text",
+    "timestamp without time zone": "timestamp",
+    "timestamp with time zone": "timestamptz",
+    "jsonb": "jsonb",
+    "bigint": "int8",
+}
+
+_CATALOG = """SELECT c.relkind,
+    ARRAY(SELECT ARRAY[attname::text, format_type(atttypid, atttypmod)] FROM pg_attribute
+           WHERE attrelid = c.oid AND attnum > 0 AND NOT attisdropped),
+    ARRAY(SELECT ARRAY(SELECT a.attname::text FROM unnest(i.indkey) k JOIN pg_attribute a
+                        ON a.attrelid = i.indrelid AND a.attnum = k ORDER BY 1)::text
+           FROM pg_index i WHERE i.indrelid = c.oid AND i.indisunique AND i.indpred IS NULL)
+FROM pg_class c WHERE c.oid = to_regclass(%(t)s)"""
+
+
+@dataclass(frozen=True)
+class TableShape:
+    """What the catalog says of an existing table; ``columns``: name -> type as format_type writes it."""
+
+    partitioned: bool
+    columns: dict[str, str]
+    unique_keys: frozenset[str]  # each unique index's columns, sorted, as PostgreSQL prints a text[]
+
+    @property
+    def typed(self) -> bool:
+        """DC's shape for new tables: the typed columns are there and time has its zone."""
+        return all(c in self.columns for c in TYPED_COLUMNS) and self.columns["time"] == "timestamp with time zone"
+
+    @property
+    def written(self) -> tuple[str, ...]:
+        return TYPED_COLUMNS if self.typed else LEGACY_COLUMNS
+
+    @property
+    def conflict_key(self) -> str | None:
+        """The unique index a retried batch meets: record_id alone, or with time in a partitioned table."""
+        for key in ("{record_id}", "{record_id,time}"):
+            if key in self.unique_keys:
+                return key.strip("{}").replace(",", ", ")
+        return None
+
+    def copy_types(self) -> list[str] | None:
+        """The types of a binary COPY of the written columns; None when a type calls for a text COPY."""
+        written = self.written
+        if any(self.columns.get(c) not in _BINARY_TYPES[c] for c in written):
+            return None
+        return [_COPY_TYPES[self.columns[c]] for c in written]
+
+
+def read_shape(connection: Any, table: Any) -> TableShape | None:
+    found = connection.execute(_CATALOG, {"t": table.as_string(connection)}).fetchone()
+    if found is None:
+        return None
+    relkind, columns, unique = found
+    return TableShape(relkind == "p", {name: kind for name, kind in columns}, frozenset(unique))
+
+
+def create_typed(connection: Any, table: Any, name: str, partition_by: str) -> None:
+    """The table of DC's shape, with its indexes, in one transaction (IF NOT EXISTS: several robots
+    may make it at once)."""
+    from psycopg import sql
+
+    base = name.rsplit(".", 1)[-1]
+    partitioned = partition_by != "none"
+    # A unique index of a partitioned table must hold the partition key: record_id with time, which
+    # DC derives from the record itself, so a retried record has the same pair.
+    unique = "record_id, time" if partitioned else "record_id"
+    with connection.transaction():
+        connection.execute(
+            sql.SQL(
+                "CREATE TABLE IF NOT EXISTS {} (tag text, time timestamptz NOT NULL, data jsonb,"
+                " record_id text NOT NULL, name text, robot_name text, run_id bigint)"
+                + (" PARTITION BY RANGE (time)" if partitioned else "")
+            ).format(table)
+        )
+        connection.execute(
+            sql.SQL("CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (" + unique + ")").format(
+                _index_name(base, "record_id"), table
+            )
+        )
+        connection.execute(
+            sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time)").format(
+                _index_name(base, "robot_name_time"), table
+            )
+        )
+        connection.execute(
+            sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} USING brin (time)").format(
+                _index_name(base, "time_brin"), table
+            )
+        )
+
+
+def add_record_id(connection: Any, table: Any, name: str, partitioned: bool) -> None:
+    """A table made by the original (or by hand) gets the record_id column and unique index it lacks
+    (with time in a partitioned table, whose unique indexes must hold the partition key)."""
+    from psycopg import sql
+
+    with connection.transaction():
+        connection.execute(sql.SQL("ALTER TABLE {} ADD COLUMN IF NOT EXISTS record_id text").format(table))
+        connection.execute(
+            sql.SQL(
+                "CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} ("
+                + ("record_id, time" if partitioned else "record_id")
+                + ")"
+            ).format(_index_name(name.rsplit(".", 1)[-1], "record_id"), table)
+        )
+
+
+def _index_name(base: str, suffix: str) -> Any:
+    from psycopg import sql
+
+    return sql.Identifier(f"{base}_{suffix}"[:MAX_IDENTIFIER])
+
+
+def not_partitioned_problem(name: str, address: str) -> ConfigurationProblem:
+    return ConfigurationProblem(
+        f"table {name} of {address} is not partitioned, and partition_by asks DC to manage its partitions",
+        fix=f"migrate the table as {MIGRATION_DOC} shows (a partitioned copy, then a rename), "
+        "or set partition_by: none",
+    )
+
+
+def legacy_hint(name: str) -> str:
+    return (
+        f"table {name} has the original's shape (time without time zone, robot and run only inside data): "
+        f"used as it is; {MIGRATION_DOC} shows how to migrate it to typed columns, indexes and partitions"
+    )
+
+
+# -- partitions ------------------------------------------------------------------------------------
+
+
+def period_start(moment: dt.datetime, partition_by: str) -> dt.date:
+    """The first UTC day of the partition holding ``moment`` (naive: UTC)."""
+    day = (moment.astimezone(dt.UTC) if moment.tzinfo else moment).date()
+    return day - dt.timedelta(days=day.weekday()) if partition_by == "week" else day
+
+
+def period_end(start: dt.date, partition_by: str) -> dt.date:
+    return start + dt.timedelta(days=7 if partition_by == "week" else 1)
+
+
+class Partitions:
+    """The partitions DC keeps for one table: which exist, making the missing, dropping the expired.
+
+    Only partitions named ``<table>_pYYYYMMDD`` are DC's: one made by hand (or by pg_partman)
+    under another name is never dropped, and one covering a period already counts as that period's.
+    """
+
+    def __init__(self, name: str, partition_by: str, retention_days: int) -> None:
+        self.schema, _, base = name.rpartition(".")
+        self.prefix = f"{base[: MAX_IDENTIFIER - 10]}_p"
+        self.partition_by = partition_by
+        self.retention_days = retention_days
+        self.known: set[dt.date] = set()
+        self.made: list[str] = []  # names made by the last ensure(), for the log
+        self.dropped: list[str] = []  # names dropped by the last expire(), for the log
+
+    def _identifier(self, start: dt.date) -> Any:
+        from psycopg import sql
+
+        name = f"{self.prefix}{start:%Y%m%d}"
+        return sql.Identifier(self.schema, name) if self.schema else sql.Identifier(name)
+
+    def ensure(self, connection: Any, table: Any, starts: set[dt.date]) -> None:
+        """Make the partitions of ``starts`` that are not known to exist."""
+        import psycopg
+        from psycopg import sql
+
+        self.made = []
+        for start in sorted(starts - self.known):
+            end = period_end(start, self.partition_by)
+            statement = sql.SQL("CREATE TABLE IF NOT EXISTS {} PARTITION OF {} FOR VALUES FROM ({}) TO ({})").format(
+                self._identifier(start), table, sql.Literal(f"{start} 00:00:00+00"), sql.Literal(f"{end} 00:00:00+00")
+            )
+            try:
+                with connection.transaction():
+                    connection.execute(statement)
+                self.made.append(f"{self.prefix}{start:%Y%m%d}")
+            except (psycopg.errors.DuplicateTable, psycopg.errors.UniqueViolation):
+                pass  # another robot made it at the same moment
+            except psycopg.errors.InvalidObjectDefinition as exc:
+                # "would overlap partition …": a partition made by someone else covers the period.
+                if "overlap" not in str(exc):
+                    raise
+            self.known.add(start)
+
+    def ahead(self, today: dt.date) -> set[dt.date]:
+        start = period_start(dt.datetime.combine(today, dt.time()), self.partition_by)
+        step = dt.timedelta(days=7 if self.partition_by == "week" else 1)
+        return {start + step * n for n in range(PARTITIONS_AHEAD + 1)}
+
+    def expire(self, connection: Any, table: Any, today: dt.date) -> None:
+        """Drop DC's partitions whose whole period is older than ``retention_days`` (0: keep all)."""
+        from psycopg import sql
+
+        self.dropped = []
+        if not self.retention_days:
+            return
+        horizon = today - dt.timedelta(days=self.retention_days)
+        children = connection.execute(
+            "SELECT c.relname::text FROM pg_inherits i JOIN pg_class c ON c.oid = i.inhrelid"
+            " WHERE i.inhparent = to_regclass(%s)",
+            (table.as_string(connection),),
+        ).fetchall()
+        pattern = re.compile(re.escape(self.prefix) + r"(\d{8})")
+        for (child,) in children:
+            match = pattern.fullmatch(child)
+            if match is None:
+                continue
+            start = dt.datetime.strptime(match.group(1), "%Y%m%d").date()
+            if period_end(start, self.partition_by) > horizon:
+                continue
+            with connection.transaction():
+                connection.execute(sql.SQL("DROP TABLE IF EXISTS {}").format(self._identifier(start)))
+            self.known.discard(start)
+            self.dropped.append(child)
