@@ -67,17 +67,27 @@ def _table_and_name(settings: PostgresSettings, index: Index) -> tuple[str, str]
     return table, f"{table.rsplit('.', 1)[-1]}_{index.suffix}"[:_MAX_IDENTIFIER]
 
 
-def statements(settings: PostgresSettings) -> list[sql.Composed]:
-    """CREATE INDEX CONCURRENTLY: DC keeps inserting while they are built."""
+def statements(settings: PostgresSettings, partitioned: frozenset[str] = frozenset()) -> list[sql.Composed]:
+    """CREATE INDEX CONCURRENTLY: DC keeps inserting while they are built. PostgreSQL builds an index of
+    a ``partitioned`` table (PgSQL's ``partition_by``) only without CONCURRENTLY: each partition is locked
+    against writes while its part is built (the records wait in DC's buffer meanwhile)."""
     out = []
     for index in INDEXES:
         table, name = _table_and_name(settings, index)
+        how = "CREATE INDEX IF NOT EXISTS" if table in partitioned else "CREATE INDEX CONCURRENTLY IF NOT EXISTS"
         out.append(
-            sql.SQL("CREATE INDEX CONCURRENTLY IF NOT EXISTS {} ON {} {}").format(
-                sql.Identifier(name), sql.Identifier(*table.split(".")), index.columns
-            )
+            sql.SQL(how + " {} ON {} {}").format(sql.Identifier(name), sql.Identifier(*table.split(".")), index.columns)
         )
     return out
+
+
+def _partitioned(connection: Any, settings: PostgresSettings) -> frozenset[str]:
+    """Which of the two tables are partitioned (relkind 'p')."""
+    rows = connection.execute(
+        "SELECT t FROM unnest(ARRAY[%s, %s]) AS t JOIN pg_class c ON c.oid = to_regclass(t) WHERE c.relkind = 'p'",
+        (settings.table, settings.files_table),
+    ).fetchall()
+    return frozenset(row[0] for row in rows)
 
 
 def missing(connection: Any, settings: PostgresSettings) -> list[str]:
@@ -110,14 +120,14 @@ def create(settings: PostgresSettings, say: Any = print) -> int:
     try:
         with psycopg.connect(**{**settings.connect_kwargs(), "options": ""}, autocommit=True) as connection:
             todo = set(missing(connection, settings))
-            for index, statement in zip(INDEXES, statements(settings), strict=True):
+            partitioned = _partitioned(connection, settings)
+            for index, statement in zip(INDEXES, statements(settings, partitioned), strict=True):
                 table, name = _table_and_name(settings, index)
                 if name not in todo:
                     continue
                 # An earlier, interrupted CONCURRENTLY build leaves an invalid index that IF NOT EXISTS would keep.
-                connection.execute(
-                    sql.SQL("DROP INDEX CONCURRENTLY IF EXISTS {}").format(sql.Identifier(*table.split(".")[:-1], name))
-                )
+                drop = "DROP INDEX IF EXISTS {}" if table in partitioned else "DROP INDEX CONCURRENTLY IF EXISTS {}"
+                connection.execute(sql.SQL(drop).format(sql.Identifier(*table.split(".")[:-1], name)))
                 say(f"creating index {name} on {table} ({index.why}) ...")
                 connection.execute(statement)
             left = missing(connection, settings)

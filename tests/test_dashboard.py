@@ -320,6 +320,26 @@ def test_the_queries_use_the_indexes_it_creates(database: PostgresSettings) -> N
     assert "dc_dash_robot_run_name_time" in str(plan), plan
 
 
+def test_its_indexes_are_built_on_a_partitioned_table_too(database: PostgresSettings) -> None:
+    import dataclasses
+
+    import psycopg
+
+    # PgSQL's partition_by: PostgreSQL refuses CREATE INDEX CONCURRENTLY on a partitioned table.
+    partitioned = dataclasses.replace(database, table="dc_by_day")
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute(
+            "CREATE TABLE dc_by_day (tag text, time timestamptz NOT NULL, data jsonb, record_id text)"
+            " PARTITION BY RANGE (time)"
+        )
+        connection.execute(
+            "CREATE TABLE dc_by_day_p20260301 PARTITION OF dc_by_day FOR VALUES FROM ('2026-03-01') TO ('2026-03-02')"
+        )
+    assert indexes.create(partitioned, say=lambda text: None) == 0
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        assert indexes.missing(connection, partitioned) == []
+
+
 def test_pages_render_the_numbers_and_say_what_is_wrong(database: PostgresSettings) -> None:
     dead_port = free_port()
     dashboard = Dashboard(
