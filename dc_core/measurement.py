@@ -19,6 +19,7 @@ import sys
 from dataclasses import dataclass, field
 from importlib import resources
 from importlib.resources.abc import Traversable
+from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
 from dc_core.errors import PluginError
@@ -141,4 +142,6 @@ def schema_path(cls: type[Measurement[Any]]) -> Traversable:
     module = sys.modules[cls.__module__]
     is_package = getattr(module, "__path__", None) is not None
     package = cls.__module__ if is_package else cls.__module__.rpartition(".")[0]
+    if not package:  # a module of no package (a script, a test file run as a module): its own folder
+        return Path(getattr(module, "__file__", None) or ".").resolve().parent / (cls.schema_file or "")
     return resources.files(package).joinpath(cls.schema_file or "")

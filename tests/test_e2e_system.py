@@ -22,7 +22,7 @@ pytestmark = pytest.mark.e2e
 
 # Added by DC after collection: `name` and `run_id` by the measurement server, `date` and
 # `record_id` by the destination server.
-METADATA = ("date", "name", "run_id", "record_id")
+METADATA = ("date", "name", "run_id", "record_id", "schema_version")
 DEFAULT_JOB = {
     "cpu": "dc_measurements/Cpu",
     "memory": "dc_measurements/Memory",

@@ -122,9 +122,10 @@ def test_three_inputs_at_different_rates(tmp_path: Path) -> None:
         records = run.wait_records(3, timeout=60)
     for record in records[:3]:
         assert body(record) == {
-            "f": {"value": "fast"},
-            "medium": {"value": "medium"},
-            "slow": {"value": "slow"},
+            # Each member says its measurement's schema version (docs/data-model.md).
+            "f": {"value": "fast", "schema_version": 1},
+            "medium": {"value": "medium", "schema_version": 1},
+            "slow": {"value": "slow", "schema_version": 1},
             "name": "trio",
         }
     # One set per message of the slowest input.
@@ -174,11 +175,12 @@ def test_partial_records_when_one_input_stops(tmp_path: Path) -> None:
     assert stops[2] == "3" and stops[-2:] == ["-", "-"]  # no malformed/lost columns for a Dummy
     # Three samples of "stops" (a sample published before discovery completes may be lost).
     assert 1 <= len(complete) <= 3
-    assert all(body(r) == {"steady": {"value": "steady", "name": "steady"},
-                           "stops": {"value": "stops", "name": "stops"}, "name": "pair"} for r in complete)  # fmt: skip
+    assert all(body(r) == {"steady": {"value": "steady", "name": "steady", "schema_version": 1},
+                           "stops": {"value": "stops", "name": "stops", "schema_version": 1}, "name": "pair"}
+               for r in complete)  # fmt: skip
     for record in partial:
         assert body(record) == {
-            "steady": {"value": "steady", "name": "steady"},
+            "steady": {"value": "steady", "name": "steady", "schema_version": 1},
             "missing_inputs": ["/dc/measurement/stops"],
             "name": "pair",
         }
@@ -211,5 +213,5 @@ def test_a_group_is_the_input_of_another(tmp_path: Path) -> None:
     for record in records[:2]:
         assert set(body(record)) == {"memory_uptime", "extra", "name"}, record
         assert set(record["memory_uptime"]) == {"memory", "uptime"}
-        assert record["extra"] == {"value": "extra"} and record["name"] == "system"
+        assert record["extra"] == {"value": "extra", "schema_version": 1} and record["name"] == "system"
     assert all(0.8 < g < 1.2 for g in gaps(records[:2])), gaps(records[:2])

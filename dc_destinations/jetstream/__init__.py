@@ -459,10 +459,13 @@ class Nats(Destination[NatsParams]):
         except Exception as exc:
             await session.client.close()
             last = session.errors[-1] if session.errors else exc
-            text = str(last) or type(last).__name__
-            if any(r in text.lower() for r in _AUTH_REFUSALS):
+            # The server's refusal may be followed by the reset of the socket it closed: look at every error.
+            refusal = next(
+                (e for e in (exc, *session.errors) if any(r in str(e).lower() for r in _AUTH_REFUSALS)), None
+            )
+            if refusal is not None:
                 raise ConfigurationProblem(
-                    self._session.scrub(f"NATS server {self.address} refused the connection: {text}"),
+                    self._session.scrub(f"NATS server {self.address} refused the connection: {refusal}"),
                     fix="check username and password, token, nkey_seed_file or credentials_file",
                 ) from None
             raise RetryableError(self._session.failure("cannot connect to", last, timeout=timeout)) from last
