@@ -26,23 +26,6 @@ os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
 os.environ["XDG_DATA_HOME"] = tempfile.mkdtemp(prefix="dc-test-data-")
 
 
-# -- the order files are handed to pytest-xdist's workers -------------------------------------------
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The files with the most end-to-end tests first, the rest in collection order.
-
-    `make test` runs ``--dist loadfile --no-loadscope-reorder``: a worker takes the next file when it is
-    almost done with its own, in this order. The long files are the end-to-end ones (dc-bringup runs of
-    15-45 s each); started last they kept one worker busy minutes after the others had finished. Tests
-    within a file keep their order."""
-    files: dict[str, list[pytest.Item]] = {}
-    for item in items:
-        files.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
-    e2e = {name: sum(1 for item in tests if item.get_closest_marker("e2e")) for name, tests in files.items()}
-    items[:] = [item for name in sorted(files, key=lambda name: -e2e[name]) for item in files[name]]
-
-
 # -- dc-bringup's two modes ---------------------------------------------------------------------
 
 
