@@ -33,8 +33,10 @@ PARAMS ?= params/default.yaml
 PYTEST_ARGS ?=
 # Test files run in parallel workers (a file's tests stay in one worker, sharing its servers): most of the suite's
 # time is spent waiting on processes, servers and 30 s outages, not computing — two workers kept the 2 cores ~55 %
-# busy (9 min CPU in 18.6 min), so a third one shortens the run.
-TEST_WORKERS ?= 3
+# busy (9 min CPU in 18.6 min), so a third one shortens the run, and a fourth again: 13 of the slowest files (~660
+# tests, their own durations summing to ~1,070 s) took 420 s in 3 workers and 352 s in 4 on the shared 2-CPU machine
+# (2026-11-26, load 2-4; that subset is bounded by test_fault_matrix.py's ~280 s), no failure from the fourth.
+TEST_WORKERS ?= 4
 
 # ROS 2 Jazzy from PyPI: runtime, then what building dc_interfaces needs (each one is required,
 # see the notes on ROS wheels). Versions come from constraints.txt.
