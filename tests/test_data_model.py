@@ -106,8 +106,8 @@ def run(server: PostgresServer, name: str, zone: str = "UTC") -> list[tuple[Any,
         return list(connection.execute(queries()[name].encode()).fetchall())
 
 
-def test_the_page_has_the_four_team_queries() -> None:
-    assert set(queries()) == {"path", "latest", "cpu_p95", "codes_per_shelf"}
+def test_the_page_has_the_five_team_queries() -> None:
+    assert set(queries()) == {"path", "latest", "cpu_p95", "codes_per_shelf", "files"}
 
 
 def test_the_path_of_a_robot_in_a_run(filled: PostgresServer) -> None:
@@ -140,6 +140,34 @@ def test_cpu_p95_per_utc_hour_whatever_the_sessions_zone(filled: PostgresServer,
 def test_codes_read_per_shelf_per_day(filled: PostgresServer) -> None:
     got = [(d.astimezone(dt.UTC).date(), shelf, n) for d, shelf, n in run(filled, "codes_per_shelf")]
     assert got == [(DAY.date(), "WH1/SHELF-01", 2), (DAY.date(), "WH1/SHELF-02", 1)]
+
+
+def test_files_uploaded_verified_and_deleted_per_storage_and_day(server: PostgresServer) -> None:
+    from dc_destinations.files_metrics.table import FilesTable
+
+    # Rows as FilesMetrics leaves them: deleted after verification, uploaded but still on the robot,
+    # waiting for its upload; one of another robot, one of the next UTC day.
+    rows = [
+        ("robot-007", "minio", DAY + dt.timedelta(hours=10), True, True, True),
+        ("robot-007", "minio", DAY + dt.timedelta(hours=11), True, True, False),
+        ("robot-007", "minio", DAY + dt.timedelta(hours=12), False, False, False),
+        ("robot-007", "s3", DAY + dt.timedelta(hours=12), True, True, True),
+        ("robot-008", "minio", DAY + dt.timedelta(hours=10), True, True, True),
+        ("robot-007", "minio", DAY + dt.timedelta(days=1, minutes=1), True, True, True),
+    ]
+    with server.connect() as connection:
+        FilesTable("files_metrics").prepare(connection)
+        for i, (robot_name, storage, when, uploaded, verified, deleted) in enumerate(rows):
+            connection.execute(
+                "INSERT INTO files_metrics (timestamp, robot_name, robot_id, group_name, local_path, remote_path,"
+                " uploaded, on_filesystem, deleted, storage_type, content_type, size, updated_at, record_id,"
+                " bucket, verified_at) VALUES (%s, %s, '', 'map', %s, %s, %s, %s, %s, %s, 'image/png', 10, now(),"
+                " %s, 'b', %s)",
+                (when.replace(tzinfo=None), robot_name, f"/d/{i}.png", f"s3://b/{i}.png", uploaded, not deleted,
+                 deleted, storage, f"r{i}", when if verified else None),
+            )  # fmt: skip
+    got = [(d.date(), storage, *counts) for d, storage, *counts in run(server, "files")]
+    assert got == [(DAY.date(), "minio", 3, 2, 2, 1, 1), (DAY.date(), "s3", 1, 1, 1, 1, 0)]
 
 
 def test_the_documented_migration_makes_a_table_dc_writes_to_without_a_hint(server: PostgresServer) -> None:
