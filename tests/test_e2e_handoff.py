@@ -77,8 +77,16 @@ def single_process_pid(run: Bringup) -> int:
 
 
 def delivered_or_counted(output: Path, lines: list[str]) -> int:
-    """Records in the File output plus those destination_server counts missing: what a loss must add up to."""
-    return len(numbers_in(output)) + sum(hop_missing(lines).values())
+    """Records in the File output plus those destination_server counts missing: what a loss must add up to.
+
+    -1 while the destination_server that logged last does not answer: the one killed, until its successor
+    says where its metrics are (a fresh-clone run read the dead one's address in between).
+    """
+    try:
+        missing = hop_missing(lines)
+    except OSError:  # urllib's URLError included
+        return -1
+    return len(numbers_in(output)) + sum(missing.values())
 
 
 def with_metrics(params: Path) -> None:
