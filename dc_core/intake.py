@@ -115,7 +115,12 @@ class Intake:
         self._batched.add(subscription)
         return subscription
 
-    def unsubscribe(self, subscription: Subscription) -> None:
+    def unsubscribe(self, subscription: Subscription, *, take_queued: bool = False) -> None:
+        """Destroy ``subscription``; with ``take_queued``, what DDS has already delivered to it goes to its
+        callback first (its publisher counts those as received: destroyed with the reader, they would be lost)."""
+        if take_queued:
+            while self._drain(subscription) >= self._drain_max:
+                pass  # a full drain may have left more
         self._callback_of.pop(subscription, None)
         self._batched.discard(subscription)
         self._node.destroy_subscription(subscription)

@@ -384,7 +384,8 @@ class DestinationServer(ManagedServer):
             self.destroy_subscription(self._ended_subscription)
             self._ended_subscription = None
         for subscription in subscriptions:
-            self.intake.unsubscribe(subscription)
+            # The pipeline still accepts: records already in the reader are committed at its stop.
+            self.intake.unsubscribe(subscription, take_queued=True)
         for subscription in self._condition_subscriptions:
             self.destroy_subscription(subscription)
         self._condition_subscriptions.clear()

@@ -16,12 +16,16 @@ import pytest
 HOOKS = Path(__file__).resolve().parent / "fault_hooks"
 
 
-def fault_env(tmp_path: Path, target: str, hang_s: float = 0.0, skip: int = 0, only_in: str = "") -> dict[str, str]:
+def fault_env(
+    tmp_path: Path, target: str, hang_s: float = 0.0, skip: int = 0, only_in: str = "", gate: Path | None = None
+) -> dict[str, str]:
     """The environment of a `dc-bringup` whose processes make ``target`` (``module:Class.method``)
     raise once, or with ``hang_s`` block that long once, after ``skip`` calls in each process ran
     normally, in the process of server module ``only_in`` alone when given
-    (tests/fault_hooks/sitecustomize.py); the marker file says it did."""
+    (tests/fault_hooks/sitecustomize.py); the marker file says it did. With ``gate`` (a FIFO from
+    :func:`fault_gate`), the faulting call waits until :meth:`FaultGate.open` is called."""
     return {
+        **({"DC_TEST_FAULT_GATE": str(gate)} if gate else {}),
         "PYTHONPATH": os.pathsep.join([*filter(None, [os.environ.get("PYTHONPATH")]), str(HOOKS)]),
         "DC_TEST_FAULT": target,
         "DC_TEST_FAULT_ONCE": str(tmp_path / "fault-raised"),
@@ -29,6 +33,34 @@ def fault_env(tmp_path: Path, target: str, hang_s: float = 0.0, skip: int = 0, o
         **({"DC_TEST_FAULT_SKIP": str(skip)} if skip else {}),
         **({"DC_TEST_FAULT_IN": only_in} if only_in else {}),
     }
+
+
+@contextlib.contextmanager
+def fault_gate(tmp_path: Path) -> Iterator[FaultGate]:
+    """A FIFO for ``fault_env(gate=...)``: the fault waits on it until the test opens the gate."""
+    gate = FaultGate(tmp_path / "fault-gate")
+    try:
+        yield gate
+    finally:
+        gate.close()
+
+
+class FaultGate:
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        os.mkfifo(path)
+        # Read-write, so that neither side's open blocks and the byte stays in the pipe until read.
+        self._fd: int | None = os.open(path, os.O_RDWR | os.O_NONBLOCK)
+
+    def open(self) -> None:
+        """Let the fault happen."""
+        assert self._fd is not None
+        os.write(self._fd, b"!")
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 @contextlib.contextmanager

@@ -19,10 +19,10 @@ from typing import Any
 import pytest
 
 from tests.bringup_util import Bringup, dc
-from tests.fault_helpers import fault_env, tmpfs
+from tests.fault_helpers import fault_env, fault_gate, tmpfs
 from tests.http_receiver import Receiver, Request
 from tests.test_delivery import fill
-from tests.test_e2e_delivery_failures import finish, publish, wait_metric, write_params
+from tests.test_e2e_delivery_failures import finish, publish, status, wait_metric, write_params
 
 pytestmark = pytest.mark.e2e
 
@@ -40,23 +40,49 @@ def test_a_delivery_thread_that_dies_is_logged_and_its_server_restarted_without_
 ) -> None:
     with (
         Receiver() as receiver,
-        Bringup(write_params(tmp_path, receiver.port), tmp_path / "home", env=fault_env(tmp_path, target)) as run,
+        fault_gate(tmp_path) as gate,
+        Bringup(
+            write_params(tmp_path, receiver.port), tmp_path / "home", env=fault_env(tmp_path, target, gate=gate.path)
+        ) as run,
     ):
         run.wait_ready()
-        # Quickly: in --single-process the restart is of every server, and records a volatile publisher
-        # sends meanwhile are lost (not this test's subject); all are sent before the restart here.
+        # In --single-process the restart is of every server, and records a volatile publisher sends
+        # meanwhile are lost (not this test's subject): the thread dies once destination_server has
+        # received every record (the thread is held at its fault until then).
         finish(publish(run, TOTAL, rate=1000))
+        _wait_until_received(run, TOTAL)
+        gate.open()
         run.wait_until(lambda: (tmp_path / "fault-raised").exists(), 30, "the injected failure")
         died = run.wait_stderr("the thread died (thread_failures 1)")
         assert "RuntimeError: injected by the test into " + target in died
         run.wait_stderr("Traceback (most recent call last)")
         run.wait_stderr("reports itself unhealthy")
-        run.wait_until(lambda: len({int(r["seq"]) for r in receiver.records()}) == TOTAL, 60, "every record")
+        _wait_for_every_record(run, receiver)
         after = _web_metrics_of_the_last_start(run)
     delivered = Counter(int(r["seq"]) for r in receiver.records())
     assert sorted(delivered) == list(range(TOTAL)), "delivered + counted = sent, nothing counted"
     assert after["dropped"] == 0 and after["buffered"] == 0
     assert not any("could not be committed" in line for line in run.stderr)
+
+
+def _wait_until_received(run: Bringup, count: int, timeout: float = 30) -> None:
+    """Until destination_server took ``count`` records from the measurement topic (copies sent again not counted)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        hop = status(run)["hop"].get("/dc/measurement/seq", {})
+        received = int(hop.get("received", 0)) - int(hop.get("duplicates", 0))
+        if received >= count:
+            return
+        assert time.monotonic() < deadline, f"destination_server received {received} of {count} records: {hop}"
+        time.sleep(0.2)
+
+
+def _wait_for_every_record(run: Bringup, receiver: Receiver) -> None:
+    try:
+        run.wait_until(lambda: len({int(r["seq"]) for r in receiver.records()}) == TOTAL, 60, "every record")
+    except AssertionError as exc:
+        missing = sorted(set(range(TOTAL)) - {int(r["seq"]) for r in receiver.records()})
+        raise AssertionError(f"missing seqs {missing}\n{exc}") from None
 
 
 def _web_metrics_of_the_last_start(run: Bringup) -> dict[str, Any]:

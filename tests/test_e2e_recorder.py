@@ -69,6 +69,14 @@ def stamp_of(message: Odometry) -> int:
     return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
 
 
+def _logged_stops(records: list[dict[str, Any]], odom: list[tuple[int, int]]) -> list[dict[str, Any]]:
+    """The incidents of the robot's stops whose window began a second after the bare subscriber's first /odom."""
+    if not odom:
+        return []
+    first = odom[0][0]
+    return [r for r in records if r["start"] * 1e9 > first + 1e9 and not OPERATOR & reasons(r)]
+
+
 @dataclass
 class Run:
     records: list[dict[str, Any]]
@@ -107,7 +115,11 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
                 stderr=subprocess.PIPE,
                 text=True,
             )
-            dc.wait_until(lambda: len(dc.named("incidents")) >= STOPS, 60, f"{STOPS} incidents")
+            # Stops whose window the bare subscriber saw whole: under load its first /odom may come
+            # seconds after the recorder's (its discovery is its own), and earlier stops do not count.
+            dc.wait_until(
+                lambda: len(_logged_stops(dc.named("incidents"), odom)) >= STOPS - 1, 90, f"{STOPS - 1} logged stops"
+            )
             # An operator's two triggers at once (whichever comes second is inside the window of the first):
             # one file, both reasons. Each answers: opened, or extended (a robot's stop may have opened it).
             calls = [
@@ -150,15 +162,12 @@ def read_odom_stamps(path: Path) -> list[int]:
 
 
 def test_each_stop_gives_one_file_with_the_odom_of_its_window(run: Run) -> None:
-    first_odom = run.odom[0][0]
     # The robot stands at the start: that trigger may come before the recorder saw /odom. Every other
     # incident's window lies in the bare subscriber's log.
-    incidents = [r for r in run.records if r["start"] * 1e9 > first_odom + 1e9]
-    assert len(incidents) >= 2, [r["triggers"] for r in run.records]
+    incidents = _logged_stops(run.records, run.odom)
+    assert len(incidents) >= STOPS - 1, [r["triggers"] for r in run.records]
     log_stamps = [stamp for _, stamp in run.odom]
     for record in incidents:
-        if OPERATOR & reasons(record):
-            continue
         # One stop's each, or two stops closer than post_trigger in one window.
         assert {t["reason"] for t in record["triggers"]} == {"conditions"}
         path = run.home / record["local_paths"]["mcap"]

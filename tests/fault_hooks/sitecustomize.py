@@ -10,7 +10,8 @@ seconds, that first call blocks that long instead (then runs the method): a hang
 second activate, not at start-up). With ``DC_TEST_FAULT_IN`` set to a server's module
 (``dc_measurements.server``), only that server's process faults: a method several servers run (a
 worker's) would otherwise fault in whichever calls it first. Nothing here is imported without
-``DC_TEST_FAULT``.
+``DC_TEST_FAULT``. With ``DC_TEST_FAULT_GATE`` naming a FIFO, the call that faults first waits
+for a byte from it: the test decides when the fault happens (once every record is in the server).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ if _SPEC:
     _skip = [int(os.environ.get("DC_TEST_FAULT_SKIP", "0"))]
     # runpy has made sys.argv[0] the file of the module run with -m by the time a method is called.
     _only_in = os.environ.get("DC_TEST_FAULT_IN", "").replace(".", os.sep)
+    _gate = os.environ.get("DC_TEST_FAULT_GATE", "")
 
     def _raise_once(self: Any, *args: Any, **kwargs: Any) -> Any:
         if _only_in and _only_in not in sys.argv[0]:
@@ -44,6 +46,9 @@ if _SPEC:
             os.close(os.open(_marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
         except FileExistsError:
             return _original(self, *args, **kwargs)
+        if _gate:
+            with open(_gate, "rb") as gate:
+                gate.read(1)  # blocks until the test writes
         if _hang_s:
             time.sleep(_hang_s)  # the hang itself: nothing to wait for
             return _original(self, *args, **kwargs)
