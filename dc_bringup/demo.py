@@ -54,6 +54,8 @@ DASHBOARD_MEASUREMENTS: dict[str, dict[str, Any]] = {
 # Seconds a child gets after SIGINT before SIGKILL. dc-bringup stops its three servers one after
 # the other, the destination server delivering what it holds for up to flb.grace.
 STOP_TIMEOUT_S = {"dashboard": 5.0, "dc-bringup": 45.0, "sim": 10.0}
+INDEX_RETRY_S = 3.0
+"""How often the demo looks whether DC has made the tables the dashboard's indexes go on."""
 
 
 class DemoError(DcError):
@@ -128,9 +130,13 @@ class Demo:
         url = f"http://127.0.0.1:{self.options.port}/"
         announced = indexed = False
         postgres = dashboard_settings.from_sources(None, env).postgres
+        index_at = time.monotonic()
         while not self.stop.wait(0.5):
             self._check()
-            indexed = indexed or self._index_tables(postgres)
+            if not indexed and time.monotonic() >= index_at:
+                # A connection each time: asked every few seconds, not at the loop's pace.
+                indexed = self._index_tables(postgres)
+                index_at = time.monotonic() + INDEX_RETRY_S
             if not announced and _answers(url):
                 announced = True
                 self.say(
