@@ -11,82 +11,9 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 from dc_core.http_status import PrometheusText, prometheus_labels
-
-COUNTERS = (
-    "received",
-    "sent",
-    "retried",
-    "failed",
-    "dropped",
-    "malformed",
-    "dead_lettered",
-    "dead_letters_dropped",
-    "salvaged",
-    "lost_to_damage",
-    "evicted",
-)
-
-
-@dataclass
-class _Counts:
-    received: int = 0
-    sent: int = 0
-    retried: int = 0
-    failed: int = 0
-    dropped: int = 0
-    malformed: int = 0
-    dead_lettered: int = 0
-    dead_letters_dropped: int = 0
-    salvaged: int = 0
-    lost_to_damage: int = 0
-    evicted: int = 0
-
-
-class DestinationMetrics:
-    """Thread-safe counters of one destination, and when it last delivered and last failed.
-
-    Times are wall-clock epoch seconds (UTC), None until the first: a dashboard compares them with
-    other machines' clocks, which a monotonic clock could not be.
-    """
-
-    def __init__(self, clock: Callable[[], float] = time.time) -> None:
-        self._lock = threading.Lock()
-        self._clock = clock
-        self._counts = _Counts()
-        self.last_error = ""
-        self.last_error_time: float | None = None
-        self.last_delivery: float | None = None
-
-    def add(self, counter: str, n: int = 1) -> None:
-        if n:
-            with self._lock:
-                setattr(self._counts, counter, getattr(self._counts, counter) + n)
-                # Records are counted sent once the destination confirmed them, wherever the sender
-                # counts them: stamping here keeps `sent` and `last_delivery` from ever disagreeing.
-                if counter == "sent":
-                    self.last_delivery = self._clock()
-
-    def set_error(self, error: str) -> None:
-        with self._lock:
-            self.last_error = error
-            self.last_error_time = self._clock()
-
-    def get(self, counter: str) -> int:
-        with self._lock:
-            return int(getattr(self._counts, counter))
-
-    def snapshot(self) -> dict[str, Any]:
-        with self._lock:
-            out: dict[str, Any] = {name: getattr(self._counts, name) for name in COUNTERS}
-            out["last_error"] = self.last_error
-            out["last_error_time"] = self.last_error_time
-            out["last_delivery"] = self.last_delivery
-        return out
-
 
 # (key in DeliveryPipeline.metrics(), Prometheus kind, help text)
 DELIVERY_COUNTERS = (
@@ -102,6 +29,52 @@ DELIVERY_COUNTERS = (
     ("lost_to_damage", "counter", "Records of a damaged buffer file that could not be read"),
     ("evicted", "counter", "Records deleted from the buffer unsent to keep it within flb.disk_budget_mb"),
 )
+# The counters of one destination, in their order in metrics() and the Prometheus text.
+COUNTERS = tuple(key for key, _kind, _doc in DELIVERY_COUNTERS)
+
+
+class DestinationMetrics:
+    """Thread-safe counters of one destination, and when it last delivered and last failed.
+
+    Times are wall-clock epoch seconds (UTC), None until the first: a dashboard compares them with
+    other machines' clocks, which a monotonic clock could not be.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.time) -> None:
+        self._lock = threading.Lock()
+        self._clock = clock
+        self._counts = dict.fromkeys(COUNTERS, 0)
+        self.last_error = ""
+        self.last_error_time: float | None = None
+        self.last_delivery: float | None = None
+
+    def add(self, counter: str, n: int = 1) -> None:
+        if n:
+            with self._lock:
+                self._counts[counter] += n
+                # Records are counted sent once the destination confirmed them, wherever the sender
+                # counts them: stamping here keeps `sent` and `last_delivery` from ever disagreeing.
+                if counter == "sent":
+                    self.last_delivery = self._clock()
+
+    def set_error(self, error: str) -> None:
+        with self._lock:
+            self.last_error = error
+            self.last_error_time = self._clock()
+
+    def get(self, counter: str) -> int:
+        with self._lock:
+            return self._counts[counter]
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            out: dict[str, Any] = dict(self._counts)
+            out["last_error"] = self.last_error
+            out["last_error_time"] = self.last_error_time
+            out["last_delivery"] = self.last_delivery
+        return out
+
+
 # (metric name, key in DeliveryPipeline.metrics(), help text)
 _QUEUE_GAUGES = (
     ("dc_delivery_buffered_records", "buffered", "Records waiting in the buffer"),

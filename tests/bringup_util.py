@@ -20,6 +20,21 @@ REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 
 
+def server_env(home: Path, domain_id: int | None = None) -> dict[str, str]:
+    """The environment of DC's servers started by a test: a ROS domain of their own (a fresh one unless
+    given), discovery on this machine only, unbuffered output, and run id counters, buffers and data
+    under ``home`` (created) as $HOME and $XDG_DATA_HOME, inside the test."""
+    home.mkdir(parents=True, exist_ok=True)
+    return dict(
+        os.environ,
+        ROS_DOMAIN_ID=str(fresh_domain_id() if domain_id is None else domain_id),
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        PYTHONUNBUFFERED="1",
+        HOME=str(home),
+        XDG_DATA_HOME=str(home / ".local" / "share"),
+    )
+
+
 class Bringup:
     # Arguments every dc-bringup of a test gets: the bringup_mode fixture (conftest.py) sets
     # ["--single-process"] to run a test in both modes.
@@ -39,15 +54,8 @@ class Bringup:
         # A whole command line instead of `dc-bringup PARAMS ARGS` (the one ros/dc_launch builds).
         self.command = list(command) or [str(BIN / "dc-bringup"), str(self.params), *self.args]
         self.domain_id = fresh_domain_id()
-        self.env = dict(os.environ)
-        self.env["ROS_DOMAIN_ID"] = str(self.domain_id)
-        self.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-        self.env["PYTHONUNBUFFERED"] = "1"
-        # Run id counters, buffers and data under $HOME and $XDG_DATA_HOME stay inside the test.
         self.home = home
-        home.mkdir(parents=True, exist_ok=True)
-        self.env["HOME"] = str(home)
-        self.env["XDG_DATA_HOME"] = str(home / ".local" / "share")
+        self.env = server_env(home, self.domain_id)
         self.env.update(env or {})
         self.stdout: list[str] = []
         self.stderr: list[str] = []

@@ -25,8 +25,7 @@ from typing import Any
 import pytest
 
 from dc_core.qos import RECORD_HISTORY_DEPTH
-from tests.bringup_util import Bringup
-from tests.domains import fresh_domain_id
+from tests.bringup_util import Bringup, server_env
 
 pytestmark = pytest.mark.e2e
 
@@ -296,16 +295,7 @@ class ServerProcess:
 
 def test_records_published_while_destination_server_is_stopped_arrive_once_it_is_back(tmp_path: Path) -> None:
     params, output = write_params(tmp_path)
-    home = tmp_path / "home"
-    home.mkdir()
-    env = dict(
-        os.environ,
-        ROS_DOMAIN_ID=str(fresh_domain_id()),
-        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        PYTHONUNBUFFERED="1",
-        HOME=str(home),
-        XDG_DATA_HOME=str(home / "share"),
-    )
+    env = server_env(tmp_path / "home")
     measurement = ServerProcess("dc_measurements.server", params, env)
     destination = ServerProcess("dc_destinations.server", params, env)
     second: ServerProcess | None = None

@@ -21,8 +21,7 @@ from typing import Any
 
 import pytest
 
-from tests.bringup_util import Bringup
-from tests.domains import fresh_domain_id
+from tests.bringup_util import Bringup, server_env
 from tests.test_e2e_delivery_restart import (
     INPUT_DEPTH,
     PUBLISHER,
@@ -137,16 +136,7 @@ def test_kill_9_of_destination_server_at_1000_records_per_s_loses_none(tmp_path:
 
 def test_kill_9_of_destination_server_back_only_30_s_later_loses_none(tmp_path: Path) -> None:
     params, output = write_params(tmp_path)
-    home = tmp_path / "home"
-    home.mkdir()
-    env = dict(
-        os.environ,
-        ROS_DOMAIN_ID=str(fresh_domain_id()),
-        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        PYTHONUNBUFFERED="1",
-        HOME=str(home),
-        XDG_DATA_HOME=str(home / "share"),
-    )
+    env = server_env(tmp_path / "home")
     with_metrics(params)
     # Started without dc-bringup, whose manager would restart destination_server at once.
     measurement = ServerProcess("dc_measurements.server", params, env)

@@ -33,7 +33,7 @@ from dc_core.handoff_marks import ENDED_TOPIC, HEADER, Ended, ended_document, en
 from dc_core.lifecycle import ServerLoop
 from dc_destinations.server import DestinationServer
 from dc_interfaces.msg import StringStamped
-from tests.domains import fresh_domain_id
+from tests.bringup_util import server_env
 from tests.test_e2e_delivery_restart import ServerProcess, file_destination, wait_for
 
 TOPIC = "/dc/measurement/tick"
@@ -80,7 +80,7 @@ def metrics(server: ServerProcess, path: str = "") -> Any:
 
 
 def the_mark(home: Path) -> Path:
-    (mark,) = (home / "share" / "dc" / "handoff").glob("domain-*/default/measurement_server/*.mark")
+    (mark,) = (home / ".local" / "share" / "dc" / "handoff").glob("domain-*/default/measurement_server/*.mark")
     return mark
 
 
@@ -107,15 +107,7 @@ def delivered_before(output: Path, moment: float) -> int:
 def test_a_forged_end_of_a_live_publisher_is_refused_and_its_real_end_still_counted(tmp_path: Path) -> None:
     params, output = write_params(tmp_path)
     home = tmp_path / "home"
-    home.mkdir()
-    env = dict(
-        os.environ,
-        ROS_DOMAIN_ID=str(fresh_domain_id()),
-        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        PYTHONUNBUFFERED="1",
-        HOME=str(home),
-        XDG_DATA_HOME=str(home / "share"),
-    )
+    env = server_env(home)
     destination = ServerProcess("dc_destinations.server", params, env)
     measurement = ServerProcess("dc_measurements.server", params, env)
     successor: ServerProcess | None = None

@@ -18,6 +18,8 @@ import tomllib
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parent.parent
 
 # Lowest first. Packages of one layer do not import each other.
@@ -160,18 +162,28 @@ def circles(graph: Graph) -> list[list[str]]:
 
 
 # -- DC's packages --------------------------------------------------------------------------------
-def test_no_package_imports_one_of_its_layer_or_above() -> None:
-    graph = import_graph(REPO)
+def test_every_package_of_dc_has_a_layer() -> None:
+    # A new package left out of LAYERS would be left out of every check below.
+    packages = {init.parent.name for init in REPO.glob("*/__init__.py")}
+    assert packages == set(RANK)
+
+
+@pytest.fixture(scope="module")
+def graph() -> Graph:
+    """DC's import graph, read once for the checks of this module."""
+    return import_graph(REPO)
+
+
+def test_no_package_imports_one_of_its_layer_or_above(graph: Graph) -> None:
     assert set(RANK) <= {m.partition(".")[0] for m in graph}, "a layered package has no module"
     assert upward_imports(graph) == []
 
 
-def test_no_modules_import_each_other() -> None:
-    assert circles(import_graph(REPO)) == []
+def test_no_modules_import_each_other(graph: Graph) -> None:
+    assert circles(graph) == []
 
 
-def test_no_plugin_imports_a_server_or_its_configuration() -> None:
-    graph = import_graph(REPO)
+def test_no_plugin_imports_a_server_or_its_configuration(graph: Graph) -> None:
     plugins = plugin_modules(REPO, graph)
     assert "dc_measurements.tcp_health" in plugins and "dc_measurements.server" in server_modules(graph)
     assert plugins_on_servers(plugins, graph) == []

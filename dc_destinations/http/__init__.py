@@ -18,14 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qsl
 
-from dc_core.destination import (
-    Destination,
-    OutgoingRecord,
-    ProbeResult,
-    RejectedError,
-    RetryableError,
-    SendOutcome,
-)
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds

@@ -26,14 +26,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
-from dc_core.destination import (
-    Destination,
-    OutgoingRecord,
-    ProbeResult,
-    RejectedError,
-    RetryableError,
-    SendOutcome,
-)
+from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
 from dc_destinations.http_client import is_retryable_status, masked, one_line, retry_after_seconds
