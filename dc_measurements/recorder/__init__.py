@@ -7,7 +7,9 @@ measurement's conditions becoming true, a call of the ``dc/recorder/<name>/trigg
 to ``post_trigger`` after it; a trigger inside it extends it (dc_measurements.recorder.window). Once the
 window has closed, the worker writes its messages as an MCAP file (dc_measurements.recorder.mcap_file)
 and the record of the incident is published: paths, times, reasons, per-topic counts, what the memory
-bound cut. A topic's type is learnt from the ROS graph: one that appears later is subscribed then.
+bound cut. A topic's type is given (``types``) or learnt from the ROS graph: the topic is subscribed as soon
+as its type is known, before it has a publisher, so that a topic appearing after the recorder started loses
+none of its first messages to the graph check (once a second); the publishers' QoS is matched once they show.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import Any
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from dc_core.errors import PluginError
+from dc_core.errors import ConfigError, PluginError
 from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
@@ -48,6 +50,11 @@ CLOSE_GRACE_NS = 250_000_000
 # its window's messages kept in memory meanwhile, WRITE_TRIES times in all; then the window is dropped, counted.
 WRITE_RETRY_NS = 5_000_000_000
 WRITE_TRIES = 3
+
+
+def _types_problem(types: list[str]) -> str | None:
+    bad = [t for t in types if t and len(t.split("/")) != 3]
+    return f"message types as package/msg/Name, or empty to learn it from the graph (not: {bad})" if bad else None
 
 
 def _topics_problem(topics: list[str]) -> str | None:
@@ -84,10 +91,20 @@ class RecorderParams:
         doc="Path of the MCAP file without .mcap, under save_local_base_path/all_base_path ($ENV, strftime of the "
         "window's start)",
     )
+    types: list[str] = param(
+        [],
+        doc="Message type of each topic (same order as topics; empty: learnt from the graph): subscribed at "
+        "configure, before the topic has a publisher",
+        check=_types_problem,
+    )
     compression: str = param("zstd", choices=COMPRESSIONS, doc="Compression of the MCAP file's chunks")
     trigger_service: bool = param(
         True, doc="Offer the dc/recorder/<name>/trigger service (std_srvs/Trigger) and topic (std_msgs/String)"
     )
+
+    def __post_init__(self) -> None:
+        if self.types and len(self.types) != len(self.topics):
+            raise ConfigError("types", f"one entry per topic ({len(self.topics)}), not {len(self.types)}")
 
 
 @dataclass
@@ -109,6 +126,15 @@ class _Topic:
     subscription: Any = None
     channel: Channel | None = None
     latched: bool = False
+    message_class: Any = None
+    # Subscribed before any publisher showed (EARLY_QOS): the publishers' QoS is matched once they do.
+    early: bool = False
+
+
+# A subscription made before any publisher shows: reliable and volatile match what most publishers
+# offer (/odom, /tf, a driver's default QoS). A best-effort publisher (a sensor-data camera) does not match
+# it and a latching one does not resend to it: both are subscribed again with their QoS when they show.
+EARLY_QOS = QoSProfile(depth=DEPTH, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
 def _message_class(typename: str) -> Any:
@@ -249,18 +275,26 @@ class Recorder(Measurement[RecorderParams]):
 
     # -- intake ----------------------------------------------------------------------------------
     def _discover(self) -> None:
-        missing = [t for t in self._topics if t.subscription is None]
-        if not missing:
+        pending = [t for t in self._topics if t.subscription is None or t.early]
+        if not pending:
             return
         node = self.context.node
-        types = dict(node.get_topic_names_and_types())
-        for topic in missing:
+        types: dict[str, list[str]] = {}
+        if any(not t.typename for t in pending):
+            types = dict(node.get_topic_names_and_types())
+        for topic in pending:
+            if topic.subscription is not None:
+                if node.count_publishers(topic.name):
+                    self._settle(topic)
+                continue
+            if topic.typename:
+                continue  # a type that is not installed here, said once
+            index = self._topics.index(topic)
+            declared = self.params.types[index] if self.params.types else ""
             typenames = types.get(topic.name)
-            # Only once it has a publisher: the QoS to subscribe with is the publishers' (and a topic this
-            # very server subscribes to, for a condition, is in the graph before anyone publishes it).
-            if topic.typename or not typenames or not node.count_publishers(topic.name):
-                continue  # (a typename without subscription: a type that is not installed, said once)
-            typename = typenames[0]
+            typename = declared or (typenames[0] if typenames else "")
+            if not typename:
+                continue
             topic.typename = typename
             try:
                 message_class = _message_class(typename)
@@ -270,17 +304,47 @@ class Recorder(Measurement[RecorderParams]):
                     f"its type is not installed here ({exc})"
                 )
                 continue
-            qos, latched, offered = _qos_of_publishers(node, topic.name)
-            topic.latched = latched
-            topic.channel = Channel(topic.name, typename, offered)
-            index = self._topics.index(topic)
-            topic.subscription = self.context.subscribe(
-                message_class, topic.name, functools.partial(self._on_message, index, latched), qos, raw=True
-            )
+            topic.message_class = message_class
+            if node.count_publishers(topic.name):
+                self._subscribe(topic, *_qos_of_publishers(node, topic.name))
+            else:
+                # (a topic this very server subscribes to, for a condition, is in the graph before anyone
+                # publishes it: its type is known, the QoS not yet)
+                self._subscribe(topic, EARLY_QOS, False, "")
+                topic.early = True
+
+    def _subscribe(self, topic: _Topic, qos: QoSProfile, latched: bool, offered: str, seen: Any = None) -> None:
+        topic.latched = latched
+        topic.channel = Channel(topic.name, topic.typename, offered)
+        index = self._topics.index(topic)
+        callback = functools.partial(self._on_message, index, latched)
+        if seen is not None:
+            callback = functools.partial(self._on_message_once, index, seen)
+        topic.subscription = self.context.subscribe(topic.message_class, topic.name, callback, qos, raw=True)
+
+    def _settle(self, topic: _Topic) -> None:
+        """A topic subscribed early now has publishers: their QoS goes in the file, and a subscription they
+        do not match (best effort) or that misses their latched messages is replaced."""
+        qos, latched, offered = _qos_of_publishers(self.context.node, topic.name)
+        topic.early = False
+        if qos.reliability == EARLY_QOS.reliability and not latched:
+            topic.channel = Channel(topic.name, topic.typename, offered)
+            return
+        old = topic.subscription
+        # A latching publisher resends its last messages to the new subscription: those the early one
+        # took are in the ring already, and kept once.
+        index = self._topics.index(topic)
+        seen = {(e[1], e[3]) for e in self._ring.between(0, NEVER) if e[2] == index} if latched else None
+        self._subscribe(topic, qos, latched, offered, seen)
+        self.context.unsubscribe(old)
 
     def _on_message(self, index: int, latched: bool, data: bytes, info: Any) -> None:
         self._received[index] += 1
         self._ring.append(info["received_timestamp"], info["source_timestamp"], index, data, latched)
+
+    def _on_message_once(self, index: int, seen: set[tuple[int, bytes]], data: bytes, info: Any) -> None:
+        if (info["source_timestamp"], data) not in seen:
+            self._on_message(index, True, data, info)
 
     # -- triggers --------------------------------------------------------------------------------
     def _on_trigger_service(self, request: Any, response: Any) -> Any:
@@ -390,10 +454,10 @@ class Recorder(Measurement[RecorderParams]):
                 "messages": counts[index],
                 "bytes": sizes[index],
                 "lost_to_memory_bound": lost[index],
-                "absent": not topic.typename,
+                "absent": self._absent(index),
             }
             topics.append(entry)
-        absent = [t.name for t in self._topics if not t.typename]
+        absent = [t.name for i, t in enumerate(self._topics) if self._absent(i)]
         if absent and not self._absent_warned:
             self._absent_warned = True
             self.context.logger.warning(
@@ -411,6 +475,11 @@ class Recorder(Measurement[RecorderParams]):
         if remote:
             sample["remote_paths"] = {key: {"mcap": path} for key, path in remote.items()}
         return sample
+
+    def _absent(self, index: int) -> bool:
+        """Never seen: no type known, or subscribed early (``types``) and no publisher nor message since."""
+        topic = self._topics[index]
+        return (not topic.typename or topic.early) and not self._received[index]
 
     def _note_written(self, sample: dict[str, Any], written: Written) -> None:
         """The file's size in the record, and the types whose definition it lacks (warned once each)."""
