@@ -1,0 +1,151 @@
+"""The Recorder on a recorded robot: `dc replay` plays a real bag, a Moving-based trigger fires, dc-bringup writes
+the incident's MCAP file, whose /odom messages are the bag's of the window.
+
+The bag (cp24_obstacle-avoider, tests/data/bags/SOURCE.md) has the robot moving from its first /odom on:
+``if_all_conditions: ["moving"]`` fires once, when Moving has seen enough fast messages. The window starts
+pre_trigger before that, before the bag's first message, so the file must hold the bag's /odom from its
+very first message on, none missing; its end is checked against a bare subscriber's log of the same run.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import rclpy
+from nav_msgs.msg import Odometry
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile
+
+from tests.bringup_util import BIN, Bringup
+
+pytestmark = pytest.mark.e2e
+
+BAG = Path(__file__).parent / "data" / "bags" / "cp24_obstacle-avoider"
+RATE = 2.0  # /odom at 10 Hz: a window of a few seconds of bag
+POST_TRIGGER = 1.5
+# The bare subscriber and the recorder take a message at slightly different instants, more so on a
+# loaded machine: the window's end is checked by the bare subscriber's clock within this.
+EDGE_NS = 500_000_000
+
+PARAMS = f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["incidents"]
+    condition_plugins: ["moving"]
+    save_local_base_path: "data/"
+    moving:
+      plugin: "dc_conditions/Moving"
+      odom_topic: "/odom"
+      speed_threshold: 0.1
+    incidents:
+      plugin: "dc_measurements/Recorder"
+      topics: ["/odom", "/tf", "/tf_static"]
+      if_all_conditions: ["moving"]
+      polling_interval: 100
+      pre_trigger: 2.0
+      post_trigger: {POST_TRIGGER}
+      tags: ["out"]
+destination_server:
+  ros__parameters:
+    destination_plugins: ["out"]
+    out:
+      plugin: "dc_destinations/Stdout"
+      inputs: ["/dc/measurement/incidents"]
+"""
+
+
+def stamp_of(message: Any) -> int:
+    return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
+
+
+def bag_odom_stamps() -> list[int]:
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    with AnyReader([BAG], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        connections = [c for c in reader.connections if c.topic == "/odom"]
+        return [stamp_of(reader.deserialize(d, c.msgtype)) for c, _, d in reader.messages(connections=connections)]
+
+
+def file_odom_stamps(path: Path) -> list[int]:
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([path]) as reader:  # the file's own schemas: no type store needed
+        connections = [c for c in reader.connections if c.topic == "/odom"]
+        return [stamp_of(reader.deserialize(d, c.msgtype)) for c, _, d in reader.messages(connections=connections)]
+
+
+@dataclass
+class Run:
+    record: dict[str, Any]
+    odom: list[tuple[int, int]]  # (receive time ns, header stamp ns), as the bare subscriber got them
+    home: Path
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
+    tmp = tmp_path_factory.mktemp("recorder-replay")
+    params = tmp / "incidents.yaml"
+    params.write_text(PARAMS)
+    odom: list[tuple[int, int]] = []
+    with Bringup(params, tmp / "home") as dc:
+        dc.wait_ready()
+        context = Context()
+        rclpy.init(context=context, domain_id=dc.domain_id)
+        node = rclpy.create_node("bare_odom_log", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        node.create_subscription(
+            Odometry, "/odom", lambda m: odom.append((time.time_ns(), stamp_of(m))), QoSProfile(depth=1000)
+        )
+        spinning = threading.Thread(target=executor.spin, daemon=True)
+        spinning.start()
+        replay: subprocess.Popen[str] | None = None
+        try:
+            # Played once Moving, the recorder and the bare subscriber all take /odom: each gets every message.
+            replay = subprocess.Popen(
+                [str(BIN / "dc"), "replay", str(BAG), "--rate", str(RATE), "--no-clock", "--delay", "0",
+                 "--topics", "/odom", "/tf", "/tf_static", "--wait-for", "/odom=3"],
+                env=dc.env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+            )  # fmt: skip
+            dc.wait_until(lambda: bool(dc.named("incidents")), 60, "the incident's record")
+            (record,) = dc.named("incidents")
+        finally:
+            if replay is not None and replay.poll() is None:
+                replay.terminate()
+                try:
+                    replay.wait(10)
+                except subprocess.TimeoutExpired:
+                    replay.kill()
+                    replay.wait()
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.shutdown(context=context)
+            spinning.join(5)
+    yield Run(record, odom, dc.home)
+
+
+def test_a_replayed_bag_gives_an_incident_file_with_the_odom_of_its_window(run: Run) -> None:
+    record = run.record
+    assert [t["reason"] for t in record["triggers"]] == ["conditions"]
+    recorded = file_odom_stamps(run.home / record["local_paths"]["mcap"])
+    # From the bag's first /odom on (the window began before it), none missing, in the bag's order.
+    bag = bag_odom_stamps()
+    assert recorded and recorded == bag[: len(recorded)]
+    # Its end: the last message the bare subscriber took before the window's end, by its clock.
+    end_ns = int(record["end"] * 1e9)
+    received = {stamp: at for at, stamp in run.odom}
+    assert abs(received[recorded[-1]] - end_ns) <= EDGE_NS
+    after = [at for at, stamp in run.odom if stamp not in set(recorded)]
+    assert not after or after[0] >= end_ns - EDGE_NS
+    topics = {t["topic"]: t for t in record["topics"]}
+    assert topics["/odom"]["messages"] == len(recorded) and topics["/tf_static"]["messages"] >= 1
+    assert topics["/tf"]["messages"] > 0 and not record["cut_by_memory_bound"]
