@@ -42,6 +42,9 @@ _SUFFIX = ".mcap"
 DEPTH = 100
 # How often the graph is asked for topics not seen yet (costs a graph walk: not every poll).
 DISCOVERY_PERIOD_S = 1.0
+# Without conditions, the recorder's own poll period while a window is open or being written (it has no
+# timer otherwise: an idle recorder costs only its messages).
+OWN_POLL_S = 0.1
 MB = 1024 * 1024
 # A window is written this long after its end: a message received just before the end may still wait in its
 # subscription's queue for the server's loop to take it (its receive time is the middleware's).
@@ -129,12 +132,20 @@ class _Topic:
     message_class: Any = None
     # Subscribed before any publisher showed (EARLY_QOS): the publishers' QoS is matched once they do.
     early: bool = False
+    # The early subscription, kept until the next graph check after the one of the publishers' QoS
+    # was made: both take the messages meanwhile (each kept once), so none is lost to the handover.
+    retiring: Any = None
+    # Graph checks left before its messages are no longer compared with those already kept: the early
+    # subscription goes at the first, and the new one may still hold, queued, messages the early one gave
+    # (two more checks: a second or more).
+    handover: int = 0
 
 
-# A subscription made before any publisher shows: reliable and volatile match what most publishers
-# offer (/odom, /tf, a driver's default QoS). A best-effort publisher (a sensor-data camera) does not match
-# it and a latching one does not resend to it: both are subscribed again with their QoS when they show.
-EARLY_QOS = QoSProfile(depth=DEPTH, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+# A subscription made before any publisher shows: best effort and volatile match every publisher (a
+# reliable one that met a reliable subscription would make the publisher of a best-effort topic, a
+# sensor-data camera's driver, warn about incompatible QoS). Once the publishers show, a reliable or a
+# latching one gets a subscription of its QoS (reliability, the latched messages sent before).
+EARLY_QOS = QoSProfile(depth=DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 
 
 def _message_class(typename: str) -> Any:
@@ -198,6 +209,10 @@ class Recorder(Measurement[RecorderParams]):
         self._bound_warned = False
         self._cut_before_open = False
         self._services: list[Any] = []
+        self._poll_timer: Any = None
+        # Per topic index, while two subscriptions take it: (publisher's stamp, size) of what was kept.
+        self._overlap: dict[int, set[tuple[int, int]]] = {}
+        self._discovery_timer: Any = None
         self._save_log = BurstLog(context.logger.error, f"measurement {context.name}: incidents not saved")
         self.incidents = 0
         self.write_errors = 0
@@ -206,6 +221,33 @@ class Recorder(Measurement[RecorderParams]):
         self.incidents_dropped = 0
 
     # -- lifecycle -------------------------------------------------------------------------------
+    @property
+    def timer_driven(self) -> bool:
+        # Only conditions need judging at every poll; the other triggers are callbacks, and the windows
+        # they open are polled by the recorder's own timer while they need it (see _set_timers).
+        return self.has_trigger_conditions
+
+    def on_activate(self) -> None:
+        if self.timer_driven:
+            return
+        self._poll_timer = self.context.create_timer(OWN_POLL_S, lambda: self.on_poll(None))
+        self._discovery_timer = self.context.create_timer(DISCOVERY_PERIOD_S, self._discover)
+        self._set_timers()
+
+    def _set_timers(self) -> None:
+        """Without conditions: each own timer runs only while it has work (a cancelled timer never wakes)."""
+        if self._poll_timer is None:
+            return
+        busy = self._windows.open is not None or bool(self._closing) or bool(self._retrying) or self.writing > 0
+        for timer, needed in (
+            (self._poll_timer, busy),
+            (self._discovery_timer, any(self._pending(t) for t in self._topics)),
+        ):
+            if needed and timer.is_canceled():
+                timer.reset()
+            elif not needed and not timer.is_canceled():
+                timer.cancel()
+
     def on_configure(self) -> None:
         p = self.params
         try:
@@ -233,9 +275,10 @@ class Recorder(Measurement[RecorderParams]):
     def on_cleanup(self) -> None:
         node = self.context.node
         for topic in self._topics:
-            if topic.subscription is not None:
-                self.context.unsubscribe(topic.subscription)
-                topic.subscription = None
+            for subscription in (topic.subscription, topic.retiring):
+                if subscription is not None:
+                    self.context.unsubscribe(subscription)
+            topic.subscription = topic.retiring = None
         for entity in self._services:
             if hasattr(entity, "service_name"):
                 node.destroy_service(entity)
@@ -245,6 +288,10 @@ class Recorder(Measurement[RecorderParams]):
         self._ring.clear()
 
     def on_deactivate(self) -> None:
+        for timer in (self._poll_timer, self._discovery_timer):
+            if timer is not None:
+                self.context.destroy_timer(timer)
+        self._poll_timer = self._discovery_timer = None
         # An open window closes now; it and those waiting for their last messages are written here (the
         # records' publisher is already inactive): not lost with the ring, their records said in the log.
         incident = self._windows.open
@@ -274,8 +321,12 @@ class Recorder(Measurement[RecorderParams]):
             )
 
     # -- intake ----------------------------------------------------------------------------------
+    @staticmethod
+    def _pending(topic: _Topic) -> bool:
+        return topic.subscription is None or topic.early or topic.handover > 0
+
     def _discover(self) -> None:
-        pending = [t for t in self._topics if t.subscription is None or t.early]
+        pending = [t for t in self._topics if self._pending(t)]
         if not pending:
             return
         node = self.context.node
@@ -283,8 +334,15 @@ class Recorder(Measurement[RecorderParams]):
         if any(not t.typename for t in pending):
             types = dict(node.get_topic_names_and_types())
         for topic in pending:
+            if topic.handover > 0:
+                topic.handover -= 1
+                if topic.retiring is not None:
+                    self.context.unsubscribe(topic.retiring)
+                    topic.retiring = None
+                if not topic.handover:
+                    self._overlap.pop(self._topics.index(topic), None)
             if topic.subscription is not None:
-                if node.count_publishers(topic.name):
+                if topic.early and node.count_publishers(topic.name):
                     self._settle(topic)
                 continue
             if topic.typename:
@@ -310,41 +368,47 @@ class Recorder(Measurement[RecorderParams]):
             else:
                 # (a topic this very server subscribes to, for a condition, is in the graph before anyone
                 # publishes it: its type is known, the QoS not yet)
-                self._subscribe(topic, EARLY_QOS, False, "")
                 topic.early = True
+                self._subscribe(topic, EARLY_QOS, False, "")
+        self._set_timers()
 
-    def _subscribe(self, topic: _Topic, qos: QoSProfile, latched: bool, offered: str, seen: Any = None) -> None:
+    def _subscribe(self, topic: _Topic, qos: QoSProfile, latched: bool, offered: str) -> None:
         topic.latched = latched
         topic.channel = Channel(topic.name, topic.typename, offered)
         index = self._topics.index(topic)
-        callback = functools.partial(self._on_message, index, latched)
-        if seen is not None:
-            callback = functools.partial(self._on_message_once, index, seen)
+        # A topic subscribed early may be taken by two subscriptions for a while (see _settle).
+        handler = self._on_message_once if topic.early or topic.retiring is not None else self._on_message
+        callback = functools.partial(handler, index, latched)
         topic.subscription = self.context.subscribe(topic.message_class, topic.name, callback, qos, raw=True)
 
     def _settle(self, topic: _Topic) -> None:
-        """A topic subscribed early now has publishers: their QoS goes in the file, and a subscription they
-        do not match (best effort) or that misses their latched messages is replaced."""
+        """A topic subscribed early now has publishers: their QoS goes in the file, and reliable or latching
+        ones get a subscription of their QoS, the early one kept until the next graph check."""
         qos, latched, offered = _qos_of_publishers(self.context.node, topic.name)
         topic.early = False
         if qos.reliability == EARLY_QOS.reliability and not latched:
             topic.channel = Channel(topic.name, topic.typename, offered)
             return
-        old = topic.subscription
-        # A latching publisher resends its last messages to the new subscription: those the early one
-        # took are in the ring already, and kept once.
+        # Until the early subscription goes, a message both take is kept once: by its publisher's
+        # stamp and size (a latching publisher also resends what the early one took already).
         index = self._topics.index(topic)
-        seen = {(e[1], e[3]) for e in self._ring.between(0, NEVER) if e[2] == index} if latched else None
-        self._subscribe(topic, qos, latched, offered, seen)
-        self.context.unsubscribe(old)
+        self._overlap[index] = {(e[1], len(e[3])) for e in self._ring.between(0, NEVER) if e[2] == index}
+        topic.retiring = topic.subscription
+        topic.handover = 3
+        self._subscribe(topic, qos, latched, offered)
 
     def _on_message(self, index: int, latched: bool, data: bytes, info: Any) -> None:
         self._received[index] += 1
         self._ring.append(info["received_timestamp"], info["source_timestamp"], index, data, latched)
 
-    def _on_message_once(self, index: int, seen: set[tuple[int, bytes]], data: bytes, info: Any) -> None:
-        if (info["source_timestamp"], data) not in seen:
-            self._on_message(index, True, data, info)
+    def _on_message_once(self, index: int, latched: bool, data: bytes, info: Any) -> None:
+        seen = self._overlap.get(index)
+        if seen is not None:
+            key = (info["source_timestamp"], len(data))
+            if key in seen:
+                return
+            seen.add(key)
+        self._on_message(index, latched, data, info)
 
     # -- triggers --------------------------------------------------------------------------------
     def _on_trigger_service(self, request: Any, response: Any) -> Any:
@@ -368,6 +432,7 @@ class Recorder(Measurement[RecorderParams]):
             oldest = self._ring.oldest_ns()
             self._cut_before_open = any(self._ring.lost_to_bound) and (oldest is None or oldest > start)
             self._ring.hold_from_ns = start
+            self._set_timers()
         self.context.logger.info(f"measurement {self.context.name}: trigger ({reason}): {outcome.value}")
         return outcome
 
@@ -389,6 +454,7 @@ class Recorder(Measurement[RecorderParams]):
             self._close(self._closing.popleft())
         while self._retrying and self._retrying[0].write_at_ns <= now_ns:
             self._close(self._retrying.popleft())
+        self._set_timers()
 
     def _check_bound(self, now_ns: int) -> None:
         """Said once: the bound lets messages go while no window needs them, so it holds less than pre_trigger."""
@@ -511,10 +577,12 @@ class Recorder(Measurement[RecorderParams]):
                 self._save_log.event(
                     1, f"{sample['local_paths']['mcap']}: {exc}; dropped after {WRITE_TRIES} tries: {sample}"
                 )
+            self._set_timers()
             return
         self._note_written(sample, written)
         self.incidents += 1
         self.context.emit(sample, stamp_ns=int(sample["triggers"][0]["time"] * 1e9))
+        self._set_timers()
 
     def counters(self) -> dict[str, int]:
         w = self._windows

@@ -354,7 +354,7 @@ def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_fi
 ) -> None:
     # /odom's type given, /tf's learnt from the graph (a condition of the server subscribes to it first),
     # the camera best effort (as sensor drivers publish) and the static transforms latched: none of them
-    # has a publisher when the recorder is configured.
+    # has a publisher when the recorder is configured. (No poll before the end: the window stays open.)
     odom_topic, tf_topic, camera_topic, static_topic = (
         unique(t) for t in ("/odom", "/tf", "/camera/compressed", "/tf_static")
     )
@@ -379,16 +379,24 @@ def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_fi
     odom.publish(odometry(0.0, 0.0, 0.0))
     tf.publish(tf_message(transform("odom", "base_link", 0.0, 0.0, 0.0)))
     assert plugin.trigger("right away") is Outcome.OPENED
-    # The best-effort and latched publishers are matched once the graph check has seen them.
-    camera = ros.node.create_publisher(
-        String, camera_topic, QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
-    )
-    static = ros.publisher(tf_type, static_topic, LATCHED)  # matched with the early subscription
+    # Best effort and volatile, the early subscriptions match every publisher: a best-effort camera's too.
+    camera = ros.publisher(String, camera_topic, QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT))
+    static = ros.publisher(tf_type, static_topic, LATCHED)
     static.publish(tf_message(transform("map", "odom", 1.0, 2.0, 0.0)))
-    assert ros.spin_until(lambda: camera.get_subscription_count() == 1, lambda: plugin.on_poll(None))
     camera.publish(String(data="frame"))
-    for i in range(1, 5):
+    odom.publish(odometry(1.0, 0.0, 0.0))
+    # The graph check gives the reliable and the latching publishers a subscription of their QoS, and keeps
+    # the early one until the next check: a message both take (the latched one resent) is kept once.
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 5)  # odom 0 and 1, tf, static, camera
+    plugin._discover()
+    assert ros.node.count_subscribers(odom_topic) == 2 and ros.node.count_subscribers(static_topic) == 2
+    assert ros.spin_until(lambda: odom.get_subscription_count() == 2)
+    for i in range(2, 5):
         odom.publish(odometry(float(i), 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 8)
+    plugin._discover()
+    assert ros.node.count_subscribers(odom_topic) == 1 and ros.node.count_subscribers(static_topic) == 1
+    assert plugin.trigger("then") is Outcome.EXTENDED
     emitted = ros.harness.context(plugin).emitted
     drive(ros, plugin, lambda: bool(emitted))
     record = emitted[0].record
@@ -412,3 +420,33 @@ def test_types_needs_one_entry_per_topic() -> None:
 
     with pytest.raises(ConfigError, match=r"incidents\.types: one entry per topic \(2\), not 1"):
         parse_params(RecorderParams, {"topics": ["/a", "/b"], "types": ["x/msg/Y"]}, "incidents")
+
+
+def test_without_conditions_an_idle_recorder_has_no_timer_running_and_polls_itself_while_a_window_needs_it(
+    ros: Ros, tmp_path: Path
+) -> None:
+    topic = unique("/odom")
+    odom = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    plugin = ros.harness.make(Recorder, {"topics": [topic], "pre_trigger": 1.0, "post_trigger": 0.1})
+    plugin.has_trigger_conditions = False  # as the server sets it for a measurement without conditions
+    assert not plugin.timer_driven  # the server makes no timer for it
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    timers = plugin._poll_timer, plugin._discovery_timer
+    # Its topic subscribed at configure: nothing to poll, nothing to look for in the graph.
+    assert all(t.is_canceled() for t in timers)
+    assert ros.spin_until(lambda: odom.get_subscription_count() == 1)
+    odom.publish(odometry(1.0, 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 1)
+    assert plugin.trigger("bumper") is Outcome.OPENED and not timers[0].is_canceled()
+    emitted = ros.harness.context(plugin).emitted
+
+    # Only spinning: the recorder's own timer closes the window and writes it, then stops.
+    def written() -> None:
+        ros.harness.run_finished_work(plugin)
+
+    assert ros.spin_until(lambda: bool(emitted) and timers[0].is_canceled(), written)
+    assert emitted[0].record["messages"] == 1
+    ros.harness.stop(plugin)
+    assert plugin._poll_timer is None
