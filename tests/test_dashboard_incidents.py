@@ -165,3 +165,33 @@ def test_an_incident_file_downloads_through_the_dashboard_and_only_an_mcap_file(
         server.shutdown()
         server.server_close()
         thread.join(5.0)
+
+
+def test_the_incidents_page_in_a_browser_searches_by_reason(servers: Servers, tmp_path: Path) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    from tests.test_dashboard import _browser, _screenshot
+
+    server = make_server(DashboardSettings(servers.postgres, servers.s3), "127.0.0.1", 0, quiet=True)
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True)
+    thread.start()
+    browser = _browser()
+    try:
+        browser.get(f"http://127.0.0.1:{server.server_address[1]}/incidents")
+        assert len(browser.find_elements(By.CSS_SELECTOR, "tr.incident")) == 3
+        assert browser.find_element(By.CSS_SELECTOR, "nav a.active, a.active").text == "Incidents"
+        _screenshot(browser, tmp_path, "incidents")
+        # Searching by a reason, as a user types it: the page keeps the incidents with it.
+        browser.find_element(By.ID, "reason-search").send_keys("BUMPER")
+        browser.find_element(By.ID, "reason-search").submit()
+        WebDriverWait(browser, 30).until(lambda b: "reason=BUMPER" in b.current_url)
+        reasons = [e.text for e in browser.find_elements(By.CSS_SELECTOR, "tr.incident td.reasons")]
+        assert reasons == ["service, bumper hit", "operator: Bumper"]
+        link = browser.find_element(By.CSS_SELECTOR, "tr.incident a.download")
+        assert link.get_attribute("href").endswith("/incident-file?key=C3PO%2Fincidents%2Fb.mcap")
+    finally:
+        browser.quit()
+        server.shutdown()
+        server.server_close()
+        thread.join(5.0)
