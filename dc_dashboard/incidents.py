@@ -16,12 +16,11 @@ from html import escape
 from typing import Any
 from urllib.parse import quote
 
-from dc_dashboard import indexes
 from dc_dashboard.errors import DashboardError
 from dc_dashboard.filters import Filters
 from dc_dashboard.objects import ImageStore, _reason
 from dc_dashboard.pages import NONE, _page_form, _size, stat, when
-from dc_dashboard.queries import Store, _like_escaped, _remote_key
+from dc_dashboard.queries import Store, _remote_key
 
 PAGE = 50
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -80,26 +79,13 @@ def incidents(store: Store, connection: Any, filters: Filters) -> tuple[list[Inc
     """The newest incidents of the filters (before ``filters.before``, a reason holding ``filters.reason``)."""
     from psycopg import sql
 
-    found: list[Incident] = []
-    for name, path in store.catalog(connection).sources["incident"]:
-        where, params = store._where(filters, name)
-        if filters.before:
-            where = sql.SQL("{} AND time < %(before)s").format(where)
-            params["before"] = filters.before
-        if filters.reason:  # any trigger whose reason holds the text, any case
-            where = sql.SQL(
-                "{} AND EXISTS (SELECT 1 FROM jsonb_array_elements(data #> %(p)s -> 'triggers') AS t(v)"
-                " WHERE (t.v ->> 'reason') ILIKE %(reason)s ESCAPE '\\')"
-            ).format(where)
-            params["reason"] = "%" + _like_escaped(filters.reason) + "%"
-        params["p"] = list(path)
-        query = sql.SQL(
-            "SELECT time, {robot}, {run}, data #> %(p)s FROM {t} WHERE {w} ORDER BY time DESC LIMIT %(n)s"
-        ).format(robot=indexes.ROBOT, run=indexes.RUN, t=store.table, w=where)
-        params["n"] = PAGE + 1
-        for time_, robot, run, record in connection.execute(query, params).fetchall():
-            if isinstance(record, dict):
-                found.append(_incident(name, time_, robot or "", run or "", record))
+    reason = None
+    if filters.reason:  # any trigger whose reason holds the text, any case
+        reason = sql.SQL(
+            "EXISTS (SELECT 1 FROM jsonb_array_elements(data #> %(p)s -> 'triggers') AS t(v)"
+            " WHERE (t.v ->> 'reason') ILIKE %(text)s ESCAPE '\\')"
+        )
+    found = [_incident(*row) for row in store.newest(connection, filters, "incident", PAGE + 1, reason, filters.reason)]
     found.sort(key=lambda i: i.time, reverse=True)
     return found[:PAGE], len(found) > PAGE
 

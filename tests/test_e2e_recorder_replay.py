@@ -10,21 +10,17 @@ very first message on, none missing; its end is checked against a bare subscribe
 from __future__ import annotations
 
 import subprocess
-import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pytest
-import rclpy
-from nav_msgs.msg import Odometry
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 
 from tests.bringup_util import BIN, Bringup
+from tests.robot_helpers import odom_log
+from tests.test_e2e_recorder import read_odom_stamps, stamp_of
 
 pytestmark = pytest.mark.e2e
 
@@ -62,23 +58,11 @@ destination_server:
 """
 
 
-def stamp_of(message: Any) -> int:
-    return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
-
-
 def bag_odom_stamps() -> list[int]:
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
     with AnyReader([BAG], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
-        connections = [c for c in reader.connections if c.topic == "/odom"]
-        return [stamp_of(reader.deserialize(d, c.msgtype)) for c, _, d in reader.messages(connections=connections)]
-
-
-def file_odom_stamps(path: Path) -> list[int]:
-    from rosbags.highlevel import AnyReader
-
-    with AnyReader([path]) as reader:  # the file's own schemas: no type store needed
         connections = [c for c in reader.connections if c.topic == "/odom"]
         return [stamp_of(reader.deserialize(d, c.msgtype)) for c, _, d in reader.messages(connections=connections)]
 
@@ -95,19 +79,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
     tmp = tmp_path_factory.mktemp("recorder-replay")
     params = tmp / "incidents.yaml"
     params.write_text(PARAMS)
-    odom: list[tuple[int, int]] = []
-    with Bringup(params, tmp / "home") as dc:
+    with Bringup(params, tmp / "home") as dc, odom_log(dc.domain_id, QoSProfile(depth=1000)) as odom:
         dc.wait_ready()
-        context = Context()
-        rclpy.init(context=context, domain_id=dc.domain_id)
-        node = rclpy.create_node("bare_odom_log", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        node.create_subscription(
-            Odometry, "/odom", lambda m: odom.append((time.time_ns(), stamp_of(m))), QoSProfile(depth=1000)
-        )
-        spinning = threading.Thread(target=executor.spin, daemon=True)
-        spinning.start()
         replay: subprocess.Popen[str] | None = None
         try:
             # Played once Moving, the recorder and the bare subscriber all take /odom: each gets every message.
@@ -126,17 +99,13 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
                 except subprocess.TimeoutExpired:
                     replay.kill()
                     replay.wait()
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.shutdown(context=context)
-            spinning.join(5)
     yield Run(record, odom, dc.home)
 
 
 def test_a_replayed_bag_gives_an_incident_file_with_the_odom_of_its_window(run: Run) -> None:
     record = run.record
     assert [t["reason"] for t in record["triggers"]] == ["conditions"]
-    recorded = file_odom_stamps(run.home / record["local_paths"]["mcap"])
+    recorded = read_odom_stamps(run.home / record["local_paths"]["mcap"])
     # From the bag's first /odom on (the window began before it), none missing, in the bag's order.
     bag = bag_odom_stamps()
     assert recorded and recorded == bag[: len(recorded)]
