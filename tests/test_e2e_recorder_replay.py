@@ -34,7 +34,7 @@ EDGE_NS = 500_000_000
 PARAMS = f"""
 measurement_server:
   ros__parameters:
-    measurement_plugins: ["incidents"]
+    measurement_plugins: ["incidents", "operator"]
     condition_plugins: ["moving"]
     save_local_base_path: "data/"
     moving:
@@ -49,12 +49,19 @@ measurement_server:
       pre_trigger: 2.0
       post_trigger: {POST_TRIGGER}
       tags: ["out"]
+    operator:
+      plugin: "dc_measurements/Recorder"
+      topics: ["/odom"]
+      pre_trigger: 1.0
+      post_trigger: 0.5
+      save_path: "operator/%H%M%S"
+      tags: ["out"]
 destination_server:
   ros__parameters:
     destination_plugins: ["out"]
     out:
       plugin: "dc_destinations/Stdout"
-      inputs: ["/dc/measurement/incidents"]
+      inputs: ["/dc/measurement/incidents", "/dc/measurement/operator"]
 """
 
 
@@ -70,6 +77,7 @@ def bag_odom_stamps() -> list[int]:
 @dataclass
 class Run:
     record: dict[str, Any]
+    operator: dict[str, Any]
     odom: list[tuple[int, int]]  # (receive time ns, header stamp ns), as the bare subscriber got them
     home: Path
 
@@ -83,14 +91,19 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
         dc.wait_ready()
         replay: subprocess.Popen[str] | None = None
         try:
-            # Played once Moving, the recorder and the bare subscriber all take /odom: each gets every message.
+            # Played once Moving, the recorders and the bare subscriber all take /odom: each gets every message.
             replay = subprocess.Popen(
                 [str(BIN / "dc"), "replay", str(BAG), "--rate", str(RATE), "--no-clock", "--delay", "0",
-                 "--topics", "/odom", "/tf", "/tf_static", "--wait-for", "/odom=3"],
+                 "--topics", "/odom", "/tf", "/tf_static", "--wait-for", "/odom=4"],
                 env=dc.env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
             )  # fmt: skip
             dc.wait_until(lambda: bool(dc.named("incidents")), 60, "the incident's record")
             (record,) = dc.named("incidents")
+            # A recorder without conditions has no timer while idle: a trigger starts its own polls.
+            trigger = [str(BIN / "dc"), "trigger", "operator", "--reason", "after the robot started"]
+            assert subprocess.run(trigger, env=dc.env, capture_output=True, timeout=60).returncode == 0
+            dc.wait_until(lambda: bool(dc.named("operator")), 60, "the operator's incident")
+            (operator,) = dc.named("operator")
         finally:
             if replay is not None and replay.poll() is None:
                 replay.terminate()
@@ -99,7 +112,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
                 except subprocess.TimeoutExpired:
                     replay.kill()
                     replay.wait()
-    yield Run(record, odom, dc.home)
+    yield Run(record, operator, odom, dc.home)
 
 
 def test_a_replayed_bag_gives_an_incident_file_with_the_odom_of_its_window(run: Run) -> None:
@@ -118,3 +131,10 @@ def test_a_replayed_bag_gives_an_incident_file_with_the_odom_of_its_window(run: 
     topics = {t["topic"]: t for t in record["topics"]}
     assert topics["/odom"]["messages"] == len(recorded) and topics["/tf_static"]["messages"] >= 1
     assert topics["/tf"]["messages"] > 0 and not record["cut_by_memory_bound"]
+
+
+def test_a_recorder_without_conditions_is_triggered_by_dc_trigger_and_writes_its_window(run: Run) -> None:
+    record = run.operator
+    assert [t["reason"] for t in record["triggers"]] == ["after the robot started"]
+    recorded = read_odom_stamps(run.home / record["local_paths"]["mcap"])
+    assert recorded and recorded == [s for s in bag_odom_stamps() if recorded[0] <= s <= recorded[-1]]
