@@ -10,7 +10,7 @@ are an MCAP file.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterator
+from collections.abc import Generator
 from dataclasses import dataclass
 from html import escape
 from typing import Any
@@ -148,7 +148,7 @@ def page(found: list[Incident], more: bool, filters: Filters) -> str:
     return f'{search}<div class="cards">{cards}</div><div class="panel">{table}</div>'
 
 
-def open_file(images: ImageStore, key: str) -> tuple[int, Iterator[bytes]]:
+def open_file(images: ImageStore, key: str) -> tuple[int, Generator[bytes, None, None]]:
     """The MCAP object's length and its bytes in chunks; DashboardError if it is missing or not an MCAP file."""
     settings = images.settings
     if not settings.configured:
@@ -166,7 +166,7 @@ def open_file(images: ImageStore, key: str) -> tuple[int, Iterator[bytes]]:
         body.close()
         raise DashboardError(f"{key} is not an MCAP file")
 
-    def chunks() -> Iterator[bytes]:
+    def chunks() -> Generator[bytes, None, None]:
         try:
             yield head
             while chunk := body.read(CHUNK):

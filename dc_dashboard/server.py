@@ -234,8 +234,14 @@ class Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Disposition", f'attachment; filename="{key.rsplit("/", 1)[-1]}"')
         self.send_header("Content-Length", str(length))
         self.end_headers()
-        for chunk in chunks:
-            self.wfile.write(chunk)
+        try:
+            for chunk in chunks:
+                self.wfile.write(chunk)
+        except Exception as exc:  # the browser went away, or the bucket mid-file: the length tells it short
+            self.log_message('"GET /incident-file" %s cut: %s: %s', key[:200], type(exc).__name__, exc)
+            self.close_connection = True
+        finally:
+            chunks.close()
         return True
 
     def log_request(self, code: int | str = "-", size: int | str = "-") -> None:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import http.client
 import json
 import tempfile
 import threading
@@ -22,6 +23,7 @@ from dc_dashboard.settings import DashboardSettings, PostgresSettings, S3Setting
 from tests.destination_helpers import running_postgres
 
 T0 = dt.datetime(2026, 3, 1, 12, 0, 0)
+BIG = 16 * 1024 * 1024  # more than a socket's buffers hold: the dashboard is still writing when the client goes
 
 
 def _incident(robot: str, run: str, at: dt.datetime, reasons: list[str], key: str, size: int) -> dict[str, Any]:
@@ -105,6 +107,7 @@ def servers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Servers]:
         client = s3.client()
         client.put_object(Bucket=s3.bucket, Key="C3PO/incidents/a.mcap", Body=mcap)
         client.put_object(Bucket=s3.bucket, Key="C3PO/incidents/b.mcap", Body=b"not mcap!")
+        client.put_object(Bucket=s3.bucket, Key="C3PO/incidents/big.mcap", Body=mcap[:8] + bytes(BIG))
         s3_settings = S3Settings(
             endpoint=s3.endpoint,
             access_key_id=s3.access_key,
@@ -161,6 +164,15 @@ def test_an_incident_file_downloads_through_the_dashboard_and_only_an_mcap_file(
             with pytest.raises(urllib.error.HTTPError) as refused:
                 urllib.request.urlopen(base + "/incident-file?key=" + key, timeout=30)
             assert refused.value.code == 404
+        # A browser that leaves in the middle of a large file: the dashboard goes on serving.
+        connection = http.client.HTTPConnection("127.0.0.1", server.server_address[1], timeout=30)
+        connection.request("GET", "/incident-file?key=C3PO%2Fincidents%2Fbig.mcap")
+        response = connection.getresponse()
+        assert response.status == 200 and int(response.headers["Content-Length"]) == BIG + 8
+        assert response.read(1024)[:8] == servers.mcap[:8]
+        connection.close()
+        with urllib.request.urlopen(base + "/incidents", timeout=30) as response:
+            assert response.status == 200
     finally:
         server.shutdown()
         server.server_close()
