@@ -69,6 +69,9 @@ class Measurement(Plugin[ParamsT]):
     # emits are published whatever the conditions say then (an incident recorded after the robot
     # moved on is still an incident).
     conditions_trigger: ClassVar[bool] = False
+    # Set by the server before on_configure for a conditions_trigger measurement: whether it has
+    # conditions to judge at each poll (without any, it may poll itself only when it has work).
+    has_trigger_conditions: bool = True
     context: MeasurementContext
 
     def __init__(self, context: MeasurementContext, params: ParamsT) -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Mapping
 from typing import Any
 
-KINDS = ("position", "cpu", "memory", "distance_traveled", "map", "camera")
+KINDS = ("position", "cpu", "memory", "distance_traveled", "map", "camera", "incident")
 # Nested objects of a measurement that are not group members (a map's origin has x, y and yaw too).
 _NOT_MEMBERS = {"origin", "local_paths", "remote_paths", "base64", "inspected", "linear", "angular", "sorted"}
 
@@ -22,6 +22,8 @@ def _number(value: Any) -> bool:
 def kind_of(record: Mapping[str, Any]) -> str | None:
     if "camera_name" in record:
         return "camera"
+    if isinstance(record.get("triggers"), list) and "cut_by_memory_bound" in record:
+        return "incident"  # dc_measurements/Recorder
     if all(k in record for k in ("resolution", "origin", "width", "height")):
         return "map"
     if _number(record.get("distance_traveled")):

@@ -34,6 +34,8 @@ class Filters:
     # Explorer: the record name; Camera: text a code read must contain.
     name: str = ""
     code: str = ""
+    # Incidents: text a trigger's reason must contain.
+    reason: str = ""
     problems: tuple[str, ...] = field(default=(), compare=False)
 
     @classmethod
@@ -83,6 +85,7 @@ class Filters:
             refresh=refresh,
             name=values.get("name", "")[:200],
             code=values.get("code", "")[:200],
+            reason=values.get("reason", "")[:200],
             problems=tuple(problems),
         )
 
@@ -99,6 +102,7 @@ class Filters:
             "refresh": str(changed.refresh) if changed.refresh else "",
             "name": changed.name,
             "code": changed.code,
+            "reason": changed.reason,
             "state": changed.state,
             "before": format_time(changed.before),
         }

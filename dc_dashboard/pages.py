@@ -33,6 +33,7 @@ PAGES = (
     ("/", "Overview"),
     ("/system", "System"),
     ("/camera", "Camera"),
+    ("/incidents", "Incidents"),
     ("/files", "Files"),
     ("/explore", "Explorer"),
     ("/health", "Health"),

@@ -254,29 +254,45 @@ class Store:
         """The newest camera records of the filters (before ``filters.before``), CAMERA_PAGE of them."""
         from psycopg import sql
 
-        catalog = self.catalog(connection)
         found: list[Inspection] = []
-        for name, path in catalog.sources["camera"]:
+        code = None
+        if filters.code:  # any code read whose content holds the text, any case
+            code = sql.SQL(
+                "EXISTS (SELECT 1 FROM jsonb_path_query(data #> %(p)s, '$.inspected.*[*].data') AS c(v)"
+                " WHERE (c.v #>> '{}') ILIKE %(text)s ESCAPE '\\')"
+            )
+        for _, when, robot, run, record in self.newest(
+            connection, filters, "camera", CAMERA_PAGE + 1, code, filters.code
+        ):
+            found.append(_inspection(when, robot, run, record))
+        found.sort(key=lambda i: i.time, reverse=True)
+        return found[:CAMERA_PAGE], len(found) > CAMERA_PAGE
+
+    def newest(
+        self, connection: Any, filters: Filters, kind: str, limit: int, text_condition: Any = None, text: str = ""
+    ) -> Iterator[tuple[str, dt.datetime, str, str, dict[str, Any]]]:
+        """(record name, time, robot, run, measurement) of the newest records of ``kind`` for the filters
+        (before ``filters.before``), ``limit`` per record name; ``text_condition``: an SQL condition on
+        ``%(text)s``, an ILIKE pattern of ``text`` taken literally, and ``%(p)s``, the measurement's JSON
+        path in the row."""
+        from psycopg import sql
+
+        for name, path in self.catalog(connection).sources[kind]:
             where, params = self._where(filters, name)
             if filters.before:
                 where = sql.SQL("{} AND time < %(before)s").format(where)
                 params["before"] = filters.before
-            if filters.code:  # any code read whose content holds the text, any case
-                where = sql.SQL(
-                    "{} AND EXISTS (SELECT 1 FROM jsonb_path_query(data #> %(p)s, '$.inspected.*[*].data') AS c(v)"
-                    " WHERE (c.v #>> '{{}}') ILIKE %(code)s ESCAPE '\\')"
-                ).format(where)
-                params["code"] = "%" + _like_escaped(filters.code) + "%"
+            if text_condition is not None:
+                where = sql.SQL("{} AND {}").format(where, text_condition)
+                params["text"] = "%" + _like_escaped(text) + "%"
             params["p"] = list(path)
             query = sql.SQL(
                 "SELECT time, {robot}, {run}, data #> %(p)s FROM {t} WHERE {w} ORDER BY time DESC LIMIT %(n)s"
             ).format(robot=indexes.ROBOT, run=indexes.RUN, t=self.table, w=where)
-            params["n"] = CAMERA_PAGE + 1
+            params["n"] = limit
             for when, robot, run, record in connection.execute(query, params).fetchall():
                 if isinstance(record, dict):
-                    found.append(_inspection(when, robot or "", run or "", record))
-        found.sort(key=lambda i: i.time, reverse=True)
-        return found[:CAMERA_PAGE], len(found) > CAMERA_PAGE
+                    yield name, when, robot or "", run or "", record
 
     def explore(self, connection: Any, filters: Filters) -> Exploration:
         """Any record name's newest records (before ``filters.before``) and its numeric fields over time."""

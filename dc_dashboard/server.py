@@ -19,7 +19,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from dc_core.http_limits import BoundedHTTPServer
-from dc_dashboard import health, pages
+from dc_dashboard import health, incidents, pages
 from dc_dashboard.errors import DashboardError
 from dc_dashboard.filters import Filters
 from dc_dashboard.objects import ImageStore
@@ -55,6 +55,7 @@ class Dashboard:
             "/": ("Overview: where the robot went", self._overview),
             "/system": ("System: CPU and memory", self._system),
             "/camera": ("Camera: inspected images and the codes read", self._camera),
+            "/incidents": ("Incidents: what the recorders stored", self._incidents),
             "/files": ("Files: uploaded, verified, deleted", self._files),
             "/explore": ("Explorer: any measurement", self._explore),
             "/health": ("Health: DC's delivery", self._health),
@@ -106,6 +107,12 @@ class Dashboard:
         inspections, more = self.store.inspections(connection, filters)
         body = pages.camera(inspections, more, filters)
         problem = self.images.check_bucket() if inspections else None
+        return (pages.notice(problem, element_id="s3-error") if problem else "") + body
+
+    def _incidents(self, connection: Any, filters: Filters) -> str:
+        found, more = incidents.incidents(self.store, connection, filters)
+        body = incidents.page(found, more, filters)
+        problem = self.images.check_bucket() if any(i.key for i in found) else None
         return (pages.notice(problem, element_id="s3-error") if problem else "") + body
 
     def _explore(self, connection: Any, filters: Filters) -> str:
@@ -188,6 +195,10 @@ class Handler(BaseHTTPRequestHandler):
             elif url.path == "/image":
                 status, body, content_type = self.dashboard.image(url.query)
                 extra = {"Cache-Control": "private, max-age=3600"} if status == 200 else {}
+            elif url.path == "/incident-file":
+                if self._send_incident_file(url.query):
+                    return
+                status, body, content_type, extra = 404, b"no such incident file\n", "text/plain; charset=utf-8", {}
             elif url.path == "/favicon.ico":
                 status, body, content_type, extra = 204, b"", "text/plain", {}
             else:
@@ -207,6 +218,31 @@ class Handler(BaseHTTPRequestHandler):
             self.log_message('"GET %s" 421: Host %r not allowed (--allowed-host)', url.path, host[:100])
         elif not self.quiet or status >= 500:
             self.log_message('"GET %s" %d %.0f ms', url.path, status, (time.monotonic() - started) * 1000)
+
+    def _send_incident_file(self, query: str) -> bool:
+        """Stream an incident's MCAP file from the bucket (never whole in memory); False: there is none to send."""
+        key = parse_qs(query).get("key", [""])[-1]
+        try:
+            length, chunks = incidents.open_file(self.dashboard.images, key)
+        except DashboardError as exc:
+            self.log_message('"GET /incident-file" 404: %s', exc)
+            return False
+        self.send_response(200)
+        for name, value in _SECURITY_HEADERS.items():
+            self.send_header(name, value)
+        self.send_header("Content-Type", "application/octet-stream")
+        self.send_header("Content-Disposition", f'attachment; filename="{key.rsplit("/", 1)[-1]}"')
+        self.send_header("Content-Length", str(length))
+        self.end_headers()
+        try:
+            for chunk in chunks:
+                self.wfile.write(chunk)
+        except Exception as exc:  # the browser went away, or the bucket mid-file: the length tells it short
+            self.log_message('"GET /incident-file" %s cut: %s: %s', key[:200], type(exc).__name__, exc)
+            self.close_connection = True
+        finally:
+            chunks.close()
+        return True
 
     def log_request(self, code: int | str = "-", size: int | str = "-") -> None:
         pass  # do_GET logs once, with the time taken

@@ -76,6 +76,8 @@ class MeasurementRunner:
         self._clock_ns = clock_ns
         common = config.common
         gated = bool(config.conditions) and not plugin.conditions_trigger
+        if plugin.conditions_trigger:
+            plugin.has_trigger_conditions = bool(config.conditions)
         self.gate = Gate(common.init_max_measurements, common.condition_max_measurements, gated)
         self.stats = RunnerStats()
         self._empty_warned = False

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -72,6 +73,27 @@ def ros_session(name: str, *, use_sim_time: bool = False, domain_id: int | None 
             node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
+
+
+@contextmanager
+def odom_log(domain_id: int, qos: Any) -> Iterator[list[tuple[int, int]]]:
+    """A bare subscriber of /odom spun on its own thread: (receive time ns, header stamp ns) of each message,
+    what a process that only listens gets (the e2e recorder tests compare incident files with it)."""
+    received: list[tuple[int, int]] = []
+
+    def log(message: Any) -> None:
+        stamp = message.header.stamp
+        received.append((time.time_ns(), int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)))
+
+    with ros_session("bare_odom_log", domain_id=domain_id) as ros:
+        ros.node.create_subscription(Odometry, "/odom", log, qos)
+        spinning = threading.Thread(target=ros.executor.spin, daemon=True)
+        spinning.start()
+        try:
+            yield received
+        finally:
+            ros.executor.shutdown()
+            spinning.join(5)
 
 
 def unique(prefix: str) -> str:

@@ -7,7 +7,9 @@ measurement's conditions becoming true, a call of the ``dc/recorder/<name>/trigg
 to ``post_trigger`` after it; a trigger inside it extends it (dc_measurements.recorder.window). Once the
 window has closed, the worker writes its messages as an MCAP file (dc_measurements.recorder.mcap_file)
 and the record of the incident is published: paths, times, reasons, per-topic counts, what the memory
-bound cut. A topic's type is learnt from the ROS graph: one that appears later is subscribed then.
+bound cut. A topic's type is given (``types``) or learnt from the ROS graph: the topic is subscribed as soon
+as its type is known, before it has a publisher, so that a topic appearing after the recorder started loses
+none of its first messages to the graph check (once a second); the publishers' QoS is matched once they show.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import Any
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from dc_core.errors import PluginError
+from dc_core.errors import ConfigError, PluginError
 from dc_core.logs import BurstLog
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
@@ -40,6 +42,9 @@ _SUFFIX = ".mcap"
 DEPTH = 100
 # How often the graph is asked for topics not seen yet (costs a graph walk: not every poll).
 DISCOVERY_PERIOD_S = 1.0
+# Without conditions, the recorder's own poll period while a window is open or being written (it has no
+# timer otherwise: an idle recorder costs only its messages).
+OWN_POLL_S = 0.1
 MB = 1024 * 1024
 # A window is written this long after its end: a message received just before the end may still wait in its
 # subscription's queue for the server's loop to take it (its receive time is the middleware's).
@@ -48,6 +53,11 @@ CLOSE_GRACE_NS = 250_000_000
 # its window's messages kept in memory meanwhile, WRITE_TRIES times in all; then the window is dropped, counted.
 WRITE_RETRY_NS = 5_000_000_000
 WRITE_TRIES = 3
+
+
+def _types_problem(types: list[str]) -> str | None:
+    bad = [t for t in types if t and len(t.split("/")) != 3]
+    return f"message types as package/msg/Name, or empty to learn it from the graph (not: {bad})" if bad else None
 
 
 def _topics_problem(topics: list[str]) -> str | None:
@@ -84,10 +94,20 @@ class RecorderParams:
         doc="Path of the MCAP file without .mcap, under save_local_base_path/all_base_path ($ENV, strftime of the "
         "window's start)",
     )
+    types: list[str] = param(
+        [],
+        doc="Message type of each topic (same order as topics; empty: learnt from the graph): subscribed at "
+        "configure, before the topic has a publisher",
+        check=_types_problem,
+    )
     compression: str = param("zstd", choices=COMPRESSIONS, doc="Compression of the MCAP file's chunks")
     trigger_service: bool = param(
         True, doc="Offer the dc/recorder/<name>/trigger service (std_srvs/Trigger) and topic (std_msgs/String)"
     )
+
+    def __post_init__(self) -> None:
+        if self.types and len(self.types) != len(self.topics):
+            raise ConfigError("types", f"one entry per topic ({len(self.topics)}), not {len(self.types)}")
 
 
 @dataclass
@@ -109,6 +129,23 @@ class _Topic:
     subscription: Any = None
     channel: Channel | None = None
     latched: bool = False
+    message_class: Any = None
+    # Subscribed before any publisher showed (EARLY_QOS): the publishers' QoS is matched once they do.
+    early: bool = False
+    # The early subscription, kept until the next graph check after the one of the publishers' QoS
+    # was made: both take the messages meanwhile (each kept once), so none is lost to the handover.
+    retiring: Any = None
+    # Graph checks left before its messages are no longer compared with those already kept: the early
+    # subscription goes at the first, and the new one may still hold, queued, messages the early one gave
+    # (two more checks: a second or more).
+    handover: int = 0
+
+
+# A subscription made before any publisher shows: best effort and volatile match every publisher (a
+# reliable one that met a reliable subscription would make the publisher of a best-effort topic, a
+# sensor-data camera's driver, warn about incompatible QoS). Once the publishers show, a reliable or a
+# latching one gets a subscription of its QoS (reliability, the latched messages sent before).
+EARLY_QOS = QoSProfile(depth=DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 
 
 def _message_class(typename: str) -> Any:
@@ -172,6 +209,10 @@ class Recorder(Measurement[RecorderParams]):
         self._bound_warned = False
         self._cut_before_open = False
         self._services: list[Any] = []
+        self._poll_timer: Any = None
+        # Per topic index, while two subscriptions take it: (publisher's stamp, size) of what was kept.
+        self._overlap: dict[int, set[tuple[int, int]]] = {}
+        self._discovery_timer: Any = None
         self._save_log = BurstLog(context.logger.error, f"measurement {context.name}: incidents not saved")
         self.incidents = 0
         self.write_errors = 0
@@ -180,6 +221,33 @@ class Recorder(Measurement[RecorderParams]):
         self.incidents_dropped = 0
 
     # -- lifecycle -------------------------------------------------------------------------------
+    @property
+    def timer_driven(self) -> bool:
+        # Only conditions need judging at every poll; the other triggers are callbacks, and the windows
+        # they open are polled by the recorder's own timer while they need it (see _set_timers).
+        return self.has_trigger_conditions
+
+    def on_activate(self) -> None:
+        if self.timer_driven:
+            return
+        self._poll_timer = self.context.create_timer(OWN_POLL_S, lambda: self.on_poll(None))
+        self._discovery_timer = self.context.create_timer(DISCOVERY_PERIOD_S, self._discover)
+        self._set_timers()
+
+    def _set_timers(self) -> None:
+        """Without conditions: each own timer runs only while it has work (a cancelled timer never wakes)."""
+        if self._poll_timer is None:
+            return
+        busy = self._windows.open is not None or bool(self._closing) or bool(self._retrying) or self.writing > 0
+        for timer, needed in (
+            (self._poll_timer, busy),
+            (self._discovery_timer, any(self._pending(t) for t in self._topics)),
+        ):
+            if needed and timer.is_canceled():
+                timer.reset()
+            elif not needed and not timer.is_canceled():
+                timer.cancel()
+
     def on_configure(self) -> None:
         p = self.params
         try:
@@ -207,9 +275,10 @@ class Recorder(Measurement[RecorderParams]):
     def on_cleanup(self) -> None:
         node = self.context.node
         for topic in self._topics:
-            if topic.subscription is not None:
-                self.context.unsubscribe(topic.subscription)
-                topic.subscription = None
+            for subscription in (topic.subscription, topic.retiring):
+                if subscription is not None:
+                    self.context.unsubscribe(subscription)
+            topic.subscription = topic.retiring = None
         for entity in self._services:
             if hasattr(entity, "service_name"):
                 node.destroy_service(entity)
@@ -219,6 +288,10 @@ class Recorder(Measurement[RecorderParams]):
         self._ring.clear()
 
     def on_deactivate(self) -> None:
+        for timer in (self._poll_timer, self._discovery_timer):
+            if timer is not None:
+                self.context.destroy_timer(timer)
+        self._poll_timer = self._discovery_timer = None
         # An open window closes now; it and those waiting for their last messages are written here (the
         # records' publisher is already inactive): not lost with the ring, their records said in the log.
         incident = self._windows.open
@@ -248,19 +321,38 @@ class Recorder(Measurement[RecorderParams]):
             )
 
     # -- intake ----------------------------------------------------------------------------------
+    @staticmethod
+    def _pending(topic: _Topic) -> bool:
+        return topic.subscription is None or topic.early or topic.handover > 0
+
     def _discover(self) -> None:
-        missing = [t for t in self._topics if t.subscription is None]
-        if not missing:
+        pending = [t for t in self._topics if self._pending(t)]
+        if not pending:
             return
         node = self.context.node
-        types = dict(node.get_topic_names_and_types())
-        for topic in missing:
+        types: dict[str, list[str]] = {}
+        if any(not t.typename for t in pending):
+            types = dict(node.get_topic_names_and_types())
+        for topic in pending:
+            if topic.handover > 0:
+                topic.handover -= 1
+                if topic.retiring is not None:
+                    self.context.unsubscribe(topic.retiring)
+                    topic.retiring = None
+                if not topic.handover:
+                    self._overlap.pop(self._topics.index(topic), None)
+            if topic.subscription is not None:
+                if topic.early and node.count_publishers(topic.name):
+                    self._settle(topic)
+                continue
+            if topic.typename:
+                continue  # a type that is not installed here, said once
+            index = self._topics.index(topic)
+            declared = self.params.types[index] if self.params.types else ""
             typenames = types.get(topic.name)
-            # Only once it has a publisher: the QoS to subscribe with is the publishers' (and a topic this
-            # very server subscribes to, for a condition, is in the graph before anyone publishes it).
-            if topic.typename or not typenames or not node.count_publishers(topic.name):
-                continue  # (a typename without subscription: a type that is not installed, said once)
-            typename = typenames[0]
+            typename = declared or (typenames[0] if typenames else "")
+            if not typename:
+                continue
             topic.typename = typename
             try:
                 message_class = _message_class(typename)
@@ -270,17 +362,53 @@ class Recorder(Measurement[RecorderParams]):
                     f"its type is not installed here ({exc})"
                 )
                 continue
-            qos, latched, offered = _qos_of_publishers(node, topic.name)
-            topic.latched = latched
-            topic.channel = Channel(topic.name, typename, offered)
-            index = self._topics.index(topic)
-            topic.subscription = self.context.subscribe(
-                message_class, topic.name, functools.partial(self._on_message, index, latched), qos, raw=True
-            )
+            topic.message_class = message_class
+            if node.count_publishers(topic.name):
+                self._subscribe(topic, *_qos_of_publishers(node, topic.name))
+            else:
+                # (a topic this very server subscribes to, for a condition, is in the graph before anyone
+                # publishes it: its type is known, the QoS not yet)
+                topic.early = True
+                self._subscribe(topic, EARLY_QOS, False, "")
+        self._set_timers()
+
+    def _subscribe(self, topic: _Topic, qos: QoSProfile, latched: bool, offered: str) -> None:
+        topic.latched = latched
+        topic.channel = Channel(topic.name, topic.typename, offered)
+        index = self._topics.index(topic)
+        # A topic subscribed early may be taken by two subscriptions for a while (see _settle).
+        handler = self._on_message_once if topic.early or topic.retiring is not None else self._on_message
+        callback = functools.partial(handler, index, latched)
+        topic.subscription = self.context.subscribe(topic.message_class, topic.name, callback, qos, raw=True)
+
+    def _settle(self, topic: _Topic) -> None:
+        """A topic subscribed early now has publishers: their QoS goes in the file, and reliable or latching
+        ones get a subscription of their QoS, the early one kept until the next graph check."""
+        qos, latched, offered = _qos_of_publishers(self.context.node, topic.name)
+        topic.early = False
+        if qos.reliability == EARLY_QOS.reliability and not latched:
+            topic.channel = Channel(topic.name, topic.typename, offered)
+            return
+        # Until the early subscription goes, a message both take is kept once: by its publisher's
+        # stamp and size (a latching publisher also resends what the early one took already).
+        index = self._topics.index(topic)
+        self._overlap[index] = {(e[1], len(e[3])) for e in self._ring.between(0, NEVER) if e[2] == index}
+        topic.retiring = topic.subscription
+        topic.handover = 3
+        self._subscribe(topic, qos, latched, offered)
 
     def _on_message(self, index: int, latched: bool, data: bytes, info: Any) -> None:
         self._received[index] += 1
         self._ring.append(info["received_timestamp"], info["source_timestamp"], index, data, latched)
+
+    def _on_message_once(self, index: int, latched: bool, data: bytes, info: Any) -> None:
+        seen = self._overlap.get(index)
+        if seen is not None:
+            key = (info["source_timestamp"], len(data))
+            if key in seen:
+                return
+            seen.add(key)
+        self._on_message(index, latched, data, info)
 
     # -- triggers --------------------------------------------------------------------------------
     def _on_trigger_service(self, request: Any, response: Any) -> Any:
@@ -304,6 +432,7 @@ class Recorder(Measurement[RecorderParams]):
             oldest = self._ring.oldest_ns()
             self._cut_before_open = any(self._ring.lost_to_bound) and (oldest is None or oldest > start)
             self._ring.hold_from_ns = start
+            self._set_timers()
         self.context.logger.info(f"measurement {self.context.name}: trigger ({reason}): {outcome.value}")
         return outcome
 
@@ -325,6 +454,7 @@ class Recorder(Measurement[RecorderParams]):
             self._close(self._closing.popleft())
         while self._retrying and self._retrying[0].write_at_ns <= now_ns:
             self._close(self._retrying.popleft())
+        self._set_timers()
 
     def _check_bound(self, now_ns: int) -> None:
         """Said once: the bound lets messages go while no window needs them, so it holds less than pre_trigger."""
@@ -390,10 +520,10 @@ class Recorder(Measurement[RecorderParams]):
                 "messages": counts[index],
                 "bytes": sizes[index],
                 "lost_to_memory_bound": lost[index],
-                "absent": not topic.typename,
+                "absent": self._absent(index),
             }
             topics.append(entry)
-        absent = [t.name for t in self._topics if not t.typename]
+        absent = [t.name for i, t in enumerate(self._topics) if self._absent(i)]
         if absent and not self._absent_warned:
             self._absent_warned = True
             self.context.logger.warning(
@@ -411,6 +541,11 @@ class Recorder(Measurement[RecorderParams]):
         if remote:
             sample["remote_paths"] = {key: {"mcap": path} for key, path in remote.items()}
         return sample
+
+    def _absent(self, index: int) -> bool:
+        """Never seen: no type known, or subscribed early (``types``) and no publisher nor message since."""
+        topic = self._topics[index]
+        return (not topic.typename or topic.early) and not self._received[index]
 
     def _note_written(self, sample: dict[str, Any], written: Written) -> None:
         """The file's size in the record, and the types whose definition it lacks (warned once each)."""
@@ -442,10 +577,12 @@ class Recorder(Measurement[RecorderParams]):
                 self._save_log.event(
                     1, f"{sample['local_paths']['mcap']}: {exc}; dropped after {WRITE_TRIES} tries: {sample}"
                 )
+            self._set_timers()
             return
         self._note_written(sample, written)
         self.incidents += 1
         self.context.emit(sample, stamp_ns=int(sample["triggers"][0]["time"] * 1e9))
+        self._set_timers()
 
     def counters(self) -> dict[str, int]:
         w = self._windows

@@ -347,3 +347,106 @@ def test_a_file_that_cannot_be_written_is_kept_and_tried_again_then_dropped_coun
     # Every window opened is in a file or counted as dropped.
     assert counters()["triggers"] == counters()["incidents"] + counters()["incidents_dropped"] == 2
     ros.harness.stop(plugin)
+
+
+def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_first_message(
+    ros: Ros, tmp_path: Path
+) -> None:
+    # /odom's type given, /tf's learnt from the graph (a condition of the server subscribes to it first),
+    # the camera best effort (as sensor drivers publish) and the static transforms latched: none of them
+    # has a publisher when the recorder is configured. (No poll before the end: the window stays open.)
+    odom_topic, tf_topic, camera_topic, static_topic = (
+        unique(t) for t in ("/odom", "/tf", "/camera/compressed", "/tf_static")
+    )
+    tf_type = type(tf_message())
+    ros.node.create_subscription(tf_type, tf_topic, lambda _: None, VOLATILE)
+    plugin = ros.harness.make(
+        Recorder,
+        {
+            "topics": [odom_topic, tf_topic, camera_topic, static_topic],
+            "types": ["nav_msgs/msg/Odometry", "", "std_msgs/msg/String", "tf2_msgs/msg/TFMessage"],
+            "pre_trigger": 5.0,
+            "post_trigger": 0.2,
+        },
+    )
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    # Subscribed at configure, before any publisher: no graph check to wait for.
+    assert ros.node.count_subscribers(odom_topic) == 1 and ros.node.count_subscribers(tf_topic) == 2
+    odom = ros.publisher(Odometry, odom_topic, VOLATILE)
+    tf = ros.publisher(tf_type, tf_topic, VOLATILE, subscribers=2)
+    odom.publish(odometry(0.0, 0.0, 0.0))
+    tf.publish(tf_message(transform("odom", "base_link", 0.0, 0.0, 0.0)))
+    assert plugin.trigger("right away") is Outcome.OPENED
+    # Best effort and volatile, the early subscriptions match every publisher: a best-effort camera's too.
+    camera = ros.publisher(String, camera_topic, QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT))
+    static = ros.publisher(tf_type, static_topic, LATCHED)
+    static.publish(tf_message(transform("map", "odom", 1.0, 2.0, 0.0)))
+    camera.publish(String(data="frame"))
+    odom.publish(odometry(1.0, 0.0, 0.0))
+    # The graph check gives the reliable and the latching publishers a subscription of their QoS, and keeps
+    # the early one until the next check: a message both take (the latched one resent) is kept once.
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 5)  # odom 0 and 1, tf, static, camera
+    plugin._discover()
+    assert ros.node.count_subscribers(odom_topic) == 2 and ros.node.count_subscribers(static_topic) == 2
+    assert ros.spin_until(lambda: odom.get_subscription_count() == 2)
+    for i in range(2, 5):
+        odom.publish(odometry(float(i), 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 8)
+    plugin._discover()
+    assert ros.node.count_subscribers(odom_topic) == 1 and ros.node.count_subscribers(static_topic) == 1
+    assert plugin.trigger("then") is Outcome.EXTENDED
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted))
+    record = emitted[0].record
+    read = read_with_rosbags(record["local_paths"]["mcap"])
+    assert [int(m.pose.pose.position.x) for _, m in read[odom_topic]] == [0, 1, 2, 3, 4]
+    assert len(read[tf_topic]) == 1 and [m.data for _, m in read[camera_topic]] == ["frame"]
+    # The latched message once, though the early subscription may have taken it before the one that
+    # asks the publisher for its history.
+    ((_, static_message),) = read[static_topic]
+    assert static_message.transforms[0].transform.translation.y == 2.0
+    by_topic = {t["topic"]: t for t in record["topics"]}
+    assert [by_topic[t]["absent"] for t in (odom_topic, tf_topic, camera_topic, static_topic)] == [False] * 4
+    assert by_topic[tf_topic]["type"] == "tf2_msgs/msg/TFMessage"
+    ros.harness.stop(plugin)
+
+
+def test_types_needs_one_entry_per_topic() -> None:
+    from dc_core.errors import ConfigError
+    from dc_core.params import parse_params
+    from dc_measurements.recorder import RecorderParams
+
+    with pytest.raises(ConfigError, match=r"incidents\.types: one entry per topic \(2\), not 1"):
+        parse_params(RecorderParams, {"topics": ["/a", "/b"], "types": ["x/msg/Y"]}, "incidents")
+
+
+def test_without_conditions_an_idle_recorder_has_no_timer_running_and_polls_itself_while_a_window_needs_it(
+    ros: Ros, tmp_path: Path
+) -> None:
+    topic = unique("/odom")
+    odom = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    plugin = ros.harness.make(Recorder, {"topics": [topic], "pre_trigger": 1.0, "post_trigger": 0.1})
+    plugin.has_trigger_conditions = False  # as the server sets it for a measurement without conditions
+    assert not plugin.timer_driven  # the server makes no timer for it
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    timers = plugin._poll_timer, plugin._discovery_timer
+    # Its topic subscribed at configure: nothing to poll, nothing to look for in the graph.
+    assert all(t.is_canceled() for t in timers)
+    assert ros.spin_until(lambda: odom.get_subscription_count() == 1)
+    odom.publish(odometry(1.0, 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 1)
+    assert plugin.trigger("bumper") is Outcome.OPENED and not timers[0].is_canceled()
+    emitted = ros.harness.context(plugin).emitted
+
+    # Only spinning: the recorder's own timer closes the window and writes it, then stops.
+    def written() -> None:
+        ros.harness.run_finished_work(plugin)
+
+    assert ros.spin_until(lambda: bool(emitted) and timers[0].is_canceled(), written)
+    assert emitted[0].record["messages"] == 1
+    ros.harness.stop(plugin)
+    assert plugin._poll_timer is None
