@@ -36,6 +36,9 @@ DC_CACHE ?= $(or $(XDG_CACHE_HOME),$(HOME)/.cache)/dc
 UV_HOME := $(or $(DC_CACHE),$(CURDIR)/build)/uv-$(UV_VERSION)
 UV := $(UV_HOME)/bin/uv
 PIP_INSTALL := $(UV) pip install --python $(VPY)
+# $(call uv_install,ARGS): from uv's cache alone first (resolving the ~130 pins online costs 7 s or more of index
+# requests), from PyPI when something is not cached yet.
+uv_install = $(PIP_INSTALL) --offline $(1) || { echo "not all of it in uv's cache: from PyPI"; $(PIP_INSTALL) $(1); }
 CONSTRAINTS := $(CURDIR)/constraints.txt
 NPROC := $(shell nproc 2>/dev/null || echo 2)
 PARAMS ?= params/default.yaml
@@ -102,7 +105,7 @@ $(UV):
 # 1. venv + ROS wheels (and pip, for installing into the venv by hand as the docs show).
 $(VENV)/.stamp-ros: $(CONSTRAINTS) | $(UV)
 	test -x $(VPY) || $(PYTHON) -m venv --without-pip $(VENV)
-	$(PIP_INSTALL) -c $(CONSTRAINTS) pip $(ROS_PKGS)
+	$(call uv_install,-c $(CONSTRAINTS) pip $(ROS_PKGS))
 	touch $@
 
 # 2. Interface packages, built out of tree with plain cmake and installed into the venv prefix (the
@@ -137,7 +140,7 @@ $(VENV)/.stamp-tf2-msgs: $(VENV)/.stamp-ros $(TF2_MSGS_SRCS)
 
 # 3. DC itself, editable, with its core dependencies: what the default job (`make run`) needs.
 $(VENV)/.stamp-dc: $(VENV)/.stamp-interfaces $(VENV)/.stamp-lifecycle-interfaces $(VENV)/.stamp-tf2-msgs pyproject.toml
-	$(PIP_INSTALL) -c $(CONSTRAINTS) -e .
+	$(call uv_install,-c $(CONSTRAINTS) -e .)
 	touch $@
 
 # 4. The extras of the demos and of the tests, each over step 3; then the example plugin package of the custom
@@ -146,8 +149,8 @@ EXAMPLE_PLUGIN := examples/dc_uptime_custom
 # $(call install_extras,EXTRAS,what they bring): DC with these extras, then the example plugin package.
 define install_extras
 	@echo "installing into .venv: $(2); and $(EXAMPLE_PLUGIN)"
-	$(PIP_INSTALL) -c $(CONSTRAINTS) -e '.[$(1)]'
-	$(PIP_INSTALL) -c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN)
+	$(call uv_install,-c $(CONSTRAINTS) -e '.[$(1)]')
+	$(call uv_install,-c $(CONSTRAINTS) -e $(EXAMPLE_PLUGIN))
 	touch $@
 endef
 

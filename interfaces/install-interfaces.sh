@@ -2,7 +2,9 @@
 # Build one interface package (dc_interfaces, dc_lifecycle_interfaces, tf2_msgs) with plain cmake and install it
 # into the venv prefix, or restore the same install tree from the interface cache (called by the Makefile).
 #
-#   install-interfaces.sh SOURCE_DIR VENV BUILD_ROOT CACHE_DIR KEY_FILE...
+#   install-interfaces.sh [--archive] SOURCE_DIR VENV BUILD_ROOT CACHE_DIR KEY_FILE...
+#
+# --archive only prints where the build of these inputs is (or would be) cached.
 #
 # The cmake build is most of a fresh clone's install time (about 20 s per package on an idle 2-core machine,
 # minutes under load), and its result depends only on the package's sources, the ROS wheels it is built against,
@@ -15,6 +17,11 @@
 # removed first: a type taken out of a package must leave no generated file behind.
 set -euo pipefail
 
+print_archive=false
+if [ "$1" = --archive ]; then
+	print_archive=true
+	shift
+fi
 src=$1 venv=$2 build_root=$3 cache=$4
 shift 4
 name=$(basename "$src")
@@ -45,6 +52,10 @@ key=$(
 	} | sha256sum | cut -c1-24
 )
 archive=${cache:+$cache/$name-$key.tar}
+if $print_archive; then
+	echo "$archive"
+	exit 0
+fi
 
 if [ -n "$archive" ] && [ -f "$archive" ]; then
 	echo "$name: unpacking the build cached in $archive (same sources, ROS wheels, Python, cmake and compiler)"
