@@ -17,7 +17,9 @@
 #   make clean          remove build/ and the install stamps (keeps the venv)
 #   make distclean      clean + remove the venv
 #
-# `install` is stamp-driven: each step reruns only when its inputs change, so a second run is a no-op.
+# `install` is stamp-driven: each step reruns only when its inputs change, so a second run is a no-op. Across clones,
+# uv's wheel cache and $(DC_CACHE)/interfaces (the interface packages' builds) make a second clone's install take
+# seconds instead of minutes (README, "make install alone").
 
 SHELL := /bin/bash
 .SHELLFLAGS := -eu -o pipefail -c
@@ -113,9 +115,10 @@ $(VENV)/.stamp-ros: $(CONSTRAINTS) | $(UV)
 #    install tree unpacked from $(DC_CACHE)/interfaces when built before with the same inputs. What the
 #    previous install of a package put into this venv is removed first. See interfaces/install-interfaces.sh.
 IFACE_CACHE := $(if $(DC_CACHE),$(DC_CACHE)/interfaces)
-# $(call install_interfaces,SOURCE_DIR): the cache key covers the sources, these files, Python, cmake and c++.
+# $(call install_interfaces,SOURCE_DIR): the cache key covers the sources, these files, the venv's ROS wheels and
+# NumPy, Python, cmake and c++.
 install_interfaces = interfaces/install-interfaces.sh $(CURDIR)/$(1) $(VENV) $(CURDIR)/build '$(IFACE_CACHE)' \
-	$(IFACE_CMAKE) $(CONSTRAINTS) interfaces/install-interfaces.sh
+	$(IFACE_CMAKE) interfaces/install-interfaces.sh
 
 $(VENV)/.stamp-interfaces: $(VENV)/.stamp-ros $(IFACE_SRCS)
 	$(call install_interfaces,dc_interfaces)

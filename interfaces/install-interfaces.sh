@@ -43,9 +43,13 @@ remove_previous_install() {
 
 key=$(
 	{
-		# the package's sources and the given files (the shared cmake include, the ROS wheels' pins, this script)
+		# the package's sources and the given files (the shared cmake include, this script)
 		find "$src" -type f -print0 | LC_ALL=C sort -z | xargs -0 sha256sum | sed "s|  $src/|  |"
 		sha256sum "$@" | awk '{print $1}'
+		# what it is built against: the ROS wheels and NumPy in the venv, by name and version (not the whole
+		# constraints file: a pin added for a test extra must not cost every clone a rebuild)
+		find "$venv"/lib/python3*/site-packages -maxdepth 1 \( -name 'ros_*.dist-info' -o -name 'numpy-*.dist-info' \) \
+			-printf '%f\n' | LC_ALL=C sort
 		"$vpy" -c 'import sys, platform; print(sys.version, platform.machine())'
 		cmake --version | head -n 1
 		c++ --version | head -n 1

@@ -95,10 +95,12 @@ def test_a_second_clone_unpacks_the_cached_interface_build_into_its_own_venv(tmp
     # The script asks the venv's Python for the ROS libraries and Python's version: this test's Python.
     (venv / "bin" / "python").write_text(f'#!/bin/sh\nexec {sys.executable} "$@"\n')
     (venv / "bin" / "python").chmod(0o755)
+    site_packages = venv / "lib" / "python3.11" / "site-packages"
+    (site_packages / "ros_rclpy-7.1.6.dist-info").mkdir(parents=True)
 
     def run(*options: str, src: Path = REPO / "interfaces" / "tf2_msgs") -> subprocess.CompletedProcess[str]:
         argv = [str(INSTALL_INTERFACES), *options, str(src), str(venv), str(build), str(cache)]
-        argv += [str(REPO / "constraints.txt"), str(INSTALL_INTERFACES)]
+        argv.append(str(INSTALL_INTERFACES))
         return subprocess.run(argv, capture_output=True, text=True, timeout=60)
 
     archive = Path(run("--archive").stdout.strip())
@@ -108,6 +110,10 @@ def test_a_second_clone_unpacks_the_cached_interface_build_into_its_own_venv(tmp
     subprocess.run(["cp", "-r", str(REPO / "interfaces" / "tf2_msgs"), str(changed)], check=True)
     (changed / "msg" / "TFMessage.msg").write_text("geometry_msgs/TransformStamped[] transforms\nint32 more\n")
     assert run("--archive", src=changed).stdout.strip() != str(archive)
+    # So are other ROS wheels to build against.
+    (site_packages / "ros_rclpy-7.1.6.dist-info").rename(site_packages / "ros_rclpy-7.1.7.dist-info")
+    assert run("--archive").stdout.strip() != str(archive)
+    (site_packages / "ros_rclpy-7.1.7.dist-info").rename(site_packages / "ros_rclpy-7.1.6.dist-info")
 
     tree = tmp_path / "tree"
     (tree / "share" / "tf2_msgs").mkdir(parents=True)
