@@ -42,7 +42,6 @@ PIP_INSTALL := $(UV) pip install --python $(VPY)
 # requests), from PyPI when something is not cached yet.
 uv_install = $(PIP_INSTALL) --offline $(1) || { echo "not all of it in uv's cache: from PyPI"; $(PIP_INSTALL) $(1); }
 CONSTRAINTS := $(CURDIR)/constraints.txt
-NPROC := $(shell nproc 2>/dev/null || echo 2)
 PARAMS ?= params/default.yaml
 PYTEST_ARGS ?=
 # Test files run in parallel workers (a file's tests stay in one worker, sharing its servers): most of the suite's
