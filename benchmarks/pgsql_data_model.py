@@ -44,8 +44,9 @@ sys.path.insert(0, str(REPO))
 
 from benchmarks.storage import _client_cpu, _tree_cpu  # noqa: E402
 from dc_bringup.local_servers.postgres import PostgresServer  # noqa: E402
-from dc_core.destination import OutgoingRecord  # noqa: E402
+from dc_core.destination import OutgoingRecord, StoredRecord  # noqa: E402
 from dc_core.params import parse_params  # noqa: E402
+from dc_core.records import dump_record  # noqa: E402
 from dc_core.testing import FakeContext, RecordingLogger  # noqa: E402
 from dc_destinations.pgsql import PgSQL, PgSQLParams  # noqa: E402
 from dc_destinations.record_ids import new_record_id  # noqa: E402
@@ -142,7 +143,7 @@ def time_queries(server: PostgresServer, runs: int, only: str = "", suffix: str 
     return figures
 
 
-def insert_records(n: int) -> list[OutgoingRecord]:
+def insert_records(n: int) -> list[StoredRecord]:
     start = time.time_ns()
     out = []
     for i in range(n):
@@ -157,7 +158,9 @@ def insert_records(n: int) -> list[OutgoingRecord]:
             "tags": ["pg"],
             "record_id": rid,
         }
-        out.append(OutgoingRecord(rid, "/dc/measurement/cpu", start + i * 1_000_000, data))
+        # As the destination server's sender hands them over: read back from the buffer with their JSON
+        # text, ``data`` parsed only by a destination that reads it.
+        out.append(StoredRecord(rid, "/dc/measurement/cpu", start + i * 1_000_000, json_text=dump_record(data)))
     return out
 
 
