@@ -94,16 +94,20 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
     started = time.monotonic()
     with server.connect() as connection:
         for name, every, fields in MEASUREMENTS:
+            # In time order, the robots' rows side by side at each instant, as a fleet inserts them:
+            # one robot's rows of a measurement are then on as many heap pages as they are rows (a
+            # robot-by-robot order would put them on a few hundred pages and flatter the queries).
             connection.execute(
                 f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id)
                 SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run
                 FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
                           'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
                           'tags', jsonb_build_array('pg')) AS data
-                      FROM generate_series(1, {robots}) AS r,
-                           generate_series(timestamptz '{DAY} 00:00Z' + r * interval '10 ms',
+                      FROM generate_series(timestamptz '{DAY} 00:00Z',
                                            timestamptz '{DAY} 00:00Z' + interval '{hours} hours' - interval '1 s',
-                                           interval '{every} s') AS t,
+                                           interval '{every} s') AS t0,
+                           LATERAL (SELECT r, t0 + r * interval '10 ms' AS t
+                                    FROM generate_series(1, {robots}) AS r) AS rt,
                            LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
                                            1 + floor(extract(epoch FROM t - timestamptz '{DAY} 00:00Z') / 7200)::bigint
                                              AS run) AS k) AS rows"""
@@ -117,11 +121,15 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
     return int(rows), time.monotonic() - started
 
 
-def time_queries(server: PostgresServer, runs: int, only: str = "", suffix: str = "") -> dict[str, dict[str, float]]:
-    found = dict(re.findall(r"<!-- query: (\w+) -->\n```sql\n(.*?)```", PAGE.read_text(), re.S))
-    if only:
-        found = {only + suffix: found[only]}
-    figures = {}
+def page_queries() -> dict[str, str]:
+    return dict(re.findall(r"<!-- query: (\w+) -->\n```sql\n(.*?)```", PAGE.read_text(), re.S))
+
+
+def time_queries(server: PostgresServer, runs: int) -> dict[str, dict[str, Any]]:
+    """Each query of the page on table dc, warm: one warm-up, then ``runs`` runs (wall time at the client,
+    execute and fetch) and the server's execution time of one more (``EXPLAIN ANALYZE``)."""
+    found = {k: v for k, v in page_queries().items() if k != "files"}  # files_metrics: not generated here
+    figures: dict[str, dict[str, Any]] = {}
     with server.connect() as connection:
         for name, query in found.items():
             text = query.encode()
@@ -135,11 +143,40 @@ def time_queries(server: PostgresServer, runs: int, only: str = "", suffix: str 
             figures[name] = {
                 "median_ms": statistics.median(times),
                 "max_ms": max(times),
+                "runs_ms": [round(t, 1) for t in times],
                 "server_ms": explained["Execution Time"],  # the server's own time, without the client's
                 "rows": len(got),
+                "load_average_1min": os.getloadavg()[0],
             }
-            print(f"{name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
-                  f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)", flush=True)  # fmt: skip
+            print(f"warm {name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
+                  f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)"
+                  f"  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
+    return figures
+
+
+def time_cold(server: PostgresServer, rounds: int) -> dict[str, dict[str, Any]]:
+    """Each query's first run after a restart of the server (its shared buffers empty; the OS's page
+    cache may still hold pages: dropping it would slow every other job of a shared machine), ``rounds`` times."""
+    found = {k: v for k, v in page_queries().items() if k != "files"}
+    times: dict[str, list[float]] = {name: [] for name in found}
+    for _ in range(rounds):
+        for name, query in found.items():
+            server.stop()
+            server.start()
+            with server.connect() as connection:
+                connection.execute("SELECT 1")  # the connection's own start, not the query's
+                started = time.perf_counter()
+                connection.execute(query.encode()).fetchall()
+                times[name].append((time.perf_counter() - started) * 1000)
+    figures = {}
+    for name, runs in times.items():
+        figures[name] = {
+            "median_ms": statistics.median(runs),
+            "max_ms": max(runs),
+            "runs_ms": [round(t, 1) for t in runs],
+        }
+        print(f"cold {name:16} median {statistics.median(runs):7.1f} ms  max {max(runs):7.1f} ms"
+              f"  runs {figures[name]['runs_ms']}  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
     return figures
 
 
@@ -171,6 +208,7 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     # machine inflates far less than the wall time.
     cpu_us: dict[str, list[float]] = {s: [] for s in shapes}
     pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    loads: list[float] = []  # the 1-minute load average at the end of each round
     for k in range(rounds):
         order = shapes[k % 3 :] + shapes[: k % 3]  # each shape goes first once in three rounds
         for shape in order:
@@ -190,6 +228,7 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
             rates[shape].append((n - BATCH) / (time.perf_counter() - started))
             cpu_us[shape].append((_client_cpu() + _tree_cpu(pid) - cpu) / (n - BATCH) * 1e6)
             dest.on_deactivate()
+        loads.append(os.getloadavg()[0])
     medians = {s: statistics.median(r) for s, r in rates.items()}
     ratios = [[rates[s][k] / rates["original"][k] for k in range(rounds)] for s in shapes[1:]]
     cpu_ratios = [[cpu_us[s][k] / cpu_us["original"][k] for k in range(rounds)] for s in shapes[1:]]
@@ -199,6 +238,8 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
         "rows_per_s": rates,
         "median_rows_per_s": medians,
         "ratio_to_original": {s: statistics.median(r) for s, r in zip(shapes[1:], ratios, strict=True)},
+        "per_round_ratios": {s: [round(x, 3) for x in r] for s, r in zip(shapes[1:], ratios, strict=True)},
+        "load_average_1min_per_round": loads,
     }
     for s in shapes:
         print(f"insert {s:10} {medians[s]:9,.0f} rows/s  runs {[round(r) for r in rates[s]]}"
@@ -208,47 +249,42 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     return result
 
 
+def load() -> list[float]:
+    """The 1, 5 and 15-minute load averages (the machine is shared: every figure is read with them)."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=100, help="0: the insert rate only")
     parser.add_argument("--hours", type=int, default=24)
-    parser.add_argument("--runs", type=int, default=7)
+    parser.add_argument("--runs", type=int, default=15, help="warm runs of each query")
+    parser.add_argument("--cold-runs", type=int, default=3, help="runs of each query right after a server restart")
     parser.add_argument("--insert-records", type=int, default=50_000)
-    parser.add_argument("--insert-runs", type=int, default=3)
+    parser.add_argument("--insert-runs", type=int, default=7)
     parser.add_argument("--label", default="")
-    parser.add_argument("--run-index", action="store_true", help="then add an index with run_id and time path again")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="dc-bench-model-"))
     server = PostgresServer(folder, password="bench-model-1")
+    result: dict[str, Any] = {"date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "robots": args.robots}
     try:
         server.start()
-        inserts = time_inserts(server, args.insert_records, args.insert_runs) if args.insert_runs else {}
-        if not args.robots:
-            print(json.dumps(inserts, indent=2))
-            return
-        rows, seconds = generate(server, args.robots, args.hours)
-        load = os.getloadavg()[0]
-        queries = time_queries(server, args.runs)
-        if args.run_index:
-            # The index a team that asks mostly by run adds (docs/data-model.md): the path query again.
-            with server.connect() as connection:
-                connection.execute("CREATE INDEX dc_robot_run_name_time ON dc (robot_name, run_id, name, time)")
-                connection.execute("ANALYZE dc")
-            queries.update(time_queries(server, args.runs, "path", "_with_run_index"))
-        load = max(load, os.getloadavg()[0])
+        if args.insert_runs:
+            result["load_before_insert"] = load()
+            result["insert"] = time_inserts(server, args.insert_records, args.insert_runs)
+            result["load_after_insert"] = load()
+        if args.robots:
+            rows, seconds = generate(server, args.robots, args.hours)
+            result.update(hours=args.hours, rows=rows, generate_s=seconds, load_before_queries=load())
+            result["queries"] = time_queries(server, args.runs)
+            result["load_after_warm_queries"] = load()
+            if args.cold_runs:
+                result["queries_cold"] = time_cold(server, args.cold_runs)
+                result["load_after_cold_queries"] = load()
     finally:
         server.stop()
         shutil.rmtree(folder, ignore_errors=True)
-    result = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "robots": args.robots,
-        "hours": args.hours,
-        "rows": rows,
-        "generate_s": seconds,
-        "queries": queries,
-        "load_average_1min": load,  # the machine is shared: the highest 1-minute load seen while timing
-        "insert": inserts,
-    }
+    print(f"load averages (1, 5, 15 min): {[(k, v) for k, v in result.items() if k.startswith('load')]}")
     label = f"_{args.label}" if args.label else ""
     out = REPO / "benchmarks" / "results" / f"pgsql_data_model_{dt.date.today()}{label}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
