@@ -1,25 +1,30 @@
 """The records table of DC's shape at fleet scale: the team queries of docs/data-model.md, and the insert rate.
 
-    .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 7]
-                                                    [--insert-records 50000] [--insert-runs 3] [--label NAME]
-                                                    [--run-index]
+    .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 15] [--cold-runs 3]
+                                                    [--insert-records 50000] [--insert-runs 7]
+                                                    [--index-runs 0] [--label NAME]
 
-Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers) and:
+Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers, a folder under /tmp, removed
+at the end) and, printing the load averages of each phase (the machine may be shared):
 
+- insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
+  500, handed over as the sender does: read back from the buffer with their JSON text) into a
+  fresh table of the original's shape (``tag, time timestamp, data, record_id``: what DC wrote
+  until now), of DC's new shape, and of DC's new shape partitioned by day; the three take turns,
+  --insert-runs rounds; rows/s and CPU per row (client and server) per round, medians, and the
+  medians of the per-round ratios to the original's shape.
+- index costs (--index-runs N): the server's CPU per row of a binary COPY of the same rows into
+  tables that differ only in their indexes, N rounds in turns.
 - queries: the PgSQL destination creates table ``dc`` (``partition_by: day``), then the server
   generates --robots robots x --hours hours of records on 2026-11-25 (UTC) into it with one
-  ``INSERT … SELECT`` from ``generate_series`` per measurement (the bulk way; DC's own insert rate is
-  measured below): per robot ``position`` every 2.5 s, ``cpu`` and ``memory`` every 5 s and
-  ``front_camera`` (two codes) every 20 s — 0.85 records/s, the rate issue 29 measured — in runs of
-  2 hours (run 12 is the last of the day), with the keys the measurement server adds. Then
-  ``VACUUM ANALYZE``, and each query of docs/data-model.md as written there (robot-007, run 12):
-  one warm-up, then --runs runs, wall time at the client (execute and fetch), median and max, and
-  the server's execution time of one more run (``EXPLAIN ANALYZE``). With --run-index, the path
-  query again after ``CREATE INDEX … (robot_name, run_id, name, time)``.
-- insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
-  500) into a fresh table of the original's shape (``tag, time timestamp, data, record_id``: what
-  DC wrote until now), of DC's new shape, and of DC's new shape partitioned by day; the three take
-  turns, --insert-runs rounds; rows/s per round, median, and the ratios to the original's shape.
+  ``INSERT … SELECT`` from ``generate_series`` per measurement, in time order (the robots' rows
+  side by side, as a fleet inserts them): per robot ``position`` every 2.5 s, ``cpu`` and
+  ``memory`` every 5 s and ``front_camera`` (two codes) every 20 s — 0.85 records/s, the rate
+  issue 29 measured — in runs of 2 hours (run 12 is the last of the day), with the keys the
+  measurement server adds. Then ``VACUUM ANALYZE``, and each query of docs/data-model.md as
+  written there (robot-007, run 12): warm, one warm-up then --runs runs, wall time at the client
+  (execute and fetch), median and max, and the server's execution time of one more run
+  (``EXPLAIN ANALYZE``); cold, the first run after a restart of the server, --cold-runs times.
 
 JSON in benchmarks/results/pgsql_data_model_<date>[_<label>].json.
 """
@@ -249,6 +254,90 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     return result
 
 
+# What each index of the typed table costs the server per row: a binary COPY of the same rows
+# (made once, so the client's part is the same in every case) into tables that differ only in
+# their indexes. (columns, index statements, COPY types)
+_ORIGINAL = "tag varchar, time timestamp, data jsonb, record_id text"
+_TYPED = (
+    "tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL, name text, robot_name text,"
+    " run_id bigint"
+)
+_UNIQUE = "CREATE UNIQUE INDEX ON {t} (robot_name, name, time, record_id) NULLS NOT DISTINCT"
+_RUN = "CREATE INDEX ON {t} (robot_name, run_id, name, time)"
+_BRIN = "CREATE INDEX ON {t} USING brin (time)"
+INDEX_SETS = {
+    "original (unique record_id)": (_ORIGINAL, ["CREATE UNIQUE INDEX ON {t} (record_id)"]),
+    "typed, no index": (_TYPED, []),
+    "typed + unique (robot_name, name, time, record_id)": (_TYPED, [_UNIQUE]),
+    "typed + that + (robot_name, run_id, name, time)": (_TYPED, [_UNIQUE, _RUN]),
+    "typed + that + BRIN (DC's default)": (_TYPED, [_UNIQUE, _RUN, _BRIN]),
+    "typed, the two indexes before (unique record_id, (robot_name, name, time), BRIN)": (
+        _TYPED,
+        ["CREATE UNIQUE INDEX ON {t} (record_id)", "CREATE INDEX ON {t} (robot_name, name, time)", _BRIN],
+    ),
+}
+
+
+def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
+    import orjson
+
+    from dc_destinations.pgsql import json_text_binary_dumper
+
+    records = insert_records(n)
+    epoch = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+    typed, original = [], []
+    for r in records:
+        assert r.json_text is not None
+        data = orjson.loads(r.json_text)
+        moment = epoch + dt.timedelta(microseconds=r.stamp_ns // 1000)
+        typed.append(("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"])))
+        original.append(("pg", moment.replace(tzinfo=None), r.json_text, r.record_id))
+    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    names = list(INDEX_SETS)
+    cpu: dict[str, list[float]] = {name: [] for name in names}
+    with server.connect() as connection:
+        connection.autocommit = True
+        connection.adapters.register_dumper(None, json_text_binary_dumper())
+        for k in range(rounds):
+            for j, name in enumerate(names[k % len(names) :] + names[: k % len(names)]):
+                columns, indexes = INDEX_SETS[name]
+                table = f"index_cost_{k}_{j}"
+                connection.execute(f"CREATE TABLE {table} ({columns})")
+                for statement in indexes:
+                    connection.execute(statement.format(t=table))
+                legacy = columns == _ORIGINAL
+                rows = original if legacy else typed
+                written = "tag, time, data, record_id" + ("" if legacy else ", name, robot_name, run_id")
+                types = ["varchar", "timestamp", "jsonb", "text"] if legacy else TYPED_COPY_TYPES
+                before = _tree_cpu(pid)
+                for i in range(0, n, BATCH):
+                    with (
+                        connection.cursor() as cursor,
+                        cursor.copy(f"COPY {table} ({written}) FROM STDIN (FORMAT BINARY)") as copy,
+                    ):
+                        copy.set_types(types)
+                        for row in rows[i : i + BATCH]:
+                            copy.write_row(row)
+                cpu[name].append((_tree_cpu(pid) - before) / n * 1e6)
+                connection.execute(f"DROP TABLE {table}")
+    base = cpu[names[0]]
+    result = {
+        name: {
+            "server_cpu_us_per_row": statistics.median(runs),
+            "ratio_to_original": statistics.median([a / b for a, b in zip(runs, base, strict=True)]),
+            "runs": [round(x, 1) for x in runs],
+        }
+        for name, runs in cpu.items()
+    }
+    for name, figures in result.items():
+        print(f"server CPU {figures['server_cpu_us_per_row']:5.1f} µs/row  x{figures['ratio_to_original']:.2f}  {name}",
+              flush=True)  # fmt: skip
+    return result
+
+
+TYPED_COPY_TYPES = ["text", "timestamptz", "jsonb", "text", "text", "text", "int8"]
+
+
 def load() -> list[float]:
     """The 1, 5 and 15-minute load averages (the machine is shared: every figure is read with them)."""
     return [round(x, 2) for x in os.getloadavg()]
@@ -262,6 +351,7 @@ def main() -> None:
     parser.add_argument("--cold-runs", type=int, default=3, help="runs of each query right after a server restart")
     parser.add_argument("--insert-records", type=int, default=50_000)
     parser.add_argument("--insert-runs", type=int, default=7)
+    parser.add_argument("--index-runs", type=int, default=0, help="rounds of the server's CPU per row per index set")
     parser.add_argument("--label", default="")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="dc-bench-model-"))
@@ -273,6 +363,10 @@ def main() -> None:
             result["load_before_insert"] = load()
             result["insert"] = time_inserts(server, args.insert_records, args.insert_runs)
             result["load_after_insert"] = load()
+        if args.index_runs:
+            result["load_before_index_costs"] = load()
+            result["index_costs"] = time_index_costs(server, args.insert_records, args.index_runs)
+            result["load_after_index_costs"] = load()
         if args.robots:
             rows, seconds = generate(server, args.robots, args.hours)
             result.update(hours=args.hours, rows=rows, generate_s=seconds, load_before_queries=load())
