@@ -82,7 +82,7 @@ class TableShape:
             if key in self.unique_keys:
                 return key.strip("{}").replace(",", ", ")
         if "{name,record_id,robot_name,time}" in self.unique_keys:
-            return "robot_name, name, time, record_id"  # the one btree of a table DC made on PostgreSQL 15+
+            return "robot_name, name, time, record_id"  # a partitioned table DC made on PostgreSQL 15+
         return None
 
     def copy_types(self) -> list[str] | None:
@@ -116,20 +116,21 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str) -> N
                 + (" PARTITION BY RANGE (time)" if partitioned else "")
             ).format(table)
         )
-        if connection.info.server_version >= 150000:
-            # One btree is both the team's (robot_name, name, time) index and the unique key a retried
-            # batch meets: the record_id decides the rest of the key (robot, name and time come from
-            # the record itself), so a record sent again has the same four values, and NULLS NOT
-            # DISTINCT makes that hold for a record without robot or name too. A btree less for
-            # every insert than two indexes (docs/data-model.md, measured).
+        if partitioned and connection.info.server_version >= 150000:
+            # A unique index of a partitioned table must hold the partition key, time: then one btree
+            # is both the team's (robot_name, name, time) index and the key a retried batch meets.
+            # Robot and name come from the record's text, the same in every copy of it; time, like
+            # the (record_id, time) key it replaces, from its stamp or timestamp_key (a copy stored
+            # twice by NATS and ingested with two stamps is two rows, in both). NULLS NOT DISTINCT:
+            # a record without robot or name is met too. One btree less for every insert than two
+            # indexes (docs/performance.md, measured).
             connection.execute(
                 sql.SQL(
                     "CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time, record_id) NULLS NOT DISTINCT"
                 ).format(_index_name(base, "robot_name_time"), table)
             )
         else:
-            # A unique index of a partitioned table must hold the partition key: record_id with time,
-            # which DC derives from the record itself, so a retried record has the same pair.
+            # Not partitioned: record_id alone is unique, whatever time a copy of the record carries.
             unique = "record_id, time" if partitioned else "record_id"
             connection.execute(
                 sql.SQL("CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (" + unique + ")").format(
