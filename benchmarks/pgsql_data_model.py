@@ -265,16 +265,15 @@ _TYPED = (
 _UNIQUE = "CREATE UNIQUE INDEX ON {t} (robot_name, name, time, record_id) NULLS NOT DISTINCT"
 _RUN = "CREATE INDEX ON {t} (robot_name, run_id, name, time)"
 _BRIN = "CREATE INDEX ON {t} USING brin (time)"
+_RECORD_ID = "CREATE UNIQUE INDEX ON {t} (record_id)"
+_TEAM = "CREATE INDEX ON {t} (robot_name, name, time)"
 INDEX_SETS = {
-    "original (unique record_id)": (_ORIGINAL, ["CREATE UNIQUE INDEX ON {t} (record_id)"]),
+    "original's shape: UNIQUE (record_id)": (_ORIGINAL, [_RECORD_ID]),
     "typed, no index": (_TYPED, []),
-    "typed + unique (robot_name, name, time, record_id)": (_TYPED, [_UNIQUE]),
-    "typed + that + (robot_name, run_id, name, time)": (_TYPED, [_UNIQUE, _RUN]),
-    "typed + that + BRIN (DC's default)": (_TYPED, [_UNIQUE, _RUN, _BRIN]),
-    "typed, the two indexes before (unique record_id, (robot_name, name, time), BRIN)": (
-        _TYPED,
-        ["CREATE UNIQUE INDEX ON {t} (record_id)", "CREATE INDEX ON {t} (robot_name, name, time)", _BRIN],
-    ),
+    "typed: UNIQUE (record_id), (robot_name, name, time)": (_TYPED, [_RECORD_ID, _TEAM]),
+    "typed: those + run index + BRIN (DC's plain table)": (_TYPED, [_RECORD_ID, _TEAM, _RUN, _BRIN]),
+    "typed: UNIQUE (robot_name, name, time, record_id)": (_TYPED, [_UNIQUE]),
+    "typed: that + run index + BRIN (DC's partitioned table)": (_TYPED, [_UNIQUE, _RUN, _BRIN]),
 }
 
 

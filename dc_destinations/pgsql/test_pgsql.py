@@ -495,7 +495,7 @@ def test_partition_by_day_makes_partitions_ahead_and_drops_the_expired(
     _, indexes, partitions = table_facts(server, "daily")
     expected = {f"daily_p{today + dt.timedelta(days=n):%Y%m%d}" for n in range(3)} | {f"daily_p{old:%Y%m%d}"}
     assert set(partitions) == expected, "today, two days ahead, and the day of the late record"
-    # Partitioned, the team's index is the unique key too (PostgreSQL 15+): one btree less for every insert.
+    # Partitioned, the team's index is the unique key too (PostgreSQL 15+): one btree where two were.
     unique = 'UNIQUE INDEX daily_robot_name_time ON ONLY public.daily USING btree (robot_name, name, "time", record_id)'
     assert any(i.startswith("CREATE " + unique) and "NULLS NOT DISTINCT" in i for i in indexes), indexes
     assert any('(robot_name, run_id, name, "time")' in i for i in indexes), indexes
