@@ -1,25 +1,30 @@
 """The records table of DC's shape at fleet scale: the team queries of docs/data-model.md, and the insert rate.
 
-    .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 7]
-                                                    [--insert-records 50000] [--insert-runs 3] [--label NAME]
-                                                    [--run-index]
+    .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 15] [--cold-runs 3]
+                                                    [--insert-records 50000] [--insert-runs 7]
+                                                    [--index-runs 0] [--label NAME]
 
-Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers) and:
+Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers, a folder under /tmp, removed
+at the end) and, printing the load averages of each phase (the machine may be shared):
 
+- insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
+  500, handed over as the sender does: read back from the buffer with their JSON text) into a
+  fresh table of the original's shape (``tag, time timestamp, data, record_id``: what DC wrote
+  until now), of DC's new shape, and of DC's new shape partitioned by day; the three take turns,
+  --insert-runs rounds; rows/s and CPU per row (client and server) per round, medians, and the
+  medians of the per-round ratios to the original's shape.
+- index costs (--index-runs N): the server's CPU per row of a binary COPY of the same rows into
+  tables that differ only in their indexes, N rounds in turns.
 - queries: the PgSQL destination creates table ``dc`` (``partition_by: day``), then the server
   generates --robots robots x --hours hours of records on 2026-11-25 (UTC) into it with one
-  ``INSERT … SELECT`` from ``generate_series`` per measurement (the bulk way; DC's own insert rate is
-  measured below): per robot ``position`` every 2.5 s, ``cpu`` and ``memory`` every 5 s and
-  ``front_camera`` (two codes) every 20 s — 0.85 records/s, the rate issue 29 measured — in runs of
-  2 hours (run 12 is the last of the day), with the keys the measurement server adds. Then
-  ``VACUUM ANALYZE``, and each query of docs/data-model.md as written there (robot-007, run 12):
-  one warm-up, then --runs runs, wall time at the client (execute and fetch), median and max, and
-  the server's execution time of one more run (``EXPLAIN ANALYZE``). With --run-index, the path
-  query again after ``CREATE INDEX … (robot_name, run_id, name, time)``.
-- insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
-  500) into a fresh table of the original's shape (``tag, time timestamp, data, record_id``: what
-  DC wrote until now), of DC's new shape, and of DC's new shape partitioned by day; the three take
-  turns, --insert-runs rounds; rows/s per round, median, and the ratios to the original's shape.
+  ``INSERT … SELECT`` from ``generate_series`` per measurement, in time order (the robots' rows
+  side by side, as a fleet inserts them): per robot ``position`` every 2.5 s, ``cpu`` and
+  ``memory`` every 5 s and ``front_camera`` (two codes) every 20 s — 0.85 records/s, the rate
+  issue 29 measured — in runs of 2 hours (run 12 is the last of the day), with the keys the
+  measurement server adds. Then ``VACUUM ANALYZE``, and each query of docs/data-model.md as
+  written there (robot-007, run 12): warm, one warm-up then --runs runs, wall time at the client
+  (execute and fetch), median and max, and the server's execution time of one more run
+  (``EXPLAIN ANALYZE``); cold, the first run after a restart of the server, --cold-runs times.
 
 JSON in benchmarks/results/pgsql_data_model_<date>[_<label>].json.
 """
@@ -44,8 +49,9 @@ sys.path.insert(0, str(REPO))
 
 from benchmarks.storage import _client_cpu, _tree_cpu  # noqa: E402
 from dc_bringup.local_servers.postgres import PostgresServer  # noqa: E402
-from dc_core.destination import OutgoingRecord  # noqa: E402
+from dc_core.destination import OutgoingRecord, StoredRecord  # noqa: E402
 from dc_core.params import parse_params  # noqa: E402
+from dc_core.records import dump_record  # noqa: E402
 from dc_core.testing import FakeContext, RecordingLogger  # noqa: E402
 from dc_destinations.pgsql import PgSQL, PgSQLParams  # noqa: E402
 from dc_destinations.record_ids import new_record_id  # noqa: E402
@@ -93,16 +99,20 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
     started = time.monotonic()
     with server.connect() as connection:
         for name, every, fields in MEASUREMENTS:
+            # In time order, the robots' rows side by side at each instant, as a fleet inserts them:
+            # one robot's rows of a measurement are then on as many heap pages as they are rows (a
+            # robot-by-robot order would put them on a few hundred pages and flatter the queries).
             connection.execute(
                 f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id)
                 SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run
                 FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
                           'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
                           'tags', jsonb_build_array('pg')) AS data
-                      FROM generate_series(1, {robots}) AS r,
-                           generate_series(timestamptz '{DAY} 00:00Z' + r * interval '10 ms',
+                      FROM generate_series(timestamptz '{DAY} 00:00Z',
                                            timestamptz '{DAY} 00:00Z' + interval '{hours} hours' - interval '1 s',
-                                           interval '{every} s') AS t,
+                                           interval '{every} s') AS t0,
+                           LATERAL (SELECT r, t0 + r * interval '10 ms' AS t
+                                    FROM generate_series(1, {robots}) AS r) AS rt,
                            LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
                                            1 + floor(extract(epoch FROM t - timestamptz '{DAY} 00:00Z') / 7200)::bigint
                                              AS run) AS k) AS rows"""
@@ -116,11 +126,15 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
     return int(rows), time.monotonic() - started
 
 
-def time_queries(server: PostgresServer, runs: int, only: str = "", suffix: str = "") -> dict[str, dict[str, float]]:
-    found = dict(re.findall(r"<!-- query: (\w+) -->\n```sql\n(.*?)```", PAGE.read_text(), re.S))
-    if only:
-        found = {only + suffix: found[only]}
-    figures = {}
+def page_queries() -> dict[str, str]:
+    return dict(re.findall(r"<!-- query: (\w+) -->\n```sql\n(.*?)```", PAGE.read_text(), re.S))
+
+
+def time_queries(server: PostgresServer, runs: int) -> dict[str, dict[str, Any]]:
+    """Each query of the page on table dc, warm: one warm-up, then ``runs`` runs (wall time at the client,
+    execute and fetch) and the server's execution time of one more (``EXPLAIN ANALYZE``)."""
+    found = {k: v for k, v in page_queries().items() if k != "files"}  # files_metrics: not generated here
+    figures: dict[str, dict[str, Any]] = {}
     with server.connect() as connection:
         for name, query in found.items():
             text = query.encode()
@@ -134,15 +148,44 @@ def time_queries(server: PostgresServer, runs: int, only: str = "", suffix: str 
             figures[name] = {
                 "median_ms": statistics.median(times),
                 "max_ms": max(times),
+                "runs_ms": [round(t, 1) for t in times],
                 "server_ms": explained["Execution Time"],  # the server's own time, without the client's
                 "rows": len(got),
+                "load_average_1min": os.getloadavg()[0],
             }
-            print(f"{name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
-                  f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)", flush=True)  # fmt: skip
+            print(f"warm {name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
+                  f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)"
+                  f"  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
     return figures
 
 
-def insert_records(n: int) -> list[OutgoingRecord]:
+def time_cold(server: PostgresServer, rounds: int) -> dict[str, dict[str, Any]]:
+    """Each query's first run after a restart of the server (its shared buffers empty; the OS's page
+    cache may still hold pages: dropping it would slow every other job of a shared machine), ``rounds`` times."""
+    found = {k: v for k, v in page_queries().items() if k != "files"}
+    times: dict[str, list[float]] = {name: [] for name in found}
+    for _ in range(rounds):
+        for name, query in found.items():
+            server.stop()
+            server.start()
+            with server.connect() as connection:
+                connection.execute("SELECT 1")  # the connection's own start, not the query's
+                started = time.perf_counter()
+                connection.execute(query.encode()).fetchall()
+                times[name].append((time.perf_counter() - started) * 1000)
+    figures = {}
+    for name, runs in times.items():
+        figures[name] = {
+            "median_ms": statistics.median(runs),
+            "max_ms": max(runs),
+            "runs_ms": [round(t, 1) for t in runs],
+        }
+        print(f"cold {name:16} median {statistics.median(runs):7.1f} ms  max {max(runs):7.1f} ms"
+              f"  runs {figures[name]['runs_ms']}  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
+    return figures
+
+
+def insert_records(n: int) -> list[StoredRecord]:
     start = time.time_ns()
     out = []
     for i in range(n):
@@ -157,7 +200,9 @@ def insert_records(n: int) -> list[OutgoingRecord]:
             "tags": ["pg"],
             "record_id": rid,
         }
-        out.append(OutgoingRecord(rid, "/dc/measurement/cpu", start + i * 1_000_000, data))
+        # As the destination server's sender hands them over: read back from the buffer with their JSON
+        # text, ``data`` parsed only by a destination that reads it.
+        out.append(StoredRecord(rid, "/dc/measurement/cpu", start + i * 1_000_000, json_text=dump_record(data)))
     return out
 
 
@@ -168,6 +213,7 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     # machine inflates far less than the wall time.
     cpu_us: dict[str, list[float]] = {s: [] for s in shapes}
     pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    loads: list[float] = []  # the 1-minute load average at the end of each round
     for k in range(rounds):
         order = shapes[k % 3 :] + shapes[: k % 3]  # each shape goes first once in three rounds
         for shape in order:
@@ -187,6 +233,7 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
             rates[shape].append((n - BATCH) / (time.perf_counter() - started))
             cpu_us[shape].append((_client_cpu() + _tree_cpu(pid) - cpu) / (n - BATCH) * 1e6)
             dest.on_deactivate()
+        loads.append(os.getloadavg()[0])
     medians = {s: statistics.median(r) for s, r in rates.items()}
     ratios = [[rates[s][k] / rates["original"][k] for k in range(rounds)] for s in shapes[1:]]
     cpu_ratios = [[cpu_us[s][k] / cpu_us["original"][k] for k in range(rounds)] for s in shapes[1:]]
@@ -196,6 +243,8 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
         "rows_per_s": rates,
         "median_rows_per_s": medians,
         "ratio_to_original": {s: statistics.median(r) for s, r in zip(shapes[1:], ratios, strict=True)},
+        "per_round_ratios": {s: [round(x, 3) for x in r] for s, r in zip(shapes[1:], ratios, strict=True)},
+        "load_average_1min_per_round": loads,
     }
     for s in shapes:
         print(f"insert {s:10} {medians[s]:9,.0f} rows/s  runs {[round(r) for r in rates[s]]}"
@@ -205,47 +254,130 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     return result
 
 
+# What each index of the typed table costs the server per row: a binary COPY of the same rows
+# (made once, so the client's part is the same in every case) into tables that differ only in
+# their indexes. (columns, index statements, COPY types)
+_ORIGINAL = "tag varchar, time timestamp, data jsonb, record_id text"
+_TYPED = (
+    "tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL, name text, robot_name text,"
+    " run_id bigint"
+)
+_UNIQUE = "CREATE UNIQUE INDEX ON {t} (robot_name, name, time, record_id) NULLS NOT DISTINCT"
+_RUN = "CREATE INDEX ON {t} (robot_name, run_id, name, time)"
+_BRIN = "CREATE INDEX ON {t} USING brin (time)"
+_RECORD_ID = "CREATE UNIQUE INDEX ON {t} (record_id)"
+_TEAM = "CREATE INDEX ON {t} (robot_name, name, time)"
+INDEX_SETS = {
+    "original's shape: UNIQUE (record_id)": (_ORIGINAL, [_RECORD_ID]),
+    "typed, no index": (_TYPED, []),
+    "typed: UNIQUE (record_id), (robot_name, name, time)": (_TYPED, [_RECORD_ID, _TEAM]),
+    "typed: those + run index + BRIN (DC's plain table)": (_TYPED, [_RECORD_ID, _TEAM, _RUN, _BRIN]),
+    "typed: UNIQUE (robot_name, name, time, record_id)": (_TYPED, [_UNIQUE]),
+    "typed: that + run index + BRIN (DC's partitioned table)": (_TYPED, [_UNIQUE, _RUN, _BRIN]),
+}
+
+
+def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
+    import orjson
+
+    from dc_destinations.pgsql import json_text_binary_dumper
+
+    records = insert_records(n)
+    epoch = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+    typed, original = [], []
+    for r in records:
+        assert r.json_text is not None
+        data = orjson.loads(r.json_text)
+        moment = epoch + dt.timedelta(microseconds=r.stamp_ns // 1000)
+        typed.append(("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"])))
+        original.append(("pg", moment.replace(tzinfo=None), r.json_text, r.record_id))
+    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    names = list(INDEX_SETS)
+    cpu: dict[str, list[float]] = {name: [] for name in names}
+    with server.connect() as connection:
+        connection.autocommit = True
+        connection.adapters.register_dumper(None, json_text_binary_dumper())
+        for k in range(rounds):
+            for j, name in enumerate(names[k % len(names) :] + names[: k % len(names)]):
+                columns, indexes = INDEX_SETS[name]
+                table = f"index_cost_{k}_{j}"
+                connection.execute(f"CREATE TABLE {table} ({columns})")
+                for statement in indexes:
+                    connection.execute(statement.format(t=table))
+                legacy = columns == _ORIGINAL
+                rows = original if legacy else typed
+                written = "tag, time, data, record_id" + ("" if legacy else ", name, robot_name, run_id")
+                types = ["varchar", "timestamp", "jsonb", "text"] if legacy else TYPED_COPY_TYPES
+                before = _tree_cpu(pid)
+                for i in range(0, n, BATCH):
+                    with (
+                        connection.cursor() as cursor,
+                        cursor.copy(f"COPY {table} ({written}) FROM STDIN (FORMAT BINARY)") as copy,
+                    ):
+                        copy.set_types(types)
+                        for row in rows[i : i + BATCH]:
+                            copy.write_row(row)
+                cpu[name].append((_tree_cpu(pid) - before) / n * 1e6)
+                connection.execute(f"DROP TABLE {table}")
+    base = cpu[names[0]]
+    result = {
+        name: {
+            "server_cpu_us_per_row": statistics.median(runs),
+            "ratio_to_original": statistics.median([a / b for a, b in zip(runs, base, strict=True)]),
+            "runs": [round(x, 1) for x in runs],
+        }
+        for name, runs in cpu.items()
+    }
+    for name, figures in result.items():
+        print(f"server CPU {figures['server_cpu_us_per_row']:5.1f} µs/row  x{figures['ratio_to_original']:.2f}  {name}",
+              flush=True)  # fmt: skip
+    return result
+
+
+TYPED_COPY_TYPES = ["text", "timestamptz", "jsonb", "text", "text", "text", "int8"]
+
+
+def load() -> list[float]:
+    """The 1, 5 and 15-minute load averages (the machine is shared: every figure is read with them)."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=100, help="0: the insert rate only")
     parser.add_argument("--hours", type=int, default=24)
-    parser.add_argument("--runs", type=int, default=7)
+    parser.add_argument("--runs", type=int, default=15, help="warm runs of each query")
+    parser.add_argument("--cold-runs", type=int, default=3, help="runs of each query right after a server restart")
     parser.add_argument("--insert-records", type=int, default=50_000)
-    parser.add_argument("--insert-runs", type=int, default=3)
+    parser.add_argument("--insert-runs", type=int, default=7)
+    parser.add_argument("--index-runs", type=int, default=0, help="rounds of the server's CPU per row per index set")
     parser.add_argument("--label", default="")
-    parser.add_argument("--run-index", action="store_true", help="then add an index with run_id and time path again")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="dc-bench-model-"))
     server = PostgresServer(folder, password="bench-model-1")
+    result: dict[str, Any] = {"date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "robots": args.robots}
     try:
         server.start()
-        inserts = time_inserts(server, args.insert_records, args.insert_runs) if args.insert_runs else {}
-        if not args.robots:
-            print(json.dumps(inserts, indent=2))
-            return
-        rows, seconds = generate(server, args.robots, args.hours)
-        load = os.getloadavg()[0]
-        queries = time_queries(server, args.runs)
-        if args.run_index:
-            # The index a team that asks mostly by run adds (docs/data-model.md): the path query again.
-            with server.connect() as connection:
-                connection.execute("CREATE INDEX dc_robot_run_name_time ON dc (robot_name, run_id, name, time)")
-                connection.execute("ANALYZE dc")
-            queries.update(time_queries(server, args.runs, "path", "_with_run_index"))
-        load = max(load, os.getloadavg()[0])
+        if args.insert_runs:
+            result["load_before_insert"] = load()
+            result["insert"] = time_inserts(server, args.insert_records, args.insert_runs)
+            result["load_after_insert"] = load()
+        if args.index_runs:
+            result["load_before_index_costs"] = load()
+            result["index_costs"] = time_index_costs(server, args.insert_records, args.index_runs)
+            result["load_after_index_costs"] = load()
+        if args.robots:
+            rows, seconds = generate(server, args.robots, args.hours)
+            result.update(hours=args.hours, rows=rows, generate_s=seconds, load_before_queries=load())
+            result["queries"] = time_queries(server, args.runs)
+            result["load_after_warm_queries"] = load()
+            if args.cold_runs:
+                result["queries_cold"] = time_cold(server, args.cold_runs)
+                result["load_after_cold_queries"] = load()
     finally:
         server.stop()
         shutil.rmtree(folder, ignore_errors=True)
-    result = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "robots": args.robots,
-        "hours": args.hours,
-        "rows": rows,
-        "generate_s": seconds,
-        "queries": queries,
-        "load_average_1min": load,  # the machine is shared: the highest 1-minute load seen while timing
-        "insert": inserts,
-    }
+    print(f"load averages (1, 5, 15 min): {[(k, v) for k, v in result.items() if k.startswith('load')]}")
     label = f"_{args.label}" if args.label else ""
     out = REPO / "benchmarks" / "results" / f"pgsql_data_model_{dt.date.today()}{label}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")

@@ -20,9 +20,10 @@ from typing import Any
 import pytest
 
 from dc_bringup.local_servers.postgres import PostgresServer, missing_reason
-from dc_core.destination import ConfigurationProblem, OutgoingRecord, RetryableError, SendOutcome
+from dc_core.destination import ConfigurationProblem, OutgoingRecord, RetryableError, SendOutcome, StoredRecord
 from dc_core.errors import ConfigError
 from dc_core.params import describe_params, parse_params
+from dc_core.records import dump_record
 from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.config import parse_destination_server
 from dc_destinations.pgsql import PgSQL, PgSQLParams
@@ -439,6 +440,7 @@ def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServ
         ("run_id", "bigint"),
     ]
     assert any('(robot_name, name, "time")' in i for i in indexes), indexes
+    assert any('(robot_name, run_id, name, "time")' in i for i in indexes), indexes
     assert any('USING brin ("time")' in i for i in indexes), indexes
     assert any("UNIQUE" in i and "(record_id)" in i for i in indexes), indexes
     assert partitions == []
@@ -450,6 +452,30 @@ def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServ
     assert got == [("cpu", "r1", 2), ("robot", "r1", 10), (None, None, None)], "run_id sorts as a number"
     told = [m for m in logger.at("warning") if "is not a counter" in m]
     assert len(told) == 1, logger.lines
+
+
+def test_records_read_back_from_the_buffer_fill_the_typed_columns(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    # As the sender hands them over: the JSON text, parsed only by a destination that reads it.
+    def stored(n: int, **data: Any) -> StoredRecord:
+        rid = new_record_id()
+        text = dump_record({"seq": n, **data, "record_id": rid})
+        return StoredRecord(rid, "/dc/measurement/test", STAMP_NS + n * 1_000_000_000, json_text=text)
+
+    batch = [
+        stored(0, name="cpu", robot_name="r1", run_id="2", cpu={"name": "inner", "robot_name": "r9"}),
+        stored(1, name=7, robot_name=None, run_id=str(2**63)),
+    ]
+    assert make(server, destinations, table="typed_stored").send(batch) is None
+    with admin(server) as connection:
+        got = connection.execute("SELECT name, robot_name, run_id FROM typed_stored ORDER BY time").fetchall()
+    assert got == [("cpu", "r1", 2), (None, None, None)], "the top-level keys, strings and 64-bit counters only"
+    legacy = [stored(2, name="cpu")]
+    with admin(server) as connection:
+        connection.execute("CREATE TABLE legacy_stored (tag varchar, time timestamp, data jsonb, record_id text)")
+    assert make(server, destinations, table="legacy_stored").send(legacy) is None
+    assert "data" not in legacy[0].__dict__, "the original's columns need no parse of the record's text"
 
 
 def test_partition_by_day_makes_partitions_ahead_and_drops_the_expired(
@@ -465,11 +491,15 @@ def test_partition_by_day_makes_partitions_ahead_and_drops_the_expired(
         OutgoingRecord(new_record_id(), "/dc/measurement/t", now_ns, {"name": "cpu"}),
         OutgoingRecord(new_record_id(), "/dc/measurement/t", old_ns, {"name": "cpu"}),
     ]
-    assert dest.send(batch) is None and dest.send(batch) is None, "a retried batch meets (record_id, time)"
+    assert dest.send(batch) is None and dest.send(batch) is None, "a retried batch meets its unique key"
     _, indexes, partitions = table_facts(server, "daily")
     expected = {f"daily_p{today + dt.timedelta(days=n):%Y%m%d}" for n in range(3)} | {f"daily_p{old:%Y%m%d}"}
     assert set(partitions) == expected, "today, two days ahead, and the day of the late record"
-    assert any("UNIQUE" in i and '(record_id, "time")' in i for i in indexes), indexes
+    # Partitioned, the team's index is the unique key too (PostgreSQL 15+): one btree where two were.
+    unique = 'UNIQUE INDEX daily_robot_name_time ON ONLY public.daily USING btree (robot_name, name, "time", record_id)'
+    assert any(i.startswith("CREATE " + unique) and "NULLS NOT DISTINCT" in i for i in indexes), indexes
+    assert any('(robot_name, run_id, name, "time")' in i for i in indexes), indexes
+    assert len(indexes) == 3, indexes
     assert len(rows(server, "daily")) == 2
     with admin(server) as connection:
         connection.execute(
