@@ -36,6 +36,7 @@ PAGES = (
     ("/files", "Files"),
     ("/explore", "Explorer"),
     ("/health", "Health"),
+    ("/fleet", "Fleet"),
 )
 
 STYLE = """
