@@ -271,8 +271,13 @@ class Ingest:
         self.pipeline = DeliveryPipeline(
             settings, {d.name: (self._wrapped[d.name], d.delivery) for d in config.destinations}, logger
         )
+        self.pipeline.add_metrics_section("ingest", self._counters_document)
         self._logged: set[tuple[str, str]] = set()
         self.stop_requested = asyncio.Event()
+
+    def _counters_document(self) -> dict[str, Any]:
+        # Not dataclasses.asdict: it would rebuild the Counter from (key, value) pairs.
+        return {**vars(self.counters), "unrouted": dict(self.counters.unrouted)}
 
     def _on_settled(self, msg: Any) -> None:
         # From a sender's thread: the ack goes out on the loop.

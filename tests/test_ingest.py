@@ -290,6 +290,7 @@ def test_ingest_routes_by_the_destinations_inputs_and_the_records_tags(
     delivered = {r["record_id"] for r in lake} | set(table_ids(postgres, "routed"))
     assert len(delivered) + sum(counters.unrouted.values()) == sent
     assert counters.acknowledged == sent
+    assert worker.ingest.pipeline.status_document()["ingest"]["unrouted"] == dict(counters.unrouted)
 
 
 def test_a_message_redelivered_beyond_retry_limit_is_dead_lettered_and_acknowledged(
