@@ -7,15 +7,21 @@ destinations on ``dc/destination_health`` (JSON ``{"<destination>": {"state", "s
 it like any record. The newest such record of a robot says which of its destinations fail.
 
 The queries are bounded as the other pages' (dc_dashboard.queries): the robots are read by skipping
-through the (robot, name, time) index, and each figure of a robot is a seek per record name in that
-same index — a robot's last row is the newest of its names' last rows, its records today the sum
-of its names' rows since midnight — so a page costs (robots x names) index seeks and the rows of
-today it counts, not a scan of the table.
+through the (robot, name, time) index, and a robot's last row is the newest of its names' last rows,
+a seek per name in that same index: (robots x names) seeks, whatever the table's size. Its records
+today are counted the same way (the rows of its names since midnight) while the planner expects at
+most ``EXACT_UP_TO`` rows today; a count reads every row it counts, so above that (a fleet's day:
+25 million rows would take over a minute here) they are estimates, said as such on the page: the
+robot's rows per second over its history (the planner's count of its rows from ANALYZE's
+statistics, over the time from its first row to its last) times its time active today (its first
+row today to its last) — seeks again; exact for a robot without a row today, off by what its rate
+today differs from its average, or by its pauses today.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import json
 from dataclasses import dataclass, field
 from html import escape
 from typing import Any
@@ -27,6 +33,9 @@ from dc_dashboard.pages import NONE, notice, stat, when
 from dc_dashboard.queries import Store
 
 HEALTH_RECORD = "destination_health"  # the name of the measurement forwarding dc/destination_health
+# Rows today above which the records today are the planner's estimates: counting reads every row of
+# the day (~3 us each here), 1.8 M rows took 5.5 s on this 2-core machine (benchmarks/dashboard_fleet.py).
+EXACT_UP_TO = 200_000
 FAILING, RETRYING = "failing", "retrying"
 
 
@@ -40,30 +49,64 @@ class RobotRow:
     retrying: list[str] = field(default_factory=list)
 
 
-def overview(store: Store, connection: Any, filters: Filters, now: dt.datetime) -> list[RobotRow]:
-    """A row per robot (the robot filter's alone when set), most recently seen first; ``now`` naive UTC."""
+def overview(
+    store: Store, connection: Any, filters: Filters, now: dt.datetime, exact_up_to: int = EXACT_UP_TO
+) -> tuple[list[RobotRow], bool]:
+    """A row per robot (the robot filter's alone when set), most recently seen first; ``now`` naive UTC.
+    And whether the records today are the planner's estimates (more than ``exact_up_to`` rows today)."""
     from psycopg import sql
 
     robots = [filters.robot] if filters.robot else store.robots(connection)
     names = sorted(store.catalog(connection).fields)
     if not robots or not names:
-        return []
+        return [], False
     today = now.replace(hour=0, minute=0, second=0, microsecond=0)
-    figures = sql.SQL(
-        "SELECT r.robot, max(last.time), sum(today.rows)::bigint"
+    last_seen = sql.SQL(
+        "SELECT r.robot, max(last.time)"
         " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
         " CROSS JOIN LATERAL (SELECT max(time) AS time FROM {t}"
         "   WHERE {robot} = r.robot AND (data->>'name') = n.name) AS last"
-        " CROSS JOIN LATERAL (SELECT count(*) AS rows FROM {t}"
-        "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(today)s) AS today"
         " GROUP BY r.robot"
     ).format(t=store.table, robot=indexes.ROBOT)
     params = {"robots": robots, "names": names, "today": today}
     rows = {
-        robot: RobotRow(robot, _naive(last), int(count or 0))
-        for robot, last, count in connection.execute(figures, params).fetchall()
+        robot: RobotRow(robot, _naive(last), 0)
+        for robot, last in connection.execute(last_seen, params).fetchall()
         if last is not None
     }
+    estimated = _estimate(connection, store, sql.SQL("time >= {}").format(sql.Literal(today))) > exact_up_to
+    if estimated:
+        # The robot's rows per second over its whole history (the planner's count of its rows, its
+        # first and last row: seeks) times its time active today (its first row today to its last).
+        spans = sql.SQL(
+            "SELECT r.robot, min(first.time), min(first_today.time)"
+            " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
+            " CROSS JOIN LATERAL (SELECT min(time) AS time FROM {t}"
+            "   WHERE {robot} = r.robot AND (data->>'name') = n.name) AS first"
+            " CROSS JOIN LATERAL (SELECT min(time) AS time FROM {t}"
+            "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(today)s) AS first_today"
+            " GROUP BY r.robot"
+        ).format(t=store.table, robot=indexes.ROBOT)
+        params["robots"] = list(rows)
+        for robot, first, first_today in connection.execute(spans, params).fetchall():
+            row, first, first_today = rows[robot], _naive(first), _naive(first_today)
+            if first is None or first_today is None or row.last_seen is None:
+                continue  # no row today: 0, known
+            total = _estimate(connection, store, sql.SQL("{} = {}").format(indexes.ROBOT, sql.Literal(robot)))
+            lived = (row.last_seen - first).total_seconds()
+            active = (row.last_seen - first_today).total_seconds()
+            row.records_today = round(total * active / lived) if lived > 0 else total
+    else:
+        counts = sql.SQL(
+            "SELECT r.robot, sum(today.rows)::bigint"
+            " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
+            " CROSS JOIN LATERAL (SELECT count(*) AS rows FROM {t}"
+            "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(today)s) AS today"
+            " GROUP BY r.robot"
+        ).format(t=store.table, robot=indexes.ROBOT)
+        params["robots"] = list(rows)
+        for robot, count in connection.execute(counts, params).fetchall():
+            rows[robot].records_today = int(count or 0)
     health = sql.SQL(
         "SELECT r.robot, h.time, h.data FROM unnest(%(robots)s::text[]) AS r(robot)"
         " CROSS JOIN LATERAL (SELECT time, data FROM {t} WHERE {robot} = r.robot AND (data->>'name') = %(health)s"
@@ -80,7 +123,18 @@ def overview(store: Store, connection: Any, filters: Filters, now: dt.datetime) 
                 row.failing.append((destination, why))
             elif state.get("state") == RETRYING:
                 row.retrying.append(destination)
-    return sorted(rows.values(), key=lambda r: (r.last_seen or dt.datetime.min, r.robot), reverse=True)
+    ordered = sorted(rows.values(), key=lambda r: (r.last_seen or dt.datetime.min, r.robot), reverse=True)
+    return ordered, estimated
+
+
+def _estimate(connection: Any, store: Store, where: Any) -> int:
+    """The rows the planner expects ``where`` to select (ANALYZE's statistics; no row is read)."""
+    from psycopg import sql
+
+    query = sql.SQL("EXPLAIN (FORMAT JSON) SELECT 1 FROM {t} WHERE {w}").format(t=store.table, w=where)
+    (plan,) = connection.execute(query).fetchone()
+    document = json.loads(plan) if isinstance(plan, str) else plan
+    return int(document[0]["Plan"]["Plan Rows"])
 
 
 def _naive(value: dt.datetime | None) -> dt.datetime | None:
@@ -90,15 +144,17 @@ def _naive(value: dt.datetime | None) -> dt.datetime | None:
     return value
 
 
-def page(rows: list[RobotRow], now: dt.datetime) -> str:
+def page(rows: list[RobotRow], now: dt.datetime, estimated: bool = False) -> str:
     failing = [r for r in rows if r.failing]
     hour_ago = now - dt.timedelta(hours=1)
     recent = sum(1 for r in rows if r.last_seen and r.last_seen >= hour_ago)
+    approx = "\u2248" if estimated else ""
+    today = sum(r.records_today for r in rows)
     stats = (
         '<div class="stats">'
         + stat("robots", f"{len(rows):,}", "robots in the table")
         + stat("seen-last-hour", f"{recent:,}", "seen in the last hour")
-        + stat("records-today", f"{sum(r.records_today for r in rows):,}", f"records today ({now:%Y-%m-%d} UTC)")
+        + stat("records-today", f"{approx}{today:,}", f"records today ({now:%Y-%m-%d} UTC)")
         + stat("failing-robots", f"{len(failing):,}", "robots with a failing destination")
         + "</div>"
     )  # fmt: skip
@@ -107,9 +163,16 @@ def page(rows: list[RobotRow], now: dt.datetime) -> str:
         for r in failing
         for name, why in r.failing[:3]
     )
+    if estimated:
+        notices += notice(
+            f"more than {EXACT_UP_TO:,} rows today: the records today are estimates (≈): each robot's average"
+            " rate (its rows in PostgreSQL's statistics over its time in the table) times its time active today",
+            kind="warn",
+            element_id="estimated",
+        )
     if not rows:
         return stats + '<p class="no">no robot in this table yet</p>'
-    body = "".join(_row(r, now) for r in rows)
+    body = "".join(_row(r, now, approx) for r in rows)
     table = (
         '<table id="fleet-table"><tr><th>robot</th><th>last seen (UTC)</th><th class=num>ago</th>'
         "<th class=num>records today</th><th>failing destinations</th><th>health as of</th></tr>"
@@ -123,7 +186,7 @@ def page(rows: list[RobotRow], now: dt.datetime) -> str:
     return stats + notices + f'<div class="panel"><h2>Robots</h2>{table}{hint}</div>'
 
 
-def _row(row: RobotRow, now: dt.datetime) -> str:
+def _row(row: RobotRow, now: dt.datetime, approx: str) -> str:
     if row.health_at is None:
         health = NONE
     elif row.failing:
@@ -138,7 +201,7 @@ def _row(row: RobotRow, now: dt.datetime) -> str:
     link = f'<a href="/?robot={quote(row.robot, safe="")}">{escape(row.robot)}</a>'
     return (
         f'<tr data-robot="{escape(row.robot)}"><td>{link}</td>'
-        f"<td>{when(row.last_seen)}</td><td class=num>{ago}</td><td class=num>{row.records_today:,}</td>"
+        f"<td>{when(row.last_seen)}</td><td class=num>{ago}</td><td class=num>{approx}{row.records_today:,}</td>"
         f"<td>{health}</td><td>{when(row.health_at)}</td></tr>"
     )
 

@@ -120,7 +120,8 @@ class Dashboard:
         from dc_dashboard import fleet
 
         now = dt.datetime.now(dt.UTC).replace(tzinfo=None)
-        return fleet.page(fleet.overview(self.store, connection, filters, now), now)
+        rows, estimated = fleet.overview(self.store, connection, filters, now)
+        return fleet.page(rows, now, estimated)
 
     def _health(self, connection: Any | None, filters: Filters) -> str:
         servers = [health.read(label, url) for label, url in self.settings.metrics]

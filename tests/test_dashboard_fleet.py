@@ -91,8 +91,9 @@ def test_the_fleet_overview_gives_each_robot_its_last_row_records_today_and_fail
 
     store = Store(database)
     with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
-        rows = fleet.overview(store, connection, Filters(), NOW)
-        only = fleet.overview(store, connection, Filters(robot="r2"), NOW)
+        rows, estimated = fleet.overview(store, connection, Filters(), NOW)
+        only, _ = fleet.overview(store, connection, Filters(robot="r2"), NOW)
+    assert not estimated, "a few rows today: counted"
     assert [r.robot for r in rows] == ["r1", "r3", "r2"], "most recently seen first"
     r1, r3, r2 = rows
     assert (r1.last_seen, r1.records_today) == (NOW - dt.timedelta(minutes=5), 5)  # 3 cpu + 2 health today
@@ -137,7 +138,9 @@ def test_the_fleet_figures_are_index_seeks(database: PostgresSettings) -> None:
 
         connection.execute = explained  # type: ignore[method-assign,assignment]
         fleet.overview(store, connection, Filters(), NOW)
-    assert len(plans) == 2 and all("dc_dash_robot_name_time" in plan for plan in plans), plans
+    assert len(plans) == 3, plans
+    for plan in plans:
+        assert "dc_dash_robot_name_time" in plan or "dc_dash_robot_run_name_time" in plan, plan
     assert all("Seq Scan" not in plan for plan in plans), plans
 
 
@@ -147,3 +150,40 @@ def test_the_fleet_page_is_served_and_in_the_navigation(database: PostgresSettin
     assert status == 200, html
     assert 'id="fleet-table"' in html and '<tr data-robot="r1">' in html
     assert '<a href="/fleet" class="active">Fleet</a>' in html
+
+
+def test_above_the_bound_the_records_today_are_the_planners_estimates_and_said_so(
+    database: PostgresSettings,
+) -> None:
+    import psycopg
+
+    big = dataclasses.replace(database, table="dc_big")
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("CREATE TABLE dc_big (tag text, time timestamptz, data jsonb, record_id text)")
+        # r1 a row every 10 s since 6:00 yesterday (half of them today), r2 every 30 s today only.
+        connection.execute(
+            "INSERT INTO dc_big SELECT 'pg', t, jsonb_build_object('name', 'cpu', 'robot_name', robot), NULL"
+            " FROM (VALUES ('r1', 10), ('r2', 30)) AS r(robot, every),"
+            " generate_series(%(now)s - CASE robot WHEN 'r1' THEN interval '33 hours' ELSE interval '15 hours' END,"
+            "                 %(now)s, every * interval '1 s') AS t",
+            {"now": NOW.replace(tzinfo=dt.UTC)},
+        )
+        counted = dict(
+            connection.execute(
+                "SELECT data->>'robot_name', count(*) FROM dc_big WHERE time >= %s GROUP BY 1",
+                (NOW.replace(hour=0, tzinfo=dt.UTC),),
+            ).fetchall()
+        )
+    assert indexes.create(big, say=lambda text: None) == 0  # the robot expression's statistics come with its index
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("ANALYZE dc_big")
+        store = Store(big)
+        rows, estimated = fleet.overview(store, connection, Filters(), NOW, exact_up_to=1000)
+        exact, counted_flag = fleet.overview(store, connection, Filters(), NOW)
+    assert estimated and not counted_flag
+    assert {r.robot: r.records_today for r in exact} == counted
+    for row in rows:
+        assert abs(row.records_today - counted[row.robot]) <= 0.2 * counted[row.robot], (row, counted)
+    html = fleet.page(rows, NOW, estimated)
+    assert 'id="estimated"' in html and "are estimates" in html
+    assert "<td class=num>\u2248" in html.split('<tr data-robot="r1">')[1]
