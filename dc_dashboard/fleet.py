@@ -65,15 +65,21 @@ def overview(
         "SELECT r.robot, max(last.time)"
         " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
         " CROSS JOIN LATERAL (SELECT max(time) AS time FROM {t}"
-        "   WHERE {robot} = r.robot AND (data->>'name') = n.name) AS last"
+        "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(since)s) AS last"
         " GROUP BY r.robot"
     ).format(t=store.table, robot=indexes.ROBOT)
-    params = {"robots": robots, "names": names, "today": today}
-    rows = {
-        robot: RobotRow(robot, _naive(last), 0)
-        for robot, last in connection.execute(last_seen, params).fetchall()
-        if last is not None
-    }
+    # Since yesterday first: on a table partitioned by time, a seek without a bound on time is one
+    # per partition; the robots not seen since then are looked for in the whole table.
+    params: dict[str, Any] = {"robots": robots, "names": names, "today": today, "since": today - dt.timedelta(days=1)}
+    rows: dict[str, RobotRow] = {}
+    for since in (params["since"], dt.datetime.min):
+        params["since"] = since
+        for robot, last in connection.execute(last_seen, params).fetchall():
+            if last is not None:
+                rows[robot] = RobotRow(robot, _naive(last), 0)
+        params["robots"] = [r for r in robots if r not in rows]
+        if not params["robots"]:
+            break
     estimated = _estimate(connection, store, sql.SQL("time >= {}").format(sql.Literal(today))) > exact_up_to
     if estimated:
         # The robot's rows per second over its whole history (the planner's count of its rows, its

@@ -47,6 +47,8 @@ ROWS: list[tuple[dt.timedelta, dict[str, Any]]] = [
     # r2: nothing today; its newest health record has pg retrying.
     (-dt.timedelta(days=1, hours=2), cpu("r2")),
     (-dt.timedelta(days=1, hours=1), health("r2", pg={"state": "retrying", "reason": "timeout"})),
+    # r4: last seen three days ago (found by the second look, in the whole table).
+    (-dt.timedelta(days=3), cpu("r4")),
     # r3: group records (the robot one level down), no health record at all.
     *[
         (-dt.timedelta(minutes=m), {"name": "system", "cpu": {"average": 3.0, "robot_name": "r3"}, "date": 0})
@@ -94,8 +96,9 @@ def test_the_fleet_overview_gives_each_robot_its_last_row_records_today_and_fail
         rows, estimated = fleet.overview(store, connection, Filters(), NOW)
         only, _ = fleet.overview(store, connection, Filters(robot="r2"), NOW)
     assert not estimated, "a few rows today: counted"
-    assert [r.robot for r in rows] == ["r1", "r3", "r2"], "most recently seen first"
-    r1, r3, r2 = rows
+    assert [r.robot for r in rows] == ["r1", "r3", "r2", "r4"], "most recently seen first"
+    r1, r3, r2, r4 = rows
+    assert (r4.last_seen, r4.records_today, r4.health_at) == (NOW - dt.timedelta(days=3), 0, None)
     assert (r1.last_seen, r1.records_today) == (NOW - dt.timedelta(minutes=5), 5)  # 3 cpu + 2 health today
     assert r1.failing == [("pg", "password authentication failed — check the password")]
     assert r1.health_at == NOW - dt.timedelta(minutes=5) and r1.retrying == []
@@ -109,7 +112,7 @@ def test_the_fleet_overview_gives_each_robot_its_last_row_records_today_and_fail
     assert [r.robot for r in only] == ["r2"]
 
     html = fleet.page(rows, NOW)
-    assert 'id="stat-robots"><span class="value">3<' in html
+    assert 'id="stat-robots"><span class="value">4<' in html
     assert 'id="stat-seen-last-hour"><span class="value">2<' in html
     assert 'id="stat-records-today"><span class="value">7<' in html
     assert 'id="stat-failing-robots"><span class="value">1<' in html
@@ -138,7 +141,7 @@ def test_the_fleet_figures_are_index_seeks(database: PostgresSettings) -> None:
 
         connection.execute = explained  # type: ignore[method-assign,assignment]
         fleet.overview(store, connection, Filters(), NOW)
-    assert len(plans) == 3, plans
+    assert len(plans) == 4, plans  # last seen since yesterday, then r4 in the whole table; counts; health
     for plan in plans:
         assert "dc_dash_robot_name_time" in plan or "dc_dash_robot_run_name_time" in plan, plan
     assert all("Seq Scan" not in plan for plan in plans), plans
