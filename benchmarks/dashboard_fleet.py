@@ -99,7 +99,8 @@ def main() -> None:
         index_s = time.monotonic() - started
         with server.connect() as connection:
             connection.execute("VACUUM ANALYZE dc")
-        now = dt.datetime.fromisoformat(f"{DAY}T00:00:00") + dt.timedelta(hours=args.hours)
+        # The last second generated: with --hours 24 the end itself would be the next day's midnight.
+        now = dt.datetime.fromisoformat(f"{DAY}T00:00:00") + dt.timedelta(hours=args.hours, seconds=-1)
         store = Store(settings)
         load = os.getloadavg()[0]
         figures: dict[str, Any] = {}
