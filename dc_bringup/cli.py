@@ -570,23 +570,21 @@ def cmd_ingest(args: argparse.Namespace) -> int:
 
     from dc_core.config import load_params_file
     from dc_core.logs import SeverityLogger
-    from dc_core.supervision import Supervisor
     from dc_destinations.config import parse_destination_server
-    from dc_destinations.ingest import Ingest, IngestOptions, WorkerContext, connect_options_from_env, run_ingest
+    from dc_destinations.ingest import (
+        Ingest,
+        IngestOptions,
+        configure_destinations,
+        connect_options_from_env,
+        run_ingest,
+    )
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logger = SeverityLogger(logging.getLogger("dc.ingest"))
     try:
         section = load_params_file(args.params).get("destination_server", {})
         config = parse_destination_server(section)
-        destinations: dict[str, Any] = {}
-        for d in config.destinations:
-            # Outside ROS, as dc check configures them: a context without a node.
-            plugin_logger = SeverityLogger(logging.getLogger(f"dc.ingest.{d.name}"))
-            context = WorkerContext(d.name, plugin_logger, Supervisor(plugin_logger))
-            destination = d.plugin_class(context, d.plugin_params)
-            destination.on_configure()
-            destinations[d.name] = destination
+        destinations = configure_destinations(config)
     except DcError as exc:
         print(f"dc ingest: {exc}", file=sys.stderr)
         return 2

@@ -74,14 +74,20 @@ def impossible_path(schema: Mapping[str, Any], path: str) -> str | None:
 def schema_types_at(schema: Mapping[str, Any], path: str) -> set[str] | None:
     """The JSON types ``schema`` allows for the value at ``path`` (``integer`` counted as a
     ``number``), or None when the schema does not say (no ``type``, a combinator, an open object)."""
+    types = declared_types_at(schema, path)
+    if types is None:
+        return None
+    return types | {"number"} if "integer" in types else types
+
+
+def declared_types_at(schema: Mapping[str, Any], path: str) -> set[str] | None:
+    """The ``type`` ``schema`` declares for the value at ``path``, as written (``integer`` apart from
+    ``number``), or None when the schema does not say."""
     node, reason = _walk_schema(schema, path)
     if reason is not None or not isinstance(node, Mapping) or _opaque(node):
         return None
     declared = node.get("type")
-    types = {declared} if isinstance(declared, str) else set(declared) if isinstance(declared, list) else None
-    if types is None:
-        return None
-    return types | {"number"} if "integer" in types else types
+    return {declared} if isinstance(declared, str) else set(declared) if isinstance(declared, list) else None
 
 
 def _opaque(node: Mapping[str, Any]) -> bool:

@@ -37,6 +37,7 @@ PAGES = (
     ("/files", "Files"),
     ("/explore", "Explorer"),
     ("/health", "Health"),
+    ("/fleet", "Fleet"),
 )
 
 STYLE = """

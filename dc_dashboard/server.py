@@ -10,6 +10,7 @@ through it the database and the bucket, from the operator's browser.
 
 from __future__ import annotations
 
+import datetime as dt
 import socket
 import sys
 import time
@@ -59,6 +60,7 @@ class Dashboard:
             "/files": ("Files: uploaded, verified, deleted", self._files),
             "/explore": ("Explorer: any measurement", self._explore),
             "/health": ("Health: DC's delivery", self._health),
+            "/fleet": ("Fleet: every robot, last seen, failing destinations", self._fleet),
         }
         if path not in views:
             body = pages.error_body(f"no page {path}: see the navigation above")
@@ -120,6 +122,13 @@ class Dashboard:
 
     def _files(self, connection: Any, filters: Filters) -> str:
         return pages.files(self.store.files(connection, filters), filters)
+
+    def _fleet(self, connection: Any, filters: Filters) -> str:
+        from dc_dashboard import fleet
+
+        now = dt.datetime.now(dt.UTC).replace(tzinfo=None)
+        rows, estimated = fleet.overview(self.store, connection, filters, now)
+        return fleet.page(rows, now, estimated)
 
     def _health(self, connection: Any | None, filters: Filters) -> str:
         servers = [health.read(label, url) for label, url in self.settings.metrics]

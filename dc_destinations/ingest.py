@@ -27,8 +27,10 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +41,9 @@ from dc_core.records import MalformedRecord, parse_record
 from dc_core.supervision import Supervisor
 from dc_destinations.config import DestinationServerConfig
 from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.jetstream import HEADER_ID, HEADER_STAMP, HEADER_TOPIC
 from dc_destinations.record_ids import new_record_id
+from dc_destinations.routing import NO_LISTENER, TAGS_KEY, RoutingTable
 
 
 class Settlements:
@@ -48,20 +52,20 @@ class Settlements:
     Thread-safe: senders report from their threads.
     """
 
-    def __init__(self, destinations: Sequence[str], on_settled: Callable[[Any], None]) -> None:
-        self._destinations = frozenset(destinations)
+    def __init__(self, on_settled: Callable[[Any], None]) -> None:
         self._owed: dict[str, tuple[Any, set[str]]] = {}
         self._lock = threading.Lock()
         self._on_settled = on_settled
 
-    def add(self, record_id: str, key: Any) -> bool:
-        """Track ``record_id``; False when it is in flight already (a redelivery): ``key`` replaces the old."""
+    def add(self, record_id: str, key: Any, destinations: Iterable[str]) -> bool:
+        """Track ``record_id`` until ``destinations`` settled it; False when it is in flight already (a
+        redelivery): ``key`` replaces the old."""
         with self._lock:
             known = self._owed.get(record_id)
             if known is not None:
                 self._owed[record_id] = (key, known[1])
                 return False
-            self._owed[record_id] = (key, set(self._destinations))
+            self._owed[record_id] = (key, set(destinations))
             return True
 
     def settled(self, destination: str, record_ids: Sequence[str]) -> None:
@@ -89,23 +93,81 @@ class Settlements:
 
 
 class Settling(Destination[NoParams]):
-    """A destination as DC configured it, whose every outcome is also reported to :class:`Settlements`."""
+    """A destination as DC configured it, whose every outcome is also reported to :class:`Settlements`.
 
-    def __init__(self, inner: Destination[Any], name: str, settlements: Settlements) -> None:
+    A record is settled when the destination confirmed it, refused it for good, or failed with it
+    more than ``retry_limit`` times (the sender dead-letters it at that same attempt: the rule of
+    dc_destinations.sender, counted here per record as the sender counts per queue row). A record
+    marked :meth:`doom` (its message was redelivered beyond ``retry_limit``) is not handed to the
+    destination: it is refused, so the sender dead-letters it and counts it as any other.
+    """
+
+    def __init__(self, inner: Destination[Any], name: str, settlements: Settlements, retry_limit: int = -1) -> None:
         super().__init__(inner.context, NoParams())
         self.inner = inner
         self.name = name
         self.settlements = settlements
+        self.retry_limit = retry_limit
+        self._failures: dict[str, int] = {}
+        self._doomed: dict[str, str] = {}
+        self._lock = threading.Lock()
+
+    def doom(self, record_id: str, reason: str) -> None:
+        with self._lock:
+            self._doomed[record_id] = reason
 
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+        with self._lock:
+            doomed = {i: self._doomed.pop(r.record_id) for i, r in enumerate(batch) if r.record_id in self._doomed}
+        return self._send_without(batch, doomed) if doomed else self._send(batch)
+
+    def _send_without(self, batch: Sequence[OutgoingRecord], doomed: dict[int, str]) -> SendOutcome:
+        kept = [i for i in range(len(batch)) if i not in doomed]
+        outcome = SendOutcome(reject=dict(doomed))
+        self.settlements.settled(self.name, [batch[i].record_id for i in doomed])
+        try:
+            inner = self._send([batch[i] for i in kept]) if kept else None
+        except RejectedError as exc:
+            outcome.reject.update(dict.fromkeys(kept, str(exc)))
+            return outcome
+        except Exception as exc:  # the rest retried as a raising send() would be
+            outcome.retry.update(dict.fromkeys(kept, f"{type(exc).__name__}: {exc}"))
+            return outcome
+        if inner is not None:
+            for field_name in ("retry", "reject", "waiting"):
+                getattr(outcome, field_name).update({kept[j]: why for j, why in getattr(inner, field_name).items()})
+            outcome.retry_after = inner.retry_after
+        return outcome
+
+    def _send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         try:
             outcome = self.inner.send(batch)
         except RejectedError:
             self.settlements.settled(self.name, [r.record_id for r in batch])  # dead letters: settled
             raise
-        retried = outcome.retry if isinstance(outcome, SendOutcome) else {}
-        self.settlements.settled(self.name, [r.record_id for i, r in enumerate(batch) if i not in retried])
+        except Exception:
+            self._failed(batch, range(len(batch)))
+            raise
+        if not isinstance(outcome, SendOutcome):
+            self._failed(batch, ())
+            return outcome
+        again = {i for i in (*outcome.retry, *outcome.waiting) if i not in outcome.reject}
+        self._failed(batch, again)
         return outcome
+
+    def _failed(self, batch: Sequence[OutgoingRecord], indexes: Iterable[int]) -> None:
+        """Count the failures of the records to try again; settle the others and those over ``retry_limit``."""
+        again = set(indexes)
+        settled = []
+        with self._lock:
+            for i, record in enumerate(batch):
+                if i in again:
+                    failures = self._failures[record.record_id] = self._failures.get(record.record_id, 0) + 1
+                    if self.retry_limit < 0 or failures <= self.retry_limit:
+                        continue
+                self._failures.pop(record.record_id, None)
+                settled.append(record.record_id)
+        self.settlements.settled(self.name, settled)
 
     @property
     def stopping(self) -> threading.Event:
@@ -140,6 +202,22 @@ class WorkerContext:
         return self.supervisor.start_thread(target, name=name)
 
 
+def configure_destinations(config: DestinationServerConfig, logger_name: str = "dc.ingest") -> dict[str, Any]:
+    """The destinations of ``config`` configured outside ROS, as ``dc check`` configures them."""
+    import logging
+
+    from dc_core.logs import SeverityLogger
+
+    destinations: dict[str, Destination[Any]] = {}
+    for d in config.destinations:
+        plugin_logger = SeverityLogger(logging.getLogger(f"{logger_name}.{d.name}"))
+        context = WorkerContext(d.name, plugin_logger, Supervisor(plugin_logger))
+        destination = d.plugin_class(context, d.plugin_params)
+        destination.on_configure()
+        destinations[d.name] = destination
+    return destinations
+
+
 @dataclass
 class IngestOptions:
     servers: list[str]
@@ -159,6 +237,10 @@ class IngestCounters:
     acknowledged: int = 0
     malformed: int = 0
     fetch_failures: int = 0
+    # Messages whose record no destination takes (acknowledged: nothing will ever take them), by reason.
+    unrouted: Counter[str] = field(default_factory=Counter)
+    # Deliveries of redelivered messages refused beyond their destination's retry_limit (dead letters).
+    over_retry_limit: int = 0
 
 
 class Ingest:
@@ -179,14 +261,23 @@ class Ingest:
         self.counters = IngestCounters()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._settled: asyncio.Queue[Any] | None = None
-        self.settlements = Settlements(list(destinations), self._on_settled)
-        wrapped = {
-            d.name: (Settling(destinations[d.name], d.name, self.settlements), d.delivery) for d in config.destinations
+        self.settlements = Settlements(self._on_settled)
+        self.routing = RoutingTable.from_destinations(config.destinations)
+        self._wrapped = {
+            d.name: Settling(destinations[d.name], d.name, self.settlements, d.delivery.retry_limit)
+            for d in config.destinations
         }
         settings = dataclasses.replace(config.node.flb, storage_path=str(storage_path))
-        self.pipeline = DeliveryPipeline(settings, wrapped, logger)
-        self._names = list(wrapped)
+        self.pipeline = DeliveryPipeline(
+            settings, {d.name: (self._wrapped[d.name], d.delivery) for d in config.destinations}, logger
+        )
+        self.pipeline.add_metrics_section("ingest", self._counters_document)
+        self._logged: set[tuple[str, str]] = set()
         self.stop_requested = asyncio.Event()
+
+    def _counters_document(self) -> dict[str, Any]:
+        # Not dataclasses.asdict: it would rebuild the Counter from (key, value) pairs.
+        return {**vars(self.counters), "unrouted": dict(self.counters.unrouted)}
 
     def _on_settled(self, msg: Any) -> None:
         # From a sender's thread: the ack goes out on the loop.
@@ -231,8 +322,11 @@ class Ingest:
                     self.logger.warning(f"cannot fetch from stream {o.stream}: {exc!r}; trying again in 1 s")
                     await asyncio.sleep(1.0)
                     continue
-                for malformed in self._take(messages):
-                    await malformed.term()  # never redelivered: it can never be delivered
+                malformed, unrouted = self._take(messages)
+                for msg in malformed:
+                    await msg.term()  # never redelivered: it can never be delivered
+                for msg in unrouted:
+                    await self._ack(msg)
         finally:
             self.pipeline.stop(self.pipeline.settings.grace)
             # What is not settled goes back at once rather than after ack_wait: another worker takes it.
@@ -246,35 +340,69 @@ class Ingest:
             await nc.close()
         return self.counters
 
-    def _take(self, messages: list[Any]) -> list[Any]:
-        """Hand the messages' records to the pipeline; the messages that hold no DC record."""
-        malformed = []
+    def _take(self, messages: list[Any]) -> tuple[list[Any], list[Any]]:
+        """Route the messages' records to the pipeline: (messages that hold no DC record, messages whose
+        record no destination takes)."""
+        malformed, unrouted = [], []
         for msg in messages:
             self.counters.received += 1
-            record = self._record_of(msg)
-            if record is None:
+            taken = self._record_of(msg)
+            if taken is None:
                 malformed.append(msg)
                 continue
-            if not self.settlements.add(record.record_id, msg):
+            topic, stamp_ns, record_id, data = taken
+            # The robot's routing consumed its tags (they named the robot's destinations): a record
+            # without any goes to every destination listening on its topic; one that still has tags
+            # (not published by DC) to those it names, as on a robot. trusted=False: a robot's record
+            # never makes this worker read files of its own (docs/security.md).
+            listeners = self.routing.listeners(topic)
+            if listeners and TAGS_KEY not in data:
+                data[TAGS_KEY] = listeners
+            routed = self.routing.route(topic, data, stamp_ns, partial(str, record_id), trusted=False)
+            if routed.refused:
+                self._log_once(topic, f"not delivered to {', '.join(routed.refused)}: they read files records name")
+            if routed.unrouted_reason is not None:
+                reason = routed.unrouted_reason if listeners else NO_LISTENER
+                self.counters.unrouted[reason] += 1
+                self._log_once(topic, f"a record reaches no destination: {reason}")
+                unrouted.append(msg)
+                continue
+            if not self.settlements.add(record_id, msg, [name for name, _ in routed.deliveries]):
                 self.counters.redelivered += 1  # still in this worker's queues: acknowledged when settled
                 continue
-            for name in self._names:
-                self.pipeline.submit(name, record)
-        return malformed
+            redeliveries = msg.metadata.num_delivered - 1
+            for name, outgoing in routed.deliveries:
+                limit = self._wrapped[name].retry_limit
+                if 0 <= limit < redeliveries:
+                    self.counters.over_retry_limit += 1
+                    self._wrapped[name].doom(
+                        record_id, f"its message was redelivered {redeliveries} times, beyond retry_limit {limit}"
+                    )
+                self.pipeline.submit(name, outgoing)
+        return malformed, unrouted
 
-    def _record_of(self, msg: Any) -> OutgoingRecord | None:
+    def _log_once(self, topic: str, what: str) -> None:
+        if (topic, what) not in self._logged:
+            self._logged.add((topic, what))
+            self.logger.warning(f"{topic}: {what}; further ones are counted (dc ingest's summary)")
+
+    def _record_of(self, msg: Any) -> tuple[str, int, str, dict[str, Any]] | None:
+        """(topic, stamp in ns, record_id, record) of a message: from the headers the NATS destination
+        sets, else its subject, its time in the stream, the record's own record_id."""
         try:
-            text = msg.data.decode("utf-8")
-            data = parse_record(text)
+            data = parse_record(msg.data.decode("utf-8"))
         except (UnicodeDecodeError, MalformedRecord) as exc:
             self.counters.malformed += 1
             self.logger.error(
                 f"message {msg.metadata.sequence.stream} on {msg.subject} is not a DC record ({exc}): terminated"
             )
             return None
-        record_id = (msg.headers or {}).get("Nats-Msg-Id") or str(data.get("record_id") or "") or new_record_id()
-        stamp_ns = int(msg.metadata.timestamp.timestamp() * 1e9)
-        return OutgoingRecord(record_id, msg.subject, stamp_ns, data, json_text=text)
+        headers = msg.headers or {}
+        record_id = headers.get(HEADER_ID) or str(data.get("record_id") or "") or new_record_id()
+        topic = headers.get(HEADER_TOPIC) or msg.subject
+        stamp = headers.get(HEADER_STAMP, "")
+        stamp_ns = int(stamp) if stamp.isdigit() else int(msg.metadata.timestamp.timestamp() * 1e9)
+        return topic, stamp_ns, record_id, data
 
     async def _acknowledge(self) -> None:
         assert self._settled is not None
@@ -339,7 +467,8 @@ def summary(ingest: Ingest) -> str:
     c = ingest.counters
     parts = [
         f"received {c.received}, acknowledged {c.acknowledged}, taken again while in flight {c.redelivered}, "
-        f"malformed {c.malformed}, fetch failures {c.fetch_failures}"
+        f"malformed {c.malformed}, unrouted {sum(c.unrouted.values())}, "
+        f"dead-lettered as redelivered beyond retry_limit {c.over_retry_limit}, fetch failures {c.fetch_failures}"
     ]
     for name, m in ingest.pipeline.metrics().items():
         waiting = "" if m["buffered"] is None else f", buffered {m['buffered']}"

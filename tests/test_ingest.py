@@ -8,12 +8,15 @@ as `dc ingest` subprocesses, the records published by the NATS destination as a 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +31,8 @@ if nats_missing() or postgres_missing():
 
 import psycopg
 
-from dc_core.destination import OutgoingRecord
-from dc_core.params import parse_params
+from dc_core.destination import Destination, OutgoingRecord
+from dc_core.params import NoParams, parse_params
 from dc_core.testing import FakeContext
 from dc_destinations.jetstream import Nats, NatsParams
 from dc_destinations.record_ids import new_record_id
@@ -152,3 +155,219 @@ def test_two_workers_share_a_consumer_and_one_killed_loses_nothing(postgres: Pos
         assert second.returncode == 0
         log = (tmp_path / "w2.log").read_text()
         assert "ingest stopped after" in log and "dead_lettered 0" in log, log[-2000:]
+
+
+# -- routing and bounded redelivery, in-process workers ---------------------------------------------
+
+
+def ingest_params(postgres: PostgresServer, tmp_path: Path, retry_limit: int = -1) -> dict[str, Any]:
+    s = postgres.settings()
+    warehouse = {"plugin": "dc_destinations/PgSQL", "inputs": ["/dc/measurement/uptime"], **s, "table": "routed"}
+    warehouse["retry_limit"] = retry_limit
+    lake = {
+        "plugin": "dc_destinations/File",
+        "inputs": ["/dc/measurement/uptime", "/dc/measurement/cpu"],
+        "path": str(tmp_path),
+        "file": "lake.jsonl",
+    }
+    return {
+        "destination_plugins": ["warehouse", "lake"],
+        "flb": {"flush": 0.05, "scheduler_base": 0.05, "scheduler_cap": 0.5, "grace": 2, "http_server": False},
+        "warehouse": warehouse,
+        "lake": lake,
+    }
+
+
+class Worker:
+    """An ingest worker in this process, on its own event loop thread, stopped as SIGTERM stops dc ingest."""
+
+    def __init__(self, section: dict[str, Any], url: str, consumer: str, storage: Path) -> None:
+        import logging
+
+        from dc_core.logs import SeverityLogger
+        from dc_destinations.config import parse_destination_server
+        from dc_destinations.ingest import Ingest, IngestOptions, configure_destinations
+
+        config = parse_destination_server(section)
+        self.destinations = configure_destinations(config, "test.ingest")
+        options = IngestOptions(servers=[url], stream="DC", consumer=consumer, batch=50, ack_wait=30)
+        logger = SeverityLogger(logging.getLogger("test.ingest"))
+        self.ingest = Ingest(config, self.destinations, options, storage, logger)
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self.ingest.run(),))
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._loop.call_soon_threadsafe(self.ingest.stop_requested.set)
+        self._thread.join(30)
+        assert not self._thread.is_alive()
+        self._loop.close()
+        for destination in self.destinations.values():
+            destination.on_cleanup()
+
+
+def consumer_state(url: str, consumer: str) -> tuple[int, int]:
+    """(messages not yet delivered, messages delivered and not acknowledged) of the consumer."""
+
+    async def state() -> tuple[int, int]:
+        import nats
+        import nats.js.errors
+
+        nc = await nats.connect(servers=[url])
+        try:
+            info = await nc.jetstream().consumer_info("DC", consumer)
+            return int(info.num_pending or 0), int(info.num_ack_pending or 0)
+        except nats.js.errors.NotFoundError:
+            return -1, -1  # the worker has not made it yet
+        finally:
+            await nc.close()
+
+    return asyncio.run(state())
+
+
+def wait_for(condition: Any, what: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.1)
+
+
+def robot_record(n: int, measurement: str) -> OutgoingRecord:
+    rid = new_record_id()
+    stamp_ns = 1_700_000_000_000_000_000 + n * 100_000_000
+    data = {"date": stamp_ns / 1e9, "name": measurement, "robot_name": "r1", "value": n, "record_id": rid}
+    return OutgoingRecord(rid, f"/dc/measurement/{measurement}", stamp_ns, data)
+
+
+def table_ids(pg: PostgresServer, table: str) -> list[str]:
+    with psycopg.connect(**connection_settings(pg)) as connection:
+        return [r[0] for r in connection.execute(f"SELECT record_id FROM {table}").fetchall()]
+
+
+def test_ingest_routes_by_the_destinations_inputs_and_the_records_tags(
+    postgres: PostgresServer, tmp_path: Path
+) -> None:
+    import nats
+
+    uptime = [robot_record(n, "uptime") for n in range(30)]
+    cpu = [robot_record(n, "cpu") for n in range(20)]
+    memory = [robot_record(n, "memory") for n in range(10)]  # no destination of the ingest takes them
+    with NatsServer(tmp_path / "nats") as nats_server:
+        publisher = robot(nats_server.url)
+        try:
+            assert publisher.send(uptime + cpu + memory) is None
+        finally:
+            publisher.on_cleanup()
+
+        # Not published by DC: the record still has its tags, which name the lake alone.
+        tagged = [robot_record(100 + n, "uptime") for n in range(5)]
+
+        async def publish_tagged() -> None:
+            nc = await nats.connect(servers=[nats_server.url])
+            for r in tagged:
+                body = json.dumps({**r.data, "tags": ["lake"]}).encode()
+                headers = {"Nats-Msg-Id": r.record_id, "Dc-Topic": r.topic, "Dc-Stamp": str(r.stamp_ns)}
+                await nc.jetstream().publish("dc.r1.uptime", body, headers=headers, stream="DC")
+            await nc.close()
+
+        asyncio.run(publish_tagged())
+        sent = len(uptime) + len(cpu) + len(memory) + len(tagged)
+        section = ingest_params(postgres, tmp_path)
+        worker = Worker(section, nats_server.url, "routing", tmp_path / "buffer")
+        try:
+            wait_for(lambda: consumer_state(nats_server.url, "routing") == (0, 0), "every message acknowledged")
+        finally:
+            worker.stop()
+        lake = [json.loads(line) for line in (tmp_path / "lake.jsonl").read_text().splitlines()]
+    counters = worker.ingest.counters
+    assert sorted(table_ids(postgres, "routed")) == sorted(r.record_id for r in uptime)
+    assert sorted(r["record_id"] for r in lake) == sorted(r.record_id for r in uptime + cpu + tagged)
+    assert all("tags" not in r for r in lake)
+    # The time key is the robot's stamp (Dc-Stamp), not the message's time in the stream.
+    stamps = {r.record_id: r.stamp_ns / 1e9 for r in uptime + cpu + tagged}
+    assert all(r["date"] == pytest.approx(stamps[r["record_id"]]) for r in lake)
+    assert counters.unrouted == {"its tags name no destination listening on this topic": len(memory)}
+    delivered = {r["record_id"] for r in lake} | set(table_ids(postgres, "routed"))
+    assert len(delivered) + sum(counters.unrouted.values()) == sent
+    assert counters.acknowledged == sent
+    assert worker.ingest.pipeline.status_document()["ingest"]["unrouted"] == dict(counters.unrouted)
+
+
+def test_a_message_redelivered_beyond_retry_limit_is_dead_lettered_and_acknowledged(
+    postgres: PostgresServer, tmp_path: Path
+) -> None:
+    from nats.js.api import AckPolicy, ConsumerConfig
+
+    from dc_destinations.buffer import SqliteBuffer
+
+    poison = [robot_record(n, "cpu") for n in range(40)]
+    good = [robot_record(100 + n, "cpu") for n in range(60)]
+    with NatsServer(tmp_path / "nats") as nats_server:
+        publisher = robot(nats_server.url)
+        try:
+            assert publisher.send(poison) is None
+
+            # Workers that took the first 40 messages and died (here: gave them back) twice.
+            async def deliver_twice() -> None:
+                import nats
+
+                nc = await nats.connect(servers=[nats_server.url])
+                config = ConsumerConfig(durable_name="limits", ack_policy=AckPolicy.EXPLICIT, ack_wait=30)
+                sub = await nc.jetstream().pull_subscribe("dc.>", durable="limits", stream="DC", config=config)
+                deliveries: dict[int, int] = {}
+                while len(deliveries) < len(poison) or min(deliveries.values()) < 2:
+                    for msg in await sub.fetch(len(poison), timeout=10):
+                        deliveries[msg.metadata.sequence.stream] = msg.metadata.num_delivered
+                        await msg.nak()
+                await nc.close()
+
+            asyncio.run(deliver_twice())
+            assert publisher.send(good) is None
+        finally:
+            publisher.on_cleanup()
+        section = ingest_params(postgres, tmp_path, retry_limit=1)
+        section["warehouse"]["inputs"] = ["/dc/measurement/cpu"]
+        section["lake"]["retry_limit"] = 5  # twice redelivered is within its limit: the lake takes them all
+        worker = Worker(section, nats_server.url, "limits", tmp_path / "buffer")
+        try:
+            wait_for(lambda: consumer_state(nats_server.url, "limits") == (0, 0), "every message acknowledged")
+            metrics = worker.ingest.pipeline.metrics()
+        finally:
+            worker.stop()
+        storage_file = worker.ingest.pipeline.storage_file
+        assert storage_file is not None
+    stored = table_ids(postgres, "routed")
+    assert not set(stored) & {r.record_id for r in poison}
+    assert {r.record_id for r in good} <= set(stored)
+    assert metrics["warehouse"]["dead_lettered"] == len(poison)
+    assert worker.ingest.counters.over_retry_limit == len(poison)
+    # delivered + dead-lettered = sent, for each destination
+    sent = len(poison) + len(good)
+    assert metrics["warehouse"]["sent"] + metrics["warehouse"]["dead_lettered"] == sent
+    assert metrics["lake"]["sent"] == sent and metrics["lake"]["dead_lettered"] == 0
+    with contextlib.closing(SqliteBuffer(storage_file)) as buffer:
+        dead = buffer.list_dead_letters("warehouse")
+    assert {d.record_id for d in dead} == {r.record_id for r in poison}
+    assert all("beyond retry_limit 1" in d.error for d in dead)
+
+
+def test_a_record_a_destination_keeps_failing_is_settled_when_the_sender_dead_letters_it() -> None:
+    """The sender dead-letters a record at its failure number retry_limit + 1 without telling the
+    destination: Settling counts the same, so that its message is acknowledged then, not held forever."""
+    from dc_core.destination import SendOutcome
+    from dc_destinations.ingest import Settlements, Settling
+
+    class Flaky(Destination[NoParams]):
+        def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
+            return SendOutcome(retry={0: "down"}, waiting={1: "its file is not uploaded yet"})
+
+    settled: list[str] = []
+    settlements = Settlements(settled.append)
+    settling = Settling(Flaky(FakeContext(name="flaky"), NoParams()), "flaky", settlements, retry_limit=1)
+    batch = [robot_record(n, "cpu") for n in range(3)]
+    for r in batch:
+        settlements.add(r.record_id, r.record_id, ["flaky"])
+    settling.send(batch)
+    assert settled == [batch[2].record_id], "confirmed: settled; failed or waiting once: within retry_limit 1"
+    settling.send(batch[:2])
+    assert sorted(settled) == sorted(r.record_id for r in batch), "failed twice: dead-lettered by the sender, settled"

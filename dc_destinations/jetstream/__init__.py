@@ -5,7 +5,9 @@ stream takes them at the link's pace, and ingest workers (``dc ingest``) write t
 at theirs (docs/fleet.md). A record counts as delivered only once the stream acknowledged storing
 it (JetStream's PubAck); until then it stays in DC's buffer, which retries. Every message carries
 ``Nats-Msg-Id: <record_id>``: a record sent again (a lost ack, a crash between the ack and the
-buffer's delete) is stored once within the stream's duplicate window.
+buffer's delete) is stored once within the stream's duplicate window. ``Dc-Topic`` and ``Dc-Stamp``
+carry the topic the record came on and its header stamp (ns), which the record's JSON does not
+hold: ``dc ingest`` routes by them as destination_server does (dc_destinations.ingest).
 
 nats-py is asyncio: the client lives on an event loop of the destination's own, in a thread under
 the server's rule for threads (``context.start_thread``), so that the client answers the server's
@@ -54,6 +56,9 @@ _T = TypeVar("_T")
 # Not in a subject published to: the token separator comes from the template only, wildcards and
 # white space never (NATS refuses them, or they would change what the subject means).
 _SUBJECT_FORBIDDEN = "*> \t\r\n"
+HEADER_ID = "Nats-Msg-Id"  # JetStream's deduplication key
+HEADER_TOPIC = "Dc-Topic"
+HEADER_STAMP = "Dc-Stamp"
 _NO_WILDCARDS = "a subject without the wildcards '*' and '>' or white space"
 # The server's answer to a connection whose credentials it does not accept.
 _AUTH_REFUSALS = ("authorization violation", "authentication", "user authentication expired")
@@ -304,11 +309,12 @@ class Nats(Destination[NatsParams]):
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         outcome = SendOutcome()
-        messages: list[tuple[int, str, bytes, str]] = []
+        messages: list[tuple[int, str, bytes, dict[str, str]]] = []
         for index, record in enumerate(batch):
             try:
                 subject = self.subject_of(record)
-                messages.append((index, subject, record.to_json().encode("utf-8"), record.record_id))
+                headers = {HEADER_ID: record.record_id, HEADER_TOPIC: record.topic, HEADER_STAMP: str(record.stamp_ns)}
+                messages.append((index, subject, record.to_json().encode("utf-8"), headers))
             except (ValueError, MalformedRecord) as exc:
                 outcome.reject[index] = str(exc)
         if messages:
@@ -334,17 +340,15 @@ class Nats(Destination[NatsParams]):
         return subject
 
     async def _publish(
-        self, session: _Session, messages: list[tuple[int, str, bytes, str]], outcome: SendOutcome
+        self, session: _Session, messages: list[tuple[int, str, bytes, dict[str, str]]], outcome: SendOutcome
     ) -> None:
         """Publish every message, then wait for the stream's acks; each record's outcome into ``outcome``."""
         assert session.js is not None
         p = self.params
         acks: dict[int, asyncio.Future[Any]] = {}
-        for index, subject, payload, record_id in messages:
+        for index, subject, payload, headers in messages:
             try:
-                acks[index] = await session.js.publish_async(
-                    subject, payload, headers={"Nats-Msg-Id": record_id}, stream=p.stream
-                )
+                acks[index] = await session.js.publish_async(subject, payload, headers=headers, stream=p.stream)
             except nats.errors.MaxPayloadError:
                 outcome.reject[index] = (
                     f"a record of {len(payload)} bytes is over the server's max_payload of "

@@ -48,6 +48,7 @@ from dc_destinations.aws import (
     size_problem,
 )
 from dc_destinations.object_files import record_metadata
+from dc_destinations.s3 import parquet
 from dc_destinations.settings import parse_size
 
 CANNED_ACLS = (
@@ -111,7 +112,22 @@ class S3Params(AwsClientParams):
         "0", "the destination server's buffer keeps the records (storage_total_limit_size bounds it)"
     )
     preserve_data_ordering: bool = compat_param(True, "batches are always sent in order")
-    compression: str = param("", choices=("", "gzip"), doc="gzip: compressed objects (.gz, Content-Encoding: gzip)")
+    format: str = param(
+        "json",
+        choices=("json", "parquet"),
+        doc="json: objects of JSON lines; parquet: one Parquet table (zstd) per batch and measurement",
+    )
+    compression: str = param(
+        "",
+        choices=("", "gzip", "arrow", "parquet"),
+        doc="gzip: compressed JSON lines (.gz, Content-Encoding: gzip); arrow or parquet (the original's): "
+        "format: parquet",
+    )
+    measurement_schemas: dict[str, str] = param(
+        default_factory=dict,
+        doc="With format: parquet, the JSON schema typing the columns of each measurement name: a measurement "
+        "plugin type (dc_measurements/Cpu) or a schema file; a name not listed: the plugin type it names, if any",
+    )
     content_type: str = param("", doc="Content-Type of the objects; empty: application/x-ndjson")
     canned_acl: str = param("", choices=CANNED_ACLS, doc="Canned ACL of the objects; empty: the bucket's default")
     storage_class: str = param("", choices=STORAGE_CLASSES, doc="Storage class of the objects; empty: STANDARD")
@@ -119,13 +135,35 @@ class S3Params(AwsClientParams):
     # An object takes longer than a Kinesis request: AwsClientParams' timeout with S3's default.
     timeout: float = param(30.0, minimum=0.1, maximum=3600, doc="Seconds to connect and for each read")
 
+    @property
+    def parquet(self) -> bool:
+        return self.format == "parquet" or self.compression in ("arrow", "parquet")
+
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.parquet:
+            if self.format == "parquet" and self.compression == "gzip":
+                raise ConfigError("compression", "gzip is for JSON lines: Parquet objects are zstd-compressed inside")
+            if self.log_key:
+                raise ConfigError("log_key", "writes one key per line: not with format: parquet")
+            missing = parquet.pyarrow_missing()
+            if missing is not None:
+                raise ConfigError("format", missing)
+            parquet.MeasurementSchemas(self.measurement_schemas, "measurement_schemas")
         chunk = parse_size(self.upload_chunk_size) or 0
         if not MIN_PART_BYTES <= chunk <= MAX_PART_BYTES:
             raise ConfigError(
                 "upload_chunk_size", f'expected 5M to 5G (S3\'s part sizes), got "{self.upload_chunk_size}"'
             )
+
+
+# An object to write: the batch indexes of its records, its bytes, its measurement's name ($NAME).
+_Object = tuple[list[int], bytes, str]
+
+
+def _key_part(name: str) -> str:
+    """A measurement's name as one part of a key: no "/" (it would add a folder), never empty."""
+    return name.replace("/", "_") or "unnamed"
 
 
 class _Unsendable(Exception):
@@ -142,6 +180,7 @@ class S3(AwsDestination[S3Params]):
         self._max_object_bytes = parse_size(params.total_file_size) or 0
         self._chunk_bytes = parse_size(params.upload_chunk_size) or MIN_PART_BYTES
         self._tag_parts = self._split_tag(context.name)
+        self._schemas = parquet.MeasurementSchemas(params.measurement_schemas, "measurement_schemas")
 
     def _split_tag(self, tag: str) -> list[str]:
         delimiters = self.params.s3_key_format_tag_delimiters
@@ -181,8 +220,25 @@ class S3(AwsDestination[S3Params]):
     # -- sending -----------------------------------------------------------------------------------
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         outcome = SendOutcome()
-        # Objects of (index in the batch, line) bounded by total_file_size, in the batch's order.
-        objects: list[list[tuple[int, bytes]]] = [[]]
+        objects = self._parquet_objects(batch, outcome) if self.params.parquet else self._json_objects(batch, outcome)
+        for n, (indexes, body, name) in enumerate(objects):
+            key = self.object_key(batch[indexes[0]], n, name)
+            try:
+                self._upload(key, body, record_metadata([batch[i] for i in indexes]))
+            except RetryableError as exc:
+                if n == 0 and not outcome.reject:
+                    raise  # nothing of the batch went: the whole batch is retried
+                # This object and the ones not written yet are retried; those written are confirmed.
+                for later, _, _ in objects[n:]:
+                    outcome.retry.update((i, str(exc)) for i in later)
+                break
+        if outcome.retry or outcome.reject:
+            return outcome
+        return None
+
+    def _json_objects(self, batch: Sequence[OutgoingRecord], outcome: SendOutcome) -> list[_Object]:
+        """Objects of JSON lines bounded by total_file_size, in the batch's order."""
+        objects: list[tuple[list[int], list[bytes]]] = []
         size = 0
         for i, record in enumerate(batch):
             try:
@@ -190,27 +246,36 @@ class S3(AwsDestination[S3Params]):
             except (_Unsendable, MalformedRecord) as exc:
                 outcome.reject[i] = str(exc)
                 continue
-            if objects[-1] and size + len(line) > self._max_object_bytes:
-                objects.append([])
+            if not objects or size + len(line) > self._max_object_bytes:
+                objects.append(([], []))
                 size = 0
-            objects[-1].append((i, line))
+            objects[-1][0].append(i)
+            objects[-1][1].append(line)
             size += len(line)
-        for n, lines in enumerate(objects):
-            if not lines:
-                continue
-            key = self.object_key(batch[lines[0][0]], n)
-            try:
-                self._upload(key, b"".join(line for _, line in lines), record_metadata([batch[i] for i, _ in lines]))
-            except RetryableError as exc:
-                if n == 0 and not outcome.reject:
-                    raise  # nothing of the batch went: the whole batch is retried
-                # This object and the ones not written yet are retried; those written are confirmed.
-                for later in objects[n:]:
-                    outcome.retry.update((i, str(exc)) for i, _ in later)
-                break
-        if outcome.retry or outcome.reject:
-            return outcome
-        return None
+        return [(indexes, b"".join(lines), "") for indexes, lines in objects]
+
+    def _parquet_objects(self, batch: Sequence[OutgoingRecord], outcome: SendOutcome) -> list[_Object]:
+        """One Parquet object per measurement (the records' ``name``), in the order they first appear;
+        more when its records' JSON is over total_file_size."""
+        groups: dict[str, list[list[tuple[int, dict[str, Any]]]]] = {}
+        sizes: dict[str, int] = {}
+        for i, record in enumerate(batch):
+            name = str(record.data.get("name", ""))
+            chunks = groups.setdefault(name, [[]])
+            size = len(record.to_json())
+            if chunks[-1] and sizes[name] + size > self._max_object_bytes:
+                chunks.append([])
+                sizes[name] = 0
+            chunks[-1].append((i, record.data))
+            sizes[name] = sizes.get(name, 0) + size
+        objects: list[_Object] = []
+        for name, chunks in groups.items():
+            schema = self._schemas.of(name)
+            for chunk in chunks:
+                encoded = parquet.encode(chunk, schema, outcome.reject.__setitem__)
+                if encoded is not None:
+                    objects.append((encoded[0], encoded[1], name))
+        return objects
 
     def _line(self, record: OutgoingRecord) -> bytes:
         p = self.params
@@ -227,7 +292,7 @@ class S3(AwsDestination[S3Params]):
         except UnicodeEncodeError as exc:
             raise _Unsendable(f"the record is not valid UTF-8 text: {exc}") from None
 
-    def object_key(self, first: OutgoingRecord, index: int = 0) -> str:
+    def object_key(self, first: OutgoingRecord, index: int = 0, name: str = "") -> str:
         """The key of the object whose first record is ``first``: the same for every attempt."""
         p = self.params
         uuid = hashlib.sha256(first.record_id.encode("utf-8")).hexdigest()[:16]
@@ -236,17 +301,21 @@ class S3(AwsDestination[S3Params]):
         key = expand_time(p.s3_key_format, seconds)
         key = _TAG_PART.sub(lambda m: self._tag_parts[int(m.group(1))], key)
         key = key.replace("$TAG", self.context.name).replace("$UUID", uuid).replace("$INDEX", str(index))
+        key = key.replace("$NAME", _key_part(name))
         if "$UUID" not in p.s3_key_format and not p.static_file_path:
             key += f"-{uuid}"
-        if p.compression == "gzip" and not key.endswith(".gz"):
+        if p.parquet and not key.endswith(".parquet"):
+            key += ".parquet"
+        elif p.compression == "gzip" and not key.endswith(".gz"):
             key += ".gz"
         # An S3 key has no leading slash: "/fluent-bit-logs/…" would make an empty first folder.
         return key.lstrip("/")
 
     def _upload(self, key: str, data: bytes, metadata: dict[str, str]) -> None:
         p = self.params
-        extra: dict[str, Any] = {"ContentType": p.content_type or "application/x-ndjson", "Metadata": metadata}
-        if p.compression == "gzip":
+        content_type = p.content_type or ("application/vnd.apache.parquet" if p.parquet else "application/x-ndjson")
+        extra: dict[str, Any] = {"ContentType": content_type, "Metadata": metadata}
+        if p.compression == "gzip" and not p.parquet:
             # mtime=0: the same records give the same bytes on every attempt.
             data = gzip.compress(data, mtime=0)
             extra["ContentEncoding"] = "gzip"

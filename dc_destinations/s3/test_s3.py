@@ -230,6 +230,11 @@ def test_an_unreachable_endpoint_is_retryable_with_its_address() -> None:
         ({"aws_secret_access_key": SECRET}, "set aws_access_key_id and aws_secret_access_key together"),
         ({"role_arn": "my-role"}, "expected an IAM role ARN"),
         ({"s3_key_format": "/$TAG[2]/x"}, "$TAG[2] is beyond the 1 part(s) of the tag 'fleet'"),
+        ({"format": "parquet", "compression": "gzip"}, "compression: gzip is for JSON lines"),
+        (
+            {"format": "parquet", "measurement_schemas": {"cpu": "dc_measurements/Cpus"}},
+            "measurement_schemas.cpu: no JSON schema from 'dc_measurements/Cpus'",
+        ),
     ],
 )
 def test_configuration_errors(body: dict[str, Any], message: str) -> None:
@@ -237,6 +242,79 @@ def test_configuration_errors(body: dict[str, Any], message: str) -> None:
         s3_destination(None, **{"bucket": "dc-bucket", **body})
     assert message in str(caught.value)
     assert SECRET not in str(caught.value)
+
+
+# -- Parquet ---------------------------------------------------------------------------------------
+
+
+def test_parquet_objects_per_measurement_typed_by_its_schema_read_by_pyarrow_and_duckdb(
+    server: SeaweedS3Server, tmp_path: Path
+) -> None:
+    import io
+
+    import duckdb
+    import pyarrow.parquet as pq
+
+    from dc_core.jsonpath import flatten
+
+    dest = s3_destination(server, format="parquet", s3_key_format="/pq/$NAME/%Y/%m/%d/$UUID")
+    process = {"pid": 7, "user": "dc", "cmd": "dc-bringup", "cpu": 2.5, "ram": 1024, "uptime": 60}
+    batch = [
+        # Cpu's schema: average is a number (float64 even when whole), processes an integer.
+        record(0, name="cpu", average=12, processes=212, sorted=[process], robot_name="r1", run_id="3"),
+        record(1, name="uptime", time=5, robot_name="r1", run_id="3"),
+        record(2, name="cpu", average=7.5, processes=198, sorted=[], robot_name="r2", run_id="3"),
+        record(3, name="uptime", time="soon", robot_name="r2"),  # breaks Uptime's schema: rejected alone
+        # No plugin of this name: the values' types; a nested object's keys become dotted columns.
+        record(4, name="battery", level=0.8, cell={"temp": 31, "ok": True}, robot_name="r1"),
+        record(5, name="uptime", time=6, robot_name="r2", run_id=None),
+    ]
+    outcome = dest.send(batch)
+    assert outcome is not None and list(outcome.reject) == [3] and not outcome.retry
+    assert 'time is "soon", not the int64 its schema says' in outcome.reject[3]
+    objects = server.objects("pq/")
+    assert sorted(key.split("/")[1] for key in objects) == ["battery", "cpu", "uptime"]
+    assert all(key.endswith(".parquet") for key in objects)
+    key = next(k for k in objects if k.startswith("pq/cpu/"))
+    assert server.client().head_object(Bucket=server.bucket, Key=key)["ContentType"] == "application/vnd.apache.parquet"
+
+    tables = {key.split("/")[1]: pq.read_table(io.BytesIO(body)) for key, body in objects.items()}
+    types = {name: {f.name: str(f.type) for f in table.schema} for name, table in tables.items()}
+    assert types["cpu"]["average"] == "double" and types["cpu"]["processes"] == "int64"
+    assert types["uptime"]["time"] == "int64" and types["uptime"]["run_id"] == "string"
+    assert types["battery"]["cell.temp"] == "int64" and types["battery"]["cell.ok"] == "bool"
+    # Values equal to the JSON records: flattened, keys joined with ".", missing keys null.
+    for name, table in tables.items():
+        wanted = [
+            {k[1:].replace("/", "."): v for k, v in flatten(r.data).items()}
+            for i, r in enumerate(batch)
+            if r.data["name"] == name and i != 3
+        ]
+        got = [{k: v for k, v in row.items() if v is not None} for row in table.to_pylist()]
+        # An empty array or object is a leaf: its column holds it as JSON text.
+        assert got == [{k: json.dumps(v) if v == [] else v for k, v in w.items() if v is not None} for w in wanted]
+
+    # A data team's query: the objects as they are (downloaded: DuckDB's S3 reader is an extension
+    # it would fetch from the internet), by glob, columns by name across objects.
+    for key, body in objects.items():
+        (tmp_path / key.replace("/", "_")).write_bytes(body)
+    con = duckdb.connect()
+    rows = con.execute(
+        f"SELECT robot_name, count(*), max(time) FROM read_parquet('{tmp_path}/pq_uptime_*.parquet') "
+        "GROUP BY robot_name ORDER BY robot_name"
+    ).fetchall()
+    assert rows == [("r1", 1, 5), ("r2", 1, 6)]
+    [(average,)] = con.execute(f"SELECT avg(average) FROM read_parquet('{tmp_path}/pq_cpu_*.parquet')").fetchall()
+    assert average == pytest.approx((12 + 7.5) / 2)
+    [(pid,)] = con.execute(
+        f"SELECT \"sorted.0.pid\" FROM '{tmp_path}/pq_cpu_*.parquet' WHERE processes = 212"
+    ).fetchall()
+    assert pid == 7
+
+    # The original's compression: arrow writes the same Parquet objects.
+    arrow = s3_destination(server, compression="arrow", s3_key_format="/arrow/$NAME/$UUID")
+    assert arrow.send(batch[:2]) is None
+    assert sorted(k.split("/")[1] for k in server.objects("arrow/")) == ["cpu", "uptime"]
 
 
 # -- end to end through dc-bringup ------------------------------------------------------------------------

@@ -1,0 +1,223 @@
+"""The Fleet page: every robot of the table, when it was last seen, its records today, and the
+destinations failing on it, from the health records it sends (docs/fleet.md).
+
+A robot's health reaches the table as records: its destination_server publishes the state of its
+destinations on ``dc/destination_health`` (JSON ``{"<destination>": {"state", "since", "reason",
+"fix"}}``, on every change), and a StringStamped measurement named ``destination_health`` forwards
+it like any record. The newest such record of a robot says which of its destinations fail.
+
+The queries are bounded as the other pages' (dc_dashboard.queries): the robots are read by skipping
+through the (robot, name, time) index, and a robot's last row is the newest of its names' last rows,
+a seek per name in that same index: (robots x names) seeks, whatever the table's size. Its records
+today are counted the same way (the rows of its names since midnight) while the planner expects at
+most ``EXACT_UP_TO`` rows today; a count reads every row it counts, so above that (a fleet's day:
+25 million rows would take over a minute here) they are estimates, said as such on the page: the
+robot's rows per second over its history (the planner's count of its rows from ANALYZE's
+statistics, over the time from its first row to its last) times its time active today (its first
+row today to its last) — seeks again; exact for a robot without a row today, off by what its rate
+today differs from its average, or by its pauses today.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from dataclasses import dataclass, field
+from html import escape
+from typing import Any
+from urllib.parse import quote
+
+from dc_dashboard import indexes
+from dc_dashboard.filters import Filters
+from dc_dashboard.pages import NONE, notice, stat, when
+from dc_dashboard.queries import Store
+
+HEALTH_RECORD = "destination_health"  # the name of the measurement forwarding dc/destination_health
+# Rows today above which the records today are the planner's estimates: counting reads every row of
+# the day (~3 us each here), 1.8 M rows took 5.5 s on this 2-core machine (benchmarks/dashboard_fleet.py).
+EXACT_UP_TO = 200_000
+FAILING, RETRYING = "failing", "retrying"
+
+
+@dataclass
+class RobotRow:
+    robot: str
+    last_seen: dt.datetime | None
+    records_today: int
+    health_at: dt.datetime | None = None  # the time of its newest health record, None without any
+    failing: list[tuple[str, str]] = field(default_factory=list)  # (destination, reason — fix)
+    retrying: list[str] = field(default_factory=list)
+
+
+def overview(
+    store: Store, connection: Any, filters: Filters, now: dt.datetime, exact_up_to: int = EXACT_UP_TO
+) -> tuple[list[RobotRow], bool]:
+    """A row per robot (the robot filter's alone when set), most recently seen first; ``now`` naive UTC.
+    And whether the records today are the planner's estimates (more than ``exact_up_to`` rows today)."""
+    from psycopg import sql
+
+    robots = [filters.robot] if filters.robot else store.robots(connection)
+    names = sorted(store.catalog(connection).fields)
+    if not robots or not names:
+        return [], False
+    today = now.replace(hour=0, minute=0, second=0, microsecond=0)
+    last_seen = sql.SQL(
+        "SELECT r.robot, max(last.time)"
+        " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
+        " CROSS JOIN LATERAL (SELECT max(time) AS time FROM {t}"
+        "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(since)s) AS last"
+        " GROUP BY r.robot"
+    ).format(t=store.table, robot=indexes.ROBOT)
+    # Since yesterday first: on a table partitioned by time, a seek without a bound on time is one
+    # per partition; the robots not seen since then are looked for in the whole table.
+    params: dict[str, Any] = {"robots": robots, "names": names, "today": today, "since": today - dt.timedelta(days=1)}
+    rows: dict[str, RobotRow] = {}
+    for since in (params["since"], dt.datetime.min):
+        params["since"] = since
+        for robot, last in connection.execute(last_seen, params).fetchall():
+            if last is not None:
+                rows[robot] = RobotRow(robot, _naive(last), 0)
+        params["robots"] = [r for r in robots if r not in rows]
+        if not params["robots"]:
+            break
+    estimated = _estimate(connection, store, sql.SQL("time >= {}").format(sql.Literal(today))) > exact_up_to
+    if estimated:
+        # The robot's rows per second over its whole history (the planner's count of its rows, its
+        # first and last row: seeks) times its time active today (its first row today to its last).
+        spans = sql.SQL(
+            "SELECT r.robot, min(first.time), min(first_today.time)"
+            " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
+            " CROSS JOIN LATERAL (SELECT min(time) AS time FROM {t}"
+            "   WHERE {robot} = r.robot AND (data->>'name') = n.name) AS first"
+            " CROSS JOIN LATERAL (SELECT min(time) AS time FROM {t}"
+            "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(today)s) AS first_today"
+            " GROUP BY r.robot"
+        ).format(t=store.table, robot=indexes.ROBOT)
+        params["robots"] = list(rows)
+        for robot, first, first_today in connection.execute(spans, params).fetchall():
+            row, first, first_today = rows[robot], _naive(first), _naive(first_today)
+            if first is None or first_today is None or row.last_seen is None:
+                continue  # no row today: 0, known
+            total = _estimate(connection, store, sql.SQL("{} = {}").format(indexes.ROBOT, sql.Literal(robot)))
+            lived = (row.last_seen - first).total_seconds()
+            active = (row.last_seen - first_today).total_seconds()
+            row.records_today = round(total * active / lived) if lived > 0 else total
+    else:
+        counts = sql.SQL(
+            "SELECT r.robot, sum(today.rows)::bigint"
+            " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
+            " CROSS JOIN LATERAL (SELECT count(*) AS rows FROM {t}"
+            "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(today)s) AS today"
+            " GROUP BY r.robot"
+        ).format(t=store.table, robot=indexes.ROBOT)
+        params["robots"] = list(rows)
+        for robot, count in connection.execute(counts, params).fetchall():
+            rows[robot].records_today = int(count or 0)
+    health = sql.SQL(
+        "SELECT r.robot, h.time, h.data FROM unnest(%(robots)s::text[]) AS r(robot)"
+        " CROSS JOIN LATERAL (SELECT time, data FROM {t} WHERE {robot} = r.robot AND (data->>'name') = %(health)s"
+        "   ORDER BY time DESC LIMIT 1) AS h"
+    ).format(t=store.table, robot=indexes.ROBOT)
+    for robot, at, data in connection.execute(health, {"robots": list(rows), "health": HEALTH_RECORD}).fetchall():
+        row = rows[robot]
+        row.health_at = _naive(at)
+        for destination, state in sorted(data.items() if isinstance(data, dict) else ()):
+            if not isinstance(state, dict):
+                continue  # the record's own keys (name, robot_name, run_id, date…)
+            if state.get("state") == FAILING:
+                why = " — ".join(str(state[k]) for k in ("reason", "fix") if state.get(k))
+                row.failing.append((destination, why))
+            elif state.get("state") == RETRYING:
+                row.retrying.append(destination)
+    ordered = sorted(rows.values(), key=lambda r: (r.last_seen or dt.datetime.min, r.robot), reverse=True)
+    return ordered, estimated
+
+
+def _estimate(connection: Any, store: Store, where: Any) -> int:
+    """The rows the planner expects ``where`` to select (ANALYZE's statistics; no row is read)."""
+    from psycopg import sql
+
+    query = sql.SQL("EXPLAIN (FORMAT JSON) SELECT 1 FROM {t} WHERE {w}").format(t=store.table, w=where)
+    (plan,) = connection.execute(query).fetchone()
+    document = json.loads(plan) if isinstance(plan, str) else plan
+    return int(document[0]["Plan"]["Plan Rows"])
+
+
+def _naive(value: dt.datetime | None) -> dt.datetime | None:
+    """UTC without a zone, as the pages show times (a timestamptz column gives aware ones)."""
+    if value is not None and value.tzinfo is not None:
+        return value.astimezone(dt.UTC).replace(tzinfo=None)
+    return value
+
+
+def page(rows: list[RobotRow], now: dt.datetime, estimated: bool = False) -> str:
+    failing = [r for r in rows if r.failing]
+    hour_ago = now - dt.timedelta(hours=1)
+    recent = sum(1 for r in rows if r.last_seen and r.last_seen >= hour_ago)
+    approx = "\u2248" if estimated else ""
+    today = sum(r.records_today for r in rows)
+    stats = (
+        '<div class="stats">'
+        + stat("robots", f"{len(rows):,}", "robots in the table")
+        + stat("seen-last-hour", f"{recent:,}", "seen in the last hour")
+        + stat("records-today", f"{approx}{today:,}", f"records today ({now:%Y-%m-%d} UTC)")
+        + stat("failing-robots", f"{len(failing):,}", "robots with a failing destination")
+        + "</div>"
+    )  # fmt: skip
+    notices = "".join(
+        notice(f"{r.robot}: destination {name} failing: {why or 'no reason given'}", element_id=f"failing-{r.robot}")
+        for r in failing
+        for name, why in r.failing[:3]
+    )
+    if estimated:
+        notices += notice(
+            f"more than {EXACT_UP_TO:,} rows today: the records today are estimates (≈): each robot's average"
+            " rate (its rows in PostgreSQL's statistics over its time in the table) times its time active today",
+            kind="warn",
+            element_id="estimated",
+        )
+    if not rows:
+        return stats + '<p class="no">no robot in this table yet</p>'
+    body = "".join(_row(r, now, approx) for r in rows)
+    table = (
+        '<table id="fleet-table"><tr><th>robot</th><th>last seen (UTC)</th><th class=num>ago</th>'
+        "<th class=num>records today</th><th>failing destinations</th><th>health as of</th></tr>"
+        f"{body}</table>"
+    )
+    hint = (
+        f'<p class="no">Failing destinations come from each robot\'s newest <code>{HEALTH_RECORD}</code> record '
+        "(a StringStamped measurement of <code>dc/destination_health</code>: docs/fleet.md); "
+        "a robot without any shows \u2013.</p>"
+    )
+    return stats + notices + f'<div class="panel"><h2>Robots</h2>{table}{hint}</div>'
+
+
+def _row(row: RobotRow, now: dt.datetime, approx: str) -> str:
+    if row.health_at is None:
+        health = NONE
+    elif row.failing:
+        health = ", ".join(
+            f'<span class="health failing" title="{escape(why)}">{escape(name)}</span>' for name, why in row.failing
+        )
+    else:
+        health = '<span class="health ok">none</span>'
+    if row.retrying:
+        health += " " + ", ".join(f'<span class="health retrying">{escape(n)} retrying</span>' for n in row.retrying)
+    ago = _ago(now - row.last_seen) if row.last_seen else NONE
+    link = f'<a href="/?robot={quote(row.robot, safe="")}">{escape(row.robot)}</a>'
+    return (
+        f'<tr data-robot="{escape(row.robot)}"><td>{link}</td>'
+        f"<td>{when(row.last_seen)}</td><td class=num>{ago}</td><td class=num>{approx}{row.records_today:,}</td>"
+        f"<td>{health}</td><td>{when(row.health_at)}</td></tr>"
+    )
+
+
+def _ago(delta: dt.timedelta) -> str:
+    seconds = max(delta.total_seconds(), 0.0)
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 48 * 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.0f} d"
