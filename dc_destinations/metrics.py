@@ -100,7 +100,8 @@ DELIVERY_COUNTERS = (
     ("dead_letters_dropped", "counter", "Oldest dead letters deleted by dead_letter_limit_size"),
     ("salvaged", "counter", "Records read back from a damaged buffer file into the new buffer"),
     ("lost_to_damage", "counter", "Records of a damaged buffer file that could not be read"),
-    ("evicted", "counter", "Records deleted from the buffer unsent to keep it within flb.disk_budget_mb"),
+    ("evicted", "counter", "Records deleted from the buffer unsent to keep within the disk budget"),
+    ("files_evicted", "counter", "Saved files this destination carries, evicted by the disk budget before it had them"),
 )
 # (metric name, key in DeliveryPipeline.metrics(), help text)
 _QUEUE_GAUGES = (
