@@ -486,16 +486,20 @@ class DeliveryPipeline:
             size, free = disk.f_blocks * disk.f_frsize, disk.f_bavail * disk.f_frsize
             queued = {name: n for name, n in buffer.queued_bytes().items() if name in self._routes}
             retention = {name: route.params.retention_priority for name, route in self._routes.items()}
-            files = saved.candidates() if saved is not None else []
             budget, floor = self._limits.budget(size), self._limits.floor(size)
+            over = sum(queued.values()) + (saved.total_bytes if saved is not None else 0) - (budget or 0)
+            under = (floor - free) if floor is not None else 0
+            if (budget is None or over <= 0) and under <= 0:
+                return
+            # Only when something must go: the list of files is walked (tens of thousands on a long run).
+            files = saved.candidates() if saved is not None else []
             steps = []
-            if budget is not None:
+            if budget is not None and over > 0:
                 if saved is not None:
                     saved.too_large(budget)
-                used = sum(queued.values()) + (saved.total_bytes if saved is not None else 0)
-                steps = budget_plan(queued, retention, files, used - budget)
-            if floor is not None and free < floor and not any(step.kind == "file" for step in steps):
-                steps = budget_plan(queued, retention, files, floor - free, records=False)
+                steps = budget_plan(queued, retention, files, over)
+            if under > 0 and not any(step.kind == "file" for step in steps):
+                steps = budget_plan(queued, retention, files, under, records=False)
                 if not steps:
                     self._budget_log.event(
                         1, f"{free} bytes free, under disk_free_floor ({floor}), and no saved file left to evict"
