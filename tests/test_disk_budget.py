@@ -251,6 +251,7 @@ def test_saved_files_are_evicted_by_value_counted_and_shown_in_files_metrics(
         metrics = pipeline.metrics()
         assert metrics["minio"]["files_evicted"] == metrics["files"]["files_evicted"] == len(gone)
         shown(pipeline, capsys, len(gone))
+        assert f'dc_delivery_files_evicted_total{{destination="minio"}} {len(gone)}' in pipeline.prometheus()
 
         pipeline.set_condition("docked", True)
 
