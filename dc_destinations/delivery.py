@@ -115,7 +115,8 @@ class DeliveryPipeline:
         self._limits = budget_limits(settings, "destination_server.flb")
         self._file_fields = {name: route.file_fields for name, route in self._routes.items() if route.file_fields}
         self._saved: SavedFiles | None = None
-        self._budget_log = BurstLog(logger.warning, "disk budget")
+        # Made with the ledger at start: nothing here may need the logger before (a tool claims the storage alone).
+        self._budget_log: BurstLog | None = None
         self._buffer: SqliteBuffer | None = None
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
@@ -203,6 +204,7 @@ class DeliveryPipeline:
             )
             saved.open()
             self._saved = saved
+            self._budget_log = BurstLog(self.logger.warning, "disk budget")
             for route in self._routes.values():
                 route.saved = saved
                 route.destination.__dict__["_dc_evicted"] = saved.is_evicted
@@ -481,7 +483,8 @@ class DeliveryPipeline:
                 saved.evict_log.tick()
                 saved.failure_log.tick()
                 saved.too_large_log.tick()
-            self._budget_log.tick()
+            if self._budget_log is not None:
+                self._budget_log.tick()
             disk = os.statvfs(self.storage_file.parent)
             size, free = disk.f_blocks * disk.f_frsize, disk.f_bavail * disk.f_frsize
             queued = {name: n for name, n in buffer.queued_bytes().items() if name in self._routes}
@@ -500,7 +503,7 @@ class DeliveryPipeline:
                 steps = budget_plan(queued, retention, files, over)
             if under > 0 and not any(step.kind == "file" for step in steps):
                 steps = budget_plan(queued, retention, files, under, records=False)
-                if not steps:
+                if not steps and self._budget_log is not None:
                     self._budget_log.event(
                         1, f"{free} bytes free, under disk_free_floor ({floor}), and no saved file left to evict"
                     )
