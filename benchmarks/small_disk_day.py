@@ -154,6 +154,8 @@ destination_server:
       upload_fields: ["remote_paths.minio.pgm", "remote_paths.minio.yaml", "remote_paths.minio.inspected",
                       "remote_paths.minio.mcap"]
       part_size: "5M"
+      # A batch is confirmed whole: under a cap of ~1 kB/s, 500 images would take hours before any counts sent.
+      batch_size: 5
       retention_priority: {QUEUE_PRIORITIES["minio"]}
 {capped}"""
 
