@@ -158,7 +158,8 @@ STATUS_COLUMNS = [
     ("retried", "retried"),
     ("failed", "failed"),
     ("dropped", "dropped"),
-    ("evicted", "evicted"),  # by flb.disk_budget_mb
+    ("evicted", "evicted"),  # by the disk budget
+    ("files_evicted", "files evicted"),  # saved files it carries, evicted before it had them
     ("malformed", "malformed"),
     ("dead_lettered", "dead-lettered"),
     ("dead_letters", "dead now"),
@@ -280,6 +281,19 @@ def _print_table(
             print(f"  {text_column.replace('_', ' ')}: {text}")
 
 
+def _print_saved_files(saved: Any) -> None:
+    """The saved files under the disk budget, per measurement (dc_destinations.saved_files)."""
+    if not isinstance(saved, dict):
+        return
+    print(f"saved files under the disk budget: {saved.get('files')} files, {_cell(saved.get('bytes'))} bytes")
+    for name, c in sorted((saved.get("measurements") or {}).items()):
+        print(
+            f"  {name} (retention_priority {c.get('retention_priority')}): produced {c.get('produced')}, "
+            f"delivered {c.get('delivered')}, evicted {c.get('evicted')} ({c.get('evicted_unsent')} unsent), "
+            f"kept {c.get('kept')} ({_cell(c.get('kept_bytes'))} bytes)"
+        )
+
+
 def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
     destinations = metrics.get("destinations", {})
     now = time.time()
@@ -297,6 +311,11 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
             print(f"destination {name} {str(health['state']).upper()}{how_long}: {health.get('reason')}{fix}")
         elif isinstance(values, dict) and values.get("held"):
             print(f"destination {name} {values['held']} (only_when; docs/constrained_links.md)")
+        if isinstance(values, dict) and (values.get("evicted") or values.get("files_evicted")):
+            print(
+                f"destination {name}: {values.get('evicted') or 0} records and {values.get('files_evicted') or 0} "
+                "saved files evicted unsent by the disk budget"
+            )
     for name, values in sorted(destinations.items()):
         own = values.get("plugin") if isinstance(values, dict) else None
         if own:
@@ -321,8 +340,9 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
                 f"buffer: COMMITS FAILING for {_cell(buffer.get('commit_failing_s'))} s, records wait in memory: "
                 f"{buffer['commit_error']}"
             )
+    _print_saved_files(metrics.get("saved_files"))
     for section, values in sorted(metrics.items()):
-        if section not in ("destinations", "buffer", "threads") and isinstance(values, dict):
+        if section not in ("destinations", "buffer", "threads", "saved_files") and isinstance(values, dict):
             flat = ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict))
             if flat:  # a section of per-topic tables (hop) has no line of its own: --json shows it
                 print(f"{section}: {flat}")

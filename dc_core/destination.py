@@ -257,6 +257,23 @@ class Destination(Plugin[ParamsT]):
         pace: Callable[[int], bool] | None = self.__dict__.get("_dc_pace")
         return pace is None or pace(nbytes)
 
+    # True for a destination that records a file DC evicted itself (FilesMetrics writes its row with
+    # ``evicted``): its records naming such a file are still sent. For the others they are taken out
+    # of its queue, counted ``evicted`` (dc_destinations.saved_files).
+    records_evictions = False
+
+    def file_fields(self) -> list[str]:
+        """Dotted paths (``local_paths.jpeg``) of the files this destination carries; [] for records only.
+
+        A record it confirms counts as its files delivered and verified by it: a plugin returns
+        fields here only if its confirmation means that (MinIO: uploaded and verified)."""
+        return []
+
+    def evicted_file(self, path: str) -> bool:
+        """True when DC evicted ``path`` to keep within its disk budget before this destination had it."""
+        evicted: Callable[[str], bool] | None = self.__dict__.get("_dc_evicted")
+        return evicted is not None and evicted(path)
+
     @property
     def stopping(self) -> threading.Event:
         """Set when the server stops delivery while ``send`` still runs past the grace; cleared at the start.

@@ -16,6 +16,8 @@ class ServerHealth:
     error: str = ""
     destinations: dict[str, dict[str, Any]] = field(default_factory=dict)
     buffer: dict[str, Any] = field(default_factory=dict)
+    # The disk budget's saved files per measurement (dc_destinations.saved_files); empty without a budget.
+    saved_files: dict[str, Any] = field(default_factory=dict)
 
     @property
     def pending(self) -> int:
@@ -52,6 +54,9 @@ def read(label: str, url: str, timeout: float = 3.0) -> ServerHealth:
     buffer = document.get("buffer")
     if isinstance(buffer, dict):
         health.buffer = buffer
+    saved = document.get("saved_files")
+    if isinstance(saved, dict):
+        health.saved_files = saved
     if not health.destinations and not health.buffer:
         health.error = f"{url} answered, but not as a destination server (no destinations in its metrics)"
     return health

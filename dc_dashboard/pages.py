@@ -506,17 +506,29 @@ def health(
             f"<td class=num>{_int(d.get('sent'))}</td>"
             f"<td class=num>{_int(d.get('buffered'))}</td><td class=num>{_age(d.get('oldest_pending_age_s'))}</td>"
             f"<td class=num>{_int(d.get('retried'))}</td><td class=num>{_int(d.get('failed'))}</td>"
-            f"<td class=num>{_dead(d.get('dead_letters'))}</td><td class=delivered>{_utc(d.get('last_delivery'))}</td>"
+            f"<td class=num>{_dead(d.get('dead_letters'))}</td>{_budget_cells(d)}"
+            f"<td class=delivered>{_utc(d.get('last_delivery'))}</td>"
             f"<td>{when(last_stored.get(name))}</td>"
             f"<td>{_error(d)}</td></tr>"
             for name, d in sorted(server.destinations.items())
         )
+        parts += [
+            notice(
+                f"{server.label}: destination {name} {d['held']}; its backlog waits in the buffer: "
+                f"{_int(d.get('buffered'))} records, the oldest {_age(d.get('oldest_pending_age_s'))} old",
+                "info",
+            )
+            for name, d in sorted(server.destinations.items())
+            if d.get("held")
+        ]
+        parts.append(_saved_files_panel(server))
         parts.append(
             f'<div class="panel"><h2>{escape(server.label)}</h2><table class="destinations">'
             "<tr><th>destination</th><th>health</th><th class=num>received</th><th class=num>sent</th>"
             "<th class=num>pending</th>"
             "<th class=num>oldest pending</th><th class=num>retried</th><th class=num>failed</th>"
-            "<th class=num>dead letters</th><th>last delivery</th><th>newest row's record time</th>"
+            "<th class=num>dead letters</th><th class=num>evicted</th><th>held</th>"
+            "<th>last delivery</th><th>newest row's record time</th>"
             "<th>last error</th></tr>"
             f"{rows}</table></div>"
         )
@@ -541,6 +553,35 @@ def health(
             f"{escape(', '.join(missing_indexes))}. Run dc dashboard --create-indexes (docs/dashboard.md)</div>"
         )
     return "".join(parts)
+
+
+def _budget_cells(destination: dict[str, Any]) -> str:
+    """Evicted by the disk budget (records, and the saved files it carries), and why it is held."""
+    files = destination.get("files_evicted")
+    evicted = _int(destination.get("evicted")) + (f" + {_int(files)} files" if files else "")
+    return f"<td class=num>{evicted}</td><td class=held>{escape(str(destination.get('held') or ''))}</td>"
+
+
+def _saved_files_panel(server: ServerHealth) -> str:
+    """The saved files under the disk budget, per measurement: produced, delivered, evicted, kept."""
+    measurements = server.saved_files.get("measurements")
+    if not isinstance(measurements, dict) or not measurements:
+        return ""
+    rows = "".join(
+        f"<tr><td>{escape(name)}</td><td class=num>{_int(c.get('retention_priority'))}</td>"
+        f"<td class=num>{_int(c.get('produced'))}</td><td class=num>{_int(c.get('delivered'))}</td>"
+        f"<td class=num>{_int(c.get('evicted'))}</td><td class=num>{_int(c.get('evicted_unsent'))}</td>"
+        f"<td class=num>{_int(c.get('kept'))}</td><td class=num>{_int(c.get('kept_bytes'))}</td></tr>"
+        for name, c in sorted(measurements.items())
+        if isinstance(c, dict)
+    )
+    return (
+        f'<div class="panel"><h2>{escape(server.label)}: saved files under the disk budget</h2>'
+        '<table class="saved-files"><tr><th>measurement</th><th class=num>retention priority</th>'
+        "<th class=num>produced</th><th class=num>delivered</th><th class=num>evicted</th>"
+        "<th class=num>of them unsent</th><th class=num>kept</th><th class=num>kept bytes</th></tr>"
+        f"{rows}</table></div>"
+    )
 
 
 def _health_state(destination: dict[str, Any]) -> str:

@@ -273,8 +273,8 @@ class Buffer(Protocol):
     def read_batch(self, destination: str, limit: int, *, after_id: int = 0) -> list[BufferedRow]:
         """The oldest ``limit`` rows of a queue; with ``after_id``, of those whose ``row_id`` is greater."""
 
-    def delete(self, destination: str, row_ids: Sequence[int]) -> int:
-        """Forget confirmed rows; returns how many were there."""
+    def delete(self, destination: str, row_ids: Sequence[int], *, sent: bool = True) -> int:
+        """Forget confirmed rows (``sent`` False: evicted unsent); returns how many were there."""
 
     def record_failure(self, destination: str, row_ids: Sequence[int]) -> dict[int, int]:
         """One more failed attempt for each row; returns their attempt counts."""
@@ -886,8 +886,9 @@ class SqliteBuffer:
             self._max_read[destination] = rows[-1][0]
         return list(map(BufferedRow._make, rows))
 
-    def delete(self, destination: str, row_ids: Sequence[int]) -> int:
-        """Delete confirmed rows; returns how many were still there (the size limit may have dropped some)."""
+    def delete(self, destination: str, row_ids: Sequence[int], *, sent: bool = True) -> int:
+        """Delete confirmed rows; returns how many were still there (the size limit may have dropped some).
+        ``sent`` False: rows evicted unsent, not added to the queue's lifetime ``sent``."""
         if not row_ids:
             return 0
         with self._transaction() as conn:
@@ -899,7 +900,7 @@ class SqliteBuffer:
             total = sum(size for (size,) in sizes)
             conn.execute(
                 "UPDATE queues SET rows = rows - ?, bytes = bytes - ?, sent = sent + ? WHERE qid = ?",
-                (len(sizes), total, len(sizes), qid),
+                (len(sizes), total, len(sizes) if sent else 0, qid),
             )
         return len(sizes)
 

@@ -15,6 +15,7 @@ another.
 from __future__ import annotations
 
 import contextlib
+import os
 import sqlite3
 import threading
 import time
@@ -25,7 +26,7 @@ from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.http_status import StatusServer, start_status_server
-from dc_core.logs import Logger
+from dc_core.logs import BurstLog, Logger
 from dc_core.supervision import Supervisor
 from dc_destinations.buffer import (
     FILE_NAME,
@@ -36,13 +37,21 @@ from dc_destinations.buffer import (
     SqliteBuffer,
 )
 from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
-from dc_destinations.disk_budget import eviction_plan
+from dc_destinations.disk_budget import budget_plan
 from dc_destinations.health import FAILING
 from dc_destinations.links import LinuxNetwork, Network, link_buckets, warn_missing_interfaces
 from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
+from dc_destinations.saved_files import FILE_NAME as SAVED_FILES_NAME
+from dc_destinations.saved_files import SavedFiles
 from dc_destinations.sender import Closing, Route, Sender
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params, link_rates
+from dc_destinations.settings import (
+    DeliveryParams,
+    DestinationDeliveryParams,
+    budget_limits,
+    check_destination_params,
+    link_rates,
+)
 from dc_destinations.storage import (
     SYNC_PROMISE,
     BufferLock,
@@ -102,6 +111,12 @@ class DeliveryPipeline:
             )
             warn_missing_interfaces(route.rules, name, logger)
             self._routes[name] = route
+        # The disk budget over the buffer's records and DC's saved files (dc_destinations.saved_files).
+        self._limits = budget_limits(settings, "destination_server.flb")
+        self._file_fields = {name: route.file_fields for name, route in self._routes.items() if route.file_fields}
+        self._saved: SavedFiles | None = None
+        # Made with the ledger at start: nothing here may need the logger before (a tool claims the storage alone).
+        self._budget_log: BurstLog | None = None
         self._buffer: SqliteBuffer | None = None
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
@@ -179,6 +194,20 @@ class DeliveryPipeline:
         # (and salvaged beside delivery, below).
         self.check_buffer(repair=True)
         buffer.ensure_queues(list(self._routes))
+        if self._limits.active:
+            saved = SavedFiles(
+                self.storage_file.parent / SAVED_FILES_NAME,
+                self.settings.retention_priorities,
+                self.logger,
+                keep_run_ends=self.settings.keep_run_ends,
+                records_evictions=[n for n, r in self._routes.items() if r.destination.records_evictions],
+            )
+            saved.open()
+            self._saved = saved
+            self._budget_log = BurstLog(self.logger.warning, "disk budget")
+            for route in self._routes.values():
+                route.saved = saved
+                route.destination.__dict__["_dc_evicted"] = saved.is_evicted
         self._closing.reset()
         senders = {
             name: Sender(
@@ -258,6 +287,9 @@ class DeliveryPipeline:
                 with contextlib.suppress(BufferClosed, BufferCorrupted):
                     left[name] = self._buffer.stats(name).rows
             self._buffer.close()
+        if self._saved is not None:
+            self._saved.close()
+            self._saved.evict_log.tick()
         self._committer.intake_drop_log.tick()
         self._committer.commit_log.tick()
         for route in self._routes.values():
@@ -303,6 +335,10 @@ class DeliveryPipeline:
                     self._routes[name].metrics.add("received")
                     self._routes[name].metrics.add("dropped")
             return False
+        saved = self._saved
+        if saved is not None:
+            for deliveries, _ in received:
+                saved.note(deliveries, self._file_fields)
         return self._committer.submit_records(received)
 
     def conditions(self) -> list[str]:
@@ -435,24 +471,59 @@ class DeliveryPipeline:
             route.tick_logs()
 
     def _keep_budget(self) -> None:
-        """On the writer thread, twice a second: evict what flb.disk_budget_mb does not hold
-        (dc_destinations.disk_budget), counted in ``evicted`` and logged once per burst."""
-        budget = int(self.settings.disk_budget_mb * 1024 * 1024)
-        buffer = self._buffer
-        if not budget or buffer is None or buffer.closed:
+        """On the writer thread, twice a second: keep the buffer's records and the saved files within
+        flb.disk_budget and the free space above disk_free_floor (dc_destinations.disk_budget), each
+        eviction counted and logged once per burst."""
+        buffer, saved = self._buffer, self._saved
+        if not self._limits.active or buffer is None or buffer.closed or self.storage_file is None:
             return
         try:
-            queued = {name: size for name, size in buffer.queued_bytes().items() if name in self._routes}
+            if saved is not None:
+                saved.tick()
+                saved.evict_log.tick()
+                saved.failure_log.tick()
+                saved.too_large_log.tick()
+            if self._budget_log is not None:
+                self._budget_log.tick()
+            disk = os.statvfs(self.storage_file.parent)
+            size, free = disk.f_blocks * disk.f_frsize, disk.f_bavail * disk.f_frsize
+            queued = {name: n for name, n in buffer.queued_bytes().items() if name in self._routes}
             retention = {name: route.params.retention_priority for name, route in self._routes.items()}
-            for name, nbytes in eviction_plan(queued, retention, budget):
-                records, freed = buffer.evict_oldest(name, nbytes)
-                route = self._routes[name]
-                route.metrics.add("evicted", records)
-                route.evict_log.event(records, f"{freed} bytes; see `dc status`")
+            budget, floor = self._limits.budget(size), self._limits.floor(size)
+            over = sum(queued.values()) + (saved.total_bytes if saved is not None else 0) - (budget or 0)
+            under = (floor - free) if floor is not None else 0
+            if (budget is None or over <= 0) and under <= 0:
+                return
+            # Only when something must go: the list of files is walked (tens of thousands on a long run).
+            files = saved.candidates() if saved is not None else []
+            steps = []
+            if budget is not None and over > 0:
+                if saved is not None:
+                    saved.too_large(budget)
+                steps = budget_plan(queued, retention, files, over)
+            if under > 0 and not any(step.kind == "file" for step in steps):
+                steps = budget_plan(queued, retention, files, under, records=False)
+                if not steps and self._budget_log is not None:
+                    self._budget_log.event(
+                        1, f"{free} bytes free, under disk_free_floor ({floor}), and no saved file left to evict"
+                    )
+            for step in steps:
+                if step.kind == "records":
+                    records, freed = buffer.evict_oldest(step.name, step.nbytes)
+                    route = self._routes[step.name]
+                    route.metrics.add("evicted", records)
+                    route.evict_log.event(records, f"{freed} bytes; see `dc status`")
+                elif saved is not None:
+                    evicted = saved.evict(step.name)
+                    if evicted is not None:
+                        unsent = f"not yet delivered to {', '.join(evicted.unsent_to)}" if evicted.unsent_to else ""
+                        saved.evict_log.event(
+                            1, f"{step.name} ({evicted.freed} bytes, measurement {evicted.measurement}) {unsent}"
+                        )
         except (BufferClosed, BufferCorrupted):
             return
-        except sqlite3.Error as exc:  # a full disk: tried again at the next tick, said by the commit failing
-            self.logger.warning(f"delivery buffer: keeping disk_budget_mb failed: {exc}")
+        except (sqlite3.Error, OSError) as exc:  # a full disk: tried again at the next tick, said by the commit failing
+            self.logger.warning(f"delivery buffer: keeping the disk budget failed: {exc}")
 
     # -- observability ------------------------------------------------------------------------------
 
@@ -467,6 +538,7 @@ class DeliveryPipeline:
             values["plugin"] = _plugin_counters(route)
             values["health"] = route.health.snapshot()
             values["held"] = route.held
+            values["files_evicted"] = self._saved.files_evicted(name) if self._saved is not None else 0
             if self._buffer is not None and not self._buffer.closed:
                 try:
                     stats = self._buffer.stats(name)
@@ -524,6 +596,8 @@ class DeliveryPipeline:
             "buffer": self.buffer_metrics(),
             "threads": self.supervisor.metrics(),
         }
+        if self._saved is not None:
+            document["saved_files"] = self._saved.snapshot()
         for name, supplier in self._sections.items():
             document[name] = supplier()
         return document

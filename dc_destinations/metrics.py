@@ -27,7 +27,8 @@ DELIVERY_COUNTERS = (
     ("dead_letters_dropped", "counter", "Oldest dead letters deleted by dead_letter_limit_size"),
     ("salvaged", "counter", "Records read back from a damaged buffer file into the new buffer"),
     ("lost_to_damage", "counter", "Records of a damaged buffer file that could not be read"),
-    ("evicted", "counter", "Records deleted from the buffer unsent to keep it within flb.disk_budget_mb"),
+    ("evicted", "counter", "Records deleted from the buffer unsent to keep within the disk budget"),
+    ("files_evicted", "counter", "Saved files this destination carries, evicted by the disk budget before it had them"),
 )
 # The counters of one destination, in their order in metrics() and the Prometheus text.
 COUNTERS = tuple(key for key, _kind, _doc in DELIVERY_COUNTERS)

@@ -57,6 +57,7 @@ from dc_destinations.buffer import Buffer, BufferClosed, BufferCorrupted, Buffer
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S, DestinationHealth, attention_needed
 from dc_destinations.links import FILES, HOLD_POLL_S, Network, Pacer, SendRules, TokenBucket
 from dc_destinations.metrics import DestinationMetrics
+from dc_destinations.saved_files import SavedFiles
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_rate, parse_size
 
 _T = TypeVar("_T")
@@ -137,6 +138,10 @@ class Route:
     # Records committed since the sender last found its queue empty: it wakes at batch_size.
     pending_hint: int = 0
     thread: threading.Thread | None = None
+    # The fields naming the files this destination carries (Destination.file_fields), and the
+    # ledger of saved files while a disk budget is set (dc_destinations.saved_files).
+    file_fields: list[str] = field(default_factory=list)
+    saved: SavedFiles | None = None
 
     @classmethod
     def of(
@@ -182,7 +187,7 @@ class Route:
             ),
             evict_log=BurstLog(
                 logger.warning,
-                f"destination {name}: oldest records evicted unsent to keep the buffer within flb.disk_budget_mb "
+                f"destination {name}: records evicted unsent to keep DC within its disk budget "
                 f"(retention_priority {params.retention_priority})",
             ),
             health=DestinationHealth(name, params.unhealthy_after or DEFAULT_UNHEALTHY_AFTER_S, logger),
@@ -190,6 +195,7 @@ class Route:
             logger=logger,
             rules=SendRules(params.only_when, network),
             pacer=pacer,
+            file_fields=destination.file_fields(),
         )
 
     def tick_logs(self) -> None:
@@ -448,7 +454,12 @@ class Sender:
         """The records to send of ``rows``, and those that must not be sent; no I/O."""
         batch = _Batch(rows)
         records, sent_rows, unreadable = batch.records, batch.sent_rows, batch.unreadable
+        saved = self.route.saved
+        skip = saved.skipped_for(self.route.name) if saved is not None and self.route.file_fields else None
         for row in rows:
+            if skip and row.record_id in skip:
+                batch.evicted.append(row)  # its file was evicted before this destination had it
+                continue
             if row.as_appended():
                 records.append(StoredRecord(row.record_id, row.topic, row.stamp_ns, json_text=row.payload))
                 sent_rows.append(row)
@@ -475,6 +486,12 @@ class Sender:
         if unreadable:
             route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))
             self.bound_dead_letters()
+        if batch.evicted:
+            taken = buffer.delete(route.name, [row.row_id for row in batch.evicted], sent=False)
+            route.metrics.add("evicted", taken)
+            route.evict_log.event(taken, "records naming saved files evicted before this destination had them")
+            assert route.saved is not None
+            route.saved.taken_out(route.name, [row.record_id for row in batch.evicted])
         if not records:
             return False
         if route.pacer.active and not route.pacer.take(sum(row.size for row in sent_rows)):
@@ -493,6 +510,9 @@ class Sender:
             route.health.failed(next(iter(retry.values()), ""), problem)
         else:
             route.health.succeeded()
+        if route.saved is not None and route.file_fields and confirmed:
+            done = set(confirmed)
+            route.saved.confirmed(route.name, [row.record_id for row in sent_rows if row.row_id in done])
         if defer_delete and not again and not reject:
             self._confirmed += confirmed
             return False
@@ -551,6 +571,7 @@ class _Batch:
     records: list[OutgoingRecord] = field(default_factory=list)
     sent_rows: list[BufferedRow] = field(default_factory=list)  # the rows of ``records``, in order
     unreadable: list[tuple[BufferedRow, str]] = field(default_factory=list)
+    evicted: list[BufferedRow] = field(default_factory=list)  # naming files evicted before they were sent
 
 
 def _outcome_of(

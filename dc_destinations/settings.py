@@ -87,6 +87,26 @@ class DeliveryParams(MetricsHttpParams):
     burst_s: float = param(
         1.0, minimum=0.01, doc="Seconds of its rate a cap may send at once after a quiet spell (the burst)"
     )
+    disk_budget: str = param(
+        "",
+        doc="Most disk the buffer's records and DC's saved files take together: a size (\"50M\") or a percentage of "
+        'the buffer\'s filesystem ("10%"); over it, evicted by value and counted ("" = none; see disk_budget_mb)',
+    )
+    disk_free_floor: str = param(
+        "",
+        doc='Least free space on the buffer\'s filesystem ("5%", "1G"): below it, whoever filled the disk, DC evicts '
+        'by the same rules as over disk_budget ("" = none)',
+    )
+    retention_priorities: dict[str, int] = param(
+        default_factory=dict,
+        doc="Measurement name -> retention priority of the files its records name (saved images, maps, "
+        "recordings): over the budget, the lower go first (absent: 0)",
+    )
+    keep_run_ends: int = param(
+        0,
+        minimum=0,
+        doc="Saved files kept to the last of their priority: the first and the last N of each measurement and run",
+    )
 
     @property
     def intake_limit_bytes(self) -> int | None:
@@ -163,13 +183,8 @@ def parse_rate(text: str, path: str) -> float | None:
 
 def link_rates(settings: DeliveryParams, path: str) -> dict[str, float]:
     """``flb.links`` as bytes per second; ``path`` is the ``flb`` section's YAML path. Checks
-    ``disk_budget_mb`` too (the other check of the section that needs more than one key's range)."""
-    if 0 < settings.disk_budget_mb < 1:
-        raise ConfigError(
-            f"{path}.disk_budget_mb",
-            f"a budget of {settings.disk_budget_mb:g} MB is smaller than one batch of records may be: "
-            "give at least 1, or 0 for no budget",
-        )
+    the disk budget too (the other checks of the section that need more than one key's range)."""
+    budget_limits(settings, path)
     rates = {}
     for name, text in settings.links.items():
         rate = parse_rate(str(text), f"{path}.links.{name}")
@@ -177,6 +192,83 @@ def link_rates(settings: DeliveryParams, path: str) -> dict[str, float]:
             raise ConfigError(f"{path}.links.{name}", 'expected a rate such as "125k"')
         rates[str(name)] = rate
     return rates
+
+
+@dataclass(frozen=True)
+class BudgetLimits:
+    """The disk budget of the ``flb`` section, read: bytes or a fraction of the buffer's filesystem."""
+
+    budget_bytes: int | None = None
+    budget_fraction: float | None = None
+    floor_bytes: int | None = None
+    floor_fraction: float | None = None
+
+    @property
+    def active(self) -> bool:
+        limits = (self.budget_bytes, self.budget_fraction, self.floor_bytes, self.floor_fraction)
+        return any(v is not None for v in limits)
+
+    def budget(self, filesystem_bytes: int) -> int | None:
+        """The budget in bytes on a filesystem of ``filesystem_bytes``; None: no budget."""
+        if self.budget_fraction is not None:
+            return int(filesystem_bytes * self.budget_fraction)
+        return self.budget_bytes
+
+    def floor(self, filesystem_bytes: int) -> int | None:
+        if self.floor_fraction is not None:
+            return int(filesystem_bytes * self.floor_fraction)
+        return self.floor_bytes
+
+
+def _size_or_percent(text: str, path: str, what: str, zero: str) -> tuple[int | None, float | None]:
+    """("50M" | "10%") as (bytes, None) or (None, fraction); ("", "") = (None, None); 0 refused."""
+    text = text.strip()
+    if not text:
+        return None, None
+    if text.endswith("%"):
+        try:
+            percent = float(text[:-1])
+        except ValueError:
+            raise ConfigError(
+                path, f'expected a size such as "50M" or a percentage such as "10%", got "{text}"'
+            ) from None
+        if not 0 < percent < 100:
+            why = zero if percent <= 0 else "is not below 100%"
+            raise ConfigError(path, f'{what} of "{text}" {why}: give more than 0% and less than 100%, or "" for none')
+        return None, percent / 100
+    if parse_size(text, path) is None:  # "0"
+        raise ConfigError(path, f'{what} of "{text}" {zero}: give a size such as "50M" or "10%", or "" for none')
+    return parse_size(text, path), None
+
+
+def budget_limits(settings: DeliveryParams, path: str) -> BudgetLimits:
+    """``disk_budget`` (or the older ``disk_budget_mb``) and ``disk_free_floor`` of the ``flb`` section at ``path``."""
+    if 0 < settings.disk_budget_mb < 1:
+        raise ConfigError(
+            f"{path}.disk_budget_mb",
+            f"a budget of {settings.disk_budget_mb:g} MB is smaller than one batch of records may be: "
+            "give at least 1, or 0 for no budget",
+        )
+    budget_bytes, budget_fraction = _size_or_percent(
+        settings.disk_budget, f"{path}.disk_budget", "a budget", "would evict everything"
+    )
+    if settings.disk_budget_mb and settings.disk_budget.strip():
+        raise ConfigError(f"{path}.disk_budget", "give disk_budget or disk_budget_mb, not both")
+    if settings.disk_budget_mb:
+        budget_bytes = int(settings.disk_budget_mb * 1024 * 1024)
+    if budget_bytes is not None and budget_bytes < 1024 * 1024:
+        raise ConfigError(
+            f"{path}.disk_budget",
+            f'a budget of "{settings.disk_budget.strip()}" is smaller than one batch of records may be: '
+            "give at least 1M",
+        )
+    floor_bytes, floor_fraction = _size_or_percent(
+        settings.disk_free_floor, f"{path}.disk_free_floor", "a floor", "would never act"
+    )
+    for name in settings.retention_priorities:
+        if not str(name).strip():
+            raise ConfigError(f"{path}.retention_priorities", "expected measurement names as keys, got an empty one")
+    return BudgetLimits(budget_bytes, budget_fraction, floor_bytes, floor_fraction)
 
 
 def check_destination_params(params: DestinationDeliveryParams, path: str, links: dict[str, str] | None = None) -> None:

@@ -439,7 +439,7 @@ def test_disk_budget_evicts_by_retention_and_counts_it(tmp_path: Path, caplog: p
         metrics = pipeline.metrics()
         assert metrics["health"]["evicted"] == 0 and metrics["health"]["buffered"] == 60
         assert metrics["images"]["evicted"] > 0
-        assert "oldest records evicted unsent to keep the buffer within flb.disk_budget_mb" in caplog.text
+        assert "records evicted unsent to keep DC within its disk budget" in caplog.text
         pipeline.set_condition("docked", True)
         poll(lambda: all(m["received"] == m["sent"] + m["evicted"] for m in pipeline.metrics().values()), 3, "sent")
         # The oldest went: what arrived of images is its newest records, in order.

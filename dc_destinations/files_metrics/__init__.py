@@ -220,6 +220,13 @@ class FilesMetrics(Destination[FilesMetricsParams]):
         super().on_cleanup()
         self._stores = []
 
+    # A file DC evicted before it was stored gets its row, with evicted true: the record is confirmed.
+    records_evictions = True
+
+    def file_fields(self) -> list[str]:
+        """Every storage's src_fields: a record is confirmed once every storage verified its files."""
+        return list(dict.fromkeys(f for s in self.params.file_storage for f in self.params.section(s).src_fields))
+
     def counters(self) -> dict[str, int]:
         return {"files_deleted": self._files_deleted, "files_refused": self._files.refused}
 
@@ -298,6 +305,7 @@ class FilesMetrics(Destination[FilesMetricsParams]):
                 durations[pair.local_path] = self._probe.duration(pair.local_path)
             duration = durations[pair.local_path]
         data = record.data
+        evicted = not on_filesystem and not verification.verified and self.evicted_file(pair.local_path)
         plan.rows.append(
             FileRow(
                 timestamp=record_time(record, self.params.pgsql.timestamp_key),
@@ -316,10 +324,11 @@ class FilesMetrics(Destination[FilesMetricsParams]):
                 record_id=record.record_id,
                 bucket=bucket,
                 etag=verification.etag if verification.verified else None,
+                evicted=evicted,
             )
         )
-        if verification.verified:
-            return
+        if verification.verified or evicted:
+            return  # an evicted file's row says so: there is nothing left to wait for
         if on_filesystem and verification.size is None:
             plan.waiting.append(f"waiting for {store.name} to store {pair.key}: {verification.reason}")
         elif on_filesystem:
@@ -376,7 +385,7 @@ class FilesMetrics(Destination[FilesMetricsParams]):
                 continue
             self._files_deleted += 1
             self.context.logger.debug(f"deleted {path}: stored and verified in {', '.join(self.params.file_storage)}")
-        gone.extend(row for row in plan.rows if row.local_path not in kept)
+        gone.extend(row for row in plan.rows if row.local_path not in kept and not row.evicted)
         return list(kept.values())
 
     def _mark_deleted(self, connection: Any, gone: list[FileRow]) -> None:

@@ -44,7 +44,8 @@ _CREATE = """CREATE TABLE IF NOT EXISTS {table} (
     record_id TEXT,
     bucket TEXT,
     etag TEXT,
-    verified_at TIMESTAMP
+    verified_at TIMESTAMP,
+    evicted BOOLEAN NOT NULL DEFAULT false
 )"""
 
 # What a table made by the original lacks. created_at stays nullable there: the original's rows
@@ -56,6 +57,7 @@ ADDED_COLUMNS = {
     "bucket": "TEXT",
     "etag": "TEXT",
     "verified_at": "TIMESTAMP",
+    "evicted": "BOOLEAN NOT NULL DEFAULT false",
 }
 
 # Which clock each time column follows, said in the table itself (\d+ and every catalog browser).
@@ -84,12 +86,12 @@ _NOW = "(now() AT TIME ZONE 'UTC')"
 _UPSERT = f"""INSERT INTO {{table}} AS t (
     timestamp, robot_name, robot_id, group_name, duration, local_path, remote_path, uploaded,
     on_filesystem, deleted, storage_type, content_type, size, updated_at, created_at, record_id,
-    bucket, etag, verified_at)
+    bucket, etag, verified_at, evicted)
 VALUES (
     %(timestamp)s, %(robot_name)s, %(robot_id)s, %(group_name)s, %(duration)s::float8, %(local_path)s,
     %(remote_path)s, %(uploaded)s, %(on_filesystem)s, false, %(storage_type)s, %(content_type)s,
     COALESCE(%(size)s::bigint, 0), {_NOW}, {_NOW}, %(record_id)s, %(bucket)s, %(etag)s::text,
-    CASE WHEN %(uploaded)s THEN {_NOW} END)
+    CASE WHEN %(uploaded)s THEN {_NOW} END, %(evicted)s)
 ON CONFLICT ({{key}}) DO UPDATE SET
     timestamp = EXCLUDED.timestamp,
     robot_name = EXCLUDED.robot_name,
@@ -106,7 +108,8 @@ ON CONFLICT ({{key}}) DO UPDATE SET
     record_id = EXCLUDED.record_id,
     bucket = EXCLUDED.bucket,
     etag = EXCLUDED.etag,
-    verified_at = EXCLUDED.verified_at"""
+    verified_at = EXCLUDED.verified_at,
+    evicted = EXCLUDED.evicted"""
 
 _MARK_DELETED = f"""UPDATE {{table}} SET deleted = true, on_filesystem = false, updated_at = {_NOW}
 WHERE local_path = %(local_path)s AND storage_type = %(storage_type)s{{robot}}"""
@@ -131,6 +134,7 @@ class FileRow:
     record_id: str
     bucket: str
     etag: str | None
+    evicted: bool = False  # deleted by DC to keep within its disk budget before this storage held it
 
     def values(self) -> dict[str, Any]:
         return asdict(self)

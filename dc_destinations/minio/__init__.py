@@ -185,6 +185,9 @@ class MinIO(Destination[MinIOParams]):
             self._client.close()
             self._client = None
 
+    def file_fields(self) -> list[str]:
+        return list(self.params.src_fields)  # a record is confirmed once its objects are verified
+
     def counters(self) -> dict[str, int]:
         return {**self._counts, "files_refused": self._files.refused}
 

@@ -1,0 +1,462 @@
+"""The disk budget over DC's saved files and the buffer (dc_destinations.saved_files, disk_budget).
+
+Real files on disk, the real pipeline, the real MinIO destination against SeaweedFS and FilesMetrics
+against PostgreSQL (both started here, once for the module); the free-space floor on a small real
+tmpfs that another process fills. Every test ends in: files delivered + evicted (counted) = produced.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dc_bringup.local_servers.postgres import PostgresServer
+from dc_bringup.local_servers.postgres import missing_reason as postgres_missing
+from dc_bringup.local_servers.seaweedfs import SeaweedS3Server
+from dc_bringup.local_servers.seaweedfs import missing_reason as seaweed_missing
+from dc_core.destination import Destination, OutgoingRecord, SendOutcome
+from dc_core.errors import ConfigError
+from dc_core.params import parse_params
+from dc_core.testing import FakeContext, RecordingLogger
+from dc_destinations.config import parse_destination_server
+from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.disk_budget import FileCandidate, Step, budget_plan
+from dc_destinations.links import OnlyWhenParams
+from dc_destinations.record_ids import new_record_id
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+from tests.destination_helpers import running_postgres
+from tests.fault_helpers import tmpfs
+
+LOG = logging.getLogger("tests.test_disk_budget")
+PASSWORD = "pg-Budget-Secret-31"
+KB = 1024
+
+
+def poll(check: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not check():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def saved_record(path: Path, measurement: str, run_id: str = "r1") -> OutgoingRecord:
+    rid = new_record_id()
+    kind = path.suffix.lstrip(".")
+    data = {
+        "name": measurement,
+        "run_id": run_id,
+        "robot_name": "C3PO",
+        "local_paths": {kind: str(path)},
+        "remote_paths": {"minio": {kind: f"C3PO/{measurement}/{path.name}"}},
+        "record_id": rid,
+    }
+    return OutgoingRecord(rid, f"/dc/measurement/{measurement}", time.time_ns(), data)
+
+
+def save(folder: Path, measurement: str, n: int, size: int) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{measurement}-{n:03}.{'mcap' if measurement == 'incident' else 'jpeg'}"
+    path.write_bytes(bytes([n % 251]) * size)
+    return path
+
+
+# -- the plan, pure ---------------------------------------------------------------------------------
+
+
+def test_the_plan_gives_up_delivered_files_first_then_by_retention_priority_keeping_run_ends() -> None:
+    def f(path: str, priority: int, *, delivered: bool = False, protected: bool = False, seq: int = 0) -> FileCandidate:
+        return FileCandidate(path, 100, priority, delivered, protected, seq)
+
+    files = [
+        f("cam-first", 0, protected=True, seq=1),
+        f("cam-2", 0, seq=2),
+        f("cam-3", 0, seq=3),
+        f("incident-sent", 10, delivered=True, seq=4),
+        f("incident-only", 10, seq=5),
+        f("cam-last", 0, protected=True, seq=6),
+    ]
+    queued = {"images": 150, "health": 100}
+    retention = {"images": 0, "health": 10}
+    plan = budget_plan(queued, retention, files, 10_000)
+    assert plan == [
+        Step("file", "incident-sent", 100),  # safe elsewhere, whatever its priority
+        Step("file", "cam-2", 100),
+        Step("file", "cam-3", 100),
+        Step("records", "images", 150),
+        Step("file", "cam-first", 100),  # the run's ends, last of their priority
+        Step("file", "cam-last", 100),
+        Step("file", "incident-only", 100),  # the only copy of the higher priority: nothing lower is left
+        Step("records", "health", 100),
+    ]
+    assert budget_plan(queued, retention, files, 150) == plan[:2]
+    # Under the free-space floor only files go: freed records' pages stay with SQLite.
+    assert all(step.kind == "file" for step in budget_plan(queued, retention, files, 10_000, records=False))
+
+
+@pytest.mark.parametrize(
+    ("flb", "path", "says"),
+    [
+        ({"disk_budget": "0"}, "destination_server.flb.disk_budget", "would evict everything"),
+        ({"disk_budget": "0%"}, "destination_server.flb.disk_budget", "would evict everything"),
+        ({"disk_budget": "100%"}, "destination_server.flb.disk_budget", "below 100%"),
+        ({"disk_budget": "ten%"}, "destination_server.flb.disk_budget", "percentage"),
+        ({"disk_budget": "512k"}, "destination_server.flb.disk_budget", "smaller than one batch"),
+        ({"disk_budget": "50M", "disk_budget_mb": 50}, "destination_server.flb.disk_budget", "not both"),
+        ({"disk_free_floor": "0"}, "destination_server.flb.disk_free_floor", "would never act"),
+    ],
+)
+def test_bad_budgets_are_configure_errors_naming_the_key(flb: dict[str, Any], path: str, says: str) -> None:
+    section = {
+        "destination_plugins": ["d"],
+        "flb": flb,
+        "d": {"plugin": "dc_destinations/Null", "inputs": ["/dc/measurement/x"]},
+    }
+    with pytest.raises(ConfigError) as raised:
+        parse_destination_server(section)
+    assert raised.value.path == path and says in raised.value.message
+
+
+# -- saved files with MinIO and FilesMetrics ----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def pg() -> Iterator[PostgresServer]:
+    if postgres_missing():
+        pytest.skip(f"no local server: {postgres_missing()}")
+    with running_postgres("dc-budget-pg-", PASSWORD) as server:
+        yield server
+
+
+@pytest.fixture(scope="module")
+def s3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SeaweedS3Server]:
+    if seaweed_missing():
+        pytest.skip(f"no local server: {seaweed_missing()}")
+    server = SeaweedS3Server(tmp_path_factory.mktemp("seaweedfs"))
+    server.start()
+    yield server
+    server.stop(timeout=3.0)
+
+
+def file_destinations(pg: PostgresServer, s3: SeaweedS3Server, held: OnlyWhenParams) -> dict[str, Any]:
+    from dc_destinations.files_metrics import FilesMetrics, FilesMetricsParams
+    from dc_destinations.minio import MinIO, MinIOParams
+
+    s = s3.settings()
+    store = {
+        "endpoint": f"127.0.0.1:{s3.port}",
+        "use_ssl": False,
+        "access_key_id": s["aws_access_key_id"],
+        "secret_access_key": s["aws_secret_access_key"],
+        "bucket": s3.bucket,
+        "src_fields": ["local_paths.jpeg", "local_paths.mcap"],
+        "upload_fields": ["remote_paths.minio.jpeg", "remote_paths.minio.mcap"],
+    }
+    roots = [tempfile.gettempdir()]
+    minio = MinIO(
+        FakeContext(name="minio", logger=RecordingLogger()),
+        parse_params(MinIOParams, {**store, "allowed_roots": roots, "complete_after": 0.0}, "destination_server.minio"),
+    )
+    files = FilesMetrics(
+        FakeContext(name="files", logger=RecordingLogger()),
+        parse_params(
+            FilesMetricsParams,
+            {
+                "file_storage": ["minio"],
+                "minio": store,
+                "missing_wait": 0.0,
+                "allowed_roots": roots,
+                "pgsql": {**pg.settings(), "table": "budget_files", "connect_timeout": 2},
+            },
+            "destination_server.files",
+        ),
+    )
+    for plugin in (minio, files):
+        plugin.on_configure()
+        plugin.on_activate()
+    params = DestinationDeliveryParams(only_when=held, batch_size=20)
+    return {"minio": (minio, params), "files": (files, params)}
+
+
+def test_saved_files_are_evicted_by_value_counted_and_shown_in_files_metrics(
+    pg: PostgresServer,
+    s3: SeaweedS3Server,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A robot off its dock saves 30 camera images and 6 incident recordings against a 1 MB budget:
+    the oldest images go (not the run's first and last), no recording; at the dock the rest is
+    uploaded and verified, and FilesMetrics' rows say which files were evicted. Then, over the
+    budget again, delivered files go before any new recording."""
+    import psycopg
+
+    save_dir = tmp_path / "save"
+    settings = DeliveryParams(
+        storage_path=str(tmp_path / "buffer"),
+        flush=0.05,
+        scheduler_base=0.05,
+        scheduler_cap=0.2,
+        http_port=0,
+        disk_budget="1M",
+        keep_run_ends=1,
+        retention_priorities={"incident": 10, "camera": 0},
+    )
+    pipeline = DeliveryPipeline(settings, file_destinations(pg, s3, OnlyWhenParams(conditions=["docked"])), LOG)
+    pipeline.start()
+    pipeline.set_condition("docked", False)  # off the dock
+    produced: dict[str, list[Path]] = {"camera": [], "incident": []}
+
+    def produce(measurement: str, count: int) -> None:
+        for _ in range(count):
+            path = save(save_dir, measurement, len(produced[measurement]), 40 * KB)
+            produced[measurement].append(path)
+            record = saved_record(path, measurement)
+            pipeline.submit_record([("minio", record), ("files", record)])
+
+    def files_of(measurement: str) -> dict[str, Any]:
+        return dict(pipeline.status_document()["saved_files"]["measurements"][measurement])
+
+    def within_budget() -> bool:
+        document = pipeline.status_document()
+        buffered = sum(m["buffered_bytes"] or 0 for m in document["destinations"].values())
+        return int(document["saved_files"]["bytes"]) + buffered <= 1024 * 1024
+
+    try:
+        with caplog.at_level(logging.WARNING):
+            for _ in range(6):  # an incident now and then among the images
+                produce("camera", 5)
+                produce("incident", 1)
+            assert pipeline.flush_intake(10)
+            poll(lambda: files_of("camera")["produced"] == 30 and within_budget(), 30, "the files within the budget")
+        camera, incident = files_of("camera"), files_of("incident")
+        assert incident["evicted"] == 0 and incident["kept"] == 6
+        assert camera["evicted"] == camera["evicted_unsent"] > 0
+        first, last = produced["camera"][0], produced["camera"][-1]
+        assert first.exists() and last.exists()  # keep_run_ends: 1
+        gone = [p for p in produced["camera"] if not p.exists()]
+        assert len(gone) == camera["evicted"]
+        # The oldest images went first (after the run's first one).
+        assert gone == produced["camera"][1 : 1 + len(gone)]
+        assert "saved files evicted to keep DC within flb.disk_budget" in caplog.text
+        metrics = pipeline.metrics()
+        assert metrics["minio"]["files_evicted"] == metrics["files"]["files_evicted"] == len(gone)
+        shown(pipeline, capsys, len(gone))
+        assert f'dc_delivery_files_evicted_total{{destination="minio"}} {len(gone)}' in pipeline.prometheus()
+
+        pipeline.set_condition("docked", True)
+
+        def settled() -> bool:
+            m = pipeline.metrics()
+            return all(m[d]["buffered"] == 0 and m[d]["received"] == 36 for d in ("minio", "files"))
+
+        poll(settled, 60, "the backlog uploaded and tracked")
+        metrics = pipeline.metrics()
+        # MinIO's records naming evicted files were taken out of its queue, counted evicted.
+        assert metrics["minio"]["sent"] + metrics["minio"]["evicted"] == 36 and metrics["minio"]["evicted"] == len(gone)
+        # FilesMetrics recorded them: every record sent, the evicted files' rows say evicted.
+        assert metrics["files"]["sent"] == 36 and metrics["files"]["evicted"] == 0
+        kept = [p for paths in produced.values() for p in paths if p.exists()]
+        stored = set(s3.objects("C3PO/"))
+        assert stored == {f"C3PO/{p.name.split('-')[0]}/{p.name}" for p in kept}
+        with psycopg.connect(**pg_connect(pg)) as connection:
+            rows = dict(connection.execute("SELECT local_path, evicted FROM budget_files WHERE uploaded OR evicted"))
+        assert {p for p, evicted in rows.items() if evicted} == {str(p) for p in gone}
+        assert {p for p, evicted in rows.items() if not evicted} == {str(p) for p in kept}
+
+        def accounted() -> bool:  # the ledger takes the confirmations in at its next tick
+            return all(
+                (c := files_of(m))["delivered"] + c["evicted_unsent"] == c["produced"] == len(produced[m])
+                for m in ("camera", "incident")
+            )
+
+        poll(accounted, 10, "every file delivered or counted evicted")
+
+        # Held again, new recordings over the budget: the delivered files go, not the new only copies.
+        pipeline.set_condition("docked", False)
+        produce("incident", 8)
+        assert pipeline.flush_intake(10)
+        poll(lambda: files_of("incident")["produced"] == 14 and within_budget(), 30, "within the budget again")
+        assert all(p.exists() for p in produced["incident"][6:])
+        camera_after, incident_after = files_of("camera"), files_of("incident")
+        assert camera_after["evicted"] > camera["evicted"]  # delivered images went
+        assert camera_after["evicted_unsent"] == camera["evicted_unsent"]
+        assert incident_after["evicted_unsent"] == 0
+        pipeline.set_condition("docked", True)
+        poll(
+            lambda: all(m["buffered"] == 0 and m["received"] == 44 for m in pipeline.metrics().values()),
+            60,
+            "the new recordings uploaded and tracked",
+        )
+        poll(accounted, 10, "every file delivered or counted evicted")
+    finally:
+        pipeline.stop(0.5)
+
+
+def shown(pipeline: DeliveryPipeline, capsys: pytest.CaptureFixture[str], evicted: int) -> None:
+    """What `dc status` and the dashboard's Health page (from the real metrics endpoint) say meanwhile."""
+    from dc_bringup.cli import _print_delivery
+    from dc_dashboard.health import read
+    from dc_dashboard.pages import health
+
+    _print_delivery(pipeline.status_document(), wide=False)
+    out = capsys.readouterr().out
+    assert (
+        f"destination minio: {evicted} records and {evicted} saved files evicted unsent by the disk budget" not in out
+    )
+    assert f"destination minio: 0 records and {evicted} saved files evicted unsent by the disk budget" in out
+    assert "destination minio held: condition docked is false" in out
+    assert f"camera (retention_priority 0): produced 30, delivered 0, evicted {evicted} ({evicted} unsent)" in out
+    assert "incident (retention_priority 10): produced 6, delivered 0, evicted 0 (0 unsent), kept 6" in out
+
+    address = pipeline.http_address
+    assert address is not None
+    server = read("robot", f"http://{address[0]}:{address[1]}/api/v1/metrics")
+    assert not server.error
+    page = health([server], {}, [], [], [], now=time.time())
+    minio = page.split("<tr><td>minio</td>")[1].split("</tr>")[0]
+    assert f"<td class=num>0 + {evicted} files</td><td class=held>held: condition docked is false</td>" in minio
+    assert (
+        "robot: destination minio held: condition docked is false; its backlog waits in the buffer: 36 records" in page
+    )
+    camera = page.split("<tr><td>camera</td>")[1].split("</tr>")[0]
+    assert camera.startswith(
+        f"<td class=num>0</td><td class=num>30</td><td class=num>0</td><td class=num>{evicted}</td>"
+    )
+
+
+def pg_connect(pg: PostgresServer) -> dict[str, Any]:
+    return {
+        "host": "127.0.0.1",
+        "port": pg.port,
+        "user": pg.user,
+        "password": PASSWORD,
+        "dbname": pg.database,
+        "autocommit": True,
+    }
+
+
+# -- the free-space floor, on a small real filesystem ----------------------------------------------------
+
+
+class Collecting(Destination[None]):
+    def __init__(self) -> None:
+        super().__init__(FakeContext(name="records"), None)
+        self.received: list[OutgoingRecord] = []
+
+    def send(self, batch: list[OutgoingRecord]) -> SendOutcome | None:  # type: ignore[override]
+        self.received.extend(batch)
+        return None
+
+
+def test_a_disk_filled_by_another_process_is_given_back_by_the_same_rules(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """On an 8 MB filesystem, a budget of 25 % holds 1.25 MB of saved files; then another process
+    writes 3.5 MB there: free space falls under the 40 % floor and DC evicts images, oldest first,
+    never a recording, until the floor holds. A file larger than the whole budget is said."""
+    with tmpfs(tmp_path / "disk", "8m") as disk:
+        settings = DeliveryParams(
+            storage_path=str(disk / "buffer"),
+            flush=0.05,
+            http_server=False,
+            disk_budget="25%",
+            disk_free_floor="40%",
+            retention_priorities={"incident": 10},
+        )
+        sink = Collecting()
+        pipeline = DeliveryPipeline(settings, {"records": (sink, DestinationDeliveryParams())}, LOG)
+        pipeline.start()
+        save_dir = disk / "save"
+        produced: dict[str, list[Path]] = {"camera": [], "incident": []}
+
+        def produce(measurement: str, count: int, size: int = 50 * KB) -> None:
+            for _ in range(count):
+                path = save(save_dir, measurement, len(produced[measurement]), size)
+                produced[measurement].append(path)
+                pipeline.submit("records", saved_record(path, measurement))
+
+        def counts(measurement: str) -> dict[str, Any]:
+            return dict(pipeline.status_document()["saved_files"]["measurements"][measurement])
+
+        def free() -> int:
+            stats = os.statvfs(disk)
+            return stats.f_bavail * stats.f_frsize
+
+        try:
+            produce("camera", 20)
+            produce("incident", 5)
+            assert pipeline.flush_intake(10)
+            poll(lambda: counts("camera")["produced"] == 20 and counts("incident")["produced"] == 5, 30, "files noted")
+            time.sleep(1.1)  # two ticks of the budget: nothing to evict within it (an absence: no event to await)
+            assert counts("camera")["evicted"] == 0 and counts("incident")["evicted"] == 0
+            floor = int(0.4 * 8 * 1024 * 1024)
+            with caplog.at_level(logging.WARNING):
+                filler = disk / "other" / "filler.bin"
+                filler.parent.mkdir()
+                subprocess.run(
+                    [sys.executable, "-c", f"open({str(filler)!r}, 'wb').write(b'x' * {3584 * KB})"], check=True
+                )
+                # (Not checked under the floor here: DC's next tick may already have given it back.)
+                poll(lambda: free() >= floor and counts("camera")["evicted"] > 0, 30, "the floor given back")
+            camera, incident = counts("camera"), counts("incident")
+            assert incident["evicted"] == 0 and all(p.exists() for p in produced["incident"])
+            gone = [p for p in produced["camera"] if not p.exists()]
+            assert len(gone) == camera["evicted"] > 0 and gone == produced["camera"][: len(gone)]
+            assert filler.exists() and filler.stat().st_size == 3584 * KB  # not DC's to touch
+            # No destination carries these files: each was the only copy, evicted unsent and counted.
+            for measurement, paths in produced.items():
+                c = counts(measurement)
+                assert c["produced"] == len(paths) == c["kept"] + c["evicted_unsent"]
+            assert "saved files evicted" in caplog.text
+
+            # A file larger than the whole budget (25 % of 8 MB) is said, clearly.
+            filler.unlink()
+            with caplog.at_level(logging.ERROR):
+                produce("camera", 1, size=2200 * KB)
+                poll(lambda: "larger than the whole disk budget" in caplog.text, 30, "the error")
+            assert "raise flb.disk_budget above the largest file" in caplog.text
+        finally:
+            pipeline.stop(0.5)
+
+
+def test_saved_files_of_an_earlier_run_still_count_after_a_restart(tmp_path: Path) -> None:
+    """The account is on disk beside the buffer: files saved before a restart are weighed and evicted after it."""
+    settings = DeliveryParams(storage_path=str(tmp_path / "buffer"), flush=0.05, http_server=False, disk_budget="1M")
+    produced: list[Path] = []
+
+    def run(count: int) -> dict[str, Any]:
+        pipeline = DeliveryPipeline(settings, {"records": (Collecting(), DestinationDeliveryParams())}, LOG)
+        pipeline.start()
+        try:
+            for _ in range(count):
+                produced.append(save(tmp_path / "save", "camera", len(produced), 60 * KB))
+                pipeline.submit("records", saved_record(produced[-1], "camera"))
+            assert pipeline.flush_intake(10)
+
+            def noted() -> bool:
+                return (
+                    int(pipeline.status_document()["saved_files"]["bytes"])
+                    == sum(p.stat().st_size for p in produced if p.exists())
+                    and sum(p.exists() for p in produced) * 60 * KB <= 1024 * 1024
+                )
+
+            poll(noted, 30, "the files noted and within the budget")
+            return dict(pipeline.status_document()["saved_files"]["measurements"]["camera"])
+        finally:
+            pipeline.stop(0.5)
+
+    first = run(10)
+    assert first["produced"] == 10 and first["evicted"] == 0
+    second = run(10)  # 20 x 60 kB: over 1 MB only with the first run's files counted
+    assert second["produced"] == 10 and second["evicted"] == 20 - second["kept"] > 0
+    assert [p.exists() for p in produced] == [False] * second["evicted"] + [True] * second["kept"]
