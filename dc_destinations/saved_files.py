@@ -36,7 +36,7 @@ from typing import Any
 from dc_core.destination import OutgoingRecord
 from dc_core.logs import BurstLog, Logger
 from dc_destinations.disk_budget import FileCandidate
-from dc_destinations.object_files import field_value
+from dc_destinations.record_fields import field_value
 
 FILE_NAME = "saved_files.sqlite3"
 # Ticks (twice a second) a file named by a record is looked for before it is taken as never written.

@@ -31,7 +31,8 @@ from dc_core.errors import ConfigError
 from dc_core.params import describe_params, parse_params
 from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.minio import MinIO, MinIOParams
-from dc_destinations.object_files import ObjectStoreParams, field_value, file_pairs, local_etag, verify_stored
+from dc_destinations.object_files import ObjectStoreParams, file_pairs, local_etag, verify_stored
+from dc_destinations.record_fields import field_value
 from tests.bringup_util import BIN, Bringup, dc
 from tests.destination_helpers import STAMP_NS, forwarding_params
 from tests.http_receiver import free_port
