@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import socket
@@ -65,3 +66,27 @@ def test_servers_run_until_interrupted_with_their_settings_kept_private(tmp_path
     assert "postgres: stopped" in output and "influxdb: stopped" in output
     assert pg["password"] not in output  # the settings file has it, the terminal does not
     subprocess.run(["rm", "-rf", str(state)], check=False)
+
+
+def test_the_s3_server_starts_on_other_ports_when_one_of_its_own_was_taken_meanwhile(tmp_path: Path) -> None:
+    # free_port() and weed's bind are apart: a process (another test's server, say) may take a port
+    # between them. The S3 port is the caller's; the internal ones are chosen again.
+    from dc_bringup.local_servers.seaweedfs import SeaweedS3Server
+
+    state = tmp_path / "s3"
+    state.mkdir()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        admin = taken.getsockname()[1]
+        (state / "ports.json").write_text(json.dumps({"admin": admin}))
+        server = SeaweedS3Server(state)
+        try:
+            server.start()
+            client = server.client()
+            client.put_object(Bucket=server.bucket, Key="k", Body=b"v")
+            assert client.get_object(Bucket=server.bucket, Key="k")["Body"].read() == b"v"
+        finally:
+            server.stop()
+    assert "Port allocation failed" in server.log_file.read_text()
+    assert json.loads((state / "ports.json").read_text())["admin"] != admin

