@@ -24,6 +24,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from dc_core.confined_files import ConfinementParams
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.logs import BurstLog, Logger
@@ -83,8 +84,20 @@ class DeliveryPipeline:
         uniform: Callable[[float, float], float] | None = None,
         supervisor: Supervisor | None = None,
         network: Network | None = None,
+        saved_files_roots: Sequence[str] = (),
     ) -> None:
+        """``saved_files_roots``: where DC's measurements save files (besides the file destinations'
+        ``allowed_roots``): the files the disk budget weighs and may delete are those in these folders."""
         self.settings = settings
+        self._saved_files_roots = [
+            *saved_files_roots,
+            *(
+                root
+                for destination, _ in destinations.values()
+                if isinstance(destination.params, ConfinementParams)
+                for root in destination.params.allowed_roots
+            ),
+        ]
         self.logger = logger
         # The writer, the senders and the status server run under its rule (dc_core.supervision).
         self.supervisor = supervisor if supervisor is not None else Supervisor(logger)
@@ -201,6 +214,7 @@ class DeliveryPipeline:
                 self.logger,
                 keep_run_ends=self.settings.keep_run_ends,
                 records_evictions=[n for n, r in self._routes.items() if r.destination.records_evictions],
+                roots=self._saved_files_roots,
             )
             saved.open()
             self._saved = saved
@@ -289,7 +303,7 @@ class DeliveryPipeline:
             self._buffer.close()
         if self._saved is not None:
             self._saved.close()
-            self._saved.evict_log.tick()
+            self._saved.tick_logs()
         self._committer.intake_drop_log.tick()
         self._committer.commit_log.tick()
         for route in self._routes.values():
@@ -480,9 +494,7 @@ class DeliveryPipeline:
         try:
             if saved is not None:
                 saved.tick()
-                saved.evict_log.tick()
-                saved.failure_log.tick()
-                saved.too_large_log.tick()
+                saved.tick_logs()
             if self._budget_log is not None:
                 self._budget_log.tick()
             disk = os.statvfs(self.storage_file.parent)

@@ -27,12 +27,14 @@ import contextlib
 import json
 import os
 import sqlite3
+import stat
 import threading
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dc_core.confined_files import Confinement, FileRefused
 from dc_core.destination import OutgoingRecord
 from dc_core.logs import BurstLog, Logger
 from dc_destinations.disk_budget import FileCandidate
@@ -137,8 +139,13 @@ class SavedFiles:
         *,
         keep_run_ends: int = 0,
         records_evictions: Iterable[str] = (),
+        roots: Sequence[str] = (),
     ) -> None:
         self.path = path
+        # Anything on the ROS graph can publish a record: only DC's own files, in these folders and
+        # owned by this user, are weighed and ever deleted (dc_core.confined_files, as the uploads).
+        self._confinement = Confinement(roots)
+        self.refused = 0
         self.priorities = dict(priorities)
         self.keep_run_ends = keep_run_ends
         self.logger = logger
@@ -166,6 +173,9 @@ class SavedFiles:
         )
         self.failure_log = BurstLog(logger.warning, "saved files that could not be evicted")
         self.too_large_log = BurstLog(logger.error, "saved files larger than the whole disk budget")
+        self.refused_log = BurstLog(
+            logger.warning, "files named by records left out of the disk budget (never evicted): not DC's to delete"
+        )
 
     # -- durable state ---------------------------------------------------------------------------
 
@@ -350,9 +360,13 @@ class SavedFiles:
                 self._dirty.add(path)
                 continue
             try:
-                size = os.stat(path).st_size
+                size = self._own_file(path).st_size
             except FileNotFoundError:
                 missing[path] = destinations
+                continue
+            except FileRefused as exc:
+                self.refused += 1
+                self.refused_log.event(1, str(exc))
                 continue
             except OSError:
                 continue  # not DC's to weigh (no access): the destination says what it cannot read
@@ -444,6 +458,18 @@ class SavedFiles:
                 for f in self._files.values()
             ]
 
+    def tick_logs(self) -> None:
+        for log in (self.evict_log, self.failure_log, self.too_large_log, self.refused_log):
+            log.tick()
+
+    def _own_file(self, path: str) -> os.stat_result:
+        """The status of ``path`` if it is a regular file of this user inside the roots; FileRefused if not."""
+        real = self._confinement.check_path(path)
+        status = os.lstat(real)
+        if not stat.S_ISREG(status.st_mode) or status.st_uid != self._confinement.uid:
+            raise FileRefused(f"{path} is not a regular file of DC's user")
+        return status
+
     def too_large(self, budget: int) -> None:
         """Say, once per file, which saved files alone are larger than the whole budget."""
         with self._lock:
@@ -462,7 +488,12 @@ class SavedFiles:
             if saved is None:
                 return None
             try:
+                # Checked again: a folder of the path may have been swapped for a link since it was weighed.
+                self._own_file(path)
                 os.unlink(path)
+            except FileRefused as exc:
+                self.failure_log.event(1, str(exc))
+                return None
             except FileNotFoundError:  # deleted by someone else (delete_when_sent, an operator): not DC's eviction
                 self._forget(saved)
                 return Evicted(saved.size, saved.measurement)
@@ -515,6 +546,7 @@ class SavedFiles:
                     "kept_bytes": on_disk[name][1],
                 }
             return {
+                "refused": self.refused,
                 "files": len(self._files),
                 "bytes": self._bytes,
                 "measurements": measurements,

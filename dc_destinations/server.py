@@ -35,7 +35,7 @@ from dc_core.confined_files import ConfinementParams, default_roots
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.diagnostics import ERROR, OK, WARN, scrub, secret_values
 from dc_core.diagnostics import status as diagnostic_status
-from dc_core.errors import DcError
+from dc_core.errors import ConfigError, DcError
 from dc_core.handoff import ENDED_SUFFIX, RESEND_TOPIC, AckPublisher, resend_qos, resent_topic
 from dc_core.handoff_marks import ENDED_TOPIC, ended_qos, parse_ended
 from dc_core.lifecycle import ManagedServer, PartialTeardown, run_server
@@ -210,6 +210,7 @@ class DestinationServer(ManagedServer):
             self.get_logger(),
             seen_window=self._hop_window,
             supervisor=self.supervisor,
+            saved_files_roots=self._save_folders(servers),
         )
         # At configure: a buffer another process owns fails configure, with the owner named.
         self.pipeline.claim_storage(self.get_namespace())
@@ -219,6 +220,15 @@ class DestinationServer(ManagedServer):
         self.pipeline.add_prometheus_section(
             lambda: hop_prometheus_text(self.hop_metrics(), self.stats.handoff_announcements_refused)
         )
+
+    def _save_folders(self, servers: dict[str, Any]) -> list[str]:
+        """The measurement server's save folder (of this same file), where the disk budget may evict files."""
+        try:
+            return default_roots(servers.get("measurement_server"))
+        except ConfigError as exc:
+            # Only the file destinations' allowed_roots then: a budget still evicts nothing outside them.
+            self.get_logger().warning(f"disk budget: no saved files counted from the save folder: {exc}")
+            return []
 
     def _with_default_roots(self, config: DestinationServerConfig, servers: dict[str, Any]) -> list[Any]:
         """The destinations, those reading files without ``allowed_roots`` given the measurement

@@ -374,9 +374,11 @@ def test_a_disk_filled_by_another_process_is_given_back_by_the_same_rules(
             retention_priorities={"incident": 10},
         )
         sink = Collecting()
-        pipeline = DeliveryPipeline(settings, {"records": (sink, DestinationDeliveryParams())}, LOG)
-        pipeline.start()
         save_dir = disk / "save"
+        pipeline = DeliveryPipeline(
+            settings, {"records": (sink, DestinationDeliveryParams())}, LOG, saved_files_roots=[str(save_dir)]
+        )
+        pipeline.start()
         produced: dict[str, list[Path]] = {"camera": [], "incident": []}
 
         def produce(measurement: str, count: int, size: int = 50 * KB) -> None:
@@ -435,7 +437,12 @@ def test_saved_files_of_an_earlier_run_still_count_after_a_restart(tmp_path: Pat
     produced: list[Path] = []
 
     def run(count: int) -> dict[str, Any]:
-        pipeline = DeliveryPipeline(settings, {"records": (Collecting(), DestinationDeliveryParams())}, LOG)
+        pipeline = DeliveryPipeline(
+            settings,
+            {"records": (Collecting(), DestinationDeliveryParams())},
+            LOG,
+            saved_files_roots=[str(tmp_path / "save")],
+        )
         pipeline.start()
         try:
             for _ in range(count):
@@ -460,3 +467,34 @@ def test_saved_files_of_an_earlier_run_still_count_after_a_restart(tmp_path: Pat
     second = run(10)  # 20 x 60 kB: over 1 MB only with the first run's files counted
     assert second["produced"] == 10 and second["evicted"] == 20 - second["kept"] > 0
     assert [p.exists() for p in produced] == [False] * second["evicted"] + [True] * second["kept"]
+
+
+def test_a_record_naming_a_file_outside_the_save_folders_never_has_it_weighed_or_deleted(tmp_path: Path) -> None:
+    """Anything on the ROS graph can publish a record: one naming a file of someone else's (outside the
+    save folder and the file destinations' allowed_roots, or reached through a link from inside) is
+    left out of the budget, counted as refused, and never deleted however far over budget DC is."""
+    settings = DeliveryParams(storage_path=str(tmp_path / "buffer"), flush=0.05, http_server=False, disk_budget="1M")
+    victim = save(tmp_path / "elsewhere", "camera", 0, 600 * KB)
+    inside = tmp_path / "save"
+    inside.mkdir()
+    link = inside / "link.jpeg"
+    link.symlink_to(victim)
+    pipeline = DeliveryPipeline(
+        settings, {"records": (Collecting(), DestinationDeliveryParams())}, LOG, saved_files_roots=[str(inside)]
+    )
+    pipeline.start()
+    try:
+        pipeline.submit("records", saved_record(victim, "camera"))
+        pipeline.submit("records", saved_record(link, "camera"))
+        own = [save(inside, "camera", n, 300 * KB) for n in range(1, 6)]  # 1.5 MB of DC's own: over budget
+        for path in own:
+            pipeline.submit("records", saved_record(path, "camera"))
+        assert pipeline.flush_intake(10)
+        poll(lambda: not own[0].exists(), 30, "DC's own oldest file evicted")
+        document = pipeline.status_document()["saved_files"]
+    finally:
+        pipeline.stop(0.5)
+    assert victim.read_bytes() == bytes([0]) * 600 * KB and link.is_symlink()
+    assert document["refused"] == 2
+    camera = document["measurements"]["camera"]
+    assert camera["produced"] == 5 and camera["evicted"] >= 1
