@@ -139,6 +139,11 @@ def forwarding(seq: int) -> None:
     _forwarding.seq = seq
 
 
+def forwarded_seq() -> int:
+    """The sequence number :func:`forwarding` set on this thread (0: none)."""
+    return int(getattr(_forwarding, "seq", 0))
+
+
 # -- the publisher's side -------------------------------------------------------------------------
 
 

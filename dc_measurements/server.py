@@ -10,7 +10,7 @@ from typing import Any
 
 from dc_core.diagnostics import OK, WARN
 from dc_core.diagnostics import status as diagnostic_status
-from dc_core.handoff import HandoffSender, destination_inputs
+from dc_core.handoff import HandoffSender, destination_inputs, forwarded_seq, forwarding
 from dc_core.handoff_marks import marks_folder
 from dc_core.lifecycle import ManagedServer, PartialTeardown, ServerPluginContext, run_server
 from dc_core.measurement import BasePaths, Measurement
@@ -34,6 +34,9 @@ INIT_MATCH_WAIT_S = 2.0
 # How long deactivate waits for collections running on the worker.
 WORKER_DRAIN_S = 5.0
 # Late subscribers (a dashboard, a test) get the current state of a condition at once.
+# Records of users' nodes that reach an inactive server (between configure and activate, or while it is
+# deactivated) are held for its activation, at most this many; beyond it they are logged as lost.
+HELD_WHILE_INACTIVE_MAX = 10_000
 
 
 @dataclass
@@ -67,6 +70,10 @@ class MeasurementServer(ManagedServer):
         self._clock_wait_logged = False
         self.handoff: HandoffSender | None = None
         self._diagnosed: dict[str, tuple[float, dict[str, int]]] = {}  # measurement -> (when, counters) last said
+        # (measurement, record, stamp, group key, the publisher's sequence number) taken while inactive.
+        self._held: list[tuple[str, dict[str, Any], int | None, str | None, int]] = []
+        self.held_while_inactive = 0  # all records ever held, for the logs and tests
+        self._held_dropped = 0
 
     # -- configure ---------------------------------------------------------------------------
     def configure_server(self) -> None:
@@ -194,6 +201,7 @@ class MeasurementServer(ManagedServer):
             run_hook(f"measurement {name} ({runner.config.common.plugin})", runner.plugin, "on_activate")
             if runner.plugin.timer_driven:
                 self._init_pending.append(name)
+        self._publish_held()
         if self._init_pending:
             self._start_deadline = time.monotonic() + INIT_MATCH_WAIT_S
             self._init_timer = self.create_steady_timer(0.02, self._start_collection)
@@ -288,8 +296,52 @@ class MeasurementServer(ManagedServer):
 
     def emit_from_event(self, name: str, record: dict[str, Any], stamp_ns: int | None, group_key: str | None) -> None:
         if not self._active:
+            self._hold(name, record, stamp_ns, group_key)
             return
         self.runners[name].emit(record, stamp_ns, group_key)
+
+    def _hold(self, name: str, record: dict[str, Any], stamp_ns: int | None, group_key: str | None) -> None:
+        # A record a user's node published (a forwarded one) was acknowledged to it by DDS: dropping it
+        # here would lose it with nothing counting it. What a sensor measurement saw while inactive is
+        # not collected, as deactivation means.
+        seq = forwarded_seq()
+        if not seq:
+            return
+        if len(self._held) >= HELD_WHILE_INACTIVE_MAX:
+            self._held_dropped += 1
+            return
+        self._held.append((name, record, stamp_ns, group_key, seq))
+        self.held_while_inactive += 1
+
+    def _publish_held(self) -> None:
+        held, self._held = self._held, []
+        if self._held_dropped:
+            self.get_logger().error(
+                f"{self._held_dropped} record(s) of your nodes reached measurement_server while it was inactive, "
+                f"beyond the {HELD_WHILE_INACTIVE_MAX} it holds: lost (destination_server counts them as missing "
+                "by the jump in their publishers' numbers)"
+            )
+            self._held_dropped = 0
+        for name, record, stamp_ns, group_key, seq in held:
+            runner = self.runners.get(name)
+            if runner is None:
+                continue
+            forwarding(seq)
+            try:
+                runner.emit(record, stamp_ns, group_key)
+            finally:
+                forwarding(0)
+
+    def _log_held_lost(self) -> None:
+        lost = len(self._held) + self._held_dropped
+        if lost:
+            self.get_logger().error(
+                f"{lost} record(s) of your nodes reached measurement_server while it was inactive and it stopped "
+                "before publishing them: lost (destination_server counts them as missing when their publishers "
+                "publish again)"
+            )
+        self._held.clear()
+        self._held_dropped = 0
 
     def deactivate_server(self) -> None:
         self._active = False
@@ -334,6 +386,7 @@ class MeasurementServer(ManagedServer):
 
     def cleanup_server(self) -> None:
         self._active = False
+        self._log_held_lost()
         if not self.stop_worker(WORKER_DRAIN_S):
             self.get_logger().warning(f"cleanup: jobs of plugins still ran after {WORKER_DRAIN_S:g} s")
         for error in run_hook_on_each(self._named_plugins(), "on_cleanup"):

@@ -362,6 +362,39 @@ def test_event_driven_string_stamped_publishes_each_record_once_with_its_stamp_a
     assert all(r["name"] == measurement.name for r in records(received))
 
 
+def test_records_that_reach_an_inactive_server_are_published_once_it_is_active(harness: Harness) -> None:
+    """Between configure and activate, and while deactivated, DDS still delivers your node's records to
+    measurement_server (and tells your node they arrived): they are published at activation, in order."""
+    name, topic = unique("events"), f"/{unique('robot_events')}"
+    server = harness.start_server(f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["{name}"]
+    {name}:
+      plugin: "dc_measurements/StringStamped"
+      topic: "{topic}"
+      timer_based: false
+""")
+    received = harness.listen(f"/dc/measurement/{name}")
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{name}")
+    publisher = harness.input_publisher(topic)
+    for seq in range(3):
+        publisher.publish(stamped(json.dumps({"seq": seq})))
+    harness.spin_until(lambda: server.held_while_inactive == 3, "the server to take the records while inactive")
+    assert server.trigger_activate() == SUCCESS
+    harness.spin_until(more_than(received, 2), "the records taken before activation")
+
+    assert server.trigger_deactivate() == SUCCESS
+    for seq in range(3, 5):
+        publisher.publish(stamped(json.dumps({"seq": seq})))
+    harness.spin_until(lambda: server.held_while_inactive == 5, "the server to take the records while deactivated")
+    assert server.trigger_activate() == SUCCESS
+    publisher.publish(stamped(json.dumps({"seq": 5})))
+    harness.spin_until(more_than(received, 5), "every record")
+    assert [r["seq"] for r in records(received)] == [0, 1, 2, 3, 4, 5]
+
+
 @pytest.mark.parametrize("timer_based", [False, True], ids=["event-driven", "timer-based"])
 def test_malformed_input_is_logged_and_counted_and_the_next_record_passes(
     harness: Harness, capfd: pytest.CaptureFixture[str], timer_based: bool
