@@ -211,7 +211,7 @@ test: install-test test-deps
 	$(VENV)/bin/mypy
 	mkdir -p $(ROS_LOG_DIR)
 	export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_LOG_DIR=$(ROS_LOG_DIR); \
-	$(VPY) -m pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	$(VPY) -m pytest -n $(TEST_WORKERS) --dist loadfile --durations=25 $(PYTEST_ARGS)
 
 clean:
 	rm -rf build $(VENV)/.stamp-*
