@@ -130,7 +130,7 @@ def test_two_workers_share_a_consumer_and_one_killed_loses_nothing(postgres: Pos
         first = worker(params, nats_server.url, tmp_path / "w1")
         second = worker(params, nats_server.url, tmp_path / "w2")
         try:
-            deadline = time.monotonic() + 30
+            deadline = time.monotonic() + 60
             while ack_pending(nats_server.url) < 600 and time.monotonic() < deadline:
                 time.sleep(0.05)
             assert ack_pending(nats_server.url) == 600, "each worker holds 300 messages it has not acknowledged"
