@@ -10,6 +10,17 @@ count, that many `dc ingest` processes share a new durable consumer and write th
 a table of their own; the time from their start to the last row is the ingest rate. Last, the same
 rows are loaded with COPY into a table with the same unique record_id index. Everything runs on
 this one machine: the workers, the server and PostgreSQL share its cores.
+
+    .venv/bin/python benchmarks/fleet.py --robots 1 4 [--jobs default robot] [--window 120]
+
+The robots' side instead: for each job (params/default.yaml; params/benchmarks/robot_footprint.yaml,
+the robot job, beside a ``dc sim --loop`` of its own) and each robot count, that many DC stacks run
+as `dc-bringup --single-process`, each in a ROS domain and folder of its own, their destinations
+replaced by one NATS destination into a local nats-server (subject ``dc.<robot>.<name>``). Over
+``--window`` seconds (after DC is up and ``--settle`` more), the records and bytes (the JSON
+stored in the stream) of each robot are read back from the stream, and the CPU of each DC process
+tree (and of each simulator, apart) from /proc: records and bytes per robot and day, CPU % of one
+core per robot, and the machine's busy %. Run it with ``nice -n 10`` on a shared machine.
 """
 
 from __future__ import annotations
@@ -35,6 +46,8 @@ from dc_core.params import parse_params  # noqa: E402
 from dc_core.testing import FakeContext  # noqa: E402
 from dc_destinations.jetstream import Nats, NatsParams  # noqa: E402
 from dc_destinations.record_ids import new_record_id  # noqa: E402
+
+JOBS = {"default": REPO / "params" / "default.yaml", "robot": REPO / "params" / "benchmarks" / "robot_footprint.yaml"}
 
 
 def records(count: int) -> list[OutgoingRecord]:
@@ -128,12 +141,178 @@ def copy_rate(pg: PostgresServer, batch: list[OutgoingRecord]) -> float:
         return time.monotonic() - started
 
 
+def robot_params(job: Path, robot: str, nats_url: str) -> str:
+    """``job``'s parameters with its destinations replaced by one NATS destination publishing on dc.<robot>.<name>."""
+    import yaml
+
+    params = yaml.safe_load(job.read_text())
+    measurements = params["measurement_server"]["ros__parameters"]
+    topics = []
+    for name in measurements["measurement_plugins"]:
+        measurements[name]["tags"] = ["fleet"]
+        topics.append(measurements[name].get("topic_output", f"/dc/measurement/{name}"))
+    destinations = params["destination_server"]["ros__parameters"]
+    for name in destinations.pop("destination_plugins"):
+        destinations.pop(name)
+    destinations["destination_plugins"] = ["fleet"]
+    destinations["fleet"] = {
+        "plugin": "dc_destinations/NATS",
+        "servers": [nats_url],
+        "stream": "DC",
+        "create_stream": True,
+        "subject": f"dc.{robot}.{{name}}",
+        "inputs": topics,
+    }
+    return str(yaml.safe_dump(params, sort_keys=False))
+
+
+def stream_last_sequence(url: str) -> int:
+    import asyncio
+
+    import nats
+
+    async def last() -> int:
+        nc = await nats.connect(servers=[url])
+        try:
+            info = await nc.jetstream().stream_info("DC")
+            return int(info.state.last_seq or 0)
+        finally:
+            await nc.close()
+
+    return asyncio.run(last())
+
+
+def stream_between(url: str, after: int, until: int) -> dict[str, tuple[int, int]]:
+    """Per robot (the subject's second token): (messages, bytes of their JSON) of stream sequences after..until."""
+    import asyncio
+
+    import nats
+    from nats.js.api import ConsumerConfig, DeliverPolicy
+
+    async def read() -> dict[str, tuple[int, int]]:
+        counts: dict[str, tuple[int, int]] = {}
+        nc = await nats.connect(servers=[url])
+        try:
+            config = ConsumerConfig(deliver_policy=DeliverPolicy.BY_START_SEQUENCE, opt_start_seq=after + 1)
+            sub = await nc.jetstream().pull_subscribe("dc.>", stream="DC", config=config)
+            seen = after
+            while seen < until:
+                for msg in await sub.fetch(500, timeout=10):
+                    seq = msg.metadata.sequence.stream
+                    seen = max(seen, seq)
+                    if seq <= until:
+                        robot = msg.subject.split(".")[1]
+                        n, size = counts.get(robot, (0, 0))
+                        counts[robot] = (n + 1, size + len(msg.data))
+                    await msg.ack()
+        finally:
+            await nc.close()
+        return counts
+
+    return asyncio.run(read())
+
+
+def cpu_ticks(tree: dict[Any, Any]) -> int:
+    return sum(r.cpu_ticks + r.reaped_ticks for r in tree.values())
+
+
+def span(values: list[Any], spec: str = "") -> str:
+    """The lowest and highest of ``values`` ("a to b"), or the one value, or "none"."""
+    if not values:
+        return "none"
+    low, high = format(min(values), spec), format(max(values), spec)
+    return low if low == high else f"{low} to {high}"
+
+
+def robots(args: argparse.Namespace) -> int:
+    """The robots' side: see the module documentation."""
+    import contextlib
+    import random
+
+    from benchmarks import footprint
+
+    folder = Path(tempfile.mkdtemp(prefix="dc-fleet-robots-"))
+    nats = NatsNode(folder / "nats")
+    hz = os.sysconf("SC_CLK_TCK")
+    rows = []
+    try:
+        nats.start()
+        for job in args.jobs:
+            for count in args.robots:
+                with contextlib.ExitStack() as stack:
+                    bringups, sims = [], []
+                    domain = random.randint(120, 200)
+                    for i in range(count):
+                        robot = f"{job}-n{count}-r{i}"
+                        home = folder / robot
+                        home.mkdir()
+                        domain = footprint.quiet_domain(domain + 1, footprint.environment(home, domain + 1))
+                        env = footprint.environment(home, domain)
+                        params = home / "params.yaml"
+                        params.write_text(robot_params(JOBS[job], robot, nats.url))
+                        if job == "robot":
+                            sim = [footprint.venv_script("dc"), "sim", "--loop"]
+                            sims.append(stack.enter_context(footprint.started(sim, env, home, home / "sim.log", 30)))
+                        bringup = [footprint.venv_script("dc-bringup"), str(params), "--single-process"]
+                        bringups.append(
+                            stack.enter_context(footprint.started(bringup, env, home, home / "bringup.log", 60))
+                        )
+                    for bringup in bringups:
+                        footprint.wait_for_up(bringup, 180)
+                    time.sleep(args.settle)
+                    first = stream_last_sequence(nats.url)
+                    dc_before = [cpu_ticks(b.read()) for b in bringups]
+                    sim_before = [cpu_ticks(s.read()) for s in sims]
+                    busy_before, total_before = footprint.machine_ticks()
+                    started = time.monotonic()
+                    time.sleep(args.window)
+                    seconds = time.monotonic() - started
+                    last = stream_last_sequence(nats.url)
+                    dc_after = [cpu_ticks(b.read()) for b in bringups]
+                    sim_after = [cpu_ticks(s.read()) for s in sims]
+                    busy_after, total_after = footprint.machine_ticks()
+                counts = stream_between(nats.url, first, last)
+                per_robot = [counts.get(f"{job}-n{count}-r{i}", (0, 0)) for i in range(count)]
+                cpu = [100 * (a - b) / hz / seconds for a, b in zip(dc_after, dc_before, strict=True)]
+                sim_cpu = [100 * (a - b) / hz / seconds for a, b in zip(sim_after, sim_before, strict=True)]
+                row = {
+                    "job": job,
+                    "robots": count,
+                    "window_s": round(seconds, 1),
+                    "records_per_day": [round(n / seconds * 86400) for n, _ in per_robot],
+                    "mb_per_day": [round(size / seconds * 86400 / 1e6, 1) for _, size in per_robot],
+                    "dc_cpu_percent": [round(c, 1) for c in cpu],
+                    "sim_cpu_percent": [round(c, 1) for c in sim_cpu],
+                    "machine_busy_percent": round(100 * (busy_after - busy_before) / (total_after - total_before), 1),
+                }
+                rows.append(row)
+                print(row, flush=True)
+    finally:
+        nats.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+    print()
+    print("| job | robots | records/day per robot | MB/day per robot | DC CPU % per robot | sim CPU % | busy % |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['job']} | {r['robots']} | {span(r['records_per_day'], ',')} | {span(r['mb_per_day'])} | "
+            f"{span(r['dc_cpu_percent'])} | {span(r['sim_cpu_percent'])} | {r['machine_busy_percent']} |"
+        )
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--records", type=int, default=20000)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--cluster", action="store_true", help="a 3-node cluster and a stream with 3 replicas")
+    parser.add_argument("--robots", type=int, nargs="+", help="the robots' side instead, with these robot counts")
+    parser.add_argument("--jobs", nargs="+", choices=sorted(JOBS), default=["default", "robot"])
+    parser.add_argument("--window", type=float, default=120.0, help="seconds measured, per job and robot count")
+    parser.add_argument("--settle", type=float, default=10.0, help="seconds after DC is up before the window")
     args = parser.parse_args()
+    if args.robots:
+        return robots(args)
     folder = Path(tempfile.mkdtemp(prefix="dc-fleet-bench-"))
     # Its own temporary folder: as root, PostgreSQL runs as user postgres, who cannot enter `folder`.
     pg_folder = Path(tempfile.mkdtemp(prefix="dc-fleet-bench-pg-"))

@@ -45,7 +45,7 @@ from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.saved_files import FILE_NAME as SAVED_FILES_NAME
 from dc_destinations.saved_files import SavedFiles
-from dc_destinations.sender import Closing, Route, Sender
+from dc_destinations.sender import Closing, OutcomeListener, Route, Sender
 from dc_destinations.settings import (
     DeliveryParams,
     DestinationDeliveryParams,
@@ -133,6 +133,7 @@ class DeliveryPipeline:
         self._buffer: SqliteBuffer | None = None
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
+        self._outcome_listeners: list[OutcomeListener] = []
         # Set before start: called on the writer thread with the hop keys of each successful commit.
         self.on_seen_committed: Callable[[list[HopKey]], None] | None = None
         self._quarantined = 0
@@ -225,7 +226,14 @@ class DeliveryPipeline:
         self._closing.reset()
         senders = {
             name: Sender(
-                route, buffer, self.settings, self._closing, clock=self._clock, wait=self._wait, uniform=self._uniform
+                route,
+                buffer,
+                self.settings,
+                self._closing,
+                clock=self._clock,
+                wait=self._wait,
+                uniform=self._uniform,
+                listeners=self._outcome_listeners,
             )
             for name, route in self._routes.items()
         }
@@ -383,6 +391,12 @@ class DeliveryPipeline:
         self._listeners.append(listener)
         if self._committer is not None:
             self._committer.add_listener(listener)
+
+    def add_outcome_listener(self, listener: OutcomeListener) -> None:
+        """Call ``listener`` on the senders' threads with the records each destination confirmed, and with
+        those dead-lettered once their dead letters are committed (dc_destinations.sender.OutcomeListener).
+        Before :meth:`start`."""
+        self._outcome_listeners.append(listener)
 
     # -- storage ------------------------------------------------------------------------------------
 

@@ -3,17 +3,19 @@ DC's own destinations, and acknowledged to JetStream only once every destination
 
 The design (docs/fleet.md): the destinations of a ``destination_server`` section run as they do on
 a robot, behind DC's delivery pipeline (buffer, one sender per destination, backoff, dead letters,
-counters, health). Each destination is wrapped in :class:`Settling`, which sees every outcome of its
-``send``: a record is *settled* for a destination once it confirmed it or refused it for good (a
-dead letter, kept in this worker's buffer and counted, as on a robot). When every destination has
-settled a record, its JetStream message is acknowledged; until then JetStream keeps it, and
-redelivers it after ``ack_wait`` to whichever worker asks (another one if this one died). So:
+counters, health). The pipeline tells :class:`Settlements` the outcome of each send once it is
+final (dc_destinations.sender.OutcomeListener): a record is *settled* for a destination once it
+confirmed it, or once its dead letter (refused for good, or failed beyond ``retry_limit``) is
+committed to this worker's buffer, counted, as on a robot. When every destination has settled a
+record, its JetStream message is acknowledged; until then JetStream keeps it, and redelivers it
+after ``ack_wait`` to whichever worker asks (another one if this one died). So:
 
 - several ``dc ingest`` processes on one consumer share its messages (JetStream hands each
   message to one of them at a time);
 - one killed with -9 loses nothing: what it had not acknowledged is redelivered; what it had
   delivered but not yet acknowledged is delivered twice, and a store keyed on ``record_id``
-  (PgSQL's unique index) keeps it once.
+  (PgSQL's unique index) keeps it once; what it had in its queues is taken out when it starts
+  again (:meth:`Ingest._forget_last_run`), as its messages come again.
 
 The local buffer is the price of reusing the pipeline unchanged (~10 µs of SQLite per record and
 destination); it also gives each destination an independent queue, so a slow one does not hold up
@@ -23,8 +25,10 @@ the others' confirmations, only the acknowledgement of the records it has not se
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
+import sys
 import threading
 import time
 from collections import Counter
@@ -74,7 +78,7 @@ class Settlements:
             for record_id in record_ids:
                 entry = self._owed.get(record_id)
                 if entry is None:
-                    continue  # from this worker's buffer before a restart: its message is someone else's now
+                    continue  # not in flight here: a dead letter replayed (`dc buffer replay`), a salvaged row
                 entry[1].discard(destination)
                 if not entry[1]:
                     del self._owed[record_id]
@@ -92,23 +96,15 @@ class Settlements:
             return [key for key, _ in self._owed.values()]
 
 
-class Settling(Destination[NoParams]):
-    """A destination as DC configured it, whose every outcome is also reported to :class:`Settlements`.
+class RedeliveryBound(Destination[NoParams]):
+    """A destination as DC configured it, which refuses the records :meth:`doom` marked (their message
+    was redelivered beyond ``retry_limit``) instead of handing them to it: the sender dead-letters
+    and counts them as any other refusal."""
 
-    A record is settled when the destination confirmed it, refused it for good, or failed with it
-    more than ``retry_limit`` times (the sender dead-letters it at that same attempt: the rule of
-    dc_destinations.sender, counted here per record as the sender counts per queue row). A record
-    marked :meth:`doom` (its message was redelivered beyond ``retry_limit``) is not handed to the
-    destination: it is refused, so the sender dead-letters it and counts it as any other.
-    """
-
-    def __init__(self, inner: Destination[Any], name: str, settlements: Settlements, retry_limit: int = -1) -> None:
+    def __init__(self, inner: Destination[Any], retry_limit: int = -1) -> None:
         super().__init__(inner.context, NoParams())
         self.inner = inner
-        self.name = name
-        self.settlements = settlements
         self.retry_limit = retry_limit
-        self._failures: dict[str, int] = {}
         self._doomed: dict[str, str] = {}
         self._lock = threading.Lock()
 
@@ -119,14 +115,13 @@ class Settling(Destination[NoParams]):
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         with self._lock:
             doomed = {i: self._doomed.pop(r.record_id) for i, r in enumerate(batch) if r.record_id in self._doomed}
-        return self._send_without(batch, doomed) if doomed else self._send(batch)
+        return self._send_without(batch, doomed) if doomed else self.inner.send(batch)
 
     def _send_without(self, batch: Sequence[OutgoingRecord], doomed: dict[int, str]) -> SendOutcome:
         kept = [i for i in range(len(batch)) if i not in doomed]
         outcome = SendOutcome(reject=dict(doomed))
-        self.settlements.settled(self.name, [batch[i].record_id for i in doomed])
         try:
-            inner = self._send([batch[i] for i in kept]) if kept else None
+            inner = self.inner.send([batch[i] for i in kept]) if kept else None
         except RejectedError as exc:
             outcome.reject.update(dict.fromkeys(kept, str(exc)))
             return outcome
@@ -138,36 +133,6 @@ class Settling(Destination[NoParams]):
                 getattr(outcome, field_name).update({kept[j]: why for j, why in getattr(inner, field_name).items()})
             outcome.retry_after = inner.retry_after
         return outcome
-
-    def _send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
-        try:
-            outcome = self.inner.send(batch)
-        except RejectedError:
-            self.settlements.settled(self.name, [r.record_id for r in batch])  # dead letters: settled
-            raise
-        except Exception:
-            self._failed(batch, range(len(batch)))
-            raise
-        if not isinstance(outcome, SendOutcome):
-            self._failed(batch, ())
-            return outcome
-        again = {i for i in (*outcome.retry, *outcome.waiting) if i not in outcome.reject}
-        self._failed(batch, again)
-        return outcome
-
-    def _failed(self, batch: Sequence[OutgoingRecord], indexes: Iterable[int]) -> None:
-        """Count the failures of the records to try again; settle the others and those over ``retry_limit``."""
-        again = set(indexes)
-        settled = []
-        with self._lock:
-            for i, record in enumerate(batch):
-                if i in again:
-                    failures = self._failures[record.record_id] = self._failures.get(record.record_id, 0) + 1
-                    if self.retry_limit < 0 or failures <= self.retry_limit:
-                        continue
-                self._failures.pop(record.record_id, None)
-                settled.append(record.record_id)
-        self.settlements.settled(self.name, settled)
 
     @property
     def stopping(self) -> threading.Event:
@@ -241,6 +206,9 @@ class IngestCounters:
     unrouted: Counter[str] = field(default_factory=Counter)
     # Deliveries of redelivered messages refused beyond their destination's retry_limit (dead letters).
     over_retry_limit: int = 0
+    # Records the worker's last run left in its queues, taken out at start: JetStream delivers again
+    # every one whose message it did not acknowledge, and those it did are in their store already.
+    left_by_last_run: int = 0
 
 
 class Ingest:
@@ -264,13 +232,15 @@ class Ingest:
         self.settlements = Settlements(self._on_settled)
         self.routing = RoutingTable.from_destinations(config.destinations)
         self._wrapped = {
-            d.name: Settling(destinations[d.name], d.name, self.settlements, d.delivery.retry_limit)
-            for d in config.destinations
+            d.name: RedeliveryBound(destinations[d.name], d.delivery.retry_limit) for d in config.destinations
         }
         settings = dataclasses.replace(config.node.flb, storage_path=str(storage_path))
         self.pipeline = DeliveryPipeline(
             settings, {d.name: (self._wrapped[d.name], d.delivery) for d in config.destinations}, logger
         )
+        # A record is settled for a destination when it confirmed it, or once its dead letter is on
+        # disk: acknowledged before that, a crash would leave it nowhere (docs/fleet.md).
+        self.pipeline.add_outcome_listener(lambda name, record_ids, _dead: self.settlements.settled(name, record_ids))
         self.pipeline.add_metrics_section("ingest", self._counters_document)
         self._logged: set[tuple[str, str]] = set()
         self.stop_requested = asyncio.Event()
@@ -302,6 +272,7 @@ class Ingest:
             filter_subject=o.filter,
         )
         sub = await js.pull_subscribe(o.filter, durable=o.consumer, stream=o.stream, config=config)
+        self.counters.left_by_last_run = self._forget_last_run()
         self.pipeline.start()
         acker = asyncio.create_task(self._acknowledge())
         self.logger.info(
@@ -338,7 +309,38 @@ class Ingest:
             await self._drain_acks()
             acker.cancel()
             await nc.close()
+            self.pipeline.release_storage()
         return self.counters
+
+    def _forget_last_run(self) -> int:
+        """Take out of the queues what the worker's last run left there (killed, or stopped past its
+        grace): how many records.
+
+        Each is either settled, its message acknowledged, and then its destination has it, or not,
+        and then its message comes again: sent from here too, a record would reach its store twice,
+        or its dead letters twice (the message redelivered, the old row sent). A record is settled
+        for a destination only once it left its queue for good (confirmed, or its dead letter
+        committed), so no row here is a record the stream let go of.
+        """
+        from dc_destinations.buffer import BufferCorrupted, SqliteBuffer
+
+        storage_file = self.pipeline.claim_storage()
+        if not storage_file.exists():
+            return 0
+        try:
+            with contextlib.closing(SqliteBuffer(storage_file, repair=False)) as buffer:
+                left = {name: buffer.evict_oldest(name, sys.maxsize)[0] for name in self._wrapped}
+        except BufferCorrupted as exc:  # the pipeline sets it aside and salvages it: those are sent, as before
+            self.logger.warning(f"the queues of the last run are not emptied: {exc}")
+            return 0
+        taken = {name: n for name, n in left.items() if n}
+        if taken:
+            self.logger.info(
+                "left in the queues by the last run, taken out (JetStream delivers again the records whose "
+                "message was not acknowledged; the others are in their store): "
+                + ", ".join(f"{name} {n}" for name, n in taken.items())
+            )
+        return sum(taken.values())
 
     def _take(self, messages: list[Any]) -> tuple[list[Any], list[Any]]:
         """Route the messages' records to the pipeline: (messages that hold no DC record, messages whose
@@ -468,7 +470,8 @@ def summary(ingest: Ingest) -> str:
     parts = [
         f"received {c.received}, acknowledged {c.acknowledged}, taken again while in flight {c.redelivered}, "
         f"malformed {c.malformed}, unrouted {sum(c.unrouted.values())}, "
-        f"dead-lettered as redelivered beyond retry_limit {c.over_retry_limit}, fetch failures {c.fetch_failures}"
+        f"dead-lettered as redelivered beyond retry_limit {c.over_retry_limit}, fetch failures {c.fetch_failures}, "
+        f"left by the last run {c.left_by_last_run}"
     ]
     for name, m in ingest.pipeline.metrics().items():
         waiting = "" if m["buffered"] is None else f", buffered {m['buffered']}"

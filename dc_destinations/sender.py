@@ -27,6 +27,11 @@ For a destination plugin's author, this is the whole story of delivery:
    of the server between ``send`` and the deletion: a destination that can deduplicate on
    ``record_id`` delivers exactly once.
 
+7. Whoever must know when an outcome is final (``dc ingest`` acknowledges a record's message then)
+   registers an :data:`OutcomeListener`: called with the records the destination confirmed once
+   ``send`` returned, and with the records dead-lettered only once their dead letters are committed
+   to the buffer, never before: a crash between the two leaves them in the queue, to be sent again.
+
 A failure of the buffer itself (a full disk) is counted in ``failed``, logged, and retried with the
 same backoff: a sender never dies. Dead letters are bounded per destination by
 ``dead_letter_limit_size``, the oldest deleted first.
@@ -37,7 +42,8 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Callable
+import traceback
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -61,6 +67,12 @@ from dc_destinations.saved_files import SavedFiles
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_rate, parse_size
 
 _T = TypeVar("_T")
+
+# (destination, record_ids, dead_lettered): called on the sender's thread with the records the
+# destination confirmed (dead_lettered False; their rows leave the queue afterwards, and a crash
+# before that sends them again), and with those moved to the dead letters (True) once that move is
+# committed. Fast, and raises nothing: what it raises is logged, the delivery goes on.
+OutcomeListener = Callable[[str, list[str], bool], None]
 
 
 class Gate:
@@ -236,9 +248,11 @@ class Sender:
         clock: Callable[[], float] = time.monotonic,
         wait: Callable[[float], bool] | None = None,
         uniform: Callable[[float, float], float] | None = None,
+        listeners: Sequence[OutcomeListener] = (),
     ) -> None:
         self.route = route
         self.buffer = buffer
+        self._listeners = listeners
         self.settings = settings
         self.closing = closing
         self._clock = clock
@@ -485,6 +499,7 @@ class Sender:
         records, sent_rows, unreadable = batch.records, batch.sent_rows, batch.unreadable
         if unreadable:
             route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))
+            self._tell([row.record_id for row, _ in unreadable], dead_lettered=True)
             self.bound_dead_letters()
         if batch.evicted:
             taken = buffer.delete(route.name, [row.row_id for row in batch.evicted], sent=False)
@@ -510,9 +525,13 @@ class Sender:
             route.health.failed(next(iter(retry.values()), ""), problem)
         else:
             route.health.succeeded()
-        if route.saved is not None and route.file_fields and confirmed:
+        if confirmed and (self._listeners or (route.saved is not None and route.file_fields)):
             done = set(confirmed)
-            route.saved.confirmed(route.name, [row.record_id for row in sent_rows if row.row_id in done])
+            confirmed_ids = [row.record_id for row in sent_rows if row.row_id in done]
+            if route.saved is not None and route.file_fields:
+                route.saved.confirmed(route.name, confirmed_ids)
+            # Told now, whatever becomes of the rest of the batch: the destination has these.
+            self._tell(confirmed_ids, dead_lettered=False)
         if defer_delete and not again and not reject:
             self._confirmed += confirmed
             return False
@@ -545,8 +564,20 @@ class Sender:
             moved = buffer.dead_letter(route.name, dead, tried_now={sent_rows[i].row_id for i in reject})
             route.metrics.add("dead_lettered", moved)
             route.dead_letter_log.event(moved, f"{dead[0][1]}; see `dc buffer list`")
+            self._tell([row.record_id for row, _ in dead], dead_lettered=True)
             self.bound_dead_letters()
         return retried > 0
+
+    def _tell(self, record_ids: list[str], *, dead_lettered: bool) -> None:
+        """The listeners told of an outcome committed (see :data:`OutcomeListener`)."""
+        for listener in self._listeners:
+            try:
+                listener(self.route.name, record_ids, dead_lettered)
+            except Exception as exc:  # a listener's bug must not make the sender send the batch again
+                self.route.logger.error(
+                    f"destination {self.route.name}: an outcome listener failed: {type(exc).__name__}: {exc}\n"
+                    f"{traceback.format_exc()}"
+                )
 
     def bound_dead_letters(self) -> None:
         """Delete the oldest dead letters beyond ``dead_letter_limit_size``, counted and logged."""

@@ -622,6 +622,56 @@ def test_retry_limit_dead_letters_after_the_last_retry(tmp_path: Path) -> None:
     assert [d.attempts for d in _dead_letters(tmp_path)] == [3]
 
 
+def test_an_outcome_listener_hears_of_dead_letters_only_once_they_are_committed(tmp_path: Path) -> None:
+    """`dc ingest` acknowledges a record's message when its listener hears of it: a dead letter told
+    before it is on disk was a record a crash left nowhere."""
+    sent = [record(n) for n in range(4)]
+
+    def mixed(call: int, batch: Sequence[OutgoingRecord]) -> SendOutcome:
+        # 0 confirmed, 1 refused for good, 2 failing (retry_limit 1: dead after its second failure), 3 not ready.
+        outcome = SendOutcome()
+        for i, r in enumerate(batch):
+            n = r.data["n"]
+            if n == 1:
+                outcome.reject[i] = "400 Bad Request"
+            elif n == 2:
+                outcome.retry[i] = "503"
+            elif n == 3 and call == 1:
+                outcome.waiting[i] = "its file is not uploaded yet"
+        return outcome
+
+    heard: list[tuple[str, bool, bool]] = []  # (record_id, dead_lettered, its dead letter on disk then)
+    reader = SqliteBuffer(tmp_path / FILE_NAME)
+
+    def listener(destination: str, record_ids: list[str], dead_lettered: bool) -> None:
+        on_disk = {d.record_id for d in reader.list_dead_letters(destination)}
+        heard.extend((rid, dead_lettered, rid in on_disk) for rid in record_ids)
+
+    sink = Recorder(behaviour=mixed)
+    pipeline = DeliveryPipeline(
+        settings(tmp_path, scheduler_base=0.01, scheduler_cap=0.02),
+        {"sink": (sink, DestinationDeliveryParams(retry_limit=1))},
+        LOG,
+    )
+    pipeline.add_outcome_listener(listener)
+    pipeline.start()
+    try:
+        for r in sent:
+            pipeline.submit("sink", r)
+        wait_until(lambda: len(heard) == 4, what="every outcome heard")
+    finally:
+        pipeline.stop(grace=0.5)
+        reader.close()
+    assert sorted(heard) == sorted(
+        [
+            (sent[0].record_id, False, False),
+            (sent[1].record_id, True, True),
+            (sent[2].record_id, True, True),
+            (sent[3].record_id, False, False),
+        ]
+    )
+
+
 def test_dc_buffer_list_counts_the_try_that_was_refused(tmp_path: Path) -> None:
     """A record refused at its first try was tried once: `dc buffer list` said "tries 0"."""
     from tests.test_buffer import _cli

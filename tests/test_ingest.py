@@ -11,12 +11,13 @@ import asyncio
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +32,8 @@ if nats_missing() or postgres_missing():
 
 import psycopg
 
-from dc_core.destination import Destination, OutgoingRecord
-from dc_core.params import NoParams, parse_params
+from dc_core.destination import OutgoingRecord
+from dc_core.params import parse_params
 from dc_core.testing import FakeContext
 from dc_destinations.jetstream import Nats, NatsParams
 from dc_destinations.record_ids import new_record_id
@@ -61,12 +62,13 @@ def record(n: int) -> OutgoingRecord:
     return OutgoingRecord(rid, "/dc/measurement/uptime", 1_700_000_000_000_000_000 + n, data)
 
 
-def worker(params: Path, url: str, storage: Path) -> subprocess.Popen[bytes]:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+def worker(params: Path, url: str, storage: Path, env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
+    env = {**os.environ, **(env or {})}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
     command = [sys.executable, "-m", "dc_bringup.cli", "ingest", str(params), "--servers", url]
     command += ["--consumer", "warehouse", "--ack-wait", "2", "--batch", "100", "--max-in-flight", "300"]
     command += ["--storage-path", str(storage)]
-    log = (storage.parent / f"{storage.name}.log").open("wb")
+    log = (storage.parent / f"{storage.name}.log").open("ab")
     return subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
 
 
@@ -128,7 +130,7 @@ def test_two_workers_share_a_consumer_and_one_killed_loses_nothing(postgres: Pos
         first = worker(params, nats_server.url, tmp_path / "w1")
         second = worker(params, nats_server.url, tmp_path / "w2")
         try:
-            deadline = time.monotonic() + 30
+            deadline = time.monotonic() + 60
             while ack_pending(nats_server.url) < 600 and time.monotonic() < deadline:
                 time.sleep(0.05)
             assert ack_pending(nats_server.url) == 600, "each worker holds 300 messages it has not acknowledged"
@@ -351,23 +353,93 @@ def test_a_message_redelivered_beyond_retry_limit_is_dead_lettered_and_acknowled
     assert all("beyond retry_limit 1" in d.error for d in dead)
 
 
-def test_a_record_a_destination_keeps_failing_is_settled_when_the_sender_dead_letters_it() -> None:
-    """The sender dead-letters a record at its failure number retry_limit + 1 without telling the
-    destination: Settling counts the same, so that its message is acknowledged then, not held forever."""
-    from dc_core.destination import SendOutcome
-    from dc_destinations.ingest import Settlements, Settling
+# -- a worker killed between a refusal and its dead letter ------------------------------------------
 
-    class Flaky(Destination[NoParams]):
-        def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
-            return SendOutcome(retry={0: "down"}, waiting={1: "its file is not uploaded yet"})
 
-    settled: list[str] = []
-    settlements = Settlements(settled.append)
-    settling = Settling(Flaky(FakeContext(name="flaky"), NoParams()), "flaky", settlements, retry_limit=1)
-    batch = [robot_record(n, "cpu") for n in range(3)]
-    for r in batch:
-        settlements.add(r.record_id, r.record_id, ["flaky"])
-    settling.send(batch)
-    assert settled == [batch[2].record_id], "confirmed: settled; failed or waiting once: within retry_limit 1"
-    settling.send(batch[:2])
-    assert sorted(settled) == sorted(r.record_id for r in batch), "failed twice: dead-lettered by the sender, settled"
+def buffer_of(storage: Path) -> Any:
+    from dc_destinations.buffer import FILE_NAME, SqliteBuffer
+
+    return contextlib.closing(SqliteBuffer(storage / FILE_NAME, repair=False))
+
+
+def test_a_worker_killed_before_a_dead_letter_is_committed_leaves_the_record_to_the_stream(
+    postgres: PostgresServer, tmp_path: Path
+) -> None:
+    """A record PostgreSQL refuses for good is acknowledged only once its dead letter is on the worker's
+    disk. The worker is killed with -9 while that dead letter is being written: a replacement worker
+    (the first one's disk gone with it) dead-letters it, and the first one started again on its own
+    disk does not do it a second time. Delivered + dead-lettered = sent, each record once."""
+    from tests.fault_helpers import fault_env, fault_gate
+
+    params = tmp_path / "ingest.yaml"
+    s = postgres.settings()
+    params.write_text(
+        "destination_server:\n  ros__parameters:\n    destination_plugins: [warehouse]\n"
+        "    flb: {flush: 0.05, scheduler_base: 0.05, scheduler_cap: 0.5, grace: 2, http_server: false}\n"
+        "    warehouse:\n      plugin: dc_destinations/PgSQL\n      inputs: [/dc/measurement/uptime]\n"
+        f"      host: 127.0.0.1\n      port: {s['port']}\n      user: {s['user']}\n      database: {s['database']}\n"
+        "      table: refusals\n      batch_size: 100\n"
+    )
+    good = [robot_record(n, "uptime") for n in range(60)]
+    # PostgreSQL refuses a NUL in a string for good (SQLSTATE 22P05): dead letters. Published last,
+    # so that every good record is confirmed before the first one is refused.
+    refused = [robot_record(100 + n, "uptime") for n in range(5)]
+    for r in refused:
+        r.data["note"] = "nul \u0000 inside"
+    sent = good + refused
+    os.environ["PGPASSWORD"] = str(s["password"])  # inherited by the workers: never in a file or command line
+    first = replacement = None
+    try:
+        with NatsServer(tmp_path / "nats") as nats_server, fault_gate(tmp_path) as gate:
+            publisher = robot(nats_server.url)
+            try:
+                assert publisher.send(sent) is None
+            finally:
+                publisher.on_cleanup()
+            # The gate is never opened: the dead letters' commit blocks until the kill.
+            hang = fault_env(tmp_path, "dc_destinations.buffer:SqliteBuffer.dead_letter", gate=gate.path)
+            first = worker(params, nats_server.url, tmp_path / "w1", env=hang)
+            wait_for(lambda: (tmp_path / "fault-raised").exists(), "the refused records reach their dead letters")
+            wait_for(
+                lambda: consumer_state(nats_server.url, "warehouse") in {(0, len(refused)), (0, 0)},
+                "the good records acknowledged",
+            )
+            first.send_signal(signal.SIGKILL)
+            first.wait(10)
+            assert consumer_state(nats_server.url, "warehouse") == (0, len(refused)), (
+                "the refused records' messages must not be acknowledged before their dead letters are written"
+            )
+
+            replacement = worker(params, nats_server.url, tmp_path / "w2")
+            wait_for(lambda: "ingesting" in (tmp_path / "w2.log").read_text(), "the replacement worker started")
+            wait_for(lambda: consumer_state(nats_server.url, "warehouse") == (0, 0), "every message acknowledged")
+            replacement.send_signal(signal.SIGTERM)
+            assert replacement.wait(20) == 0
+
+            # The first worker's machine comes back: what its queue held is its messages' business now.
+            first = worker(params, nats_server.url, tmp_path / "w1")
+
+            def first_queue_empty() -> bool:
+                with buffer_of(tmp_path / "w1") as buffer:
+                    return int(buffer.stats("warehouse").rows) == 0
+
+            wait_for(first_queue_empty, "the first worker's queue emptied")
+            first.send_signal(signal.SIGTERM)
+            assert first.wait(20) == 0
+    finally:
+        os.environ.pop("PGPASSWORD", None)
+        for w in (first, replacement):
+            if w is not None and w.poll() is None:
+                w.kill()
+                w.wait(10)
+    stored = table_ids(postgres, "refusals")
+    dead = []
+    for storage in ("w1", "w2"):
+        with buffer_of(tmp_path / storage) as buffer:
+            dead += [d.record_id for d in buffer.list_dead_letters("warehouse")]
+    assert sorted(stored) == sorted(r.record_id for r in good)
+    assert sorted(dead) == sorted(r.record_id for r in refused), "each refused record dead-lettered once"
+    assert len(stored) + len(dead) == len(sent)
+    # The refused records, and good ones whose rows were not yet deleted when it was killed.
+    left = re.findall(r"left by the last run (\d+)", (tmp_path / "w1.log").read_text())
+    assert left and int(left[-1]) >= len(refused)

@@ -395,6 +395,42 @@ measurement_server:
     assert [r["seq"] for r in records(received)] == [0, 1, 2, 3, 4, 5]
 
 
+def test_a_latched_state_published_before_the_server_subscribed_is_forwarded_with_transient_local(
+    harness: Harness,
+) -> None:
+    """destination_server latches its destinations' health on dc/destination_health, and a robot's
+    first state is often published before measurement_server starts: the fleet page must get it."""
+    from dc_destinations.health import HEALTH_QOS
+
+    topic, name = f"/{unique('destination_health')}", unique("destination_health")
+    latched = harness.peer.create_publisher(StringStamped, topic, HEALTH_QOS)
+    latched.publish(stamped(json.dumps({"pg": {"state": "failing", "reason": "connection refused"}}), 1_700_000_000))
+    server = harness.start_server(f"""
+measurement_server:
+  ros__parameters:
+    measurement_plugins: ["{name}"]
+    {name}:
+      plugin: "dc_measurements/StringStamped"
+      topic: "{topic}"
+      timer_based: false
+      transient_local: true
+""")
+    received = harness.listen(f"/dc/measurement/{name}")
+    assert server.trigger_configure() == SUCCESS
+    harness.wait_publisher(f"/dc/measurement/{name}")
+    assert server.trigger_activate() == SUCCESS
+    harness.spin_until(lambda: len(received) >= 1, "the state published before the server subscribed")
+    assert records(received)[0]["pg"]["state"] == "failing"
+    assert received[0].header.stamp.sec == 1_700_000_000
+    # The next change, as it comes; and after a deactivation, the state then current again.
+    latched.publish(stamped(json.dumps({"pg": {"state": "ok"}}), 1_700_000_001))
+    harness.spin_until(lambda: len(received) >= 2, "the next state")
+    assert server.trigger_deactivate() == SUCCESS
+    assert server.trigger_activate() == SUCCESS
+    harness.spin_until(lambda: len(received) >= 3, "the current state at the next activation")
+    assert [r["pg"]["state"] for r in records(received)] == ["failing", "ok", "ok"]
+
+
 @pytest.mark.parametrize("timer_based", [False, True], ids=["event-driven", "timer-based"])
 def test_malformed_input_is_logged_and_counted_and_the_next_record_passes(
     harness: Harness, capfd: pytest.CaptureFixture[str], timer_based: bool

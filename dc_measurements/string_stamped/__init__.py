@@ -32,6 +32,12 @@ class StringStampedParams:
         "replaced, and counted as `replaced`); false: every record as it arrives",
     )
     qos_depth: int = param(100, minimum=1, doc="Subscription queue depth")
+    transient_local: bool = param(
+        False,
+        doc="true: a transient-local subscription, made at activation, which also gets the last records a "
+        "latching publisher sent before it (destination_server's dc/destination_health); only transient-local "
+        "publishers match it. false: volatile, any reliable publisher matches",
+    )
 
 
 class StringStampedInput(Measurement[StringStampedParams]):
@@ -66,10 +72,6 @@ class StringStampedInput(Measurement[StringStampedParams]):
         node = self.context.node
         if node is None:
             raise PluginError("StringStamped needs a ROS node")
-        from rclpy.qos import QoSProfile
-
-        from dc_interfaces.msg import StringStamped
-
         topic = ros_topic(self.params.topic)
         if topic != self.params.topic:
             self.context.logger.warning(
@@ -91,16 +93,39 @@ class StringStampedInput(Measurement[StringStampedParams]):
             "them (timer_based: true keeps the latest per polling_interval; timer_based: false forwards every record)",
         )
         self._loss_log_timer = node.create_timer(1.0, self._tick_logs)
+        if not self.params.transient_local:
+            self._subscribe()
+
+    def _subscribe(self) -> None:
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+
+        from dc_interfaces.msg import StringStamped
+
+        durability = DurabilityPolicy.TRANSIENT_LOCAL if self.params.transient_local else DurabilityPolicy.VOLATILE
         self._subscription = self.context.subscribe(
-            StringStamped, topic, self._on_message, QoSProfile(depth=self.params.qos_depth)
+            StringStamped, self._topic, self._on_message, QoSProfile(depth=self.params.qos_depth, durability=durability)
         )
         # Taken as the bytes DDS delivered, read without building the message's Python objects.
         self._subscription.raw = True
 
-    def on_cleanup(self) -> None:
+    def _unsubscribe(self) -> None:
         if self._subscription is not None:
             self.context.unsubscribe(self._subscription)
             self._subscription = None
+
+    def on_activate(self) -> None:
+        # Not at configure: the latched records arrive as soon as the subscription matches, and the
+        # server publishes nothing before it is active (they would be dropped, and not sent again).
+        if self.params.transient_local:
+            self._subscribe()
+
+    def on_deactivate(self) -> None:
+        # Made again at the next activation, which then gets the latest latched record again.
+        if self.params.transient_local:
+            self._unsubscribe()
+
+    def on_cleanup(self) -> None:
+        self._unsubscribe()
         if self._loss_log_timer is not None:
             self.context.node.destroy_timer(self._loss_log_timer)
             self._loss_log_timer = None
