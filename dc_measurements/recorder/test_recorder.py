@@ -176,6 +176,7 @@ def test_an_incident_file_holds_the_window_of_odom_the_static_tf_and_the_reasons
         "messages": 0,
         "bytes": 0,
         "lost_to_memory_bound": 0,
+        "lost_in_transport": 0,
         "absent": True,
     }
     assert by_topic[static_topic]["messages"] == 1 and by_topic[static_topic]["type"] == "tf2_msgs/msg/TFMessage"
@@ -386,7 +387,8 @@ def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_fi
     camera.publish(String(data="frame"))
     odom.publish(odometry(1.0, 0.0, 0.0))
     # The graph check gives the reliable and the latching publishers a subscription of their QoS, and keeps
-    # the early one until the next check: a message both take (the latched one resent) is kept once.
+    # the early one until that one takes its first message: a message both take (the latched one resent) is
+    # kept once.
     assert ros.spin_until(lambda: plugin.counters()["messages"] == 5)  # odom 0 and 1, tf, static, camera
     plugin._discover()
     assert ros.node.count_subscribers(odom_topic) == 2 and ros.node.count_subscribers(static_topic) == 2
@@ -394,8 +396,9 @@ def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_fi
     for i in range(2, 5):
         odom.publish(odometry(float(i), 0.0, 0.0))
     assert ros.spin_until(lambda: plugin.counters()["messages"] == 8)
-    plugin._discover()
-    assert ros.node.count_subscribers(odom_topic) == 1 and ros.node.count_subscribers(static_topic) == 1
+    assert ros.spin_until(
+        lambda: ros.node.count_subscribers(odom_topic) == 1 and ros.node.count_subscribers(static_topic) == 1
+    )
     assert plugin.trigger("then") is Outcome.EXTENDED
     emitted = ros.harness.context(plugin).emitted
     drive(ros, plugin, lambda: bool(emitted))
@@ -410,6 +413,79 @@ def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_fi
     by_topic = {t["topic"]: t for t in record["topics"]}
     assert [by_topic[t]["absent"] for t in (odom_topic, tf_topic, camera_topic, static_topic)] == [False] * 4
     assert by_topic[tf_topic]["type"] == "tf2_msgs/msg/TFMessage"
+    ros.harness.stop(plugin)
+
+
+def _early_recorder(ros: Ros, tmp_path: Path, topic: str) -> Recorder:
+    """A recorder of ``topic`` (its type given) configured before the topic has a publisher: subscribed best
+    effort, DEPTH deep, and no graph check but those the test makes (no poll)."""
+    plugin = ros.harness.make(
+        Recorder, {"topics": [topic], "types": ["nav_msgs/msg/Odometry"], "pre_trigger": 60.0, "post_trigger": 0.1}
+    )
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    return plugin
+
+
+def _matched_without_spinning(publisher: Any, subscriptions: int) -> None:
+    # Spinning would take what the test wants left queued in the recorder's subscriptions.
+    deadline = time.monotonic() + 30
+    while publisher.get_subscription_count() < subscriptions:
+        assert time.monotonic() < deadline, "not matched"
+        time.sleep(0.01)
+
+
+def test_messages_the_middleware_drops_before_the_recorder_takes_them_are_counted(ros: Ros, tmp_path: Path) -> None:
+    from dc_measurements.recorder import DEPTH
+
+    topic = unique("/odom")
+    plugin = _early_recorder(ros, tmp_path, topic)
+    odom = ros.publisher(Odometry, topic, VOLATILE)
+    odom.publish(odometry(0.0, 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 1)
+    # A burst while the server's loop is busy elsewhere (nothing spins): the subscription's queue keeps its
+    # newest DEPTH, the middleware drops the rest and says nothing (rmw_fastrtps raises no message_lost event).
+    sent = 1 + 3 * DEPTH
+    for i in range(1, sent):
+        odom.publish(odometry(float(i), 0.0, 0.0))
+    counters = plugin.counters
+    assert ros.spin_until(lambda: counters()["messages"] + counters()["lost_in_transport"] == sent)
+    assert counters()["lost_in_transport"] >= 2 * DEPTH
+    assert plugin.trigger("after the burst") is Outcome.OPENED
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted))
+    ((entry,),) = [emitted[0].record["topics"]]
+    assert entry["messages"] == counters()["messages"] and entry["lost_in_transport"] == counters()["lost_in_transport"]
+    assert "transport_losses_unchecked" not in entry
+    # The newest were kept: the last message published is in the file.
+    read = read_with_rosbags(emitted[0].record["local_paths"]["mcap"])
+    assert read[topic][-1][1].pose.pose.position.x == sent - 1
+    ros.harness.stop(plugin)
+
+
+def test_the_handover_takes_what_the_early_subscription_still_holds(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/odom")
+    plugin = _early_recorder(ros, tmp_path, topic)
+    odom = ros.publisher(Odometry, topic, VOLATILE)
+    for i in range(5):
+        odom.publish(odometry(float(i), 0.0, 0.0))  # queued in the early subscription: nothing spins
+    plugin._discover()  # the publisher is reliable: a subscription of its QoS beside the early one
+    _matched_without_spinning(odom, 2)
+    for i in range(5, 10):
+        odom.publish(odometry(float(i), 0.0, 0.0))  # both subscriptions hold these
+    # Graph checks come and go (once a second on a robot) while the loop is busy: the early subscription stays
+    # until the new one takes its first message, and what it holds is taken before it goes.
+    plugin._discover()
+    plugin._discover()
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 10)
+    assert ros.spin_until(lambda: ros.node.count_subscribers(topic) == 1)
+    assert plugin.trigger("after the handover") is Outcome.OPENED
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted))
+    read = read_with_rosbags(emitted[0].record["local_paths"]["mcap"])
+    assert [int(m.pose.pose.position.x) for _, m in read[topic]] == list(range(10))
+    assert plugin.counters()["lost_in_transport"] == 0
     ros.harness.stop(plugin)
 
 
