@@ -131,6 +131,8 @@ class _Closing:
     cut: bool
     lost: list[int]
     write_at_ns: int
+    # The ring's token while the window's messages are in memory for the worker (Ring.writing).
+    held: list[int]
     failures: int = 0
 
 
@@ -225,7 +227,6 @@ class Recorder(Measurement[RecorderParams]):
         self._next_discovery = 0.0
         self._absent_warned = False
         self._bound_warned = False
-        self._cut_before_open = False
         self._services: list[Any] = []
         self._poll_timer: Any = None
         # Per topic index, while two subscriptions take it: (publisher's stamp, size) of what was kept.
@@ -320,7 +321,8 @@ class Recorder(Measurement[RecorderParams]):
         self._closing.extend(self._retrying)
         self._retrying.clear()
         while self._closing:
-            job, sample, base = self._prepare(self._closing.popleft())
+            closing = self._closing.popleft()
+            job, sample, base = self._prepare(closing)
             try:
                 self._note_written(sample, job())
             except Exception as exc:
@@ -332,6 +334,7 @@ class Recorder(Measurement[RecorderParams]):
                 continue
             finally:
                 self._reserved.release(base)
+                self._ring.written(closing.held)
             self.unpublished += 1
             self.context.logger.warning(
                 f"measurement {self.context.name}: incident saved at deactivate as {sample['local_paths']['mcap']}, "
@@ -510,11 +513,9 @@ class Recorder(Measurement[RecorderParams]):
         if outcome is TriggerOutcome.OPENED:
             assert self._windows.open is not None
             start = self._windows.open.start_ns
+            # Messages of the window the bound let go before the trigger count as its losses too.
             self._ring.take_lost_in_window()
-            # Messages of the window the bound let go before the trigger: the ring's oldest is younger
-            # than the window's start while the bound has dropped messages.
-            oldest = self._ring.oldest_ns()
-            self._cut_before_open = any(self._ring.lost_to_bound) and (oldest is None or oldest > start)
+            self._ring.lost_in_window = self._ring.lost_since(start)
             self._ring.hold_from_ns = start
             self._set_timers()
         self.context.logger.info(f"measurement {self.context.name}: trigger ({reason}): {outcome.value}")
@@ -564,7 +565,8 @@ class Recorder(Measurement[RecorderParams]):
         self._ring.hold_from_ns = NEVER
         entries = self._ring.window(incident.start_ns, incident.end_ns)
         lost = self._ring.take_lost_in_window()
-        return _Closing(incident, entries, self._cut_before_open or any(lost), lost, write_at_ns)
+        held = self._ring.writing(incident.start_ns, incident.end_ns)
+        return _Closing(incident, entries, any(lost), lost, write_at_ns, held)
 
     def _close(self, closing: _Closing) -> None:
         job, sample, base = self._prepare(closing)
@@ -662,11 +664,13 @@ class Recorder(Measurement[RecorderParams]):
                 self._save_log.event(1, f"{sample['local_paths']['mcap']}: {exc} (kept, tried again)")
             else:
                 self.incidents_dropped += 1
+                self._ring.written(closing.held)
                 self._save_log.event(
                     1, f"{sample['local_paths']['mcap']}: {exc}; dropped after {WRITE_TRIES} tries: {sample}"
                 )
             self._set_timers()
             return
+        self._ring.written(closing.held)
         self._note_written(sample, written)
         self.incidents += 1
         self.context.emit(sample, stamp_ns=int(sample["triggers"][0]["time"] * 1e9))
@@ -677,6 +681,7 @@ class Recorder(Measurement[RecorderParams]):
         return {
             "messages": sum(self._received),
             "ring_bytes": self._ring.bytes,
+            "writing_bytes": self._ring.held_out,
             "lost_to_bound": sum(self._ring.lost_to_bound),
             "lost_in_transport": sum(self._lost_in_transport),
             "triggers": w.triggers,
