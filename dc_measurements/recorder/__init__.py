@@ -34,7 +34,7 @@ from dc_core.topics import ros_topic, topic_problem
 from dc_core.worker import Outcome
 from dc_measurements.recorder.definitions import Definitions
 from dc_measurements.recorder.mcap_file import COMPRESSIONS, Channel, Written, write_mcap
-from dc_measurements.recorder.ring import LATCHED_KEEP, NEVER, Entry, Ring
+from dc_measurements.recorder.ring import LATCHED_KEEP, NEVER, Entry, Ring, Writing
 from dc_measurements.recorder.window import Incident, Windows
 from dc_measurements.recorder.window import Outcome as TriggerOutcome
 from dc_measurements.saved_files import ReservedPaths, file_locations
@@ -131,8 +131,8 @@ class _Closing:
     cut: bool
     lost: list[int]
     write_at_ns: int
-    # The ring's token while the window's messages are in memory for the worker (Ring.writing).
-    held: list[int]
+    # The window's messages in memory for the worker, in the ring's bound (Ring.writing).
+    held: Writing
     failures: int = 0
 
 
@@ -565,7 +565,7 @@ class Recorder(Measurement[RecorderParams]):
         self._ring.hold_from_ns = NEVER
         entries = self._ring.window(incident.start_ns, incident.end_ns)
         lost = self._ring.take_lost_in_window()
-        held = self._ring.writing(incident.start_ns, incident.end_ns)
+        held = self._ring.writing(incident.start_ns, incident.end_ns, entries)
         return _Closing(incident, entries, any(lost), lost, write_at_ns, held)
 
     def _close(self, closing: _Closing) -> None:
@@ -582,11 +582,14 @@ class Recorder(Measurement[RecorderParams]):
         taken = {id(e) for e in closing.entries}
         late = [e for e in self._ring.between(incident.start_ns, incident.end_ns) if id(e) not in taken]
         entries = closing.entries = closing.entries + late
+        closing.held.held.update(id(e) for e in late)
         channels = [t.channel for t in self._topics]
         locations = file_locations(self.context.paths, self.params.save_path, incident.start_ns / 1e9)
         locations = self._reserved.reserve(locations, (_SUFFIX,))
         local, remote = locations.with_suffix(_SUFFIX)
-        sample = self._sample(incident, entries, closing.lost, closing.cut, local, remote)
+        # (late messages the ring let go before they could join: lost to the window too)
+        lost = [a + b for a, b in zip(closing.lost, closing.held.lost, strict=True)]
+        sample = self._sample(incident, entries, lost, closing.cut or any(lost), local, remote)
         job = functools.partial(write_mcap, local, channels, entries, self.params.compression, self._definitions.get)
         return job, sample, locations.local
 

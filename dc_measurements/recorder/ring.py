@@ -22,6 +22,7 @@ Messages of latched topics (transient-local publishers, ``/tf_static``) are also
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass, field
 
 Entry = tuple[int, int, int, bytes]
 # What an entry costs beyond its bytes: the tuple, two ints, the bytes object's header, the deque slot.
@@ -30,6 +31,17 @@ ENTRY_OVERHEAD = 160
 # static transform broadcaster. More than this many on one topic keeps the newest.
 LATCHED_KEEP = 64
 NEVER = 1 << 62
+
+
+@dataclass(eq=False)
+class Writing:
+    """A window whose file is being written (Ring.writing)."""
+
+    start_ns: int
+    end_ns: int
+    held: set[int]  # id() of the entries its snapshot holds (the snapshot keeps them alive: ids stay unique)
+    lost: list[int]  # per topic, entries of its time that the ring let go without the snapshot holding them
+    held_out: int = field(default=0)  # bytes of the held entries that the ring let go since
 
 
 class Ring:
@@ -43,7 +55,7 @@ class Ring:
         self.lost_to_bound = [0] * topics
         self.lost_in_window = [0] * topics
         # Per window being written: [start_ns, end_ns, bytes of its messages the ring let go since].
-        self._writing: list[list[int]] = []
+        self._writing: list[Writing] = []
         self.held_out = 0
         # (receive_ns, topic) of the entries the bound let go outside a window, for keep_ns.
         self._lost_recently: deque[tuple[int, int]] = deque()
@@ -86,29 +98,30 @@ class Ring:
         return lost
 
     def _let_go(self, entry: Entry) -> bool:
-        """Takes ``entry`` out of the ring; True if a window being written still holds it."""
+        """Takes ``entry`` out of the ring; True if a window being written holds it. One of such a window's time
+        that its snapshot does not hold (taken after it) is counted in the window's ``lost``."""
         size = len(entry[3]) + ENTRY_OVERHEAD
         self.bytes -= size
         for writing in self._writing:
-            if writing[0] <= entry[0] <= writing[1]:
-                writing[2] += size
+            if id(entry) in writing.held:
+                writing.held_out += size
                 self.held_out += size
                 return True
+            if writing.start_ns <= entry[0] <= writing.end_ns:
+                writing.lost[entry[2]] += 1
         return False
 
-    def writing(self, start_ns: int, end_ns: int) -> list[int]:
-        """A window [start_ns, end_ns] is being written: what the ring lets go of it still counts in the bound
-        until :meth:`written` with the token returned."""
-        token = [start_ns, end_ns, 0]
-        self._writing.append(token)
-        return token
+    def writing(self, start_ns: int, end_ns: int, entries: list[Entry]) -> Writing:
+        """The window [start_ns, end_ns] is being written from ``entries`` (taken from :meth:`window`): what the
+        ring lets go of them still counts in the bound until :meth:`written`."""
+        writing = Writing(start_ns, end_ns, {id(e) for e in entries}, [0] * len(self.lost_to_bound))
+        self._writing.append(writing)
+        return writing
 
-    def written(self, token: list[int]) -> None:
-        for i, writing in enumerate(self._writing):
-            if writing is token:
-                del self._writing[i]
-                self.held_out -= token[2]
-                return
+    def written(self, writing: Writing) -> None:
+        if writing in self._writing:
+            self._writing.remove(writing)
+            self.held_out -= writing.held_out
 
     def oldest_ns(self) -> int | None:
         return self._entries[0][0] if self._entries else None

@@ -79,7 +79,7 @@ def test_a_window_being_written_counts_in_the_bound_until_it_is_written() -> Non
     for i in range(10):
         ring.append(i * S, 0, 0, bytes(size))
     window = ring.window(0, 9 * S)
-    token = ring.writing(0, 9 * S)  # the worker holds the window's ten messages until its file is written
+    token = ring.writing(0, 9 * S, window)  # the worker holds the window's ten messages until its file is written
     for i in range(10, 20):
         ring.append(i * S, 0, 0, bytes(size))
         assert ring.bytes + ring.held_out <= bound  # the window's messages are still in memory
