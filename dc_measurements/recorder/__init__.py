@@ -447,10 +447,10 @@ class Recorder(Measurement[RecorderParams]):
         other subscription of a handover had after all (the count taken back)."""
         last = self._last_seq[index]
         self._last_seq[index] = seq or 0
-        if not seq:  # this middleware gives no sequence numbers
+        if (seq and not last) or time.monotonic() < self._several_until[index]:
+            return  # its first message, or said unchecked less than SEVERAL_RECHECK_S ago
+        if not seq:  # this middleware gives no sequence numbers (0: unsupported)
             self._not_checked(index, receive_ns)
-            return
-        if not last or time.monotonic() < self._several_until[index]:
             return
         if self.context.node.count_publishers(self._topics[index].name) > 1:
             self._not_checked(index, receive_ns)

@@ -499,6 +499,32 @@ def test_messages_the_middleware_drops_before_the_recorder_takes_them_are_counte
     ros.harness.stop(plugin)
 
 
+def test_a_topic_with_two_publishers_is_said_unchecked_not_counted_as_losses(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/odom")
+    first = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    second = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    plugin = ros.harness.make(Recorder, {"topics": [topic], "pre_trigger": 60.0, "post_trigger": 0.1})
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    assert ros.spin_until(lambda: first.get_subscription_count() == 1 and second.get_subscription_count() == 1)
+    # Their sequence numbers interleave (1..10, then 1, 11, 2, 12...): read as one stream, gaps that are none.
+    for i in range(10):
+        first.publish(odometry(float(i), 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 10)
+    for i in range(5):
+        second.publish(odometry(100.0 + i, 0.0, 0.0))
+        first.publish(odometry(10.0 + i, 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 20)
+    assert plugin.counters()["lost_in_transport"] == 0
+    assert plugin.trigger("two publishers") is Outcome.OPENED
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted))
+    ((entry,),) = [emitted[0].record["topics"]]
+    assert entry["messages"] == 20 and entry["lost_in_transport"] == 0 and entry["transport_losses_unchecked"]
+    ros.harness.stop(plugin)
+
+
 def test_the_handover_takes_what_the_early_subscription_still_holds(ros: Ros, tmp_path: Path) -> None:
     topic = unique("/odom")
     plugin = _early_recorder(ros, tmp_path, topic)
