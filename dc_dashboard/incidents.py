@@ -36,20 +36,28 @@ class Incident:
     start: float
     end: float
     reasons: list[str]
-    # (topic, messages, bytes, absent)
-    topics: list[tuple[str, int, int, bool]]
+    # (topic, messages, bytes, absent, lost: to the memory bound, in transport)
+    topics: list[tuple[str, int, int, bool, int, int]]
     size: int
     cut: bool
     key: str
 
 
-def _topic(entry: dict[str, Any], number: Any) -> tuple[str, int, int, bool]:
+def _topic(entry: dict[str, Any], number: Any) -> tuple[str, int, int, bool, int, int]:
     return (
         str(entry.get("topic", "")),
         int(number(entry.get("messages"))),
         int(number(entry.get("bytes"))),
         (entry.get("absent") is True),
+        int(number(entry.get("lost_to_memory_bound"))),
+        int(number(entry.get("lost_in_transport"))),
     )
+
+
+def _lost(bound: int, transport: int) -> str:
+    said = [f"{bound:,} let go by the memory bound"] if bound else []
+    said += [f"{transport:,} lost in transport"] if transport else []
+    return ", " + ", ".join(said) if said else ""
 
 
 def _incident(name: str, when_: dt.datetime, robot: str, run: str, record: dict[str, Any]) -> Incident:
@@ -116,9 +124,9 @@ def page(found: list[Incident], more: bool, filters: Filters) -> str:
     for item in found:
         topics = "".join(
             f'<li class="{"no" if absent else ""}">{escape(topic)}: '
-            + ("absent" if absent else f"{messages:,} messages, {_size(size)}")
+            + ("absent" if absent else f"{messages:,} messages, {_size(size)}{_lost(bound, transport)}")
             + "</li>"
-            for topic, messages, size, absent in item.topics
+            for topic, messages, size, absent, bound, transport in item.topics
         )
         file_name = escape(item.key.rsplit("/", 1)[-1])
         download = (

@@ -26,14 +26,14 @@ T0 = dt.datetime(2026, 3, 1, 12, 0, 0)
 BIG = 16 * 1024 * 1024  # more than a socket's buffers hold: the dashboard is still writing when the client goes
 
 
-def _scan(messages: int) -> dict[str, Any]:
+def _scan(messages: int, bound: int = 0, transport: int = 0) -> dict[str, Any]:
     return {
         "topic": "/scan",
         "type": "sensor_msgs/msg/LaserScan",
         "messages": messages,
         "bytes": messages * 5800,
-        "lost_to_memory_bound": 0,
-        "lost_in_transport": 0,
+        "lost_to_memory_bound": bound,
+        "lost_in_transport": transport,
         "absent": False,
     }
 
@@ -105,7 +105,13 @@ def servers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Servers]:
         _incident("C3PO", "1", T0, ["conditions"], "C3PO/incidents/a.mcap", len(mcap), (_scan(0),)),
         _incident("C3PO", "2", T0 + dt.timedelta(hours=1), ["service", "bumper hit"], "C3PO/incidents/b.mcap", 9),
         _incident(
-            "R2D2", "1", T0 + dt.timedelta(minutes=30), ["operator: Bumper"], "R2D2/incidents/c.mcap", 9, (_scan(150),)
+            "R2D2",
+            "1",
+            T0 + dt.timedelta(minutes=30),
+            ["operator: Bumper"],
+            "R2D2/incidents/c.mcap",
+            9,
+            (_scan(150, 2, 3),),
         ),
         {"name": "speed", "computed": 1.0, "robot_name": "C3PO", "run_id": "1", "date": 0},
     ]
@@ -168,7 +174,9 @@ def test_the_incidents_page_filters_by_a_topic_with_messages_in_the_file(servers
     dashboard = Dashboard(DashboardSettings(servers.postgres, servers.s3))
     # Only the incident whose file holds /scan messages: not the one where /scan was silent.
     status, html = dashboard.render("/incidents", "topic=/scan")
-    assert status == 200 and len(_rows(html)) == 1 and "/scan: 150 messages" in _rows(html)[0]
+    assert status == 200 and len(_rows(html)) == 1
+    # with what its window lost, as the record counts it
+    assert "/scan: 150 messages, 849.6 KiB, 2 let go by the memory bound, 3 lost in transport" in _rows(html)[0]
     assert 'value="/scan"' in html and 'id="topic-search"' in html
     # Part of a name, any case, with the other filters.
     status, html = dashboard.render("/incidents", "topic=ODO")
