@@ -10,7 +10,8 @@ destination server writing its records to a JSON-lines file, in a temporary fold
 The measurement server's RSS (VmRSS) is read every --every seconds from "DC is up" to the end. After --idle
 seconds (the ring full: --pre seconds of the topics are more than --mb) ``dc trigger`` opens a window of
 --pre + --post seconds, larger than the bound; the run ends --after seconds after the incident's record is
-written. The record (cut_by_memory_bound, per topic messages and lost_to_memory_bound) and the RSS samples
+written. The record (cut_by_memory_bound, per topic messages, lost_to_memory_bound and lost_in_transport: their
+sum is what was published in the window) and the RSS samples
 go to benchmarks/results/recorder_memory_<date>.json; a summary to stdout: RSS before the topics start,
 while idle with the ring full, its peak while the window is open and while its file is written, and after.
 
@@ -131,7 +132,7 @@ def one_run(workdir: Path, run: int, domain: int, args: argparse.Namespace) -> d
     params = home / "recorder_memory.yaml"
     params.write_text(PARAMS.format(pre=args.pre, post=args.post, mb=args.mb))
     records = home / "var/dc/records/incidents.jsonl"
-    samples: list[tuple[float, float]] = []
+    samples: list[tuple[float, float, float]] = []  # (s since "DC is up", wall clock s, RSS MiB)
     marks: dict[str, float] = {}
     with contextlib.ExitStack() as stack:
         bringup = stack.enter_context(
@@ -144,7 +145,7 @@ def one_run(workdir: Path, run: int, domain: int, args: argparse.Namespace) -> d
         def sample_for(seconds: float, until: Any = lambda: False) -> None:
             end = time.monotonic() + seconds
             while time.monotonic() < end and not until():
-                samples.append((round(time.monotonic() - t0, 2), round(rss_mb(pid), 1)))
+                samples.append((round(time.monotonic() - t0, 2), time.time(), round(rss_mb(pid), 1)))
                 time.sleep(args.every)
 
         sample_for(3.0)  # before any topic
@@ -163,22 +164,23 @@ def one_run(workdir: Path, run: int, domain: int, args: argparse.Namespace) -> d
         )
         if trigger.returncode:
             raise RuntimeError(f"dc trigger failed: {trigger.stdout}{trigger.stderr}")
-        sample_for(args.post)
-        marks["window_end"] = time.monotonic() - t0
         sample_for(120.0, lambda: records.exists() and records.stat().st_size > 0)
-        marks["record"] = time.monotonic() - t0
+        record_seen = time.time()
         sample_for(args.after)
         if bringup.process.poll() is not None:
             raise RuntimeError(f"dc-bringup exited:\n{fp._tail(bringup.log)}")
     lines = records.read_text().splitlines() if records.exists() else []
     record = json.loads(lines[0]) if lines else {}
 
-    def peak(start: str, end: str | None) -> float:
-        stop = marks[end] if end else float("inf")
-        return max((rss for t, rss in samples if marks[start] <= t < stop), default=0.0)
+    # The phases by the wall clock: the trigger's and the window's end as the record gives them, the file
+    # written by the time its record reached the file destination.
+    opened, closed = record["triggers"][0]["time"], record["end"]
 
-    before = [rss for t, rss in samples if t < marks["publisher"]]
-    idle_full = [rss for t, rss in samples if marks["trigger"] - 10 <= t < marks["trigger"]]
+    def peak(start: float, end: float) -> float:
+        return max((rss for _, wall, rss in samples if start <= wall < end), default=0.0)
+
+    before = [rss for t, _, rss in samples if t < marks["publisher"]]
+    idle_full = [rss for t, _, rss in samples if marks["trigger"] - 10 <= t < marks["trigger"]]
     return {
         "run": run,
         "domain": domain,
@@ -186,10 +188,10 @@ def one_run(workdir: Path, run: int, domain: int, args: argparse.Namespace) -> d
         "marks_s": marks,
         "rss_before_topics_mb": statistics.median(before) if before else None,
         "rss_idle_ring_full_mb": statistics.median(idle_full) if idle_full else None,
-        "rss_peak_idle_mb": peak("publisher", "trigger"),
-        "rss_peak_window_open_mb": peak("trigger", "window_end"),
-        "rss_peak_writing_mb": peak("window_end", "record"),
-        "rss_after_mb": samples[-1][1] if samples else None,
+        "rss_peak_idle_mb": max(rss for t, _, rss in samples if marks["publisher"] <= t < marks["trigger"]),
+        "rss_peak_window_open_mb": peak(opened, closed),
+        "rss_peak_writing_mb": peak(closed, record_seen),
+        "rss_after_mb": samples[-1][2] if samples else None,
         "record": {
             k: record.get(k) for k in ("start", "end", "messages", "size", "cut_by_memory_bound", "topics", "triggers")
         },
@@ -219,14 +221,17 @@ def main() -> int:
             domain = result["domain"] + 1
             runs.append(result)
             r, record = result, result["record"]
-            topics = {t["topic"]: (t["messages"], t["lost_to_memory_bound"]) for t in record["topics"] or []}
+            topics = {
+                t["topic"]: (t["messages"], t["lost_to_memory_bound"], t.get("lost_in_transport"))
+                for t in record["topics"] or []
+            }
             print(
                 f"run {run} (load {r['loadavg'][0]:.1f}): max_memory_mb {args.mb:g}; RSS (MB) before the topics "
                 f"{r['rss_before_topics_mb']:.0f}, idle with the ring full {r['rss_idle_ring_full_mb']:.0f} "
                 f"(peak {r['rss_peak_idle_mb']:.0f}), window open peak {r['rss_peak_window_open_mb']:.0f}, "
                 f"writing peak {r['rss_peak_writing_mb']:.0f}, after {r['rss_after_mb']:.0f}; record: "
                 f"cut_by_memory_bound={record['cut_by_memory_bound']}, window {record['end'] - record['start']:.1f} s, "
-                f"(messages, lost_to_memory_bound) per topic {topics}",
+                f"(messages, lost_to_memory_bound, lost_in_transport) per topic {topics}",
                 flush=True,
             )
     document = {
