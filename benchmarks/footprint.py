@@ -20,8 +20,11 @@ Each process is named by its command line (dc-bringup, destination_server, measu
 group_server, image_services, "servers (one process)" under ``--single-process``, dc sim, or its
 executable). With --sim, ``dc sim`` runs in the same
 environment during the whole measurement; its own cost is reported apart and not in DC's total.
-``--use-sim-time`` makes every server take the simulator's 50 Hz /clock, which a robot does not
-publish: with the simulator, measure both (two modes) and read the one without it as the robot's.
+``--compressed-camera FPS`` runs, beside them, a publisher of a synthetic sensor_msgs/CompressedImage on
+/camera/image_raw/compressed (reliable, depth 10, as image_transport publishes; --compressed-kb of random
+bytes, which no JPEG encoder would shrink further), for a job that records a camera (dc sim has none); it is
+not counted in DC's total either. ``--use-sim-time`` makes every server take the simulator's 50 Hz /clock,
+which a robot does not publish: with the simulator, measure both (two modes) and read the one without it as the robot's.
 
     .venv/bin/python benchmarks/footprint.py [--params FILE]... [--mode NAME [--bringup-args ARGS]]...
         [--extra-args ARGS] [--sim [--sim-args ARGS]] [--settle 20] [--window 60] [--runs 1] [--label L]
@@ -68,6 +71,32 @@ from dc_bringup.launcher import build_parser as build_bringup_parser
 from dc_bringup.validate import SERVER_MODULES
 
 REPO = e2e.REPO
+COMPRESSED_CAMERA = r"""
+import os, sys, time
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CompressedImage
+fps, size = float(sys.argv[1]), int(sys.argv[2])
+rclpy.init()
+node = rclpy.create_node("bench_compressed_camera")
+publisher = node.create_publisher(
+    CompressedImage, "/camera/image_raw/compressed", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+)
+frames = [os.urandom(size) for _ in range(8)]
+start, sent = time.monotonic(), 0
+try:
+    while True:
+        now = time.monotonic()
+        if sent < (now - start) * fps:
+            message = CompressedImage(format="jpeg", data=frames[sent % len(frames)])
+            message.header.stamp.sec, message.header.stamp.nanosec = divmod(time.time_ns(), 1_000_000_000)
+            publisher.publish(message)
+            sent += 1
+        else:
+            time.sleep(start + sent / fps - now)
+except Exception:  # stopped with SIGTERM: rclpy's context is gone
+    pass
+"""
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 UP_LINE = "DC is up"
 SERVER_NAMES = {module: name for name, module in SERVER_MODULES.items()}
@@ -457,6 +486,15 @@ def measure(workdir: Path, params: Path, mode: Mode, run: int, domain: int, args
             # Started first, so that /map, /tf and /clock are there when the measurements start.
             sim_argv = [venv_script("dc"), "sim", *shlex.split(args.sim_args)]
             sim = stack.enter_context(started(sim_argv, env, home, home / "sim.log", 10.0))
+        if args.compressed_camera > 0:
+            camera_argv = [
+                sys.executable,
+                "-c",
+                COMPRESSED_CAMERA,
+                str(args.compressed_camera),
+                str(int(args.compressed_kb * 1000)),
+            ]
+            stack.enter_context(started(camera_argv, env, home, home / "camera.log", 10.0))
         bringup_argv = [venv_script("dc-bringup"), str(params), *shlex.split(args.extra_args), *mode.args]
         bringup = Started(bringup_argv, env, home, home / "dc-bringup.log")
         try:
@@ -688,6 +726,14 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
         metavar="ARGS",
         help="arguments of `dc sim` (default: %(default)s; no camera, as the robot job reads none)",
     )
+    parser.add_argument(
+        "--compressed-camera",
+        type=float,
+        default=0.0,
+        metavar="FPS",
+        help="publish a synthetic sensor_msgs/CompressedImage on /camera/image_raw/compressed at FPS (not counted)",
+    )
+    parser.add_argument("--compressed-kb", type=float, default=50.0, help="size of each compressed frame (kB)")
     parser.add_argument("--settle", type=float, default=20.0, help="seconds after 'DC is up' before the window")
     parser.add_argument("--window", type=float, default=60.0, help="seconds measured")
     parser.add_argument("--runs", type=int, default=1, help="repeat every parameter file and mode; medians")
@@ -776,6 +822,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             "extra_args": args.extra_args,
             "sim": args.sim,
             "sim_args": args.sim_args if args.sim else None,
+            "compressed_camera": (
+                {"fps": args.compressed_camera, "kb": args.compressed_kb} if args.compressed_camera > 0 else None
+            ),
             "settle_s": args.settle,
             "window_s": args.window,
             "runs": args.runs,

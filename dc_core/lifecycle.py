@@ -113,8 +113,8 @@ class ServerPluginContext:
             raise
         return subscription
 
-    def unsubscribe(self, subscription: Any) -> None:
-        self.server.intake.unsubscribe(subscription)
+    def unsubscribe(self, subscription: Any, *, take_queued: bool = False) -> None:
+        self.server.intake.unsubscribe(subscription, take_queued=take_queued)
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         return self.server.create_timer(period_s, callback)

@@ -60,8 +60,9 @@ class PluginContext(Protocol):
         per message (docs/performance.md). Returns the subscription, for :meth:`unsubscribe`.
         """
 
-    def unsubscribe(self, subscription: Any) -> None:
-        """Destroy a subscription made by :meth:`subscribe`."""
+    def unsubscribe(self, subscription: Any, *, take_queued: bool = False) -> None:
+        """Destroy a subscription made by :meth:`subscribe`; with ``take_queued``, the messages the middleware
+        already delivered to it go to its callback first (destroyed with it, they would be lost)."""
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         """Call ``callback()`` every ``period_s`` seconds on the main thread, until :meth:`destroy_timer`."""

@@ -88,8 +88,15 @@ class FakeContext:
         # rclpy hands a callback of two parameters the message and its MessageInfo, as the intake does.
         return node.create_subscription(msg_type, topic, lambda msg, info: callback(msg, info), qos, raw=raw)
 
-    def unsubscribe(self, subscription: Any) -> None:
-        self._require_node("unsubscribe").destroy_subscription(subscription)
+    def unsubscribe(self, subscription: Any, *, take_queued: bool = False) -> None:
+        node = self._require_node("unsubscribe")
+        while take_queued:
+            with subscription.handle:
+                taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+            if taken is None:
+                break
+            subscription.callback(*taken)
+        node.destroy_subscription(subscription)
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         return self._require_node("create_timer").create_timer(period_s, callback)

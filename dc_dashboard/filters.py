@@ -34,8 +34,9 @@ class Filters:
     # Explorer: the record name; Camera: text a code read must contain.
     name: str = ""
     code: str = ""
-    # Incidents: text a trigger's reason must contain.
+    # Incidents: text a trigger's reason must contain, text the name of a topic in the file must contain.
     reason: str = ""
+    topic: str = ""
     problems: tuple[str, ...] = field(default=(), compare=False)
 
     @classmethod
@@ -86,6 +87,7 @@ class Filters:
             name=values.get("name", "")[:200],
             code=values.get("code", "")[:200],
             reason=values.get("reason", "")[:200],
+            topic=values.get("topic", "")[:200],
             problems=tuple(problems),
         )
 
@@ -103,6 +105,7 @@ class Filters:
             "name": changed.name,
             "code": changed.code,
             "reason": changed.reason,
+            "topic": changed.topic,
             "state": changed.state,
             "before": format_time(changed.before),
         }

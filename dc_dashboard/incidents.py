@@ -1,10 +1,10 @@
 """The Incidents page: what the Recorder (dc_measurements/Recorder) stored, and its MCAP files through the dashboard.
 
 An incident is found by its record's shape (``triggers``, ``topics``, ``cut_by_memory_bound``:
-dc_dashboard.catalog), whatever the measurement was named. The list follows the shared filters (robot,
-run, time range) and a reason's text; each row links to its file, which the dashboard fetches from the
-bucket and passes on (the browser never sees a key's signature), only for a ``.mcap`` key whose bytes
-are an MCAP file.
+dc_dashboard.catalog), whatever the measurement was named. The list follows the shared filters (robot, run,
+time range), a reason's text and a topic's name (one with messages in the file); each row links to its file,
+which the dashboard fetches from the bucket and passes on (the browser never sees a key's signature), only
+for a ``.mcap`` key whose bytes are an MCAP file.
 """
 
 from __future__ import annotations
@@ -36,20 +36,28 @@ class Incident:
     start: float
     end: float
     reasons: list[str]
-    # (topic, messages, bytes, absent)
-    topics: list[tuple[str, int, int, bool]]
+    # (topic, messages, bytes, absent, lost: to the memory bound, in transport)
+    topics: list[tuple[str, int, int, bool, int, int]]
     size: int
     cut: bool
     key: str
 
 
-def _topic(entry: dict[str, Any], number: Any) -> tuple[str, int, int, bool]:
+def _topic(entry: dict[str, Any], number: Any) -> tuple[str, int, int, bool, int, int]:
     return (
         str(entry.get("topic", "")),
         int(number(entry.get("messages"))),
         int(number(entry.get("bytes"))),
         (entry.get("absent") is True),
+        int(number(entry.get("lost_to_memory_bound"))),
+        int(number(entry.get("lost_in_transport"))),
     )
+
+
+def _lost(bound: int, transport: int) -> str:
+    said = [f"{bound:,} let go by the memory bound"] if bound else []
+    said += [f"{transport:,} lost in transport"] if transport else []
+    return ", " + ", ".join(said) if said else ""
 
 
 def _incident(name: str, when_: dt.datetime, robot: str, run: str, record: dict[str, Any]) -> Incident:
@@ -76,16 +84,29 @@ def _incident(name: str, when_: dt.datetime, robot: str, run: str, record: dict[
 
 
 def incidents(store: Store, connection: Any, filters: Filters) -> tuple[list[Incident], bool]:
-    """The newest incidents of the filters (before ``filters.before``, a reason holding ``filters.reason``)."""
+    """The newest incidents of the filters (before ``filters.before``, a reason holding ``filters.reason``, a
+    topic with messages in the file whose name holds ``filters.topic``)."""
     from psycopg import sql
 
-    reason = None
+    conditions = []
     if filters.reason:  # any trigger whose reason holds the text, any case
-        reason = sql.SQL(
-            "EXISTS (SELECT 1 FROM jsonb_array_elements(data #> %(p)s -> 'triggers') AS t(v)"
-            " WHERE (t.v ->> 'reason') ILIKE %(text)s ESCAPE '\\')"
+        conditions.append(
+            sql.SQL(
+                "EXISTS (SELECT 1 FROM jsonb_array_elements(data #> %(p)s -> 'triggers') AS t(v)"
+                " WHERE (t.v ->> 'reason') ILIKE %(text)s ESCAPE '\\')"
+            )
         )
-    found = [_incident(*row) for row in store.newest(connection, filters, "incident", PAGE + 1, reason, filters.reason)]
+    if filters.topic:  # a topic the file holds messages of (not one recorded as absent or silent)
+        conditions.append(
+            sql.SQL(
+                "EXISTS (SELECT 1 FROM jsonb_array_elements(data #> %(p)s -> 'topics') AS s(v)"
+                " WHERE (s.v ->> 'topic') ILIKE %(topic)s ESCAPE '\\'"
+                " AND jsonb_typeof(s.v -> 'messages') = 'number' AND (s.v ->> 'messages')::numeric > 0)"
+            )
+        )
+    condition = sql.SQL(" AND ").join(conditions) if conditions else None
+    rows = store.newest(connection, filters, "incident", PAGE + 1, condition, filters.reason, {"topic": filters.topic})
+    found = [_incident(*row) for row in rows]
     found.sort(key=lambda i: i.time, reverse=True)
     return found[:PAGE], len(found) > PAGE
 
@@ -103,9 +124,9 @@ def page(found: list[Incident], more: bool, filters: Filters) -> str:
     for item in found:
         topics = "".join(
             f'<li class="{"no" if absent else ""}">{escape(topic)}: '
-            + ("absent" if absent else f"{messages:,} messages, {_size(size)}")
+            + ("absent" if absent else f"{messages:,} messages, {_size(size)}{_lost(bound, transport)}")
             + "</li>"
-            for topic, messages, size, absent in item.topics
+            for topic, messages, size, absent, bound, transport in item.topics
         )
         file_name = escape(item.key.rsplit("/", 1)[-1])
         download = (
@@ -128,7 +149,9 @@ def page(found: list[Incident], more: bool, filters: Filters) -> str:
         "/incidents",
         filters,
         f'<label>Reason (contains)<input type="search" name="reason" id="reason-search" '
-        f'value="{escape(filters.reason)}" placeholder="bumper"></label>',
+        f'value="{escape(filters.reason)}" placeholder="bumper"></label>'
+        f'<label>Topic in the file (contains)<input type="search" name="topic" id="topic-search" '
+        f'value="{escape(filters.topic)}" placeholder="/scan"></label>',
         drop="reason",
     )
     older = (
@@ -141,11 +164,18 @@ def page(found: list[Incident], more: bool, filters: Filters) -> str:
         "<th>window (UTC)</th><th>reasons</th><th>topics</th><th class=num>size</th><th>file</th></tr>"
         f"{''.join(rows)}</table>{older}"
         if rows
-        else '<p class="no">no incidents for these filters</p>'
-        if not filters.reason
-        else f'<p class="no">no incident with a reason holding {escape(filters.reason)} for these filters</p>'
+        else f'<p class="no">no incident{_searched(filters)} for these filters</p>'
     )
     return f'{search}<div class="cards">{cards}</div><div class="panel">{table}</div>'
+
+
+def _searched(filters: Filters) -> str:
+    said = []
+    if filters.reason:
+        said.append(f"a reason holding {escape(filters.reason)}")
+    if filters.topic:
+        said.append(f"messages of a topic holding {escape(filters.topic)}")
+    return (" with " + " and ".join(said)) if said else "s"
 
 
 def open_file(images: ImageStore, key: str) -> tuple[int, Generator[bytes, None, None]]:

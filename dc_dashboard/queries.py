@@ -269,12 +269,19 @@ class Store:
         return found[:CAMERA_PAGE], len(found) > CAMERA_PAGE
 
     def newest(
-        self, connection: Any, filters: Filters, kind: str, limit: int, text_condition: Any = None, text: str = ""
+        self,
+        connection: Any,
+        filters: Filters,
+        kind: str,
+        limit: int,
+        text_condition: Any = None,
+        text: str = "",
+        texts: dict[str, str] | None = None,
     ) -> Iterator[tuple[str, dt.datetime, str, str, dict[str, Any]]]:
         """(record name, time, robot, run, measurement) of the newest records of ``kind`` for the filters
         (before ``filters.before``), ``limit`` per record name; ``text_condition``: an SQL condition on
         ``%(text)s``, an ILIKE pattern of ``text`` taken literally, and ``%(p)s``, the measurement's JSON
-        path in the row."""
+        path in the row; ``texts``: more such patterns, by parameter name."""
         from psycopg import sql
 
         for name, path in self.catalog(connection).sources[kind]:
@@ -284,7 +291,8 @@ class Store:
                 params["before"] = filters.before
             if text_condition is not None:
                 where = sql.SQL("{} AND {}").format(where, text_condition)
-                params["text"] = "%" + _like_escaped(text) + "%"
+                for key, value in {"text": text, **(texts or {})}.items():
+                    params[key] = "%" + _like_escaped(value) + "%"
             params["p"] = list(path)
             query = sql.SQL(
                 "SELECT time, {robot}, {run}, data #> %(p)s FROM {t} WHERE {w} ORDER BY time DESC LIMIT %(n)s"

@@ -26,7 +26,21 @@ T0 = dt.datetime(2026, 3, 1, 12, 0, 0)
 BIG = 16 * 1024 * 1024  # more than a socket's buffers hold: the dashboard is still writing when the client goes
 
 
-def _incident(robot: str, run: str, at: dt.datetime, reasons: list[str], key: str, size: int) -> dict[str, Any]:
+def _scan(messages: int, bound: int = 0, transport: int = 0) -> dict[str, Any]:
+    return {
+        "topic": "/scan",
+        "type": "sensor_msgs/msg/LaserScan",
+        "messages": messages,
+        "bytes": messages * 5800,
+        "lost_to_memory_bound": bound,
+        "lost_in_transport": transport,
+        "absent": False,
+    }
+
+
+def _incident(
+    robot: str, run: str, at: dt.datetime, reasons: list[str], key: str, size: int, more: tuple[Any, ...] = ()
+) -> dict[str, Any]:
     """A record as dc_measurements/Recorder publishes it (dc_measurements/recorder/schema.json)."""
     t = at.replace(tzinfo=dt.UTC).timestamp()
     return {
@@ -53,6 +67,7 @@ def _incident(robot: str, run: str, at: dt.datetime, reasons: list[str], key: st
                 "lost_to_memory_bound": 0,
                 "absent": True,
             },
+            *more,
         ],
         "messages": 750,
         "size": size,
@@ -86,9 +101,18 @@ def servers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Servers]:
                "zstd", Definitions().get)  # fmt: skip
     mcap = mcap_path.read_bytes()
     rows = [
-        _incident("C3PO", "1", T0, ["conditions"], "C3PO/incidents/a.mcap", len(mcap)),
+        # /scan recorded but silent in this window: no message of it in the file
+        _incident("C3PO", "1", T0, ["conditions"], "C3PO/incidents/a.mcap", len(mcap), (_scan(0),)),
         _incident("C3PO", "2", T0 + dt.timedelta(hours=1), ["service", "bumper hit"], "C3PO/incidents/b.mcap", 9),
-        _incident("R2D2", "1", T0 + dt.timedelta(minutes=30), ["operator: Bumper"], "R2D2/incidents/c.mcap", 9),
+        _incident(
+            "R2D2",
+            "1",
+            T0 + dt.timedelta(minutes=30),
+            ["operator: Bumper"],
+            "R2D2/incidents/c.mcap",
+            9,
+            (_scan(150, 2, 3),),
+        ),
         {"name": "speed", "computed": 1.0, "robot_name": "C3PO", "run_id": "1", "date": 0},
     ]
     with running_postgres("dc-pg-incidents-") as pg, seaweedfs.SeaweedS3Server(Path(tempfile.mkdtemp()) / "s3") as s3:
@@ -144,6 +168,26 @@ def test_the_incidents_page_lists_reasons_topics_and_sizes_with_the_robot_time_a
     assert 'value="bumper"' in html
     status, html = dashboard.render("/incidents", "reason=%25")
     assert status == 200 and not _rows(html) and "no incident with a reason holding %" in html
+
+
+def test_the_incidents_page_filters_by_a_topic_with_messages_in_the_file(servers: Servers) -> None:
+    dashboard = Dashboard(DashboardSettings(servers.postgres, servers.s3))
+    # Only the incident whose file holds /scan messages: not the one where /scan was silent.
+    status, html = dashboard.render("/incidents", "topic=/scan")
+    assert status == 200 and len(_rows(html)) == 1
+    # with what its window lost, as the record counts it
+    assert "/scan: 150 messages, 849.6 KiB, 2 let go by the memory bound, 3 lost in transport" in _rows(html)[0]
+    assert 'value="/scan"' in html and 'id="topic-search"' in html
+    # Part of a name, any case, with the other filters.
+    status, html = dashboard.render("/incidents", "topic=ODO")
+    assert status == 200 and len(_rows(html)) == 3
+    status, html = dashboard.render("/incidents", "topic=odom&reason=bumper&robot=C3PO")
+    assert status == 200 and len(_rows(html)) == 1 and "service, bumper hit" in html
+    # A topic recorded as absent is in no file; a _ is taken literally.
+    for text in ("/camera", "/od_m"):
+        status, html = dashboard.render("/incidents", f"topic={text}")
+        assert status == 200 and not _rows(html)
+        assert f"no incident with messages of a topic holding {text} for these filters" in html
 
 
 def test_an_incident_file_downloads_through_the_dashboard_and_only_an_mcap_file(servers: Servers) -> None:

@@ -10,6 +10,8 @@ and the record of the incident is published: paths, times, reasons, per-topic co
 bound cut. A topic's type is given (``types``) or learnt from the ROS graph: the topic is subscribed as soon
 as its type is known, before it has a publisher, so that a topic appearing after the recorder started loses
 none of its first messages to the graph check (once a second); the publishers' QoS is matched once they show.
+What the middleware drops before the recorder takes it (a full subscription queue, a best-effort sample lost)
+is counted from the gaps in the publisher's sequence numbers (``lost_in_transport``).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from dc_core.topics import ros_topic, topic_problem
 from dc_core.worker import Outcome
 from dc_measurements.recorder.definitions import Definitions
 from dc_measurements.recorder.mcap_file import COMPRESSIONS, Channel, Written, write_mcap
-from dc_measurements.recorder.ring import LATCHED_KEEP, NEVER, Entry, Ring
+from dc_measurements.recorder.ring import LATCHED_KEEP, NEVER, Entry, Ring, Writing
 from dc_measurements.recorder.window import Incident, Windows
 from dc_measurements.recorder.window import Outcome as TriggerOutcome
 from dc_measurements.saved_files import ReservedPaths, file_locations
@@ -53,6 +55,16 @@ CLOSE_GRACE_NS = 250_000_000
 # its window's messages kept in memory meanwhile, WRITE_TRIES times in all; then the window is dropped, counted.
 WRITE_RETRY_NS = 5_000_000_000
 WRITE_TRIES = 3
+# After the early subscription of a topic is gone, its messages are still compared with those kept for this
+# many graph checks: the new subscription may hold, queued, some the early one gave.
+HANDOVER_CHECKS = 2
+# A topic whose sequence numbers come from several publishers is not checked for gaps: the numbers of two
+# publishers interleave, and rclpy's message info does not say whose a message is. The graph is asked again
+# at the next break in the numbers this much later (a graph query per message would cost more than the ring).
+SEVERAL_RECHECK_S = 1.0
+# A gap is kept this long past what a window may still need (pre_trigger, an open window), so that the record
+# of a window written late (the close grace, write retries) still finds its gaps.
+GAPS_MARGIN_NS = 60_000_000_000
 
 
 def _types_problem(types: list[str]) -> str | None:
@@ -119,6 +131,8 @@ class _Closing:
     cut: bool
     lost: list[int]
     write_at_ns: int
+    # The window's messages in memory for the worker, in the ring's bound (Ring.writing).
+    held: Writing
     failures: int = 0
 
 
@@ -132,12 +146,11 @@ class _Topic:
     message_class: Any = None
     # Subscribed before any publisher showed (EARLY_QOS): the publishers' QoS is matched once they do.
     early: bool = False
-    # The early subscription, kept until the next graph check after the one of the publishers' QoS
-    # was made: both take the messages meanwhile (each kept once), so none is lost to the handover.
+    # The early subscription, kept until the one of the publishers' QoS takes its first message: both take
+    # the messages meanwhile (each kept once); then what the early one still holds is taken before it goes.
     retiring: Any = None
-    # Graph checks left before its messages are no longer compared with those already kept: the early
-    # subscription goes at the first, and the new one may still hold, queued, messages the early one gave
-    # (two more checks: a second or more).
+    # Graph checks left, once the early subscription went, before the topic's messages are no longer
+    # compared with those already kept (HANDOVER_CHECKS).
     handover: int = 0
 
 
@@ -197,6 +210,13 @@ class Recorder(Measurement[RecorderParams]):
             int(p.pre_trigger * 1e9), int(p.post_trigger * 1e9), int(p.cooldown * 1e9), p.max_incidents_per_hour
         )
         self._received = [0] * len(p.topics)
+        # Per topic: the last publication sequence number taken (0: none yet), the messages its publisher sent
+        # that never came (gaps), and until when (monotonic) it counts as having several publishers.
+        self._last_seq = [0] * len(p.topics)
+        self._lost_in_transport = [0] * len(p.topics)
+        self._several_until = [0.0] * len(p.topics)
+        # (receive ns, topic index, messages lost or None: not checked from then on for SEVERAL_RECHECK_S)
+        self._gaps: deque[tuple[int, int, int | None]] = deque()
         self._definitions = Definitions()
         self._without_definition_warned: set[str] = set()
         self._closing: deque[_Closing] = deque()
@@ -207,7 +227,6 @@ class Recorder(Measurement[RecorderParams]):
         self._next_discovery = 0.0
         self._absent_warned = False
         self._bound_warned = False
-        self._cut_before_open = False
         self._services: list[Any] = []
         self._poll_timer: Any = None
         # Per topic index, while two subscriptions take it: (publisher's stamp, size) of what was kept.
@@ -302,7 +321,8 @@ class Recorder(Measurement[RecorderParams]):
         self._closing.extend(self._retrying)
         self._retrying.clear()
         while self._closing:
-            job, sample, base = self._prepare(self._closing.popleft())
+            closing = self._closing.popleft()
+            job, sample, base = self._prepare(closing)
             try:
                 self._note_written(sample, job())
             except Exception as exc:
@@ -314,6 +334,7 @@ class Recorder(Measurement[RecorderParams]):
                 continue
             finally:
                 self._reserved.release(base)
+                self._ring.written(closing.held)
             self.unpublished += 1
             self.context.logger.warning(
                 f"measurement {self.context.name}: incident saved at deactivate as {sample['local_paths']['mcap']}, "
@@ -323,7 +344,7 @@ class Recorder(Measurement[RecorderParams]):
     # -- intake ----------------------------------------------------------------------------------
     @staticmethod
     def _pending(topic: _Topic) -> bool:
-        return topic.subscription is None or topic.early or topic.handover > 0
+        return topic.subscription is None or topic.early or topic.retiring is not None or topic.handover > 0
 
     def _discover(self) -> None:
         pending = [t for t in self._topics if self._pending(t)]
@@ -336,9 +357,6 @@ class Recorder(Measurement[RecorderParams]):
         for topic in pending:
             if topic.handover > 0:
                 topic.handover -= 1
-                if topic.retiring is not None:
-                    self.context.unsubscribe(topic.retiring)
-                    topic.retiring = None
                 if not topic.handover:
                     self._overlap.pop(self._topics.index(topic), None)
             if topic.subscription is not None:
@@ -377,13 +395,17 @@ class Recorder(Measurement[RecorderParams]):
         topic.channel = Channel(topic.name, topic.typename, offered)
         index = self._topics.index(topic)
         # A topic subscribed early may be taken by two subscriptions for a while (see _settle).
-        handler = self._on_message_once if topic.early or topic.retiring is not None else self._on_message
+        handler = self._on_message
+        if topic.retiring is not None:
+            handler = self._on_new_subscription
+        elif topic.early:
+            handler = self._on_message_once
         callback = functools.partial(handler, index, latched)
         topic.subscription = self.context.subscribe(topic.message_class, topic.name, callback, qos, raw=True)
 
     def _settle(self, topic: _Topic) -> None:
         """A topic subscribed early now has publishers: their QoS goes in the file, and reliable or latching
-        ones get a subscription of their QoS, the early one kept until the next graph check."""
+        ones get a subscription of their QoS, the early one kept until that one takes its first message."""
         qos, latched, offered = _qos_of_publishers(self.context.node, topic.name)
         topic.early = False
         if qos.reliability == EARLY_QOS.reliability and not latched:
@@ -394,12 +416,77 @@ class Recorder(Measurement[RecorderParams]):
         index = self._topics.index(topic)
         self._overlap[index] = {(e[1], len(e[3])) for e in self._ring.between(0, NEVER) if e[2] == index}
         topic.retiring = topic.subscription
-        topic.handover = 3
         self._subscribe(topic, qos, latched, offered)
+
+    def _on_new_subscription(self, index: int, latched: bool, data: bytes, info: Any) -> None:
+        """A message of the subscription of the publishers' QoS. At its first, the publishers reach it (matched
+        and sending: an event, not a delay): what the early subscription still holds is taken — all sent
+        before this one or also taken here, kept once — and the early one goes. A message neither got is a gap
+        in the publisher's sequence numbers, counted."""
+        topic = self._topics[index]
+        retiring = topic.retiring
+        if retiring is not None:
+            topic.retiring = None
+            topic.handover = HANDOVER_CHECKS
+            self.context.unsubscribe(retiring, take_queued=True)
+            self._set_timers()
+        self._on_message_once(index, latched, data, info)
 
     def _on_message(self, index: int, latched: bool, data: bytes, info: Any) -> None:
         self._received[index] += 1
+        seq = info["publication_sequence_number"]
+        if seq == self._last_seq[index] + 1:
+            self._last_seq[index] = seq
+        else:
+            self._sequence_break(index, seq, info["received_timestamp"])
         self._ring.append(info["received_timestamp"], info["source_timestamp"], index, data, latched)
+
+    def _sequence_break(self, index: int, seq: int | None, receive_ns: int) -> None:
+        """A message that does not follow the last one of its topic: a gap (counted), a topic's first message,
+        a publisher restarted, several publishers (not checked), or a message a gap was counted for that the
+        other subscription of a handover had after all (the count taken back)."""
+        last = self._last_seq[index]
+        self._last_seq[index] = seq or 0
+        if (seq and not last) or time.monotonic() < self._several_until[index]:
+            return  # its first message, or said unchecked less than SEVERAL_RECHECK_S ago
+        if not seq:  # this middleware gives no sequence numbers (0: unsupported)
+            self._not_checked(index, receive_ns)
+            return
+        if self.context.node.count_publishers(self._topics[index].name) > 1:
+            self._not_checked(index, receive_ns)
+            return
+        if seq > last:
+            self._gap(receive_ns, index, seq - last - 1)
+        elif index in self._overlap and self._lost_in_transport[index] > 0:
+            self._last_seq[index] = last
+            self._gap(receive_ns, index, -1)
+
+    def _not_checked(self, index: int, receive_ns: int) -> None:
+        self._several_until[index] = time.monotonic() + SEVERAL_RECHECK_S
+        self._note_gap(receive_ns, index, None)
+
+    def _gap(self, receive_ns: int, index: int, lost: int) -> None:
+        self._lost_in_transport[index] += lost
+        self._note_gap(receive_ns, index, lost)
+
+    def _note_gap(self, receive_ns: int, index: int, lost: int | None) -> None:
+        gaps = self._gaps
+        gaps.append((receive_ns, index, lost))
+        horizon = min(receive_ns - self._ring.keep_ns, self._ring.hold_from_ns) - GAPS_MARGIN_NS
+        while gaps[0][0] < horizon:
+            gaps.popleft()
+
+    def _transport_losses(self, start_ns: int, end_ns: int) -> tuple[list[int], list[bool]]:
+        """Per topic, the messages lost in transport in [start_ns, end_ns], and whether some of it went unchecked."""
+        lost = [0] * len(self._topics)
+        unchecked = [False] * len(self._topics)
+        recheck_ns = int(SEVERAL_RECHECK_S * 1e9)
+        for receive_ns, index, count in self._gaps:
+            if count is None:
+                unchecked[index] = unchecked[index] or start_ns - recheck_ns <= receive_ns <= end_ns
+            elif start_ns <= receive_ns <= end_ns:
+                lost[index] += count
+        return [max(0, n) for n in lost], unchecked
 
     def _on_message_once(self, index: int, latched: bool, data: bytes, info: Any) -> None:
         seen = self._overlap.get(index)
@@ -426,11 +513,9 @@ class Recorder(Measurement[RecorderParams]):
         if outcome is TriggerOutcome.OPENED:
             assert self._windows.open is not None
             start = self._windows.open.start_ns
+            # Messages of the window the bound let go before the trigger count as its losses too.
             self._ring.take_lost_in_window()
-            # Messages of the window the bound let go before the trigger: the ring's oldest is younger
-            # than the window's start while the bound has dropped messages.
-            oldest = self._ring.oldest_ns()
-            self._cut_before_open = any(self._ring.lost_to_bound) and (oldest is None or oldest > start)
+            self._ring.lost_in_window = self._ring.lost_since(start)
             self._ring.hold_from_ns = start
             self._set_timers()
         self.context.logger.info(f"measurement {self.context.name}: trigger ({reason}): {outcome.value}")
@@ -480,7 +565,8 @@ class Recorder(Measurement[RecorderParams]):
         self._ring.hold_from_ns = NEVER
         entries = self._ring.window(incident.start_ns, incident.end_ns)
         lost = self._ring.take_lost_in_window()
-        return _Closing(incident, entries, self._cut_before_open or any(lost), lost, write_at_ns)
+        held = self._ring.writing(incident.start_ns, incident.end_ns, entries)
+        return _Closing(incident, entries, any(lost), lost, write_at_ns, held)
 
     def _close(self, closing: _Closing) -> None:
         job, sample, base = self._prepare(closing)
@@ -496,11 +582,14 @@ class Recorder(Measurement[RecorderParams]):
         taken = {id(e) for e in closing.entries}
         late = [e for e in self._ring.between(incident.start_ns, incident.end_ns) if id(e) not in taken]
         entries = closing.entries = closing.entries + late
+        closing.held.held.update(id(e) for e in late)
         channels = [t.channel for t in self._topics]
         locations = file_locations(self.context.paths, self.params.save_path, incident.start_ns / 1e9)
         locations = self._reserved.reserve(locations, (_SUFFIX,))
         local, remote = locations.with_suffix(_SUFFIX)
-        sample = self._sample(incident, entries, closing.lost, closing.cut, local, remote)
+        # (late messages the ring let go before they could join: lost to the window too)
+        lost = [a + b for a, b in zip(closing.lost, closing.held.lost, strict=True)]
+        sample = self._sample(incident, entries, lost, closing.cut or any(lost), local, remote)
         job = functools.partial(write_mcap, local, channels, entries, self.params.compression, self._definitions.get)
         return job, sample, locations.local
 
@@ -512,6 +601,7 @@ class Recorder(Measurement[RecorderParams]):
         for _, _, index, data in entries:
             counts[index] += 1
             sizes[index] += len(data)
+        in_transport, unchecked = self._transport_losses(incident.start_ns, incident.end_ns)
         topics = []
         for index, topic in enumerate(self._topics):
             entry: dict[str, Any] = {
@@ -520,8 +610,11 @@ class Recorder(Measurement[RecorderParams]):
                 "messages": counts[index],
                 "bytes": sizes[index],
                 "lost_to_memory_bound": lost[index],
+                "lost_in_transport": in_transport[index],
                 "absent": self._absent(index),
             }
+            if unchecked[index]:
+                entry["transport_losses_unchecked"] = True
             topics.append(entry)
         absent = [t.name for i, t in enumerate(self._topics) if self._absent(i)]
         if absent and not self._absent_warned:
@@ -574,11 +667,13 @@ class Recorder(Measurement[RecorderParams]):
                 self._save_log.event(1, f"{sample['local_paths']['mcap']}: {exc} (kept, tried again)")
             else:
                 self.incidents_dropped += 1
+                self._ring.written(closing.held)
                 self._save_log.event(
                     1, f"{sample['local_paths']['mcap']}: {exc}; dropped after {WRITE_TRIES} tries: {sample}"
                 )
             self._set_timers()
             return
+        self._ring.written(closing.held)
         self._note_written(sample, written)
         self.incidents += 1
         self.context.emit(sample, stamp_ns=int(sample["triggers"][0]["time"] * 1e9))
@@ -589,7 +684,9 @@ class Recorder(Measurement[RecorderParams]):
         return {
             "messages": sum(self._received),
             "ring_bytes": self._ring.bytes,
+            "writing_bytes": self._ring.held_out,
             "lost_to_bound": sum(self._ring.lost_to_bound),
+            "lost_in_transport": sum(self._lost_in_transport),
             "triggers": w.triggers,
             "triggers_in_cooldown": w.in_cooldown,
             "triggers_over_hourly_limit": w.over_hourly_limit,

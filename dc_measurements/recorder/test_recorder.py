@@ -62,6 +62,38 @@ def test_a_window_cut_by_the_bound_is_counted_in_lost_in_window() -> None:
     assert ring.take_lost_in_window() == [0]
 
 
+def test_what_the_bound_let_go_before_a_window_opened_counts_in_it() -> None:
+    ring = Ring(3 * (10 + ENTRY_OVERHEAD), keep_ns=4 * S, topics=2)
+    for i in range(6):
+        ring.append(i * S, 0, i % 2, bytes(10))
+    # Three let go (0, 1 and 2 s), outside any window: a window opening at 1 s lacks two of them.
+    assert ring.lost_to_bound == [2, 1] and ring.lost_since(1 * S) == [1, 1]
+    ring.append(6 * S, 0, 0, bytes(10))  # 3 s let go; 0 and 1 s are older than keep_ns: no window reaches them
+    assert ring.lost_to_bound == [2, 2] and ring.lost_since(0) == [1, 1]
+
+
+def test_a_window_being_written_counts_in_the_bound_until_it_is_written() -> None:
+    size = 1000
+    bound = 10 * (size + ENTRY_OVERHEAD)
+    ring = Ring(bound, keep_ns=100 * S, topics=1)
+    for i in range(10):
+        ring.append(i * S, 0, 0, bytes(size))
+    window = ring.window(0, 9 * S)
+    token = ring.writing(0, 9 * S, window)  # the worker holds the window's ten messages until its file is written
+    for i in range(10, 20):
+        ring.append(i * S, 0, 0, bytes(size))
+        assert ring.bytes + ring.held_out <= bound  # the window's messages are still in memory
+    # Nothing new fitted beside the window: each message after it was let go, counted, none of the window's.
+    assert len(ring) == 0 and ring.lost_to_bound == [10] and len(window) == 10
+    ring.written(token)
+    assert ring.held_out == 0
+    for i in range(20, 35):
+        ring.append(i * S, 0, 0, bytes(size))
+    assert [e[0] // S for e in ring.window(0, 100 * S)] == list(range(25, 35))
+    # Every message appended: in the file, kept, or counted.
+    assert len(window) + len(ring) + sum(ring.lost_to_bound) == 35
+
+
 def test_latched_messages_come_with_a_window_however_old_dated_at_its_start() -> None:
     ring = Ring(10**9, keep_ns=20 * S, topics=2)
     ring.append(1 * S, 5, 1, b"static", latched=True)
@@ -176,6 +208,7 @@ def test_an_incident_file_holds_the_window_of_odom_the_static_tf_and_the_reasons
         "messages": 0,
         "bytes": 0,
         "lost_to_memory_bound": 0,
+        "lost_in_transport": 0,
         "absent": True,
     }
     assert by_topic[static_topic]["messages"] == 1 and by_topic[static_topic]["type"] == "tf2_msgs/msg/TFMessage"
@@ -278,8 +311,11 @@ def test_the_memory_bound_cuts_the_window_and_the_record_says_so(ros: Ros, tmp_p
     (entry,) = record["topics"]
     assert 0 < entry["messages"] <= 30
     assert plugin.counters()["lost_to_bound"] > 0
-    # Every message received is still in the ring or counted as let go (none is older than pre_trigger).
-    assert plugin.counters()["messages"] == len(plugin._ring) + plugin.counters()["lost_to_bound"]
+    # Every message received is in the file, still in the ring, or counted as let go (none is older than
+    # pre_trigger); the file's messages the ring let go while it was written were not lost.
+    in_both = len(plugin._ring.between(int(record["start"] * S), int(record["end"] * S)))
+    in_file_or_ring = entry["messages"] + len(plugin._ring) - in_both
+    assert plugin.counters()["messages"] == in_file_or_ring + plugin.counters()["lost_to_bound"]
     ros.harness.stop(plugin)
 
 
@@ -386,7 +422,8 @@ def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_fi
     camera.publish(String(data="frame"))
     odom.publish(odometry(1.0, 0.0, 0.0))
     # The graph check gives the reliable and the latching publishers a subscription of their QoS, and keeps
-    # the early one until the next check: a message both take (the latched one resent) is kept once.
+    # the early one until that one takes its first message: a message both take (the latched one resent) is
+    # kept once.
     assert ros.spin_until(lambda: plugin.counters()["messages"] == 5)  # odom 0 and 1, tf, static, camera
     plugin._discover()
     assert ros.node.count_subscribers(odom_topic) == 2 and ros.node.count_subscribers(static_topic) == 2
@@ -394,8 +431,9 @@ def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_fi
     for i in range(2, 5):
         odom.publish(odometry(float(i), 0.0, 0.0))
     assert ros.spin_until(lambda: plugin.counters()["messages"] == 8)
-    plugin._discover()
-    assert ros.node.count_subscribers(odom_topic) == 1 and ros.node.count_subscribers(static_topic) == 1
+    assert ros.spin_until(
+        lambda: ros.node.count_subscribers(odom_topic) == 1 and ros.node.count_subscribers(static_topic) == 1
+    )
     assert plugin.trigger("then") is Outcome.EXTENDED
     emitted = ros.harness.context(plugin).emitted
     drive(ros, plugin, lambda: bool(emitted))
@@ -410,6 +448,105 @@ def test_a_topic_that_appears_after_the_recorder_started_is_recorded_from_its_fi
     by_topic = {t["topic"]: t for t in record["topics"]}
     assert [by_topic[t]["absent"] for t in (odom_topic, tf_topic, camera_topic, static_topic)] == [False] * 4
     assert by_topic[tf_topic]["type"] == "tf2_msgs/msg/TFMessage"
+    ros.harness.stop(plugin)
+
+
+def _early_recorder(ros: Ros, tmp_path: Path, topic: str) -> Recorder:
+    """A recorder of ``topic`` (its type given) configured before the topic has a publisher: subscribed best
+    effort, DEPTH deep, and no graph check but those the test makes (no poll)."""
+    plugin = ros.harness.make(
+        Recorder, {"topics": [topic], "types": ["nav_msgs/msg/Odometry"], "pre_trigger": 60.0, "post_trigger": 0.1}
+    )
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    return plugin
+
+
+def _matched_without_spinning(publisher: Any, subscriptions: int) -> None:
+    # Spinning would take what the test wants left queued in the recorder's subscriptions.
+    deadline = time.monotonic() + 30
+    while publisher.get_subscription_count() < subscriptions:
+        assert time.monotonic() < deadline, "not matched"
+        time.sleep(0.01)
+
+
+def test_messages_the_middleware_drops_before_the_recorder_takes_them_are_counted(ros: Ros, tmp_path: Path) -> None:
+    from dc_measurements.recorder import DEPTH
+
+    topic = unique("/odom")
+    plugin = _early_recorder(ros, tmp_path, topic)
+    odom = ros.publisher(Odometry, topic, VOLATILE)
+    odom.publish(odometry(0.0, 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 1)
+    # A burst while the server's loop is busy elsewhere (nothing spins): the subscription's queue keeps its
+    # newest DEPTH, the middleware drops the rest and says nothing (rmw_fastrtps raises no message_lost event).
+    sent = 1 + 3 * DEPTH
+    for i in range(1, sent):
+        odom.publish(odometry(float(i), 0.0, 0.0))
+    counters = plugin.counters
+    assert ros.spin_until(lambda: counters()["messages"] + counters()["lost_in_transport"] == sent)
+    assert counters()["lost_in_transport"] >= 2 * DEPTH
+    assert plugin.trigger("after the burst") is Outcome.OPENED
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted))
+    ((entry,),) = [emitted[0].record["topics"]]
+    assert entry["messages"] == counters()["messages"] and entry["lost_in_transport"] == counters()["lost_in_transport"]
+    assert "transport_losses_unchecked" not in entry
+    # The newest were kept: the last message published is in the file.
+    read = read_with_rosbags(emitted[0].record["local_paths"]["mcap"])
+    assert read[topic][-1][1].pose.pose.position.x == sent - 1
+    ros.harness.stop(plugin)
+
+
+def test_a_topic_with_two_publishers_is_said_unchecked_not_counted_as_losses(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/odom")
+    first = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    second = ros.node.create_publisher(Odometry, topic, VOLATILE)
+    plugin = ros.harness.make(Recorder, {"topics": [topic], "pre_trigger": 60.0, "post_trigger": 0.1})
+    ros.harness.context(plugin).paths = BasePaths(str(tmp_path))
+    plugin.on_configure()
+    plugin.on_activate()
+    assert ros.spin_until(lambda: first.get_subscription_count() == 1 and second.get_subscription_count() == 1)
+    # Their sequence numbers interleave (1..10, then 1, 11, 2, 12...): read as one stream, gaps that are none.
+    for i in range(10):
+        first.publish(odometry(float(i), 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 10)
+    for i in range(5):
+        second.publish(odometry(100.0 + i, 0.0, 0.0))
+        first.publish(odometry(10.0 + i, 0.0, 0.0))
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 20)
+    assert plugin.counters()["lost_in_transport"] == 0
+    assert plugin.trigger("two publishers") is Outcome.OPENED
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted))
+    ((entry,),) = [emitted[0].record["topics"]]
+    assert entry["messages"] == 20 and entry["lost_in_transport"] == 0 and entry["transport_losses_unchecked"]
+    ros.harness.stop(plugin)
+
+
+def test_the_handover_takes_what_the_early_subscription_still_holds(ros: Ros, tmp_path: Path) -> None:
+    topic = unique("/odom")
+    plugin = _early_recorder(ros, tmp_path, topic)
+    odom = ros.publisher(Odometry, topic, VOLATILE)
+    for i in range(5):
+        odom.publish(odometry(float(i), 0.0, 0.0))  # queued in the early subscription: nothing spins
+    plugin._discover()  # the publisher is reliable: a subscription of its QoS beside the early one
+    _matched_without_spinning(odom, 2)
+    for i in range(5, 10):
+        odom.publish(odometry(float(i), 0.0, 0.0))  # both subscriptions hold these
+    # Graph checks come and go (once a second on a robot) while the loop is busy: the early subscription stays
+    # until the new one takes its first message, and what it holds is taken before it goes.
+    plugin._discover()
+    plugin._discover()
+    assert ros.spin_until(lambda: plugin.counters()["messages"] == 10)
+    assert ros.spin_until(lambda: ros.node.count_subscribers(topic) == 1)
+    assert plugin.trigger("after the handover") is Outcome.OPENED
+    emitted = ros.harness.context(plugin).emitted
+    drive(ros, plugin, lambda: bool(emitted))
+    read = read_with_rosbags(emitted[0].record["local_paths"]["mcap"])
+    assert [int(m.pose.pose.position.x) for _, m in read[topic]] == list(range(10))
+    assert plugin.counters()["lost_in_transport"] == 0
     ros.harness.stop(plugin)
 
 
