@@ -10,7 +10,10 @@ at the end) and, printing the load averages of each phase (the machine may be sh
 - insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
   500, handed over as the sender does: read back from the buffer with their JSON text) into a
   fresh table of the original's shape (``tag, time timestamp, data, record_id``: what DC wrote
-  until now), of DC's new shape, and of DC's new shape partitioned by day; the three take turns,
+  until now), of DC's new shape, of DC's new shape partitioned by day, and of that without the
+  latest-row table (``latest_table: false``), with batches of the fleet's records mixed (dc ingest's
+  case: 200 robot-measurement pairs in a batch of 500), and the original's and the partitioned
+  shape with batches of one robot's records each (a robot's own DC); the six take turns,
   --insert-runs rounds; rows/s and CPU per row (client and server) per round, medians, and the
   medians of the per-round ratios to the original's shape.
 - index costs (--index-runs N): the server's CPU per row of a binary COPY of the same rows into
@@ -26,12 +29,14 @@ at the end) and, printing the load averages of each phase (the machine may be sh
   (execute and fetch), median and max, and the server's execution time of one more run
   (``EXPLAIN ANALYZE``); cold, the first run after a restart of the server, --cold-runs times.
 
-JSON in benchmarks/results/pgsql_data_model_<date>[_<label>].json.
+JSON in benchmarks/results/pgsql_data_model_<date>[_<label>].json; when that file exists, the first free
+``…_2.json``, ``…_3.json``: a run never overwrites an earlier result.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import os
@@ -81,9 +86,11 @@ MEASUREMENTS = (
 )
 
 
-def destination(server: PostgresServer, table: str, partition_by: str = "none") -> PgSQL:
+def destination(server: PostgresServer, table: str, partition_by: str = "none", latest: bool = True) -> PgSQL:
     params = parse_params(
-        PgSQLParams, {**server.settings(), "table": table, "partition_by": partition_by}, "destination_server.pg"
+        PgSQLParams,
+        {**server.settings(), "table": table, "partition_by": partition_by, "latest_table": latest},
+        "destination_server.pg",
     )
     dest = PgSQL(FakeContext(name="pg", logger=RecordingLogger()), params)
     dest.on_configure()
@@ -98,6 +105,10 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
     dest.on_deactivate()
     started = time.monotonic()
     with server.connect() as connection:
+        # Each INSERT … SELECT below is a statement of 0.7-2.9 M rows, whose transition table the
+        # latest-row trigger would sort whole: the table is filled after, as the page says for a
+        # table that had none.
+        connection.execute("ALTER TABLE dc DISABLE TRIGGER keep_latest")
         for name, every, fields in MEASUREMENTS:
             # In time order, the robots' rows side by side at each instant, as a fleet inserts them:
             # one robot's rows of a measurement are then on as many heap pages as they are rows (a
@@ -117,13 +128,21 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
                                            1 + floor(extract(epoch FROM t - timestamptz '{DAY} 00:00Z') / 7200)::bigint
                                              AS run) AS k) AS rows"""
             )
+        connection.execute(block("latest-table").encode())
+        connection.execute("ALTER TABLE dc ENABLE TRIGGER keep_latest")
         connection.execute("VACUUM ANALYZE dc")
+        connection.execute("VACUUM ANALYZE dc_latest")
         (rows,) = connection.execute("SELECT count(*) FROM dc").fetchone()
         (size,) = connection.execute("SELECT pg_size_pretty(sum(pg_total_relation_size(c.oid))) FROM pg_inherits i"
                                      " JOIN pg_class c ON c.oid = i.inhrelid WHERE i.inhparent = 'dc'::regclass"
                                      ).fetchone()  # fmt: skip
     print(f"generated {rows:,} rows in {time.monotonic() - started:.0f} s ({size} with indexes)", flush=True)
     return int(rows), time.monotonic() - started
+
+
+def block(tag: str) -> str:
+    (sql,) = re.findall(rf"<!-- {tag} -->\n```sql\n(.*?)```", PAGE.read_text(), re.S)
+    return str(sql)
 
 
 def page_queries() -> dict[str, str]:
@@ -207,7 +226,9 @@ def insert_records(n: int) -> list[StoredRecord]:
 
 
 def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
-    shapes = ("original", "typed", "typed_day")
+    import orjson
+
+    shapes = ("original", "typed", "typed_day", "typed_day_no_latest", "typed_day_one_robot", "original_one_robot")
     rates: dict[str, list[float]] = {s: [] for s in shapes}
     # CPU per row (this process and the server's, over the same window): what contention on a shared
     # machine inflates far less than the wall time.
@@ -215,17 +236,20 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
     loads: list[float] = []  # the 1-minute load average at the end of each round
     for k in range(rounds):
-        order = shapes[k % 3 :] + shapes[: k % 3]  # each shape goes first once in three rounds
+        order = shapes[k % len(shapes) :] + shapes[: k % len(shapes)]  # each shape goes first in turn
         for shape in order:
             table = f"insert_{shape}_{k}"
-            if shape == "original":
+            if shape.startswith("original"):
                 with server.connect() as connection:
                     connection.execute(
                         f"CREATE TABLE {table} (tag varchar, time timestamp, data jsonb, record_id text)"
                     )
                     connection.execute(f"CREATE UNIQUE INDEX {table}_record_id ON {table} (record_id)")
-            dest = destination(server, table, "day" if shape == "typed_day" else "none")
+            dest = destination(server, table, "day" if "day" in shape else "none", shape != "typed_day_no_latest")
             records = insert_records(n)
+            if shape.endswith("one_robot"):
+                # As a robot's own DC sends them: a batch holds one robot's records.
+                records.sort(key=lambda r: (orjson.loads(r.json_text or "{}")["robot_name"], r.stamp_ns))
             dest.send(records[:BATCH])  # connects and prepares: not timed
             started, cpu = time.perf_counter(), _client_cpu() + _tree_cpu(pid)
             for i in range(BATCH, n, BATCH):
@@ -235,8 +259,13 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
             dest.on_deactivate()
         loads.append(os.getloadavg()[0])
     medians = {s: statistics.median(r) for s, r in rates.items()}
-    ratios = [[rates[s][k] / rates["original"][k] for k in range(rounds)] for s in shapes[1:]]
-    cpu_ratios = [[cpu_us[s][k] / cpu_us["original"][k] for k in range(rounds)] for s in shapes[1:]]
+
+    # Each shape against the original's with the same batches (a robot's own, or the fleet's mixed).
+    def base(s: str) -> str:
+        return "original_one_robot" if s.endswith("one_robot") else "original"
+
+    ratios = [[rates[s][k] / rates[base(s)][k] for k in range(rounds)] for s in shapes[1:]]
+    cpu_ratios = [[cpu_us[s][k] / cpu_us[base(s)][k] for k in range(rounds)] for s in shapes[1:]]
     result = {
         "cpu_us_per_row": cpu_us,
         "cpu_ratio_to_original": {s: statistics.median(r) for s, r in zip(shapes[1:], cpu_ratios, strict=True)},
@@ -335,6 +364,125 @@ def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, A
 
 
 TYPED_COPY_TYPES = ["text", "timestamptz", "jsonb", "text", "text", "text", "int8"]
+_TYPED_COLUMNS = "tag, time, data, record_id, name, robot_name, run_id"
+# Each way of putting the same rows into a day-partitioned typed table with DC's indexes (or the
+# original's table), in batches of BATCH: what the insert's cost is made of. (way, table DDL)
+WAYS = (
+    "original's shape, COPY",
+    "DC's partitioned table, COPY into the parent (DC)",
+    "the same with the latest-row table's trigger (DC)",
+    "the same, COPY straight into the day's partition",
+    "the same, staging COPY + INSERT … ON CONFLICT DO NOTHING",
+    "the same, executemany INSERT … ON CONFLICT DO NOTHING",
+    "the same, each batch one robot's rows (COPY)",
+    "the same without the run index (COPY)",
+    "typed, no index (COPY)",
+)
+
+
+def time_insert_ways(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
+    """Server CPU and wall time per row of each way in WAYS, ``rounds`` rounds in turns."""
+    import orjson
+
+    from dc_destinations.pgsql import json_text_binary_dumper
+
+    records = insert_records(n)
+    epoch = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+    typed, original = [], []
+    for r in records:
+        assert r.json_text is not None
+        data = orjson.loads(r.json_text)
+        moment = epoch + dt.timedelta(microseconds=r.stamp_ns // 1000)
+        typed.append(("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"])))
+        original.append(("pg", moment.replace(tzinfo=None), r.json_text, r.record_id))
+    by_robot = sorted(typed, key=lambda row: (row[5], row[1]))  # a robot's DC sends only its own records
+    day = typed[0][1].date()
+    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    cpu: dict[str, list[float]] = {way: [] for way in WAYS}
+    wall: dict[str, list[float]] = {way: [] for way in WAYS}
+    with server.connect() as connection:
+        connection.autocommit = True
+        connection.adapters.register_dumper(None, json_text_binary_dumper())
+        for k in range(rounds):
+            for j, way in enumerate(WAYS[k % len(WAYS) :] + WAYS[: k % len(WAYS)]):
+                table = f"way_{k}_{j}"
+                rows, target, types, columns = typed, table, TYPED_COPY_TYPES, _TYPED_COLUMNS
+                if way.startswith("original"):
+                    connection.execute(f"CREATE TABLE {table} ({_ORIGINAL})")
+                    connection.execute(_RECORD_ID.format(t=table))
+                    rows, types, columns = (
+                        original,
+                        ["varchar", "timestamp", "jsonb", "text"],
+                        "tag, time, data, record_id",
+                    )
+                elif way.startswith("typed, no index"):
+                    connection.execute(f"CREATE TABLE {table} ({_TYPED})")
+                else:
+                    connection.execute(f"CREATE TABLE {table} ({_TYPED}) PARTITION BY RANGE (time)")
+                    connection.execute(
+                        f"CREATE TABLE {table}_p PARTITION OF {table} FOR VALUES FROM ('{day} 00:00Z')"
+                        f" TO ('{day + dt.timedelta(days=1)} 00:00Z')"
+                    )
+                    connection.execute(_UNIQUE.format(t=table))
+                    if "without the run index" not in way:
+                        connection.execute(_RUN.format(t=table))
+                    connection.execute(_BRIN.format(t=table))
+                    if "latest" in way:
+                        connection.execute(block("latest-ddl").replace("dc", table).encode())
+                    connection.execute(f"CREATE TEMPORARY TABLE staging_{table} ({_TYPED}) ON COMMIT DELETE ROWS")
+                    if "straight into" in way:
+                        target = f"{table}_p"
+                    if "one robot" in way:
+                        rows = by_robot
+                before, started = _tree_cpu(pid), time.perf_counter()
+                for i in range(0, n, BATCH):
+                    batch = rows[i : i + BATCH]
+                    if "executemany" in way:
+                        with connection.transaction(), connection.cursor() as cursor:
+                            cursor.executemany(
+                                f"INSERT INTO {table} ({columns}) VALUES (%s, %s, %s::jsonb, %s, %s, %s, %s)"
+                                " ON CONFLICT DO NOTHING",
+                                batch,
+                            )
+                        continue
+                    staged = "staging" in way
+                    with (
+                        connection.transaction() if staged else contextlib.nullcontext(),
+                        connection.cursor() as cursor,
+                    ):
+                        into = f"staging_{table}" if staged else target
+                        with cursor.copy(f"COPY {into} ({columns}) FROM STDIN (FORMAT BINARY)") as copy:
+                            copy.set_types(types)
+                            for row in batch:
+                                copy.write_row(row)
+                        if staged:
+                            cursor.execute(
+                                f"INSERT INTO {table} ({columns}) SELECT {columns} FROM staging_{table}"
+                                " ON CONFLICT DO NOTHING"
+                            )
+                wall[way].append((time.perf_counter() - started) / n * 1e6)
+                cpu[way].append((_tree_cpu(pid) - before) / n * 1e6)
+                connection.execute(f"DROP TABLE {table}")
+                connection.execute(f"DROP TABLE IF EXISTS {table}_latest")
+                connection.execute(f"DROP FUNCTION IF EXISTS {table}_keep_latest")
+                connection.execute(f"DROP TABLE IF EXISTS staging_{table}")
+    result = {}
+    for way in WAYS:
+        result[way] = {
+            "server_cpu_us_per_row": statistics.median(cpu[way]),
+            "server_cpu_ratio_to_original": statistics.median(
+                [a / b for a, b in zip(cpu[way], cpu[WAYS[0]], strict=True)]
+            ),
+            "wall_us_per_row": statistics.median(wall[way]),
+            "wall_ratio_to_original": statistics.median([a / b for a, b in zip(wall[way], wall[WAYS[0]], strict=True)]),
+            "cpu_runs": [round(x, 1) for x in cpu[way]],
+            "wall_runs": [round(x, 1) for x in wall[way]],
+        }
+        f = result[way]
+        print(f"server CPU {f['server_cpu_us_per_row']:5.1f} µs/row x{f['server_cpu_ratio_to_original']:.2f}"
+              f"  wall {f['wall_us_per_row']:5.1f} µs/row x{f['wall_ratio_to_original']:.2f}  {way}",
+              flush=True)  # fmt: skip
+    return result
 
 
 def load() -> list[float]:
@@ -351,6 +499,7 @@ def main() -> None:
     parser.add_argument("--insert-records", type=int, default=50_000)
     parser.add_argument("--insert-runs", type=int, default=7)
     parser.add_argument("--index-runs", type=int, default=0, help="rounds of the server's CPU per row per index set")
+    parser.add_argument("--ways-runs", type=int, default=0, help="rounds of the insert's ways (COPY, ON CONFLICT, …)")
     parser.add_argument("--label", default="")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="dc-bench-model-"))
@@ -366,6 +515,10 @@ def main() -> None:
             result["load_before_index_costs"] = load()
             result["index_costs"] = time_index_costs(server, args.insert_records, args.index_runs)
             result["load_after_index_costs"] = load()
+        if args.ways_runs:
+            result["load_before_ways"] = load()
+            result["insert_ways"] = time_insert_ways(server, args.insert_records, args.ways_runs)
+            result["load_after_ways"] = load()
         if args.robots:
             rows, seconds = generate(server, args.robots, args.hours)
             result.update(hours=args.hours, rows=rows, generate_s=seconds, load_before_queries=load())
@@ -378,10 +531,20 @@ def main() -> None:
         server.stop()
         shutil.rmtree(folder, ignore_errors=True)
     print(f"load averages (1, 5, 15 min): {[(k, v) for k, v in result.items() if k.startswith('load')]}")
-    label = f"_{args.label}" if args.label else ""
-    out = REPO / "benchmarks" / "results" / f"pgsql_data_model_{dt.date.today()}{label}.json"
+    out = result_path(REPO / "benchmarks" / "results", dt.date.today(), args.label)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"written {out}")
+
+
+def result_path(folder: Path, day: dt.date, label: str) -> Path:
+    """pgsql_data_model_<date>[_<label>].json, or with _2, _3, … when taken: a run never overwrites a
+    result (committed ones are what docs/performance.md cites)."""
+    stem = f"pgsql_data_model_{day}" + (f"_{label}" if label else "")
+    out, n = folder / f"{stem}.json", 1
+    while out.exists():
+        n += 1
+        out = folder / f"{stem}_{n}.json"
+    return out
 
 
 if __name__ == "__main__":

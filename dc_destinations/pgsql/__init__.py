@@ -59,6 +59,8 @@ from dc_destinations.pgsql.table import (
     TableShape,
     add_record_id,
     create_typed,
+    has_latest,
+    latest_identifier,
     legacy_hint,
     not_partitioned_problem,
     period_start,
@@ -89,6 +91,11 @@ class PgSQLParams(PostgresServerParams):
         minimum=0,
         maximum=36500,
         doc="Partitions whose whole period is older than this many days are dropped; 0: kept for ever",
+    )
+    latest_table: bool = param(
+        True,
+        doc="A table DC creates gets <table>_latest, each robot's latest record of each measurement, kept by a"
+        " trigger of the table (PostgreSQL 14+); false: not made",
     )
     async_: bool = compat_param(
         False, "each batch is written by the destination's own sender thread", aliases=("async",)
@@ -125,6 +132,7 @@ class PgSQL(Destination[PgSQLParams]):
         self._copy_types: list[str] | None = None
         self._stage: Any = None  # COPY into the staging table, then the INSERT … SELECT from it
         self._move: Any = None
+        self._latest = False  # whether the table has its latest-row table (partitions expire in it too)
         # Whether the current connection has its staging table (a temporary table lives as long as
         # its session, so it is made again with every new connection).
         self._staging = False
@@ -295,6 +303,7 @@ class PgSQL(Destination[PgSQLParams]):
                     f"dropped partitions {', '.join(partitions.dropped)} of table {self.params.table}"
                     f" (older than retention_days {self.params.retention_days})"
                 )
+                self._expire_latest(connection, partitions.dropped_before)
             starts = starts | partitions.ahead(today)
             self._maintained_at = now
         if starts - partitions.known:
@@ -336,7 +345,7 @@ class PgSQL(Destination[PgSQLParams]):
         table = self._table()
         shape = read_shape(connection, table)
         if shape is None:
-            create_typed(connection, table, p.table, p.partition_by)
+            create_typed(connection, table, p.table, p.partition_by, p.latest_table)
             self.context.logger.info(
                 f"table {p.table} ready in {self.address} ({', '.join(TYPED_COLUMNS)}"
                 + (f"; partitioned by {p.partition_by})" if p.partition_by != "none" else ")")
@@ -357,6 +366,7 @@ class PgSQL(Destination[PgSQLParams]):
             raise not_partitioned_problem(p.table, self.address)
         self._shape = shape
         self._statements(shape)
+        self._latest = shape.typed and has_latest(connection, p.table)
         self._staging = self._make_staging_table(connection, shape)
         self._direct = True
         self._copy_types = shape.copy_types()
@@ -381,6 +391,20 @@ class PgSQL(Destination[PgSQLParams]):
         self._stage = sql.SQL("COPY {} ({}) FROM STDIN").format(staging, columns)
         move = sql.SQL("INSERT INTO {} ({}) SELECT {} FROM {}")
         self._move = move.format(table, columns, columns, staging) + conflict
+
+    def _expire_latest(self, connection: Any, before: dt.date | None) -> None:
+        """The latest-row table's rows of dropped partitions removed with them: it answers what the
+        records table holds."""
+        from psycopg import sql
+
+        if not self._latest or before is None:
+            return
+        with connection.transaction():
+            connection.execute(
+                sql.SQL("DELETE FROM {} WHERE time < {}").format(
+                    latest_identifier(self.params.table), sql.Literal(f"{before} 00:00:00+00")
+                )
+            )
 
     def _make_staging_table(self, connection: Any, shape: TableShape) -> bool:
         """This session's staging table, with the types of the table's written columns; False if not allowed.

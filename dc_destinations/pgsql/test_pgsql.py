@@ -512,6 +512,77 @@ def test_partition_by_day_makes_partitions_ahead_and_drops_the_expired(
     assert any("dropped partitions" in m and f"daily_p{old:%Y%m%d}" in m for m in logger.at("info"))
 
 
+def latest_rows(server: PostgresServer, table: str) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
+    """(the latest-row table's rows, what DISTINCT ON finds in the records table), both by pair."""
+    with admin(server) as connection:
+        kept = connection.execute(
+            f"SELECT robot_name, name, time, data, record_id FROM {table}_latest ORDER BY 1, 2"
+        ).fetchall()
+        found = connection.execute(
+            f"SELECT DISTINCT ON (robot_name, name) robot_name, name, time, data, record_id FROM {table}"
+            " WHERE robot_name IS NOT NULL AND name IS NOT NULL ORDER BY robot_name, name, time DESC"
+        ).fetchall()
+    return kept, found
+
+
+def test_the_latest_table_holds_each_pairs_latest_record_whatever_the_order(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    today_ns = int(dt.datetime.combine(dt.datetime.now(dt.UTC).date(), dt.time(1), dt.UTC).timestamp() * 1e9)
+
+    def at(seconds: int, robot: str | None, name: str | None, **data: Any) -> OutgoingRecord:
+        rid = new_record_id()
+        keys = {"robot_name": robot, "name": name} if robot else {"name": name}
+        return OutgoingRecord(rid, "/dc/measurement/t", today_ns + seconds * 10**9, {**keys, **data, "record_id": rid})
+
+    dest = make(server, destinations, table="latest", partition_by="day", retention_days=30)
+    first = [
+        at(5, "r1", "cpu", v=5),
+        at(3, "r1", "cpu", v=3),
+        at(1, "r2", "cpu", v=1),
+        at(-40 * 86_400, "r3", "cpu", v=0),  # in a partition past retention_days: dropped at the next pass
+        at(9, None, "cpu", v=9),  # no robot: no pair to file it under
+    ]
+    assert dest.send(first) is None
+    # A robot's backlog after newer records: an older record of r1 replaces nothing.
+    backlog = [at(2, "r1", "cpu", v=2), at(7, "r2", "cpu", v=7)]
+    assert dest.send(backlog) is None and dest.send(backlog) is None, "the second time, through the staging table"
+    refused = dest.send([at(4, "r2", "memory", v=4), at(8, "r2", "memory", text="\u0000")])
+    assert refused is not None and list(refused.reject) == [1]
+    kept, found = latest_rows(server, "latest")
+    assert kept == found
+    assert [(r, n, d["v"]) for r, n, _, d, _ in kept] == [
+        ("r1", "cpu", 5),
+        ("r2", "cpu", 7),
+        ("r2", "memory", 4),
+        ("r3", "cpu", 0),  # until its partition expires
+    ]
+    dest.on_deactivate()  # the next connection drops the partition past retention, and r3's row with it
+    assert dest.send([at(6, "r1", "memory", v=6)]) is None
+    kept, found = latest_rows(server, "latest")
+    assert kept == found, "the latest-row table answers what DISTINCT ON over the records table does"
+    assert [(r, n) for r, n, *_ in kept] == [("r1", "cpu"), ("r1", "memory"), ("r2", "cpu"), ("r2", "memory")]
+
+
+def test_an_existing_table_gets_no_latest_table_nor_one_with_latest_table_false(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    with admin(server) as connection:
+        connection.execute(
+            "CREATE TABLE mine (tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL UNIQUE,"
+            " name text, robot_name text, run_id bigint)"
+        )
+    assert make(server, destinations, table="mine").send([record(0, name="cpu", robot_name="r1")]) is None
+    off = make(server, destinations, table="not_kept", latest_table=False)
+    assert off.send([record(0, name="cpu", robot_name="r1")]) is None
+    with admin(server) as connection:
+        found = connection.execute(
+            "SELECT to_regclass('mine_latest'), to_regclass('not_kept_latest'),"
+            " (SELECT count(*) FROM pg_trigger WHERE tgrelid IN ('mine'::regclass, 'not_kept'::regclass))"
+        ).fetchone()
+    assert found == (None, None, 0), "an existing table is never changed; latest_table: false makes none"
+
+
 def test_a_week_partition_is_an_iso_week_of_utc_days() -> None:
     from dc_destinations.pgsql.table import Partitions, period_start
 
