@@ -86,12 +86,15 @@ MEASUREMENTS = (
 )
 
 
-def destination(server: PostgresServer, table: str, partition_by: str = "none", latest: bool = True) -> PgSQL:
-    params = parse_params(
-        PgSQLParams,
-        {**server.settings(), "table": table, "partition_by": partition_by, "latest_table": latest},
-        "destination_server.pg",
-    )
+def destination(
+    server: PostgresServer,
+    table: str,
+    partition_by: str = "none",
+    latest: bool = True,
+    value_keys: dict[str, str] | None = None,
+) -> PgSQL:
+    settings = {"table": table, "partition_by": partition_by, "latest_table": latest, "value_keys": value_keys or {}}
+    params = parse_params(PgSQLParams, {**server.settings(), **settings}, "destination_server.pg")
     dest = PgSQL(FakeContext(name="pg", logger=RecordingLogger()), params)
     dest.on_configure()
     return dest
@@ -100,7 +103,7 @@ def destination(server: PostgresServer, table: str, partition_by: str = "none", 
 def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, float]:
     """The fleet's day in table dc (made by the destination); (rows, seconds)."""
     first = int(dt.datetime.fromisoformat(f"{DAY}T00:00:00+00:00").timestamp() * 1e9)
-    dest = destination(server, "dc", "day")
+    dest = destination(server, "dc", "day", value_keys={"cpu": "average"})
     dest.send([OutgoingRecord(new_record_id(), "/dc/x", first, {"name": "marker"})])  # table and partitions
     dest.on_deactivate()
     started = time.monotonic()
@@ -114,8 +117,9 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
             # one robot's rows of a measurement are then on as many heap pages as they are rows (a
             # robot-by-robot order would put them on a few hundred pages and flatter the queries).
             connection.execute(
-                f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id)
-                SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run
+                f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id, value)
+                SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run,
+                       {"(data->>'average')::float8" if name == "cpu" else "NULL"}
                 FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
                           'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
                           'tags', jsonb_build_array('pg')) AS data
@@ -245,7 +249,13 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
                         f"CREATE TABLE {table} (tag varchar, time timestamp, data jsonb, record_id text)"
                     )
                     connection.execute(f"CREATE UNIQUE INDEX {table}_record_id ON {table} (record_id)")
-            dest = destination(server, table, "day" if "day" in shape else "none", shape != "typed_day_no_latest")
+            dest = destination(
+                server,
+                table,
+                "day" if "day" in shape else "none",
+                shape != "typed_day_no_latest",
+                {"cpu": "average"} if shape.startswith("typed") else None,
+            )
             records = insert_records(n)
             if shape.endswith("one_robot"):
                 # As a robot's own DC sends them: a batch holds one robot's records.
@@ -289,13 +299,13 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
 _ORIGINAL = "tag varchar, time timestamp, data jsonb, record_id text"
 _TYPED = (
     "tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL, name text, robot_name text,"
-    " run_id bigint"
+    " run_id bigint, value double precision"
 )
-_UNIQUE = "CREATE UNIQUE INDEX ON {t} (robot_name, name, time, record_id) NULLS NOT DISTINCT"
+_UNIQUE = "CREATE UNIQUE INDEX ON {t} (robot_name, name, time, record_id) INCLUDE (value) NULLS NOT DISTINCT"
 _RUN = "CREATE INDEX ON {t} (robot_name, run_id, name, time)"
 _BRIN = "CREATE INDEX ON {t} USING brin (time)"
 _RECORD_ID = "CREATE UNIQUE INDEX ON {t} (record_id)"
-_TEAM = "CREATE INDEX ON {t} (robot_name, name, time)"
+_TEAM = "CREATE INDEX ON {t} (robot_name, name, time) INCLUDE (value)"
 INDEX_SETS = {
     "original's shape: UNIQUE (record_id)": (_ORIGINAL, [_RECORD_ID]),
     "typed, no index": (_TYPED, []),
@@ -318,7 +328,10 @@ def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, A
         assert r.json_text is not None
         data = orjson.loads(r.json_text)
         moment = epoch + dt.timedelta(microseconds=r.stamp_ns // 1000)
-        typed.append(("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"])))
+        value = data["average"] if data["name"] == "cpu" else None
+        typed.append(
+            ("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"]), value)
+        )
         original.append(("pg", moment.replace(tzinfo=None), r.json_text, r.record_id))
     pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
     names = list(INDEX_SETS)
@@ -335,7 +348,7 @@ def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, A
                     connection.execute(statement.format(t=table))
                 legacy = columns == _ORIGINAL
                 rows = original if legacy else typed
-                written = "tag, time, data, record_id" + ("" if legacy else ", name, robot_name, run_id")
+                written = "tag, time, data, record_id" + ("" if legacy else ", name, robot_name, run_id, value")
                 types = ["varchar", "timestamp", "jsonb", "text"] if legacy else TYPED_COPY_TYPES
                 before = _tree_cpu(pid)
                 for i in range(0, n, BATCH):
@@ -363,8 +376,8 @@ def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, A
     return result
 
 
-TYPED_COPY_TYPES = ["text", "timestamptz", "jsonb", "text", "text", "text", "int8"]
-_TYPED_COLUMNS = "tag, time, data, record_id, name, robot_name, run_id"
+TYPED_COPY_TYPES = ["text", "timestamptz", "jsonb", "text", "text", "text", "int8", "float8"]
+_TYPED_COLUMNS = "tag, time, data, record_id, name, robot_name, run_id, value"
 # Each way of putting the same rows into a day-partitioned typed table with DC's indexes (or the
 # original's table), in batches of BATCH: what the insert's cost is made of. (way, table DDL)
 WAYS = (
@@ -393,7 +406,10 @@ def time_insert_ways(server: PostgresServer, n: int, rounds: int) -> dict[str, A
         assert r.json_text is not None
         data = orjson.loads(r.json_text)
         moment = epoch + dt.timedelta(microseconds=r.stamp_ns // 1000)
-        typed.append(("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"])))
+        value = data["average"] if data["name"] == "cpu" else None
+        typed.append(
+            ("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"]), value)
+        )
         original.append(("pg", moment.replace(tzinfo=None), r.json_text, r.record_id))
     by_robot = sorted(typed, key=lambda row: (row[5], row[1]))  # a robot's DC sends only its own records
     day = typed[0][1].date()
@@ -440,7 +456,7 @@ def time_insert_ways(server: PostgresServer, n: int, rounds: int) -> dict[str, A
                     if "executemany" in way:
                         with connection.transaction(), connection.cursor() as cursor:
                             cursor.executemany(
-                                f"INSERT INTO {table} ({columns}) VALUES (%s, %s, %s::jsonb, %s, %s, %s, %s)"
+                                f"INSERT INTO {table} ({columns}) VALUES (%s, %s, %s::jsonb, %s, %s, %s, %s, %s)"
                                 " ON CONFLICT DO NOTHING",
                                 batch,
                             )

@@ -70,7 +70,9 @@ def server() -> Iterator[PostgresServer]:
 
 def destination(server: PostgresServer, table: str, logger: RecordingLogger, partition_by: str = "day") -> PgSQL:
     params = parse_params(
-        PgSQLParams, {**server.settings(), "table": table, "partition_by": partition_by}, "destination_server.pg"
+        PgSQLParams,
+        {**server.settings(), "table": table, "partition_by": partition_by, "value_keys": {"cpu": "average"}},
+        "destination_server.pg",
     )
     dest = PgSQL(FakeContext(name="pg", logger=logger), params)
     dest.on_configure()
@@ -116,7 +118,7 @@ def run(server: PostgresServer, name: str, zone: str = "UTC") -> list[tuple[Any,
 
 
 def test_the_page_has_the_five_team_queries() -> None:
-    assert set(queries()) == {"path", "latest", "latest_scan", "cpu_p95", "codes_per_shelf", "files"}
+    assert set(queries()) == {"path", "latest", "latest_scan", "cpu_p95", "cpu_p95_json", "codes_per_shelf", "files"}
 
 
 def test_the_path_of_a_robot_in_a_run(filled: PostgresServer) -> None:
@@ -142,9 +144,11 @@ def test_the_latest_record_of_each_measurement_of_each_robot(filled: PostgresSer
     assert got[("robot-008", "system")][1]["cpu"]["average"] == 6.0
 
 
-@pytest.mark.parametrize("zone", ["UTC", "America/Los_Angeles"])
-def test_cpu_p95_per_utc_hour_whatever_the_sessions_zone(filled: PostgresServer, zone: str) -> None:
-    got = run(filled, "cpu_p95", zone)
+@pytest.mark.parametrize(
+    ("query", "zone"), [("cpu_p95", "UTC"), ("cpu_p95", "America/Los_Angeles"), ("cpu_p95_json", "UTC")]
+)
+def test_cpu_p95_per_utc_hour_whatever_the_sessions_zone(filled: PostgresServer, query: str, zone: str) -> None:
+    got = run(filled, query, zone)
     hours = [h.astimezone(dt.UTC).hour for h, _ in got]
     assert hours == [10, 11, 23]
     assert [round(p, 1) for _, p in got] == [138.0, 148.0, 99.0]  # 100, 120, 140: p95 138

@@ -92,6 +92,11 @@ class PgSQLParams(PostgresServerParams):
         maximum=36500,
         doc="Partitions whose whole period is older than this many days are dropped; 0: kept for ever",
     )
+    value_keys: dict[str, str] = param(
+        default_factory=dict,
+        doc="Measurement name -> the top-level key of its records whose number DC writes in column value (a table"
+        " DC creates has it, in its (robot_name, name, time) index): an aggregate of it reads the index only",
+    )
     latest_table: bool = param(
         True,
         doc="A table DC creates gets <table>_latest, each robot's latest record of each measurement, kept by a"
@@ -144,6 +149,7 @@ class PgSQL(Destination[PgSQLParams]):
         self._maintained_at = 0.0
         self._hinted = False  # the hint to migrate a table of the original's shape: once
         self._run_id_told = False
+        self._value_told = False
         self.address = ""
 
     def __repr__(self) -> str:
@@ -204,25 +210,24 @@ class PgSQL(Destination[PgSQLParams]):
             return [(i, (tag, record_time(r, key, aware), text, r.record_id)) for i, r, text in pending]
         rows: _Rows = []
         run_id = self._run_id
+        value_keys = self.params.value_keys if shape.has_value else None
         for i, record, text in pending:
             data = _top_level(record, text)
             name, robot = data.get("name"), data.get("robot_name")
-            rows.append(
-                (
-                    i,
-                    (
-                        tag,
-                        record_time(record, key, aware)
-                        if key
-                        else _EPOCH_UTC + dt.timedelta(microseconds=record.stamp_ns // 1000),
-                        text,
-                        record.record_id,
-                        name if isinstance(name, str) else None,
-                        robot if isinstance(robot, str) else None,
-                        run_id(data.get("run_id")),
-                    ),
-                )
+            values: tuple[Any, ...] = (
+                tag,
+                record_time(record, key, aware)
+                if key
+                else _EPOCH_UTC + dt.timedelta(microseconds=record.stamp_ns // 1000),
+                text,
+                record.record_id,
+                name if isinstance(name, str) else None,
+                robot if isinstance(robot, str) else None,
+                run_id(data.get("run_id")),
             )
+            if value_keys is not None:
+                values = (*values, _number(data.get(value_keys[name]) if name in value_keys else None))
+            rows.append((i, values))
         return rows
 
     def _run_id(self, value: Any) -> int | None:
@@ -367,6 +372,12 @@ class PgSQL(Destination[PgSQLParams]):
         self._shape = shape
         self._statements(shape)
         self._latest = shape.typed and has_latest(connection, p.table)
+        if p.value_keys and not shape.has_value and not self._value_told:
+            self._value_told = True
+            self.context.logger.warning(
+                f"table {p.table} of {self.address} has no value column (double precision): value_keys unused;"
+                " docs/data-model.md#a-measurements-value-in-the-index says how to add it"
+            )
         self._staging = self._make_staging_table(connection, shape)
         self._direct = True
         self._copy_types = shape.copy_types()
@@ -490,6 +501,13 @@ def _top_level(record: OutgoingRecord, text: str) -> dict[str, Any]:
     except orjson.JSONDecodeError:
         return record.data  # what is wrong with it, said the usual way
     return found if isinstance(found, dict) else record.data
+
+
+def _number(value: Any) -> float | None:
+    """A JSON number as float8 holds it; None for anything else (a bool is no number here)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) < 1.7e308:
+        return float(value)
+    return None
 
 
 def record_time(record: OutgoingRecord, timestamp_key: str = "", aware: bool = False) -> dt.datetime:

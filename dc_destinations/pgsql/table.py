@@ -30,6 +30,8 @@ LATEST_SUFFIX = "_latest"
 
 LEGACY_COLUMNS = ("tag", "time", "data", "record_id")
 TYPED_COLUMNS = ("tag", "time", "data", "record_id", "name", "robot_name", "run_id")
+# A typed table DC makes has it; one made before it (or by hand) is typed without it.
+VALUE_COLUMN = "value"
 # The types of the columns a binary COPY may write, as format_type spells them, per column.
 _BINARY_TYPES = {
     "tag": ("character varying", "text"),
@@ -39,6 +41,7 @@ _BINARY_TYPES = {
     "name": ("text",),
     "robot_name": ("text",),
     "run_id": ("bigint",),
+    "value": ("double precision",),
 }
 _COPY_TYPES = {
     "character varying": "varchar",
@@ -47,13 +50,15 @@ _COPY_TYPES = {
     "timestamp with time zone": "timestamptz",
     "jsonb": "jsonb",
     "bigint": "int8",
+    "double precision": "float8",
 }
 
 _CATALOG = """SELECT c.relkind,
     ARRAY(SELECT ARRAY[attname::text, format_type(atttypid, atttypmod)] FROM pg_attribute
            WHERE attrelid = c.oid AND attnum > 0 AND NOT attisdropped),
-    ARRAY(SELECT ARRAY(SELECT a.attname::text FROM unnest(i.indkey) k JOIN pg_attribute a
-                        ON a.attrelid = i.indrelid AND a.attnum = k ORDER BY 1)::text
+    ARRAY(SELECT ARRAY(SELECT a.attname::text FROM unnest(i.indkey) WITH ORDINALITY AS k (attnum, n)
+                        JOIN pg_attribute a ON a.attrelid = i.indrelid AND a.attnum = k.attnum
+                        WHERE k.n <= i.indnkeyatts ORDER BY 1)::text
            FROM pg_index i WHERE i.indrelid = c.oid AND i.indisunique AND i.indpred IS NULL)
 FROM pg_class c WHERE c.oid = to_regclass(%(t)s)"""
 
@@ -64,7 +69,7 @@ class TableShape:
 
     partitioned: bool
     columns: dict[str, str]
-    unique_keys: frozenset[str]  # each unique index's columns, sorted, as PostgreSQL prints a text[]
+    unique_keys: frozenset[str]  # each unique index's key columns (not INCLUDEd ones), sorted, as a text[] prints
 
     @property
     def typed(self) -> bool:
@@ -73,7 +78,13 @@ class TableShape:
 
     @property
     def written(self) -> tuple[str, ...]:
-        return TYPED_COLUMNS if self.typed else LEGACY_COLUMNS
+        if not self.typed:
+            return LEGACY_COLUMNS
+        return (*TYPED_COLUMNS, VALUE_COLUMN) if self.has_value else TYPED_COLUMNS
+
+    @property
+    def has_value(self) -> bool:
+        return self.columns.get(VALUE_COLUMN) == "double precision"
 
     @property
     def conflict_key(self) -> str | None:
@@ -113,7 +124,7 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str, late
         connection.execute(
             sql.SQL(
                 "CREATE TABLE IF NOT EXISTS {} (tag text, time timestamptz NOT NULL, data jsonb,"
-                " record_id text NOT NULL, name text, robot_name text, run_id bigint)"
+                " record_id text NOT NULL, name text, robot_name text, run_id bigint, value double precision)"
                 + (" PARTITION BY RANGE (time)" if partitioned else "")
             ).format(table)
         )
@@ -124,10 +135,12 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str, late
             # the (record_id, time) key it replaces, from its stamp or timestamp_key (a copy stored
             # twice by NATS and ingested with two stamps is two rows, in both). NULLS NOT DISTINCT:
             # a record without robot or name is met too. One btree and its disk space where two were;
-            # the CPU per insert measured the same within the noise (docs/performance.md).
+            # the CPU per insert measured the same within the noise (docs/performance.md). value
+            # INCLUDEd: an aggregate of a measurement's value_keys number is an index-only scan.
             connection.execute(
                 sql.SQL(
-                    "CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time, record_id) NULLS NOT DISTINCT"
+                    "CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time, record_id) INCLUDE (value)"
+                    " NULLS NOT DISTINCT"
                 ).format(_index_name(base, "robot_name_time"), table)
             )
         else:
@@ -139,7 +152,7 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str, late
                 )
             )
             connection.execute(
-                sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time)").format(
+                sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time) INCLUDE (value)").format(
                     _index_name(base, "robot_name_time"), table
                 )
             )

@@ -425,9 +425,19 @@ def table_facts(server: PostgresServer, table: str) -> tuple[list[tuple[str, str
 
 def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServer, destinations: list[PgSQL]) -> None:
     logger = RecordingLogger()
-    dest = make(server, destinations, logger=logger, table="typed")
-    group = {"name": "robot", "robot_name": "r1", "run_id": "10", "cpu": {"robot_name": "r1", "run_id": "10"}}
-    batch = [record(0, name="cpu", robot_name="r1", run_id="2"), record(1, **group), record(2, run_id="run-x")]
+    dest = make(server, destinations, logger=logger, table="typed", value_keys={"cpu": "average", "robot": "v"})
+    group = {
+        "name": "robot",
+        "robot_name": "r1",
+        "run_id": "10",
+        "cpu": {"robot_name": "r1", "run_id": "10"},
+        "v": True,
+    }
+    batch = [
+        record(0, name="cpu", robot_name="r1", run_id="2", average=12),
+        record(1, **group),
+        record(2, run_id="run-x", average=3.5),
+    ]
     assert dest.send(batch) is None and dest.send(batch) is None
     columns, indexes, partitions = table_facts(server, "typed")
     assert columns == [
@@ -438,8 +448,9 @@ def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServ
         ("name", "text"),
         ("robot_name", "text"),
         ("run_id", "bigint"),
+        ("value", "double precision"),
     ]
-    assert any('(robot_name, name, "time")' in i for i in indexes), indexes
+    assert any('(robot_name, name, "time") INCLUDE (value)' in i for i in indexes), indexes
     assert any('(robot_name, run_id, name, "time")' in i for i in indexes), indexes
     assert any('USING brin ("time")' in i for i in indexes), indexes
     assert any("UNIQUE" in i and "(record_id)" in i for i in indexes), indexes
@@ -447,9 +458,11 @@ def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServ
     with admin(server) as connection:
         connection.execute("SET TIME ZONE 'America/Los_Angeles'")  # a session in another zone sees the same rows
         got = connection.execute(
-            "SELECT name, robot_name, run_id FROM typed WHERE time >= '2023-11-14 22:13:20Z' ORDER BY run_id"
+            "SELECT name, robot_name, run_id, value FROM typed WHERE time >= '2023-11-14 22:13:20Z' ORDER BY run_id"
         ).fetchall()
-    assert got == [("cpu", "r1", 2), ("robot", "r1", 10), (None, None, None)], "run_id sorts as a number"
+    assert got == [("cpu", "r1", 2, 12.0), ("robot", "r1", 10, None), (None, None, None, None)], (
+        "run_id sorts as a number; value: the number under the measurement's value_keys key (a bool is none)"
+    )
     told = [m for m in logger.at("warning") if "is not a counter" in m]
     assert len(told) == 1, logger.lines
 
