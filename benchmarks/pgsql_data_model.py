@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 15] [--cold-runs 3]
                                                     [--insert-records 50000] [--insert-runs 7]
-                                                    [--index-runs 0] [--label NAME]
+                                                    [--index-runs 0] [--ways-runs 0] [--label NAME]
 
 Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers, a folder under /tmp, removed
 at the end) and, printing the load averages of each phase (the machine may be shared):
@@ -10,14 +10,19 @@ at the end) and, printing the load averages of each phase (the machine may be sh
 - insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
   500, handed over as the sender does: read back from the buffer with their JSON text) into a
   fresh table of the original's shape (``tag, time timestamp, data, record_id``: what DC wrote
-  until now), of DC's new shape, of DC's new shape partitioned by day, and of that without the
-  latest-row table (``latest_table: false``), with batches of the fleet's records mixed (dc ingest's
-  case: 200 robot-measurement pairs in a batch of 500), and the original's and the partitioned
-  shape with batches of one robot's records each (a robot's own DC); the six take turns,
-  --insert-runs rounds; rows/s and CPU per row (client and server) per round, medians, and the
-  medians of the per-round ratios to the original's shape.
+  until now), of DC's new shape, of DC's new shape partitioned by day, of that without the
+  latest-row table (``latest_table: false``) and without it nor the run index (``run_index:
+  false``), all with batches of the fleet's records mixed (dc ingest's case: 100 robots in a batch
+  of 500); and the original's and the partitioned shape with batches of one robot's records each
+  (a robot's own DC). The seven take turns, --insert-runs rounds; rows/s and CPU per row (client
+  and server) per round, medians, and the medians of the per-round ratios to the original's shape
+  with the same batches.
 - index costs (--index-runs N): the server's CPU per row of a binary COPY of the same rows into
   tables that differ only in their indexes, N rounds in turns.
+- ways (--ways-runs N): the server's CPU and the wall time per row of each way in WAYS of putting
+  the same rows into a day-partitioned table with DC's indexes: COPY (into the parent, straight into
+  the partition, with the latest-row trigger, batches of one robot, without the run index), the
+  staging table's INSERT … ON CONFLICT, executemany; N rounds in turns.
 - queries: the PgSQL destination creates table ``dc`` (``partition_by: day``), then the server
   generates --robots robots x --hours hours of records on 2026-11-25 (UTC) into it with one
   ``INSERT … SELECT`` from ``generate_series`` per measurement, in time order (the robots' rows
@@ -92,8 +97,15 @@ def destination(
     partition_by: str = "none",
     latest: bool = True,
     value_keys: dict[str, str] | None = None,
+    run_index: bool = True,
 ) -> PgSQL:
-    settings = {"table": table, "partition_by": partition_by, "latest_table": latest, "value_keys": value_keys or {}}
+    settings = {
+        "table": table,
+        "partition_by": partition_by,
+        "latest_table": latest,
+        "value_keys": value_keys or {},
+        "run_index": run_index,
+    }
     params = parse_params(PgSQLParams, {**server.settings(), **settings}, "destination_server.pg")
     dest = PgSQL(FakeContext(name="pg", logger=RecordingLogger()), params)
     dest.on_configure()
@@ -208,7 +220,9 @@ def time_cold(server: PostgresServer, rounds: int) -> dict[str, dict[str, Any]]:
     return figures
 
 
-def insert_records(n: int) -> list[StoredRecord]:
+def insert_records(n: int, one_robot: bool = False) -> list[StoredRecord]:
+    """``n`` records of 100 robots, time and ids in order; mixed in each batch of BATCH (a fleet's, as
+    dc ingest gets them), or ``one_robot``: each batch one robot's records (as a robot's DC sends them)."""
     start = time.time_ns()
     out = []
     for i in range(n):
@@ -217,7 +231,7 @@ def insert_records(n: int) -> list[StoredRecord]:
             "average": (i * 37) % 100 + 0.25,
             "processes": 212,
             "name": "cpu" if i % 2 else "position",
-            "robot_name": f"robot-{i % 100:03d}",
+            "robot_name": f"robot-{(i // BATCH if one_robot else i) % 100:03d}",
             "run_id": str(1 + i // 10_000),
             "schema_version": 1,
             "tags": ["pg"],
@@ -230,9 +244,15 @@ def insert_records(n: int) -> list[StoredRecord]:
 
 
 def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
-    import orjson
-
-    shapes = ("original", "typed", "typed_day", "typed_day_no_latest", "typed_day_one_robot", "original_one_robot")
+    shapes = (
+        "original",
+        "typed",
+        "typed_day",
+        "typed_day_no_latest",
+        "typed_day_lean",  # run_index and latest_table false
+        "typed_day_one_robot",
+        "original_one_robot",
+    )
     rates: dict[str, list[float]] = {s: [] for s in shapes}
     # CPU per row (this process and the server's, over the same window): what contention on a shared
     # machine inflates far less than the wall time.
@@ -253,13 +273,11 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
                 server,
                 table,
                 "day" if "day" in shape else "none",
-                shape != "typed_day_no_latest",
+                shape not in ("typed_day_no_latest", "typed_day_lean"),
                 {"cpu": "average"} if shape.startswith("typed") else None,
+                shape != "typed_day_lean",
             )
-            records = insert_records(n)
-            if shape.endswith("one_robot"):
-                # As a robot's own DC sends them: a batch holds one robot's records.
-                records.sort(key=lambda r: (orjson.loads(r.json_text or "{}")["robot_name"], r.stamp_ns))
+            records = insert_records(n, shape.endswith("one_robot"))
             dest.send(records[:BATCH])  # connects and prepares: not timed
             started, cpu = time.perf_counter(), _client_cpu() + _tree_cpu(pid)
             for i in range(BATCH, n, BATCH):
@@ -316,12 +334,10 @@ INDEX_SETS = {
 }
 
 
-def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
+def copy_rows(records: list[StoredRecord]) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
+    """The rows of a binary COPY of ``records``: into a typed table, and into one of the original's shape."""
     import orjson
 
-    from dc_destinations.pgsql import json_text_binary_dumper
-
-    records = insert_records(n)
     epoch = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
     typed, original = [], []
     for r in records:
@@ -333,6 +349,14 @@ def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, A
             ("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"]), value)
         )
         original.append(("pg", moment.replace(tzinfo=None), r.json_text, r.record_id))
+    return typed, original
+
+
+def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
+
+    from dc_destinations.pgsql import json_text_binary_dumper
+
+    typed, original = copy_rows(insert_records(n))
     pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
     names = list(INDEX_SETS)
     cpu: dict[str, list[float]] = {name: [] for name in names}
@@ -395,23 +419,11 @@ WAYS = (
 
 def time_insert_ways(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     """Server CPU and wall time per row of each way in WAYS, ``rounds`` rounds in turns."""
-    import orjson
 
     from dc_destinations.pgsql import json_text_binary_dumper
 
-    records = insert_records(n)
-    epoch = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
-    typed, original = [], []
-    for r in records:
-        assert r.json_text is not None
-        data = orjson.loads(r.json_text)
-        moment = epoch + dt.timedelta(microseconds=r.stamp_ns // 1000)
-        value = data["average"] if data["name"] == "cpu" else None
-        typed.append(
-            ("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"]), value)
-        )
-        original.append(("pg", moment.replace(tzinfo=None), r.json_text, r.record_id))
-    by_robot = sorted(typed, key=lambda row: (row[5], row[1]))  # a robot's DC sends only its own records
+    typed, original = copy_rows(insert_records(n))
+    by_robot, _ = copy_rows(insert_records(n, one_robot=True))
     day = typed[0][1].date()
     pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
     cpu: dict[str, list[float]] = {way: [] for way in WAYS}

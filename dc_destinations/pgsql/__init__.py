@@ -97,6 +97,11 @@ class PgSQLParams(PostgresServerParams):
         doc="Measurement name -> the top-level key of its records whose number DC writes in column value (a table"
         " DC creates has it, in its (robot_name, name, time) index): an aggregate of it reads the index only",
     )
+    run_index: bool = param(
+        True,
+        doc="A table DC creates gets the index (robot_name, run_id, name, time): what is asked by run reads that"
+        " run's rows only; false: none (inserts cost the server less, a query by run reads the robot's rows)",
+    )
     latest_table: bool = param(
         True,
         doc="A table DC creates gets <table>_latest, each robot's latest record of each measurement, kept by a"
@@ -350,7 +355,7 @@ class PgSQL(Destination[PgSQLParams]):
         table = self._table()
         shape = read_shape(connection, table)
         if shape is None:
-            create_typed(connection, table, p.table, p.partition_by, p.latest_table)
+            create_typed(connection, table, p.table, p.partition_by, latest=p.latest_table, run_index=p.run_index)
             self.context.logger.info(
                 f"table {p.table} ready in {self.address} ({', '.join(TYPED_COLUMNS)}"
                 + (f"; partitioned by {p.partition_by})" if p.partition_by != "none" else ")")

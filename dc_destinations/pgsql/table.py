@@ -113,9 +113,11 @@ def read_shape(connection: Any, table: Any) -> TableShape | None:
     return TableShape(relkind == "p", {name: kind for name, kind in columns}, frozenset(unique))
 
 
-def create_typed(connection: Any, table: Any, name: str, partition_by: str, latest: bool) -> None:
-    """The table of DC's shape, with its indexes (and ``latest``: its latest-row table), in one
-    transaction (IF NOT EXISTS: several robots may make it at once)."""
+def create_typed(
+    connection: Any, table: Any, name: str, partition_by: str, *, latest: bool = True, run_index: bool = True
+) -> None:
+    """The table of DC's shape, with its indexes (``run_index``: with the run's; ``latest``: with its
+    latest-row table), in one transaction (IF NOT EXISTS: several robots may make it at once)."""
     from psycopg import sql
 
     base = name.rsplit(".", 1)[-1]
@@ -157,11 +159,14 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str, late
                 )
             )
         # The path of a robot in a run (and anything else asked by run) reads only that run's rows.
-        connection.execute(
-            sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, run_id, name, time)").format(
-                _index_name(base, "robot_run_time"), table
+        # A btree whose keys land all over it, as the team's: the largest part of the insert's cost
+        # after that one (docs/performance.md), hence run_index for a team that never asks by run.
+        if run_index:
+            connection.execute(
+                sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, run_id, name, time)").format(
+                    _index_name(base, "robot_run_time"), table
+                )
             )
-        )
         connection.execute(
             sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} USING brin (time)").format(
                 _index_name(base, "time_brin"), table

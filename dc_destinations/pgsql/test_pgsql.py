@@ -577,7 +577,7 @@ def test_the_latest_table_holds_each_pairs_latest_record_whatever_the_order(
     assert [(r, n) for r, n, *_ in kept] == [("r1", "cpu"), ("r1", "memory"), ("r2", "cpu"), ("r2", "memory")]
 
 
-def test_an_existing_table_gets_no_latest_table_nor_one_with_latest_table_false(
+def test_an_existing_table_gets_no_latest_table_nor_a_new_one_with_latest_table_and_run_index_false(
     server: PostgresServer, destinations: list[PgSQL]
 ) -> None:
     with admin(server) as connection:
@@ -586,7 +586,7 @@ def test_an_existing_table_gets_no_latest_table_nor_one_with_latest_table_false(
             " name text, robot_name text, run_id bigint)"
         )
     assert make(server, destinations, table="mine").send([record(0, name="cpu", robot_name="r1")]) is None
-    off = make(server, destinations, table="not_kept", latest_table=False)
+    off = make(server, destinations, table="not_kept", latest_table=False, run_index=False)
     assert off.send([record(0, name="cpu", robot_name="r1")]) is None
     with admin(server) as connection:
         found = connection.execute(
@@ -594,6 +594,8 @@ def test_an_existing_table_gets_no_latest_table_nor_one_with_latest_table_false(
             " (SELECT count(*) FROM pg_trigger WHERE tgrelid IN ('mine'::regclass, 'not_kept'::regclass))"
         ).fetchone()
     assert found == (None, None, 0), "an existing table is never changed; latest_table: false makes none"
+    _, indexes, _ = table_facts(server, "not_kept")
+    assert not [i for i in indexes if "run_id" in i] and len(indexes) == 3, indexes
 
 
 def test_a_week_partition_is_an_iso_week_of_utc_days() -> None:
