@@ -185,13 +185,29 @@ def time_queries(server: PostgresServer, runs: int) -> dict[str, dict[str, Any]]
                 "max_ms": max(times),
                 "runs_ms": [round(t, 1) for t in times],
                 "server_ms": explained["Execution Time"],  # the server's own time, without the client's
+                "plan": plan_summary(explained["Plan"]),
                 "rows": len(got),
                 "load_average_1min": os.getloadavg()[0],
             }
+            print(f"  plan: {'; '.join(figures[name]['plan'])[:600]}", flush=True)
             print(f"warm {name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
                   f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)"
                   f"  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
     return figures
+
+
+def plan_summary(node: dict[str, Any]) -> list[str]:
+    """The plan's scans and what they read: node type, relation or index, rows, heap fetches, buffers."""
+    found = []
+    if "Scan" in node["Node Type"]:
+        where = node.get("Index Name") or node.get("Relation Name") or ""
+        fetches = f" heap fetches {node['Heap Fetches']}" if "Heap Fetches" in node else ""
+        found.append(
+            f"{node['Node Type']} {where}: {node.get('Actual Rows')} rows x {node.get('Actual Loops')}{fetches}"
+        )
+    for child in node.get("Plans", []):
+        found.extend(plan_summary(child))
+    return found
 
 
 def time_cold(server: PostgresServer, rounds: int) -> dict[str, dict[str, Any]]:
