@@ -167,23 +167,39 @@ def page_queries() -> dict[str, str]:
 
 def time_queries(server: PostgresServer, runs: int) -> dict[str, dict[str, Any]]:
     """Each query of the page on table dc, warm: one warm-up, then ``runs`` runs (wall time at the client,
-    execute and fetch) and the server's execution time of one more (``EXPLAIN ANALYZE``)."""
+    execute and fetch; the CPU time of the server's process for the connection and of this one, their
+    mean over the runs: what a loaded machine stretches the wall time from) and the server's execution
+    time of one more (``EXPLAIN ANALYZE``)."""
+    import psutil
+
     found = {k: v for k, v in page_queries().items() if k != "files"}  # files_metrics: not generated here
     figures: dict[str, dict[str, Any]] = {}
     with server.connect() as connection:
+        (backend_pid,) = connection.execute("SELECT pg_backend_pid()").fetchone()
+        backend = psutil.Process(backend_pid)
+
+        def backend_cpu() -> float:
+            used = backend.cpu_times()
+            return float(used.user + used.system)
+
         for name, query in found.items():
             text = query.encode()
             connection.execute(text).fetchall()  # warm-up: plan, caches
             times = []
+            cpu_before, client_before = backend_cpu(), _client_cpu()
             for _ in range(runs):
                 started = time.perf_counter()
                 got = connection.execute(text).fetchall()
                 times.append((time.perf_counter() - started) * 1000)
+            server_cpu_ms = (backend_cpu() - cpu_before) / runs * 1000
+            client_cpu_ms = (_client_cpu() - client_before) / runs * 1000
             explained = connection.execute(b"EXPLAIN (ANALYZE, FORMAT JSON) " + text).fetchone()[0][0]
             figures[name] = {
                 "median_ms": statistics.median(times),
                 "max_ms": max(times),
                 "runs_ms": [round(t, 1) for t in times],
+                "server_cpu_ms_mean": server_cpu_ms,
+                "client_cpu_ms_mean": client_cpu_ms,
                 "server_ms": explained["Execution Time"],  # the server's own time, without the client's
                 "plan": plan_summary(explained["Plan"]),
                 "rows": len(got),
@@ -191,7 +207,8 @@ def time_queries(server: PostgresServer, runs: int) -> dict[str, dict[str, Any]]
             }
             print(f"  plan: {'; '.join(figures[name]['plan'])[:600]}", flush=True)
             print(f"warm {name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
-                  f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)"
+                  f"  server {explained['Execution Time']:7.1f} ms  CPU server {server_cpu_ms:5.1f} client"
+                  f" {client_cpu_ms:5.1f} ms  ({len(got)} rows)"
                   f"  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
     return figures
 
