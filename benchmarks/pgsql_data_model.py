@@ -51,6 +51,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -290,7 +291,7 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     # CPU per row (this process and the server's, over the same window): what contention on a shared
     # machine inflates far less than the wall time.
     cpu_us: dict[str, list[float]] = {s: [] for s in shapes}
-    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    pid = server_pid(server)
     loads: list[float] = []  # the 1-minute load average at the end of each round
     for k in range(rounds):
         order = shapes[k % len(shapes) :] + shapes[: k % len(shapes)]  # each shape goes first in turn
@@ -367,6 +368,21 @@ INDEX_SETS = {
 }
 
 
+def server_pid(server: PostgresServer) -> int:
+    return int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+
+
+@contextlib.contextmanager
+def copy_connection(server: PostgresServer) -> Iterator[Any]:
+    """A connection in autocommit that writes JSON text as jsonb in a binary COPY, as the destination does."""
+    from dc_destinations.pgsql import json_text_binary_dumper
+
+    with server.connect() as connection:
+        connection.autocommit = True
+        connection.adapters.register_dumper(None, json_text_binary_dumper())
+        yield connection
+
+
 def copy_rows(records: list[StoredRecord]) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
     """The rows of a binary COPY of ``records``: into a typed table, and into one of the original's shape."""
     import orjson
@@ -387,15 +403,11 @@ def copy_rows(records: list[StoredRecord]) -> tuple[list[tuple[Any, ...]], list[
 
 def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
 
-    from dc_destinations.pgsql import json_text_binary_dumper
-
     typed, original = copy_rows(insert_records(n))
-    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    pid = server_pid(server)
     names = list(INDEX_SETS)
     cpu: dict[str, list[float]] = {name: [] for name in names}
-    with server.connect() as connection:
-        connection.autocommit = True
-        connection.adapters.register_dumper(None, json_text_binary_dumper())
+    with copy_connection(server) as connection:
         for k in range(rounds):
             for j, name in enumerate(names[k % len(names) :] + names[: k % len(names)]):
                 columns, indexes = INDEX_SETS[name]
@@ -453,17 +465,13 @@ WAYS = (
 def time_insert_ways(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     """Server CPU and wall time per row of each way in WAYS, ``rounds`` rounds in turns."""
 
-    from dc_destinations.pgsql import json_text_binary_dumper
-
     typed, original = copy_rows(insert_records(n))
     by_robot, _ = copy_rows(insert_records(n, one_robot=True))
     day = typed[0][1].date()
-    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    pid = server_pid(server)
     cpu: dict[str, list[float]] = {way: [] for way in WAYS}
     wall: dict[str, list[float]] = {way: [] for way in WAYS}
-    with server.connect() as connection:
-        connection.autocommit = True
-        connection.adapters.register_dumper(None, json_text_binary_dumper())
+    with copy_connection(server) as connection:
         for k in range(rounds):
             for j, way in enumerate(WAYS[k % len(WAYS) :] + WAYS[: k % len(WAYS)]):
                 table = f"way_{k}_{j}"
