@@ -117,7 +117,7 @@ def run(server: PostgresServer, name: str, zone: str = "UTC") -> list[tuple[Any,
         return list(connection.execute(queries()[name].encode()).fetchall())
 
 
-def test_the_page_has_the_five_team_queries() -> None:
+def test_the_page_has_the_team_queries() -> None:
     assert set(queries()) == {"path", "latest", "latest_scan", "cpu_p95", "cpu_p95_json", "codes_per_shelf", "files"}
 
 
