@@ -124,7 +124,7 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
         # Each INSERT … SELECT below is a statement of 0.7-2.9 M rows, whose transition table the
         # latest-row trigger would sort whole: the table is filled after, as the page says for a
         # table that had none.
-        connection.execute("ALTER TABLE dc DISABLE TRIGGER keep_latest")
+        connection.execute("ALTER TABLE dc DISABLE TRIGGER USER")
         for name, every, fields in MEASUREMENTS:
             # In time order, the robots' rows side by side at each instant, as a fleet inserts them:
             # one robot's rows of a measurement are then on as many heap pages as they are rows (a
@@ -146,7 +146,7 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
                                              AS run) AS k) AS rows"""
             )
         connection.execute(block("latest-table").encode())
-        connection.execute("ALTER TABLE dc ENABLE TRIGGER keep_latest")
+        connection.execute("ALTER TABLE dc ENABLE TRIGGER USER")
         connection.execute("VACUUM ANALYZE dc")
         connection.execute("VACUUM ANALYZE dc_latest")
         (rows,) = connection.execute("SELECT count(*) FROM dc").fetchone()
