@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 15] [--cold-runs 3]
                                                     [--insert-records 50000] [--insert-runs 7]
-                                                    [--index-runs 0] [--label NAME]
+                                                    [--index-runs 0] [--ways-runs 0] [--label NAME]
 
 Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers, a folder under /tmp, removed
 at the end) and, printing the load averages of each phase (the machine may be shared):
@@ -10,11 +10,19 @@ at the end) and, printing the load averages of each phase (the machine may be sh
 - insert: the PgSQL destination's ``send()`` of --insert-records records (~250 bytes, batches of
   500, handed over as the sender does: read back from the buffer with their JSON text) into a
   fresh table of the original's shape (``tag, time timestamp, data, record_id``: what DC wrote
-  until now), of DC's new shape, and of DC's new shape partitioned by day; the three take turns,
-  --insert-runs rounds; rows/s and CPU per row (client and server) per round, medians, and the
-  medians of the per-round ratios to the original's shape.
+  until now), of DC's new shape, of DC's new shape partitioned by day, of that without the
+  latest-row table (``latest_table: false``) and without it nor the run index (``run_index:
+  false``), all with batches of the fleet's records mixed (dc ingest's case: 100 robots in a batch
+  of 500); and the original's and the partitioned shape with batches of one robot's records each
+  (a robot's own DC). The seven take turns, --insert-runs rounds; rows/s and CPU per row (client
+  and server) per round, medians, and the medians of the per-round ratios to the original's shape
+  with the same batches.
 - index costs (--index-runs N): the server's CPU per row of a binary COPY of the same rows into
   tables that differ only in their indexes, N rounds in turns.
+- ways (--ways-runs N): the server's CPU and the wall time per row of each way in WAYS of putting
+  the same rows into a day-partitioned table with DC's indexes: COPY (into the parent, straight into
+  the partition, with the latest-row trigger, batches of one robot, without the run index), the
+  staging table's INSERT … ON CONFLICT, executemany; N rounds in turns.
 - queries: the PgSQL destination creates table ``dc`` (``partition_by: day``), then the server
   generates --robots robots x --hours hours of records on 2026-11-25 (UTC) into it with one
   ``INSERT … SELECT`` from ``generate_series`` per measurement, in time order (the robots' rows
@@ -26,12 +34,14 @@ at the end) and, printing the load averages of each phase (the machine may be sh
   (execute and fetch), median and max, and the server's execution time of one more run
   (``EXPLAIN ANALYZE``); cold, the first run after a restart of the server, --cold-runs times.
 
-JSON in benchmarks/results/pgsql_data_model_<date>[_<label>].json.
+JSON in benchmarks/results/pgsql_data_model_<date>[_<label>].json; when that file exists, the first free
+``…_2.json``, ``…_3.json``: a run never overwrites an earlier result.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import os
@@ -41,6 +51,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -81,10 +92,22 @@ MEASUREMENTS = (
 )
 
 
-def destination(server: PostgresServer, table: str, partition_by: str = "none") -> PgSQL:
-    params = parse_params(
-        PgSQLParams, {**server.settings(), "table": table, "partition_by": partition_by}, "destination_server.pg"
-    )
+def destination(
+    server: PostgresServer,
+    table: str,
+    partition_by: str = "none",
+    latest: bool = True,
+    value_keys: dict[str, str] | None = None,
+    run_index: bool = True,
+) -> PgSQL:
+    settings = {
+        "table": table,
+        "partition_by": partition_by,
+        "latest_table": latest,
+        "value_keys": value_keys or {},
+        "run_index": run_index,
+    }
+    params = parse_params(PgSQLParams, {**server.settings(), **settings}, "destination_server.pg")
     dest = PgSQL(FakeContext(name="pg", logger=RecordingLogger()), params)
     dest.on_configure()
     return dest
@@ -93,18 +116,23 @@ def destination(server: PostgresServer, table: str, partition_by: str = "none") 
 def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, float]:
     """The fleet's day in table dc (made by the destination); (rows, seconds)."""
     first = int(dt.datetime.fromisoformat(f"{DAY}T00:00:00+00:00").timestamp() * 1e9)
-    dest = destination(server, "dc", "day")
+    dest = destination(server, "dc", "day", value_keys={"cpu": "average"})
     dest.send([OutgoingRecord(new_record_id(), "/dc/x", first, {"name": "marker"})])  # table and partitions
     dest.on_deactivate()
     started = time.monotonic()
     with server.connect() as connection:
+        # Each INSERT … SELECT below is a statement of 0.7-2.9 M rows, whose transition table the
+        # latest-row trigger would sort whole: the table is filled after, as the page says for a
+        # table that had none.
+        connection.execute("ALTER TABLE dc DISABLE TRIGGER USER")
         for name, every, fields in MEASUREMENTS:
             # In time order, the robots' rows side by side at each instant, as a fleet inserts them:
             # one robot's rows of a measurement are then on as many heap pages as they are rows (a
             # robot-by-robot order would put them on a few hundred pages and flatter the queries).
             connection.execute(
-                f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id)
-                SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run
+                f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id, value)
+                SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run,
+                       {"(data->>'average')::float8" if name == "cpu" else "NULL"}
                 FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
                           'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
                           'tags', jsonb_build_array('pg')) AS data
@@ -117,7 +145,10 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
                                            1 + floor(extract(epoch FROM t - timestamptz '{DAY} 00:00Z') / 7200)::bigint
                                              AS run) AS k) AS rows"""
             )
+        connection.execute(block("latest-table").encode())
+        connection.execute("ALTER TABLE dc ENABLE TRIGGER USER")
         connection.execute("VACUUM ANALYZE dc")
+        connection.execute("VACUUM ANALYZE dc_latest")
         (rows,) = connection.execute("SELECT count(*) FROM dc").fetchone()
         (size,) = connection.execute("SELECT pg_size_pretty(sum(pg_total_relation_size(c.oid))) FROM pg_inherits i"
                                      " JOIN pg_class c ON c.oid = i.inhrelid WHERE i.inhparent = 'dc'::regclass"
@@ -126,37 +157,75 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
     return int(rows), time.monotonic() - started
 
 
+def block(tag: str) -> str:
+    (sql,) = re.findall(rf"<!-- {tag} -->\n```sql\n(.*?)```", PAGE.read_text(), re.S)
+    return str(sql)
+
+
 def page_queries() -> dict[str, str]:
     return dict(re.findall(r"<!-- query: (\w+) -->\n```sql\n(.*?)```", PAGE.read_text(), re.S))
 
 
 def time_queries(server: PostgresServer, runs: int) -> dict[str, dict[str, Any]]:
     """Each query of the page on table dc, warm: one warm-up, then ``runs`` runs (wall time at the client,
-    execute and fetch) and the server's execution time of one more (``EXPLAIN ANALYZE``)."""
+    execute and fetch; the CPU time of the server's process for the connection and of this one, their
+    mean over the runs: what a loaded machine stretches the wall time from) and the server's execution
+    time of one more (``EXPLAIN ANALYZE``)."""
+    import psutil
+
     found = {k: v for k, v in page_queries().items() if k != "files"}  # files_metrics: not generated here
     figures: dict[str, dict[str, Any]] = {}
     with server.connect() as connection:
+        (backend_pid,) = connection.execute("SELECT pg_backend_pid()").fetchone()
+        backend = psutil.Process(backend_pid)
+
+        def backend_cpu() -> float:
+            used = backend.cpu_times()
+            return float(used.user + used.system)
+
         for name, query in found.items():
             text = query.encode()
             connection.execute(text).fetchall()  # warm-up: plan, caches
             times = []
+            cpu_before, client_before = backend_cpu(), _client_cpu()
             for _ in range(runs):
                 started = time.perf_counter()
                 got = connection.execute(text).fetchall()
                 times.append((time.perf_counter() - started) * 1000)
+            server_cpu_ms = (backend_cpu() - cpu_before) / runs * 1000
+            client_cpu_ms = (_client_cpu() - client_before) / runs * 1000
             explained = connection.execute(b"EXPLAIN (ANALYZE, FORMAT JSON) " + text).fetchone()[0][0]
             figures[name] = {
                 "median_ms": statistics.median(times),
                 "max_ms": max(times),
                 "runs_ms": [round(t, 1) for t in times],
+                "server_cpu_ms_mean": server_cpu_ms,
+                "client_cpu_ms_mean": client_cpu_ms,
                 "server_ms": explained["Execution Time"],  # the server's own time, without the client's
+                "plan": plan_summary(explained["Plan"]),
                 "rows": len(got),
                 "load_average_1min": os.getloadavg()[0],
             }
+            print(f"  plan: {'; '.join(figures[name]['plan'])[:600]}", flush=True)
             print(f"warm {name:16} median {figures[name]['median_ms']:7.1f} ms  max {max(times):7.1f} ms"
-                  f"  server {explained['Execution Time']:7.1f} ms  ({len(got)} rows)"
+                  f"  server {explained['Execution Time']:7.1f} ms  CPU server {server_cpu_ms:5.1f} client"
+                  f" {client_cpu_ms:5.1f} ms  ({len(got)} rows)"
                   f"  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
     return figures
+
+
+def plan_summary(node: dict[str, Any]) -> list[str]:
+    """The plan's scans and what they read: node type, relation or index, rows, heap fetches, buffers."""
+    found = []
+    if "Scan" in node["Node Type"]:
+        where = node.get("Index Name") or node.get("Relation Name") or ""
+        fetches = f" heap fetches {node['Heap Fetches']}" if "Heap Fetches" in node else ""
+        found.append(
+            f"{node['Node Type']} {where}: {node.get('Actual Rows')} rows x {node.get('Actual Loops')}{fetches}"
+        )
+    for child in node.get("Plans", []):
+        found.extend(plan_summary(child))
+    return found
 
 
 def time_cold(server: PostgresServer, rounds: int) -> dict[str, dict[str, Any]]:
@@ -185,7 +254,9 @@ def time_cold(server: PostgresServer, rounds: int) -> dict[str, dict[str, Any]]:
     return figures
 
 
-def insert_records(n: int) -> list[StoredRecord]:
+def insert_records(n: int, one_robot: bool = False) -> list[StoredRecord]:
+    """``n`` records of 100 robots, time and ids in order; mixed in each batch of BATCH (a fleet's, as
+    dc ingest gets them), or ``one_robot``: each batch one robot's records (as a robot's DC sends them)."""
     start = time.time_ns()
     out = []
     for i in range(n):
@@ -194,7 +265,7 @@ def insert_records(n: int) -> list[StoredRecord]:
             "average": (i * 37) % 100 + 0.25,
             "processes": 212,
             "name": "cpu" if i % 2 else "position",
-            "robot_name": f"robot-{i % 100:03d}",
+            "robot_name": f"robot-{(i // BATCH if one_robot else i) % 100:03d}",
             "run_id": str(1 + i // 10_000),
             "schema_version": 1,
             "tags": ["pg"],
@@ -207,25 +278,40 @@ def insert_records(n: int) -> list[StoredRecord]:
 
 
 def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
-    shapes = ("original", "typed", "typed_day")
+    shapes = (
+        "original",
+        "typed",
+        "typed_day",
+        "typed_day_no_latest",
+        "typed_day_lean",  # run_index and latest_table false
+        "typed_day_one_robot",
+        "original_one_robot",
+    )
     rates: dict[str, list[float]] = {s: [] for s in shapes}
     # CPU per row (this process and the server's, over the same window): what contention on a shared
     # machine inflates far less than the wall time.
     cpu_us: dict[str, list[float]] = {s: [] for s in shapes}
-    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    pid = server_pid(server)
     loads: list[float] = []  # the 1-minute load average at the end of each round
     for k in range(rounds):
-        order = shapes[k % 3 :] + shapes[: k % 3]  # each shape goes first once in three rounds
+        order = shapes[k % len(shapes) :] + shapes[: k % len(shapes)]  # each shape goes first in turn
         for shape in order:
             table = f"insert_{shape}_{k}"
-            if shape == "original":
+            if shape.startswith("original"):
                 with server.connect() as connection:
                     connection.execute(
                         f"CREATE TABLE {table} (tag varchar, time timestamp, data jsonb, record_id text)"
                     )
                     connection.execute(f"CREATE UNIQUE INDEX {table}_record_id ON {table} (record_id)")
-            dest = destination(server, table, "day" if shape == "typed_day" else "none")
-            records = insert_records(n)
+            dest = destination(
+                server,
+                table,
+                "day" if "day" in shape else "none",
+                shape not in ("typed_day_no_latest", "typed_day_lean"),
+                {"cpu": "average"} if shape.startswith("typed") else None,
+                shape != "typed_day_lean",
+            )
+            records = insert_records(n, shape.endswith("one_robot"))
             dest.send(records[:BATCH])  # connects and prepares: not timed
             started, cpu = time.perf_counter(), _client_cpu() + _tree_cpu(pid)
             for i in range(BATCH, n, BATCH):
@@ -235,8 +321,13 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
             dest.on_deactivate()
         loads.append(os.getloadavg()[0])
     medians = {s: statistics.median(r) for s, r in rates.items()}
-    ratios = [[rates[s][k] / rates["original"][k] for k in range(rounds)] for s in shapes[1:]]
-    cpu_ratios = [[cpu_us[s][k] / cpu_us["original"][k] for k in range(rounds)] for s in shapes[1:]]
+
+    # Each shape against the original's with the same batches (a robot's own, or the fleet's mixed).
+    def base(s: str) -> str:
+        return "original_one_robot" if s.endswith("one_robot") else "original"
+
+    ratios = [[rates[s][k] / rates[base(s)][k] for k in range(rounds)] for s in shapes[1:]]
+    cpu_ratios = [[cpu_us[s][k] / cpu_us[base(s)][k] for k in range(rounds)] for s in shapes[1:]]
     result = {
         "cpu_us_per_row": cpu_us,
         "cpu_ratio_to_original": {s: statistics.median(r) for s, r in zip(shapes[1:], cpu_ratios, strict=True)},
@@ -260,13 +351,13 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
 _ORIGINAL = "tag varchar, time timestamp, data jsonb, record_id text"
 _TYPED = (
     "tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL, name text, robot_name text,"
-    " run_id bigint"
+    " run_id bigint, value double precision"
 )
-_UNIQUE = "CREATE UNIQUE INDEX ON {t} (robot_name, name, time, record_id) NULLS NOT DISTINCT"
+_UNIQUE = "CREATE UNIQUE INDEX ON {t} (robot_name, name, time, record_id) INCLUDE (value) NULLS NOT DISTINCT"
 _RUN = "CREATE INDEX ON {t} (robot_name, run_id, name, time)"
 _BRIN = "CREATE INDEX ON {t} USING brin (time)"
 _RECORD_ID = "CREATE UNIQUE INDEX ON {t} (record_id)"
-_TEAM = "CREATE INDEX ON {t} (robot_name, name, time)"
+_TEAM = "CREATE INDEX ON {t} (robot_name, name, time) INCLUDE (value)"
 INDEX_SETS = {
     "original's shape: UNIQUE (record_id)": (_ORIGINAL, [_RECORD_ID]),
     "typed, no index": (_TYPED, []),
@@ -277,26 +368,46 @@ INDEX_SETS = {
 }
 
 
-def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
-    import orjson
+def server_pid(server: PostgresServer) -> int:
+    return int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
 
+
+@contextlib.contextmanager
+def copy_connection(server: PostgresServer) -> Iterator[Any]:
+    """A connection in autocommit that writes JSON text as jsonb in a binary COPY, as the destination does."""
     from dc_destinations.pgsql import json_text_binary_dumper
 
-    records = insert_records(n)
+    with server.connect() as connection:
+        connection.autocommit = True
+        connection.adapters.register_dumper(None, json_text_binary_dumper())
+        yield connection
+
+
+def copy_rows(records: list[StoredRecord]) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
+    """The rows of a binary COPY of ``records``: into a typed table, and into one of the original's shape."""
+    import orjson
+
     epoch = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
     typed, original = [], []
     for r in records:
         assert r.json_text is not None
         data = orjson.loads(r.json_text)
         moment = epoch + dt.timedelta(microseconds=r.stamp_ns // 1000)
-        typed.append(("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"])))
+        value = data["average"] if data["name"] == "cpu" else None
+        typed.append(
+            ("pg", moment, r.json_text, r.record_id, data["name"], data["robot_name"], int(data["run_id"]), value)
+        )
         original.append(("pg", moment.replace(tzinfo=None), r.json_text, r.record_id))
-    pid = int((server.data_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    return typed, original
+
+
+def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
+
+    typed, original = copy_rows(insert_records(n))
+    pid = server_pid(server)
     names = list(INDEX_SETS)
     cpu: dict[str, list[float]] = {name: [] for name in names}
-    with server.connect() as connection:
-        connection.autocommit = True
-        connection.adapters.register_dumper(None, json_text_binary_dumper())
+    with copy_connection(server) as connection:
         for k in range(rounds):
             for j, name in enumerate(names[k % len(names) :] + names[: k % len(names)]):
                 columns, indexes = INDEX_SETS[name]
@@ -306,7 +417,7 @@ def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, A
                     connection.execute(statement.format(t=table))
                 legacy = columns == _ORIGINAL
                 rows = original if legacy else typed
-                written = "tag, time, data, record_id" + ("" if legacy else ", name, robot_name, run_id")
+                written = "tag, time, data, record_id" + ("" if legacy else ", name, robot_name, run_id, value")
                 types = ["varchar", "timestamp", "jsonb", "text"] if legacy else TYPED_COPY_TYPES
                 before = _tree_cpu(pid)
                 for i in range(0, n, BATCH):
@@ -334,7 +445,113 @@ def time_index_costs(server: PostgresServer, n: int, rounds: int) -> dict[str, A
     return result
 
 
-TYPED_COPY_TYPES = ["text", "timestamptz", "jsonb", "text", "text", "text", "int8"]
+TYPED_COPY_TYPES = ["text", "timestamptz", "jsonb", "text", "text", "text", "int8", "float8"]
+_TYPED_COLUMNS = "tag, time, data, record_id, name, robot_name, run_id, value"
+# Each way of putting the same rows into a day-partitioned typed table with DC's indexes (or the
+# original's table), in batches of BATCH: what the insert's cost is made of. (way, table DDL)
+WAYS = (
+    "original's shape, COPY",
+    "DC's partitioned table, COPY into the parent (DC)",
+    "the same with the latest-row table's trigger (DC)",
+    "the same, COPY straight into the day's partition",
+    "the same, staging COPY + INSERT … ON CONFLICT DO NOTHING",
+    "the same, executemany INSERT … ON CONFLICT DO NOTHING",
+    "the same, each batch one robot's rows (COPY)",
+    "the same without the run index (COPY)",
+    "typed, no index (COPY)",
+)
+
+
+def time_insert_ways(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
+    """Server CPU and wall time per row of each way in WAYS, ``rounds`` rounds in turns."""
+
+    typed, original = copy_rows(insert_records(n))
+    by_robot, _ = copy_rows(insert_records(n, one_robot=True))
+    day = typed[0][1].date()
+    pid = server_pid(server)
+    cpu: dict[str, list[float]] = {way: [] for way in WAYS}
+    wall: dict[str, list[float]] = {way: [] for way in WAYS}
+    with copy_connection(server) as connection:
+        for k in range(rounds):
+            for j, way in enumerate(WAYS[k % len(WAYS) :] + WAYS[: k % len(WAYS)]):
+                table = f"way_{k}_{j}"
+                rows, target, types, columns = typed, table, TYPED_COPY_TYPES, _TYPED_COLUMNS
+                if way.startswith("original"):
+                    connection.execute(f"CREATE TABLE {table} ({_ORIGINAL})")
+                    connection.execute(_RECORD_ID.format(t=table))
+                    rows, types, columns = (
+                        original,
+                        ["varchar", "timestamp", "jsonb", "text"],
+                        "tag, time, data, record_id",
+                    )
+                elif way.startswith("typed, no index"):
+                    connection.execute(f"CREATE TABLE {table} ({_TYPED})")
+                else:
+                    connection.execute(f"CREATE TABLE {table} ({_TYPED}) PARTITION BY RANGE (time)")
+                    connection.execute(
+                        f"CREATE TABLE {table}_p PARTITION OF {table} FOR VALUES FROM ('{day} 00:00Z')"
+                        f" TO ('{day + dt.timedelta(days=1)} 00:00Z')"
+                    )
+                    connection.execute(_UNIQUE.format(t=table))
+                    if "without the run index" not in way:
+                        connection.execute(_RUN.format(t=table))
+                    connection.execute(_BRIN.format(t=table))
+                    if "latest" in way:
+                        connection.execute(block("latest-ddl").replace("dc", table).encode())
+                    connection.execute(f"CREATE TEMPORARY TABLE staging_{table} ({_TYPED}) ON COMMIT DELETE ROWS")
+                    if "straight into" in way:
+                        target = f"{table}_p"
+                    if "one robot" in way:
+                        rows = by_robot
+                before, started = _tree_cpu(pid), time.perf_counter()
+                for i in range(0, n, BATCH):
+                    batch = rows[i : i + BATCH]
+                    if "executemany" in way:
+                        with connection.transaction(), connection.cursor() as cursor:
+                            cursor.executemany(
+                                f"INSERT INTO {table} ({columns}) VALUES (%s, %s, %s::jsonb, %s, %s, %s, %s, %s)"
+                                " ON CONFLICT DO NOTHING",
+                                batch,
+                            )
+                        continue
+                    staged = "staging" in way
+                    with (
+                        connection.transaction() if staged else contextlib.nullcontext(),
+                        connection.cursor() as cursor,
+                    ):
+                        into = f"staging_{table}" if staged else target
+                        with cursor.copy(f"COPY {into} ({columns}) FROM STDIN (FORMAT BINARY)") as copy:
+                            copy.set_types(types)
+                            for row in batch:
+                                copy.write_row(row)
+                        if staged:
+                            cursor.execute(
+                                f"INSERT INTO {table} ({columns}) SELECT {columns} FROM staging_{table}"
+                                " ON CONFLICT DO NOTHING"
+                            )
+                wall[way].append((time.perf_counter() - started) / n * 1e6)
+                cpu[way].append((_tree_cpu(pid) - before) / n * 1e6)
+                connection.execute(f"DROP TABLE {table}")
+                connection.execute(f"DROP TABLE IF EXISTS {table}_latest")
+                connection.execute(f"DROP FUNCTION IF EXISTS {table}_keep_latest")
+                connection.execute(f"DROP TABLE IF EXISTS staging_{table}")
+    result = {}
+    for way in WAYS:
+        result[way] = {
+            "server_cpu_us_per_row": statistics.median(cpu[way]),
+            "server_cpu_ratio_to_original": statistics.median(
+                [a / b for a, b in zip(cpu[way], cpu[WAYS[0]], strict=True)]
+            ),
+            "wall_us_per_row": statistics.median(wall[way]),
+            "wall_ratio_to_original": statistics.median([a / b for a, b in zip(wall[way], wall[WAYS[0]], strict=True)]),
+            "cpu_runs": [round(x, 1) for x in cpu[way]],
+            "wall_runs": [round(x, 1) for x in wall[way]],
+        }
+        f = result[way]
+        print(f"server CPU {f['server_cpu_us_per_row']:5.1f} µs/row x{f['server_cpu_ratio_to_original']:.2f}"
+              f"  wall {f['wall_us_per_row']:5.1f} µs/row x{f['wall_ratio_to_original']:.2f}  {way}",
+              flush=True)  # fmt: skip
+    return result
 
 
 def load() -> list[float]:
@@ -351,6 +568,7 @@ def main() -> None:
     parser.add_argument("--insert-records", type=int, default=50_000)
     parser.add_argument("--insert-runs", type=int, default=7)
     parser.add_argument("--index-runs", type=int, default=0, help="rounds of the server's CPU per row per index set")
+    parser.add_argument("--ways-runs", type=int, default=0, help="rounds of the insert's ways (COPY, ON CONFLICT, …)")
     parser.add_argument("--label", default="")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="dc-bench-model-"))
@@ -366,6 +584,10 @@ def main() -> None:
             result["load_before_index_costs"] = load()
             result["index_costs"] = time_index_costs(server, args.insert_records, args.index_runs)
             result["load_after_index_costs"] = load()
+        if args.ways_runs:
+            result["load_before_ways"] = load()
+            result["insert_ways"] = time_insert_ways(server, args.insert_records, args.ways_runs)
+            result["load_after_ways"] = load()
         if args.robots:
             rows, seconds = generate(server, args.robots, args.hours)
             result.update(hours=args.hours, rows=rows, generate_s=seconds, load_before_queries=load())
@@ -378,10 +600,20 @@ def main() -> None:
         server.stop()
         shutil.rmtree(folder, ignore_errors=True)
     print(f"load averages (1, 5, 15 min): {[(k, v) for k, v in result.items() if k.startswith('load')]}")
-    label = f"_{args.label}" if args.label else ""
-    out = REPO / "benchmarks" / "results" / f"pgsql_data_model_{dt.date.today()}{label}.json"
+    out = result_path(REPO / "benchmarks" / "results", dt.date.today(), args.label)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"written {out}")
+
+
+def result_path(folder: Path, day: dt.date, label: str) -> Path:
+    """pgsql_data_model_<date>[_<label>].json, or with _2, _3, … when taken: a run never overwrites a
+    result (committed ones are what docs/performance.md cites)."""
+    stem = f"pgsql_data_model_{day}" + (f"_{label}" if label else "")
+    out, n = folder / f"{stem}.json", 1
+    while out.exists():
+        n += 1
+        out = folder / f"{stem}_{n}.json"
+    return out
 
 
 if __name__ == "__main__":

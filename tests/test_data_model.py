@@ -31,9 +31,18 @@ def queries() -> dict[str, str]:
     return dict(re.findall(r"<!-- query: (\w+) -->\n```sql\n(.*?)```", PAGE, re.S))
 
 
-def migration() -> str:
-    (sql,) = re.findall(r"<!-- migration -->\n```sql\n(.*?)```", PAGE, re.S)
+def block(tag: str) -> str:
+    (sql,) = re.findall(rf"<!-- {tag} -->\n```sql\n(.*?)```", PAGE, re.S)
     return str(sql)
+
+
+def migration() -> str:
+    return block("migration")
+
+
+# What the latest-record queries must answer: the plain query over the records table.
+PLAIN_LATEST = """SELECT DISTINCT ON (robot_name, name) robot_name, name, time, data FROM dc
+WHERE robot_name IS NOT NULL AND name IS NOT NULL ORDER BY robot_name, name, time DESC"""
 
 
 def at(hour: int, minute: int = 0, second: int = 0) -> int:
@@ -59,9 +68,11 @@ def server() -> Iterator[PostgresServer]:
         yield pg
 
 
-def destination(server: PostgresServer, table: str, logger: RecordingLogger) -> PgSQL:
+def destination(server: PostgresServer, table: str, logger: RecordingLogger, partition_by: str = "day") -> PgSQL:
     params = parse_params(
-        PgSQLParams, {**server.settings(), "table": table, "partition_by": "day"}, "destination_server.pg"
+        PgSQLParams,
+        {**server.settings(), "table": table, "partition_by": partition_by, "value_keys": {"cpu": "average"}},
+        "destination_server.pg",
     )
     dest = PgSQL(FakeContext(name="pg", logger=logger), params)
     dest.on_configure()
@@ -106,8 +117,8 @@ def run(server: PostgresServer, name: str, zone: str = "UTC") -> list[tuple[Any,
         return list(connection.execute(queries()[name].encode()).fetchall())
 
 
-def test_the_page_has_the_five_team_queries() -> None:
-    assert set(queries()) == {"path", "latest", "cpu_p95", "codes_per_shelf", "files"}
+def test_the_page_has_the_team_queries() -> None:
+    assert set(queries()) == {"path", "latest", "latest_scan", "cpu_p95", "cpu_p95_json", "codes_per_shelf", "files"}
 
 
 def test_the_path_of_a_robot_in_a_run(filled: PostgresServer) -> None:
@@ -116,8 +127,12 @@ def test_the_path_of_a_robot_in_a_run(filled: PostgresServer) -> None:
     assert got[0][0] == DAY + dt.timedelta(hours=10)
 
 
-def test_the_latest_record_of_each_measurement_of_each_robot(filled: PostgresServer) -> None:
-    got = {(r, n): (t, d) for r, n, t, d in run(filled, "latest")}
+@pytest.mark.parametrize("query", ["latest", "latest_scan"])
+def test_the_latest_record_of_each_measurement_of_each_robot(filled: PostgresServer, query: str) -> None:
+    answer = run(filled, query)
+    with filled.connect() as connection:
+        assert answer == connection.execute(PLAIN_LATEST.encode()).fetchall()
+    got = {(r, n): (t, d) for r, n, t, d in answer}
     assert set(got) == {
         ("robot-007", "cpu"),
         ("robot-007", "front_camera"),
@@ -129,9 +144,11 @@ def test_the_latest_record_of_each_measurement_of_each_robot(filled: PostgresSer
     assert got[("robot-008", "system")][1]["cpu"]["average"] == 6.0
 
 
-@pytest.mark.parametrize("zone", ["UTC", "America/Los_Angeles"])
-def test_cpu_p95_per_utc_hour_whatever_the_sessions_zone(filled: PostgresServer, zone: str) -> None:
-    got = run(filled, "cpu_p95", zone)
+@pytest.mark.parametrize(
+    ("query", "zone"), [("cpu_p95", "UTC"), ("cpu_p95", "America/Los_Angeles"), ("cpu_p95_json", "UTC")]
+)
+def test_cpu_p95_per_utc_hour_whatever_the_sessions_zone(filled: PostgresServer, query: str, zone: str) -> None:
+    got = run(filled, query, zone)
     hours = [h.astimezone(dt.UTC).hour for h, _ in got]
     assert hours == [10, 11, 23]
     assert [round(p, 1) for _, p in got] == [138.0, 148.0, 99.0]  # 100, 120, 140: p95 138
@@ -198,3 +215,57 @@ def test_the_documented_migration_makes_a_table_dc_writes_to_without_a_hint(serv
     finally:
         dest.on_deactivate()
     assert not [m for m in logger.at("warning") if "original's shape" in m]
+
+
+def test_the_documented_fill_of_a_latest_table_added_to_an_existing_table(server: PostgresServer) -> None:
+    with server.connect() as connection:
+        connection.execute("CREATE SCHEMA added")
+        connection.execute("SET search_path TO added")
+        connection.execute(
+            "CREATE TABLE dc (tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL UNIQUE,"
+            " name text, robot_name text, run_id bigint)"
+        )
+        connection.commit()
+    batch = [
+        record(at(h), **robot(f"robot-{r}", 1, name, v=h)) for h in (1, 2, 3) for r in (1, 2) for name in ("a", "b")
+    ]
+    dest = destination(server, "added.dc", RecordingLogger(), partition_by="none")
+    try:
+        assert dest.send(batch[:6]) is None  # no latest-row table: DC makes none for a table that exists
+        with server.connect() as connection:
+            connection.execute("SET search_path TO added")
+            connection.execute(block("latest-ddl").encode())
+            connection.execute(block("latest-table").encode())
+            connection.commit()
+        assert dest.send(batch[6:]) is None, "the newer records, upserted into the table added"
+        with server.connect() as connection:
+            connection.execute("SET search_path TO added")
+            kept = connection.execute(queries()["latest"].encode()).fetchall()
+            assert kept == connection.execute(PLAIN_LATEST.encode()).fetchall()
+    finally:
+        dest.on_deactivate()
+    assert [(r, n, d["v"]) for r, n, _, d in kept] == [(f"robot-{r}", m, 3) for r in (1, 2) for m in ("a", "b")]
+
+
+def test_dc_makes_the_latest_table_as_the_page_shows(filled: PostgresServer) -> None:
+    def definitions(connection: Any, table: str, function: str) -> list[str]:
+        found = connection.execute(
+            "SELECT (SELECT prosrc || array_to_string(proconfig, ',') FROM pg_proc WHERE oid = %s::regproc),"
+            " (SELECT pg_get_triggerdef(oid) FROM pg_trigger WHERE tgrelid = %s::regclass AND NOT tgisinternal),"
+            " (SELECT array_agg(format_type(atttypid, -1) ORDER BY attnum)::text FROM pg_attribute"
+            "   WHERE attrelid = %s::regclass AND attnum > 0),"
+            " (SELECT reloptions::text FROM pg_class WHERE oid = %s::regclass)",
+            (function, table, f"{table}_latest", f"{table}_latest"),
+        ).fetchone()
+        # Spacing, quoting and the schema aside (each made where its search_path pointed).
+        return [re.sub(r"[\s\"']|public\.|page\.|search_path=.*", "", str(x)).lower() for x in found]
+
+    with filled.connect() as connection:
+        made = definitions(connection, "public.dc", "public.dc_keep_latest")
+        connection.execute("CREATE SCHEMA page")
+        connection.execute("SET search_path TO page")
+        connection.execute("CREATE TABLE dc (LIKE public.dc)")
+        connection.execute(block("latest-ddl").encode())
+        shown = definitions(connection, "page.dc", "page.dc_keep_latest")
+        connection.rollback()
+    assert made == shown and all(made), made

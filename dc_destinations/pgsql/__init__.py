@@ -59,6 +59,8 @@ from dc_destinations.pgsql.table import (
     TableShape,
     add_record_id,
     create_typed,
+    has_latest,
+    latest_identifier,
     legacy_hint,
     not_partitioned_problem,
     period_start,
@@ -89,6 +91,21 @@ class PgSQLParams(PostgresServerParams):
         minimum=0,
         maximum=36500,
         doc="Partitions whose whole period is older than this many days are dropped; 0: kept for ever",
+    )
+    value_keys: dict[str, str] = param(
+        default_factory=dict,
+        doc="Measurement name -> the top-level key of its records whose number DC writes in column value (a table"
+        " DC creates has it, in its (robot_name, name, time) index): an aggregate of it reads the index only",
+    )
+    run_index: bool = param(
+        True,
+        doc="A table DC creates gets the index (robot_name, run_id, name, time): what is asked by run reads that"
+        " run's rows only; false: none (inserts cost the server less, a query by run reads the robot's rows)",
+    )
+    latest_table: bool = param(
+        True,
+        doc="A table DC creates gets <table>_latest, each robot's latest record of each measurement, kept by a"
+        " trigger of the table (PostgreSQL 14+); false: not made",
     )
     async_: bool = compat_param(
         False, "each batch is written by the destination's own sender thread", aliases=("async",)
@@ -125,6 +142,7 @@ class PgSQL(Destination[PgSQLParams]):
         self._copy_types: list[str] | None = None
         self._stage: Any = None  # COPY into the staging table, then the INSERT … SELECT from it
         self._move: Any = None
+        self._latest = False  # whether the table has its latest-row table (partitions expire in it too)
         # Whether the current connection has its staging table (a temporary table lives as long as
         # its session, so it is made again with every new connection).
         self._staging = False
@@ -136,6 +154,7 @@ class PgSQL(Destination[PgSQLParams]):
         self._maintained_at = 0.0
         self._hinted = False  # the hint to migrate a table of the original's shape: once
         self._run_id_told = False
+        self._value_told = False
         self.address = ""
 
     def __repr__(self) -> str:
@@ -196,25 +215,24 @@ class PgSQL(Destination[PgSQLParams]):
             return [(i, (tag, record_time(r, key, aware), text, r.record_id)) for i, r, text in pending]
         rows: _Rows = []
         run_id = self._run_id
+        value_keys = self.params.value_keys if shape.has_value else None
         for i, record, text in pending:
             data = _top_level(record, text)
             name, robot = data.get("name"), data.get("robot_name")
-            rows.append(
-                (
-                    i,
-                    (
-                        tag,
-                        record_time(record, key, aware)
-                        if key
-                        else _EPOCH_UTC + dt.timedelta(microseconds=record.stamp_ns // 1000),
-                        text,
-                        record.record_id,
-                        name if isinstance(name, str) else None,
-                        robot if isinstance(robot, str) else None,
-                        run_id(data.get("run_id")),
-                    ),
-                )
+            values: tuple[Any, ...] = (
+                tag,
+                record_time(record, key, aware)
+                if key
+                else _EPOCH_UTC + dt.timedelta(microseconds=record.stamp_ns // 1000),
+                text,
+                record.record_id,
+                name if isinstance(name, str) else None,
+                robot if isinstance(robot, str) else None,
+                run_id(data.get("run_id")),
             )
+            if value_keys is not None:
+                values = (*values, _number(data.get(value_keys[name]) if name in value_keys else None))
+            rows.append((i, values))
         return rows
 
     def _run_id(self, value: Any) -> int | None:
@@ -295,6 +313,7 @@ class PgSQL(Destination[PgSQLParams]):
                     f"dropped partitions {', '.join(partitions.dropped)} of table {self.params.table}"
                     f" (older than retention_days {self.params.retention_days})"
                 )
+                self._expire_latest(connection, partitions.dropped_before)
             starts = starts | partitions.ahead(today)
             self._maintained_at = now
         if starts - partitions.known:
@@ -336,7 +355,7 @@ class PgSQL(Destination[PgSQLParams]):
         table = self._table()
         shape = read_shape(connection, table)
         if shape is None:
-            create_typed(connection, table, p.table, p.partition_by)
+            create_typed(connection, table, p.table, p.partition_by, latest=p.latest_table, run_index=p.run_index)
             self.context.logger.info(
                 f"table {p.table} ready in {self.address} ({', '.join(TYPED_COLUMNS)}"
                 + (f"; partitioned by {p.partition_by})" if p.partition_by != "none" else ")")
@@ -357,6 +376,13 @@ class PgSQL(Destination[PgSQLParams]):
             raise not_partitioned_problem(p.table, self.address)
         self._shape = shape
         self._statements(shape)
+        self._latest = shape.typed and has_latest(connection, p.table)
+        if p.value_keys and not shape.has_value and not self._value_told:
+            self._value_told = True
+            self.context.logger.warning(
+                f"table {p.table} of {self.address} has no value column (double precision): value_keys unused;"
+                " docs/data-model.md#a-measurements-value-in-the-index says how to add it"
+            )
         self._staging = self._make_staging_table(connection, shape)
         self._direct = True
         self._copy_types = shape.copy_types()
@@ -381,6 +407,20 @@ class PgSQL(Destination[PgSQLParams]):
         self._stage = sql.SQL("COPY {} ({}) FROM STDIN").format(staging, columns)
         move = sql.SQL("INSERT INTO {} ({}) SELECT {} FROM {}")
         self._move = move.format(table, columns, columns, staging) + conflict
+
+    def _expire_latest(self, connection: Any, before: dt.date | None) -> None:
+        """The latest-row table's rows of dropped partitions removed with them: it answers what the
+        records table holds."""
+        from psycopg import sql
+
+        if not self._latest or before is None:
+            return
+        with connection.transaction():
+            connection.execute(
+                sql.SQL("DELETE FROM {} WHERE time < {}").format(
+                    latest_identifier(self.params.table), sql.Literal(f"{before} 00:00:00+00")
+                )
+            )
 
     def _make_staging_table(self, connection: Any, shape: TableShape) -> bool:
         """This session's staging table, with the types of the table's written columns; False if not allowed.
@@ -466,6 +506,13 @@ def _top_level(record: OutgoingRecord, text: str) -> dict[str, Any]:
     except orjson.JSONDecodeError:
         return record.data  # what is wrong with it, said the usual way
     return found if isinstance(found, dict) else record.data
+
+
+def _number(value: Any) -> float | None:
+    """A JSON number as float8 holds it; None for anything else (a bool is no number here)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) < 1.7e308:
+        return float(value)
+    return None
 
 
 def record_time(record: OutgoingRecord, timestamp_key: str = "", aware: bool = False) -> dt.datetime:

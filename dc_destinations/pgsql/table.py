@@ -26,9 +26,12 @@ PARTITION_BY = ("none", "day", "week")
 # and a robot whose clock runs a little ahead still finds one.
 PARTITIONS_AHEAD = 2
 MIGRATION_DOC = "docs/data-model.md#migrating-a-table-of-the-originals-shape"
+LATEST_SUFFIX = "_latest"
 
 LEGACY_COLUMNS = ("tag", "time", "data", "record_id")
 TYPED_COLUMNS = ("tag", "time", "data", "record_id", "name", "robot_name", "run_id")
+# A typed table DC makes has it; one made before it (or by hand) is typed without it.
+VALUE_COLUMN = "value"
 # The types of the columns a binary COPY may write, as format_type spells them, per column.
 _BINARY_TYPES = {
     "tag": ("character varying", "text"),
@@ -38,6 +41,7 @@ _BINARY_TYPES = {
     "name": ("text",),
     "robot_name": ("text",),
     "run_id": ("bigint",),
+    "value": ("double precision",),
 }
 _COPY_TYPES = {
     "character varying": "varchar",
@@ -46,13 +50,15 @@ _COPY_TYPES = {
     "timestamp with time zone": "timestamptz",
     "jsonb": "jsonb",
     "bigint": "int8",
+    "double precision": "float8",
 }
 
 _CATALOG = """SELECT c.relkind,
     ARRAY(SELECT ARRAY[attname::text, format_type(atttypid, atttypmod)] FROM pg_attribute
            WHERE attrelid = c.oid AND attnum > 0 AND NOT attisdropped),
-    ARRAY(SELECT ARRAY(SELECT a.attname::text FROM unnest(i.indkey) k JOIN pg_attribute a
-                        ON a.attrelid = i.indrelid AND a.attnum = k ORDER BY 1)::text
+    ARRAY(SELECT ARRAY(SELECT a.attname::text FROM unnest(i.indkey) WITH ORDINALITY AS k (attnum, n)
+                        JOIN pg_attribute a ON a.attrelid = i.indrelid AND a.attnum = k.attnum
+                        WHERE k.n <= i.indnkeyatts ORDER BY 1)::text
            FROM pg_index i WHERE i.indrelid = c.oid AND i.indisunique AND i.indpred IS NULL)
 FROM pg_class c WHERE c.oid = to_regclass(%(t)s)"""
 
@@ -63,7 +69,7 @@ class TableShape:
 
     partitioned: bool
     columns: dict[str, str]
-    unique_keys: frozenset[str]  # each unique index's columns, sorted, as PostgreSQL prints a text[]
+    unique_keys: frozenset[str]  # each unique index's key columns (not INCLUDEd ones), sorted, as a text[] prints
 
     @property
     def typed(self) -> bool:
@@ -72,7 +78,13 @@ class TableShape:
 
     @property
     def written(self) -> tuple[str, ...]:
-        return TYPED_COLUMNS if self.typed else LEGACY_COLUMNS
+        if not self.typed:
+            return LEGACY_COLUMNS
+        return (*TYPED_COLUMNS, VALUE_COLUMN) if self.has_value else TYPED_COLUMNS
+
+    @property
+    def has_value(self) -> bool:
+        return self.columns.get(VALUE_COLUMN) == "double precision"
 
     @property
     def conflict_key(self) -> str | None:
@@ -101,9 +113,11 @@ def read_shape(connection: Any, table: Any) -> TableShape | None:
     return TableShape(relkind == "p", {name: kind for name, kind in columns}, frozenset(unique))
 
 
-def create_typed(connection: Any, table: Any, name: str, partition_by: str) -> None:
-    """The table of DC's shape, with its indexes, in one transaction (IF NOT EXISTS: several robots
-    may make it at once)."""
+def create_typed(
+    connection: Any, table: Any, name: str, partition_by: str, *, latest: bool = True, run_index: bool = True
+) -> None:
+    """The table of DC's shape, with its indexes (``run_index``: with the run's; ``latest``: with its
+    latest-row table), in one transaction (IF NOT EXISTS: several robots may make it at once)."""
     from psycopg import sql
 
     base = name.rsplit(".", 1)[-1]
@@ -112,7 +126,7 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str) -> N
         connection.execute(
             sql.SQL(
                 "CREATE TABLE IF NOT EXISTS {} (tag text, time timestamptz NOT NULL, data jsonb,"
-                " record_id text NOT NULL, name text, robot_name text, run_id bigint)"
+                " record_id text NOT NULL, name text, robot_name text, run_id bigint, value double precision)"
                 + (" PARTITION BY RANGE (time)" if partitioned else "")
             ).format(table)
         )
@@ -123,10 +137,12 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str) -> N
             # the (record_id, time) key it replaces, from its stamp or timestamp_key (a copy stored
             # twice by NATS and ingested with two stamps is two rows, in both). NULLS NOT DISTINCT:
             # a record without robot or name is met too. One btree and its disk space where two were;
-            # the CPU per insert measured the same within the noise (docs/performance.md).
+            # the CPU per insert measured the same within the noise (docs/performance.md). value
+            # INCLUDEd: an aggregate of a measurement's value_keys number is an index-only scan.
             connection.execute(
                 sql.SQL(
-                    "CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time, record_id) NULLS NOT DISTINCT"
+                    "CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time, record_id) INCLUDE (value)"
+                    " NULLS NOT DISTINCT"
                 ).format(_index_name(base, "robot_name_time"), table)
             )
         else:
@@ -138,21 +154,96 @@ def create_typed(connection: Any, table: Any, name: str, partition_by: str) -> N
                 )
             )
             connection.execute(
-                sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time)").format(
+                sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time) INCLUDE (value)").format(
                     _index_name(base, "robot_name_time"), table
                 )
             )
         # The path of a robot in a run (and anything else asked by run) reads only that run's rows.
-        connection.execute(
-            sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, run_id, name, time)").format(
-                _index_name(base, "robot_run_time"), table
+        # A btree whose keys land all over it, as the team's: the largest part of the insert's cost
+        # after that one (docs/performance.md), hence run_index for a team that never asks by run.
+        if run_index:
+            connection.execute(
+                sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} (robot_name, run_id, name, time)").format(
+                    _index_name(base, "robot_run_time"), table
+                )
             )
-        )
         connection.execute(
             sql.SQL("CREATE INDEX IF NOT EXISTS {} ON {} USING brin (time)").format(
                 _index_name(base, "time_brin"), table
             )
         )
+        if latest and connection.info.server_version >= 140000:  # CREATE OR REPLACE TRIGGER
+            create_latest(connection, table, name)
+
+
+def latest_name(name: str, suffix: str = LATEST_SUFFIX) -> str:
+    """The latest-row table of records table ``name`` ("schema.table" kept), or another object named after it
+    with ``suffix``, within PostgreSQL's identifier length."""
+    schema, dot, base = name.rpartition(".")
+    return f"{schema}{dot}{base[: MAX_IDENTIFIER - len(suffix)]}{suffix}"
+
+
+def create_latest(connection: Any, table: Any, name: str) -> None:
+    """Each robot's latest record of each measurement, one row a pair, kept by a trigger of the records table.
+
+    The question "what did each robot last say" answered from a table of a row per pair: a skip
+    scan of the records table probes each of its partitions once per pair and reads a heap page
+    per row found (45-105 ms at 100 robots x 1 day; docs/data-model.md). A statement trigger
+    rather than the destination's own upsert: no round trip more per batch (a robot's link may be
+    slow), the rows a statement really inserted (not those ON CONFLICT skipped or the server
+    refused), whoever inserts them (dc ingest, a backfill).
+    """
+    from psycopg import sql
+
+    def identifier(suffix: str) -> Any:
+        return sql.Identifier(*latest_name(name, suffix).split("."))
+
+    latest = identifier(LATEST_SUFFIX)
+    # Fill factor 70: an upsert rewrites a row in place of itself on the same page (a HOT update,
+    # the key's index untouched) as long as the page has room.
+    connection.execute(
+        sql.SQL(
+            "CREATE TABLE IF NOT EXISTS {} (robot_name text NOT NULL, name text NOT NULL,"
+            " time timestamptz NOT NULL, data jsonb, record_id text NOT NULL, PRIMARY KEY (robot_name, name))"
+            " WITH (fillfactor = 70)"
+        ).format(latest)
+    )
+    # The pairs in one order: two statements upserting the same pairs at once wait for each other
+    # rather than deadlock. A row is replaced by a record as late or later only (a robot's backlog
+    # delivered after newer records replaces nothing).
+    body = sql.SQL(
+        "BEGIN INSERT INTO {} AS l (robot_name, name, time, data, record_id)"
+        " SELECT DISTINCT ON (robot_name, name) robot_name, name, time, data, record_id FROM dc_inserted"
+        " WHERE robot_name IS NOT NULL AND name IS NOT NULL ORDER BY robot_name, name, time DESC"
+        " ON CONFLICT (robot_name, name) DO UPDATE"
+        " SET time = EXCLUDED.time, data = EXCLUDED.data, record_id = EXCLUDED.record_id"
+        " WHERE l.time <= EXCLUDED.time; RETURN NULL; END"
+    ).format(latest)
+    function = identifier("_keep_latest")
+    # SET search_path FROM CURRENT: the session that inserts (any role, any search_path) upserts
+    # into the latest-row table of the records table's schema, the one current here.
+    connection.execute(
+        sql.SQL(
+            "CREATE OR REPLACE FUNCTION {}() RETURNS trigger LANGUAGE plpgsql SET search_path FROM CURRENT AS {}"
+        ).format(function, sql.Literal(body.as_string(connection)))
+    )
+    connection.execute(
+        sql.SQL(
+            "CREATE OR REPLACE TRIGGER keep_latest AFTER INSERT ON {} REFERENCING NEW TABLE AS dc_inserted"
+            " FOR EACH STATEMENT EXECUTE FUNCTION {}()"
+        ).format(table, function)
+    )
+
+
+def has_latest(connection: Any, name: str) -> bool:
+    found = connection.execute("SELECT to_regclass(%s)", (latest_identifier(name).as_string(connection),))
+    return found.fetchone()[0] is not None
+
+
+def latest_identifier(name: str) -> Any:
+    from psycopg import sql
+
+    return sql.Identifier(*latest_name(name).split("."))
 
 
 def add_record_id(connection: Any, table: Any, name: str, partitioned: bool) -> None:
@@ -220,6 +311,7 @@ class Partitions:
         self.known: set[dt.date] = set()
         self.made: list[str] = []  # names made by the last ensure(), for the log
         self.dropped: list[str] = []  # names dropped by the last expire(), for the log
+        self.dropped_before: dt.date | None = None  # the end of the latest period expire() dropped
 
     def _identifier(self, start: dt.date) -> Any:
         from psycopg import sql
@@ -260,6 +352,7 @@ class Partitions:
         from psycopg import sql
 
         self.dropped = []
+        self.dropped_before = None
         if not self.retention_days:
             return
         horizon = today - dt.timedelta(days=self.retention_days)
@@ -280,3 +373,5 @@ class Partitions:
                 connection.execute(sql.SQL("DROP TABLE IF EXISTS {}").format(self._identifier(start)))
             self.known.discard(start)
             self.dropped.append(child)
+            end = period_end(start, self.partition_by)
+            self.dropped_before = max(end, self.dropped_before or end)

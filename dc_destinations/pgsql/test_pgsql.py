@@ -425,9 +425,19 @@ def table_facts(server: PostgresServer, table: str) -> tuple[list[tuple[str, str
 
 def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServer, destinations: list[PgSQL]) -> None:
     logger = RecordingLogger()
-    dest = make(server, destinations, logger=logger, table="typed")
-    group = {"name": "robot", "robot_name": "r1", "run_id": "10", "cpu": {"robot_name": "r1", "run_id": "10"}}
-    batch = [record(0, name="cpu", robot_name="r1", run_id="2"), record(1, **group), record(2, run_id="run-x")]
+    dest = make(server, destinations, logger=logger, table="typed", value_keys={"cpu": "average", "robot": "v"})
+    group = {
+        "name": "robot",
+        "robot_name": "r1",
+        "run_id": "10",
+        "cpu": {"robot_name": "r1", "run_id": "10"},
+        "v": True,
+    }
+    batch = [
+        record(0, name="cpu", robot_name="r1", run_id="2", average=12),
+        record(1, **group),
+        record(2, run_id="run-x", average=3.5),
+    ]
     assert dest.send(batch) is None and dest.send(batch) is None
     columns, indexes, partitions = table_facts(server, "typed")
     assert columns == [
@@ -438,8 +448,9 @@ def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServ
         ("name", "text"),
         ("robot_name", "text"),
         ("run_id", "bigint"),
+        ("value", "double precision"),
     ]
-    assert any('(robot_name, name, "time")' in i for i in indexes), indexes
+    assert any('(robot_name, name, "time") INCLUDE (value)' in i for i in indexes), indexes
     assert any('(robot_name, run_id, name, "time")' in i for i in indexes), indexes
     assert any('USING brin ("time")' in i for i in indexes), indexes
     assert any("UNIQUE" in i and "(record_id)" in i for i in indexes), indexes
@@ -447,9 +458,11 @@ def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServ
     with admin(server) as connection:
         connection.execute("SET TIME ZONE 'America/Los_Angeles'")  # a session in another zone sees the same rows
         got = connection.execute(
-            "SELECT name, robot_name, run_id FROM typed WHERE time >= '2023-11-14 22:13:20Z' ORDER BY run_id"
+            "SELECT name, robot_name, run_id, value FROM typed WHERE time >= '2023-11-14 22:13:20Z' ORDER BY run_id"
         ).fetchall()
-    assert got == [("cpu", "r1", 2), ("robot", "r1", 10), (None, None, None)], "run_id sorts as a number"
+    assert got == [("cpu", "r1", 2, 12.0), ("robot", "r1", 10, None), (None, None, None, None)], (
+        "run_id sorts as a number; value: the number under the measurement's value_keys key (a bool is none)"
+    )
     told = [m for m in logger.at("warning") if "is not a counter" in m]
     assert len(told) == 1, logger.lines
 
@@ -510,6 +523,79 @@ def test_partition_by_day_makes_partitions_ahead_and_drops_the_expired(
     _, _, partitions = table_facts(server, "daily")
     assert f"daily_p{old:%Y%m%d}" not in partitions and "daily_by_hand" in partitions, "only DC's own are dropped"
     assert any("dropped partitions" in m and f"daily_p{old:%Y%m%d}" in m for m in logger.at("info"))
+
+
+def latest_rows(server: PostgresServer, table: str) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
+    """(the latest-row table's rows, what DISTINCT ON finds in the records table), both by pair."""
+    with admin(server) as connection:
+        kept = connection.execute(
+            f"SELECT robot_name, name, time, data, record_id FROM {table}_latest ORDER BY 1, 2"
+        ).fetchall()
+        found = connection.execute(
+            f"SELECT DISTINCT ON (robot_name, name) robot_name, name, time, data, record_id FROM {table}"
+            " WHERE robot_name IS NOT NULL AND name IS NOT NULL ORDER BY robot_name, name, time DESC"
+        ).fetchall()
+    return kept, found
+
+
+def test_the_latest_table_holds_each_pairs_latest_record_whatever_the_order(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    today_ns = int(dt.datetime.combine(dt.datetime.now(dt.UTC).date(), dt.time(1), dt.UTC).timestamp() * 1e9)
+
+    def at(seconds: int, robot: str | None, name: str | None, **data: Any) -> OutgoingRecord:
+        rid = new_record_id()
+        keys = {"robot_name": robot, "name": name} if robot else {"name": name}
+        return OutgoingRecord(rid, "/dc/measurement/t", today_ns + seconds * 10**9, {**keys, **data, "record_id": rid})
+
+    dest = make(server, destinations, table="latest", partition_by="day", retention_days=30)
+    first = [
+        at(5, "r1", "cpu", v=5),
+        at(3, "r1", "cpu", v=3),
+        at(1, "r2", "cpu", v=1),
+        at(-40 * 86_400, "r3", "cpu", v=0),  # in a partition past retention_days: dropped at the next pass
+        at(9, None, "cpu", v=9),  # no robot: no pair to file it under
+    ]
+    assert dest.send(first) is None
+    # A robot's backlog after newer records: an older record of r1 replaces nothing.
+    backlog = [at(2, "r1", "cpu", v=2), at(7, "r2", "cpu", v=7)]
+    assert dest.send(backlog) is None and dest.send(backlog) is None, "the second time, through the staging table"
+    refused = dest.send([at(4, "r2", "memory", v=4), at(8, "r2", "memory", text="\u0000")])
+    assert refused is not None and list(refused.reject) == [1]
+    kept, found = latest_rows(server, "latest")
+    assert kept == found
+    assert [(r, n, d["v"]) for r, n, _, d, _ in kept] == [
+        ("r1", "cpu", 5),
+        ("r2", "cpu", 7),
+        ("r2", "memory", 4),
+        ("r3", "cpu", 0),  # until its partition expires
+    ]
+    dest.on_deactivate()  # the next connection drops the partition past retention, and r3's row with it
+    assert dest.send([at(6, "r1", "memory", v=6)]) is None
+    kept, found = latest_rows(server, "latest")
+    assert kept == found, "the latest-row table answers what DISTINCT ON over the records table does"
+    assert [(r, n) for r, n, *_ in kept] == [("r1", "cpu"), ("r1", "memory"), ("r2", "cpu"), ("r2", "memory")]
+
+
+def test_an_existing_table_gets_no_latest_table_nor_a_new_one_with_latest_table_and_run_index_false(
+    server: PostgresServer, destinations: list[PgSQL]
+) -> None:
+    with admin(server) as connection:
+        connection.execute(
+            "CREATE TABLE mine (tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL UNIQUE,"
+            " name text, robot_name text, run_id bigint)"
+        )
+    assert make(server, destinations, table="mine").send([record(0, name="cpu", robot_name="r1")]) is None
+    off = make(server, destinations, table="not_kept", latest_table=False, run_index=False)
+    assert off.send([record(0, name="cpu", robot_name="r1")]) is None
+    with admin(server) as connection:
+        found = connection.execute(
+            "SELECT to_regclass('mine_latest'), to_regclass('not_kept_latest'),"
+            " (SELECT count(*) FROM pg_trigger WHERE tgrelid IN ('mine'::regclass, 'not_kept'::regclass))"
+        ).fetchone()
+    assert found == (None, None, 0), "an existing table is never changed; latest_table: false makes none"
+    _, indexes, _ = table_facts(server, "not_kept")
+    assert not [i for i in indexes if "run_id" in i] and len(indexes) == 3, indexes
 
 
 def test_a_week_partition_is_an_iso_week_of_utc_days() -> None:
