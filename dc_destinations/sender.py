@@ -74,6 +74,33 @@ _T = TypeVar("_T")
 # committed. Fast, and raises nothing: what it raises is logged, the delivery goes on.
 OutcomeListener = Callable[[str, list[str], bool], None]
 
+# (destination, record_ids, reason): records that left the pipeline for that destination with no
+# outcome, neither confirmed nor dead-lettered: called on the thread that dropped them, once the
+# drop is committed. The reasons, for whoever decides what becomes of them (dc_destinations.ingest):
+DROP_SIZE_LIMIT = "size_limit"  # storage_total_limit_size reached (when_full drop_newest or drop_oldest)
+DROP_DISK_BUDGET = "disk_budget"  # evicted unsent to keep flb.disk_budget
+DROP_INTAKE = "intake"  # refused at the hand-over: intake_queue_limit, or the pipeline not running
+DROP_NOT_COMMITTED = "not_committed"  # its group commit failed at the stop (a full disk)
+DROP_NOT_STORABLE = "not_storable"  # the buffer cannot hold it (not valid UTF-8 JSON): never deliverable
+DROP_FILE_EVICTED = "file_evicted"  # the saved file it names was evicted before this destination had it
+DropListener = Callable[[str, list[str], str], None]
+
+
+def tell_dropped(
+    listeners: Sequence[DropListener], logger: Logger, destination: str, record_ids: list[str], reason: str
+) -> None:
+    """Each listener told of ``record_ids`` dropped; one that raises is logged, never the caller's failure."""
+    if not record_ids:
+        return
+    for listener in listeners:
+        try:
+            listener(destination, record_ids, reason)
+        except Exception as exc:
+            logger.error(
+                f"destination {destination}: a drop listener failed: {type(exc).__name__}: {exc}\n"
+                f"{traceback.format_exc()}"
+            )
+
 
 class Gate:
     """``send`` and the destination's other hooks one at a time: what :meth:`run` is given waits for
@@ -249,10 +276,12 @@ class Sender:
         wait: Callable[[float], bool] | None = None,
         uniform: Callable[[float, float], float] | None = None,
         listeners: Sequence[OutcomeListener] = (),
+        drop_listeners: Sequence[DropListener] = (),
     ) -> None:
         self.route = route
         self.buffer = buffer
         self._listeners = listeners
+        self._drop_listeners = drop_listeners
         self.settings = settings
         self.closing = closing
         self._clock = clock
@@ -506,7 +535,9 @@ class Sender:
             route.metrics.add("evicted", taken)
             route.evict_log.event(taken, "records naming saved files evicted before this destination had them")
             assert route.saved is not None
-            route.saved.taken_out(route.name, [row.record_id for row in batch.evicted])
+            evicted_ids = [row.record_id for row in batch.evicted]
+            route.saved.taken_out(route.name, evicted_ids)
+            tell_dropped(self._drop_listeners, route.logger, route.name, evicted_ids, DROP_FILE_EVICTED)
         if not records:
             return False
         if route.pacer.active and not route.pacer.take(sum(row.size for row in sent_rows)):
