@@ -522,3 +522,38 @@ def warehouse_table(pg: PostgresServer, name: str) -> Any:
     with psycopg.connect(**connection_settings(pg)) as connection:
         connection.execute(f"DELETE FROM {name}")
     return plugin
+
+
+def test_settlements_answer_each_message_by_what_its_destinations_did() -> None:
+    from dc_destinations.ingest import ACK, NAK, TERM, Settlements, Taken
+
+    verdicts: list[tuple[Any, str, str, str]] = []
+    s = Settlements(lambda *verdict: verdicts.append(verdict), remember=2)
+    assert s.add("a", "m1", ["pg", "lake"]) == Taken(["lake", "pg"], 0)
+    s.settled("lake", ["a"])
+    s.dropped("pg", ["a"], "size_limit")
+    assert verdicts.pop() == ("m1", NAK, "size_limit", "pg") and len(s) == 0
+    # Back again: only to the destination that had not settled it, its hand-back known.
+    assert s.add("a", "m1 again", ["pg", "lake"]) == Taken(["pg"], 1)
+    s.dropped("lake", ["a"], "size_limit")  # a late report of a destination that settled it: no effect
+    s.settled("pg", ["a"])
+    assert verdicts.pop() == ("m1 again", ACK, "", "")
+    s.add("b", "m2", ["pg", "lake"])
+    s.dropped("pg", ["b"], "not_storable")
+    s.settled("lake", ["b"])
+    assert verdicts.pop() == ("m2", TERM, "not_storable", "pg")
+    # A drop for want of room wins over one for good: the other destination may take it later.
+    s.add("c", "m3", ["pg", "lake"])
+    s.dropped("pg", ["c"], "not_storable")
+    s.dropped("lake", ["c"], "disk_budget")
+    assert verdicts.pop() == ("m3", NAK, "disk_budget", "lake")
+    assert s.add("c", "m3 again", ["pg", "lake"]) == Taken(["lake"], 1)
+    s.settled("lake", ["c"])
+    assert verdicts.pop() == ("m3 again", TERM, "not_storable", "pg")
+    # At most `remember` hand-backs are remembered, the oldest forgotten first.
+    for rid in ("x", "y", "z"):
+        s.add(rid, rid, ["pg"])
+        s.dropped("pg", [rid], "intake")
+    assert s.add("x", "x", ["pg"]) == Taken(["pg"], 0) and s.add("z", "z", ["pg"]) == Taken(["pg"], 1)
+    s.settled("pg", ["unknown"])  # a replayed dead letter: not in flight here
+    assert len(s) == 2 and [v[1] for v in verdicts] == [NAK, NAK, NAK]
