@@ -297,9 +297,12 @@ class Buffer(Protocol):
         *,
         now_ns: int | None = None,
         tried_now: Collection[int] = (),
+        moved_ids: list[str] | None = None,
     ) -> int:
         """Move rows to the dead letters with their error text; returns how many moved. ``tried_now``: rows
-        whose failed attempt the queue has not counted yet (refused at once), counted in the dead letter's."""
+        whose failed attempt the queue has not counted yet (refused at once), counted in the dead letter's.
+        ``moved_ids``: given, the record_ids of the rows moved are added to it (not those the size
+        limit dropped meanwhile)."""
 
     def queued_bytes(self) -> dict[str, int]:
         """Bytes of records waiting per destination."""
@@ -952,8 +955,10 @@ class SqliteBuffer:
         *,
         now_ns: int | None = None,
         tried_now: Collection[int] = (),
+        moved_ids: list[str] | None = None,
     ) -> int:
-        """Move rows to the dead-letter table with their error text; returns how many moved."""
+        """Move rows to the dead-letter table with their error text; returns how many moved (their
+        record_ids added to ``moved_ids`` when given)."""
         if not failures:
             return 0
         failed = _now_ns() if now_ns is None else now_ns
@@ -986,6 +991,8 @@ class SqliteBuffer:
                     (row.size, qid),
                 )
                 moved += 1
+                if moved_ids is not None:
+                    moved_ids.append(row.record_id)
         return moved
 
     def queued_bytes(self) -> dict[str, int]:

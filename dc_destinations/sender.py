@@ -527,8 +527,10 @@ class Sender:
         batch = prepared if prepared is not None else self._prepare(rows)
         records, sent_rows, unreadable = batch.records, batch.sent_rows, batch.unreadable
         if unreadable:
-            route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))
-            self._tell([row.record_id for row, _ in unreadable], dead_lettered=True)
+            # Told only what was moved: a row the size limit dropped meanwhile has no dead letter.
+            moved_ids: list[str] = []
+            route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable, moved_ids=moved_ids))
+            self._tell(moved_ids, dead_lettered=True)
             self.bound_dead_letters()
         if batch.evicted:
             taken = buffer.delete(route.name, [row.row_id for row in batch.evicted], sent=False)
@@ -592,15 +594,20 @@ class Sender:
                 route.failure_log.event(failed_again, next(iter(retry.values())))
         if dead:
             # A refused record was tried once more than its queue row counted (only retries are counted there).
-            moved = buffer.dead_letter(route.name, dead, tried_now={sent_rows[i].row_id for i in reject})
+            moved_ids = []
+            moved = buffer.dead_letter(
+                route.name, dead, tried_now={sent_rows[i].row_id for i in reject}, moved_ids=moved_ids
+            )
             route.metrics.add("dead_lettered", moved)
             route.dead_letter_log.event(moved, f"{dead[0][1]}; see `dc buffer list`")
-            self._tell([row.record_id for row, _ in dead], dead_lettered=True)
+            self._tell(moved_ids, dead_lettered=True)
             self.bound_dead_letters()
         return retried > 0
 
     def _tell(self, record_ids: list[str], *, dead_lettered: bool) -> None:
         """The listeners told of an outcome committed (see :data:`OutcomeListener`)."""
+        if not record_ids:
+            return
         for listener in self._listeners:
             try:
                 listener(self.route.name, record_ids, dead_lettered)

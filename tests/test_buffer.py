@@ -635,3 +635,17 @@ def test_evict_oldest_names_the_records_it_evicts(buffer: Buffer) -> None:
     evicted = buffer.evict_oldest("a", 3 * pending(0).size, with_ids=True)
     assert (evicted.records, evicted.record_ids) == (3, [f"id-{i:08d}" for i in range(2, 5)])
     assert buffer.evict_oldest("a", 1).record_ids == []  # not asked for
+
+
+def test_dead_letter_names_only_the_rows_it_moved(buffer: Buffer) -> None:
+    """A row the size limit dropped while its send failed has no dead letter: whoever is told of dead
+    letters (dc ingest acknowledges their messages) must not hear of it."""
+    size = pending(0).size
+    limit = {"a": QueueLimit(max_bytes=4 * size, drop_oldest=True)}
+    buffer.append({"a": [pending(i) for i in range(4)]}, limit)
+    failed = buffer.read_batch("a", 4)
+    buffer.append({"a": [pending(i) for i in range(10, 12)]}, limit)  # drops the two oldest
+    moved: list[str] = []
+    assert buffer.dead_letter("a", [(row, "refused") for row in failed], moved_ids=moved) == 2
+    assert moved == ["id-00000002", "id-00000003"]
+    assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000010", "id-00000011"]
