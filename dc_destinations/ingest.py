@@ -8,7 +8,10 @@ final (dc_destinations.sender.OutcomeListener): a record is *settled* for a dest
 confirmed it, or once its dead letter (refused for good, or failed beyond ``retry_limit``) is
 committed to this worker's buffer, counted, as on a robot. When every destination has settled a
 record, its JetStream message is acknowledged; until then JetStream keeps it, and redelivers it
-after ``ack_wait`` to whichever worker asks (another one if this one died). So:
+after ``ack_wait`` to whichever worker asks (another one if this one died). A record the worker's
+buffer drops (a size limit, the disk budget: sender.DropListener) is no outcome: its message is
+handed back (nak, redelivered after ``handback_delay``), or terminated when no delivery can ever
+succeed, never acknowledged (:class:`Settlements`, docs/fleet.md). So:
 
 - several ``dc ingest`` processes on one consumer share its messages (JetStream hands each
   message to one of them at a time);
@@ -554,7 +557,7 @@ class Ingest:
                 self._terminated_log.event(1, f"{what} (message {msg.metadata.sequence.stream} on {msg.subject})")
                 await msg.term()
         except Exception as exc:  # JetStream delivers it again after ack_wait all the same
-            self.logger.warning(f"cannot hand back message {msg.metadata.sequence.stream}: {exc}")
+            self.logger.warning(f"cannot {verdict} message {msg.metadata.sequence.stream}: {exc}")
 
     async def _ack(self, msg: Any) -> None:
         try:
