@@ -663,6 +663,35 @@ def test_saved_files_of_an_earlier_run_still_count_after_a_restart(tmp_path: Pat
     assert [p.exists() for p in produced] == [False] * second["evicted"] + [True] * second["kept"]
 
 
+def test_a_ledger_written_before_files_kept_their_confirmations_is_read_and_upgraded(tmp_path: Path) -> None:
+    """A saved_files.sqlite3 of the DC before the `told` column: its files still count, and it is upgraded."""
+    import sqlite3
+
+    from dc_destinations.saved_files import SavedFiles
+
+    image = save(tmp_path / "save", "camera", 0, 10 * KB)
+    ledger = tmp_path / "saved_files.sqlite3"
+    with sqlite3.connect(ledger) as db:
+        db.execute(
+            "CREATE TABLE files (path TEXT PRIMARY KEY, size INTEGER NOT NULL, measurement TEXT NOT NULL, "
+            "run_id TEXT NOT NULL, seq INTEGER NOT NULL, run_index INTEGER NOT NULL, priority INTEGER NOT NULL, "
+            "destinations TEXT NOT NULL, owed TEXT NOT NULL, records TEXT NOT NULL)"
+        )
+        db.execute("INSERT INTO files VALUES (?, ?, 'camera', 'r1', 1, 0, 0, '[]', '[]', '[]')", (str(image), 10 * KB))
+    db.close()
+    saved = SavedFiles(ledger, {}, RecordingLogger(), roots=[str(tmp_path / "save")])
+    saved.open()
+    try:
+        assert saved.total_bytes == 10 * KB
+        assert saved.evict(str(image)) is not None and not image.exists()
+        saved.tick()
+    finally:
+        saved.close()
+    with sqlite3.connect(ledger) as db:
+        assert db.execute("SELECT count(*) FROM files").fetchone() == (0,)
+    db.close()
+
+
 def test_a_record_naming_a_file_outside_the_save_folders_never_has_it_weighed_or_deleted(tmp_path: Path) -> None:
     """Anything on the ROS graph can publish a record: one naming a file of someone else's (outside the
     save folder and the file destinations' allowed_roots, or reached through a link from inside) is

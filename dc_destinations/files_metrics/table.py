@@ -138,7 +138,7 @@ class FileRow:
     record_id: str
     bucket: str
     etag: str | None
-    evicted: bool = False  # deleted by DC to keep within its disk budget before this storage held it
+    evicted: bool = False  # deleted by DC to keep within its disk budget (before this storage held it, if not uploaded)
 
     def values(self) -> dict[str, Any]:
         return asdict(self)
