@@ -70,6 +70,14 @@ def save(folder: Path, measurement: str, n: int, size: int) -> Path:
     return path
 
 
+def started(tmp_path: Path, destinations: dict[str, Any], roots: list[Path], **flb: Any) -> DeliveryPipeline:
+    """A pipeline with its buffer in ``tmp_path``, started, its saved files in ``roots`` (and the destinations')."""
+    settings = DeliveryParams(storage_path=str(tmp_path / "buffer"), flush=0.05, http_server=False, **flb)
+    pipeline = DeliveryPipeline(settings, destinations, LOG, saved_files_roots=[str(root) for root in roots])
+    pipeline.start()
+    return pipeline
+
+
 # -- the plan, pure ---------------------------------------------------------------------------------
 
 
@@ -324,11 +332,8 @@ def test_a_file_evicted_after_files_metrics_recorded_it_has_its_row_say_so(
     uploaded; the kept ones' rows are unchanged. Every file delivered: produced = delivered."""
     import psycopg
 
-    settings = DeliveryParams(
-        storage_path=str(tmp_path / "buffer"), flush=0.05, scheduler_base=0.05, http_server=False, disk_budget="1M"
-    )
-    pipeline = DeliveryPipeline(settings, file_destinations(pg, s3, OnlyWhenParams(), "evicted_after"), LOG)
-    pipeline.start()
+    destinations = file_destinations(pg, s3, OnlyWhenParams(), "evicted_after")
+    pipeline = started(tmp_path, destinations, [], disk_budget="1M", scheduler_base=0.05)
     produced: list[Path] = []
 
     def produce(count: int) -> None:
@@ -395,23 +400,13 @@ def test_a_record_whose_file_is_evicted_while_it_is_in_send_is_counted_evicted(
             return super().send(batch)
 
     minio = minio_destination(s3, EvictedInSend)
-    settings = DeliveryParams(
-        storage_path=str(tmp_path / "buffer"),
-        flush=0.05,
-        http_server=False,
-        disk_budget="1M",
-        retention_priorities={"incident": 10},
+    destinations = {
+        "minio": (minio, DestinationDeliveryParams(batch_size=1)),
+        "records": (Collecting(), DestinationDeliveryParams()),
+    }
+    pipeline = started(
+        tmp_path, destinations, [tmp_path / "save"], disk_budget="1M", retention_priorities={"incident": 10}
     )
-    pipeline = DeliveryPipeline(
-        settings,
-        {
-            "minio": (minio, DestinationDeliveryParams(batch_size=1)),
-            "records": (Collecting(), DestinationDeliveryParams()),
-        },
-        LOG,
-        saved_files_roots=[str(tmp_path / "save")],
-    )
-    pipeline.start()
 
     def counts(measurement: str) -> dict[str, Any]:
         return dict(pipeline.status_document()["saved_files"]["measurements"].get(measurement, {}))
@@ -575,20 +570,13 @@ def test_the_floor_watches_the_save_folders_filesystem_too(tmp_path: Path) -> No
     the buffer's disk (evicting it would free nothing where space is short)."""
     with tmpfs(tmp_path / "disk", "8m") as disk:
         save_dir, elsewhere = disk / "save", tmp_path / "save"
-        settings = DeliveryParams(
-            storage_path=str(tmp_path / "buffer"),
-            flush=0.05,
-            http_server=False,
+        pipeline = started(
+            tmp_path,
+            {"records": (Collecting(), DestinationDeliveryParams())},
+            [elsewhere, save_dir],
             disk_free_floor="3M",
             retention_priorities={"incident": 10},
         )
-        pipeline = DeliveryPipeline(
-            settings,
-            {"records": (Collecting(), DestinationDeliveryParams())},
-            LOG,
-            saved_files_roots=[str(elsewhere), str(save_dir)],
-        )
-        pipeline.start()
         produced: list[Path] = []
 
         def produce(folder: Path, measurement: str) -> None:
