@@ -115,6 +115,8 @@ measurement_server:
       post_trigger: 3.0
       max_memory_mb: 64.0
       cooldown: 2.0
+      # Counted in wall-clock hours: the default 60 would stop a day's incidents after the first 60.
+      max_incidents_per_hour: 10000
       compression: "zstd"
       save_path: "incidents/%Y-%m-%dT%H-%M-%S"
       remote_prefixes: [""]
