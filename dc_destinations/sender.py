@@ -562,6 +562,16 @@ class Sender:
             self.bound_dead_letters()
         return retried > 0
 
+    def bound_dead_letters(self) -> None:
+        """Delete the oldest dead letters beyond ``dead_letter_limit_size``, counted and logged."""
+        route = self.route
+        if route.dead_letter_max_bytes is None:
+            return
+        deleted = self.buffer.trim_dead_letters(route.name, route.dead_letter_max_bytes)
+        if deleted:
+            route.metrics.add("dead_letters_dropped", deleted)
+            route.dead_letter_drop_log.event(deleted, "the newest are kept; see `dc buffer list`")
+
     def _take_out_evicted(self, rows: list[BufferedRow]) -> None:
         """Records naming saved files evicted before this destination had them: out of its queue, counted."""
         route = self.route
@@ -589,16 +599,6 @@ class Sender:
             return True
         route.saved.told(route.name, notices)
         return False
-
-    def bound_dead_letters(self) -> None:
-        """Delete the oldest dead letters beyond ``dead_letter_limit_size``, counted and logged."""
-        route = self.route
-        if route.dead_letter_max_bytes is None:
-            return
-        deleted = self.buffer.trim_dead_letters(route.name, route.dead_letter_max_bytes)
-        if deleted:
-            route.metrics.add("dead_letters_dropped", deleted)
-            route.dead_letter_drop_log.event(deleted, "the newest are kept; see `dc buffer list`")
 
 
 class _Stopping(Exception):
