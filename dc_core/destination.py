@@ -20,7 +20,7 @@ from __future__ import annotations
 import abc
 import functools
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, TypeVar
 
@@ -268,6 +268,11 @@ class Destination(Plugin[ParamsT]):
         A record it confirms counts as its files delivered and verified by it: a plugin returns
         fields here only if its confirmation means that (MinIO: uploaded and verified)."""
         return []
+
+    def files_evicted(self, files: Mapping[str, Sequence[str]]) -> None:
+        """DC evicted these files (path -> ids of records naming them) after this destination confirmed
+        those records: a destination that ``records_evictions`` says so where it recorded them. Called
+        on its sender's thread, between sends; raise RetryableError to be told again later."""
 
     def evicted_file(self, path: str) -> bool:
         """True when DC evicted ``path`` to keep within its disk budget before this destination had it."""

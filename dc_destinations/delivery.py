@@ -38,7 +38,7 @@ from dc_destinations.buffer import (
     SqliteBuffer,
 )
 from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
-from dc_destinations.disk_budget import budget_plan
+from dc_destinations.disk_budget import FileCandidate, Step, budget_plan
 from dc_destinations.health import FAILING
 from dc_destinations.links import LinuxNetwork, Network, link_buckets, warn_missing_interfaces
 from dc_destinations.metrics import prometheus_text
@@ -532,13 +532,13 @@ class DeliveryPipeline:
             if self._budget_log is not None:
                 self._budget_log.tick()
             disk = os.statvfs(self.storage_file.parent)
-            size, free = disk.f_blocks * disk.f_frsize, disk.f_bavail * disk.f_frsize
+            size = disk.f_blocks * disk.f_frsize
             queued = {name: n for name, n in buffer.queued_bytes().items() if name in self._routes}
             retention = {name: route.params.retention_priority for name, route in self._routes.items()}
-            budget, floor = self._limits.budget(size), self._limits.floor(size)
+            budget = self._limits.budget(size)
             over = sum(queued.values()) + (saved.total_bytes if saved is not None else 0) - (budget or 0)
-            under = (floor - free) if floor is not None else 0
-            if (budget is None or over <= 0) and under <= 0:
+            short = self._under_floor()
+            if (budget is None or over <= 0) and not short:
                 return
             # Only when something must go: the list of files is walked (tens of thousands on a long run).
             files = saved.candidates() if saved is not None else []
@@ -547,12 +547,8 @@ class DeliveryPipeline:
                 if saved is not None:
                     saved.too_large(budget)
                 steps = budget_plan(queued, retention, files, over)
-            if under > 0 and not any(step.kind == "file" for step in steps):
-                steps = budget_plan(queued, retention, files, under, records=False)
-                if not steps and self._budget_log is not None:
-                    self._budget_log.event(
-                        1, f"{free} bytes free, under disk_free_floor ({floor}), and no saved file left to evict"
-                    )
+            if short and not any(step.kind == "file" for step in steps):
+                steps = self._floor_steps(short, files, queued, retention)
             for step in steps:
                 if step.kind == "records":
                     gone = buffer.evict_oldest(step.name, step.nbytes, with_ids=bool(self._drop_listeners))
@@ -571,6 +567,51 @@ class DeliveryPipeline:
             return
         except (sqlite3.Error, OSError) as exc:  # a full disk: tried again at the next tick, said by the commit failing
             self.logger.warning(f"delivery buffer: keeping the disk budget failed: {exc}")
+
+    def _under_floor(self) -> list[tuple[str, int, int, int]]:
+        """(folder, device, free bytes, floor) of each filesystem under disk_free_floor: the buffer's and
+        those of the folders saved files are in (the save folder, the file destinations' allowed_roots)."""
+        limits = self._limits
+        if (limits.floor_bytes is None and limits.floor_fraction is None) or self.storage_file is None:
+            return []
+        short = []
+        seen: set[int] = set()
+        for folder in (str(self.storage_file.parent), *self._saved_files_roots):
+            try:
+                device = os.stat(folder).st_dev
+                if device in seen:
+                    continue
+                seen.add(device)
+                disk = os.statvfs(folder)
+            except OSError:
+                continue  # a save folder not made yet holds no file
+            floor = self._limits.floor(disk.f_blocks * disk.f_frsize)
+            free = disk.f_bavail * disk.f_frsize
+            if floor is not None and free < floor:
+                short.append((folder, device, free, floor))
+        return short
+
+    def _floor_steps(
+        self,
+        short: list[tuple[str, int, int, int]],
+        files: list[FileCandidate],
+        queued: dict[str, int],
+        retention: dict[str, int],
+    ) -> list[Step]:
+        """The saved files to evict, by the budget's order, to bring each filesystem in ``short`` back
+        above the floor: only files on that filesystem free space there."""
+        steps: list[Step] = []
+        for folder, device, free, floor in short:
+            here = [f for f in files if _device(f.path) == device]
+            plan = budget_plan(queued, retention, here, floor - free, records=False)
+            if not plan and self._budget_log is not None:
+                self._budget_log.event(
+                    1,
+                    f"{free} bytes free on the filesystem of {folder}, under disk_free_floor ({floor}), and no "
+                    "saved file left to evict there",
+                )
+            steps += plan
+        return steps
 
     # -- observability ------------------------------------------------------------------------------
 
@@ -715,6 +756,14 @@ class DeliveryPipeline:
             supervisor=self.supervisor,
             announce_as=self.metrics_announce_as,
         )
+
+
+def _device(path: str) -> int | None:
+    """The filesystem ``path`` is on; None when it cannot be read (gone: the eviction will say so)."""
+    try:
+        return os.stat(path).st_dev
+    except OSError:
+        return None
 
 
 def _plugin_counters(route: Route) -> dict[str, int]:

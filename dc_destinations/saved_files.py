@@ -14,7 +14,9 @@ against the budget, and has it evict those the plan (dc_destinations.disk_budget
 eviction deletes the file and is counted per measurement (``evicted``, ``evicted_unsent``) and per
 file destination that had not delivered it (``files_evicted``). A record of such a destination that
 names an evicted file is then taken out of that destination's queue, counted ``evicted``, unless the
-destination records evictions itself (FilesMetrics writes the file's row with ``evicted``).
+destination records evictions itself (FilesMetrics writes the file's row with ``evicted``). Such a
+destination is also told of a file evicted after it confirmed it (``notices_for``, on its sender's
+thread: FilesMetrics then marks the rows it wrote of that file evicted, off the filesystem).
 
 What it knows is kept in a small SQLite file beside the buffer, so that the files saved before a
 restart still count. Counters are since start, as the delivery counters.
@@ -53,7 +55,12 @@ CREATE TABLE IF NOT EXISTS runs (
     measurement TEXT NOT NULL, run_id TEXT NOT NULL, produced INTEGER NOT NULL,
     PRIMARY KEY (measurement, run_id));
 CREATE TABLE IF NOT EXISTS evicted (path TEXT PRIMARY KEY, records TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS notices (
+    destination TEXT NOT NULL, path TEXT NOT NULL, records TEXT NOT NULL, PRIMARY KEY (destination, path));
 """
+# Added since the first ledgers: (destination, record_id) that confirmed the file, of the destinations
+# that record evictions (they are told when it is evicted later).
+_ADDED = {"told": "TEXT NOT NULL DEFAULT '[]'"}
 
 
 @dataclass
@@ -68,6 +75,8 @@ class SavedFile:
     destinations: set[str]  # the file destinations that deliver it
     owed: set[str]  # those that have not confirmed it yet
     records: set[tuple[str, str]]  # (destination, record_id) naming it, not confirmed yet
+    # (destination, record_id) that confirmed it, of the destinations that record evictions.
+    told: set[tuple[str, str]] = field(default_factory=set)
 
     @property
     def delivered(self) -> bool:
@@ -157,6 +166,9 @@ class SavedFiles:
         self._runs: dict[tuple[str, str], int] = {}
         self._evicted: dict[str, set[tuple[str, str]]] = {}  # path -> (destination, record_id) to settle
         self._skip: dict[str, set[str]] = collections.defaultdict(set)  # destination -> record ids to take out
+        # destination -> path -> record ids whose rows must say the file was evicted (records_evictions).
+        self._notices: dict[str, dict[str, set[str]]] = collections.defaultdict(dict)
+        self._dirty_notices: set[tuple[str, str]] = set()
         self._inbox: collections.deque[_Noted] = collections.deque()
         self._confirmations: collections.deque[tuple[str, list[str]]] = collections.deque()
         self._waiting: list[_Noted] = []
@@ -204,14 +216,19 @@ class SavedFiles:
         db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         db.execute("PRAGMA journal_mode=WAL")
         db.executescript(_SCHEMA)
+        columns = {row[1] for row in db.execute("PRAGMA table_info(files)")}
+        for column, definition in _ADDED.items():
+            if column not in columns:
+                db.execute(f"ALTER TABLE files ADD COLUMN {column} {definition}")
         return db
 
     def _load(self) -> None:
         assert self._db is not None
         for row in self._db.execute(
-            "SELECT path, size, measurement, run_id, seq, run_index, priority, destinations, owed, records FROM files"
+            "SELECT path, size, measurement, run_id, seq, run_index, priority, destinations, owed, records, told "
+            "FROM files"
         ):
-            path, size, measurement, run_id, seq, run_index, priority, destinations, owed, records = row
+            path, size, measurement, run_id, seq, run_index, priority, destinations, owed, records, told = row
             self._files[path] = SavedFile(
                 path,
                 int(size),
@@ -223,6 +240,7 @@ class SavedFiles:
                 set(json.loads(destinations)),
                 set(json.loads(owed)),
                 {(d, r) for d, r in json.loads(records)},
+                {(d, r) for d, r in json.loads(told)},
             )
             for _, record_id in self._files[path].records:
                 self._by_record[record_id].add(path)
@@ -236,20 +254,25 @@ class SavedFiles:
             for destination, record_id in pending:
                 if destination not in self.records_evictions:
                     self._skip[destination].add(record_id)
+        for destination, path, records in self._db.execute("SELECT destination, path, records FROM notices"):
+            self._notices[destination][path] = set(json.loads(records))
 
     def _persist(self) -> None:
         db = self._db
-        if db is None or not (self._dirty or self._dirty_runs or self._dirty_evicted):
+        if db is None or not (self._dirty or self._dirty_runs or self._dirty_evicted or self._dirty_notices):
             return
         files = [(p, self._files.get(p)) for p in self._dirty]
         evicted = [(p, self._evicted.get(p)) for p in self._dirty_evicted]
         runs = [(m, r, self._runs[(m, r)]) for m, r in self._dirty_runs]
+        notices = [(d, p, self._notices.get(d, {}).get(p)) for d, p in self._dirty_notices]
         self._dirty, self._dirty_runs, self._dirty_evicted = set(), set(), set()
+        self._dirty_notices = set()
         try:
             db.execute("BEGIN")
             db.executemany("DELETE FROM files WHERE path = ?", [(p,) for p, f in files if f is None])
             db.executemany(
-                "INSERT OR REPLACE INTO files VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT OR REPLACE INTO files (path, size, measurement, run_id, seq, run_index, priority, "
+                "destinations, owed, records, told) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 [
                     (
                         f.path,
@@ -262,6 +285,7 @@ class SavedFiles:
                         json.dumps(sorted(f.destinations)),
                         json.dumps(sorted(f.owed)),
                         json.dumps(sorted(f.records)),
+                        json.dumps(sorted(f.told)),
                     )
                     for _, f in files
                     if f is not None
@@ -272,6 +296,13 @@ class SavedFiles:
             db.executemany(
                 "INSERT OR REPLACE INTO evicted VALUES (?, ?)", [(p, json.dumps(sorted(e))) for p, e in evicted if e]
             )
+            db.executemany(
+                "DELETE FROM notices WHERE destination = ? AND path = ?", [(d, p) for d, p, n in notices if not n]
+            )
+            db.executemany(
+                "INSERT OR REPLACE INTO notices VALUES (?, ?, ?)",
+                [(d, p, json.dumps(sorted(n))) for d, p, n in notices if n],
+            )
             db.execute("COMMIT")
         except sqlite3.Error as exc:  # a full disk: kept in memory, written at a later tick
             with contextlib.suppress(sqlite3.Error):
@@ -279,6 +310,7 @@ class SavedFiles:
             self._dirty |= {p for p, _ in files}
             self._dirty_runs |= {(m, r) for m, r, _ in runs}
             self._dirty_evicted |= {p for p, _ in evicted}
+            self._dirty_notices |= {(d, p) for d, p, _ in notices}
             self.failure_log.event(1, f"the ledger {self.path} could not be written: {exc}")
 
     def close(self) -> None:
@@ -322,6 +354,24 @@ class SavedFiles:
         with self._lock:
             self._skip[destination] -= done
             self._settle_evicted({(destination, r) for r in done})
+
+    def notices_for(self, destination: str) -> dict[str, list[str]]:
+        """Files evicted after ``destination`` (one that records evictions) confirmed records naming
+        them: path -> those record ids. It says so where it recorded them, then calls :meth:`told`."""
+        with self._lock:
+            return {path: sorted(ids) for path, ids in self._notices.get(destination, {}).items()}
+
+    def told(self, destination: str, paths: Iterable[str]) -> None:
+        """``destination`` recorded the eviction of these files."""
+        with self._lock:
+            notices = self._notices.get(destination, {})
+            for path in paths:
+                if notices.pop(path, None) is not None:
+                    self._dirty_notices.add((destination, path))
+
+    def _notify(self, destination: str, path: str, record_ids: Iterable[str]) -> None:
+        self._notices[destination].setdefault(path, set()).update(record_ids)
+        self._dirty_notices.add((destination, path))
 
     def is_evicted(self, path: str) -> bool:
         """True when DC evicted ``path`` before every destination delivered it (FilesMetrics asks)."""
@@ -397,13 +447,20 @@ class SavedFiles:
 
     def _confirm(self, destination: str, record_ids: list[str]) -> None:
         keys = {(destination, r) for r in record_ids}
-        self._settle_evicted(keys)
+        telling = destination in self.records_evictions
+        for path, settled in self._settle_evicted(keys).items():
+            if telling:  # it may have found the file still there, in a send() as DC evicted it: told again
+                self._notify(destination, path, (r for _, r in settled))
+        # Records of a file evicted in a send() that confirmed them anyway: nothing left to take out.
+        self._skip[destination] -= set(record_ids)
         for record_id in record_ids:
             for path in list(self._by_record.get(record_id, ())):
                 saved = self._files.get(path)
                 if saved is None or (destination, record_id) not in saved.records:
                     continue
                 saved.records.discard((destination, record_id))
+                if telling:
+                    saved.told.add((destination, record_id))
                 if not any(d == record_id for _, d in saved.records):
                     self._by_record[record_id].discard(path)
                     if not self._by_record[record_id]:
@@ -416,12 +473,16 @@ class SavedFiles:
                     if not os.path.exists(path):  # deleted once sent (delete_when_sent): off the disk
                         self._forget(saved)
 
-    def _settle_evicted(self, keys: set[tuple[str, str]]) -> None:
+    def _settle_evicted(self, keys: set[tuple[str, str]]) -> dict[str, set[tuple[str, str]]]:
+        """Forget these (destination, record_id) of the evicted files that awaited them; returns which, per path."""
+        settled = {}
         for path in [p for p, pending in self._evicted.items() if pending & keys]:
+            settled[path] = self._evicted[path] & keys
             self._evicted[path] -= keys
             self._dirty_evicted.add(path)
             if not self._evicted[path]:
                 del self._evicted[path]
+        return settled
 
     def _forget(self, saved: SavedFile) -> None:
         self._files.pop(saved.path, None)
@@ -509,6 +570,8 @@ class SavedFiles:
                 counts.evicted_unsent += 1
             for destination in unsent:
                 self._files_evicted[destination] += 1
+            for destination, record_id in saved.told:  # its rows say the file is on the filesystem
+                self._notify(destination, path, (record_id,))
             pending = {key for key in saved.records if key[0] in saved.owed}
             if pending:
                 self._evicted[path] = pending

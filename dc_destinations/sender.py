@@ -322,6 +322,11 @@ class Sender:
                         return
                     self._wait_held()
                     continue
+                if route.saved is not None and route.destination.records_evictions and self._tell_evictions():
+                    ahead = None
+                    if closing or self._wait_backoff(self._retry_delay()):
+                        return
+                    continue
                 batch = self._still_next(ahead, ahead_after) if ahead is not None else None
                 ahead = None
                 if batch is None:
@@ -533,13 +538,7 @@ class Sender:
             self._tell(moved_ids, dead_lettered=True)
             self.bound_dead_letters()
         if batch.evicted:
-            taken = buffer.delete(route.name, [row.row_id for row in batch.evicted], sent=False)
-            route.metrics.add("evicted", taken)
-            route.evict_log.event(taken, "records naming saved files evicted before this destination had them")
-            assert route.saved is not None
-            evicted_ids = [row.record_id for row in batch.evicted]
-            route.saved.taken_out(route.name, evicted_ids)
-            tell_dropped(self._drop_listeners, route.logger, route.name, evicted_ids, DROP_FILE_EVICTED)
+            self._take_out_evicted(batch.evicted)
         if not records:
             return False
         if route.pacer.active and not route.pacer.take(sum(row.size for row in sent_rows)):
@@ -547,9 +546,22 @@ class Sender:
         retry, waiting, reject, problem, self._retry_after = route.gate.send(
             lambda: _outcome_of(route.destination, records)
         )
+        gone: set[int] = set()
+        if route.saved is not None and route.file_fields and (retry or waiting or reject):
+            # A file evicted while send() had its record: the record failed for want of it (no file, or
+            # it vanished), which is the eviction, counted as such, not a failure nor a dead letter.
+            skip = route.saved.skipped_for(route.name)
+            gone = {i for i in (*retry, *waiting, *reject) if sent_rows[i].record_id in skip}
+            if gone:
+                retry, waiting, reject = (
+                    {i: r for i, r in d.items() if i not in gone} for d in (retry, waiting, reject)
+                )
+                self._take_out_evicted([sent_rows[i] for i in sorted(gone)])
         again = {**waiting, **retry}  # back to the queue: failed, or not ready yet
-        if again or reject:
-            confirmed = [row.row_id for i, row in enumerate(sent_rows) if i not in again and i not in reject]
+        if again or reject or gone:
+            confirmed = [
+                row.row_id for i, row in enumerate(sent_rows) if i not in again and i not in reject and i not in gone
+            ]
         else:
             confirmed = [row.row_id for row in sent_rows]
         # The destination answered unless everything must be retried; a refusal that names a fix is a
@@ -626,6 +638,36 @@ class Sender:
         if deleted:
             route.metrics.add("dead_letters_dropped", deleted)
             route.dead_letter_drop_log.event(deleted, "the newest are kept; see `dc buffer list`")
+
+    def _take_out_evicted(self, rows: list[BufferedRow]) -> None:
+        """Records naming saved files evicted before this destination had them: out of its queue, counted."""
+        route = self.route
+        taken = self.buffer.delete(route.name, [row.row_id for row in rows], sent=False)
+        route.metrics.add("evicted", taken)
+        route.evict_log.event(taken, "records naming saved files evicted before this destination had them")
+        assert route.saved is not None
+        evicted_ids = [row.record_id for row in rows]
+        route.saved.taken_out(route.name, evicted_ids)
+        tell_dropped(self._drop_listeners, route.logger, route.name, evicted_ids, DROP_FILE_EVICTED)
+
+    def _tell_evictions(self) -> bool:
+        """Tell a destination that records evictions of the files evicted after it confirmed them;
+        True when that failed (told again after a backoff)."""
+        route = self.route
+        assert route.saved is not None
+        notices = route.saved.notices_for(route.name)
+        if not notices:
+            return False
+        try:
+            route.destination.files_evicted(notices)
+        except Exception as exc:  # a database down, or a plugin's bug: the sender waits and tries again
+            what = f"recording {len(notices)} evicted files: {type(exc).__name__}: {exc}"
+            route.metrics.add("failed")
+            route.metrics.set_error(what)
+            route.failure_log.event(1, what)
+            return True
+        route.saved.told(route.name, notices)
+        return False
 
 
 class _Stopping(Exception):

@@ -28,7 +28,7 @@ def assert_valid(cls: type[Measurement[Any]], record: dict[str, Any]) -> None:
     jsonschema.Draft7Validator(schema).validate(record)
 
 
-def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
+def wait_until(predicate: Callable[[], bool], timeout: float = 60.0) -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
         if time.monotonic() > deadline:

@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -241,7 +242,7 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
     import json as _json
     import threading
 
-    document = {
+    document: dict[str, Any] = {
         "destinations": {
             "pg": {
                 "received": 10,
@@ -286,6 +287,10 @@ def test_status_prints_a_table_from_the_metrics_endpoint(tmp_path: Path) -> None
 
     class Handler(http.server.BaseHTTPRequestHandler):
         def do_GET(self) -> None:
+            # Times as old as the figures below when dc asks, however long it took to start.
+            pg = document["destinations"]["pg"]
+            pg["last_error_time"], pg["last_delivery"] = time.time() - 60, time.time() - 3
+            pg["health"]["since"] = time.time() - 300
             body = _json.dumps(document).encode()
             self.send_response(200 if self.path == "/api/v1/metrics" else 404)
             self.send_header("Content-Length", str(len(body)))

@@ -91,7 +91,7 @@ def reject_all(call: int, batch: Sequence[OutgoingRecord]) -> None:
     raise RejectedError("400 Bad Request: field 'x' unknown")
 
 
-def wait_until(predicate: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
+def wait_until(predicate: Callable[[], bool], timeout: float = 60.0, what: str = "condition") -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
         if time.monotonic() > deadline:

@@ -70,6 +70,14 @@ def save(folder: Path, measurement: str, n: int, size: int) -> Path:
     return path
 
 
+def started(tmp_path: Path, destinations: dict[str, Any], roots: list[Path], **flb: Any) -> DeliveryPipeline:
+    """A pipeline with its buffer in ``tmp_path``, started, its saved files in ``roots`` (and the destinations')."""
+    settings = DeliveryParams(storage_path=str(tmp_path / "buffer"), flush=0.05, http_server=False, **flb)
+    pipeline = DeliveryPipeline(settings, destinations, LOG, saved_files_roots=[str(root) for root in roots])
+    pipeline.start()
+    return pipeline
+
+
 # -- the plan, pure ---------------------------------------------------------------------------------
 
 
@@ -147,12 +155,9 @@ def s3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SeaweedS3Server]:
     server.stop(timeout=3.0)
 
 
-def file_destinations(pg: PostgresServer, s3: SeaweedS3Server, held: OnlyWhenParams) -> dict[str, Any]:
-    from dc_destinations.files_metrics import FilesMetrics, FilesMetricsParams
-    from dc_destinations.minio import MinIO, MinIOParams
-
+def store_settings(s3: SeaweedS3Server) -> dict[str, Any]:
     s = s3.settings()
-    store = {
+    return {
         "endpoint": f"127.0.0.1:{s3.port}",
         "use_ssl": False,
         "access_key_id": s["aws_access_key_id"],
@@ -161,11 +166,29 @@ def file_destinations(pg: PostgresServer, s3: SeaweedS3Server, held: OnlyWhenPar
         "src_fields": ["local_paths.jpeg", "local_paths.mcap"],
         "upload_fields": ["remote_paths.minio.jpeg", "remote_paths.minio.mcap"],
     }
-    roots = [tempfile.gettempdir()]
-    minio = MinIO(
+
+
+def minio_destination(s3: SeaweedS3Server, kind: type[Any] | None = None) -> Any:
+    """The MinIO destination of SeaweedFS's bucket, configured and active (``kind``: a subclass of MinIO)."""
+    from dc_destinations.minio import MinIO, MinIOParams
+
+    params = {**store_settings(s3), "allowed_roots": [tempfile.gettempdir()], "complete_after": 0.0}
+    minio = (kind or MinIO)(
         FakeContext(name="minio", logger=RecordingLogger()),
-        parse_params(MinIOParams, {**store, "allowed_roots": roots, "complete_after": 0.0}, "destination_server.minio"),
+        parse_params(MinIOParams, params, "destination_server.minio"),
     )
+    minio.on_configure()
+    minio.on_activate()
+    return minio
+
+
+def file_destinations(
+    pg: PostgresServer, s3: SeaweedS3Server, held: OnlyWhenParams, table: str = "budget_files"
+) -> dict[str, Any]:
+    from dc_destinations.files_metrics import FilesMetrics, FilesMetricsParams
+
+    store, roots = store_settings(s3), [tempfile.gettempdir()]
+    minio = minio_destination(s3)
     files = FilesMetrics(
         FakeContext(name="files", logger=RecordingLogger()),
         parse_params(
@@ -175,14 +198,13 @@ def file_destinations(pg: PostgresServer, s3: SeaweedS3Server, held: OnlyWhenPar
                 "minio": store,
                 "missing_wait": 0.0,
                 "allowed_roots": roots,
-                "pgsql": {**pg.settings(), "table": "budget_files", "connect_timeout": 2},
+                "pgsql": {**pg.settings(), "table": table, "connect_timeout": 2},
             },
             "destination_server.files",
         ),
     )
-    for plugin in (minio, files):
-        plugin.on_configure()
-        plugin.on_activate()
+    files.on_configure()
+    files.on_activate()
     params = DestinationDeliveryParams(only_when=held, batch_size=20)
     return {"minio": (minio, params), "files": (files, params)}
 
@@ -299,6 +321,117 @@ def test_saved_files_are_evicted_by_value_counted_and_shown_in_files_metrics(
         )
         poll(accounted, 10, "every file delivered or counted evicted")
     finally:
+        pipeline.stop(0.5)
+
+
+def test_a_file_evicted_after_files_metrics_recorded_it_has_its_row_say_so(
+    pg: PostgresServer, s3: SeaweedS3Server, tmp_path: Path
+) -> None:
+    """Images uploaded, verified and recorded in files_metrics, then evicted to make room for newer
+    ones (delivered files go first): their rows say evicted, no longer on the filesystem, still
+    uploaded; the kept ones' rows are unchanged. Every file delivered: produced = delivered."""
+    import psycopg
+
+    destinations = file_destinations(pg, s3, OnlyWhenParams(), "evicted_after")
+    pipeline = started(tmp_path, destinations, [], disk_budget="1M", scheduler_base=0.05)
+    produced: list[Path] = []
+
+    def produce(count: int) -> None:
+        for _ in range(count):
+            produced.append(save(tmp_path / "save", "camera", len(produced), 40 * KB))
+            record = saved_record(produced[-1], "camera")
+            pipeline.submit_record([("minio", record), ("files", record)])
+
+    def camera() -> dict[str, Any]:
+        return dict(pipeline.status_document()["saved_files"]["measurements"].get("camera", {}))
+
+    def rows() -> dict[str, tuple[bool, bool, bool]]:
+        with psycopg.connect(**pg_connect(pg)) as connection:
+            found = connection.execute("SELECT local_path, uploaded, on_filesystem, evicted FROM evicted_after")
+            return {path: (uploaded, on_fs, evicted) for path, uploaded, on_fs, evicted in found}
+
+    try:
+        produce(15)  # 600 kB: within the budget
+        assert pipeline.flush_intake(10)
+        poll(lambda: camera().get("delivered") == 15, 60, "the first images uploaded and recorded")
+        assert rows() == {str(p): (True, True, False) for p in produced}
+        produce(15)  # 1.2 MB: the oldest delivered images go
+        assert pipeline.flush_intake(10)
+
+        def settled() -> bool:
+            gone = {str(p) for p in produced if not p.exists()}
+            found = rows()
+            return (
+                camera().get("delivered") == 30
+                and len(found) == 30
+                and bool(gone)
+                and all(found[p] == ((True, False, True) if p in gone else (True, True, False)) for p in found)
+            )
+
+        poll(settled, 60, "the evicted files' rows saying so")
+        gone = [p for p in produced if not p.exists()]
+        assert gone == produced[: len(gone)]
+        counts, metrics = camera(), pipeline.metrics()
+        assert counts["produced"] == counts["delivered"] == 30 and counts["evicted"] == len(gone)
+        assert counts["evicted_unsent"] == 0
+        assert metrics["minio"]["sent"] == metrics["files"]["sent"] == 30
+        assert metrics["files"]["failed"] == 0
+    finally:
+        pipeline.stop(0.5)
+
+
+def test_a_record_whose_file_is_evicted_while_it_is_in_send_is_counted_evicted(
+    s3: SeaweedS3Server, tmp_path: Path
+) -> None:
+    """MinIO has a camera image's record in send() when a recording (retention priority 10) pushes DC
+    over its budget and the image, the only lower-priority copy, is evicted: MinIO finds no file.
+    The record is counted evicted, not dead-lettered: received = sent + evicted, and for the image
+    produced = delivered + evicted_unsent."""
+    import threading
+
+    from dc_destinations.minio import MinIO
+
+    in_send, evicted = threading.Event(), threading.Event()
+
+    class EvictedInSend(MinIO):
+        def send(self, batch: Any) -> SendOutcome | None:
+            in_send.set()
+            assert evicted.wait(60), "the file was not evicted"
+            return super().send(batch)
+
+    minio = minio_destination(s3, EvictedInSend)
+    destinations = {
+        "minio": (minio, DestinationDeliveryParams(batch_size=1)),
+        "records": (Collecting(), DestinationDeliveryParams()),
+    }
+    pipeline = started(
+        tmp_path, destinations, [tmp_path / "save"], disk_budget="1M", retention_priorities={"incident": 10}
+    )
+
+    def counts(measurement: str) -> dict[str, Any]:
+        return dict(pipeline.status_document()["saved_files"]["measurements"].get(measurement, {}))
+
+    try:
+        # Its own object key: none of the other tests' objects may stand in for the file.
+        image = save(tmp_path / "save", "in-send", 0, 600 * KB)
+        pipeline.submit("minio", saved_record(image, "in-send"))
+        assert pipeline.flush_intake(10)
+        assert in_send.wait(30), "MinIO was not sent the image's record"
+        poll(lambda: counts("in-send").get("produced") == 1, 30, "the image noted")
+        recording = save(tmp_path / "save", "incident", 0, 600 * KB)
+        pipeline.submit("records", saved_record(recording, "incident"))
+        assert pipeline.flush_intake(10)
+        poll(lambda: counts("in-send").get("evicted") == 1, 30, "the image evicted")
+        evicted.set()
+        poll(lambda: pipeline.metrics()["minio"]["buffered"] == 0, 30, "MinIO's queue emptied")
+        metrics = pipeline.metrics()["minio"]
+        assert recording.exists() and not image.exists()
+        assert (metrics["received"], metrics["sent"], metrics["evicted"], metrics["dead_lettered"]) == (1, 0, 1, 0)
+        image_counts = counts("in-send")
+        assert image_counts["produced"] == image_counts["delivered"] + image_counts["evicted_unsent"] == 1
+        assert pipeline.metrics()["minio"]["files_evicted"] == 1
+    finally:
+        evicted.set()
         pipeline.stop(0.5)
 
 
@@ -431,6 +564,55 @@ def test_a_disk_filled_by_another_process_is_given_back_by_the_same_rules(
             pipeline.stop(0.5)
 
 
+def test_the_floor_watches_the_save_folders_filesystem_too(tmp_path: Path) -> None:
+    """The buffer on a large disk, the save folder on an 8 MB tmpfs that another process fills under a
+    3 MB floor: DC evicts the oldest images there, never a recording, and not an older image saved on
+    the buffer's disk (evicting it would free nothing where space is short)."""
+    with tmpfs(tmp_path / "disk", "8m") as disk:
+        save_dir, elsewhere = disk / "save", tmp_path / "save"
+        pipeline = started(
+            tmp_path,
+            {"records": (Collecting(), DestinationDeliveryParams())},
+            [elsewhere, save_dir],
+            disk_free_floor="3M",
+            retention_priorities={"incident": 10},
+        )
+        produced: list[Path] = []
+
+        def produce(folder: Path, measurement: str) -> None:
+            produced.append(save(folder, measurement, len(produced), 50 * KB))
+            pipeline.submit("records", saved_record(produced[-1], measurement))
+
+        def counts(measurement: str) -> dict[str, Any]:
+            return dict(pipeline.status_document()["saved_files"]["measurements"][measurement])
+
+        try:
+            produce(elsewhere, "camera")  # the oldest image, on the buffer's disk
+            for n in range(25):
+                produce(save_dir, "incident" if n % 5 == 4 else "camera")
+            assert pipeline.flush_intake(10)
+            poll(lambda: counts("camera")["produced"] == 21 and counts("incident")["produced"] == 5, 30, "files noted")
+            filler = disk / "other" / "filler.bin"
+            filler.parent.mkdir()
+            subprocess.run([sys.executable, "-c", f"open({str(filler)!r}, 'wb').write(b'x' * {4608 * KB})"], check=True)
+
+            def free() -> int:
+                stats = os.statvfs(disk)
+                return stats.f_bavail * stats.f_frsize
+
+            poll(lambda: free() >= 3 * 1024 * 1024 and counts("camera")["evicted"] > 0, 30, "the floor given back")
+            gone = [p for p in produced if not p.exists()]
+            on_tmpfs = [p for p in produced[1:] if "camera" in p.name]
+            assert produced[0].exists() and gone == on_tmpfs[: len(gone)]
+            assert counts("incident")["evicted"] == 0 and filler.stat().st_size == 4608 * KB
+            for measurement in ("camera", "incident"):  # no destination carries them: the only copies
+                c = counts(measurement)
+                assert c["produced"] == c["kept"] + c["evicted_unsent"]
+            assert counts("camera")["evicted"] == len(gone)
+        finally:
+            pipeline.stop(0.5)
+
+
 def test_saved_files_of_an_earlier_run_still_count_after_a_restart(tmp_path: Path) -> None:
     """The account is on disk beside the buffer: files saved before a restart are weighed and evicted after it."""
     settings = DeliveryParams(storage_path=str(tmp_path / "buffer"), flush=0.05, http_server=False, disk_budget="1M")
@@ -467,6 +649,35 @@ def test_saved_files_of_an_earlier_run_still_count_after_a_restart(tmp_path: Pat
     second = run(10)  # 20 x 60 kB: over 1 MB only with the first run's files counted
     assert second["produced"] == 10 and second["evicted"] == 20 - second["kept"] > 0
     assert [p.exists() for p in produced] == [False] * second["evicted"] + [True] * second["kept"]
+
+
+def test_a_ledger_written_before_files_kept_their_confirmations_is_read_and_upgraded(tmp_path: Path) -> None:
+    """A saved_files.sqlite3 of the DC before the `told` column: its files still count, and it is upgraded."""
+    import sqlite3
+
+    from dc_destinations.saved_files import SavedFiles
+
+    image = save(tmp_path / "save", "camera", 0, 10 * KB)
+    ledger = tmp_path / "saved_files.sqlite3"
+    with sqlite3.connect(ledger) as db:
+        db.execute(
+            "CREATE TABLE files (path TEXT PRIMARY KEY, size INTEGER NOT NULL, measurement TEXT NOT NULL, "
+            "run_id TEXT NOT NULL, seq INTEGER NOT NULL, run_index INTEGER NOT NULL, priority INTEGER NOT NULL, "
+            "destinations TEXT NOT NULL, owed TEXT NOT NULL, records TEXT NOT NULL)"
+        )
+        db.execute("INSERT INTO files VALUES (?, ?, 'camera', 'r1', 1, 0, 0, '[]', '[]', '[]')", (str(image), 10 * KB))
+    db.close()
+    saved = SavedFiles(ledger, {}, RecordingLogger(), roots=[str(tmp_path / "save")])
+    saved.open()
+    try:
+        assert saved.total_bytes == 10 * KB
+        assert saved.evict(str(image)) is not None and not image.exists()
+        saved.tick()
+    finally:
+        saved.close()
+    with sqlite3.connect(ledger) as db:
+        assert db.execute("SELECT count(*) FROM files").fetchone() == (0,)
+    db.close()
 
 
 def test_a_record_naming_a_file_outside_the_save_folders_never_has_it_weighed_or_deleted(tmp_path: Path) -> None:

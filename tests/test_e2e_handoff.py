@@ -215,7 +215,7 @@ def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_pat
         try:
             run.wait_until(
                 lambda: delivered_or_counted(output, run.stderr) >= SINGLE_TOTAL,
-                30,
+                90,
                 "every record delivered or counted",
             )
         finally:

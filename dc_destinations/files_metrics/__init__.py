@@ -18,7 +18,7 @@ from __future__ import annotations
 import functools
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -222,6 +222,20 @@ class FilesMetrics(Destination[FilesMetricsParams]):
 
     # A file DC evicted before it was stored gets its row, with evicted true: the record is confirmed.
     records_evictions = True
+
+    def files_evicted(self, files: Mapping[str, Sequence[str]]) -> None:
+        """Files DC evicted after their rows were written: those rows (of the records that named them,
+        by record id, so another robot's row of the same path is left alone) say so."""
+        database = self._database
+        assert database is not None and self._table is not None, "files_evicted() before on_configure()"
+        statement = self._table.mark_evicted
+        rows = [{"local_path": path, "record_ids": list(ids)} for path, ids in files.items()]
+
+        def mark(connection: Any) -> None:
+            with connection.transaction(), connection.cursor() as cursor:
+                cursor.executemany(statement, rows)
+
+        database.run(mark)
 
     def file_fields(self) -> list[str]:
         """Every storage's src_fields: a record is confirmed once every storage verified its files."""

@@ -114,6 +114,10 @@ ON CONFLICT ({{key}}) DO UPDATE SET
 _MARK_DELETED = f"""UPDATE {{table}} SET deleted = true, on_filesystem = false, updated_at = {_NOW}
 WHERE local_path = %(local_path)s AND storage_type = %(storage_type)s{{robot}}"""
 
+# A file DC evicted to keep within its disk budget after the row was written (uploaded or not).
+_MARK_EVICTED = f"""UPDATE {{table}} SET evicted = true, on_filesystem = false, updated_at = {_NOW}
+WHERE local_path = %(local_path)s AND record_id = ANY(%(record_ids)s::text[])"""
+
 
 @dataclass(frozen=True)
 class FileRow:
@@ -134,7 +138,7 @@ class FileRow:
     record_id: str
     bucket: str
     etag: str | None
-    evicted: bool = False  # deleted by DC to keep within its disk budget before this storage held it
+    evicted: bool = False  # deleted by DC to keep within its disk budget (before this storage held it, if not uploaded)
 
     def values(self) -> dict[str, Any]:
         return asdict(self)
@@ -163,6 +167,7 @@ class FilesTable:
         self.mark_deleted = sql.SQL(
             _MARK_DELETED.replace("{robot}", " AND robot_name = %(robot_name)s" if robot else "")
         ).format(table=self.identifier)
+        self.mark_evicted = sql.SQL(_MARK_EVICTED).format(table=self.identifier)
 
     def prepare(self, connection: Any) -> list[str]:
         """Create the table, or add to an existing one what it lacks; returns what was done, for the log.

@@ -56,14 +56,19 @@ class Moto:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
-        deadline = time.monotonic() + 20
-        while True:  # ready when it accepts connections (about 0.5 s)
+        # Ready when it accepts connections: about 0.5 s, over 20 s at load 15 (moto imports a lot).
+        deadline = time.monotonic() + 90
+        while True:
             try:
                 socket.create_connection(("127.0.0.1", self.port), timeout=0.2).close()
                 return self
             except OSError:
                 if time.monotonic() > deadline or self.process.poll() is not None:
-                    raise RuntimeError(f"moto_server did not start on port {self.port}") from None
+                    exited = self.process.poll()
+                    raise RuntimeError(
+                        f"moto_server did not start on port {self.port}"
+                        + (f" (exited with {exited})" if exited is not None else " within 90 s")
+                    ) from None
                 time.sleep(0.05)
 
     def stop(self) -> None:
