@@ -608,6 +608,9 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     except DcError as exc:
         print(f"dc ingest: {exc}", file=sys.stderr)
         return 2
+    if args.handback_delay < 0:
+        print("dc ingest: --handback-delay must be 0 or more", file=sys.stderr)
+        return 2
     options = IngestOptions(
         servers=[u for s in args.servers for u in s.split(",") if u] or ["nats://127.0.0.1:4222"],
         stream=args.stream,
@@ -616,6 +619,7 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         batch=args.batch,
         ack_wait=args.ack_wait,
         max_in_flight=args.max_in_flight,
+        handback_delay=args.handback_delay,
         connect=connect_options_from_env(),
     )
     run_ingest(Ingest(config, destinations, options, Path(args.storage_path), logger))
@@ -822,6 +826,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--ack-wait", type=float, default=60.0, help="seconds before an unacknowledged message is redelivered"
     )
     p.add_argument("--max-in-flight", type=int, default=5000, help="messages taken and not yet acknowledged, at most")
+    p.add_argument(
+        "--handback-delay",
+        type=float,
+        default=5.0,
+        help="seconds before a message whose record the worker's buffer dropped is delivered again (default 5)",
+    )
     p.add_argument("--storage-path", required=True, help="folder of this worker's buffer (one per worker)")
     p.set_defaults(func=cmd_ingest)
 

@@ -192,11 +192,22 @@ class QueueLimit:
 
 @dataclass
 class AppendResult:
-    """Per destination: rows written, and records dropped by the size limit."""
+    """Per destination: rows written, and records dropped by the size limit (counts, and their record_ids)."""
 
     appended: dict[str, int] = field(default_factory=dict)
     dropped_newest: dict[str, int] = field(default_factory=dict)
     dropped_oldest: dict[str, int] = field(default_factory=dict)
+    # Whoever must know that a record left its queue undelivered (``dc ingest`` hands its message
+    # back to the stream) needs which ones; filled only when some were dropped.
+    dropped_ids: dict[str, list[str]] = field(default_factory=dict)
+
+
+class Evicted(NamedTuple):
+    """What :meth:`Buffer.evict_oldest` deleted: records, bytes, and their record_ids when asked for."""
+
+    records: int
+    bytes: int
+    record_ids: list[str]
 
 
 @dataclass(frozen=True)
@@ -286,15 +297,19 @@ class Buffer(Protocol):
         *,
         now_ns: int | None = None,
         tried_now: Collection[int] = (),
+        moved_ids: list[str] | None = None,
     ) -> int:
         """Move rows to the dead letters with their error text; returns how many moved. ``tried_now``: rows
-        whose failed attempt the queue has not counted yet (refused at once), counted in the dead letter's."""
+        whose failed attempt the queue has not counted yet (refused at once), counted in the dead letter's.
+        ``moved_ids``: given, the record_ids of the rows moved are added to it (not those the size
+        limit dropped meanwhile)."""
 
     def queued_bytes(self) -> dict[str, int]:
         """Bytes of records waiting per destination."""
 
-    def evict_oldest(self, destination: str, nbytes: int) -> tuple[int, int]:
-        """Delete a queue's oldest records, at least ``nbytes``: (records, bytes) deleted."""
+    def evict_oldest(self, destination: str, nbytes: int, *, with_ids: bool = False) -> Evicted:
+        """Delete a queue's oldest records, at least ``nbytes``: (records, bytes, and with ``with_ids``
+        their record_ids) deleted."""
 
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of a queue beyond ``max_bytes``; returns how many."""
@@ -771,7 +786,16 @@ class SqliteBuffer:
                 rows = [(r.record_id, r.topic, r.stamp_ns, enqueued, r.size, r.payload, r.crc) for r in batch]
                 dropped_newest = dropped_oldest = 0
                 if limit.max_bytes is not None:
-                    rows, dropped_newest, dropped_oldest = self._apply_limit(conn, qid, rows, limit)
+                    dropped: list[str] = []
+                    rows, dropped_newest, dropped_oldest = self._apply_limit(conn, qid, rows, limit, dropped)
+                    if dropped:
+                        result.dropped_ids[destination] = dropped
+                    if dropped_oldest and destination in self._max_read:
+                        # The head dropped may be the whole queue, the rows a sender holds with it:
+                        # SQLite would give their ids to the new rows, and that sender's delete of
+                        # its confirmed rows would then delete new records unsent.
+                        floor = max(self._id_floor.get(destination, 0), self._max_read[destination])
+                        self._id_floor[destination] = floor
                 insert = (
                     f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload, payload_crc) "
                     "VALUES (?, ?, ?, ?, ?, ?, ?)"
@@ -838,12 +862,15 @@ class SqliteBuffer:
         qid: int,
         rows: list[_QueueRow],
         limit: QueueLimit,
+        dropped: list[str],
     ) -> tuple[list[_QueueRow], int, int]:
-        """Rows that fit, records dropped from the batch, rows deleted from the queue head."""
+        """Rows that fit, records dropped from the batch, rows deleted from the queue head; the
+        record_ids of both added to ``dropped``."""
         assert limit.max_bytes is not None
         max_bytes = limit.max_bytes
         # A record bigger than the whole limit can never fit: it is dropped whatever the policy.
         fitting = [row for row in rows if row[4] <= max_bytes]
+        dropped.extend(str(row[0]) for row in rows if row[4] > max_bytes)
         dropped_newest = len(rows) - len(fitting)
         used = conn.execute("SELECT bytes FROM queues WHERE qid=?", (qid,)).fetchone()[0]
         if not limit.drop_oldest:
@@ -854,18 +881,22 @@ class SqliteBuffer:
                     used += row[4]
                 else:
                     dropped_newest += 1
+                    dropped.append(str(row[0]))
             return kept, dropped_newest, 0
         incoming = sum(row[4] for row in fitting)
         # Within one batch, newer records win over older ones of the same batch too.
         while fitting and incoming > max_bytes:
-            incoming -= fitting.pop(0)[4]
+            gone = fitting.pop(0)
+            incoming -= gone[4]
             dropped_newest += 1
+            dropped.append(str(gone[0]))
         need = used + incoming - max_bytes
         dropped_oldest = 0
         if need > 0:
             dropped_oldest, freed, last_id = _walk_head(conn, qid, need, after=-1)
             if last_id is not None:
-                conn.execute(f"DELETE FROM q_{qid} WHERE id <= ?", (last_id,))
+                deleted = conn.execute(f"DELETE FROM q_{qid} WHERE id <= ? RETURNING record_id", (last_id,)).fetchall()
+                dropped.extend(str(record_id) for (record_id,) in deleted)
                 conn.execute(
                     "UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?",
                     (dropped_oldest, freed, qid),
@@ -924,8 +955,10 @@ class SqliteBuffer:
         *,
         now_ns: int | None = None,
         tried_now: Collection[int] = (),
+        moved_ids: list[str] | None = None,
     ) -> int:
-        """Move rows to the dead-letter table with their error text; returns how many moved."""
+        """Move rows to the dead-letter table with their error text; returns how many moved (their
+        record_ids added to ``moved_ids`` when given)."""
         if not failures:
             return 0
         failed = _now_ns() if now_ns is None else now_ns
@@ -958,6 +991,8 @@ class SqliteBuffer:
                     (row.size, qid),
                 )
                 moved += 1
+                if moved_ids is not None:
+                    moved_ids.append(row.record_id)
         return moved
 
     def queued_bytes(self) -> dict[str, int]:
@@ -965,20 +1000,27 @@ class SqliteBuffer:
         with self._locked() as conn:
             return {str(name): int(size) for name, size in conn.execute("SELECT name, bytes FROM queues")}
 
-    def evict_oldest(self, destination: str, nbytes: int) -> tuple[int, int]:
+    def evict_oldest(self, destination: str, nbytes: int, *, with_ids: bool = False) -> Evicted:
         """Delete the oldest records of ``destination``'s queue, at least ``nbytes`` of them (all there
-        are, if fewer): (records, bytes) deleted. They are not counted as sent or dropped here.
+        are, if fewer): (records, bytes, and with ``with_ids`` their record_ids) deleted. They are not
+        counted as sent or dropped here.
 
         Rows a sender has read are left alone: they may be in a send() now, and are counted sent or
         dead-lettered when it returns; the oldest of the others go."""
+        record_ids: list[str] = []
         with self._transaction() as conn:
             qid = self._qid(conn, destination)
             first = self._max_read.get(destination, 0)
             count, freed, last_id = _walk_head(conn, qid, nbytes, after=first)
             if last_id is not None:
-                conn.execute(f"DELETE FROM q_{qid} WHERE id > ? AND id <= ?", (first, last_id))
+                delete = f"DELETE FROM q_{qid} WHERE id > ? AND id <= ?"
+                if with_ids:
+                    deleted = conn.execute(delete + " RETURNING record_id", (first, last_id)).fetchall()
+                    record_ids = [str(record_id) for (record_id,) in deleted]
+                else:
+                    conn.execute(delete, (first, last_id))
                 conn.execute("UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?", (count, freed, qid))
-        return count, freed
+        return Evicted(count, freed, record_ids)
 
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of ``destination`` until theirs fit in ``max_bytes``.

@@ -34,7 +34,16 @@ from dc_core.logs import BurstLog, Logger
 from dc_core.records import MalformedRecord
 from dc_core.supervision import Supervisor
 from dc_destinations.buffer import AppendResult, Buffer, BufferClosed, BufferCorrupted, PendingRecord, QueueLimit
-from dc_destinations.sender import Closing, Route
+from dc_destinations.sender import (
+    DROP_INTAKE,
+    DROP_NOT_COMMITTED,
+    DROP_NOT_STORABLE,
+    DROP_SIZE_LIMIT,
+    Closing,
+    DropListener,
+    Route,
+    tell_dropped,
+)
 from dc_destinations.settings import DeliveryParams
 
 HopKey = tuple[str, int, int]
@@ -130,8 +139,11 @@ class GroupCommitter:
         clock: Callable[[], float] = time.monotonic,
         tick_logs: Callable[[], None] = lambda: None,
         supervisor: Supervisor | None = None,
+        drop_listeners: Sequence[DropListener] = (),
     ) -> None:
         self._routes = routes
+        # Told of each record dropped for a destination (dc_destinations.sender.DropListener).
+        self._drop_listeners = drop_listeners
         self._supervisor = supervisor if supervisor is not None else Supervisor(logger)
         self._buffer = buffer
         self.settings = settings
@@ -263,7 +275,7 @@ class GroupCommitter:
                 f"intake_queue_limit_bytes ({self.settings.intake_queue_limit_bytes})"
             )
         if reason is not None:
-            dropped = self._count_dropped(received)
+            dropped = self._count_dropped(received, DROP_INTAKE)
             if dropped:
                 self.intake_drop_log.event(dropped, reason)
             return False
@@ -314,18 +326,24 @@ class GroupCommitter:
 
     def _lose(self, handoffs: Sequence[Received], reason: str) -> None:
         """Count the copies of ``handoffs`` as received and dropped; the stop logs their number once."""
-        self._add_lost(self._count_dropped(handoffs), reason)
+        self._add_lost(self._count_dropped(handoffs, DROP_NOT_COMMITTED), reason)
 
-    def _count_dropped(self, received: Sequence[Received]) -> int:
-        """Count each copy of ``received`` as received and dropped at its destination; how many were."""
+    def _count_dropped(self, received: Sequence[Received], why: str) -> int:
+        """Count each copy of ``received`` as received and dropped at its destination, the drop
+        listeners told ``why``; how many were."""
         dropped = 0
+        ids: dict[str, list[str]] = {}
         for copies, _ in received:
-            for name, _ in copies:
+            for name, record in copies:
                 route = self._routes.get(name)
                 if route is not None:
                     route.metrics.add("received")
                     route.metrics.add("dropped")
                     dropped += 1
+                    if self._drop_listeners:
+                        ids.setdefault(name, []).append(record.record_id)
+        for name, record_ids in ids.items():
+            tell_dropped(self._drop_listeners, self.logger, name, record_ids, why)
         return dropped
 
     def _add_lost(self, count: int, reason: str) -> None:
@@ -425,6 +443,9 @@ class GroupCommitter:
                     for name, records in batch.by_destination.items():
                         self._routes[name].metrics.add("received", len(records))
                         self._routes[name].metrics.add("dropped", len(records))
+                        tell_dropped(
+                            self._drop_listeners, self.logger, name, [r.record_id for r in records], DROP_NOT_COMMITTED
+                        )
                     self._add_lost(batch.count, f"{type(exc).__name__}: {exc}")
                     return
         self.failing = None
@@ -476,6 +497,7 @@ class GroupCommitter:
         route.metrics.add("received")
         route.metrics.add("malformed")
         route.malformed_log.event(1, f"record {record_id}: {reason}")
+        tell_dropped(self._drop_listeners, self.logger, route.name, [record_id], DROP_NOT_STORABLE)
 
     def _commit_failed(self, batch: _CommitBatch, exc: Exception) -> None:
         error = f"committing to the buffer: {type(exc).__name__}: {exc}"
@@ -502,6 +524,7 @@ class GroupCommitter:
                     f"storage_total_limit_size {route.params.storage_total_limit_size} reached, "
                     f"when_full {route.params.when_full}",
                 )
+                tell_dropped(self._drop_listeners, self.logger, name, result.dropped_ids.get(name, []), DROP_SIZE_LIMIT)
             route.pending_hint += result.appended.get(name, 0)
             if route.pending_hint >= route.params.batch_size:
                 route.wakeup.set()

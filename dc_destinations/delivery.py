@@ -45,7 +45,16 @@ from dc_destinations.metrics import prometheus_text
 from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.saved_files import FILE_NAME as SAVED_FILES_NAME
 from dc_destinations.saved_files import SavedFiles
-from dc_destinations.sender import Closing, OutcomeListener, Route, Sender
+from dc_destinations.sender import (
+    DROP_DISK_BUDGET,
+    DROP_INTAKE,
+    Closing,
+    DropListener,
+    OutcomeListener,
+    Route,
+    Sender,
+    tell_dropped,
+)
 from dc_destinations.settings import (
     DeliveryParams,
     DestinationDeliveryParams,
@@ -134,6 +143,7 @@ class DeliveryPipeline:
         self._committer: GroupCommitter | None = None
         self._listeners: list[CommitListener] = []
         self._outcome_listeners: list[OutcomeListener] = []
+        self._drop_listeners: list[DropListener] = []
         # Set before start: called on the writer thread with the hop keys of each successful commit.
         self.on_seen_committed: Callable[[list[HopKey]], None] | None = None
         self._quarantined = 0
@@ -234,6 +244,7 @@ class DeliveryPipeline:
                 wait=self._wait,
                 uniform=self._uniform,
                 listeners=self._outcome_listeners,
+                drop_listeners=self._drop_listeners,
             )
             for name, route in self._routes.items()
         }
@@ -256,6 +267,7 @@ class DeliveryPipeline:
             clock=self._clock,
             tick_logs=self._tick_logs,
             supervisor=self.supervisor,
+            drop_listeners=self._drop_listeners,
         )
         for listener in self._listeners:
             self._committer.add_listener(listener)
@@ -353,9 +365,10 @@ class DeliveryPipeline:
         """See :meth:`dc_destinations.commit.GroupCommitter.submit_records`."""
         if self._committer is None:
             for deliveries, _ in received:
-                for name, _ in deliveries:
+                for name, record in deliveries:
                     self._routes[name].metrics.add("received")
                     self._routes[name].metrics.add("dropped")
+                    tell_dropped(self._drop_listeners, self.logger, name, [record.record_id], DROP_INTAKE)
             return False
         saved = self._saved
         if saved is not None:
@@ -397,6 +410,13 @@ class DeliveryPipeline:
         those dead-lettered once their dead letters are committed (dc_destinations.sender.OutcomeListener).
         Before :meth:`start`."""
         self._outcome_listeners.append(listener)
+
+    def add_drop_listener(self, listener: DropListener) -> None:
+        """Call ``listener`` with the records that leave a destination's queue, or never reach it, with
+        no outcome: dropped by its size limit, evicted by the disk budget, refused at the intake…
+        (dc_destinations.sender.DropListener, with the reason). Each is counted as it always was
+        (``dropped``, ``evicted``, ``malformed``). Before :meth:`start`."""
+        self._drop_listeners.append(listener)
 
     # -- storage ------------------------------------------------------------------------------------
 
@@ -531,10 +551,11 @@ class DeliveryPipeline:
                 steps = self._floor_steps(short, files, queued, retention)
             for step in steps:
                 if step.kind == "records":
-                    records, freed = buffer.evict_oldest(step.name, step.nbytes)
+                    gone = buffer.evict_oldest(step.name, step.nbytes, with_ids=bool(self._drop_listeners))
                     route = self._routes[step.name]
-                    route.metrics.add("evicted", records)
-                    route.evict_log.event(records, f"{freed} bytes; see `dc status`")
+                    route.metrics.add("evicted", gone.records)
+                    route.evict_log.event(gone.records, f"{gone.bytes} bytes; see `dc status`")
+                    tell_dropped(self._drop_listeners, self.logger, step.name, gone.record_ids, DROP_DISK_BUDGET)
                 elif saved is not None:
                     evicted = saved.evict(step.name)
                     if evicted is not None:

@@ -8,7 +8,10 @@ final (dc_destinations.sender.OutcomeListener): a record is *settled* for a dest
 confirmed it, or once its dead letter (refused for good, or failed beyond ``retry_limit``) is
 committed to this worker's buffer, counted, as on a robot. When every destination has settled a
 record, its JetStream message is acknowledged; until then JetStream keeps it, and redelivers it
-after ``ack_wait`` to whichever worker asks (another one if this one died). So:
+after ``ack_wait`` to whichever worker asks (another one if this one died). A record the worker's
+buffer drops (a size limit, the disk budget: sender.DropListener) is no outcome: its message is
+handed back (nak, redelivered after ``handback_delay``), or terminated when no delivery can ever
+succeed, never acknowledged (:class:`Settlements`, docs/fleet.md). So:
 
 - several ``dc ingest`` processes on one consumer share its messages (JetStream hands each
   message to one of them at a time);
@@ -39,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, RejectedError, SendOutcome
-from dc_core.logs import Logger
+from dc_core.logs import BurstLog, Logger
 from dc_core.params import NoParams
 from dc_core.records import MalformedRecord, parse_record
 from dc_core.supervision import Supervisor
@@ -48,43 +51,126 @@ from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.jetstream import HEADER_ID, HEADER_STAMP, HEADER_TOPIC
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import NO_LISTENER, TAGS_KEY, RoutingTable
+from dc_destinations.sender import DROP_FILE_EVICTED, DROP_NOT_STORABLE
+
+ACK, NAK, TERM = "ack", "nak", "term"
+
+# Drops after which no delivery of the record by this worker can ever succeed (its payload, a file
+# gone): its message is terminated. After any other drop (a size limit, the disk budget, the intake,
+# a failed commit) the record is worth trying again later and the stream still holds it: its
+# message is handed back (docs/fleet.md, "When a worker's buffer drops a record").
+_FOR_GOOD = frozenset({DROP_NOT_STORABLE, DROP_FILE_EVICTED})
+
+
+@dataclass
+class _InFlight:
+    key: Any
+    owed: set[str]
+    done: set[str] = field(default_factory=set)  # confirmed, or dead-lettered
+    handed_back: dict[str, str] = field(default_factory=dict)  # destination: why it dropped the record
+    given_up: dict[str, str] = field(default_factory=dict)  # destination: why it can never take it
+    handbacks: int = 0  # times this worker handed the record's message back before
+
+
+@dataclass(frozen=True)
+class Taken:
+    """A record taken in flight: the destinations to submit it to, and how often this worker handed
+    its message back before (deliveries that are no failure of the record)."""
+
+    destinations: list[str]
+    handbacks: int = 0
+
+
+# (key, ACK | NAK | TERM, reason, destination): the reason and destination of the first drop that
+# decided a NAK or TERM; "" for an ACK.
+Verdict = Callable[[Any, str, str, str], None]
 
 
 class Settlements:
-    """Which destinations still owe each record in flight a confirmation; ``on_settled(key)`` once none does.
+    """Which destinations still owe each record in flight an outcome; ``on_settled(key, verdict, …)``
+    once none does: ACK when each confirmed it or committed its dead letter, NAK when one dropped it
+    (a size limit, the disk budget…: the stream keeps it, to be delivered again), TERM when one can
+    never take it.
 
-    Thread-safe: senders report from their threads.
+    A record handed back is remembered (at most ``remember`` of them, the oldest forgotten first):
+    when its message comes back to this worker it goes only to the destinations that had not
+    settled it, and its hand-backs do not count as redeliveries against ``retry_limit``.
+
+    Thread-safe: senders and the buffer's writer report from their threads.
     """
 
-    def __init__(self, on_settled: Callable[[Any], None]) -> None:
-        self._owed: dict[str, tuple[Any, set[str]]] = {}
+    def __init__(self, on_settled: Verdict, remember: int = 20_000) -> None:
+        self._owed: dict[str, _InFlight] = {}
+        self._handed_back: dict[str, _InFlight] = {}
+        self._remember = remember
         self._lock = threading.Lock()
         self._on_settled = on_settled
 
-    def add(self, record_id: str, key: Any, destinations: Iterable[str]) -> bool:
-        """Track ``record_id`` until ``destinations`` settled it; False when it is in flight already (a
+    def add(self, record_id: str, key: Any, destinations: Iterable[str]) -> Taken | None:
+        """Track ``record_id`` until ``destinations`` settled it; None when it is in flight already (a
         redelivery): ``key`` replaces the old."""
         with self._lock:
             known = self._owed.get(record_id)
             if known is not None:
-                self._owed[record_id] = (key, known[1])
-                return False
-            self._owed[record_id] = (key, set(destinations))
-            return True
+                known.key = key
+                return None
+            entry = _InFlight(key, set(destinations))
+            before = self._handed_back.pop(record_id, None)
+            if before is not None:
+                entry.done, entry.given_up, entry.handbacks = before.done, before.given_up, before.handbacks
+                entry.owed -= entry.done | set(entry.given_up)
+            taken = Taken(sorted(entry.owed), entry.handbacks)
+            if entry.owed:
+                self._owed[record_id] = entry
+                return taken
+            verdict = self._finish(record_id, entry)  # every destination settled it before its hand-back
+        self._on_settled(*verdict)
+        return taken
 
     def settled(self, destination: str, record_ids: Sequence[str]) -> None:
+        """``destination`` confirmed these records, or committed their dead letters."""
+        self._outcome(destination, record_ids, None)
+
+    def dropped(self, destination: str, record_ids: Sequence[str], reason: str) -> None:
+        """``destination``'s pipeline dropped these records without an outcome (sender.DropListener)."""
+        self._outcome(destination, record_ids, reason)
+
+    def _outcome(self, destination: str, record_ids: Sequence[str], dropped: str | None) -> None:
         done = []
         with self._lock:
             for record_id in record_ids:
                 entry = self._owed.get(record_id)
-                if entry is None:
-                    continue  # not in flight here: a dead letter replayed (`dc buffer replay`), a salvaged row
-                entry[1].discard(destination)
-                if not entry[1]:
+                # Not in flight here: a dead letter replayed (`dc buffer replay`), a salvaged row, a
+                # row sent while the size limit dropped it (its message went back already).
+                if entry is None or destination not in entry.owed:
+                    continue
+                entry.owed.discard(destination)
+                if dropped is None:
+                    entry.done.add(destination)
+                elif dropped in _FOR_GOOD:
+                    entry.given_up[destination] = dropped
+                else:
+                    entry.handed_back[destination] = dropped
+                if not entry.owed:
                     del self._owed[record_id]
-                    done.append(entry[0])
-        for key in done:
-            self._on_settled(key)
+                    done.append(self._finish(record_id, entry))
+        for verdict in done:
+            self._on_settled(*verdict)
+
+    def _finish(self, record_id: str, entry: _InFlight) -> tuple[Any, str, str, str]:
+        """The verdict on a record no destination owes anything; under the lock."""
+        if entry.handed_back:
+            entry.handbacks += 1
+            self._handed_back[record_id] = entry
+            while len(self._handed_back) > self._remember:
+                del self._handed_back[next(iter(self._handed_back))]
+            destination, reason = next(iter(entry.handed_back.items()))
+            key, entry.key, entry.handed_back = entry.key, None, {}  # the message is not kept for it
+            return key, NAK, reason, destination
+        if entry.given_up:
+            destination, reason = next(iter(entry.given_up.items()))
+            return entry.key, TERM, reason, destination
+        return entry.key, ACK, "", ""
 
     def __len__(self) -> int:
         with self._lock:
@@ -93,7 +179,7 @@ class Settlements:
     def waiting(self) -> list[Any]:
         """The keys of the records not settled yet."""
         with self._lock:
-            return [key for key, _ in self._owed.values()]
+            return [entry.key for entry in self._owed.values()]
 
 
 class RedeliveryBound(Destination[NoParams]):
@@ -192,6 +278,9 @@ class IngestOptions:
     batch: int = 500
     ack_wait: float = 60.0
     max_in_flight: int = 5000
+    # Seconds before a message handed back (its record dropped by the worker's buffer) is delivered
+    # again, and during which the worker takes no new messages: its buffer is full.
+    handback_delay: float = 5.0
     connect: dict[str, Any] = field(default_factory=dict)  # credentials and TLS for nats.connect
 
 
@@ -209,6 +298,11 @@ class IngestCounters:
     # Records the worker's last run left in its queues, taken out at start: JetStream delivers again
     # every one whose message it did not acknowledge, and those it did are in their store already.
     left_by_last_run: int = 0
+    # Messages handed back to the stream (nak, delivered again after handback_delay) because a
+    # destination's queue dropped their record, by reason (dc_destinations.sender's DROP_*).
+    handed_back: Counter[str] = field(default_factory=Counter)
+    # Messages terminated because a destination can never take their record (not storable), by reason.
+    terminated: Counter[str] = field(default_factory=Counter)
 
 
 class Ingest:
@@ -228,8 +322,8 @@ class Ingest:
         self.logger = logger
         self.counters = IngestCounters()
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._settled: asyncio.Queue[Any] | None = None
-        self.settlements = Settlements(self._on_settled)
+        self._settled: asyncio.Queue[tuple[Any, str, str, str]] | None = None
+        self.settlements = Settlements(self._on_settled, remember=max(options.max_in_flight * 4, 1000))
         self.routing = RoutingTable.from_destinations(config.destinations)
         self._wrapped = {
             d.name: RedeliveryBound(destinations[d.name], d.delivery.retry_limit) for d in config.destinations
@@ -241,18 +335,35 @@ class Ingest:
         # A record is settled for a destination when it confirmed it, or once its dead letter is on
         # disk: acknowledged before that, a crash would leave it nowhere (docs/fleet.md).
         self.pipeline.add_outcome_listener(lambda name, record_ids, _dead: self.settlements.settled(name, record_ids))
+        # A record the buffer drops (its size limit, the disk budget…) is no outcome: its message goes
+        # back to the stream, which still holds it, never acknowledged (docs/fleet.md).
+        self.pipeline.add_drop_listener(self.settlements.dropped)
+        self._handback_log = BurstLog(
+            logger.warning,
+            f"messages handed back to the stream (delivered again in {options.handback_delay:g} s; "
+            "counted in handed_back)",
+        )
+        self._terminated_log = BurstLog(logger.error, "messages terminated: a destination can never take their record")
+        # The loop's time until which no new message is taken: the buffer dropped records just now.
+        self._resume_fetch_at = 0.0
         self.pipeline.add_metrics_section("ingest", self._counters_document)
         self._logged: set[tuple[str, str]] = set()
         self.stop_requested = asyncio.Event()
 
     def _counters_document(self) -> dict[str, Any]:
         # Not dataclasses.asdict: it would rebuild the Counter from (key, value) pairs.
-        return {**vars(self.counters), "unrouted": dict(self.counters.unrouted)}
+        c = self.counters
+        return {
+            **vars(c),
+            "unrouted": dict(c.unrouted),
+            "handed_back": dict(c.handed_back),
+            "terminated": dict(c.terminated),
+        }
 
-    def _on_settled(self, msg: Any) -> None:
-        # From a sender's thread: the ack goes out on the loop.
+    def _on_settled(self, msg: Any, verdict: str, reason: str, destination: str) -> None:
+        # From a sender's or the writer's thread: the ack (nak, term) goes out on the loop.
         assert self._loop is not None and self._settled is not None
-        self._loop.call_soon_threadsafe(self._settled.put_nowait, msg)
+        self._loop.call_soon_threadsafe(self._settled.put_nowait, (msg, verdict, reason, destination))
 
     async def run(self) -> IngestCounters:
         import nats
@@ -280,9 +391,15 @@ class Ingest:
         )
         try:
             while not self.stop_requested.is_set():
+                self._handback_log.tick()
+                self._terminated_log.tick()
                 room = o.max_in_flight - len(self.settlements)
                 if room <= 0:
                     await asyncio.sleep(0.02)
+                    continue
+                pause = self._resume_fetch_at - self._loop.time()
+                if pause > 0:  # what it would take now would be dropped too, and handed back
+                    await asyncio.sleep(min(pause, 0.1))
                     continue
                 try:
                     messages = await sub.fetch(min(o.batch, room), timeout=1.0)
@@ -308,6 +425,8 @@ class Ingest:
                     self.logger.warning(f"cannot give back a message: {exc}")
             await self._drain_acks()
             acker.cancel()
+            self._handback_log.tick()
+            self._terminated_log.tick()
             await nc.close()
             self.pipeline.release_storage()
         return self.counters
@@ -369,11 +488,15 @@ class Ingest:
                 self._log_once(topic, f"a record reaches no destination: {reason}")
                 unrouted.append(msg)
                 continue
-            if not self.settlements.add(record_id, msg, [name for name, _ in routed.deliveries]):
+            in_flight = self.settlements.add(record_id, msg, [name for name, _ in routed.deliveries])
+            if in_flight is None:
                 self.counters.redelivered += 1  # still in this worker's queues: acknowledged when settled
                 continue
-            redeliveries = msg.metadata.num_delivered - 1
+            # A hand-back is no failure of the record: only the other deliveries count against retry_limit.
+            redeliveries = msg.metadata.num_delivered - 1 - in_flight.handbacks
             for name, outgoing in routed.deliveries:
+                if name not in in_flight.destinations:
+                    continue  # settled it before the message was handed back
                 limit = self._wrapped[name].retry_limit
                 if 0 <= limit < redeliveries:
                     self.counters.over_retry_limit += 1
@@ -409,13 +532,32 @@ class Ingest:
     async def _acknowledge(self) -> None:
         assert self._settled is not None
         while True:
-            msg = await self._settled.get()
-            await self._ack(msg)
+            await self._answer(*await self._settled.get())
 
     async def _drain_acks(self) -> None:
         assert self._settled is not None
         while not self._settled.empty():
-            await self._ack(self._settled.get_nowait())
+            await self._answer(*self._settled.get_nowait())
+
+    async def _answer(self, msg: Any, verdict: str, reason: str, destination: str) -> None:
+        """Tell JetStream what became of a message whose record every destination settled."""
+        if verdict == ACK:
+            await self._ack(msg)
+            return
+        what = f"destination {destination}: {reason}"
+        try:
+            if verdict == NAK:
+                self.counters.handed_back[reason] += 1
+                self._handback_log.event(1, what)
+                assert self._loop is not None
+                self._resume_fetch_at = self._loop.time() + self.options.handback_delay
+                await msg.nak(delay=self.options.handback_delay)
+            else:
+                self.counters.terminated[reason] += 1
+                self._terminated_log.event(1, f"{what} (message {msg.metadata.sequence.stream} on {msg.subject})")
+                await msg.term()
+        except Exception as exc:  # JetStream delivers it again after ack_wait all the same
+            self.logger.warning(f"cannot {verdict} message {msg.metadata.sequence.stream}: {exc}")
 
     async def _ack(self, msg: Any) -> None:
         try:
@@ -471,7 +613,9 @@ def summary(ingest: Ingest) -> str:
         f"received {c.received}, acknowledged {c.acknowledged}, taken again while in flight {c.redelivered}, "
         f"malformed {c.malformed}, unrouted {sum(c.unrouted.values())}, "
         f"dead-lettered as redelivered beyond retry_limit {c.over_retry_limit}, fetch failures {c.fetch_failures}, "
-        f"left by the last run {c.left_by_last_run}"
+        f"left by the last run {c.left_by_last_run}, handed back {sum(c.handed_back.values())}"
+        + (f" ({', '.join(f'{why} {n}' for why, n in sorted(c.handed_back.items()))})" if c.handed_back else "")
+        + f", terminated {sum(c.terminated.values())}"
     ]
     for name, m in ingest.pipeline.metrics().items():
         waiting = "" if m["buffered"] is None else f", buffered {m['buffered']}"

@@ -74,6 +74,33 @@ _T = TypeVar("_T")
 # committed. Fast, and raises nothing: what it raises is logged, the delivery goes on.
 OutcomeListener = Callable[[str, list[str], bool], None]
 
+# (destination, record_ids, reason): records that left the pipeline for that destination with no
+# outcome, neither confirmed nor dead-lettered: called on the thread that dropped them, once the
+# drop is committed. The reasons, for whoever decides what becomes of them (dc_destinations.ingest):
+DROP_SIZE_LIMIT = "size_limit"  # storage_total_limit_size reached (when_full drop_newest or drop_oldest)
+DROP_DISK_BUDGET = "disk_budget"  # evicted unsent to keep flb.disk_budget
+DROP_INTAKE = "intake"  # refused at the hand-over: intake_queue_limit, or the pipeline not running
+DROP_NOT_COMMITTED = "not_committed"  # its group commit failed at the stop (a full disk)
+DROP_NOT_STORABLE = "not_storable"  # the buffer cannot hold it (not valid UTF-8 JSON): never deliverable
+DROP_FILE_EVICTED = "file_evicted"  # the saved file it names was evicted before this destination had it
+DropListener = Callable[[str, list[str], str], None]
+
+
+def tell_dropped(
+    listeners: Sequence[DropListener], logger: Logger, destination: str, record_ids: list[str], reason: str
+) -> None:
+    """Each listener told of ``record_ids`` dropped; one that raises is logged, never the caller's failure."""
+    if not record_ids:
+        return
+    for listener in listeners:
+        try:
+            listener(destination, record_ids, reason)
+        except Exception as exc:
+            logger.error(
+                f"destination {destination}: a drop listener failed: {type(exc).__name__}: {exc}\n"
+                f"{traceback.format_exc()}"
+            )
+
 
 class Gate:
     """``send`` and the destination's other hooks one at a time: what :meth:`run` is given waits for
@@ -249,10 +276,12 @@ class Sender:
         wait: Callable[[float], bool] | None = None,
         uniform: Callable[[float, float], float] | None = None,
         listeners: Sequence[OutcomeListener] = (),
+        drop_listeners: Sequence[DropListener] = (),
     ) -> None:
         self.route = route
         self.buffer = buffer
         self._listeners = listeners
+        self._drop_listeners = drop_listeners
         self.settings = settings
         self.closing = closing
         self._clock = clock
@@ -503,8 +532,10 @@ class Sender:
         batch = prepared if prepared is not None else self._prepare(rows)
         records, sent_rows, unreadable = batch.records, batch.sent_rows, batch.unreadable
         if unreadable:
-            route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable))
-            self._tell([row.record_id for row, _ in unreadable], dead_lettered=True)
+            # Told only what was moved: a row the size limit dropped meanwhile has no dead letter.
+            moved_ids: list[str] = []
+            route.metrics.add("dead_lettered", buffer.dead_letter(route.name, unreadable, moved_ids=moved_ids))
+            self._tell(moved_ids, dead_lettered=True)
             self.bound_dead_letters()
         if batch.evicted:
             self._take_out_evicted(batch.evicted)
@@ -575,15 +606,20 @@ class Sender:
                 route.failure_log.event(failed_again, next(iter(retry.values())))
         if dead:
             # A refused record was tried once more than its queue row counted (only retries are counted there).
-            moved = buffer.dead_letter(route.name, dead, tried_now={sent_rows[i].row_id for i in reject})
+            moved_ids = []
+            moved = buffer.dead_letter(
+                route.name, dead, tried_now={sent_rows[i].row_id for i in reject}, moved_ids=moved_ids
+            )
             route.metrics.add("dead_lettered", moved)
             route.dead_letter_log.event(moved, f"{dead[0][1]}; see `dc buffer list`")
-            self._tell([row.record_id for row, _ in dead], dead_lettered=True)
+            self._tell(moved_ids, dead_lettered=True)
             self.bound_dead_letters()
         return retried > 0
 
     def _tell(self, record_ids: list[str], *, dead_lettered: bool) -> None:
         """The listeners told of an outcome committed (see :data:`OutcomeListener`)."""
+        if not record_ids:
+            return
         for listener in self._listeners:
             try:
                 listener(self.route.name, record_ids, dead_lettered)
@@ -610,7 +646,9 @@ class Sender:
         route.metrics.add("evicted", taken)
         route.evict_log.event(taken, "records naming saved files evicted before this destination had them")
         assert route.saved is not None
-        route.saved.taken_out(route.name, [row.record_id for row in rows])
+        evicted_ids = [row.record_id for row in rows]
+        route.saved.taken_out(route.name, evicted_ids)
+        tell_dropped(self._drop_listeners, route.logger, route.name, evicted_ids, DROP_FILE_EVICTED)
 
     def _tell_evictions(self) -> bool:
         """Tell a destination that records evictions of the files evicted after it confirmed them;

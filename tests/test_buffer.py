@@ -222,6 +222,7 @@ def test_size_limit_drop_newest_keeps_the_oldest(buffer: Buffer) -> None:
     assert result.appended == {"a": 7} and not result.dropped_newest
     result = buffer.append({"a": [pending(i) for i in range(7, 14)]}, limit)
     assert result.appended == {"a": 3} and result.dropped_newest == {"a": 4}
+    assert result.dropped_ids == {"a": [f"id-{i:08d}" for i in range(10, 14)]}
     kept = [r.record_id for r in buffer.read_batch("a", 100)]
     assert kept == [f"id-{i:08d}" for i in range(10)]
     stats = buffer.stats("a")
@@ -234,6 +235,7 @@ def test_size_limit_drop_oldest_keeps_the_newest(buffer: Buffer) -> None:
     buffer.append({"a": [pending(i) for i in range(7)]}, limit)
     result = buffer.append({"a": [pending(i) for i in range(7, 14)]}, limit)
     assert result.appended == {"a": 7} and result.dropped_oldest == {"a": 4}
+    assert result.dropped_ids == {"a": [f"id-{i:08d}" for i in range(4)]}
     kept = [r.record_id for r in buffer.read_batch("a", 100)]
     assert kept == [f"id-{i:08d}" for i in range(4, 14)]
     # A batch bigger than the whole limit keeps its newest records.
@@ -610,3 +612,40 @@ def test_a_record_lost_to_the_damage_never_lends_its_id_to_a_new_one(tmp_path: P
         assert buffer.stats("a").rows == 3
     finally:
         buffer.close()
+
+
+def test_a_drop_oldest_that_empties_the_queue_never_lends_a_read_rows_id_to_a_new_record(buffer: Buffer) -> None:
+    """A sender holds rows it read; a batch as large as the limit drops the whole queue, those rows
+    with it. The sender's delete of the rows it sent must not delete the new records: SQLite gives a
+    table emptied of its largest ids those ids again, unless the buffer keeps new rows above them."""
+    size = pending(0).size
+    limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=True)}
+    buffer.append({"a": [pending(i) for i in range(10)]}, limit)
+    held = buffer.read_batch("a", 10)  # a send() under way
+    result = buffer.append({"a": [pending(i) for i in range(100, 110)]}, limit)
+    assert result.dropped_oldest == {"a": 10}
+    assert sorted(result.dropped_ids["a"]) == [f"id-{i:08d}" for i in range(10)]
+    assert buffer.delete("a", [row.row_id for row in held]) == 0, "the held rows were dropped"
+    assert [r.record_id for r in buffer.read_batch("a", 100)] == [f"id-{i:08d}" for i in range(100, 110)]
+
+
+def test_evict_oldest_names_the_records_it_evicts(buffer: Buffer) -> None:
+    buffer.append({"a": [pending(i) for i in range(10)]})
+    assert buffer.read_batch("a", 2)  # read: left alone
+    evicted = buffer.evict_oldest("a", 3 * pending(0).size, with_ids=True)
+    assert (evicted.records, evicted.record_ids) == (3, [f"id-{i:08d}" for i in range(2, 5)])
+    assert buffer.evict_oldest("a", 1).record_ids == []  # not asked for
+
+
+def test_dead_letter_names_only_the_rows_it_moved(buffer: Buffer) -> None:
+    """A row the size limit dropped while its send failed has no dead letter: whoever is told of dead
+    letters (dc ingest acknowledges their messages) must not hear of it."""
+    size = pending(0).size
+    limit = {"a": QueueLimit(max_bytes=4 * size, drop_oldest=True)}
+    buffer.append({"a": [pending(i) for i in range(4)]}, limit)
+    failed = buffer.read_batch("a", 4)
+    buffer.append({"a": [pending(i) for i in range(10, 12)]}, limit)  # drops the two oldest
+    moved: list[str] = []
+    assert buffer.dead_letter("a", [(row, "refused") for row in failed], moved_ids=moved) == 2
+    assert moved == ["id-00000002", "id-00000003"]
+    assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000010", "id-00000011"]

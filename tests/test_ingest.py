@@ -183,7 +183,7 @@ def ingest_params(postgres: PostgresServer, tmp_path: Path, retry_limit: int = -
 class Worker:
     """An ingest worker in this process, on its own event loop thread, stopped as SIGTERM stops dc ingest."""
 
-    def __init__(self, section: dict[str, Any], url: str, consumer: str, storage: Path) -> None:
+    def __init__(self, section: dict[str, Any], url: str, consumer: str, storage: Path, **options: Any) -> None:
         import logging
 
         from dc_core.logs import SeverityLogger
@@ -192,9 +192,9 @@ class Worker:
 
         config = parse_destination_server(section)
         self.destinations = configure_destinations(config, "test.ingest")
-        options = IngestOptions(servers=[url], stream="DC", consumer=consumer, batch=50, ack_wait=30)
+        settings = IngestOptions(servers=[url], stream="DC", consumer=consumer, batch=50, ack_wait=30, **options)
         logger = SeverityLogger(logging.getLogger("test.ingest"))
-        self.ingest = Ingest(config, self.destinations, options, storage, logger)
+        self.ingest = Ingest(config, self.destinations, settings, storage, logger)
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self.ingest.run(),))
         self._thread.start()
@@ -443,3 +443,119 @@ def test_a_worker_killed_before_a_dead_letter_is_committed_leaves_the_record_to_
     # The refused records, and good ones whose rows were not yet deleted when it was killed.
     left = re.findall(r"left by the last run (\d+)", (tmp_path / "w1.log").read_text())
     assert left and int(left[-1]) >= len(refused)
+
+
+# -- records the worker's buffer drops go back to the stream ----------------------------------------
+
+
+def test_records_the_buffer_drops_are_handed_back_and_stored_once_the_store_is_back(
+    postgres: PostgresServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A worker whose PgSQL destination is stuck (its table locked) and whose queue for it holds ~60
+    records drops the others (storage_total_limit_size, when_full drop_oldest): their messages are
+    handed back to the stream, never acknowledged, and their in-flight slots freed. Once the table is
+    released, every record is in PostgreSQL, the File destination (never stuck) has each exactly
+    once, every message is acknowledged and nothing is left in flight."""
+    import logging
+
+    section = ingest_params(postgres, tmp_path)
+    section["warehouse"].update(table="handback", batch_size=20, storage_total_limit_size="16k")
+    sent = [robot_record(n, "uptime") for n in range(300)]
+    with NatsServer(tmp_path / "nats") as nats_server:
+        publisher = robot(nats_server.url)
+        table = warehouse_table(postgres, "handback")  # made before it is locked
+        lock = psycopg.connect(**connection_settings(postgres))
+        worker = None
+        try:
+            assert publisher.send(sent[:1]) is None  # makes the stream
+            worker = Worker(section, nats_server.url, "handback", tmp_path / "buffer", handback_delay=0.3)
+            wait_for(lambda: consumer_state(nats_server.url, "handback") == (0, 0), "the first record acknowledged")
+            lock.execute("LOCK TABLE handback IN ACCESS EXCLUSIVE MODE")
+            with caplog.at_level(logging.WARNING, logger="test.ingest"):
+                assert publisher.send(sent[1:]) is None
+                ingest = worker.ingest
+                # Every record reached the lake; the warehouse's queue is full, and what it dropped went back.
+                wait_for(
+                    lambda: (
+                        ingest.pipeline.metrics()["lake"]["sent"] == len(sent)
+                        and sum(ingest.counters.handed_back.values()) >= len(sent) - 100
+                    ),
+                    "the lake has every record and the warehouse's drops are handed back",
+                )
+                assert len(ingest.settlements) < len(sent) - 100, "handed back: no longer in flight"
+                lock.rollback()
+                wait_for(
+                    lambda: consumer_state(nats_server.url, "handback") == (0, 0) and len(ingest.settlements) == 0,
+                    "every message acknowledged, none in flight",
+                )
+            metrics = ingest.pipeline.metrics()
+        finally:
+            lock.close()
+            table.on_cleanup()
+            publisher.on_cleanup()
+            if worker is not None:
+                worker.stop()
+    counters = worker.ingest.counters
+    stored = table_ids(postgres, "handback")
+    assert sorted(stored) == sorted(r.record_id for r in sent)
+    lake = [json.loads(line)["record_id"] for line in (tmp_path / "lake.jsonl").read_text().splitlines()]
+    assert sorted(lake) == sorted(r.record_id for r in sent), "each record once in the lake: not sent to it again"
+    assert set(counters.handed_back) == {"size_limit"} and not counters.terminated
+    # Each hand-back brought the record to the warehouse once more (a record may go back more than
+    # once): what it was given = the records + the hand-backs. Every hand-back was a drop; a drop may
+    # be no hand-back (a row confirmed, its message acknowledged, dropped before its delete).
+    handed_back = sum(counters.handed_back.values())
+    assert metrics["warehouse"]["received"] == len(sent) + handed_back
+    assert 0 < handed_back <= metrics["warehouse"]["dropped"]
+    assert metrics["lake"]["received"] == metrics["lake"]["sent"] == len(sent)
+    assert counters.acknowledged == len(sent) and counters.over_retry_limit == 0
+    assert "messages handed back to the stream" in caplog.text and "size_limit" in caplog.text
+
+
+def warehouse_table(pg: PostgresServer, name: str) -> Any:
+    """A PgSQL destination on table ``name``, the table made by a first record (not one of the test's)."""
+    from dc_destinations.pgsql import PgSQL, PgSQLParams
+
+    params = parse_params(PgSQLParams, {**pg.settings(), "table": name}, "destination_server.w")
+    plugin = PgSQL(FakeContext(name=name), params)
+    plugin.on_configure()
+    first = robot_record(-1, "uptime")
+    assert plugin.send([first]) is None
+    with psycopg.connect(**connection_settings(pg)) as connection:
+        connection.execute(f"DELETE FROM {name}")
+    return plugin
+
+
+def test_settlements_answer_each_message_by_what_its_destinations_did() -> None:
+    from dc_destinations.ingest import ACK, NAK, TERM, Settlements, Taken
+
+    verdicts: list[tuple[Any, str, str, str]] = []
+    s = Settlements(lambda *verdict: verdicts.append(verdict), remember=2)
+    assert s.add("a", "m1", ["pg", "lake"]) == Taken(["lake", "pg"], 0)
+    s.settled("lake", ["a"])
+    s.dropped("pg", ["a"], "size_limit")
+    assert verdicts.pop() == ("m1", NAK, "size_limit", "pg") and len(s) == 0
+    # Back again: only to the destination that had not settled it, its hand-back known.
+    assert s.add("a", "m1 again", ["pg", "lake"]) == Taken(["pg"], 1)
+    s.dropped("lake", ["a"], "size_limit")  # a late report of a destination that settled it: no effect
+    s.settled("pg", ["a"])
+    assert verdicts.pop() == ("m1 again", ACK, "", "")
+    s.add("b", "m2", ["pg", "lake"])
+    s.dropped("pg", ["b"], "not_storable")
+    s.settled("lake", ["b"])
+    assert verdicts.pop() == ("m2", TERM, "not_storable", "pg")
+    # A drop for want of room wins over one for good: the other destination may take it later.
+    s.add("c", "m3", ["pg", "lake"])
+    s.dropped("pg", ["c"], "not_storable")
+    s.dropped("lake", ["c"], "disk_budget")
+    assert verdicts.pop() == ("m3", NAK, "disk_budget", "lake")
+    assert s.add("c", "m3 again", ["pg", "lake"]) == Taken(["lake"], 1)
+    s.settled("lake", ["c"])
+    assert verdicts.pop() == ("m3 again", TERM, "not_storable", "pg")
+    # At most `remember` hand-backs are remembered, the oldest forgotten first.
+    for rid in ("x", "y", "z"):
+        s.add(rid, rid, ["pg"])
+        s.dropped("pg", [rid], "intake")
+    assert s.add("x", "x", ["pg"]) == Taken(["pg"], 0) and s.add("z", "z", ["pg"]) == Taken(["pg"], 1)
+    s.settled("pg", ["unknown"])  # a replayed dead letter: not in flight here
+    assert len(s) == 2 and [v[1] for v in verdicts] == [NAK, NAK, NAK]

@@ -428,6 +428,8 @@ def test_disk_budget_evicts_by_retention_and_counts_it(tmp_path: Path, caplog: p
         },
         LOG,
     )
+    dropped: list[tuple[str, list[str], str]] = []
+    pipeline.add_drop_listener(lambda *drop: dropped.append(drop))
     pipeline.start()
     try:
         with caplog.at_level(logging.WARNING):
@@ -445,6 +447,11 @@ def test_disk_budget_evicts_by_retention_and_counts_it(tmp_path: Path, caplog: p
         # The oldest went: what arrived of images is its newest records, in order.
         kept = [r.data["n"] for r in images.received]
         assert kept == list(range(60 - len(kept), 60))
+        # Whoever listens (dc ingest) is told which records were evicted, and why.
+        assert {(name, why) for name, _, why in dropped} == {("images", "disk_budget")}
+        told = [rid for _, ids, _ in dropped for rid in ids]
+        assert sorted(told) == sorted(set(told)) and len(told) == metrics["images"]["evicted"]
+        assert not set(told) & {r.record_id for r in images.received}
         after = pipeline.metrics()
     finally:
         pipeline.stop(0.2)
