@@ -42,7 +42,9 @@ COVERING_DEPTH = int(FLOOD_RATE * RESTART_ALLOWANCE_S)
 INPUT_DEPTH = TOTAL
 
 # argv: first number, count, rate, queue depth; with "--await-forwarded" it exits only once measurement_server
-# has republished its last record (so that record is in measurement_server's history).
+# has republished its last record (so that record is in measurement_server's history); with
+# "--pause-at=N:FIFO" it stops after N records until the test opens FIFO for writing (a kill then falls
+# while it waits, and what it publishes next meets servers that are down).
 PUBLISHER = """
 import json, sys, time
 import rclpy
@@ -72,9 +74,14 @@ def matched():
 deadline = time.monotonic() + 30
 while not matched() and time.monotonic() < deadline:
     rclpy.spin_once(node, timeout_sec=0.05)
+pause = next((a.split("=", 1)[1].split(":", 1) for a in sys.argv if a.startswith("--pause-at=")), None)
 start = time.monotonic()
 msg = StringStamped()
 for i in range(count):
+    if pause is not None and i == int(pause[0]):
+        with open(pause[1]) as gate:
+            gate.read()
+        start = time.monotonic() - i / rate
     due = start + i / rate
     now = time.monotonic()
     if due > now:

@@ -176,12 +176,12 @@ def test_kill_9_of_destination_server_back_only_30_s_later_loses_none(tmp_path: 
 SINGLE_TOTAL = 3_000
 
 
-def publish_tagged(env: dict[str, str], first: int, count: int, rate: float) -> subprocess.Popen[str]:
+def publish_tagged(env: dict[str, str], first: int, count: int, rate: float, *flags: str) -> subprocess.Popen[str]:
     """The restart tests' publisher, its records tagged for the File destination (no measurement adds the tag)."""
     script = PUBLISHER.replace('json.dumps({"n": first + i})', 'json.dumps({"n": first + i, "tags": ["file"]})')
     assert script != PUBLISHER
     return subprocess.Popen(
-        [sys.executable, "-c", script, str(first), str(count), str(rate), str(INPUT_DEPTH)],
+        [sys.executable, "-c", script, str(first), str(count), str(rate), str(INPUT_DEPTH), *flags],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -203,11 +203,23 @@ def test_single_process_kill_9_counts_what_your_node_published_meanwhile(tmp_pat
         params.write_text(
             params.read_text().replace('inputs: ["/dc/measurement/numbers"]', 'inputs: ["/robot/numbers"]')
         )
+    # The publisher waits after 600 records until the process is killed: on a loaded machine it had
+    # published all of them before the file showed 600, and the kill then lost nothing to count.
+    gate = tmp_path / "publish-on"
+    os.mkfifo(gate)
     with Bringup(params, tmp_path / "home", args=["--single-process", "--bond-timeout", "3"]) as run:
         run.wait_ready()
-        publisher = (publish_tagged if straight else publish)(run.env, 0, SINGLE_TOTAL, SINGLE_RATE)
-        run.wait_until(lambda: len(numbers_in(output)) >= 600, 60, "600 records in the file")
+        publisher = (publish_tagged if straight else publish)(
+            run.env, 0, SINGLE_TOTAL, SINGLE_RATE, f"--pause-at=600:{gate}"
+        )
+        try:
+            run.wait_until(lambda: len(numbers_in(output)) >= 600, 60, "600 records in the file")
+        except AssertionError:
+            publisher.kill()  # it would wait on its gate forever
+            raise
         os.kill(single_process_pid(run), signal.SIGKILL)
+        with open(gate, "w") as go:  # the publisher, waiting on the other end, goes on
+            go.write("go")
         run.wait_until(lambda: sum("DC is up in one process" in s for s in run.stderr) == 2, 60, "the process up again")
         published, _ = publisher.communicate(timeout=SINGLE_TOTAL / SINGLE_RATE + 60)
         assert publisher.returncode == 0, published
