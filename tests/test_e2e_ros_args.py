@@ -22,6 +22,7 @@ from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 
 from tests.bringup_util import Bringup
+from tests.bringup_util import dc as run_dc
 from tests.robot_helpers import ros_session, tf_message, transform
 
 pytestmark = pytest.mark.e2e
@@ -113,11 +114,22 @@ def test_tf_remapped_into_the_namespace_and_parameters_served_read_only(tmp_path
 def test_a_remap_to_a_topic_of_another_type_is_an_error_naming_both(tmp_path: Path) -> None:
     params = tmp_path / "nav2_style.yaml"
     params.write_text(PARAMS)
-    bringup = Bringup(params, tmp_path / "home", args=["--namespace", "r1", "--ros-args", "-r", "/tf:=chatter"])
+    # DC checks the type of the publishers its graph knows when it subscribes. Started at once, its
+    # servers configured before discovery had told them of this test's publisher (seen at load 3):
+    # they are started only once this node sees them, by when they have seen this node too.
+    bringup = Bringup(
+        params, tmp_path / "home", args=["--namespace", "r1", "--no-autostart", "--ros-args", "-r", "/tf:=chatter"]
+    )
     with ros_session("ros_args", domain_id=bringup.domain_id) as ros:
         node = ros.node
         chatter = node.create_publisher(String, "/r1/chatter", QoSProfile(depth=1))
         with bringup as dc:
+            dc.wait_stderr("DC is waiting for startup", 120)
+            deadline = time.monotonic() + 60
+            while ("measurement_server", "/r1") not in node.get_node_names_and_namespaces():
+                assert time.monotonic() < deadline, "measurement_server not discovered in 60 s"
+                ros.executor.spin_once(timeout_sec=0.1)
+            run_dc("lifecycle", "startup", "--namespace", "r1", env=dc.env)
             dc.wait_stderr("/tf: remapped to /r1/chatter, which carries std_msgs/msg/String", 60)
             line = dc.wait_stderr("tf2_msgs/msg/TFMessage expected")
             assert "activate failed" in line or "configure failed" in line, line
