@@ -362,11 +362,9 @@ def test_event_driven_string_stamped_publishes_each_record_once_with_its_stamp_a
     assert all(r["name"] == measurement.name for r in records(received))
 
 
-def test_records_that_reach_an_inactive_server_are_published_once_it_is_active(harness: Harness) -> None:
-    """Between configure and activate, and while deactivated, DDS still delivers your node's records to
-    measurement_server (and tells your node they arrived): they are published at activation, in order."""
-    name, topic = unique("events"), f"/{unique('robot_events')}"
-    server = harness.start_server(f"""
+def start_event_driven(harness: Harness, name: str, topic: str, more: str = "") -> MeasurementServer:
+    """A server (not configured yet) with one event-driven StringStamped measurement, ``more`` its last parameter line."""
+    return harness.start_server(f"""
 measurement_server:
   ros__parameters:
     measurement_plugins: ["{name}"]
@@ -374,7 +372,15 @@ measurement_server:
       plugin: "dc_measurements/StringStamped"
       topic: "{topic}"
       timer_based: false
+      {more}
 """)
+
+
+def test_records_that_reach_an_inactive_server_are_published_once_it_is_active(harness: Harness) -> None:
+    """Between configure and activate, and while deactivated, DDS still delivers your node's records to
+    measurement_server (and tells your node they arrived): they are published at activation, in order."""
+    name, topic = unique("events"), f"/{unique('robot_events')}"
+    server = start_event_driven(harness, name, topic)
     received = harness.listen(f"/dc/measurement/{name}")
     assert server.trigger_configure() == SUCCESS
     harness.wait_publisher(f"/dc/measurement/{name}")
@@ -405,16 +411,7 @@ def test_a_latched_state_published_before_the_server_subscribed_is_forwarded_wit
     topic, name = f"/{unique('destination_health')}", unique("destination_health")
     latched = harness.peer.create_publisher(StringStamped, topic, HEALTH_QOS)
     latched.publish(stamped(json.dumps({"pg": {"state": "failing", "reason": "connection refused"}}), 1_700_000_000))
-    server = harness.start_server(f"""
-measurement_server:
-  ros__parameters:
-    measurement_plugins: ["{name}"]
-    {name}:
-      plugin: "dc_measurements/StringStamped"
-      topic: "{topic}"
-      timer_based: false
-      transient_local: true
-""")
+    server = start_event_driven(harness, name, topic, "transient_local: true")
     received = harness.listen(f"/dc/measurement/{name}")
     assert server.trigger_configure() == SUCCESS
     harness.wait_publisher(f"/dc/measurement/{name}")
