@@ -195,13 +195,17 @@ def metrics_port(run: Bringup) -> str:
 
 KILL_RATE = 500.0
 KILL_AT = 600
-# Records published after the restart: a loss is counted from the jump in your node's numbers, which
-# the first record after the restart shows (docs/delivery.md, "The hand-off", item 5), so the node
-# must go on publishing past it, however long the restart takes on a busy machine.
+# Records published once a record published after the restart reached the file. A loss is counted from
+# the jump in your node's numbers, which the first record after the restart shows (docs/delivery.md,
+# "The hand-off", item 5); records published before the restarted server's subscription is discovered
+# go nowhere and nothing after them would show the jump, so the node goes on publishing until one of
+# its post-restart records is delivered, however long discovery takes on a busy machine (CI: 1 s of
+# tail was published before the restarted measurement_server matched, and nothing was counted).
 TAIL = 500
 
 # Your node: numbered records ({"n": i, "tags": ...} as tests/test_e2e_delivery_restart.py's) at
-# argv[1]/s until the file argv[2] exists, then argv[3] more; prints how many it published in all.
+# argv[1]/s. When the file argv[2] appears it writes the number it got to into argv[2] + ".n", goes on
+# until the file argv[2] + ".seen" exists, then publishes argv[3] more; prints how many it published.
 NODE = """
 import json, os, sys, time
 import rclpy
@@ -215,10 +219,15 @@ pub = node.create_publisher(StringStamped, "/robot/numbers", QoSProfile(depth=10
 deadline = time.monotonic() + 30
 while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
     rclpy.spin_once(node, timeout_sec=0.05)
-start, n, last = time.monotonic(), 0, None
+start, n, told, last = time.monotonic(), 0, False, None
 while last is None or n < last:
     time.sleep(max(0.0, start + n / rate - time.monotonic()))
-    if last is None and os.path.exists(marker):
+    if not told and os.path.exists(marker):
+        with open(marker + ".tmp", "w") as f:
+            f.write(str(n))
+        os.rename(marker + ".tmp", marker + ".n")
+        told = True
+    if told and last is None and os.path.exists(marker + ".seen"):
         last = n + tail
     msg = StringStamped()
     msg.header.stamp = node.get_clock().now().to_msg()
@@ -267,6 +276,13 @@ def test_kill_9_mid_stream(tmp_path: Path, mode: str, server: str) -> None:
             up_again = f"{server} active (pid "
         run.wait_until(lambda: sum(up_again in s for s in run.stderr) >= 2, 120, f"{server} up again")
         marker.touch()
+        told = Path(f"{marker}.n")
+        run.wait_until(told.exists, 30, "your node to read the marker")
+        after_restart = int(told.read_text())
+        run.wait_until(
+            lambda: any(n >= after_restart for n in numbers_in(output)), 120, "a record published after the restart"
+        )
+        Path(f"{marker}.seen").touch()
         printed, errors = node.communicate(timeout=60)
         assert node.returncode == 0, errors
         sent = int(printed)
