@@ -241,14 +241,18 @@ def _size_or_percent(text: str, path: str, what: str, zero: str) -> tuple[int | 
     return parse_size(text, path), None
 
 
+# The least disk budget: one batch of records may take as much.
+_SMALLEST_BUDGET = 1024 * 1024
+
+
+def _budget_too_small(path: str, given: str, least: str) -> ConfigError:
+    return ConfigError(path, f"a budget of {given} is smaller than one batch of records may be: give at least {least}")
+
+
 def budget_limits(settings: DeliveryParams, path: str) -> BudgetLimits:
     """``disk_budget`` (or the older ``disk_budget_mb``) and ``disk_free_floor`` of the ``flb`` section at ``path``."""
     if 0 < settings.disk_budget_mb < 1:
-        raise ConfigError(
-            f"{path}.disk_budget_mb",
-            f"a budget of {settings.disk_budget_mb:g} MB is smaller than one batch of records may be: "
-            "give at least 1, or 0 for no budget",
-        )
+        raise _budget_too_small(f"{path}.disk_budget_mb", f"{settings.disk_budget_mb:g} MB", "1, or 0 for no budget")
     budget_bytes, budget_fraction = _size_or_percent(
         settings.disk_budget, f"{path}.disk_budget", "a budget", "would evict everything"
     )
@@ -256,12 +260,8 @@ def budget_limits(settings: DeliveryParams, path: str) -> BudgetLimits:
         raise ConfigError(f"{path}.disk_budget", "give disk_budget or disk_budget_mb, not both")
     if settings.disk_budget_mb:
         budget_bytes = int(settings.disk_budget_mb * 1024 * 1024)
-    if budget_bytes is not None and budget_bytes < 1024 * 1024:
-        raise ConfigError(
-            f"{path}.disk_budget",
-            f'a budget of "{settings.disk_budget.strip()}" is smaller than one batch of records may be: '
-            "give at least 1M",
-        )
+    if budget_bytes is not None and budget_bytes < _SMALLEST_BUDGET:
+        raise _budget_too_small(f"{path}.disk_budget", f'"{settings.disk_budget.strip()}"', "1M")
     floor_bytes, floor_fraction = _size_or_percent(
         settings.disk_free_floor, f"{path}.disk_free_floor", "a floor", "would never act"
     )
