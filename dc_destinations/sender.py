@@ -43,6 +43,7 @@ import math
 import threading
 import time
 import traceback
+from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -64,7 +65,7 @@ from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S, DestinationHealth,
 from dc_destinations.links import FILES, HOLD_POLL_S, Network, Pacer, SendRules, TokenBucket
 from dc_destinations.metrics import DestinationMetrics
 from dc_destinations.saved_files import SavedFiles
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_rate, parse_size
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_rate, parse_size, priority_of
 
 _T = TypeVar("_T")
 
@@ -227,7 +228,9 @@ class Route:
             evict_log=BurstLog(
                 logger.warning,
                 f"destination {name}: records evicted unsent to keep DC within its disk budget "
-                f"(retention_priority {params.retention_priority})",
+                f"(retention_priority {params.retention_priority}"
+                + "".join(f", {key} {p}" for key, p in params.retention_priorities.items())
+                + ")",
             ),
             health=DestinationHealth(name, params.unhealthy_after or DEFAULT_UNHEALTHY_AFTER_S, logger),
             gate=Gate(logger),
@@ -236,6 +239,15 @@ class Route:
             pacer=pacer,
             file_fields=destination.file_fields(),
         )
+
+    @property
+    def per_topic_retention(self) -> bool:
+        """Whether its records' retention priorities differ by input topic (``retention_priorities``)."""
+        return any(p != self.params.retention_priority for p in self.params.retention_priorities.values())
+
+    def retention_of(self, topic: str) -> int:
+        """The retention priority of its records that arrived on ``topic``."""
+        return priority_of(self.params.retention_priorities, self.params.retention_priority, topic)
 
     def tick_logs(self) -> None:
         self.drop_log.tick()
@@ -643,7 +655,10 @@ class Sender:
         """Records naming saved files evicted before this destination had them: out of its queue, counted."""
         route = self.route
         taken = self.buffer.delete(route.name, [row.row_id for row in rows], sent=False)
-        route.metrics.add("evicted", taken)
+        if taken == len(rows):
+            route.metrics.add_evicted(Counter(row.topic for row in rows))
+        else:  # some left the queue meanwhile (a buffer set aside): which ones is not known
+            route.metrics.add("evicted", taken)
         route.evict_log.event(taken, "records naming saved files evicted before this destination had them")
         assert route.saved is not None
         evicted_ids = [row.record_id for row in rows]
