@@ -290,8 +290,22 @@ class Buffer(Protocol):
     def delete(self, destination: str, row_ids: Sequence[int], *, sent: bool = True) -> int:
         """Forget confirmed rows (``sent`` False: evicted unsent); returns how many were there."""
 
-    def record_failure(self, destination: str, row_ids: Sequence[int]) -> dict[int, int]:
-        """One more failed attempt for each row; returns their attempt counts."""
+    def record_failure(
+        self, destination: str, row_ids: Sequence[int], *, dropped_ids: list[str] | None = None
+    ) -> dict[int, int]:
+        """One more failed attempt for each row; returns their attempt counts. Those the size limit
+        dropped while they were held (:meth:`hold`) are deleted now, their record_ids added to
+        ``dropped_ids`` (counted in the queue's ``dropped``)."""
+
+    def hold(self, destination: str, row_ids: Sequence[int]) -> None:
+        """These rows are in a ``send()``: the size limit drops none of them before the destination
+        answered (a record it confirms would be counted both dropped and sent). One the limit chose
+        meanwhile goes when :meth:`record_failure` counts its send failed; confirmed, :meth:`delete`
+        takes it as sent; dead-lettered, it is a dead letter."""
+
+    def release(self, destination: str, row_ids: Sequence[int] | None = None) -> None:
+        """Rows held by :meth:`hold` no longer are (None: every row of the queue): the size limit
+        may drop them again, and those it chose meanwhile stay in the queue."""
 
     def dead_letter(
         self,
@@ -389,6 +403,10 @@ class SqliteBuffer:
         # queue's own totals. Until the disk budget first needs them, their commits pay nothing.
         self._tracked: set[str] = set()
         self._by_topic: dict[str, dict[str, list[int]]] = {}
+        # Per destination: the ids of the rows in a send() now (hold), and of those the size limit
+        # chose meanwhile, left to the send's outcome: deleted as dropped only if it failed.
+        self._held: dict[str, set[int]] = {}
+        self._doomed: dict[str, set[int]] = {}
         self._conn: sqlite3.Connection | None = None
         try:
             self._conn = self._connect()
@@ -854,15 +872,11 @@ class SqliteBuffer:
                 counts = self._by_topic.get(destination)
                 if limit.max_bytes is not None:
                     dropped: list[str] = []
-                    rows, dropped_newest, dropped_oldest = self._apply_limit(conn, qid, rows, limit, dropped, counts)
+                    rows, dropped_newest, dropped_oldest = self._apply_limit(
+                        conn, destination, qid, rows, limit, dropped
+                    )
                     if dropped:
                         result.dropped_ids[destination] = dropped
-                    if dropped_oldest and destination in self._max_read:
-                        # The head dropped may be the whole queue, the rows a sender holds with it:
-                        # SQLite would give their ids to the new rows, and that sender's delete of
-                        # its confirmed rows would then delete new records unsent.
-                        floor = max(self._id_floor.get(destination, 0), self._max_read[destination])
-                        self._id_floor[destination] = floor
                 insert = (
                     f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload, payload_crc) "
                     "VALUES (?, ?, ?, ?, ?, ?, ?)"
@@ -928,14 +942,14 @@ class SqliteBuffer:
     def _apply_limit(
         self,
         conn: sqlite3.Connection,
+        destination: str,
         qid: int,
         rows: list[_QueueRow],
         limit: QueueLimit,
         dropped: list[str],
-        counts: dict[str, list[int]] | None,
     ) -> tuple[list[_QueueRow], int, int]:
         """Rows that fit, records dropped from the batch, rows deleted from the queue head; the
-        record_ids of both added to ``dropped``, the rows deleted taken off ``counts`` (per topic)."""
+        record_ids of both added to ``dropped``."""
         assert limit.max_bytes is not None
         max_bytes = limit.max_bytes
         # A record bigger than the whole limit can never fit: it is dropped whatever the policy.
@@ -963,19 +977,55 @@ class SqliteBuffer:
         need = used + incoming - max_bytes
         dropped_oldest = 0
         if need > 0:
-            dropped_oldest, freed, last_id = _walk_head(conn, qid, need, after=-1)
-            if last_id is not None:
-                deleted = conn.execute(
-                    f"DELETE FROM q_{qid} WHERE id <= ? RETURNING record_id, topic, size", (last_id,)
-                ).fetchall()
-                dropped.extend(str(record_id) for record_id, _topic, _size in deleted)
-                if counts is not None:
-                    _count_rows(counts, [(topic, size) for _id, topic, size in deleted], -1)
-                conn.execute(
-                    "UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?",
-                    (dropped_oldest, freed, qid),
-                )
+            head = self._drop_head(conn, destination, qid, need)
+            dropped.extend(head)
+            dropped_oldest = len(head)
         return fitting, dropped_newest, dropped_oldest
+
+    def _drop_head(self, conn: sqlite3.Connection, destination: str, qid: int, need: int) -> list[str]:
+        """Delete a queue's oldest rows, at least ``need`` bytes of them (all there are, if fewer); their
+        record_ids. Not counted here.
+
+        A row held in a send() is only marked: the destination may confirm it, and a record must never
+        be counted both dropped and sent. It goes, counted dropped, if its send fails
+        (:meth:`record_failure`); meanwhile the queue stands above its limit by those rows."""
+        held = self._held.get(destination)
+        if held:
+            doomed = _head_ids(conn, qid, need)
+            chosen = [row_id for row_id in doomed if row_id not in held]
+            self._doomed.setdefault(destination, set()).update(row_id for row_id in doomed if row_id in held)
+            return self._delete_head_rows(conn, destination, qid, chosen)
+        _count, _freed, last_id = _walk_head(conn, qid, need, after=-1)
+        if last_id is None:
+            return []
+        return self._delete_head_rows(conn, destination, qid, None, last_id)
+
+    def _delete_head_rows(
+        self, conn: sqlite3.Connection, destination: str, qid: int, row_ids: list[int] | None, last_id: int = 0
+    ) -> list[str]:
+        """Delete rows of the queue's head, ``row_ids`` (None: every row up to ``last_id``), kept out of
+        the counts per topic; their record_ids."""
+        args: tuple[object, ...]
+        if row_ids is None:
+            where, args = "id <= ?", (last_id,)
+        elif row_ids:
+            where, args = "id IN (SELECT value FROM json_each(?))", (json.dumps(row_ids),)
+        else:
+            return []
+        deleted = conn.execute(f"DELETE FROM q_{qid} WHERE {where} RETURNING record_id, topic, size", args).fetchall()
+        counts = self._by_topic.get(destination)
+        if counts is not None:
+            _count_rows(counts, [(topic, size) for _id, topic, size in deleted], -1)
+        conn.execute(
+            "UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?",
+            (len(deleted), sum(int(size) for _id, _topic, size in deleted), qid),
+        )
+        if deleted and destination in self._max_read:
+            # The head dropped may be the whole queue, rows a sender read with it: SQLite would give
+            # their ids to the new rows, and that sender's delete of its confirmed rows would then
+            # delete new records unsent.
+            self._id_floor[destination] = max(self._id_floor.get(destination, 0), self._max_read[destination])
+        return [str(record_id) for record_id, _topic, _size in deleted]
 
     def read_batch(self, destination: str, limit: int, *, after_id: int = 0) -> list[BufferedRow]:
         """The oldest ``limit`` rows of a queue after ``after_id`` (memory bounded by ``limit``, whatever the
@@ -1011,10 +1061,16 @@ class SqliteBuffer:
                 "UPDATE queues SET rows = rows - ?, bytes = bytes - ?, sent = sent + ? WHERE qid = ?",
                 (len(sizes), total, len(sizes) if sent else 0, qid),
             )
+            if self._held.get(destination):
+                self.release(destination, row_ids)
         return len(sizes)
 
-    def record_failure(self, destination: str, row_ids: Sequence[int]) -> dict[int, int]:
-        """Count one more failed attempt for each row; returns the rows' attempt counts."""
+    def record_failure(
+        self, destination: str, row_ids: Sequence[int], *, dropped_ids: list[str] | None = None
+    ) -> dict[int, int]:
+        """Count one more failed attempt for each row; returns the rows' attempt counts. Those the size
+        limit chose while their send ran (:meth:`hold`) are deleted now, counted dropped, their
+        record_ids added to ``dropped_ids``."""
         if not row_ids:
             return {}
         with self._transaction() as conn:
@@ -1024,7 +1080,28 @@ class SqliteBuffer:
                 "RETURNING id, attempts",
                 (json.dumps(list(row_ids)),),
             ).fetchall()
+            doomed = self._doomed.get(destination)
+            if doomed:
+                gone = self._delete_head_rows(conn, destination, qid, sorted(doomed.intersection(row_ids)))
+                conn.execute("UPDATE queues SET dropped = dropped + ? WHERE qid = ?", (len(gone), qid))
+                if dropped_ids is not None:
+                    dropped_ids.extend(gone)
+            self.release(destination, row_ids)
         return {int(row_id): int(attempts) for row_id, attempts in rows}
+
+    def hold(self, destination: str, row_ids: Sequence[int]) -> None:
+        """Keep these rows from the size limit while they are in a send(); see :class:`Buffer`."""
+        with self._lock:
+            self._held.setdefault(destination, set()).update(row_ids)
+
+    def release(self, destination: str, row_ids: Sequence[int] | None = None) -> None:
+        with self._lock:
+            for rows in (self._held.get(destination), self._doomed.get(destination)):
+                if rows:
+                    if row_ids is None:
+                        rows.clear()
+                    else:
+                        rows.difference_update(row_ids)
 
     def dead_letter(
         self,
@@ -1074,6 +1151,8 @@ class SqliteBuffer:
                 moved += 1
                 if moved_ids is not None:
                     moved_ids.append(row.record_id)
+            if self._held.get(destination):
+                self.release(destination, [row.row_id for row, _error in failures])
         return moved
 
     def queued_bytes(self) -> dict[str, int]:
@@ -1321,6 +1400,25 @@ def _oldest(
         for enqueued, row_id, size in rows:
             yield int(enqueued), int(row_id), int(size), destination
         after = rows[-1][1]
+
+
+def _head_ids(conn: sqlite3.Connection, qid: int, need: int) -> list[int]:
+    """The ids of the oldest rows of queue ``qid`` whose sizes reach ``need`` (all of them if fewer),
+    read 512 at a time."""
+    doomed: list[int] = []
+    freed = 0
+    after = -1
+    while freed < need:
+        head = conn.execute(f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)).fetchall()
+        if not head:
+            break
+        for row_id, size in head:
+            doomed.append(int(row_id))
+            freed += int(size)
+            if freed >= need:
+                break
+        after = head[-1][0]
+    return doomed
 
 
 def _walk_head(conn: sqlite3.Connection, qid: int, need: int, *, after: int) -> tuple[int, int, int | None]:

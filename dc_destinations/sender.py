@@ -343,6 +343,7 @@ class Sender:
                 ahead = None
                 if batch is None:
                     self._settle()  # a queue read from its head holds no confirmed row
+                    buffer.release(route.name)  # nor any row in a send(), whatever failed on the way
                     batch = self._prepare(buffer.read_batch(route.name, batch_size))
                 else:
                     # Submitted before the next read ahead, so that once that read is done, this
@@ -555,6 +556,9 @@ class Sender:
             return False
         if route.pacer.active and not route.pacer.take(sum(row.size for row in sent_rows)):
             raise _Stopping
+        # Until each is deleted, dead-lettered or counted failed, the size limit must not drop them:
+        # one the destination confirms would be counted both dropped and sent.
+        buffer.hold(route.name, [row.row_id for row in sent_rows])
         retry, waiting, reject, problem, self._retry_after = route.gate.send(
             lambda: _outcome_of(route.destination, records)
         )
@@ -603,7 +607,16 @@ class Sender:
         dead: list[tuple[BufferedRow, str]] = [(sent_rows[i], reason) for i, reason in reject.items()]
         retried = 0
         if again:
-            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in again])
+            dropped: list[str] = []
+            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in again], dropped_ids=dropped)
+            if dropped:  # what commits during the send could not drop
+                route.metrics.add("dropped", len(dropped))
+                route.drop_log.event(
+                    len(dropped),
+                    f"storage_total_limit_size {route.params.storage_total_limit_size} reached, "
+                    f"when_full {route.params.when_full}",
+                )
+                tell_dropped(self._drop_listeners, route.logger, route.name, dropped, DROP_SIZE_LIMIT)
             limit = route.params.retry_limit
             failed_again = 0
             for i, reason in again.items():

@@ -629,6 +629,39 @@ def test_a_drop_oldest_that_empties_the_queue_never_lends_a_read_rows_id_to_a_ne
     assert [r.record_id for r in buffer.read_batch("a", 100)] == [f"id-{i:08d}" for i in range(100, 110)]
 
 
+def test_the_size_limit_drops_no_record_in_a_send_before_its_outcome(buffer: Buffer) -> None:
+    """A record the size limit dropped while its send() ran, then confirmed by the destination, was
+    counted twice: dropped, and sent. Rows held for a send() that the limit chooses stay until the
+    send's outcome: confirmed, they are sent; failed, they go then, counted dropped once."""
+    size = pending(0).size
+    limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=True)}
+    buffer.append({"a": [pending(i) for i in range(10)]}, limit)
+    in_send = buffer.read_batch("a", 4)
+    buffer.hold("a", [row.row_id for row in in_send])
+    result = buffer.append({"a": [pending(i) for i in range(100, 106)]}, limit)
+    # The six oldest were chosen: the four in the send stay until it answers, two others go now.
+    assert result.dropped_ids == {"a": ["id-00000004", "id-00000005"]}
+    assert buffer.stats("a").rows == 14  # above the limit by the rows in the send
+    assert buffer.delete("a", [row.row_id for row in in_send[:2]]) == 2  # confirmed: sent, not dropped
+    dropped: list[str] = []
+    assert buffer.record_failure("a", [row.row_id for row in in_send[2:]], dropped_ids=dropped) == {
+        in_send[2].row_id: 1,
+        in_send[3].row_id: 1,
+    }
+    assert dropped == ["id-00000002", "id-00000003"]  # failed: they go now
+    stats = buffer.stats("a")
+    assert (stats.rows, stats.bytes) == (10, 10 * size)
+    assert stats.received_total == stats.sent_total + stats.dropped_total + stats.rows == 16
+    assert [r.record_id for r in buffer.read_batch("a", 100)] == [
+        f"id-{i:08d}" for i in (*range(6, 10), *range(100, 106))
+    ]
+    # Released (a sender reading from the head again), rows are the limit's as any others.
+    again = buffer.read_batch("a", 2)
+    buffer.hold("a", [row.row_id for row in again])
+    buffer.release("a")
+    assert buffer.append({"a": [pending(200)]}, limit).dropped_ids == {"a": ["id-00000006"]}
+
+
 def test_evict_oldest_names_the_records_it_evicts(buffer: Buffer) -> None:
     buffer.append({"a": [pending(i) for i in range(10)]})
     assert buffer.read_batch("a", 2)  # read: left alone
