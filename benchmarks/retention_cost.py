@@ -45,20 +45,14 @@ def child(config: str, count: int) -> float:
     from dc_destinations.record_ids import new_record_id
     from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 
-    class Quiet:
-        def debug(self, message: str, **kwargs: Any) -> None:
-            pass
-
-        info = warning = error = debug
-
-    class Context:
-        name = "bench"
-        logger = Quiet()
-        node = None
+    # A sibling script's quiet plugin context (its folder, not the checkout's root, is on the path:
+    # the checkout measured is the one PYTHONPATH names).
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from delivery_backlog import _Context, _Quiet
 
     class Count(Destination):  # type: ignore[type-arg]
         def __init__(self) -> None:
-            super().__init__(Context(), None)
+            super().__init__(_Context(), None)
             self.count = 0
             self.done = threading.Event()
 
@@ -74,7 +68,7 @@ def child(config: str, count: int) -> float:
     with tempfile.TemporaryDirectory() as folder:
         sink = Count()
         settings = DeliveryParams(storage_path=folder, flush=0.05, disk_budget="1G")
-        pipeline = DeliveryPipeline(settings, {"bench": (sink, DestinationDeliveryParams(**options))}, Quiet())
+        pipeline = DeliveryPipeline(settings, {"bench": (sink, DestinationDeliveryParams(**options))}, _Quiet())
         pipeline.start()
         if config == "per-measurement":
             # What the first time over the budget does: from then on the queue is counted per topic.
