@@ -312,9 +312,15 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
         elif isinstance(values, dict) and values.get("held"):
             print(f"destination {name} {values['held']} (only_when; docs/constrained_links.md)")
         if isinstance(values, dict) and (values.get("evicted") or values.get("files_evicted")):
+            of = values.get("evicted_by_measurement")
+            measurements = (
+                " (records of " + ", ".join(f"{m} {_cell(n)}" for m, n in sorted(of.items())) + ")"
+                if isinstance(of, dict) and of
+                else ""
+            )
             print(
                 f"destination {name}: {values.get('evicted') or 0} records and {values.get('files_evicted') or 0} "
-                "saved files evicted unsent by the disk budget"
+                f"saved files evicted unsent by the disk budget{measurements}"
             )
     for name, values in sorted(destinations.items()):
         own = values.get("plugin") if isinstance(values, dict) else None
