@@ -241,7 +241,8 @@ def robots(args: argparse.Namespace) -> int:
             for count in args.robots:
                 with contextlib.ExitStack() as stack:
                     bringups, sims = [], []
-                    domain = random.randint(120, 200)
+                    # ROS domain ids end at 232: room for this many robots, and for domains found in use.
+                    domain = random.randint(120, max(120, 220 - 2 * count))
                     for i in range(count):
                         robot = f"{job}-n{count}-r{i}"
                         home = folder / robot
