@@ -612,6 +612,48 @@ def test_hand_backs_by_any_worker_are_no_redeliveries_and_a_killed_worker_s_are(
     assert counters.handback_record_failures == 0
 
 
+def test_the_shared_record_of_hand_backs_is_read_only_for_messages_delivered_before(tmp_path: Path) -> None:
+    """dc_destinations.handbacks against a real server: no lookup for a message delivered once (the
+    normal path), a recorded count read back by whoever takes the message next, no count for a
+    message never handed back, and none from an entry left for another message of that sequence
+    (a stream deleted and made again)."""
+    import nats
+
+    from dc_destinations.handbacks import HandbackRecord, bucket_name
+
+    async def scenario(url: str) -> None:
+        nc = await nats.connect(servers=[url])
+        try:
+            js = nc.jetstream()
+            await js.add_stream(name="DC", subjects=["dc.>"], num_replicas=1)
+            for n in range(3):
+                await js.publish("dc.r1.uptime", json.dumps({"n": n}).encode())
+            record = await HandbackRecord.open(js, "DC", "ingest")
+            sub = await js.pull_subscribe("dc.>", durable="ingest", stream="DC")
+            first = await sub.fetch(3, timeout=10)
+            assert await record.counts(first) == {}, "nothing looked up for messages delivered once"
+            handed, stale, never = first
+            await record.record(handed, 2)  # handed back twice already (by any worker)
+            kv = await js.key_value(bucket_name("DC", "ingest"))
+            await kv.put(str(stale.metadata.sequence.stream), b"5 2001-01-01T00:00:00+00:00")
+            for msg in first:
+                await msg.nak()
+            again = await sub.fetch(3, timeout=10)
+            counts = await record.counts(again)
+            assert counts == {
+                handed.metadata.sequence.stream: 2,
+                stale.metadata.sequence.stream: 0,
+                never.metadata.sequence.stream: 0,
+            }
+            opened = await HandbackRecord.open(js, "DC", "ingest")  # the next worker finds the bucket
+            assert await opened.counts(again) == counts
+        finally:
+            await nc.close()
+
+    with NatsServer(tmp_path / "nats") as nats_server:
+        asyncio.run(scenario(nats_server.url))
+
+
 def test_settlements_answer_each_message_by_what_its_destinations_did() -> None:
     from dc_destinations.ingest import ACK, NAK, TERM, Settlements, Taken
 
