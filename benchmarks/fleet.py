@@ -284,7 +284,7 @@ def robots(args: argparse.Namespace) -> int:
                             stack.enter_context(footprint.started(bringup, env, home, home / "bringup.log", 60))
                         )
                     for bringup in bringups:
-                        footprint.wait_for_up(bringup, 180)
+                        footprint.wait_for_up(bringup, args.up_timeout)
                     time.sleep(args.settle)
                     first = stream_last_sequence(nats.url)
                     dc_before = [cpu_ticks(b.read()) for b in bringups]
@@ -336,6 +336,7 @@ def main() -> int:
     parser.add_argument("--jobs", nargs="+", choices=sorted(JOBS), default=["default", "robot"])
     parser.add_argument("--window", type=float, default=120.0, help="seconds measured, per job and robot count")
     parser.add_argument("--settle", type=float, default=10.0, help="seconds after DC is up before the window")
+    parser.add_argument("--up-timeout", type=float, default=180.0, help="seconds for each robot's DC to come up")
     args = parser.parse_args()
     if args.robots:
         return robots(args)
