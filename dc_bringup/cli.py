@@ -628,9 +628,14 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         handback_delay=args.handback_delay,
         connect=connect_options_from_env(),
     )
-    run_ingest(Ingest(config, destinations, options, Path(args.storage_path), logger))
-    for destination in destinations.values():
-        destination.on_cleanup()
+    try:
+        run_ingest(Ingest(config, destinations, options, Path(args.storage_path), logger))
+    except DcError as exc:  # the stream or the hand-back bucket cannot be used: said once, no traceback
+        print(f"dc ingest: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        for destination in destinations.values():
+            destination.on_cleanup()
     return 0
 
 
