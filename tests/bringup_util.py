@@ -111,7 +111,12 @@ class Bringup:
 
     def wait_exit(self, timeout: float) -> int:
         assert self.process is not None
-        self.returncode = self.process.wait(timeout)
+        try:
+            self.returncode = self.process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(
+                f"dc-bringup still running after {timeout} s\n--- stderr ---\n" + "\n".join(self.stderr[-80:])
+            ) from None
         return self.returncode
 
     # -- reading -----------------------------------------------------------------------------
