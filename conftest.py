@@ -3,8 +3,10 @@ machine, in a domain of its own; and the fixtures tests of several plugin folder
 
 from __future__ import annotations
 
+import atexit
 import os
 import random
+import shutil
 import socket
 import tempfile
 from collections.abc import Iterator
@@ -19,11 +21,22 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 if "PYTEST_XDIST_WORKER" in os.environ or "ROS_DOMAIN_ID" not in os.environ:
     # A worker inherits the controller's environment: it needs a domain of its own.
     os.environ["ROS_DOMAIN_ID"] = str(session_domain_id())
-os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="dc-test-roslog-"))
+
+
+def _session_dir(prefix: str) -> str:
+    """A folder for this test process that goes when it exits (a developer's /tmp gained two
+    folders per process and run before)."""
+    path = tempfile.mkdtemp(prefix=prefix)
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    return path
+
+
+if "ROS_LOG_DIR" not in os.environ:
+    os.environ["ROS_LOG_DIR"] = _session_dir("dc-test-roslog-")
 os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
 # Servers run in the test process keep state under $XDG_DATA_HOME (the default buffer folder, the
 # hand-off marks of dc_core.handoff_marks): this session's, never the account's.
-os.environ["XDG_DATA_HOME"] = tempfile.mkdtemp(prefix="dc-test-data-")
+os.environ["XDG_DATA_HOME"] = _session_dir("dc-test-data-")
 
 
 # -- dc-bringup's two modes ---------------------------------------------------------------------
