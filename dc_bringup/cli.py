@@ -66,14 +66,38 @@ def cmd_check_plugin(args: argparse.Namespace) -> int:
     return main(args.names)
 
 
-def cmd_pub(args: argparse.Namespace) -> int:
+def _records_to_publish(args: argparse.Namespace) -> list[str] | None:
+    """The records `dc pub` sends: its argument, or with "-" the JSON lines of stdin (blank lines
+    skipped). None, said why, when any of them is not what DC's servers carry: then none is sent,
+    not the ones before the bad line."""
     from dc_core.records import MalformedRecord, parse_record
 
-    try:
-        parse_record(args.json)
-    except MalformedRecord as exc:  # what DC's servers would count as malformed is not sent at all
-        print(f"dc pub: refused, not JSON that DC carries: {exc}", file=sys.stderr)
+    if args.json == "-":
+        if args.count != 1:
+            print("dc pub: --count repeats one record; with - (records from stdin) leave it out", file=sys.stderr)
+            return None
+        lines = [(number, line.strip()) for number, line in enumerate(sys.stdin, 1) if line.strip()]
+    else:
+        lines = [(0, args.json)]
+    for number, text in lines:
+        try:
+            parse_record(text)
+        except MalformedRecord as exc:  # what DC's servers would count as malformed is not sent at all
+            where = f" (stdin line {number})" if number else ""
+            print(f"dc pub: refused, not JSON that DC carries{where}: {exc}", file=sys.stderr)
+            return None
+    if not lines:
+        print("dc pub: no record on stdin", file=sys.stderr)
+        return None
+    return [text for _, text in lines]
+
+
+def cmd_pub(args: argparse.Namespace) -> int:
+    records = _records_to_publish(args)
+    if records is None:
         return 2
+    if args.json == "-":
+        args.count = len(records)
     import rclpy
     from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -113,7 +137,7 @@ def cmd_pub(args: argparse.Namespace) -> int:
         while args.count == 0 or sent < args.count:
             msg = StringStamped()
             msg.header.stamp = node.get_clock().now().to_msg()
-            msg.data = args.json
+            msg.data = records[sent % len(records)]
             msg.group_key = args.group_key
             publisher.publish(msg)
             sent += 1
@@ -696,7 +720,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
     p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
-    p.add_argument("json", help="the record, a JSON object")
+    p.add_argument("json", help="the record, a JSON object; - reads records from stdin, a JSON object a line")
     p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
     p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")

@@ -181,9 +181,13 @@ class Bringup:
 FAST_DDS_LOG_LINE = re.compile(r"^(\x1b\[[0-9;]*m)?\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d+ .*RTPS_[A-Z_]+.*(\n|$)", re.M)
 
 
-def dc(*args: str, env: dict[str, str] | None = None, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+def dc(
+    *args: str, env: dict[str, str] | None = None, timeout: float = 60.0, stdin: str | None = None
+) -> subprocess.CompletedProcess[str]:
     """Run the `dc` command-line tool; its stdout and stderr without Fast DDS's own log lines."""
-    result = subprocess.run([str(BIN / "dc"), *args], capture_output=True, text=True, env=env, timeout=timeout)
+    result = subprocess.run(
+        [str(BIN / "dc"), *args], capture_output=True, text=True, env=env, timeout=timeout, input=stdin
+    )
     result.stdout = FAST_DDS_LOG_LINE.sub("", result.stdout)
     result.stderr = FAST_DDS_LOG_LINE.sub("", result.stderr)
     return result

@@ -435,6 +435,39 @@ def test_pub_exits_only_once_a_slow_subscriber_has_every_record(ros_env: dict[st
     assert "published 10 record(s) on /acks" in out
 
 
+def test_pub_of_stdin_publishes_one_record_a_line_in_order(ros_env: dict[str, str]) -> None:
+    subscriber = FrozenSubscriber(ros_env)
+    try:
+        lines = '{"n": 1}\n\n{"n": 2}\n{"n": 3, "s": "x y"}\n'  # a blank line is no record
+        pub = subprocess.run(
+            [str(BIN / "dc"), "pub", "/acks", "-", "--rate", "0"],
+            env=ros_env, input=lines, capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        received = subscriber.thaw_and_read(3)
+    finally:
+        subscriber.close()
+    assert pub.returncode == 0, pub.stderr
+    assert received == ['{"n": 1}', '{"n": 2}', '{"n": 3, "s": "x y"}']
+    assert "published 3 record(s) on /acks" in pub.stdout
+
+
+@pytest.mark.parametrize(
+    ("stdin", "args", "said"),
+    [
+        ('{"n": 1}\n{"n": NaN}\n', [], "refused, not JSON that DC carries (stdin line 2): NaN is not a JSON number"),
+        ("\n\n", [], "no record on stdin"),
+        ('{"n": 1}\n', ["--count", "3"], "--count repeats one record"),
+    ],
+    ids=["malformed-line", "empty", "count"],
+)
+def test_pub_of_stdin_refuses_every_record_when_one_line_is_wrong(stdin: str, args: list[str], said: str) -> None:
+    result = subprocess.run(
+        [str(BIN / "dc"), "pub", "/x", "-", "--no-wait", *args], input=stdin, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2 and said in result.stderr, result.stderr
+    assert "published" not in result.stdout
+
+
 def test_pub_says_when_a_subscriber_did_not_acknowledge_within_linger(ros_env: dict[str, str]) -> None:
     subscriber = FrozenSubscriber(ros_env)
     try:

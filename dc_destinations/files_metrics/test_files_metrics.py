@@ -779,19 +779,18 @@ def test_e2e_a_30_s_database_outage_loses_no_row_and_deletes_nothing_unrecorded(
             except psycopg.Error:
                 return []
 
-        def publish(path: Path) -> None:
-            published = dc("pub", "/map-files", map_record(path, f"outage/{path.name}"), "--count", "1", env=run.env)
+        def publish(paths: list[Path]) -> None:
+            lines = "".join(map_record(path, f"outage/{path.name}") + "\n" for path in paths)
+            published = dc("pub", "/map-files", "-", "--rate", "0", env=run.env, stdin=lines)
             assert published.returncode == 0, published.stderr
 
         with Bringup(uploader_and_metrics_params(tmp_path, pg, s3, "outage"), tmp_path / "home") as run:
             run.wait_ready()
-            for path in files[:3]:
-                publish(path)
+            publish(files[:3])
             run.wait_until(lambda: len(recorded()) == 3, 30, "the first files recorded and deleted")
             pg.stop()
             down_at = time.monotonic()
-            for path in files[3:]:  # stored by MinIO meanwhile, but neither recorded nor deleted
-                publish(path)
+            publish(files[3:])  # stored by MinIO meanwhile, but neither recorded nor deleted
             run.wait_until(lambda: s3.objects("outage/").keys() >= {f"outage/{p.name}" for p in files}, 30,
                            "every file in the bucket during the outage")  # fmt: skip
             assert all(path.exists() for path in files[3:]), "a file deleted while its row could not be written"
