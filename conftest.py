@@ -101,3 +101,16 @@ def ros_node() -> Iterator[Any]:
     finally:
         node.destroy_node()
         rclpy.shutdown()
+
+
+# -- the files' order: the longest first, for xdist's loadfile distribution (tests/file_order.py) ------
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    from tests.file_order import file_seconds, longest_first
+
+    def file_of(item: pytest.Item) -> str:
+        return item.nodeid.split("::", 1)[0]
+
+    rank = {path: i for i, path in enumerate(longest_first([file_of(item) for item in items], file_seconds()))}
+    items.sort(key=lambda item: rank[file_of(item)])  # stable: a file's tests keep their order
