@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import sys
 import xml.etree.ElementTree as ET
-from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -55,13 +54,13 @@ def _file_of(classname: str) -> str | None:
 
 
 def main(report: str) -> None:
-    totals: Counter[str] = Counter()
+    totals: dict[str, float] = {}
     for case in ET.parse(report).getroot().iter("testcase"):
         path = _file_of(case.get("classname", ""))
         if path is not None:
-            totals[path] += float(case.get("time", 0))
+            totals[path] = totals.get(path, 0.0) + float(case.get("time", 0))
     lines = ["# seconds per test file in one whole run (tests/file_order.py says how to regenerate it)"]
-    lines += [f"{seconds:.0f} {path}" for path, seconds in totals.most_common()]
+    lines += [f"{seconds:.0f} {path}" for path, seconds in sorted(totals.items(), key=lambda item: -item[1])]
     TABLE.write_text("\n".join(lines) + "\n", encoding="utf-8")
     print(f"{len(totals)} files, {sum(totals.values()):.0f} s, written to {TABLE}")
 
