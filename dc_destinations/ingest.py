@@ -60,6 +60,8 @@ from dc_destinations.sender import DROP_FILE_EVICTED, DROP_NOT_STORABLE
 ACK, NAK, TERM = "ack", "nak", "term"
 # The hand-back reason of a message given back at a graceful stop (beside the buffer's DROP_*).
 HANDBACK_STOP = "stop"
+# At most this long for that: the shared record's round-trips must not hold up a stop for minutes.
+GIVE_BACK_S = 10.0
 
 # Drops after which no delivery of the record by this worker can ever succeed (its payload, a file
 # gone): its message is terminated. After any other drop (a size limit, the disk budget, the intake,
@@ -462,7 +464,8 @@ class Ingest:
             stopped = True  # asked to (SIGTERM, Ctrl-C), not by an error
         finally:
             self.pipeline.stop(self.pipeline.settings.grace)
-            await self._give_back(graceful=stopped)
+            # A connection being re-established would make each hand-back's record wait for its timeout.
+            await self._give_back(graceful=stopped and nc.is_connected)
             await self._drain_acks()
             acker.cancel()
             if self._handing_back:
@@ -482,7 +485,9 @@ class Ingest:
         buffer dropped is, its hand-back recorded for every worker before its nak, so that it does not
         count against retry_limit. Not so a record a destination was still sending when the grace ran
         out (a record that hangs its store must stay bounded as one that kills the worker), nor any
-        when the worker stops on an error: their deliveries count, as a killed worker's do."""
+        when the worker stops on an error (or without its connection): their deliveries count, as a
+        killed worker's do. Bounded by GIVE_BACK_S: what is not given back by then comes back after
+        ack_wait, counted."""
         waiting = self.settlements.waiting()
         if not waiting:
             return
@@ -493,16 +498,22 @@ class Ingest:
         async def give_back(record_id: str, msg: Any, handbacks: int) -> None:
             async with room:
                 if graceful and record_id not in hung:
-                    self.counters.handed_back[HANDBACK_STOP] += 1
                     await self._hand_back(msg, handbacks + 1, delay=0.0)
+                    self.counters.handed_back[HANDBACK_STOP] += 1
                     return
                 try:
                     await msg.nak()
                 except Exception as exc:  # the connection may be gone: JetStream redelivers after ack_wait
                     self.logger.warning(f"cannot give back message {msg.metadata.sequence.stream}: {exc}")
 
-        await asyncio.gather(*(give_back(*w) for w in waiting))
-        why = "still being sent when the grace ran out" if graceful else "the worker stops on an error"
+        try:
+            await asyncio.wait_for(asyncio.gather(*(give_back(*w) for w in waiting)), GIVE_BACK_S)
+        except TimeoutError:
+            self.logger.warning(
+                f"stopping: the messages not settled were not all given back in {GIVE_BACK_S:g} s; "
+                "JetStream delivers the others again after --ack-wait (counted as redeliveries)"
+            )
+        why = "still being sent when the grace ran out" if graceful else "the worker stops on an error or offline"
         self.logger.info(
             f"stopping: {len(waiting)} messages not settled given back to the stream"
             + (f"; {len(counted)} of them count as redelivered ({why})" if counted else "")
