@@ -2,8 +2,9 @@
 
 Two DCs in one domain and namespace have servers of the same names, and a request to a lifecycle
 service reaches every server of that name: one manager would configure, activate or stop the other's
-servers. So a manager looks before its first transition, and again before each one: a node with one
-of DC's names in its namespace that no process of its own runs means another DC is there.
+servers. So a manager looks before each server's first transition (the first look once discovery
+had DISCOVERY_S), and again before each transition: a node with one of DC's names in its namespace
+that no process of its own runs means another DC is there.
 
 Whose a node is: the graph gives names only, but with Fast DDS (ROS 2's default middleware) the GUID
 of each of a node's endpoints starts with the vendor id, a host id and the low 16 bits of the process

@@ -125,8 +125,9 @@ class LifecycleManager(Node):
         self._not_up: dict[str, float] = {}
         self._lifecycle_clients: dict[str, tuple[Any, Any]] = {}
         self.restarts: dict[str, int] = {s.name: 0 for s in servers}
-        # One DC per domain and namespace (dc_bringup.instances): looked for before the first
-        # transition, once discovery had DISCOVERY_S from now; the reason this one stopped, if it did.
+        # One DC per domain and namespace (dc_bringup.instances): looked for before each server's
+        # first transition, the first time once discovery had DISCOVERY_S from now; the reason this
+        # one stopped, if it did.
         self._discovery_from = time.monotonic() if discovery_from is None else discovery_from
         self._alone_checked = False
         self.conflict: str | None = None
@@ -374,7 +375,13 @@ class LifecycleManager(Node):
             self.spin_for(0.05)
 
     def _check_alone(self) -> bool:
-        """Before the first transition: False, and the one line said, when another DC is there."""
+        """Before each server's first transition: False, and the one line said, when another DC is there.
+
+        Looked at for every server of the first bring-up, not for the first alone: the window
+        (DISCOVERY_S) only says that no other DC was seen by then, and one discovered later while
+        this one starts (a loaded machine) stops it alike, before any of its transitions could reach
+        that DC's servers. A look after the window costs one read of the graph.
+        """
         if self._alone_checked:
             return True
         found = self.another_instance()
@@ -382,7 +389,6 @@ class LifecycleManager(Node):
             self.conflict = instances.refusal(found, self.context.get_domain_id(), self.get_namespace())
             self.get_logger().error(self.conflict)
             return False
-        self._alone_checked = True
         return True
 
     def transition(self, server: str, label: str, target: str, attempts: int = 3) -> str | None:
@@ -472,6 +478,7 @@ class LifecycleManager(Node):
             proc.start()
             if not self.bring_up(proc, started):
                 return False
+        self._alone_checked = True
         return True
 
     def check_bonds(self) -> None:

@@ -153,3 +153,10 @@ def _json_kind(value: Any) -> str:
     if value is None:
         return "null"
     return "number"
+
+
+def measurement_of(topic: str) -> str:
+    """The measurement a record's topic names: its last segment (``/dc/measurement/camera``: camera;
+    "" for ``/``). One rule for every server and plugin that names a record by its topic. A trailing
+    ``/`` is passed over: no ROS name has one, but a topic from elsewhere (a NATS header) may."""
+    return topic.rstrip("/").rsplit("/", 1)[-1]

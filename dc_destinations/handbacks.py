@@ -1,8 +1,9 @@
 """How often each message of a JetStream consumer was handed back by ``dc ingest`` workers, shared by
 every worker on that consumer: a JetStream key-value bucket keyed by the message's stream sequence.
 
-A hand-back (a nak after ``handback_delay``, because the worker's buffer dropped the record) is no
-failure of the record, so it must not count against ``retry_limit``; but it raises the message's
+A hand-back (a nak after ``handback_delay``, because the worker's buffer dropped the record; or a
+nak at a graceful stop, of what the worker held) is no failure of the record, so it must not count
+against ``retry_limit``; but it raises the message's
 ``num_delivered`` as a worker killed on it does, and JetStream tells the next worker nothing else.
 Each worker writes the count before its nak and reads it only for a message delivered before
 (``num_delivered`` > 1): a message delivered once, the normal path, costs nothing here. Why a bucket

@@ -11,9 +11,10 @@ record, its JetStream message is acknowledged; until then JetStream keeps it, an
 after ``ack_wait`` to whichever worker asks (another one if this one died). A record the worker's
 buffer drops (a size limit, the disk budget: sender.DropListener) is no outcome: its message is
 handed back (nak, redelivered after ``handback_delay``), or terminated when no delivery can ever
-succeed, never acknowledged (:class:`Settlements`, docs/fleet.md). A hand-back, by any worker, does
-not count against ``retry_limit``: the workers share how often each message was handed back
-(dc_destinations.handbacks). So:
+succeed, never acknowledged (:class:`Settlements`, docs/fleet.md). What a worker holds when it is
+stopped (SIGTERM, Ctrl-C) is handed back too (:meth:`Ingest._give_back`). A hand-back, by any
+worker, does not count against ``retry_limit``: the workers share how often each message was
+handed back (dc_destinations.handbacks). So:
 
 - several ``dc ingest`` processes on one consumer share its messages (JetStream hands each
   message to one of them at a time);
@@ -57,6 +58,10 @@ from dc_destinations.routing import NO_LISTENER, TAGS_KEY, RoutingTable
 from dc_destinations.sender import DROP_FILE_EVICTED, DROP_NOT_STORABLE
 
 ACK, NAK, TERM = "ack", "nak", "term"
+# The hand-back reason of a message given back at a graceful stop (beside the buffer's DROP_*).
+HANDBACK_STOP = "stop"
+# At most this long for that: the shared record's round-trips must not hold up a stop for minutes.
+GIVE_BACK_S = 10.0
 
 # Drops after which no delivery of the record by this worker can ever succeed (its payload, a file
 # gone): its message is terminated. After any other drop (a size limit, the disk budget, the intake,
@@ -184,10 +189,10 @@ class Settlements:
         with self._lock:
             return len(self._owed)
 
-    def waiting(self) -> list[Any]:
-        """The keys of the records not settled yet."""
+    def waiting(self) -> list[tuple[str, Any, int]]:
+        """(record_id, key, hand-backs so far) of each record not settled yet."""
         with self._lock:
-            return [entry.key for entry in self._owed.values()]
+            return [(record_id, entry.key, entry.handbacks) for record_id, entry in self._owed.items()]
 
 
 class RedeliveryBound(Destination[NoParams]):
@@ -200,16 +205,27 @@ class RedeliveryBound(Destination[NoParams]):
         self.inner = inner
         self.retry_limit = retry_limit
         self._doomed: dict[str, str] = {}
+        self._sending: frozenset[str] = frozenset()
         self._lock = threading.Lock()
 
     def doom(self, record_id: str, reason: str) -> None:
         with self._lock:
             self._doomed[record_id] = reason
 
+    def sending(self) -> frozenset[str]:
+        """The records of the send running now, if any."""
+        with self._lock:
+            return self._sending
+
     def send(self, batch: Sequence[OutgoingRecord]) -> SendOutcome | None:
         with self._lock:
             doomed = {i: self._doomed.pop(r.record_id) for i, r in enumerate(batch) if r.record_id in self._doomed}
-        return self._send_without(batch, doomed) if doomed else self.inner.send(batch)
+            self._sending = frozenset(r.record_id for r in batch)
+        try:
+            return self._send_without(batch, doomed) if doomed else self.inner.send(batch)
+        finally:
+            with self._lock:
+                self._sending = frozenset()
 
     def _send_without(self, batch: Sequence[OutgoingRecord], doomed: dict[int, str]) -> SendOutcome:
         kept = [i for i in range(len(batch)) if i not in doomed]
@@ -410,6 +426,7 @@ class Ingest:
             await nc.close()
             raise
         self.counters.left_by_last_run = self._forget_last_run()
+        stopped = False
         self.pipeline.start()
         acker = asyncio.create_task(self._acknowledge())
         self.logger.info(
@@ -444,14 +461,11 @@ class Ingest:
                     await msg.term()  # never redelivered: it can never be delivered
                 for msg in unrouted:
                     await self._ack(msg)
+            stopped = True  # asked to (SIGTERM, Ctrl-C), not by an error
         finally:
             self.pipeline.stop(self.pipeline.settings.grace)
-            # What is not settled goes back at once rather than after ack_wait: another worker takes it.
-            for msg in self.settlements.waiting():
-                try:
-                    await msg.nak()
-                except Exception as exc:  # the connection may be gone: JetStream redelivers after ack_wait
-                    self.logger.warning(f"cannot give back a message: {exc}")
+            # A connection being re-established would make each hand-back's record wait for its timeout.
+            await self._give_back(graceful=stopped and nc.is_connected)
             await self._drain_acks()
             acker.cancel()
             if self._handing_back:
@@ -462,6 +476,48 @@ class Ingest:
             await nc.close()
             self.pipeline.release_storage()
         return self.counters
+
+    async def _give_back(self, graceful: bool) -> None:
+        """Nak what is not settled at the stop: it goes back at once rather than after ack_wait, and
+        another worker takes it.
+
+        A graceful stop is no failure of the records it gives back: each is handed back as a record the
+        buffer dropped is, its hand-back recorded for every worker before its nak, so that it does not
+        count against retry_limit. Not so a record a destination was still sending when the grace ran
+        out (a record that hangs its store must stay bounded as one that kills the worker), nor any
+        when the worker stops on an error (or without its connection): their deliveries count, as a
+        killed worker's do. Bounded by GIVE_BACK_S: what is not given back by then comes back after
+        ack_wait, counted."""
+        waiting = self.settlements.waiting()
+        if not waiting:
+            return
+        hung = {record_id for w in self._wrapped.values() for record_id in w.sending()}
+        counted = [w for w in waiting if not graceful or w[0] in hung]
+        room = asyncio.Semaphore(256)  # the bucket's round-trips, not thousands at once
+
+        async def give_back(record_id: str, msg: Any, handbacks: int) -> None:
+            async with room:
+                if graceful and record_id not in hung:
+                    await self._hand_back(msg, handbacks + 1, delay=0.0)
+                    self.counters.handed_back[HANDBACK_STOP] += 1
+                    return
+                try:
+                    await msg.nak()
+                except Exception as exc:  # the connection may be gone: JetStream redelivers after ack_wait
+                    self.logger.warning(f"cannot give back message {msg.metadata.sequence.stream}: {exc}")
+
+        try:
+            await asyncio.wait_for(asyncio.gather(*(give_back(*w) for w in waiting)), GIVE_BACK_S)
+        except TimeoutError:
+            self.logger.warning(
+                f"stopping: the messages not settled were not all given back in {GIVE_BACK_S:g} s; "
+                "JetStream delivers the others again after --ack-wait (counted as redeliveries)"
+            )
+        why = "still being sent when the grace ran out" if graceful else "the worker stops on an error or offline"
+        self.logger.info(
+            f"stopping: {len(waiting)} messages not settled given back to the stream"
+            + (f"; {len(counted)} of them count as redelivered ({why})" if counted else "")
+        )
 
     def _forget_last_run(self) -> int:
         """Take out of the queues what the worker's last run left there (killed, or stopped past its
@@ -607,11 +663,11 @@ class Ingest:
         except Exception as exc:  # JetStream delivers it again after ack_wait all the same
             self.logger.warning(f"cannot terminate message {msg.metadata.sequence.stream}: {exc}")
 
-    async def _hand_back(self, msg: Any, handbacks: int) -> None:
-        """Record the hand-back in the shared record, then nak: once the nak is out, any worker may take
-        the message, and must find it counted. Killed in between, the message comes back after
-        ack_wait with this hand-back counted although none happened: one delivery not bounded, and
-        nothing lost (nothing here acknowledges)."""
+    async def _hand_back(self, msg: Any, handbacks: int, delay: float | None = None) -> None:
+        """Record the hand-back in the shared record, then nak (after ``delay``, handback_delay by
+        default): once the nak is out, any worker may take the message, and must find it counted.
+        Killed in between, the message comes back after ack_wait with this hand-back counted although
+        none happened: one delivery not bounded, and nothing lost (nothing here acknowledges)."""
         assert self._handbacks is not None
         try:
             await self._handbacks.record(msg, handbacks)
@@ -619,7 +675,7 @@ class Ingest:
             self.counters.handback_record_failures += 1
             self._handback_record_log.event(1, f"cannot record message {msg.metadata.sequence.stream}: {exc!r}")
         try:
-            await msg.nak(delay=self.options.handback_delay)
+            await msg.nak(delay=self.options.handback_delay if delay is None else delay)
         except Exception as exc:  # JetStream delivers it again after ack_wait all the same
             self.logger.warning(f"cannot nak message {msg.metadata.sequence.stream}: {exc}")
 

@@ -39,6 +39,7 @@ from typing import Any
 from dc_core.confined_files import Confinement, FileRefused
 from dc_core.destination import OutgoingRecord
 from dc_core.logs import BurstLog, Logger
+from dc_core.records import measurement_of
 from dc_destinations.disk_budget import FileCandidate
 from dc_destinations.record_fields import field_value
 
@@ -334,7 +335,7 @@ class SavedFiles:
             return
         data = record.data
         name = data.get("name")
-        measurement = name if isinstance(name, str) and name else record.topic.rsplit("/", 1)[-1]
+        measurement = name if isinstance(name, str) and name else measurement_of(record.topic)
         run_id = data.get("run_id")
         self._inbox.append(_Noted(record.record_id, measurement, str(run_id) if run_id is not None else "", paths))
 

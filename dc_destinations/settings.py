@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from dc_core.errors import ConfigError
 from dc_core.node_params import MetricsHttpParams, http_port_param
 from dc_core.params import compat_param, param
+from dc_core.records import measurement_of
 from dc_destinations.links import OnlyWhenParams
 
 WHEN_FULL_POLICIES = ("drop_oldest", "drop_newest")
@@ -292,11 +293,6 @@ def check_destination_params(params: DestinationDeliveryParams, path: str, links
         raise ConfigError(
             f"{path}.link", f'no link "{params.link}" in flb.links ({", ".join(sorted(links)) or "none defined"})'
         )
-
-
-def measurement_of(topic: str) -> str:
-    """The measurement a record's input topic names: its last part (``/dc/measurement/camera``: camera)."""
-    return topic.rsplit("/", 1)[-1]
 
 
 def record_priorities(

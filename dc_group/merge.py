@@ -25,7 +25,7 @@ from fnmatch import fnmatchcase
 from typing import Any
 
 from dc_core.jsonpath import flatten
-from dc_core.records import MalformedRecord, parse_record
+from dc_core.records import MalformedRecord, measurement_of, parse_record
 from dc_group.config import GroupConfig
 
 MISSING_INPUTS_KEY = "missing_inputs"
@@ -55,7 +55,7 @@ def record_key(group_key: str, topic: str) -> str:
     """Key of an input's record in the group: its group_key, else the topic's last segment."""
     if group_key:
         return group_key
-    return topic.rstrip("/").rsplit("/", 1)[-1] or topic
+    return measurement_of(topic) or topic
 
 
 def parse_input(topic: str, group_key: str, data: str) -> InputRecord:

@@ -56,6 +56,15 @@ def robot(url: str) -> Nats:
     return plugin
 
 
+def publish(url: str, records: list[OutgoingRecord]) -> None:
+    """``records`` into the stream as a robot's NATS destination sends them."""
+    publisher = robot(url)
+    try:
+        assert publisher.send(records) is None
+    finally:
+        publisher.on_cleanup()
+
+
 def record(n: int) -> OutgoingRecord:
     rid = new_record_id()
     data = {"date": 1_700_000_000 + n / 10, "name": "uptime", "robot_name": f"r{n % 3}", "time": n, "record_id": rid}
@@ -559,11 +568,7 @@ def test_hand_backs_by_any_worker_are_no_redeliveries_and_a_killed_worker_s_are(
     first = second = None
     with NatsServer(tmp_path / "nats") as nats_server, fault_gate(tmp_path) as gate:
         url = nats_server.url
-        publisher = robot(url)
-        try:
-            assert publisher.send(sent) is None
-        finally:
-            publisher.on_cleanup()
+        publish(url, sent)
         try:
             hang = fault_env(tmp_path, "dc_destinations.pgsql:PgSQL.send", gate=gate.path)  # never opened
             options = ("--ack-wait", str(ack_wait), "--handback-delay", "0.2")
@@ -613,6 +618,84 @@ def test_hand_backs_by_any_worker_are_no_redeliveries_and_a_killed_worker_s_are(
     assert 0 < len(dead) <= held and counters.over_retry_limit == len(dead) == metrics["dead_lettered"]
     assert all(re.search(r"redelivered [1-9]\d* times, beyond retry_limit 0", d.error) for d in dead)
     assert counters.handback_record_failures == 0
+
+
+def test_a_worker_stopped_while_it_holds_messages_hands_them_back_and_they_do_not_count(
+    postgres: PostgresServer, tmp_path: Path
+) -> None:
+    """retry_limit 0, 60 records. A worker whose PgSQL destination may not send (its only_when names
+    an interface this machine does not have: the records wait in its queue) takes every message and
+    is stopped as SIGTERM stops it, three times: each time it hands them back. Then one whose
+    PostgreSQL hangs (a server that takes the connection and never answers) is stopped while its
+    first send runs past the grace: that send's records count as redelivered, the others are handed
+    back. A worker whose store is there then stores those others, none dead-lettered for the four
+    stops (each stop's nak counted before: all 60 dead-lettered), and dead-letters the hung send's
+    records (a record that hangs its store stays bounded). Stored + dead-lettered = sent, each once."""
+    import socket
+
+    from dc_destinations.buffer import SqliteBuffer
+
+    section = ingest_params(postgres, tmp_path, retry_limit=0)
+    section["destination_plugins"] = ["warehouse"]
+    del section["lake"]
+    section["warehouse"].update(table="stops", batch_size=20)
+    section["flb"]["grace"] = 0.5
+    held = {**section, "warehouse": {**section["warehouse"], "only_when": {"interfaces_up": ["dc-absent0"]}}}
+    silent = socket.create_server(("127.0.0.1", 0))  # listens, never answers: a PostgreSQL that hangs
+    hangs = {**section, "warehouse": {**section["warehouse"], "port": silent.getsockname()[1], "connect_timeout": 600}}
+    warehouse_table(postgres, "stops").on_cleanup()
+    sent = [robot_record(n, "uptime") for n in range(60)]
+    with NatsServer(tmp_path / "nats") as nats_server, contextlib.closing(silent):
+        url = nats_server.url
+        publish(url, sent)
+
+        def stop_holding(section: dict[str, Any], then: Any = lambda: None) -> Any:
+            holder = Worker(section, url, "stops", tmp_path / "held")
+            try:
+                wait_for(lambda: len(holder.ingest.settlements) == len(sent), "the worker holds every message")
+                then()
+            finally:
+                holder.stop()
+            return holder.ingest.counters
+
+        def send_hangs() -> None:  # the first send has connected and waits for the server's answer
+            silent.settimeout(60)
+            hung.append(silent.accept()[0])
+
+        hung: list[socket.socket] = []
+        stopped = [stop_holding(held) for _ in range(3)]
+        assert [c.over_retry_limit for c in stopped] == [0, 0, 0], "the stops counted as redeliveries"
+        for n, c in enumerate(stopped):
+            assert c.handed_back == {"stop": len(sent)} and c.acknowledged == 0
+            assert c.came_back == (len(sent) if n else 0) and c.handback_record_failures == 0
+        try:
+            stopped.append(stop_holding(hangs, send_hangs))
+        finally:
+            for connection in hung:
+                connection.close()
+        worker = Worker(section, url, "stops", tmp_path / "store")
+        try:
+            # (0, 0) holds as well before it took the messages handed back: its acks are waited for too.
+            wait_for(
+                lambda: worker.ingest.counters.acknowledged == len(sent) and consumer_state(url, "stops") == (0, 0),
+                "every message acknowledged",
+            )
+            metrics = worker.ingest.pipeline.metrics()["warehouse"]
+        finally:
+            worker.stop()
+    counters = worker.ingest.counters
+    stored = table_ids(postgres, "stops")
+    storage_file = worker.ingest.pipeline.storage_file
+    assert storage_file is not None
+    with contextlib.closing(SqliteBuffer(storage_file)) as buffer:
+        dead = buffer.list_dead_letters("warehouse", limit=len(sent))
+    counted = len(sent) - stopped[-1].handed_back["stop"]  # the hung send's records
+    assert 0 < counted <= 20 and stopped[-1].handed_back == {"stop": len(sent) - counted}
+    assert len(dead) == counted, "only the hung send's records count; the stops' hand-backs do not"
+    assert all("redelivered 1 times, beyond retry_limit 0 (besides 3 hand-backs" in d.error for d in dead)
+    assert sorted(stored + [d.record_id for d in dead]) == sorted(r.record_id for r in sent), "each once"
+    assert metrics["sent"] + metrics["dead_lettered"] == len(sent) and counters.over_retry_limit == len(dead)
+    assert counters.came_back == len(sent) and counters.handback_record_failures == 0
 
 
 def test_the_shared_record_of_hand_backs_is_read_only_for_messages_delivered_before(tmp_path: Path) -> None:

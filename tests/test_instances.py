@@ -5,7 +5,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
+
+import pytest
 
 from dc_bringup.instances import SeenNode, others, refusal, seen_nodes
 
@@ -96,3 +99,41 @@ def test_with_another_middleware_a_name_seen_more_often_than_this_dc_runs_it_is_
         found == [SeenNode("destination_server", "unknown")]
         and found[0].describe() == "destination_server (pid unknown)"
     )
+
+
+def test_another_dc_seen_only_after_the_discovery_window_still_stops_the_bring_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """On a loaded machine discovery can take longer than DISCOVERY_S: another DC's nodes seen only
+    once this one's first server is up stop the bring-up before the next server's first transition,
+    with the one-line refusal. The graph is a stand-in (a late discovery cannot be ordered), and so
+    are the servers (ready at once, their transitions recorded)."""
+    import rclpy
+
+    from dc_bringup import instances
+    from dc_bringup.manager import LifecycleManager
+    from dc_bringup.single_process import InProcessServer
+
+    monkeypatch.setattr(instances, "MORE_NODES_S", 0.0)
+    rclpy.init()
+    try:
+        servers = [InProcessServer("measurement_server"), InProcessServer("destination_server")]
+        manager = LifecycleManager(servers, bond_timeout=5.0, discovery_from=time.monotonic() - instances.DISCOVERY_S)
+        try:
+            sent: list[tuple[str, str]] = []
+
+            def transition(server: str, label: str, target: str, attempts: int = 3) -> None:
+                sent.append((server, label))
+
+            late = [SeenNode("destination_server", "other", 4242), SeenNode("lifecycle_manager_dc", "other", 4230)]
+            monkeypatch.setattr(manager, "_not_ready", lambda proc, started: None)
+            monkeypatch.setattr(manager, "transition", transition)
+            monkeypatch.setattr(manager, "_seen_nodes", lambda: late if sent else [])
+            assert not manager.start_all()
+            assert sent == [("measurement_server", "configure"), ("measurement_server", "activate")]
+            assert manager.conflict is not None and manager.conflict.startswith("another DC runs in ROS domain")
+            assert "lifecycle_manager_dc (pid 4230)" in manager.conflict
+        finally:
+            manager.destroy_node()
+    finally:
+        rclpy.shutdown()

@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from dc_core.records import MalformedRecord, dump_parsed, dump_record, parse_record
+from dc_core.records import MalformedRecord, dump_parsed, dump_record, measurement_of, parse_record
 
 
 @pytest.mark.parametrize(
@@ -90,3 +90,12 @@ def test_dump_parsed_writes_what_orjson_cannot() -> None:
         inner["a"] = inner = {}
     record = {"big": 10**30, "deep": deep}
     assert dump_parsed(record) == dump_record(record)
+
+
+def test_the_measurement_a_topic_names_is_its_last_segment() -> None:
+    # One rule for destination settings, saved files, InfluxDB, Slack and the group merge.
+    assert measurement_of("/dc/measurement/cpu") == "cpu"
+    assert measurement_of("/robot1/dc/measurement/camera") == "camera"
+    assert measurement_of("dc.r1.cpu") == "dc.r1.cpu"  # a NATS subject without a topic header: whole
+    assert measurement_of("/dc/measurement/cpu/") == "cpu"  # no ROS name, but a NATS header may say it
+    assert measurement_of("/") == measurement_of("") == ""  # each caller has its own fallback

@@ -43,6 +43,7 @@ from dc_core.destination import (
 )
 from dc_core.errors import ConfigError
 from dc_core.params import host_problem, param, port_problem, url_host
+from dc_core.records import measurement_of
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
@@ -268,7 +269,7 @@ def to_point(record: OutgoingRecord, params: InfluxDBParams) -> Point:
         name = data.get("name")
         if not isinstance(name, str) or not name:
             # Without a name (a measurement that does not include it), the last part of its topic.
-            name = record.topic.rstrip("/").rsplit("/", 1)[-1] or "dc"
+            name = measurement_of(record.topic) or "dc"
         measurement = params.measurement_prefix + name
     _check(measurement, "the measurement", measurement=True)
     name_key = "" if params.measurement else "name"

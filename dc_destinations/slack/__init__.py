@@ -29,6 +29,7 @@ from typing import Any
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import param
+from dc_core.records import measurement_of
 from dc_destinations.http_client import is_retryable_status, masked, one_line, retry_after_seconds
 from dc_destinations.probes import connect_probe
 from dc_destinations.tls import url_host, url_is_verified_tls, warn_if_credentials_in_clear
@@ -131,7 +132,7 @@ def _stamp(stamp_ns: int) -> str:
 
 def summary(record: OutgoingRecord) -> str:
     """The default text: "`cpu` at 2025-03-01T11:08:26Z: {...the record...}"."""
-    name = record.data.get("name") or record.topic.rsplit("/", 1)[-1] or record.topic
+    name = record.data.get("name") or measurement_of(record.topic) or record.topic
     return f"`{escape(str(name))}` at {_stamp(record.stamp_ns)}: {escape(record.to_json())}"
 
 
