@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 15] [--cold-runs 3]
                                                     [--insert-records 50000] [--insert-runs 7]
-                                                    [--index-runs 0] [--ways-runs 0] [--label NAME]
+                                                    [--index-runs 0] [--ways-runs 0] [--parts-runs 0]
+                                                    [--parts TEXT] [--partition-by day] [--label NAME]
 
 Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers, a folder under /tmp, removed
 at the end) and, printing the load averages of each phase (the machine may be shared):
@@ -19,6 +20,10 @@ at the end) and, printing the load averages of each phase (the machine may be sh
   with the same batches.
 - index costs (--index-runs N): the server's CPU per row of a binary COPY of the same rows into
   tables that differ only in their indexes, N rounds in turns.
+- parts (--parts-runs N, --parts TEXT): the insert's cost part by part (PARTS): each part a table
+  and a way of putting the same rows in it; the backend's and the server's CPU, WAL bytes, shared
+  buffer accesses (hits and reads, which the machine's load does not change) and client CPU per
+  row, N rounds in turns; then the client's CPU per row of the destination's own row building.
 - ways (--ways-runs N): the server's CPU and the wall time per row of each way in WAYS of putting
   the same rows into a day-partitioned table with DC's indexes: COPY (into the parent, straight into
   the partition, with the latest-row trigger, batches of one robot, without the run index), the
@@ -669,6 +674,16 @@ PARTS: tuple[tuple[str, str, list[str], set[str]], ...] = (
 )
 
 
+def shared_buffers_used(connection: Any) -> int:
+    """The database's shared buffer accesses so far (hits and reads), this session's flushed first: what the
+    machine's load does not change, unlike CPU time (a btree insert's descent is a few of them per row)."""
+    connection.execute("SELECT pg_stat_force_next_flush()")
+    (used,) = connection.execute(
+        "SELECT blks_hit + blks_read FROM pg_stat_database WHERE datname = current_database()"
+    ).fetchone()
+    return int(used)
+
+
 def _latest_batch(batch: list[tuple[Any, ...]], small: bool) -> list[list[Any]]:
     """The batch's latest row of each (robot, name), as the arrays of the client's upsert."""
     latest: dict[tuple[str, str], tuple[Any, ...]] = {}
@@ -698,7 +713,7 @@ def time_parts(server: PostgresServer, n: int, rounds: int, only: list[str]) -> 
     pid = server_pid(server)
     names = [p[0] for p in PARTS if not only or any(word in p[0] for word in only)]
     figures: dict[str, dict[str, list[float]]] = {
-        name: {"backend": [], "server": [], "wal": [], "client": [], "wall": []} for name in names
+        name: {"backend": [], "server": [], "wal": [], "buffers": [], "client": [], "wall": []} for name in names
     }
     with copy_connection(server) as connection:
         (backend_pid,) = connection.execute("SELECT pg_backend_pid()").fetchone()
@@ -744,6 +759,7 @@ def time_parts(server: PostgresServer, n: int, rounds: int, only: list[str]) -> 
                     rows, types, written = by_robot if one_robot else typed, TYPED_COPY_TYPES, _TYPED_COLUMNS
                 upsert = _UPSERT_SMALL if "upsert small" in options else _UPSERT if "upsert" in options else ""
                 (wal_before,) = connection.execute("SELECT pg_current_wal_insert_lsn()").fetchone()
+                buffers_before = shared_buffers_used(connection)
                 before, server_before = backend_cpu(), _tree_cpu(pid)
                 client_before, started = time.process_time(), time.perf_counter()
                 size = 5000 if "batch 5000" in options else 10 if "batch 10" in options else BATCH
@@ -768,7 +784,15 @@ def time_parts(server: PostgresServer, n: int, rounds: int, only: list[str]) -> 
                 (wal,) = connection.execute(
                     "SELECT pg_current_wal_insert_lsn() - %s::pg_lsn", (str(wal_before),)
                 ).fetchone()
-                measured = {"backend": cpu, "server": server_cpu, "wal": float(wal) / n, "client": client, "wall": wall}
+                buffers = (shared_buffers_used(connection) - buffers_before) / n
+                measured = {
+                    "backend": cpu,
+                    "server": server_cpu,
+                    "wal": float(wal) / n,
+                    "buffers": buffers,
+                    "client": client,
+                    "wall": wall,
+                }
                 for key, value in measured.items():
                     figures[name][key].append(value)
                 connection.execute(f"DROP TABLE {table}")
@@ -786,6 +810,7 @@ def time_parts(server: PostgresServer, n: int, rounds: int, only: list[str]) -> 
             ),
             "server_cpu_us_per_row": statistics.median(f["server"]),
             "wal_bytes_per_row": statistics.median(f["wal"]),
+            "shared_buffer_accesses_per_row": statistics.median(f["buffers"]),
             "client_cpu_us_per_row": statistics.median(f["client"]),
             "wall_us_per_row": statistics.median(f["wall"]),
             "runs": {key: [round(x, 2) for x in values] for key, values in f.items()},
@@ -793,6 +818,7 @@ def time_parts(server: PostgresServer, n: int, rounds: int, only: list[str]) -> 
         r = result[name]
         print(f"backend {r['backend_cpu_us_per_row']:5.1f} µs/row x{r['backend_cpu_ratio_to_original']:.2f}"
               f"  server {r['server_cpu_us_per_row']:5.1f}  WAL {r['wal_bytes_per_row']:5.0f} B/row"
+              f"  buffers {r['shared_buffer_accesses_per_row']:4.1f}/row"
               f"  client {r['client_cpu_us_per_row']:4.1f}  wall {r['wall_us_per_row']:5.1f}  {name}",
               flush=True)  # fmt: skip
     return result
