@@ -69,11 +69,8 @@ def server() -> Iterator[PostgresServer]:
 
 
 def destination(server: PostgresServer, table: str, logger: RecordingLogger, partition_by: str = "day") -> PgSQL:
-    params = parse_params(
-        PgSQLParams,
-        {**server.settings(), "table": table, "partition_by": partition_by, "value_keys": {"cpu": "average"}},
-        "destination_server.pg",
-    )
+    settings = {"table": table, "partition_by": partition_by, "value_keys": {"cpu": "average"}, "latest_table": True}
+    params = parse_params(PgSQLParams, {**server.settings(), **settings}, "destination_server.pg")
     dest = PgSQL(FakeContext(name="pg", logger=logger), params)
     dest.on_configure()
     return dest

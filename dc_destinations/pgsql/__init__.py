@@ -103,9 +103,10 @@ class PgSQLParams(PostgresServerParams):
         " run's rows only; false: none (inserts cost the server less, a query by run reads the robot's rows)",
     )
     latest_table: bool = param(
-        True,
+        False,
         doc="A table DC creates gets <table>_latest, each robot's latest record of each measurement, kept by a"
-        " trigger of the table (PostgreSQL 14+); false: not made",
+        " trigger of the table (PostgreSQL 14+): worth it with partition_by, whose skip scan probes each partition;"
+        " false: not made (the trigger costs every insert; a plain table's skip scan answers)",
     )
     async_: bool = compat_param(
         False, "each batch is written by the destination's own sender thread", aliases=("async",)
