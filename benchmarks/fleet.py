@@ -20,7 +20,9 @@ replaced by one NATS destination into a local nats-server (subject ``dc.<robot>.
 ``--window`` seconds (after DC is up and ``--settle`` more), the records and bytes (the JSON
 stored in the stream) of each robot are read back from the stream, and the CPU of each DC process
 tree (and of each simulator, apart) from /proc: records and bytes per robot and day, CPU % of one
-core per robot, and the machine's busy %. Run it with ``nice -n 10`` on a shared machine.
+core per robot, and the machine's busy %. Run it with ``nice -n 10`` on a shared machine, with
+``DC_TEST_DOMAIN_SLOT`` set to your test slot: the robots then take that slot's ROS domains, which
+the other engineers' tests do not use.
 """
 
 from __future__ import annotations
@@ -224,10 +226,34 @@ def span(values: list[Any], spec: str = "") -> str:
     return low if low == high else f"{low} to {high}"
 
 
+def robot_domains() -> list[int]:
+    """The ROS domains the robots may take: with ``DC_TEST_DOMAIN_SLOT=k/n`` (set for an engineer's
+    tests on a shared machine, tests/domains.py) that slot's own, which other sessions' tests never
+    use; else 120..232 from a random start (domain ids end at 232)."""
+    import random
+
+    slot, _, slots = os.environ.get("DC_TEST_DOMAIN_SLOT", "").partition("/")
+    if slot.isdigit() and slots.isdigit() and int(slots) > 0:
+        return [d for d in range(21, 233) if d % int(slots) == int(slot) % int(slots)]
+    start = random.randint(120, 232)
+    return [*range(start, 233), *range(120, start)]
+
+
+def quiet_domain(domains: Any, home: Path) -> int:
+    """The next of ``domains`` where no ROS node answers (another DC there would drive our servers)."""
+    from benchmarks import footprint
+
+    for domain in domains:
+        try:
+            return footprint.quiet_domain(domain, footprint.environment(home, domain), tries=1)
+        except RuntimeError:
+            continue
+    raise RuntimeError("no quiet ROS domain left for the robots")
+
+
 def robots(args: argparse.Namespace) -> int:
     """The robots' side: see the module documentation."""
     import contextlib
-    import random
 
     from benchmarks import footprint
 
@@ -241,12 +267,12 @@ def robots(args: argparse.Namespace) -> int:
             for count in args.robots:
                 with contextlib.ExitStack() as stack:
                     bringups, sims = [], []
-                    domain = random.randint(120, 200)
+                    domains = iter(robot_domains())
                     for i in range(count):
                         robot = f"{job}-n{count}-r{i}"
                         home = folder / robot
                         home.mkdir()
-                        domain = footprint.quiet_domain(domain + 1, footprint.environment(home, domain + 1))
+                        domain = quiet_domain(domains, home)
                         env = footprint.environment(home, domain)
                         params = home / "params.yaml"
                         params.write_text(robot_params(JOBS[job], robot, nats.url))
@@ -258,7 +284,7 @@ def robots(args: argparse.Namespace) -> int:
                             stack.enter_context(footprint.started(bringup, env, home, home / "bringup.log", 60))
                         )
                     for bringup in bringups:
-                        footprint.wait_for_up(bringup, 180)
+                        footprint.wait_for_up(bringup, args.up_timeout)
                     time.sleep(args.settle)
                     first = stream_last_sequence(nats.url)
                     dc_before = [cpu_ticks(b.read()) for b in bringups]
@@ -310,6 +336,7 @@ def main() -> int:
     parser.add_argument("--jobs", nargs="+", choices=sorted(JOBS), default=["default", "robot"])
     parser.add_argument("--window", type=float, default=120.0, help="seconds measured, per job and robot count")
     parser.add_argument("--settle", type=float, default=10.0, help="seconds after DC is up before the window")
+    parser.add_argument("--up-timeout", type=float, default=180.0, help="seconds for each robot's DC to come up")
     args = parser.parse_args()
     if args.robots:
         return robots(args)

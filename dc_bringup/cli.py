@@ -312,9 +312,15 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
         elif isinstance(values, dict) and values.get("held"):
             print(f"destination {name} {values['held']} (only_when; docs/constrained_links.md)")
         if isinstance(values, dict) and (values.get("evicted") or values.get("files_evicted")):
+            of = values.get("evicted_by_measurement")
+            measurements = (
+                " (records of " + ", ".join(f"{m} {_cell(n)}" for m, n in sorted(of.items())) + ")"
+                if isinstance(of, dict) and of
+                else ""
+            )
             print(
                 f"destination {name}: {values.get('evicted') or 0} records and {values.get('files_evicted') or 0} "
-                "saved files evicted unsent by the disk budget"
+                f"saved files evicted unsent by the disk budget{measurements}"
             )
     for name, values in sorted(destinations.items()):
         own = values.get("plugin") if isinstance(values, dict) else None
@@ -622,9 +628,14 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         handback_delay=args.handback_delay,
         connect=connect_options_from_env(),
     )
-    run_ingest(Ingest(config, destinations, options, Path(args.storage_path), logger))
-    for destination in destinations.values():
-        destination.on_cleanup()
+    try:
+        run_ingest(Ingest(config, destinations, options, Path(args.storage_path), logger))
+    except DcError as exc:  # the stream or the hand-back bucket cannot be used: said once, no traceback
+        print(f"dc ingest: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        for destination in destinations.values():
+            destination.on_cleanup()
     return 0
 
 

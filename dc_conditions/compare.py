@@ -12,6 +12,9 @@ from typing import Any
 
 from dc_core.jsonpath import get_path
 
+# The doc of a condition's `key` parameter: the path value_at reads.
+KEY_DOC = "Key path, `/`-separated, array items by index"
+
 
 def value_at(sample: Mapping[str, Any] | None, key: str) -> Any:
     """The value at the ``/``-separated ``key``; raises LookupError when there is none."""

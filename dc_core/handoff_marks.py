@@ -232,12 +232,7 @@ def parse_ended(text: str) -> tuple[str, list[Ended]] | None:
 
 def ended_qos(depth: int = 1) -> Any:
     """Transient local, the last message of each server: a destination_server that starts later gets it
-    (its subscription is deeper: one message from each server)."""
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    (its subscription is deeper: one message from each server). The records' profile, of another depth."""
+    from dc_core.qos import record_qos
 
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=depth,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    )
+    return record_qos(depth)

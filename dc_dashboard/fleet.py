@@ -61,13 +61,7 @@ def overview(
     if not robots or not names:
         return [], False
     today = now.replace(hour=0, minute=0, second=0, microsecond=0)
-    last_seen = sql.SQL(
-        "SELECT r.robot, max(last.time)"
-        " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
-        " CROSS JOIN LATERAL (SELECT max(time) AS time FROM {t}"
-        "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(since)s) AS last"
-        " GROUP BY r.robot"
-    ).format(t=store.table, robot=indexes.ROBOT)
+    last_seen = _per_robot(store, "max(last.time)", ("last", "max(time) AS time", "time >= %(since)s"))
     # Since yesterday first: on a table partitioned by time, a seek without a bound on time is one
     # per partition; the robots not seen since then are looked for in the whole table.
     params: dict[str, Any] = {"robots": robots, "names": names, "today": today, "since": today - dt.timedelta(days=1)}
@@ -84,15 +78,12 @@ def overview(
     if estimated:
         # The robot's rows per second over its whole history (the planner's count of its rows, its
         # first and last row: seeks) times its time active today (its first row today to its last).
-        spans = sql.SQL(
-            "SELECT r.robot, min(first.time), min(first_today.time)"
-            " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
-            " CROSS JOIN LATERAL (SELECT min(time) AS time FROM {t}"
-            "   WHERE {robot} = r.robot AND (data->>'name') = n.name) AS first"
-            " CROSS JOIN LATERAL (SELECT min(time) AS time FROM {t}"
-            "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(today)s) AS first_today"
-            " GROUP BY r.robot"
-        ).format(t=store.table, robot=indexes.ROBOT)
+        spans = _per_robot(
+            store,
+            "min(first.time), min(first_today.time)",
+            ("first", "min(time) AS time", ""),
+            ("first_today", "min(time) AS time", "time >= %(today)s"),
+        )
         params["robots"] = list(rows)
         for robot, first, first_today in connection.execute(spans, params).fetchall():
             row, first, first_today = rows[robot], _naive(first), _naive(first_today)
@@ -103,13 +94,7 @@ def overview(
             active = (row.last_seen - first_today).total_seconds()
             row.records_today = round(total * active / lived) if lived > 0 else total
     else:
-        counts = sql.SQL(
-            "SELECT r.robot, sum(today.rows)::bigint"
-            " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
-            " CROSS JOIN LATERAL (SELECT count(*) AS rows FROM {t}"
-            "   WHERE {robot} = r.robot AND (data->>'name') = n.name AND time >= %(today)s) AS today"
-            " GROUP BY r.robot"
-        ).format(t=store.table, robot=indexes.ROBOT)
+        counts = _per_robot(store, "sum(today.rows)::bigint", ("today", "count(*) AS rows", "time >= %(today)s"))
         params["robots"] = list(rows)
         for robot, count in connection.execute(counts, params).fetchall():
             rows[robot].records_today = int(count or 0)
@@ -131,6 +116,24 @@ def overview(
                 row.retrying.append(destination)
     ordered = sorted(rows.values(), key=lambda r: (r.last_seen or dt.datetime.min, r.robot), reverse=True)
     return ordered, estimated
+
+
+def _per_robot(store: Store, columns: str, *seeks: tuple[str, str, str]) -> Any:
+    """``SELECT r.robot, <columns>`` of each robot of %(robots)s over its names %(names)s, each
+    ``(alias, select, where)`` of ``seeks`` a subquery over one (robot, name) pair's rows (and
+    ``where``, if any): a seek in the (robot, name, time) index per pair, whatever the table's size."""
+    from psycopg import sql
+
+    laterals = "".join(
+        f" CROSS JOIN LATERAL (SELECT {select} FROM {{t}}"
+        f"   WHERE {{robot}} = r.robot AND (data->>'name') = n.name{f' AND {where}' if where else ''}) AS {alias}"
+        for alias, select, where in seeks
+    )
+    return sql.SQL(
+        f"SELECT r.robot, {columns}"
+        " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
+        f"{laterals} GROUP BY r.robot"
+    ).format(t=store.table, robot=indexes.ROBOT)
 
 
 def _estimate(connection: Any, store: Store, where: Any) -> int:

@@ -559,6 +559,9 @@ def _budget_cells(destination: dict[str, Any]) -> str:
     """Evicted by the disk budget (records, and the saved files it carries), and why it is held."""
     files = destination.get("files_evicted")
     evicted = _int(destination.get("evicted")) + (f" + {_int(files)} files" if files else "")
+    of = destination.get("evicted_by_measurement")
+    if isinstance(of, dict) and of:  # whose records: the measurements have retention priorities of their own
+        evicted += " (" + ", ".join(f"{escape(str(m))} {_int(n)}" for m, n in sorted(of.items())) + ")"
     return f"<td class=num>{evicted}</td><td class=held>{escape(str(destination.get('held') or ''))}</td>"
 
 

@@ -23,6 +23,7 @@ not be read is counted, and the old file is kept for inspection and ``dc buffer 
 
 from __future__ import annotations
 
+import heapq
 import json
 import os
 import re
@@ -31,7 +32,7 @@ import threading
 import time
 import zlib
 from collections import Counter
-from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, closing, contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -203,11 +204,13 @@ class AppendResult:
 
 
 class Evicted(NamedTuple):
-    """What :meth:`Buffer.evict_oldest` deleted: records, bytes, and their record_ids when asked for."""
+    """What :meth:`Buffer.evict_oldest` deleted: records, bytes, their record_ids when asked for, and
+    how many records of each input topic."""
 
     records: int
     bytes: int
     record_ids: list[str]
+    by_topic: dict[str, int]
 
 
 @dataclass(frozen=True)
@@ -287,8 +290,22 @@ class Buffer(Protocol):
     def delete(self, destination: str, row_ids: Sequence[int], *, sent: bool = True) -> int:
         """Forget confirmed rows (``sent`` False: evicted unsent); returns how many were there."""
 
-    def record_failure(self, destination: str, row_ids: Sequence[int]) -> dict[int, int]:
-        """One more failed attempt for each row; returns their attempt counts."""
+    def record_failure(
+        self, destination: str, row_ids: Sequence[int], *, dropped_ids: list[str] | None = None
+    ) -> dict[int, int]:
+        """One more failed attempt for each row; returns their attempt counts. Those the size limit
+        dropped while they were held (:meth:`hold`) are deleted now, their record_ids added to
+        ``dropped_ids`` (counted in the queue's ``dropped``)."""
+
+    def hold(self, destination: str, row_ids: Sequence[int]) -> None:
+        """These rows are in a ``send()``: the size limit drops none of them before the destination
+        answered (a record it confirms would be counted both dropped and sent). One the limit chose
+        meanwhile goes when :meth:`record_failure` counts its send failed; confirmed, :meth:`delete`
+        takes it as sent; dead-lettered, it is a dead letter."""
+
+    def release(self, destination: str, row_ids: Sequence[int] | None = None) -> None:
+        """Rows held by :meth:`hold` no longer are (None: every row of the queue): the size limit
+        may drop them again, and those it chose meanwhile stay in the queue."""
 
     def dead_letter(
         self,
@@ -310,6 +327,19 @@ class Buffer(Protocol):
     def evict_oldest(self, destination: str, nbytes: int, *, with_ids: bool = False) -> Evicted:
         """Delete a queue's oldest records, at least ``nbytes``: (records, bytes, and with ``with_ids``
         their record_ids) deleted."""
+
+    def evict_oldest_among(
+        self, parts: Mapping[str, Collection[str] | None], nbytes: int, *, with_ids: bool = False
+    ) -> dict[str, Evicted]:
+        """Delete the oldest records of several queues taken together, at least ``nbytes`` (all there
+        are, if fewer), oldest first by when they were committed; of each queue only those of the input
+        topics given (None: all). What each queue gave, per destination."""
+
+    def track_topics(self, destinations: Collection[str]) -> None:
+        """Keep :meth:`queued_topics` quick for these queues (and only these: it costs on their commits)."""
+
+    def queued_topics(self, destination: str) -> dict[str, int]:
+        """Bytes of records waiting in a queue per input topic."""
 
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of a queue beyond ``max_bytes``; returns how many."""
@@ -366,6 +396,17 @@ class SqliteBuffer:
         self._max_read: dict[str, int] = {}
         self._id_floor: dict[str, int] = {}
         self.quarantines: list[Quarantine] = []
+        # The queues named by track_topics, and of those counted by queued_topics: their rows per
+        # input topic, [rows, bytes], kept by every change of the queue in this process from then on
+        # and counted again from the table whenever they may be wrong (a transaction rolled back; a
+        # change made elsewhere: `dc buffer replay`, a salvage), which queued_topics sees from the
+        # queue's own totals. Until the disk budget first needs them, their commits pay nothing.
+        self._tracked: set[str] = set()
+        self._by_topic: dict[str, dict[str, list[int]]] = {}
+        # Per destination: the ids of the rows in a send() now (hold), and of those the size limit
+        # chose meanwhile, left to the send's outcome: deleted as dropped only if it failed.
+        self._held: dict[str, set[int]] = {}
+        self._doomed: dict[str, set[int]] = {}
         self._conn: sqlite3.Connection | None = None
         try:
             self._conn = self._connect()
@@ -397,6 +438,7 @@ class SqliteBuffer:
             conn.close()
             raise
         self._qids = qids
+        self._by_topic = {}
         return conn
 
     def _set_aside(self, reason: str, *, defer: bool = False) -> Quarantine | None:
@@ -718,6 +760,7 @@ class SqliteBuffer:
             try:
                 yield conn
             except BaseException:
+                self._by_topic.clear()  # they may hold what was rolled back
                 if conn.in_transaction:
                     conn.execute("ROLLBACK")
                 raise
@@ -746,8 +789,49 @@ class SqliteBuffer:
         else:
             qid = row[0]
         _ensure_queue_table(conn, qid)
+        if destination in self._tracked:
+            conn.execute(f"CREATE INDEX IF NOT EXISTS q_{qid}_by_topic ON q_{qid} (topic)")
         self._qids[destination] = int(qid)
         return int(qid)
+
+    def track_topics(self, destinations: Collection[str]) -> None:
+        """Keep :meth:`queued_topics` quick for these queues and index their rows by topic, so that an
+        eviction of some topics seeks their oldest rows rather than walking the queue; the index of
+        any other queue is dropped: it costs on every commit and delete of its queue."""
+        with self._transaction() as conn:
+            self._tracked = set(destinations)
+            for name, qid in conn.execute("SELECT name, qid FROM queues").fetchall():
+                if name in self._tracked:
+                    conn.execute(f"CREATE INDEX IF NOT EXISTS q_{qid}_by_topic ON q_{qid} (topic)")
+                else:
+                    conn.execute(f"DROP INDEX IF EXISTS q_{qid}_by_topic")
+                    self._by_topic.pop(name, None)
+            for name in self._tracked:
+                self._qid(conn, name)
+
+    def queued_topics(self, destination: str) -> dict[str, int]:
+        """Bytes of records waiting in a queue per input topic: kept as they change for a queue of
+        :meth:`track_topics` once counted, counted from the table otherwise (a scan of the queue)."""
+        with self._locked() as conn:
+            qid = self._qids.get(destination)
+            if qid is None:
+                return {}
+            rows, size = conn.execute("SELECT rows, bytes FROM queues WHERE qid = ?", (qid,)).fetchone()
+            counts = self._by_topic.get(destination)
+            if (
+                counts is None
+                or sum(c[0] for c in counts.values()) != rows
+                or sum(c[1] for c in counts.values()) != size
+            ):
+                counts = {
+                    str(topic): [int(n), int(total)]
+                    for topic, n, total in conn.execute(
+                        f"SELECT topic, count(*), sum(size) FROM q_{qid} GROUP BY topic"
+                    )
+                }
+                if destination in self._tracked:
+                    self._by_topic[destination] = counts
+            return {topic: c[1] for topic, c in counts.items()}
 
     def ensure_queues(self, destinations: Sequence[str]) -> None:
         with self._transaction() as conn:
@@ -785,17 +869,14 @@ class SqliteBuffer:
                 limit = (limits or {}).get(destination, QueueLimit(None, True))
                 rows = [(r.record_id, r.topic, r.stamp_ns, enqueued, r.size, r.payload, r.crc) for r in batch]
                 dropped_newest = dropped_oldest = 0
+                counts = self._by_topic.get(destination)
                 if limit.max_bytes is not None:
                     dropped: list[str] = []
-                    rows, dropped_newest, dropped_oldest = self._apply_limit(conn, qid, rows, limit, dropped)
+                    rows, dropped_newest, dropped_oldest = self._apply_limit(
+                        conn, destination, qid, rows, limit, dropped
+                    )
                     if dropped:
                         result.dropped_ids[destination] = dropped
-                    if dropped_oldest and destination in self._max_read:
-                        # The head dropped may be the whole queue, the rows a sender holds with it:
-                        # SQLite would give their ids to the new rows, and that sender's delete of
-                        # its confirmed rows would then delete new records unsent.
-                        floor = max(self._id_floor.get(destination, 0), self._max_read[destination])
-                        self._id_floor[destination] = floor
                 insert = (
                     f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload, payload_crc) "
                     "VALUES (?, ?, ?, ?, ?, ?, ?)"
@@ -805,6 +886,8 @@ class SqliteBuffer:
                     conn.executemany(insert, rows[1:])
                 else:
                     conn.executemany(insert, rows)
+                if counts is not None:
+                    _count_rows(counts, [(row[1], row[4]) for row in rows], 1)
                 added_bytes = sum(row[4] for row in rows)
                 conn.execute(
                     "UPDATE queues SET rows = rows + ?, bytes = bytes + ?, received = received + ?, "
@@ -859,6 +942,7 @@ class SqliteBuffer:
     def _apply_limit(
         self,
         conn: sqlite3.Connection,
+        destination: str,
         qid: int,
         rows: list[_QueueRow],
         limit: QueueLimit,
@@ -893,15 +977,55 @@ class SqliteBuffer:
         need = used + incoming - max_bytes
         dropped_oldest = 0
         if need > 0:
-            dropped_oldest, freed, last_id = _walk_head(conn, qid, need, after=-1)
-            if last_id is not None:
-                deleted = conn.execute(f"DELETE FROM q_{qid} WHERE id <= ? RETURNING record_id", (last_id,)).fetchall()
-                dropped.extend(str(record_id) for (record_id,) in deleted)
-                conn.execute(
-                    "UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?",
-                    (dropped_oldest, freed, qid),
-                )
+            head = self._drop_head(conn, destination, qid, need)
+            dropped.extend(head)
+            dropped_oldest = len(head)
         return fitting, dropped_newest, dropped_oldest
+
+    def _drop_head(self, conn: sqlite3.Connection, destination: str, qid: int, need: int) -> list[str]:
+        """Delete a queue's oldest rows, at least ``need`` bytes of them (all there are, if fewer); their
+        record_ids. Not counted here.
+
+        A row held in a send() is only marked: the destination may confirm it, and a record must never
+        be counted both dropped and sent. It goes, counted dropped, if its send fails
+        (:meth:`record_failure`); meanwhile the queue stands above its limit by those rows."""
+        held = self._held.get(destination)
+        if held:
+            doomed = _head_ids(conn, qid, need)
+            chosen = [row_id for row_id in doomed if row_id not in held]
+            self._doomed.setdefault(destination, set()).update(row_id for row_id in doomed if row_id in held)
+            return self._delete_head_rows(conn, destination, qid, chosen)
+        _count, _freed, last_id = _walk_head(conn, qid, need, after=-1)
+        if last_id is None:
+            return []
+        return self._delete_head_rows(conn, destination, qid, None, last_id)
+
+    def _delete_head_rows(
+        self, conn: sqlite3.Connection, destination: str, qid: int, row_ids: list[int] | None, last_id: int = 0
+    ) -> list[str]:
+        """Delete rows of the queue's head, ``row_ids`` (None: every row up to ``last_id``), kept out of
+        the counts per topic; their record_ids."""
+        args: tuple[object, ...]
+        if row_ids is None:
+            where, args = "id <= ?", (last_id,)
+        elif row_ids:
+            where, args = "id IN (SELECT value FROM json_each(?))", (json.dumps(row_ids),)
+        else:
+            return []
+        deleted = conn.execute(f"DELETE FROM q_{qid} WHERE {where} RETURNING record_id, topic, size", args).fetchall()
+        counts = self._by_topic.get(destination)
+        if counts is not None:
+            _count_rows(counts, [(topic, size) for _id, topic, size in deleted], -1)
+        conn.execute(
+            "UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?",
+            (len(deleted), sum(int(size) for _id, _topic, size in deleted), qid),
+        )
+        if deleted and destination in self._max_read:
+            # The head dropped may be the whole queue, rows a sender read with it: SQLite would give
+            # their ids to the new rows, and that sender's delete of its confirmed rows would then
+            # delete new records unsent.
+            self._id_floor[destination] = max(self._id_floor.get(destination, 0), self._max_read[destination])
+        return [str(record_id) for record_id, _topic, _size in deleted]
 
     def read_batch(self, destination: str, limit: int, *, after_id: int = 0) -> list[BufferedRow]:
         """The oldest ``limit`` rows of a queue after ``after_id`` (memory bounded by ``limit``, whatever the
@@ -924,19 +1048,29 @@ class SqliteBuffer:
             return 0
         with self._transaction() as conn:
             qid = self._qid(conn, destination)
+            counts = self._by_topic.get(destination)
             sizes = conn.execute(
-                f"DELETE FROM q_{qid} WHERE id IN (SELECT value FROM json_each(?)) RETURNING size",
+                f"DELETE FROM q_{qid} WHERE id IN (SELECT value FROM json_each(?)) "
+                + ("RETURNING topic, size" if counts is not None else "RETURNING size"),
                 (json.dumps(list(row_ids)),),
             ).fetchall()
-            total = sum(size for (size,) in sizes)
+            total = sum(row[-1] for row in sizes)
+            if counts is not None:
+                _count_rows(counts, sizes, -1)
             conn.execute(
                 "UPDATE queues SET rows = rows - ?, bytes = bytes - ?, sent = sent + ? WHERE qid = ?",
                 (len(sizes), total, len(sizes) if sent else 0, qid),
             )
+            if self._held.get(destination):
+                self.release(destination, row_ids)
         return len(sizes)
 
-    def record_failure(self, destination: str, row_ids: Sequence[int]) -> dict[int, int]:
-        """Count one more failed attempt for each row; returns the rows' attempt counts."""
+    def record_failure(
+        self, destination: str, row_ids: Sequence[int], *, dropped_ids: list[str] | None = None
+    ) -> dict[int, int]:
+        """Count one more failed attempt for each row; returns the rows' attempt counts. Those the size
+        limit chose while their send ran (:meth:`hold`) are deleted now, counted dropped, their
+        record_ids added to ``dropped_ids``."""
         if not row_ids:
             return {}
         with self._transaction() as conn:
@@ -946,7 +1080,28 @@ class SqliteBuffer:
                 "RETURNING id, attempts",
                 (json.dumps(list(row_ids)),),
             ).fetchall()
+            doomed = self._doomed.get(destination)
+            if doomed:
+                gone = self._delete_head_rows(conn, destination, qid, sorted(doomed.intersection(row_ids)))
+                conn.execute("UPDATE queues SET dropped = dropped + ? WHERE qid = ?", (len(gone), qid))
+                if dropped_ids is not None:
+                    dropped_ids.extend(gone)
+            self.release(destination, row_ids)
         return {int(row_id): int(attempts) for row_id, attempts in rows}
+
+    def hold(self, destination: str, row_ids: Sequence[int]) -> None:
+        """Keep these rows from the size limit while they are in a send(); see :class:`Buffer`."""
+        with self._lock:
+            self._held.setdefault(destination, set()).update(row_ids)
+
+    def release(self, destination: str, row_ids: Sequence[int] | None = None) -> None:
+        with self._lock:
+            for rows in (self._held.get(destination), self._doomed.get(destination)):
+                if rows:
+                    if row_ids is None:
+                        rows.clear()
+                    else:
+                        rows.difference_update(row_ids)
 
     def dead_letter(
         self,
@@ -969,6 +1124,9 @@ class SqliteBuffer:
                 gone = conn.execute(f"DELETE FROM q_{qid} WHERE id = ? RETURNING attempts", (row.row_id,)).fetchone()
                 if gone is None:
                     continue  # dropped by the size limit meanwhile
+                counts = self._by_topic.get(destination)
+                if counts is not None:
+                    _count_rows(counts, [(row.topic, row.size)], -1)
                 conn.execute(
                     f"INSERT INTO dead_letters ({_DEAD_COLUMNS.removeprefix('id, ')}) "
                     "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -993,6 +1151,8 @@ class SqliteBuffer:
                 moved += 1
                 if moved_ids is not None:
                     moved_ids.append(row.record_id)
+            if self._held.get(destination):
+                self.release(destination, [row.row_id for row, _error in failures])
         return moved
 
     def queued_bytes(self) -> dict[str, int]:
@@ -1008,11 +1168,22 @@ class SqliteBuffer:
         Rows a sender has read are left alone: they may be in a send() now, and are counted sent or
         dead-lettered when it returns; the oldest of the others go."""
         record_ids: list[str] = []
+        by_topic: dict[str, int] = {}
         with self._transaction() as conn:
             qid = self._qid(conn, destination)
             first = self._max_read.get(destination, 0)
             count, freed, last_id = _walk_head(conn, qid, nbytes, after=first)
             if last_id is not None:
+                # Counted by topic in SQLite: the range may be a whole queue (dc ingest empties its own).
+                per_topic = conn.execute(
+                    f"SELECT topic, count(*), sum(size) FROM q_{qid} WHERE id > ? AND id <= ? GROUP BY topic",
+                    (first, last_id),
+                ).fetchall()
+                by_topic = {str(topic): int(n) for topic, n, _size in per_topic}
+                counts = self._by_topic.get(destination)
+                if counts is not None:
+                    for topic, n, size in per_topic:
+                        _count_rows(counts, [(topic, size)], -1, n)
                 delete = f"DELETE FROM q_{qid} WHERE id > ? AND id <= ?"
                 if with_ids:
                     deleted = conn.execute(delete + " RETURNING record_id", (first, last_id)).fetchall()
@@ -1020,7 +1191,63 @@ class SqliteBuffer:
                 else:
                     conn.execute(delete, (first, last_id))
                 conn.execute("UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?", (count, freed, qid))
-        return Evicted(count, freed, record_ids)
+        return Evicted(count, freed, record_ids, by_topic)
+
+    def evict_oldest_among(
+        self, parts: Mapping[str, Collection[str] | None], nbytes: int, *, with_ids: bool = False
+    ) -> dict[str, Evicted]:
+        """Delete the oldest records of several queues taken together, at least ``nbytes`` of them (all
+        there are, if fewer): oldest by their commit time across the queues; of each queue only the
+        records of the input topics given (None: all of them). Per destination, what it gave; not
+        counted as sent or dropped here.
+
+        Rows a sender has read are left alone, as by :meth:`evict_oldest`. Deleted a few thousand at
+        a time, so that memory does not grow with what is evicted."""
+        gone: dict[str, tuple[int, int, list[str], Counter[str]]] = {}
+        freed = 0
+        with self._transaction() as conn:
+            heads = []
+            for destination, topics in parts.items():
+                qid = self._qid(conn, destination)
+                after = self._max_read.get(destination, 0)
+                for topic in (None,) if topics is None else sorted(topics):
+                    heads.append((destination, qid, after, topic))
+            while freed < nbytes:
+                # Each round from the heads again: the rows taken by the round before are gone.
+                chosen: dict[str, list[int]] = {}
+                oldest = heapq.merge(
+                    *(_oldest(conn, qid, after, topic, destination) for destination, qid, after, topic in heads)
+                )
+                for taken, (_enqueued, row_id, size, destination) in enumerate(oldest, 1):
+                    chosen.setdefault(destination, []).append(row_id)
+                    freed += size
+                    if freed >= nbytes or taken >= 4096:
+                        break
+                if not chosen:
+                    break
+                for destination, row_ids in chosen.items():
+                    qid = self._qids[destination]
+                    deleted = conn.execute(
+                        f"DELETE FROM q_{qid} WHERE id IN (SELECT value FROM json_each(?)) "
+                        "RETURNING record_id, topic, size",
+                        (json.dumps(row_ids),),
+                    ).fetchall()
+                    size = sum(int(row[2]) for row in deleted)
+                    conn.execute(
+                        "UPDATE queues SET rows = rows - ?, bytes = bytes - ? WHERE qid = ?", (len(deleted), size, qid)
+                    )
+                    counts = self._by_topic.get(destination)
+                    if counts is not None:
+                        _count_rows(counts, [(topic, n) for _id, topic, n in deleted], -1)
+                    records, nbytes_gone, ids, by_topic = gone.get(destination, (0, 0, [], Counter()))
+                    if with_ids:
+                        ids.extend(str(row[0]) for row in deleted)
+                    by_topic.update(str(row[1]) for row in deleted)
+                    gone[destination] = (records + len(deleted), nbytes_gone + size, ids, by_topic)
+        return {
+            destination: Evicted(records, size, ids, dict(by_topic))
+            for destination, (records, size, ids, by_topic) in gone.items()
+        }
 
     def trim_dead_letters(self, destination: str, max_bytes: int) -> int:
         """Delete the oldest dead letters of ``destination`` until theirs fit in ``max_bytes``.
@@ -1138,6 +1365,60 @@ def _plain_transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]
 
 
 _NO_ROWID = -(2**63) - 1  # progress of a table not begun: every rowid is above it
+
+
+def _count_rows(counts: dict[str, list[int]], rows: Iterable[Sequence[Any]], sign: int, n: int = 1) -> None:
+    """Add (``sign`` 1) or take off (-1) rows of (topic, size) to the rows and bytes per topic ``counts``;
+    ``n``: each stands for that many rows (size their total)."""
+    for topic, size in rows:
+        count = counts.get(topic)
+        if count is None:
+            counts[topic] = count = [0, 0]
+        count[0] += sign * n
+        count[1] += sign * size
+        if count[0] <= 0:
+            del counts[topic]
+
+
+def _oldest(
+    conn: sqlite3.Connection, qid: int, after: int, topic: str | None, destination: str
+) -> Iterator[tuple[int, int, int, str]]:
+    """(commit time, row id, size, ``destination``) of queue ``qid``'s rows after ``after``, of ``topic``
+    only unless None, in their order, read 512 at a time."""
+    while True:
+        if topic is None:
+            rows = conn.execute(
+                f"SELECT enqueued_ns, id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)
+            ).fetchall()
+        else:
+            rows = conn.execute(
+                f"SELECT enqueued_ns, id, size FROM q_{qid} WHERE topic = ? AND id > ? ORDER BY id LIMIT 512",
+                (topic, after),
+            ).fetchall()
+        if not rows:
+            return
+        for enqueued, row_id, size in rows:
+            yield int(enqueued), int(row_id), int(size), destination
+        after = rows[-1][1]
+
+
+def _head_ids(conn: sqlite3.Connection, qid: int, need: int) -> list[int]:
+    """The ids of the oldest rows of queue ``qid`` whose sizes reach ``need`` (all of them if fewer),
+    read 512 at a time."""
+    doomed: list[int] = []
+    freed = 0
+    after = -1
+    while freed < need:
+        head = conn.execute(f"SELECT id, size FROM q_{qid} WHERE id > ? ORDER BY id LIMIT 512", (after,)).fetchall()
+        if not head:
+            break
+        for row_id, size in head:
+            doomed.append(int(row_id))
+            freed += int(size)
+            if freed >= need:
+                break
+        after = head[-1][0]
+    return doomed
 
 
 def _walk_head(conn: sqlite3.Connection, qid: int, need: int, *, after: int) -> tuple[int, int, int | None]:

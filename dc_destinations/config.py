@@ -22,7 +22,13 @@ from dc_core.plugins import parse_plugin_section
 from dc_core.timefmt import TIME_FORMATS
 from dc_core.topics import resolve_topic
 from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, check_destination_params, link_rates
+from dc_destinations.settings import (
+    DeliveryParams,
+    DestinationDeliveryParams,
+    check_destination_params,
+    link_rates,
+    record_priorities,
+)
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
 NODE_NAME = "destination_server"
@@ -154,6 +160,12 @@ def _parse_destination(
     # Fully qualified as the server subscribes: records keep the topic they came on, and routing,
     # hand-off acks and the checks against the other sections' outputs compare these names.
     common = dataclasses.replace(common, inputs=[resolve_topic(t, namespace, NODE_NAME) for t in common.inputs])
+    if delivery.retention_priorities:
+        # Topic keys resolved as the inputs are: the pipeline compares them with the records' topics.
+        priorities = record_priorities(
+            delivery, common.inputs, path, lambda key: resolve_topic(key, namespace, NODE_NAME)
+        )
+        delivery = dataclasses.replace(delivery, retention_priorities=priorities)
     return DestinationConfig(name, common, delivery, plugin_class, plugin_params)
 
 

@@ -38,7 +38,7 @@ from dc_destinations.buffer import (
     SqliteBuffer,
 )
 from dc_destinations.commit import CommitListener, GroupCommitter, HopKey, Received
-from dc_destinations.disk_budget import FileCandidate, Step, budget_plan
+from dc_destinations.disk_budget import FileCandidate, RecordClass, Step, budget_plan
 from dc_destinations.health import FAILING
 from dc_destinations.links import LinuxNetwork, Network, link_buckets, warn_missing_interfaces
 from dc_destinations.metrics import prometheus_text
@@ -59,6 +59,7 @@ from dc_destinations.settings import (
     DeliveryParams,
     DestinationDeliveryParams,
     budget_limits,
+    by_measurement,
     check_destination_params,
     link_rates,
 )
@@ -218,6 +219,9 @@ class DeliveryPipeline:
         # (and salvaged beside delivery, below).
         self.check_buffer(repair=True)
         buffer.ensure_queues(list(self._routes))
+        # Queues whose records have priorities by input topic are counted per topic, under a budget only.
+        budgeted = self._limits.budget_bytes is not None or self._limits.budget_fraction is not None
+        buffer.track_topics([name for name, route in self._routes.items() if route.per_topic_retention and budgeted])
         if self._limits.active:
             saved = SavedFiles(
                 self.storage_file.parent / SAVED_FILES_NAME,
@@ -534,7 +538,6 @@ class DeliveryPipeline:
             disk = os.statvfs(self.storage_file.parent)
             size = disk.f_blocks * disk.f_frsize
             queued = {name: n for name, n in buffer.queued_bytes().items() if name in self._routes}
-            retention = {name: route.params.retention_priority for name, route in self._routes.items()}
             budget = self._limits.budget(size)
             over = sum(queued.values()) + (saved.total_bytes if saved is not None else 0) - (budget or 0)
             short = self._under_floor()
@@ -546,16 +549,20 @@ class DeliveryPipeline:
             if budget is not None and over > 0:
                 if saved is not None:
                     saved.too_large(budget)
-                steps = budget_plan(queued, retention, files, over)
+                steps = budget_plan(self._record_classes(buffer, queued), files, over)
             if short and not any(step.kind == "file" for step in steps):
-                steps = self._floor_steps(short, files, queued, retention)
+                steps = self._floor_steps(short, files)
             for step in steps:
                 if step.kind == "records":
-                    gone = buffer.evict_oldest(step.name, step.nbytes, with_ids=bool(self._drop_listeners))
-                    route = self._routes[step.name]
-                    route.metrics.add("evicted", gone.records)
-                    route.evict_log.event(gone.records, f"{gone.bytes} bytes; see `dc status`")
-                    tell_dropped(self._drop_listeners, self.logger, step.name, gone.record_ids, DROP_DISK_BUDGET)
+                    given = buffer.evict_oldest_among(
+                        dict(step.parts), step.nbytes, with_ids=bool(self._drop_listeners)
+                    )
+                    for name, gone in given.items():
+                        route = self._routes[name]
+                        route.metrics.add_evicted(gone.by_topic)
+                        of = ", ".join(f"{measurement} {n}" for measurement, n in by_measurement(gone.by_topic).items())
+                        route.evict_log.event(gone.records, f"{gone.bytes} bytes: {of}; see `dc status`")
+                        tell_dropped(self._drop_listeners, self.logger, name, gone.record_ids, DROP_DISK_BUDGET)
                 elif saved is not None:
                     evicted = saved.evict(step.name)
                     if evicted is not None:
@@ -567,6 +574,24 @@ class DeliveryPipeline:
             return
         except (sqlite3.Error, OSError) as exc:  # a full disk: tried again at the next tick, said by the commit failing
             self.logger.warning(f"delivery buffer: keeping the disk budget failed: {exc}")
+
+    def _record_classes(self, buffer: SqliteBuffer, queued: Mapping[str, int]) -> list[RecordClass]:
+        """What waits in the queues, by destination and retention priority: a destination with
+        ``retention_priorities`` by input topic (its queue counted per topic), the others whole."""
+        classes = []
+        for name, size in queued.items():
+            route = self._routes[name]
+            if not route.per_topic_retention:
+                classes.append(RecordClass(name, None, route.params.retention_priority, size))
+                continue
+            topics: dict[int, list[str]] = {}
+            weights: dict[int, int] = {}
+            for topic, nbytes in buffer.queued_topics(name).items():
+                priority = route.retention_of(topic)
+                topics.setdefault(priority, []).append(topic)
+                weights[priority] = weights.get(priority, 0) + nbytes
+            classes += [RecordClass(name, tuple(topics[p]), p, weights[p]) for p in sorted(topics)]
+        return classes
 
     def _under_floor(self) -> list[tuple[str, int, int, int]]:
         """(folder, device, free bytes, floor) of each filesystem under disk_free_floor: the buffer's and
@@ -595,15 +620,13 @@ class DeliveryPipeline:
         self,
         short: list[tuple[str, int, int, int]],
         files: list[FileCandidate],
-        queued: dict[str, int],
-        retention: dict[str, int],
     ) -> list[Step]:
         """The saved files to evict, by the budget's order, to bring each filesystem in ``short`` back
         above the floor: only files on that filesystem free space there."""
         steps: list[Step] = []
         for folder, device, free, floor in short:
             here = [f for f in files if _device(f.path) == device]
-            plan = budget_plan(queued, retention, here, floor - free, records=False)
+            plan = budget_plan([], here, floor - free)
             if not plan and self._budget_log is not None:
                 self._budget_log.event(
                     1,

@@ -7,8 +7,9 @@ recordings: dc_destinations.saved_files) together. Over it, by value, not by age
 1. saved files already delivered and verified by every destination that carries them go first
    (they are safe elsewhere), the lowest retention priority first, oldest first;
 2. then, one retention priority at a time from the lowest: the files of that priority not yet
-   delivered, oldest first; the records of the destinations of that ``retention_priority``, the
-   oldest of the largest queue first; and last the files kept as the first or last of their run
+   delivered, oldest first; the records of that priority, oldest first across every queue (a
+   destination's records have its ``retention_priority``, or the one its ``retention_priorities``
+   gives their input topic); and last the files kept as the first or last of their run
    (``keep_run_ends``).
 
 So nothing of a higher retention priority that is the only copy goes while anything of a lower one
@@ -36,30 +37,39 @@ class FileCandidate:
 
 
 @dataclass(frozen=True)
+class RecordClass:
+    """Records waiting in one destination's queue with one retention priority: those of ``topics``
+    (None: the whole queue)."""
+
+    destination: str
+    topics: tuple[str, ...] | None
+    priority: int
+    nbytes: int
+
+
+@dataclass(frozen=True)
 class Step:
-    """Evict ``nbytes`` from the head of destination ``name``'s queue, or the file ``name``."""
+    """Evict the file ``name``, or ``nbytes`` of the oldest records of ``parts`` together: (destination,
+    its topics or None for all) of one retention priority (``name``: that priority)."""
 
     kind: str  # "records" or "file"
     name: str
     nbytes: int
+    parts: tuple[tuple[str, tuple[str, ...] | None], ...] = ()
 
 
-def eviction_plan(queued: Mapping[str, int], retention: Mapping[str, int], budget: int) -> list[tuple[str, int]]:
-    """(destination, bytes) to evict from the head of its queue; empty while within ``budget``."""
-    steps = budget_plan(queued, retention, [], sum(queued.values()) - budget)
-    return [(step.name, step.nbytes) for step in steps]
+def queue_classes(queued: Mapping[str, int], retention: Mapping[str, int]) -> list[RecordClass]:
+    """Each queue one class of its destination's retention priority (no priority per topic)."""
+    return [RecordClass(name, None, retention.get(name, 0), size) for name, size in queued.items()]
 
 
 def budget_plan(
-    queued: Mapping[str, int],
-    retention: Mapping[str, int],
+    records: Sequence[RecordClass],
     files: Sequence[FileCandidate],
     excess: int,
-    *,
-    records: bool = True,
 ) -> list[Step]:
     """The steps that free at least ``excess`` bytes (all there are, if fewer), in the order of the
-    module documentation; ``records`` False: files only (the free-space floor)."""
+    module documentation; no ``records``: files only (the free-space floor)."""
     plan: list[Step] = []
     if excess <= 0:
         return plan
@@ -73,17 +83,17 @@ def budget_plan(
     for candidate in sorted((f for f in files if f.delivered and not f.protected), key=lambda f: (f.priority, f.seq)):
         if take_file(candidate):
             return plan
-    queues = {name: size for name, size in queued.items() if size > 0} if records else {}
-    priorities = sorted({f.priority for f in files} | {retention.get(name, 0) for name in queues})
-    for priority in priorities:
+    waiting = [c for c in records if c.nbytes > 0]
+    for priority in sorted({f.priority for f in files} | {c.priority for c in waiting}):
         for candidate in sorted(
             (f for f in files if f.priority == priority and not f.delivered and not f.protected), key=lambda f: f.seq
         ):
             if take_file(candidate):
                 return plan
-        for name in sorted((n for n in queues if retention.get(n, 0) == priority), key=lambda n: (-queues[n], n)):
-            take = min(queues[name], excess)
-            plan.append(Step("records", name, take))
+        these = sorted((c for c in waiting if c.priority == priority), key=lambda c: c.destination)
+        if these:
+            take = min(sum(c.nbytes for c in these), excess)
+            plan.append(Step("records", str(priority), take, tuple((c.destination, c.topics) for c in these)))
             excess -= take
             if excess <= 0:
                 return plan

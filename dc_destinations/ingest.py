@@ -11,7 +11,9 @@ record, its JetStream message is acknowledged; until then JetStream keeps it, an
 after ``ack_wait`` to whichever worker asks (another one if this one died). A record the worker's
 buffer drops (a size limit, the disk budget: sender.DropListener) is no outcome: its message is
 handed back (nak, redelivered after ``handback_delay``), or terminated when no delivery can ever
-succeed, never acknowledged (:class:`Settlements`, docs/fleet.md). So:
+succeed, never acknowledged (:class:`Settlements`, docs/fleet.md). A hand-back, by any worker, does
+not count against ``retry_limit``: the workers share how often each message was handed back
+(dc_destinations.handbacks). So:
 
 - several ``dc ingest`` processes on one consumer share its messages (JetStream hands each
   message to one of them at a time);
@@ -48,6 +50,7 @@ from dc_core.records import MalformedRecord, parse_record
 from dc_core.supervision import Supervisor
 from dc_destinations.config import DestinationServerConfig
 from dc_destinations.delivery import DeliveryPipeline
+from dc_destinations.handbacks import HandbackRecord
 from dc_destinations.jetstream import HEADER_ID, HEADER_STAMP, HEADER_TOPIC
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.routing import NO_LISTENER, TAGS_KEY, RoutingTable
@@ -69,21 +72,22 @@ class _InFlight:
     done: set[str] = field(default_factory=set)  # confirmed, or dead-lettered
     handed_back: dict[str, str] = field(default_factory=dict)  # destination: why it dropped the record
     given_up: dict[str, str] = field(default_factory=dict)  # destination: why it can never take it
-    handbacks: int = 0  # times this worker handed the record's message back before
+    handbacks: int = 0  # times workers (this one, or any by the shared record) handed the message back
 
 
 @dataclass(frozen=True)
 class Taken:
-    """A record taken in flight: the destinations to submit it to, and how often this worker handed
-    its message back before (deliveries that are no failure of the record)."""
+    """A record taken in flight: the destinations to submit it to, and how often workers handed its
+    message back before (deliveries that are no failure of the record)."""
 
     destinations: list[str]
     handbacks: int = 0
 
 
-# (key, ACK | NAK | TERM, reason, destination): the reason and destination of the first drop that
-# decided a NAK or TERM; "" for an ACK.
-Verdict = Callable[[Any, str, str, str], None]
+# (key, ACK | NAK | TERM, reason, destination, hand-backs): the reason and destination of the first
+# drop that decided a NAK or TERM, "" for an ACK; how often the message was handed back, a NAK's own
+# hand-back included.
+Verdict = Callable[[Any, str, str, str, int], None]
 
 
 class Settlements:
@@ -94,7 +98,9 @@ class Settlements:
 
     A record handed back is remembered (at most ``remember`` of them, the oldest forgotten first):
     when its message comes back to this worker it goes only to the destinations that had not
-    settled it, and its hand-backs do not count as redeliveries against ``retry_limit``.
+    settled it. Its hand-backs are known to every worker by the shared record
+    (dc_destinations.handbacks), which :meth:`add` is told; this worker's own count stands in for it
+    when the shared record could not be written.
 
     Thread-safe: senders and the buffer's writer report from their threads.
     """
@@ -106,18 +112,20 @@ class Settlements:
         self._lock = threading.Lock()
         self._on_settled = on_settled
 
-    def add(self, record_id: str, key: Any, destinations: Iterable[str]) -> Taken | None:
+    def add(self, record_id: str, key: Any, destinations: Iterable[str], handbacks: int = 0) -> Taken | None:
         """Track ``record_id`` until ``destinations`` settled it; None when it is in flight already (a
-        redelivery): ``key`` replaces the old."""
+        redelivery): ``key`` replaces the old. ``handbacks``: how often workers handed its message
+        back, by the shared record."""
         with self._lock:
             known = self._owed.get(record_id)
             if known is not None:
                 known.key = key
                 return None
-            entry = _InFlight(key, set(destinations))
+            entry = _InFlight(key, set(destinations), handbacks=handbacks)
             before = self._handed_back.pop(record_id, None)
             if before is not None:
-                entry.done, entry.given_up, entry.handbacks = before.done, before.given_up, before.handbacks
+                entry.done, entry.given_up = before.done, before.given_up
+                entry.handbacks = max(handbacks, before.handbacks)
                 entry.owed -= entry.done | set(entry.given_up)
             taken = Taken(sorted(entry.owed), entry.handbacks)
             if entry.owed:
@@ -157,7 +165,7 @@ class Settlements:
         for verdict in done:
             self._on_settled(*verdict)
 
-    def _finish(self, record_id: str, entry: _InFlight) -> tuple[Any, str, str, str]:
+    def _finish(self, record_id: str, entry: _InFlight) -> tuple[Any, str, str, str, int]:
         """The verdict on a record no destination owes anything; under the lock."""
         if entry.handed_back:
             entry.handbacks += 1
@@ -166,11 +174,11 @@ class Settlements:
                 del self._handed_back[next(iter(self._handed_back))]
             destination, reason = next(iter(entry.handed_back.items()))
             key, entry.key, entry.handed_back = entry.key, None, {}  # the message is not kept for it
-            return key, NAK, reason, destination
+            return key, NAK, reason, destination, entry.handbacks
         if entry.given_up:
             destination, reason = next(iter(entry.given_up.items()))
-            return entry.key, TERM, reason, destination
-        return entry.key, ACK, "", ""
+            return entry.key, TERM, reason, destination, entry.handbacks
+        return entry.key, ACK, "", "", entry.handbacks
 
     def __len__(self) -> int:
         with self._lock:
@@ -295,6 +303,12 @@ class IngestCounters:
     unrouted: Counter[str] = field(default_factory=Counter)
     # Deliveries of redelivered messages refused beyond their destination's retry_limit (dead letters).
     over_retry_limit: int = 0
+    # Messages taken that a worker (this one or another) had handed back before: their hand-backs are
+    # not counted against retry_limit (the shared record, dc_destinations.handbacks).
+    came_back: int = 0
+    # Hand-backs the shared record could not store, and messages delivered before whose count it could
+    # not read (neither bounded by retry_limit at that delivery, rather than counting hand-backs).
+    handback_record_failures: int = 0
     # Records the worker's last run left in its queues, taken out at start: JetStream delivers again
     # every one whose message it did not acknowledge, and those it did are in their store already.
     left_by_last_run: int = 0
@@ -322,7 +336,9 @@ class Ingest:
         self.logger = logger
         self.counters = IngestCounters()
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._settled: asyncio.Queue[tuple[Any, str, str, str]] | None = None
+        self._settled: asyncio.Queue[tuple[Any, str, str, str, int]] | None = None
+        self._handbacks: HandbackRecord | None = None  # opened by run()
+        self._handing_back: set[asyncio.Task[None]] = set()
         self.settlements = Settlements(self._on_settled, remember=max(options.max_in_flight * 4, 1000))
         self.routing = RoutingTable.from_destinations(config.destinations)
         self._wrapped = {
@@ -344,6 +360,11 @@ class Ingest:
             "counted in handed_back)",
         )
         self._terminated_log = BurstLog(logger.error, "messages terminated: a destination can never take their record")
+        self._handback_record_log = BurstLog(
+            logger.warning,
+            "the shared record of hand-backs (a JetStream key-value bucket) failed; those messages are not "
+            "bounded by retry_limit at their next delivery (counted in handback_record_failures)",
+        )
         # The loop's time until which no new message is taken: the buffer dropped records just now.
         self._resume_fetch_at = 0.0
         self.pipeline.add_metrics_section("ingest", self._counters_document)
@@ -360,10 +381,10 @@ class Ingest:
             "terminated": dict(c.terminated),
         }
 
-    def _on_settled(self, msg: Any, verdict: str, reason: str, destination: str) -> None:
+    def _on_settled(self, msg: Any, verdict: str, reason: str, destination: str, handbacks: int) -> None:
         # From a sender's or the writer's thread: the ack (nak, term) goes out on the loop.
         assert self._loop is not None and self._settled is not None
-        self._loop.call_soon_threadsafe(self._settled.put_nowait, (msg, verdict, reason, destination))
+        self._loop.call_soon_threadsafe(self._settled.put_nowait, (msg, verdict, reason, destination, handbacks))
 
     async def run(self) -> IngestCounters:
         import nats
@@ -383,6 +404,11 @@ class Ingest:
             filter_subject=o.filter,
         )
         sub = await js.pull_subscribe(o.filter, durable=o.consumer, stream=o.stream, config=config)
+        try:
+            shared = self._handbacks = await HandbackRecord.open(js, o.stream, o.consumer)
+        except Exception:
+            await nc.close()
+            raise
         self.counters.left_by_last_run = self._forget_last_run()
         self.pipeline.start()
         acker = asyncio.create_task(self._acknowledge())
@@ -393,6 +419,7 @@ class Ingest:
             while not self.stop_requested.is_set():
                 self._handback_log.tick()
                 self._terminated_log.tick()
+                self._handback_record_log.tick()
                 room = o.max_in_flight - len(self.settlements)
                 if room <= 0:
                     await asyncio.sleep(0.02)
@@ -410,7 +437,9 @@ class Ingest:
                     self.logger.warning(f"cannot fetch from stream {o.stream}: {exc!r}; trying again in 1 s")
                     await asyncio.sleep(1.0)
                     continue
-                malformed, unrouted = self._take(messages)
+                # Only for messages delivered before: no round-trip on the normal path.
+                handbacks = await shared.counts(messages)
+                malformed, unrouted = self._take(messages, handbacks)
                 for msg in malformed:
                     await msg.term()  # never redelivered: it can never be delivered
                 for msg in unrouted:
@@ -425,8 +454,11 @@ class Ingest:
                     self.logger.warning(f"cannot give back a message: {exc}")
             await self._drain_acks()
             acker.cancel()
+            if self._handing_back:
+                await asyncio.wait(set(self._handing_back))
             self._handback_log.tick()
             self._terminated_log.tick()
+            self._handback_record_log.tick()
             await nc.close()
             self.pipeline.release_storage()
         return self.counters
@@ -461,9 +493,10 @@ class Ingest:
             )
         return sum(taken.values())
 
-    def _take(self, messages: list[Any]) -> tuple[list[Any], list[Any]]:
+    def _take(self, messages: list[Any], handbacks: dict[int, int | None]) -> tuple[list[Any], list[Any]]:
         """Route the messages' records to the pipeline: (messages that hold no DC record, messages whose
-        record no destination takes)."""
+        record no destination takes). ``handbacks``: the shared record's counts of the messages
+        delivered before, by stream sequence (None: unreadable)."""
         malformed, unrouted = [], []
         for msg in messages:
             self.counters.received += 1
@@ -488,20 +521,32 @@ class Ingest:
                 self._log_once(topic, f"a record reaches no destination: {reason}")
                 unrouted.append(msg)
                 continue
-            in_flight = self.settlements.add(record_id, msg, [name for name, _ in routed.deliveries])
+            shared = handbacks.get(msg.metadata.sequence.stream, 0)
+            names = [name for name, _ in routed.deliveries]
+            in_flight = self.settlements.add(record_id, msg, names, shared or 0)
             if in_flight is None:
                 self.counters.redelivered += 1  # still in this worker's queues: acknowledged when settled
                 continue
-            # A hand-back is no failure of the record: only the other deliveries count against retry_limit.
-            redeliveries = msg.metadata.num_delivered - 1 - in_flight.handbacks
+            if in_flight.handbacks:
+                self.counters.came_back += 1
+            if shared is None:
+                self.counters.handback_record_failures += 1
+                self._handback_record_log.event(1, f"cannot read message {msg.metadata.sequence.stream}'s count")
+            # A hand-back, by any worker, is no failure of the record: only the other deliveries (a
+            # worker killed, stopped, or past ack_wait) count against retry_limit. Not knowing the
+            # hand-backs, the bound waits for the next delivery rather than count them.
+            redeliveries = -1 if shared is None else msg.metadata.num_delivered - 1 - in_flight.handbacks
             for name, outgoing in routed.deliveries:
                 if name not in in_flight.destinations:
                     continue  # settled it before the message was handed back
                 limit = self._wrapped[name].retry_limit
                 if 0 <= limit < redeliveries:
                     self.counters.over_retry_limit += 1
+                    besides = f" (besides {in_flight.handbacks} hand-backs, which do not count)"
                     self._wrapped[name].doom(
-                        record_id, f"its message was redelivered {redeliveries} times, beyond retry_limit {limit}"
+                        record_id,
+                        f"its message was redelivered {redeliveries} times, beyond retry_limit {limit}"
+                        + (besides if in_flight.handbacks else ""),
                     )
                 self.pipeline.submit(name, outgoing)
         return malformed, unrouted
@@ -539,25 +584,44 @@ class Ingest:
         while not self._settled.empty():
             await self._answer(*self._settled.get_nowait())
 
-    async def _answer(self, msg: Any, verdict: str, reason: str, destination: str) -> None:
+    async def _answer(self, msg: Any, verdict: str, reason: str, destination: str, handbacks: int) -> None:
         """Tell JetStream what became of a message whose record every destination settled."""
         if verdict == ACK:
             await self._ack(msg)
             return
         what = f"destination {destination}: {reason}"
+        if verdict == NAK:
+            self.counters.handed_back[reason] += 1
+            self._handback_log.event(1, what)
+            assert self._loop is not None
+            self._resume_fetch_at = self._loop.time() + self.options.handback_delay
+            # Its own task: the bucket's round-trip must not hold up the acks queued behind it.
+            task = asyncio.create_task(self._hand_back(msg, handbacks))
+            self._handing_back.add(task)
+            task.add_done_callback(self._handing_back.discard)
+            return
+        self.counters.terminated[reason] += 1
+        self._terminated_log.event(1, f"{what} (message {msg.metadata.sequence.stream} on {msg.subject})")
         try:
-            if verdict == NAK:
-                self.counters.handed_back[reason] += 1
-                self._handback_log.event(1, what)
-                assert self._loop is not None
-                self._resume_fetch_at = self._loop.time() + self.options.handback_delay
-                await msg.nak(delay=self.options.handback_delay)
-            else:
-                self.counters.terminated[reason] += 1
-                self._terminated_log.event(1, f"{what} (message {msg.metadata.sequence.stream} on {msg.subject})")
-                await msg.term()
+            await msg.term()
         except Exception as exc:  # JetStream delivers it again after ack_wait all the same
-            self.logger.warning(f"cannot {verdict} message {msg.metadata.sequence.stream}: {exc}")
+            self.logger.warning(f"cannot terminate message {msg.metadata.sequence.stream}: {exc}")
+
+    async def _hand_back(self, msg: Any, handbacks: int) -> None:
+        """Record the hand-back in the shared record, then nak: once the nak is out, any worker may take
+        the message, and must find it counted. Killed in between, the message comes back after
+        ack_wait with this hand-back counted although none happened: one delivery not bounded, and
+        nothing lost (nothing here acknowledges)."""
+        assert self._handbacks is not None
+        try:
+            await self._handbacks.record(msg, handbacks)
+        except Exception as exc:  # this worker's own count still knows it, if the message comes back here
+            self.counters.handback_record_failures += 1
+            self._handback_record_log.event(1, f"cannot record message {msg.metadata.sequence.stream}: {exc!r}")
+        try:
+            await msg.nak(delay=self.options.handback_delay)
+        except Exception as exc:  # JetStream delivers it again after ack_wait all the same
+            self.logger.warning(f"cannot nak message {msg.metadata.sequence.stream}: {exc}")
 
     async def _ack(self, msg: Any) -> None:
         try:
@@ -615,6 +679,7 @@ def summary(ingest: Ingest) -> str:
         f"dead-lettered as redelivered beyond retry_limit {c.over_retry_limit}, fetch failures {c.fetch_failures}, "
         f"left by the last run {c.left_by_last_run}, handed back {sum(c.handed_back.values())}"
         + (f" ({', '.join(f'{why} {n}' for why, n in sorted(c.handed_back.items()))})" if c.handed_back else "")
+        + f", came back after a hand-back {c.came_back}, hand-back record failures {c.handback_record_failures}"
         + f", terminated {sum(c.terminated.values())}"
     ]
     for name, m in ingest.pipeline.metrics().items():

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from dc_core.http_status import PrometheusText, prometheus_labels
+from dc_destinations.settings import by_measurement
 
 # (key in DeliveryPipeline.metrics(), Prometheus kind, help text)
 DELIVERY_COUNTERS = (
@@ -45,6 +46,7 @@ class DestinationMetrics:
         self._lock = threading.Lock()
         self._clock = clock
         self._counts = dict.fromkeys(COUNTERS, 0)
+        self._evicted_by_measurement: dict[str, int] = {}
         self.last_error = ""
         self.last_error_time: float | None = None
         self.last_delivery: float | None = None
@@ -58,6 +60,15 @@ class DestinationMetrics:
                 if counter == "sent":
                     self.last_delivery = self._clock()
 
+    def add_evicted(self, by_topic: Mapping[str, int]) -> None:
+        """Records evicted unsent, per input topic: counted in ``evicted`` and per measurement."""
+        if not by_topic:
+            return
+        with self._lock:
+            self._counts["evicted"] += sum(by_topic.values())
+            for name, n in by_measurement(by_topic).items():
+                self._evicted_by_measurement[name] = self._evicted_by_measurement.get(name, 0) + n
+
     def set_error(self, error: str) -> None:
         with self._lock:
             self.last_error = error
@@ -70,6 +81,7 @@ class DestinationMetrics:
     def snapshot(self) -> dict[str, Any]:
         with self._lock:
             out: dict[str, Any] = dict(self._counts)
+            out["evicted_by_measurement"] = dict(sorted(self._evicted_by_measurement.items()))
             out["last_error"] = self.last_error
             out["last_error_time"] = self.last_error_time
             out["last_delivery"] = self.last_delivery
@@ -137,6 +149,16 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
             f"1 while the destination is {state} (dc_destinations.health), else 0",
             samples,
         )
+    text.family(
+        "dc_delivery_evicted_by_measurement_total",
+        "counter",
+        "Records evicted unsent by the disk budget, per measurement (the last part of their input topic)",
+        [
+            (prometheus_labels(destination=d, measurement=m), n)
+            for d, values in sorted(destinations.items())
+            for m, n in sorted((values.get("evicted_by_measurement") or {}).items())
+        ],
+    )
     text.family(
         "dc_delivery_held",
         "gauge",

@@ -43,6 +43,7 @@ import math
 import threading
 import time
 import traceback
+from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -64,7 +65,7 @@ from dc_destinations.health import DEFAULT_UNHEALTHY_AFTER_S, DestinationHealth,
 from dc_destinations.links import FILES, HOLD_POLL_S, Network, Pacer, SendRules, TokenBucket
 from dc_destinations.metrics import DestinationMetrics
 from dc_destinations.saved_files import SavedFiles
-from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_rate, parse_size
+from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams, parse_rate, parse_size, priority_of
 
 _T = TypeVar("_T")
 
@@ -227,7 +228,9 @@ class Route:
             evict_log=BurstLog(
                 logger.warning,
                 f"destination {name}: records evicted unsent to keep DC within its disk budget "
-                f"(retention_priority {params.retention_priority})",
+                f"(retention_priority {params.retention_priority}"
+                + "".join(f", {key} {p}" for key, p in params.retention_priorities.items())
+                + ")",
             ),
             health=DestinationHealth(name, params.unhealthy_after or DEFAULT_UNHEALTHY_AFTER_S, logger),
             gate=Gate(logger),
@@ -236,6 +239,15 @@ class Route:
             pacer=pacer,
             file_fields=destination.file_fields(),
         )
+
+    @property
+    def per_topic_retention(self) -> bool:
+        """Whether its records' retention priorities differ by input topic (``retention_priorities``)."""
+        return any(p != self.params.retention_priority for p in self.params.retention_priorities.values())
+
+    def retention_of(self, topic: str) -> int:
+        """The retention priority of its records that arrived on ``topic``."""
+        return priority_of(self.params.retention_priorities, self.params.retention_priority, topic)
 
     def tick_logs(self) -> None:
         self.drop_log.tick()
@@ -331,6 +343,7 @@ class Sender:
                 ahead = None
                 if batch is None:
                     self._settle()  # a queue read from its head holds no confirmed row
+                    buffer.release(route.name)  # nor any row in a send(), whatever failed on the way
                     batch = self._prepare(buffer.read_batch(route.name, batch_size))
                 else:
                     # Submitted before the next read ahead, so that once that read is done, this
@@ -543,6 +556,9 @@ class Sender:
             return False
         if route.pacer.active and not route.pacer.take(sum(row.size for row in sent_rows)):
             raise _Stopping
+        # Until each is deleted, dead-lettered or counted failed, the size limit must not drop them:
+        # one the destination confirms would be counted both dropped and sent.
+        buffer.hold(route.name, [row.row_id for row in sent_rows])
         retry, waiting, reject, problem, self._retry_after = route.gate.send(
             lambda: _outcome_of(route.destination, records)
         )
@@ -591,7 +607,16 @@ class Sender:
         dead: list[tuple[BufferedRow, str]] = [(sent_rows[i], reason) for i, reason in reject.items()]
         retried = 0
         if again:
-            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in again])
+            dropped: list[str] = []
+            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in again], dropped_ids=dropped)
+            if dropped:  # what commits during the send could not drop
+                route.metrics.add("dropped", len(dropped))
+                route.drop_log.event(
+                    len(dropped),
+                    f"storage_total_limit_size {route.params.storage_total_limit_size} reached, "
+                    f"when_full {route.params.when_full}",
+                )
+                tell_dropped(self._drop_listeners, route.logger, route.name, dropped, DROP_SIZE_LIMIT)
             limit = route.params.retry_limit
             failed_again = 0
             for i, reason in again.items():
@@ -643,7 +668,10 @@ class Sender:
         """Records naming saved files evicted before this destination had them: out of its queue, counted."""
         route = self.route
         taken = self.buffer.delete(route.name, [row.row_id for row in rows], sent=False)
-        route.metrics.add("evicted", taken)
+        if taken == len(rows):
+            route.metrics.add_evicted(Counter(row.topic for row in rows))
+        else:  # some left the queue meanwhile (a buffer set aside): which ones is not known
+            route.metrics.add("evicted", taken)
         route.evict_log.event(taken, "records naming saved files evicted before this destination had them")
         assert route.saved is not None
         evicted_ids = [row.record_id for row in rows]

@@ -7,6 +7,7 @@ DC's own buffer gives them their meaning (see docs/delivery.md).
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from dc_core.errors import ConfigError
@@ -150,7 +151,12 @@ class DestinationDeliveryParams:
         "", doc='Most bytes per second this destination sends ("125k", "1M"; "" = no cap of its own)'
     )
     retention_priority: int = param(
-        0, doc="Under flb.disk_budget_mb, the records of a lower retention_priority are evicted first"
+        0, doc="Under flb.disk_budget, the records of a lower retention_priority are evicted first"
+    )
+    retention_priorities: dict[str, int] = param(
+        default_factory=dict,
+        doc="Measurement name or input topic -> retention priority of this destination's records from it, under "
+        "flb.disk_budget (absent: retention_priority)",
     )
     link: str = param("", doc="Name of the link (in flb.links) whose cap this destination shares")
     priority: int = param(
@@ -241,14 +247,18 @@ def _size_or_percent(text: str, path: str, what: str, zero: str) -> tuple[int | 
     return parse_size(text, path), None
 
 
+# The least disk budget: one batch of records may take as much.
+_SMALLEST_BUDGET = 1024 * 1024
+
+
+def _budget_too_small(path: str, given: str, least: str) -> ConfigError:
+    return ConfigError(path, f"a budget of {given} is smaller than one batch of records may be: give at least {least}")
+
+
 def budget_limits(settings: DeliveryParams, path: str) -> BudgetLimits:
     """``disk_budget`` (or the older ``disk_budget_mb``) and ``disk_free_floor`` of the ``flb`` section at ``path``."""
     if 0 < settings.disk_budget_mb < 1:
-        raise ConfigError(
-            f"{path}.disk_budget_mb",
-            f"a budget of {settings.disk_budget_mb:g} MB is smaller than one batch of records may be: "
-            "give at least 1, or 0 for no budget",
-        )
+        raise _budget_too_small(f"{path}.disk_budget_mb", f"{settings.disk_budget_mb:g} MB", "1, or 0 for no budget")
     budget_bytes, budget_fraction = _size_or_percent(
         settings.disk_budget, f"{path}.disk_budget", "a budget", "would evict everything"
     )
@@ -256,12 +266,8 @@ def budget_limits(settings: DeliveryParams, path: str) -> BudgetLimits:
         raise ConfigError(f"{path}.disk_budget", "give disk_budget or disk_budget_mb, not both")
     if settings.disk_budget_mb:
         budget_bytes = int(settings.disk_budget_mb * 1024 * 1024)
-    if budget_bytes is not None and budget_bytes < 1024 * 1024:
-        raise ConfigError(
-            f"{path}.disk_budget",
-            f'a budget of "{settings.disk_budget.strip()}" is smaller than one batch of records may be: '
-            "give at least 1M",
-        )
+    if budget_bytes is not None and budget_bytes < _SMALLEST_BUDGET:
+        raise _budget_too_small(f"{path}.disk_budget", f'"{settings.disk_budget.strip()}"', "1M")
     floor_bytes, floor_fraction = _size_or_percent(
         settings.disk_free_floor, f"{path}.disk_free_floor", "a floor", "would never act"
     )
@@ -277,7 +283,63 @@ def check_destination_params(params: DestinationDeliveryParams, path: str, links
     parse_size(params.storage_total_limit_size, f"{path}.storage_total_limit_size")
     parse_size(params.dead_letter_limit_size, f"{path}.dead_letter_limit_size")
     parse_rate(params.max_bytes_per_s, f"{path}.max_bytes_per_s")
+    for key, value in params.retention_priorities.items():
+        if not str(key).strip():
+            raise ConfigError(f"{path}.retention_priorities", "expected measurement names or topics as keys, got ''")
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise ConfigError(f"{path}.retention_priorities.{key}", f"expected an integer, got {value!r}")
     if links is not None and params.link and params.link not in links:
         raise ConfigError(
             f"{path}.link", f'no link "{params.link}" in flb.links ({", ".join(sorted(links)) or "none defined"})'
         )
+
+
+def measurement_of(topic: str) -> str:
+    """The measurement a record's input topic names: its last part (``/dc/measurement/camera``: camera)."""
+    return topic.rsplit("/", 1)[-1]
+
+
+def record_priorities(
+    params: DestinationDeliveryParams,
+    inputs: Sequence[str],
+    path: str,
+    resolve: Callable[[str], str] = str,
+) -> dict[str, int]:
+    """``retention_priorities`` of a destination checked against its (fully qualified) ``inputs``; a key
+    naming a topic (with a ``/`` or a ``~``) resolved by ``resolve`` as the inputs are. ``path``: the
+    destination's YAML path.
+
+    The priority of a record comes from the input topic it arrived on, never from its content: any
+    participant of the ROS graph can publish a record naming itself important."""
+    names = {measurement_of(topic) for topic in inputs}
+    out: dict[str, int] = {}
+    for key, value in params.retention_priorities.items():
+        where = f"{path}.retention_priorities.{key}"
+        key = str(key)
+        topic = "/" in key or key.startswith("~")
+        resolved = resolve(key) if topic else key
+        if (topic and resolved not in inputs) or (not topic and key not in names):
+            raise ConfigError(
+                where,
+                f"{key!r} is no input topic nor measurement of this destination (its inputs: {', '.join(inputs)})",
+            )
+        out[resolved] = value
+    return out
+
+
+def priority_of(priorities: Mapping[str, int], default: int, topic: str) -> int:
+    """The retention priority of a record that arrived on ``topic``: its topic's, else its measurement's,
+    else ``default`` (the destination's ``retention_priority``)."""
+    found = priorities.get(topic)
+    if found is None:
+        found = priorities.get(measurement_of(topic))
+    return default if found is None else found
+
+
+def by_measurement(by_topic: Mapping[str, int]) -> dict[str, int]:
+    """Counts per input topic summed per measurement (:func:`measurement_of`)."""
+    out: dict[str, int] = {}
+    for topic, n in by_topic.items():
+        name = measurement_of(topic)
+        out[name] = out.get(name, 0) + n
+    return out

@@ -629,6 +629,39 @@ def test_a_drop_oldest_that_empties_the_queue_never_lends_a_read_rows_id_to_a_ne
     assert [r.record_id for r in buffer.read_batch("a", 100)] == [f"id-{i:08d}" for i in range(100, 110)]
 
 
+def test_the_size_limit_drops_no_record_in_a_send_before_its_outcome(buffer: Buffer) -> None:
+    """A record the size limit dropped while its send() ran, then confirmed by the destination, was
+    counted twice: dropped, and sent. Rows held for a send() that the limit chooses stay until the
+    send's outcome: confirmed, they are sent; failed, they go then, counted dropped once."""
+    size = pending(0).size
+    limit = {"a": QueueLimit(max_bytes=10 * size, drop_oldest=True)}
+    buffer.append({"a": [pending(i) for i in range(10)]}, limit)
+    in_send = buffer.read_batch("a", 4)
+    buffer.hold("a", [row.row_id for row in in_send])
+    result = buffer.append({"a": [pending(i) for i in range(100, 106)]}, limit)
+    # The six oldest were chosen: the four in the send stay until it answers, two others go now.
+    assert result.dropped_ids == {"a": ["id-00000004", "id-00000005"]}
+    assert buffer.stats("a").rows == 14  # above the limit by the rows in the send
+    assert buffer.delete("a", [row.row_id for row in in_send[:2]]) == 2  # confirmed: sent, not dropped
+    dropped: list[str] = []
+    assert buffer.record_failure("a", [row.row_id for row in in_send[2:]], dropped_ids=dropped) == {
+        in_send[2].row_id: 1,
+        in_send[3].row_id: 1,
+    }
+    assert dropped == ["id-00000002", "id-00000003"]  # failed: they go now
+    stats = buffer.stats("a")
+    assert (stats.rows, stats.bytes) == (10, 10 * size)
+    assert stats.received_total == stats.sent_total + stats.dropped_total + stats.rows == 16
+    assert [r.record_id for r in buffer.read_batch("a", 100)] == [
+        f"id-{i:08d}" for i in (*range(6, 10), *range(100, 106))
+    ]
+    # Released (a sender reading from the head again), rows are the limit's as any others.
+    again = buffer.read_batch("a", 2)
+    buffer.hold("a", [row.row_id for row in again])
+    buffer.release("a")
+    assert buffer.append({"a": [pending(200)]}, limit).dropped_ids == {"a": ["id-00000006"]}
+
+
 def test_evict_oldest_names_the_records_it_evicts(buffer: Buffer) -> None:
     buffer.append({"a": [pending(i) for i in range(10)]})
     assert buffer.read_batch("a", 2)  # read: left alone
@@ -649,3 +682,98 @@ def test_dead_letter_names_only_the_rows_it_moved(buffer: Buffer) -> None:
     assert buffer.dead_letter("a", [(row, "refused") for row in failed], moved_ids=moved) == 2
     assert moved == ["id-00000002", "id-00000003"]
     assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000010", "id-00000011"]
+
+
+CAMERA, HEALTH = "/dc/measurement/camera", "/dc/measurement/health"
+
+
+def of_topic(n: int, topic: str) -> PendingRecord:
+    record = pending(n)
+    return PendingRecord(record.record_id, topic, record.stamp_ns, record.payload)
+
+
+def test_eviction_among_queues_takes_the_oldest_of_the_topics_named(buffer: Buffer) -> None:
+    """What the disk budget evicts of one retention priority: the oldest records across the queues
+    named, of only the input topics named in a queue whose topics have priorities of their own."""
+    size = pending(0).size
+    buffer.track_topics(["a"])
+    buffer.append({"a": [of_topic(0, CAMERA), of_topic(1, HEALTH)]}, now_ns=1)
+    buffer.append({"b": [of_topic(10, HEALTH)]}, now_ns=2)
+    buffer.append({"a": [of_topic(2, CAMERA), of_topic(3, HEALTH)]}, now_ns=3)
+    assert buffer.queued_topics("a") == {CAMERA: 2 * size, HEALTH: 2 * size}
+    gone = buffer.evict_oldest_among({"a": [CAMERA], "b": None}, 2 * size, with_ids=True)
+    assert {name: (e.record_ids, e.by_topic) for name, e in gone.items()} == {
+        "a": (["id-00000000"], {CAMERA: 1}),
+        "b": (["id-00000010"], {HEALTH: 1}),
+    }
+    # All there are when fewer: never a record of a topic not named.
+    gone = buffer.evict_oldest_among({"a": [CAMERA], "b": None}, 100 * size)
+    assert (gone["a"].records, gone["a"].bytes, gone["a"].record_ids) == (1, size, []) and "b" not in gone
+    assert buffer.evict_oldest_among({"a": [CAMERA]}, size) == {}
+    assert buffer.queued_topics("a") == {HEALTH: 2 * size}
+    assert [r.record_id for r in buffer.read_batch("a", 10)] == ["id-00000001", "id-00000003"]
+    assert buffer.stats("a").bytes == 2 * size and buffer.stats("b").rows == 0
+
+
+def test_queued_topics_follows_every_change_of_a_queue(buffer: Buffer) -> None:
+    """Per topic, what waits stays right through commits, the size limit, deliveries, dead letters,
+    evictions and a replay (the last one counted again, as a change made by `dc buffer` would be)."""
+    size = pending(0).size
+    buffer.track_topics(["a"])
+    kept: dict[str, str] = {}  # record_id -> topic of what waits
+
+    def expected() -> dict[str, int]:
+        return {t: size * list(kept.values()).count(t) for t in set(kept.values())}
+
+    def add(first: int, count: int, limit: QueueLimit | None = None) -> None:
+        records = [of_topic(n, CAMERA if n % 3 else HEALTH) for n in range(first, first + count)]
+        result = buffer.append({"a": records}, {"a": limit} if limit else None)
+        kept.update((r.record_id, r.topic) for r in records)
+        for record_id in result.dropped_ids.get("a", []):
+            del kept[record_id]
+
+    add(0, 10)
+    assert buffer.queued_topics("a") == expected()  # counted from the table, then kept
+    for record_id in buffer.evict_oldest_among({"a": [CAMERA]}, 2 * size, with_ids=True)["a"].record_ids:
+        del kept[record_id]
+    for record_id in buffer.evict_oldest("a", size, with_ids=True).record_ids:
+        del kept[record_id]
+    add(10, 5, QueueLimit(max_bytes=10 * size, drop_oldest=True))
+    assert buffer.queued_topics("a") == expected()
+    first, second, *_ = buffer.read_batch("a", 3)
+    buffer.delete("a", [first.row_id])
+    buffer.dead_letter("a", [(second, "refused")])
+    del kept[first.record_id], kept[second.record_id]
+    assert buffer.queued_topics("a") == expected()
+    assert buffer.replay_dead_letters("a") == 1
+    kept[second.record_id] = second.topic
+    assert buffer.queued_topics("a") == expected()
+    assert sum(expected().values()) == buffer.stats("a").bytes
+
+
+def test_a_buffer_written_before_topics_were_tracked_opens_indexed_and_delivers(tmp_path: Path) -> None:
+    """The queues of an earlier DC (the same schema, no index by topic): a destination given
+    priorities per topic gets its index at start and its rows counted and delivered; without them
+    again, the index goes (it costs on every commit)."""
+    earlier = SqliteBuffer(tmp_path / FILE_NAME)
+    earlier.append({"a": [of_topic(n, CAMERA if n % 2 else HEALTH) for n in range(6)]})
+    earlier.close()
+
+    def indexes() -> list[str]:
+        with contextlib.closing(sqlite3.connect(tmp_path / FILE_NAME)) as conn:
+            found = conn.execute("SELECT name FROM sqlite_master WHERE type = 'index' AND name LIKE 'q_%'")
+            return [row[0] for row in found]
+
+    assert not indexes()
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    buffer.track_topics(["a"])
+    assert indexes() == ["q_1_by_topic"]
+    size = pending(0).size
+    assert buffer.queued_topics("a") == {CAMERA: 3 * size, HEALTH: 3 * size}
+    assert buffer.evict_oldest_among({"a": [CAMERA]}, size)["a"].by_topic == {CAMERA: 1}
+    rows = buffer.read_batch("a", 10)
+    assert [r.record_id for r in rows] == [f"id-{n:08d}" for n in (0, 2, 3, 4, 5)]
+    assert buffer.delete("a", [r.row_id for r in rows]) == 5
+    buffer.track_topics([])
+    assert not indexes()
+    buffer.close()

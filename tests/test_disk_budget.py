@@ -29,7 +29,7 @@ from dc_core.params import parse_params
 from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.config import parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
-from dc_destinations.disk_budget import FileCandidate, Step, budget_plan
+from dc_destinations.disk_budget import FileCandidate, Step, budget_plan, queue_classes
 from dc_destinations.links import OnlyWhenParams
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
@@ -93,22 +93,21 @@ def test_the_plan_gives_up_delivered_files_first_then_by_retention_priority_keep
         f("incident-only", 10, seq=5),
         f("cam-last", 0, protected=True, seq=6),
     ]
-    queued = {"images": 150, "health": 100}
-    retention = {"images": 0, "health": 10}
-    plan = budget_plan(queued, retention, files, 10_000)
+    records = queue_classes({"images": 150, "health": 100}, {"images": 0, "health": 10})
+    plan = budget_plan(records, files, 10_000)
     assert plan == [
         Step("file", "incident-sent", 100),  # safe elsewhere, whatever its priority
         Step("file", "cam-2", 100),
         Step("file", "cam-3", 100),
-        Step("records", "images", 150),
+        Step("records", "0", 150, (("images", None),)),
         Step("file", "cam-first", 100),  # the run's ends, last of their priority
         Step("file", "cam-last", 100),
         Step("file", "incident-only", 100),  # the only copy of the higher priority: nothing lower is left
-        Step("records", "health", 100),
+        Step("records", "10", 100, (("health", None),)),
     ]
-    assert budget_plan(queued, retention, files, 150) == plan[:2]
+    assert budget_plan(records, files, 150) == plan[:2]
     # Under the free-space floor only files go: freed records' pages stay with SQLite.
-    assert all(step.kind == "file" for step in budget_plan(queued, retention, files, 10_000, records=False))
+    assert all(step.kind == "file" for step in budget_plan([], files, 10_000))
 
 
 @pytest.mark.parametrize(

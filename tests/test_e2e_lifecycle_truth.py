@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.bringup_util import BIN, Bringup, dc
+from tests.bringup_util import BIN, FAST_DDS_LOG_LINE, Bringup, dc
 from tests.fault_helpers import fault_env
 from tests.http_receiver import Receiver, Request
 from tests.test_e2e_delivery_failures import finish, publish, write_params
@@ -74,12 +74,12 @@ def test_a_deactivate_that_hangs_fails_pause_with_the_server_named_and_it_is_res
         finish(publish(run, BATCH, rate=500, padding=1))
         wait_delivered(receiver, 1)
 
-        started = time.monotonic()
         code, out = lifecycle(run, "pause")
         assert code == 1 and len(out) == 1, out
         assert out[0].startswith("pause: failed: destination_server: deactivate did not finish in 3 s"), out
+        # Sent once: a request to a server that hangs is not sent again (its retries would log "sending it
+        # again", checked at the end); this said so by a duration, which a loaded machine stretched.
         assert "it hangs" in out[0], out
-        assert time.monotonic() - started < 15  # 3 s, then get_state's 5 s: not three attempts of both
         assert (tmp_path / "fault-raised").exists()
 
         # Its heartbeat stopped with its loop: killed, started again, and brought back paused.
@@ -227,7 +227,7 @@ def test_a_deactivate_as_long_as_a_15_s_grace_is_sent_once_and_succeeds(tmp_path
             finally:
                 answer_at.cancel()
                 answer_now.set()
-            assert (pause.returncode, out.strip()) == (0, "pause: done")
+            assert (pause.returncode, FAST_DDS_LOG_LINE.sub("", out).strip()) == (0, "pause: done")
             took = time.monotonic() - started
             assert took >= 15, took
             run.wait_stderr("still running after the 15 s grace")

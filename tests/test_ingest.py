@@ -62,12 +62,14 @@ def record(n: int) -> OutgoingRecord:
     return OutgoingRecord(rid, "/dc/measurement/uptime", 1_700_000_000_000_000_000 + n, data)
 
 
-def worker(params: Path, url: str, storage: Path, env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
+def worker(
+    params: Path, url: str, storage: Path, env: dict[str, str] | None = None, options: tuple[str, ...] = ()
+) -> subprocess.Popen[bytes]:
     env = {**os.environ, **(env or {})}
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
     command = [sys.executable, "-m", "dc_bringup.cli", "ingest", str(params), "--servers", url]
     command += ["--consumer", "warehouse", "--ack-wait", "2", "--batch", "100", "--max-in-flight", "300"]
-    command += ["--storage-path", str(storage)]
+    command += ["--storage-path", str(storage), *options]  # argparse: a repeated option's last value wins
     log = (storage.parent / f"{storage.name}.log").open("ab")
     return subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
 
@@ -192,7 +194,8 @@ class Worker:
 
         config = parse_destination_server(section)
         self.destinations = configure_destinations(config, "test.ingest")
-        settings = IngestOptions(servers=[url], stream="DC", consumer=consumer, batch=50, ack_wait=30, **options)
+        options = {"batch": 50, "ack_wait": 30, **options}
+        settings = IngestOptions(servers=[url], stream="DC", consumer=consumer, **options)
         logger = SeverityLogger(logging.getLogger("test.ingest"))
         self.ingest = Ingest(config, self.destinations, settings, storage, logger)
         self._loop = asyncio.new_event_loop()
@@ -482,7 +485,10 @@ def test_records_the_buffer_drops_are_handed_back_and_stored_once_the_store_is_b
                     ),
                     "the lake has every record and the warehouse's drops are handed back",
                 )
-                assert len(ingest.settlements) < len(sent) - 100, "handed back: no longer in flight"
+                # Handed back: no longer in flight. Messages handed back come again after the delay and are
+                # taken (and handed back) again, so the count moves: waited for, not read once (a fresh
+                # clone read 200 in flight at one moment).
+                wait_for(lambda: len(ingest.settlements) < len(sent) - 100, "handed back: no longer in flight")
                 lock.rollback()
                 wait_for(
                     lambda: consumer_state(nats_server.url, "handback") == (0, 0) and len(ingest.settlements) == 0,
@@ -526,32 +532,163 @@ def warehouse_table(pg: PostgresServer, name: str) -> Any:
     return plugin
 
 
+def test_hand_backs_by_any_worker_are_no_redeliveries_and_a_killed_worker_s_are(
+    postgres: PostgresServer, tmp_path: Path
+) -> None:
+    """retry_limit 0, two workers on one consumer. The first one's store hangs (its first PgSQL send
+    never returns) and its queue holds ~140 records: it hands the others back, again and again. The
+    second one takes them and stores them: none is dead-lettered as redelivered, although each was
+    delivered before, to the other worker. The first one is then killed with -9: the messages it
+    held come back to the second one counted, and are dead-lettered. Stored + dead-lettered = sent,
+    each once."""
+    from dc_destinations.buffer import SqliteBuffer
+    from tests.fault_helpers import fault_env, fault_gate
+
+    section = ingest_params(postgres, tmp_path, retry_limit=0)
+    section["destination_plugins"] = ["warehouse"]
+    del section["lake"]
+    section["warehouse"].update(table="crossing", batch_size=20)
+    hanging = {**section, "warehouse": {**section["warehouse"], "storage_total_limit_size": "16k"}}
+    password = str(hanging["warehouse"].pop("password"))  # to the subprocess by its environment, not a file
+    params = tmp_path / "ingest.yaml"
+    params.write_text(json.dumps({"destination_server": {"ros__parameters": hanging}}))
+    warehouse_table(postgres, "crossing").on_cleanup()
+    sent = [robot_record(n, "uptime") for n in range(300)]
+    # Longer than the first worker lives before its kill: its messages come back by the kill alone.
+    ack_wait = 20
+    first = second = None
+    with NatsServer(tmp_path / "nats") as nats_server, fault_gate(tmp_path) as gate:
+        url = nats_server.url
+        publisher = robot(url)
+        try:
+            assert publisher.send(sent) is None
+        finally:
+            publisher.on_cleanup()
+        try:
+            hang = fault_env(tmp_path, "dc_destinations.pgsql:PgSQL.send", gate=gate.path)  # never opened
+            options = ("--ack-wait", str(ack_wait), "--handback-delay", "0.2")
+            first = worker(params, url, tmp_path / "w1", env={**hang, "PGPASSWORD": password}, options=options)
+            wait_for(
+                lambda: (
+                    "messages handed back to the stream" in (tmp_path / "w1.log").read_text()
+                    and consumer_state(url, "warehouse")[0] == 0
+                ),
+                "the first worker took every message and handed some back",
+            )
+            second = Worker(section, url, "warehouse", tmp_path / "w2", ack_wait=ack_wait, handback_delay=0.2)
+            ingest = second.ingest
+
+            def settled_by_the_second() -> int:
+                dead = int(ingest.pipeline.metrics()["warehouse"]["dead_lettered"])
+                return len(table_ids(postgres, "crossing")) + dead
+
+            # The first worker's queue holds ~140 records: the second one settles 100 of the others.
+            wait_for(lambda: settled_by_the_second() >= 100, "the second worker settled 100 handed-back records")
+            counted_before_the_kill = ingest.counters.over_retry_limit
+            first.send_signal(signal.SIGKILL)
+            first.wait(10)
+            # Unacknowledged: what it held, and what it handed back that was not delivered again yet.
+            held = consumer_state(url, "warehouse")[1]
+            wait_for(
+                lambda: settled_by_the_second() == len(sent) and consumer_state(url, "warehouse") == (0, 0),
+                "the killed worker's messages settled by the second one",
+            )
+            metrics = ingest.pipeline.metrics()["warehouse"]
+        finally:
+            if second is not None:
+                second.stop()
+            if first is not None and first.poll() is None:
+                first.kill()
+                first.wait(10)
+    counters = second.ingest.counters
+    assert counted_before_the_kill == 0, "the first worker's hand-backs counted as redeliveries by the second"
+    assert counters.came_back > 0 and not counters.handed_back, "it took messages the other one had handed back"
+    stored = table_ids(postgres, "crossing")
+    storage_file = second.ingest.pipeline.storage_file
+    assert storage_file is not None
+    with contextlib.closing(SqliteBuffer(storage_file)) as buffer:
+        dead = buffer.list_dead_letters("warehouse", limit=len(sent))
+    assert sorted(stored + [d.record_id for d in dead]) == sorted(r.record_id for r in sent), "each once"
+    # What the killed worker held counts (killed between a hand-back's record and its nak, one may not).
+    assert 0 < len(dead) <= held and counters.over_retry_limit == len(dead) == metrics["dead_lettered"]
+    assert all(re.search(r"redelivered [1-9]\d* times, beyond retry_limit 0", d.error) for d in dead)
+    assert counters.handback_record_failures == 0
+
+
+def test_the_shared_record_of_hand_backs_is_read_only_for_messages_delivered_before(tmp_path: Path) -> None:
+    """dc_destinations.handbacks against a real server: no lookup for a message delivered once (the
+    normal path), a recorded count read back by whoever takes the message next, no count for a
+    message never handed back, and none from an entry left for another message of that sequence
+    (a stream deleted and made again)."""
+    import nats
+
+    from dc_destinations.handbacks import HandbackRecord, bucket_name
+
+    async def scenario(url: str) -> None:
+        nc = await nats.connect(servers=[url])
+        try:
+            js = nc.jetstream()
+            await js.add_stream(name="DC", subjects=["dc.>"], num_replicas=1)
+            for n in range(3):
+                await js.publish("dc.r1.uptime", json.dumps({"n": n}).encode())
+            record = await HandbackRecord.open(js, "DC", "ingest")
+            sub = await js.pull_subscribe("dc.>", durable="ingest", stream="DC")
+            first = await sub.fetch(3, timeout=10)
+            assert await record.counts(first) == {}, "nothing looked up for messages delivered once"
+            handed, stale, never = first
+            await record.record(handed, 2)  # handed back twice already (by any worker)
+            kv = await js.key_value(bucket_name("DC", "ingest"))
+            await kv.put(str(stale.metadata.sequence.stream), b"5 2001-01-01T00:00:00+00:00")
+            for msg in first:
+                await msg.nak()
+            again: list[Any] = []
+            while len(again) < 3:  # a fetch returns what has come back so far (a fresh clone got 1 of 3)
+                again += await sub.fetch(3 - len(again), timeout=10)
+            counts = await record.counts(again)
+            assert counts == {
+                handed.metadata.sequence.stream: 2,
+                stale.metadata.sequence.stream: 0,
+                never.metadata.sequence.stream: 0,
+            }
+            opened = await HandbackRecord.open(js, "DC", "ingest")  # the next worker finds the bucket
+            assert await opened.counts(again) == counts
+        finally:
+            await nc.close()
+
+    with NatsServer(tmp_path / "nats") as nats_server:
+        asyncio.run(scenario(nats_server.url))
+
+
 def test_settlements_answer_each_message_by_what_its_destinations_did() -> None:
     from dc_destinations.ingest import ACK, NAK, TERM, Settlements, Taken
 
-    verdicts: list[tuple[Any, str, str, str]] = []
+    verdicts: list[tuple[Any, str, str, str, int]] = []
     s = Settlements(lambda *verdict: verdicts.append(verdict), remember=2)
     assert s.add("a", "m1", ["pg", "lake"]) == Taken(["lake", "pg"], 0)
     s.settled("lake", ["a"])
     s.dropped("pg", ["a"], "size_limit")
-    assert verdicts.pop() == ("m1", NAK, "size_limit", "pg") and len(s) == 0
+    assert verdicts.pop() == ("m1", NAK, "size_limit", "pg", 1) and len(s) == 0
     # Back again: only to the destination that had not settled it, its hand-back known.
     assert s.add("a", "m1 again", ["pg", "lake"]) == Taken(["pg"], 1)
     s.dropped("lake", ["a"], "size_limit")  # a late report of a destination that settled it: no effect
     s.settled("pg", ["a"])
-    assert verdicts.pop() == ("m1 again", ACK, "", "")
+    assert verdicts.pop() == ("m1 again", ACK, "", "", 1)
     s.add("b", "m2", ["pg", "lake"])
     s.dropped("pg", ["b"], "not_storable")
     s.settled("lake", ["b"])
-    assert verdicts.pop() == ("m2", TERM, "not_storable", "pg")
+    assert verdicts.pop() == ("m2", TERM, "not_storable", "pg", 0)
     # A drop for want of room wins over one for good: the other destination may take it later.
     s.add("c", "m3", ["pg", "lake"])
     s.dropped("pg", ["c"], "not_storable")
     s.dropped("lake", ["c"], "disk_budget")
-    assert verdicts.pop() == ("m3", NAK, "disk_budget", "lake")
-    assert s.add("c", "m3 again", ["pg", "lake"]) == Taken(["lake"], 1)
+    assert verdicts.pop() == ("m3", NAK, "disk_budget", "lake", 1)
+    # Handed back by other workers too (the shared record says 3): the larger count is the message's.
+    assert s.add("c", "m3 again", ["pg", "lake"], handbacks=3) == Taken(["lake"], 3)
+    s.dropped("lake", ["c"], "size_limit")
+    assert verdicts.pop() == ("m3 again", NAK, "size_limit", "lake", 4)
+    assert s.add("c", "m3 once more", ["pg", "lake"], handbacks=2) == Taken(["lake"], 4)
     s.settled("lake", ["c"])
-    assert verdicts.pop() == ("m3 again", TERM, "not_storable", "pg")
+    assert verdicts.pop() == ("m3 once more", TERM, "not_storable", "pg", 4)
     # At most `remember` hand-backs are remembered, the oldest forgotten first.
     for rid in ("x", "y", "z"):
         s.add(rid, rid, ["pg"])
@@ -559,3 +696,5 @@ def test_settlements_answer_each_message_by_what_its_destinations_did() -> None:
     assert s.add("x", "x", ["pg"]) == Taken(["pg"], 0) and s.add("z", "z", ["pg"]) == Taken(["pg"], 1)
     s.settled("pg", ["unknown"])  # a replayed dead letter: not in flight here
     assert len(s) == 2 and [v[1] for v in verdicts] == [NAK, NAK, NAK]
+    # Handed back only by another worker: this one learns its count from the shared record alone.
+    assert s.add("w", "w", ["pg"], handbacks=2) == Taken(["pg"], 2)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import itertools
+import json
 import logging
 import threading
 import time
@@ -24,13 +25,17 @@ from dc_core.destination import Destination, OutgoingRecord, RetryableError, Sen
 from dc_core.errors import ConfigError
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext
+from dc_dashboard.pages import _budget_cells
+from dc_destinations.buffer import PendingRecord, SqliteBuffer
 from dc_destinations.config import parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
-from dc_destinations.disk_budget import eviction_plan
+from dc_destinations.disk_budget import RecordClass, Step, budget_plan, queue_classes
+from dc_destinations.file import File
 from dc_destinations.http import Http, HttpParams
 from dc_destinations.links import FILES, RECORDS, LinuxNetwork, OnlyWhenParams, SendRules, TokenBucket
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+from tests.destination_helpers import make
 from tests.http_receiver import Receiver
 from tests.throttle_proxy import ThrottleProxy
 
@@ -134,12 +139,29 @@ def server_section(flb: dict[str, Any] | None = None, **dest: Any) -> dict[str, 
         (server_section({"links": {"lte": "0"}}, link="lte"), "destination_server.flb.links.lte", "never send"),
         (server_section({"links": {"lte": "125k"}}, link="wifi"), "destination_server.d.link", 'no link "wifi"'),
         (server_section(only_when={"interface_up": ["wlan0"]}), "destination_server.d.only_when.interface_up", ""),
+        (
+            server_section(retention_priorities={"camera": 1}),
+            "destination_server.d.retention_priorities.camera",
+            "no input topic nor measurement",
+        ),
+        (
+            server_section(retention_priorities={"/dc/measurement/y": 1}),
+            "destination_server.d.retention_priorities./dc/measurement/y",
+            "no input topic nor measurement",
+        ),
+        (server_section(retention_priorities={"x": "high"}), "destination_server.d.retention_priorities.x", "integer"),
     ],
 )
 def test_bad_rules_and_caps_are_configure_errors(section: dict[str, Any], path: str, says: str) -> None:
     with pytest.raises(ConfigError) as raised:
         parse_destination_server(section)
     assert raised.value.path == path and says in raised.value.message
+
+
+def test_retention_priorities_name_the_destinations_inputs_by_topic_or_measurement() -> None:
+    config = parse_destination_server(server_section(retention_priorities={"x": 3, "dc/measurement/x": 5}))
+    (destination,) = config.destinations
+    assert destination.delivery.retention_priorities == {"x": 3, "/dc/measurement/x": 5}
 
 
 def test_unknown_interface_is_a_warning_and_holds(
@@ -408,11 +430,25 @@ def test_a_condition_releases_held_records_at_once(tmp_path: Path) -> None:
 
 
 def test_eviction_plan_gives_up_the_lowest_retention_priority_first() -> None:
-    queued = {"images": 300, "health": 500, "maps": 100}
-    retention = {"images": 0, "maps": 0, "health": 5}
-    assert eviction_plan(queued, retention, 900) == []
-    assert eviction_plan(queued, retention, 700) == [("images", 200)]
-    assert eviction_plan(queued, retention, 300) == [("images", 300), ("maps", 100), ("health", 200)]
+    classes = queue_classes({"images": 300, "health": 500, "maps": 100}, {"images": 0, "maps": 0, "health": 5})
+    low = (("images", None), ("maps", None))
+    assert budget_plan(classes, [], 0) == []
+    # The oldest of priority 0 across both queues (the buffer picks them), then priority 5.
+    assert budget_plan(classes, [], 200) == [Step("records", "0", 200, low)]
+    assert budget_plan(classes, [], 600) == [
+        Step("records", "0", 400, low),
+        Step("records", "5", 200, (("health", None),)),
+    ]
+    # A destination whose records have priorities per input topic: a class per priority.
+    by_topic = [
+        RecordClass("robot", ("/dc/measurement/camera",), 0, 300),
+        RecordClass("robot", ("/dc/measurement/health", "/dc/group/robot"), 10, 500),
+        RecordClass("maps", None, 5, 100),
+    ]
+    assert budget_plan(by_topic, [], 350) == [
+        Step("records", "0", 300, (("robot", ("/dc/measurement/camera",)),)),
+        Step("records", "5", 50, (("maps", None),)),
+    ]
 
 
 def test_disk_budget_evicts_by_retention_and_counts_it(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
@@ -463,6 +499,86 @@ def test_disk_budget_evicts_by_retention_and_counts_it(tmp_path: Path, caplog: p
 
 def within(metrics: dict[str, Any], budget: int) -> bool:
     return sum(m["buffered_bytes"] or 0 for m in metrics.values()) <= budget
+
+
+CAMERA, HEALTH = "/dc/measurement/camera", "/dc/measurement/health"
+
+
+def measured(topic: str, n: int, pad: int = 10_000) -> OutgoingRecord:
+    rid = new_record_id()
+    name = topic.rsplit("/", 1)[-1]
+    return OutgoingRecord(rid, topic, time.time_ns(), {"m": name, "n": n, "pad": "x" * pad, "record_id": rid})
+
+
+def test_disk_budget_evicts_the_records_of_one_destination_by_their_measurements_priority(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Camera and health records through one File destination held off the dock, over a 1 MB budget:
+    the camera's records (retention priority 0) go, oldest first, until none is left, only then the
+    oldest health records (10); each counted per measurement; at the dock every other record reaches
+    the file: delivered + evicted = sent, per measurement."""
+    robot = make(File, "robot", path=str(tmp_path / "out"))
+    robot.on_activate()
+    params = DestinationDeliveryParams(
+        only_when=OnlyWhenParams(conditions=["docked"]), retention_priority=0, retention_priorities={"health": 10}
+    )
+    pipeline = DeliveryPipeline(fast(tmp_path / "buffer", disk_budget_mb=1.0), {"robot": (robot, params)}, LOG)
+    budget = 1024 * 1024
+    pipeline.start()
+    try:
+        for n in range(55):  # ~10 kB each: 1.1 MB of both, interleaved, a little over the budget
+            pipeline.submit("robot", measured(CAMERA, n))
+            pipeline.submit("robot", measured(HEALTH, n))
+        assert pipeline.flush_intake(10)
+        poll(lambda: within(pipeline.metrics(), budget), 30, "the buffer within its budget")
+        first = pipeline.metrics()["robot"]
+        for n in range(55, 105):  # health only, 0.5 MB: the camera's last records go, then the oldest health
+            pipeline.submit("robot", measured(HEALTH, n))
+        assert pipeline.flush_intake(10)
+        poll(lambda: within(pipeline.metrics(), budget), 30, "the buffer within its budget again")
+        second = pipeline.metrics()["robot"]
+        _print_delivery(pipeline.status_document(), wide=False)
+        pipeline.set_condition("docked", True)
+        poll(lambda: pipeline.metrics()["robot"]["buffered"] == 0, 30, "the rest delivered")
+        last = pipeline.metrics()["robot"]
+    finally:
+        pipeline.stop(0.2)
+    # Over the budget with camera records left, only those went.
+    assert 0 < first["evicted"] < 55 and first["evicted_by_measurement"] == {"camera": first["evicted"]}
+    # The second time every camera record went before the first health record.
+    evicted = second["evicted_by_measurement"]
+    assert evicted["camera"] == 55 and evicted.get("health", 0) > 0
+    assert second["evicted"] == sum(evicted.values())
+    said = f"{second['evicted']} records and 0 saved files evicted unsent by the disk budget (records of camera 55, "
+    assert f"destination robot: {said}health {evicted['health']})" in capsys.readouterr().out
+    assert f"(camera 55, health {evicted['health']})</td>" in _budget_cells(second)
+    lines = [json.loads(line) for line in (tmp_path / "out" / "robot").read_text().splitlines()]
+    assert not [r for r in lines if r["m"] == "camera"]
+    kept = [r["n"] for r in lines if r["m"] == "health"]
+    assert kept == list(range(105 - len(kept), 105)), "the oldest health records went, the newest stayed"
+    assert len(kept) + last["evicted_by_measurement"]["health"] == 105
+    assert last["received"] == last["sent"] + last["evicted"] == 160 and last["sent"] == len(lines)
+    assert 'dc_delivery_evicted_by_measurement_total{destination="robot",measurement="camera"} 55' in (
+        pipeline.prometheus()
+    )
+
+
+def test_an_earlier_buffer_is_delivered_under_priorities_per_topic(tmp_path: Path) -> None:
+    """Records an earlier DC left in the buffer (its queues have no index by topic) are delivered by
+    a destination that now has retention_priorities."""
+    earlier = SqliteBuffer(tmp_path / "delivery.sqlite3")
+    earlier.append({"d": [PendingRecord(f"id-{n}", CAMERA if n % 2 else HEALTH, n, f'{{"n":{n}}}') for n in range(20)]})
+    earlier.close()
+    sink = Collecting()
+    params = DestinationDeliveryParams(retention_priorities={"camera": -1})
+    pipeline = DeliveryPipeline(fast(tmp_path, disk_budget="50M"), {"d": (sink, params)}, LOG)
+    pipeline.start()
+    try:
+        poll(lambda: len(sink.received) == 20, 30, "the earlier records delivered")
+    finally:
+        pipeline.stop(0.2)
+    assert [r.record_id for r in sink.received] == [f"id-{n}" for n in range(20)]
+    assert {r.topic for r in sink.received} == {CAMERA, HEALTH}
 
 
 def test_a_budget_below_one_batch_is_refused() -> None:

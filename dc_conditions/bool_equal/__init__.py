@@ -6,14 +6,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from dc_conditions.compare import as_bool, value_at
+from dc_conditions.compare import KEY_DOC, as_bool, value_at
 from dc_core.condition import Condition
 from dc_core.params import param
 
 
 @dataclass(frozen=True, kw_only=True)
 class BoolEqualParams:
-    key: str = param(doc="Key path, `/`-separated, array items by index")
+    key: str = param(doc=KEY_DOC)
     value: bool = param(doc="Expected bool")
 
 

@@ -12,11 +12,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
-from dc_conditions.compare import as_integer, as_number, value_at
+from dc_conditions.compare import KEY_DOC, as_integer, as_number, value_at
 from dc_core.condition import Condition
 from dc_core.params import param
 
-_KEY_DOC = "Key path, `/`-separated, array items by index"
 _INCLUDE_DOC = "Whether a value equal to `value` counts (<= / >= rather than < / >)"
 
 Relation = Literal["equal", "below", "above"]
@@ -24,26 +23,26 @@ Relation = Literal["equal", "below", "above"]
 
 @dataclass(frozen=True, kw_only=True)
 class DoubleEqualParams:
-    key: str = param(doc=_KEY_DOC)
+    key: str = param(doc=KEY_DOC)
     value: float = param(doc="Number the value must equal (exact comparison)")
 
 
 @dataclass(frozen=True, kw_only=True)
 class DoubleBoundParams:
-    key: str = param(doc=_KEY_DOC)
+    key: str = param(doc=KEY_DOC)
     value: float = param(doc="Bound the value is compared with")
     include_value: bool = param(True, doc=_INCLUDE_DOC)
 
 
 @dataclass(frozen=True, kw_only=True)
 class IntegerEqualParams:
-    key: str = param(doc=_KEY_DOC)
+    key: str = param(doc=KEY_DOC)
     value: int = param(doc="Integer the value must equal")
 
 
 @dataclass(frozen=True, kw_only=True)
 class IntegerBoundParams:
-    key: str = param(doc=_KEY_DOC)
+    key: str = param(doc=KEY_DOC)
     value: int = param(doc="Bound the value is compared with")
     include_value: bool = param(True, doc=_INCLUDE_DOC)
 

@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from dc_conditions.compare import as_string, value_at
+from dc_conditions.compare import KEY_DOC, as_string, value_at
 from dc_core.condition import Condition, ConditionContext
 from dc_core.errors import PluginError
 from dc_core.params import param
@@ -15,7 +15,7 @@ from dc_core.params import param
 
 @dataclass(frozen=True, kw_only=True)
 class StringMatchParams:
-    key: str = param(doc="Key path, `/`-separated, array items by index")
+    key: str = param(doc=KEY_DOC)
     regex: str = param(doc="Python regular expression the whole string must match")
 
 

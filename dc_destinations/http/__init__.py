@@ -20,7 +20,7 @@ from urllib.parse import parse_qsl
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import host_problem, param, port_problem
+from dc_core.params import host_problem, param, port_problem, url_host
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
 from dc_destinations.probes import connect_probe
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
@@ -136,7 +136,7 @@ class Http(Destination[HttpParams]):
     def on_configure(self) -> None:
         p = self.params
         scheme = "https" if p.tls_on else "http"
-        host = f"[{p.host}]" if ":" in p.host else p.host
+        host = url_host(p.host)
         # Without the query: it may hold an API key, and this URL goes into logs and dead letters.
         self.url = f"{scheme}://{host}:{p.port}{p.uri.split('?', 1)[0]}"
         content_type = CONTENT_TYPES.get(p.format, "application/json")

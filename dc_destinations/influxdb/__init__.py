@@ -42,7 +42,7 @@ from dc_core.destination import (
     SendOutcome,
 )
 from dc_core.errors import ConfigError
-from dc_core.params import host_problem, param, port_problem
+from dc_core.params import host_problem, param, port_problem, url_host
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
 
@@ -377,7 +377,7 @@ class InfluxDB(Destination[InfluxDBParams]):
             self.path = "/api/v2/write?" + urllib.parse.urlencode(query)
         else:
             self.path = "/write?" + urllib.parse.urlencode({"db": p.database, "precision": "ns"})
-        host = f"[{p.host}]" if ":" in p.host else p.host
+        host = url_host(p.host)
         self.url = f"{'https' if p.tls_on else 'http'}://{host}:{p.port}{self.path}"
         tls = self._tls = client_context(p, f"destination_server.{self.context.name}", self.context.logger)
         self._headers = [("Content-Type", "text/plain; charset=utf-8"), ("User-Agent", "dc-destinations")]

@@ -34,7 +34,7 @@ from dc_core.destination import (
     SendOutcome,
 )
 from dc_core.errors import ConfigError
-from dc_core.params import host_problem, param, port_problem
+from dc_core.params import host_problem, param, port_problem, url_host
 from dc_core.records import MalformedRecord
 from dc_destinations.connection import Connection
 from dc_destinations.templates import fill_template
@@ -167,7 +167,7 @@ class Mqtt(Destination[MqttParams]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         p = self.params
-        host = f"[{p.host}]" if ":" in p.host else p.host
+        host = url_host(p.host)
         self.address = self._connection.where = f"{'mqtts' if p.tls_on else 'mqtt'}://{host}:{p.port}"
         self._connection.secrets = [p.password, p.tls_key_passwd]
         self.client_id = p.client_id or default_client_id(self.context.name, p.host)

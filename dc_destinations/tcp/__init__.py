@@ -17,7 +17,7 @@ from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import compat_param, host_problem, param, port_problem
+from dc_core.params import compat_param, host_problem, param, port_problem, url_host
 from dc_destinations.connection import Connection
 from dc_destinations.tls import TlsParams, client_context, ssl_reason
 
@@ -73,7 +73,7 @@ class Tcp(Destination[TcpParams]):
     # -- lifecycle -------------------------------------------------------------------------------
     def on_configure(self) -> None:
         p = self.params
-        host = f"[{p.host}]" if ":" in p.host else p.host
+        host = url_host(p.host)
         self.address = self._socket.where = f"{host}:{p.port}"
         self._socket.secrets = [p.tls_key_passwd]
         self._encode = _msgpack_encoder(self._key_path("format")) if p.format == "msgpack" else _json_line

@@ -35,7 +35,7 @@ from typing import Any
 from dc_core.errors import ConfigError, PluginError
 from dc_core.measurement import Measurement, MeasurementContext
 from dc_core.params import param
-from dc_core.paths import expand_time
+from dc_core.paths import expand_time, fixed_prefix
 from dc_core.private_files import create_private, make_folders, tighten
 from dc_measurements.ip_camera import ffmpeg
 from dc_measurements.saved_files import ReservedPaths, file_locations
@@ -81,18 +81,6 @@ class IpCameraParams:
             raise ConfigError("input", f'expected a URL as scheme://host/path, without spaces, got "{shown}"')
         if not self.video and not self.audio:
             raise ConfigError("video", "video and audio are both false: there would be nothing to record")
-
-
-def fixed_prefix(path: str) -> str:
-    """The folders of ``path`` before the first one with a strftime token: the same at every hour."""
-    parts = path.split("/")
-    kept: list[str] = []
-    for part in parts:
-        if "%" in part:
-            break
-        kept.append(part)
-    prefix = "/".join(kept)
-    return "/" if not prefix and path.startswith("/") else prefix
 
 
 @dataclass(frozen=True)
