@@ -338,10 +338,7 @@ class Store:
             filters,
             robot_column=sql.SQL("robot_name"),
             time_column=sql.SQL("timestamp"),
-            # files_metrics has no run: the record that brought the file has (unique index on record_id).
-            run_condition=sql.SQL(
-                "EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s)"
-            ).format(t=self.table, run=indexes.RUN_OF("r")),
+            run_condition=self.files_run_condition(),
         )
         scope = sql.SQL(" AND ").join([sql.SQL("true"), *conditions])
         counts_query = sql.SQL(
@@ -368,6 +365,15 @@ class Store:
         rows = [dict(zip(columns, row, strict=True)) for row in cursor.fetchall()]
         counts = {"all": total, "uploaded": uploaded, "verified": verified, "deleted": deleted, "pending": pending}
         return FilesPage(rows[:FILES_PAGE], counts, int(size), len(rows) > FILES_PAGE)
+
+    def files_run_condition(self) -> Any:
+        """The run filter of files_metrics ``f``, on ``%(run)s``."""
+        from psycopg import sql
+
+        # files_metrics has no run: the record that brought the file has (unique index on record_id).
+        return sql.SQL("EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s)").format(
+            t=self.table, run=indexes.RUN_OF("r")
+        )
 
     def last_stored(self, connection: Any) -> dict[str, dt.datetime | None]:
         """Per destination (the ``tag`` column): the time of its newest row."""
