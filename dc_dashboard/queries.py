@@ -338,7 +338,7 @@ class Store:
             filters,
             robot_column=sql.SQL("robot_name"),
             time_column=sql.SQL("timestamp"),
-            run_condition=self.files_run_condition(),
+            run_condition=self.files_run_condition(filters),
         )
         scope = sql.SQL(" AND ").join([sql.SQL("true"), *conditions])
         counts_query = sql.SQL(
@@ -366,14 +366,19 @@ class Store:
         counts = {"all": total, "uploaded": uploaded, "verified": verified, "deleted": deleted, "pending": pending}
         return FilesPage(rows[:FILES_PAGE], counts, int(size), len(rows) > FILES_PAGE)
 
-    def files_run_condition(self) -> Any:
-        """The run filter of files_metrics ``f``, on ``%(run)s``."""
+    def files_run_condition(self, filters: Filters) -> Any:
+        """The run filter of files_metrics ``f``, on ``%(run)s`` (and ``%(robot)s`` with the robot filter)."""
         from psycopg import sql
 
-        # files_metrics has no run: the record that brought the file has (unique index on record_id).
-        return sql.SQL("EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s)").format(
-            t=self.table, run=indexes.RUN_OF("r")
-        )
+        # files_metrics has no run: the record that brought the file has. With a robot, that record is
+        # the robot's (a file's robot_name is its record's): the run's rows of the robot are read through
+        # the (robot, run, name, time) index and matched by record_id, without an index on record_id
+        # (a table DC makes has none: docs/data-model.md). Without a robot, each file's record is
+        # looked up by record_id.
+        robot = sql.SQL(" AND {} = %(robot)s").format(indexes.ROBOT_OF("r")) if filters.robot else sql.SQL("")
+        return sql.SQL(
+            "EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s{robot})"
+        ).format(t=self.table, run=indexes.RUN_OF("r"), robot=robot)
 
     def last_stored(self, connection: Any) -> dict[str, dt.datetime | None]:
         """Per destination (the ``tag`` column): the time of its newest row."""
