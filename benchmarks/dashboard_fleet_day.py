@@ -254,7 +254,8 @@ class EmptyBucket:
         return Pages()
 
 
-def measure(server: PostgresServer, days: int, runs: int) -> dict[str, Any]:
+def measure(server: PostgresServer, days: int, runs: int, only: list[str]) -> dict[str, Any]:
+    """``only``: these pages (and "fleet", "reconcile") alone; all when empty."""
     import psycopg
 
     from dc_bringup.reconcile import reconcile
@@ -274,6 +275,7 @@ def measure(server: PostgresServer, days: int, runs: int) -> dict[str, Any]:
     queries = [(page, label, query + ("&name=cpu" if page == "/explore" else "")) for page in pages
                for label, query in filters.items()]  # fmt: skip
     queries += [("/files", "run", run), ("/files", "run+hour", f"{run}&{hour}")]
+    queries = [q for q in queries if not only or q[0] in only]
     figures: dict[str, Any] = {}
     for page, label, query in queries:
         figures[f"{page} {label}"] = page_time(dashboard, page, query, runs)
@@ -281,6 +283,8 @@ def measure(server: PostgresServer, days: int, runs: int) -> dict[str, Any]:
     now = dt.datetime(LAST_DAY.year, LAST_DAY.month, LAST_DAY.day, 23, 59, 59)
     store = dashboard.store
     with store.connection() as connection:
+        if only and "fleet" not in only:
+            return figures | {"files_by_run_plans": files_plans(store, connection, run[4:])}
 
         def fleet_page() -> str:
             rows, estimated = fleet.overview(store, connection, Filters(), now)
@@ -290,10 +294,9 @@ def measure(server: PostgresServer, days: int, runs: int) -> dict[str, Any]:
         rows, estimated = fleet.overview(store, connection, Filters(), now)
         figures["/fleet"].update(robots=len(rows), failing=sum(1 for r in rows if r.failing), estimated=estimated)
         print(f"/fleet {figures['/fleet']}", flush=True)
-        plans = {}
-        for label, chosen in {"robot+run": Filters(robot=ROBOT, run=run[4:]), "run": Filters(run=run[4:])}.items():
-            plans[label] = files_plan(store, connection, chosen)
-        figures["files_by_run_plans"] = plans
+        figures["files_by_run_plans"] = files_plans(store, connection, run[4:])
+    if only and "reconcile" not in only:
+        return figures
     since = dt.datetime(LAST_DAY.year, LAST_DAY.month, LAST_DAY.day, 10, tzinfo=dt.UTC)
     with psycopg.connect(**settings.connect_kwargs()) as connection:
 
@@ -316,6 +319,11 @@ def page_time(dashboard: Dashboard, page: str, query: str, runs: int) -> dict[st
     if first > SLOW_S:
         return {"first_s": first}
     return {"first_s": first, **timed(runs, lambda: dashboard.render(page, query))}
+
+
+def files_plans(store: Any, connection: Any, run: str) -> dict[str, list[str]]:
+    chosen = {"robot+run": Filters(robot=ROBOT, run=run), "run": Filters(run=run)}
+    return {label: files_plan(store, connection, filters) for label, filters in chosen.items()}
 
 
 def files_plan(store: Any, connection: Any, filters: Filters) -> list[str]:
@@ -345,6 +353,7 @@ def main() -> None:
     parser.add_argument("--layout", choices=("dm4", "main"), default="dm4")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--label", default="")
+    parser.add_argument("--only", default="", help="comma-separated pages (/files…), fleet, reconcile: those alone")
     parser.add_argument("--no-measure", action="store_true", help="generate (if needed) and stop")
     parser.add_argument("--drop", action="store_true", help="remove the folder at the end")
     args = parser.parse_args()
@@ -367,7 +376,7 @@ def main() -> None:
         result["layout_s"] = set_layout(server, args.layout)
         if not args.no_measure:
             load = os.getloadavg()
-            result["figures"] = measure(server, args.days, args.runs)
+            result["figures"] = measure(server, args.days, args.runs, [o for o in args.only.split(",") if o])
             result["load_average_1min"] = [load[0], os.getloadavg()[0]]
     finally:
         server.stop(timeout=60)

@@ -173,16 +173,15 @@ class Store:
         return [row[0] for row in connection.execute(query).fetchall()]
 
     def runs(self, connection: Any, robot: str) -> list[str]:
-        """The robot's runs (every robot's without one), newest run number first, at most 200."""
+        """The robot's runs (without one, those of each destination's newest 5,000 rows), newest run number
+        first, at most 200."""
         from psycopg import sql
 
         if robot:
             query = sql.SQL(_DISTINCT_RUNS).format(t=self.table, robot=indexes.ROBOT, run=indexes.RUN)
             runs = [row[0] for row in connection.execute(query, {"robot": robot}).fetchall()]
         else:
-            query = sql.SQL(
-                "SELECT DISTINCT {run} FROM (SELECT data FROM {t} ORDER BY time DESC LIMIT 5000) AS newest"
-            ).format(t=self.table, run=indexes.RUN)
+            query = sql.SQL(_NEWEST_RUNS).format(t=self.table, run=indexes.RUN)
             runs = [row[0] for row in connection.execute(query).fetchall() if row[0] is not None]
         return sorted(runs, key=lambda r: (len(r), r), reverse=True)[:200]
 
@@ -545,6 +544,17 @@ WITH RECURSIVE runs(run) AS (
     FROM runs WHERE runs.run IS NOT NULL
 )
 SELECT run FROM runs WHERE run IS NOT NULL LIMIT 1000"""
+
+# The newest rows of each destination (tag) through the (tag, time) index: no index orders the whole
+# table by time (BRIN cannot), and a sort of every row took 20 s on 7.6 M rows.
+_NEWEST_RUNS = """
+WITH RECURSIVE tags(tag) AS (
+    (SELECT tag FROM {t} WHERE tag IS NOT NULL ORDER BY tag LIMIT 1)
+    UNION ALL
+    SELECT (SELECT tag FROM {t} WHERE tag > tags.tag ORDER BY tag LIMIT 1) FROM tags WHERE tags.tag IS NOT NULL
+)
+SELECT DISTINCT {run} FROM (SELECT tag FROM tags WHERE tag IS NOT NULL LIMIT 50) AS found
+CROSS JOIN LATERAL (SELECT data FROM {t} WHERE tag = found.tag ORDER BY time DESC LIMIT 5000) AS newest"""
 
 _LAST_PER_TAG = """
 WITH RECURSIVE tags(tag) AS (
