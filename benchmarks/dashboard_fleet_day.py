@@ -1,7 +1,7 @@
 """Every dashboard page filtered by robot, run or hour on a fleet's day of the robot job, and `dc reconcile`'s queries.
 
     .venv/bin/python benchmarks/dashboard_fleet_day.py --folder DIR [--robots 100] [--days 1] [--fraction 1]
-        [--partition-by none|day] [--layout dm4|main] [--runs 5] [--label NAME] [--drop]
+        [--partition-by none|day] [--layout dm4|main] [--runs 5] [--only PAGES] [--label NAME] [--drop]
 
 Keeps a PostgreSQL in --folder (made and filled at the first call, reused by the next ones: a
 25-million-row table takes most of an hour to generate on a shared 2-core machine; --drop removes it
@@ -19,16 +19,18 @@ where ten were). files_metrics gets a row per inspection (its record id, robot, 
 20 not uploaded), every robot a ``destination_health`` record an hour (a robot in ten failing),
 then the dashboard's indexes (``dc dashboard --create-indexes``' statements) and ``VACUUM ANALYZE``.
 
---layout sets the records table's unique indexes before the measures: ``dm4`` (DC's default for
-a new table: one unique btree (robot_name, name, time, record_id)) or ``main`` (that and a unique
-index on record_id, as DC's plain table had before; made with CREATE INDEX, dropped again by
-``dm4``). Then, warm (one warm-up, then --runs runs, wall time at the client): each dashboard page
+--layout sets the records table's index on record_id before the measures: ``dm4`` none (the
+one-btree layout of branch dm4, whose default made the table of the 2026-11-27 results: unique
+(robot_name, name, time, record_id), no index on record_id) or ``main`` a unique index on
+record_id (a plain table's default; made with CREATE INDEX, dropped again by ``dm4``). Then,
+warm (one warm-up, then --runs runs, wall time at the client): each dashboard page
 as ``Dashboard.render`` serves it (its queries and its HTML) for robot-007 alone, with run 6
 (hours 10-12 of each day), with the hour 10:00-11:00 of the last day, with both, and the hour alone
 (every robot); the Files page filtered by run alone; the Fleet page (``fleet.overview`` and its HTML,
 "now" the last second generated: every row of the last day is today's); ``dc reconcile``'s queries for
 robot-007 and that hour (its records and files_metrics reads, against a bucket listing nothing).
-Median and max per item, the load average, and the plans of the files-by-run queries.
+Median and max per item, the load average, and the plans of the files-by-run queries. --only
+/files,reconcile (say): those alone.
 
 JSON in benchmarks/results/dashboard_fleet_day_<date>[_<label>].json (never overwritten: ``_2``, ``_3``…).
 """
@@ -231,7 +233,7 @@ def pg_settings(server: PostgresServer) -> PostgresSettings:
 
 
 def set_layout(server: PostgresServer, layout: str) -> float:
-    """``main``: a unique index on record_id beside DC's (robot_name, name, time, record_id); ``dm4``: without."""
+    """``main``: a unique index on record_id; ``dm4``: none."""
     began = time.monotonic()
     with server.connect() as connection:
         if layout == "main":

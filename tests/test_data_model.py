@@ -223,7 +223,7 @@ def test_the_documented_index_migration_of_a_plain_table_made_before(server: Pos
             " name text, robot_name text, run_id bigint, value double precision)"
         )
         for index in (
-            "UNIQUE INDEX dc_record_id ON dc (record_id)",  # the indexes DC made until 2026-11-27
+            "UNIQUE INDEX dc_record_id ON dc (record_id)",  # the indexes DC makes for a plain table
             "INDEX dc_robot_name_time ON dc (robot_name, name, time) INCLUDE (value)",
             "INDEX dc_robot_run_time ON dc (robot_name, run_id, name, time)",
         ):

@@ -5,7 +5,7 @@ bigint`` beside the original's ``tag`` and ``data jsonb``), the indexes a data t
 and optionally time partitions (table.py). A table that exists is used as it is: one of the
 original's shape (Fluent Bit's ``pgsql`` output: ``tag``, ``time``, ``data``) gets only the
 ``record_id`` column and its unique index, the rest being a documented migration. A unique index
-holding ``record_id`` (with robot, name and time in a table DC makes) makes a batch inserted again
+holding ``record_id`` (with robot, name and time in a partitioned table DC makes) makes a batch inserted again
 after a failure whose outcome was unknown (the connection died during COMMIT) add nothing twice
 (``ON CONFLICT DO NOTHING``), so the buffer's at-least-once delivery becomes exactly one row per record.
 

@@ -130,15 +130,15 @@ def create_typed(
                 + (" PARTITION BY RANGE (time)" if partitioned else "")
             ).format(table)
         )
-        if connection.info.server_version >= 150000:
-            # One btree is both the team's (robot_name, name, time) index and the key a retried
-            # batch meets (a unique index of a partitioned table must hold time anyway). Robot and
-            # name come from the record's text, the same in every copy of it; time from its stamp or
-            # timestamp_key (a copy stored twice by NATS and ingested with two stamps is two rows).
-            # NULLS NOT DISTINCT: a record without robot or name is met too. A plain table made
-            # before 2026-11-27 has UNIQUE (record_id) beside the team's index: one btree less to
-            # update on every insert (docs/performance.md). value INCLUDEd: an aggregate of a
-            # measurement's value_keys number is an index-only scan.
+        if partitioned and connection.info.server_version >= 150000:
+            # A unique index of a partitioned table must hold the partition key, time: then one btree
+            # is both the team's (robot_name, name, time) index and the key a retried batch meets.
+            # Robot and name come from the record's text, the same in every copy of it; time, like
+            # the (record_id, time) key it replaces, from its stamp or timestamp_key (a copy stored
+            # twice by NATS and ingested with two stamps is two rows, in both). NULLS NOT DISTINCT:
+            # a record without robot or name is met too. One btree and its disk space where two were;
+            # the CPU per insert measured the same within the noise (docs/performance.md). value
+            # INCLUDEd: an aggregate of a measurement's value_keys number is an index-only scan.
             connection.execute(
                 sql.SQL(
                     "CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (robot_name, name, time, record_id) INCLUDE (value)"
@@ -146,8 +146,7 @@ def create_typed(
                 ).format(_index_name(base, "robot_name_time"), table)
             )
         else:
-            # PostgreSQL 14 and older have no NULLS NOT DISTINCT: record_id is the key (with time when
-            # partitioned), the team's index another btree.
+            # Not partitioned: record_id alone is unique, whatever time a copy of the record carries.
             unique = "record_id, time" if partitioned else "record_id"
             connection.execute(
                 sql.SQL("CREATE UNIQUE INDEX IF NOT EXISTS {} ON {} (" + unique + ")").format(
