@@ -52,7 +52,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from benchmarks.dashboard_fleet import timed  # noqa: E402
-from benchmarks.pgsql_data_model import destination  # noqa: E402
+from benchmarks.pgsql_data_model import destination, fill  # noqa: E402
 from dc_bringup.local_servers.postgres import PostgresServer  # noqa: E402
 from dc_dashboard import fleet, indexes  # noqa: E402
 from dc_dashboard.filters import Filters  # noqa: E402
@@ -137,23 +137,8 @@ def generate(server: PostgresServer, robots: int, days: int, fraction: float, pa
         # The camera's rows first: files_metrics is filled from them before the others come.
         order = sorted(MEASUREMENTS, key=lambda m: m[0] != "front_camera")
         for name, every, fields in order:
-            step = every / fraction
-            seconds = days * 86_400
             connection.execute(
-                f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id, value)
-                SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run,
-                       {"(data->>'average')::float8" if name == "cpu" else "NULL"}
-                FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
-                          'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
-                          'tags', jsonb_build_array('pg')) AS data
-                      FROM generate_series(timestamptz '{start} 00:00Z',
-                                           timestamptz '{start} 00:00Z' + interval '{seconds} s' - interval '1 s',
-                                           interval '{step} s') AS t0,
-                           LATERAL (SELECT r, t0 + r * interval '10 ms' AS t
-                                    FROM generate_series(1, {robots}) AS r) AS rt,
-                           LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
-                                           1 + floor(extract(epoch FROM t - timestamptz '{start} 00:00Z')
-                                                     / {RUN_HOURS * 3600})::bigint AS run) AS k) AS rows"""
+                fill(name, every / fraction, fields, str(start), days * 86_400, robots, RUN_HOURS * 3600)
             )
             print(f"  {name}: {time.monotonic() - began:.0f} s  load {os.getloadavg()[0]:.1f}", flush=True)
             if name == "front_camera":

@@ -134,22 +134,7 @@ def generate(server: PostgresServer, robots: int, hours: int, partition_by: str 
             # In time order, the robots' rows side by side at each instant, as a fleet inserts them:
             # one robot's rows of a measurement are then on as many heap pages as they are rows (a
             # robot-by-robot order would put them on a few hundred pages and flatter the queries).
-            connection.execute(
-                f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id, value)
-                SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run,
-                       {"(data->>'average')::float8" if name == "cpu" else "NULL"}
-                FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
-                          'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
-                          'tags', jsonb_build_array('pg')) AS data
-                      FROM generate_series(timestamptz '{DAY} 00:00Z',
-                                           timestamptz '{DAY} 00:00Z' + interval '{hours} hours' - interval '1 s',
-                                           interval '{every} s') AS t0,
-                           LATERAL (SELECT r, t0 + r * interval '10 ms' AS t
-                                    FROM generate_series(1, {robots}) AS r) AS rt,
-                           LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
-                                           1 + floor(extract(epoch FROM t - timestamptz '{DAY} 00:00Z') / 7200)::bigint
-                                             AS run) AS k) AS rows"""
-            )
+            connection.execute(fill(name, every, fields, DAY, hours * 3600, robots).encode())
         connection.execute(block("latest-table").encode())
         connection.execute("ALTER TABLE dc ENABLE TRIGGER USER")
         connection.execute("VACUUM ANALYZE dc")
@@ -161,6 +146,25 @@ def generate(server: PostgresServer, robots: int, hours: int, partition_by: str 
                                      ).fetchone()  # fmt: skip
     print(f"generated {rows:,} rows in {time.monotonic() - started:.0f} s ({size} with indexes)", flush=True)
     return int(rows), time.monotonic() - started
+
+
+def fill(name: str, every: float, fields: str, day: str, seconds: int, robots: int, run_s: int = 7200) -> str:
+    """The INSERT … SELECT of a measurement's rows into dc: ``robots`` robots from ``day`` 00:00Z for
+    ``seconds``, a record every ``every`` s, in time order with the robots side by side (10 ms apart),
+    ``fields`` the record's own as SQL over r (robot number), robot and t; runs of ``run_s``."""
+    return f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id, value)
+        SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run,
+               {"(data->>'average')::float8" if name == "cpu" else "NULL"}
+        FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
+                  'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
+                  'tags', jsonb_build_array('pg')) AS data
+              FROM generate_series(timestamptz '{day} 00:00Z',
+                                   timestamptz '{day} 00:00Z' + interval '{seconds} s' - interval '1 s',
+                                   interval '{every} s') AS t0,
+                   LATERAL (SELECT r, t0 + r * interval '10 ms' AS t FROM generate_series(1, {robots}) AS r) AS rt,
+                   LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
+                                   1 + floor(extract(epoch FROM t - timestamptz '{day} 00:00Z') / {run_s})::bigint
+                                     AS run) AS k) AS rows"""
 
 
 def block(tag: str) -> str:
