@@ -372,7 +372,7 @@ class Store:
         # files_metrics has no run: the record that brought the file has. With a robot, that record is
         # the robot's (a file's robot_name is its record's): the run's rows of the robot are read through
         # the (robot, run, name, time) index and matched by record_id, without an index on record_id
-        # (a table DC makes has none: docs/data-model.md). Without a robot, each file's record is
+        # (a partitioned table DC makes has none: docs/data-model.md). Without a robot, each file's record is
         # looked up by record_id.
         robot = sql.SQL(" AND {} = %(robot)s").format(indexes.ROBOT_OF("r")) if filters.robot else sql.SQL("")
         return sql.SQL(

@@ -346,7 +346,7 @@ def test_the_files_of_a_robots_run_are_found_without_an_index_on_record_id(datab
 
     from dc_dashboard.queries import _filtered
 
-    # A records table DC makes has no index on record_id alone (its unique btree begins with the robot).
+    # A partitioned records table DC makes has no index on record_id alone (its unique btree begins with the robot).
     assert indexes.create(database, say=lambda text: None) == 0
     store, filters = Store(database), Filters(robot="C3PO", run="2")
     with psycopg.connect(**database.connect_kwargs()) as connection:  # one transaction, rolled back
