@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/pgsql_data_model.py [--robots 100] [--hours 24] [--runs 15] [--cold-runs 3]
                                                     [--insert-records 50000] [--insert-runs 7]
-                                                    [--index-runs 0] [--ways-runs 0] [--label NAME]
+                                                    [--index-runs 0] [--ways-runs 0] [--parts-runs 0]
+                                                    [--parts TEXT] [--partition-by day] [--label NAME]
 
 Starts a throw-away PostgreSQL on 127.0.0.1 (dc_bringup.local_servers, a folder under /tmp, removed
 at the end) and, printing the load averages of each phase (the machine may be shared):
@@ -19,6 +20,10 @@ at the end) and, printing the load averages of each phase (the machine may be sh
   with the same batches.
 - index costs (--index-runs N): the server's CPU per row of a binary COPY of the same rows into
   tables that differ only in their indexes, N rounds in turns.
+- parts (--parts-runs N, --parts TEXT): the insert's cost part by part (PARTS): each part a table
+  and a way of putting the same rows in it; the backend's and the server's CPU, WAL bytes, shared
+  buffer accesses (hits and reads, which the machine's load does not change) and client CPU per
+  row, N rounds in turns; then the client's CPU per row of the destination's own row building.
 - ways (--ways-runs N): the server's CPU and the wall time per row of each way in WAYS of putting
   the same rows into a day-partitioned table with DC's indexes: COPY (into the parent, straight into
   the partition, with the latest-row trigger, batches of one robot, without the run index), the
@@ -113,10 +118,10 @@ def destination(
     return dest
 
 
-def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, float]:
+def generate(server: PostgresServer, robots: int, hours: int, partition_by: str = "day") -> tuple[int, float]:
     """The fleet's day in table dc (made by the destination); (rows, seconds)."""
     first = int(dt.datetime.fromisoformat(f"{DAY}T00:00:00+00:00").timestamp() * 1e9)
-    dest = destination(server, "dc", "day", value_keys={"cpu": "average"})
+    dest = destination(server, "dc", partition_by, value_keys={"cpu": "average"})
     dest.send([OutgoingRecord(new_record_id(), "/dc/x", first, {"name": "marker"})])  # table and partitions
     dest.on_deactivate()
     started = time.monotonic()
@@ -129,32 +134,37 @@ def generate(server: PostgresServer, robots: int, hours: int) -> tuple[int, floa
             # In time order, the robots' rows side by side at each instant, as a fleet inserts them:
             # one robot's rows of a measurement are then on as many heap pages as they are rows (a
             # robot-by-robot order would put them on a few hundred pages and flatter the queries).
-            connection.execute(
-                f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id, value)
-                SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run,
-                       {"(data->>'average')::float8" if name == "cpu" else "NULL"}
-                FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
-                          'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
-                          'tags', jsonb_build_array('pg')) AS data
-                      FROM generate_series(timestamptz '{DAY} 00:00Z',
-                                           timestamptz '{DAY} 00:00Z' + interval '{hours} hours' - interval '1 s',
-                                           interval '{every} s') AS t0,
-                           LATERAL (SELECT r, t0 + r * interval '10 ms' AS t
-                                    FROM generate_series(1, {robots}) AS r) AS rt,
-                           LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
-                                           1 + floor(extract(epoch FROM t - timestamptz '{DAY} 00:00Z') / 7200)::bigint
-                                             AS run) AS k) AS rows"""
-            )
+            connection.execute(fill(name, every, fields, DAY, hours * 3600, robots).encode())
         connection.execute(block("latest-table").encode())
         connection.execute("ALTER TABLE dc ENABLE TRIGGER USER")
         connection.execute("VACUUM ANALYZE dc")
         connection.execute("VACUUM ANALYZE dc_latest")
         (rows,) = connection.execute("SELECT count(*) FROM dc").fetchone()
-        (size,) = connection.execute("SELECT pg_size_pretty(sum(pg_total_relation_size(c.oid))) FROM pg_inherits i"
+        (size,) = connection.execute("SELECT pg_size_pretty(pg_total_relation_size('dc') + coalesce(sum("
+                                     "pg_total_relation_size(c.oid)), 0)) FROM pg_inherits i"
                                      " JOIN pg_class c ON c.oid = i.inhrelid WHERE i.inhparent = 'dc'::regclass"
                                      ).fetchone()  # fmt: skip
     print(f"generated {rows:,} rows in {time.monotonic() - started:.0f} s ({size} with indexes)", flush=True)
     return int(rows), time.monotonic() - started
+
+
+def fill(name: str, every: float, fields: str, day: str, seconds: int, robots: int, run_s: int = 7200) -> str:
+    """The INSERT … SELECT of a measurement's rows into dc: ``robots`` robots from ``day`` 00:00Z for
+    ``seconds``, a record every ``every`` s, in time order with the robots side by side (10 ms apart),
+    ``fields`` the record's own as SQL over r (robot number), robot and t; runs of ``run_s``."""
+    return f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id, value)
+        SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run,
+               {"(data->>'average')::float8" if name == "cpu" else "NULL"}
+        FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
+                  'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
+                  'tags', jsonb_build_array('pg')) AS data
+              FROM generate_series(timestamptz '{day} 00:00Z',
+                                   timestamptz '{day} 00:00Z' + interval '{seconds} s' - interval '1 s',
+                                   interval '{every} s') AS t0,
+                   LATERAL (SELECT r, t0 + r * interval '10 ms' AS t FROM generate_series(1, {robots}) AS r) AS rt,
+                   LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
+                                   1 + floor(extract(epoch FROM t - timestamptz '{day} 00:00Z') / {run_s})::bigint
+                                     AS run) AS k) AS rows"""
 
 
 def block(tag: str) -> str:
@@ -281,6 +291,7 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
     shapes = (
         "original",
         "typed",
+        "typed_before",  # DC's defaults until 2026-11-27 (the run index, the trigger), the table made by hand
         "typed_day",
         "typed_day_no_latest",
         "typed_day_lean",  # run_index and latest_table false
@@ -303,6 +314,12 @@ def time_inserts(server: PostgresServer, n: int, rounds: int) -> dict[str, Any]:
                         f"CREATE TABLE {table} (tag varchar, time timestamp, data jsonb, record_id text)"
                     )
                     connection.execute(f"CREATE UNIQUE INDEX {table}_record_id ON {table} (record_id)")
+            if shape == "typed_before":
+                with server.connect() as connection:
+                    connection.execute(f"CREATE TABLE {table} ({_TYPED})")
+                    for statement in (_RECORD_ID, _TEAM, _RUN, _BRIN):
+                        connection.execute(statement.format(t=table))
+                    connection.execute(block("latest-ddl").replace("dc", table).encode())
             dest = destination(
                 server,
                 table,
@@ -554,6 +571,295 @@ def time_insert_ways(server: PostgresServer, n: int, rounds: int) -> dict[str, A
     return result
 
 
+# -- the insert's cost, part by part (--parts-runs) ---------------------------------------------------
+# Each part: a table (columns, indexes, partitioned or not) and a way of putting the same rows in it
+# (binary COPY in batches of BATCH, the batch sorted by the team key or not, the latest-row table kept
+# by the trigger or by one upsert a batch from the client). What a part costs is the difference of
+# its server CPU per row from the part it adds to.
+_TEAM_BARE = "CREATE INDEX ON {t} (robot_name, name, time)"
+_TEAM_NODEDUP = "CREATE INDEX ON {t} (robot_name, name, time) INCLUDE (value) WITH (deduplicate_items = off)"
+_RUN_NARROW = "CREATE INDEX ON {t} (robot_name, run_id)"
+_RECORD_ID_TIME = "CREATE UNIQUE INDEX ON {t} (record_id, time)"
+_GENERATED = (
+    "tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL,"
+    " name text GENERATED ALWAYS AS (data->>'name') STORED,"
+    " robot_name text GENERATED ALWAYS AS (data->>'robot_name') STORED,"
+    " run_id bigint GENERATED ALWAYS AS (CASE WHEN data->>'run_id' ~ '^[0-9]{1,18}$'"
+    " THEN (data->>'run_id')::bigint END) STORED, value double precision"
+)
+_LATEST_SMALL = (
+    "CREATE TABLE {t}_latest (robot_name text NOT NULL, name text NOT NULL, time timestamptz NOT NULL,"
+    " record_id text NOT NULL, PRIMARY KEY (robot_name, name)) WITH (fillfactor = 70)"
+)
+_UPSERT = (
+    "INSERT INTO {t}_latest AS l (robot_name, name, time, data, record_id)"
+    " SELECT * FROM unnest(%b::text[], %b::text[], %b::timestamptz[], %b::text[]::jsonb[], %b::text[])"
+    " ON CONFLICT (robot_name, name) DO UPDATE SET time = EXCLUDED.time, data = EXCLUDED.data,"
+    " record_id = EXCLUDED.record_id WHERE l.time <= EXCLUDED.time"
+)
+_UPSERT_SMALL = (
+    "INSERT INTO {t}_latest AS l (robot_name, name, time, record_id)"
+    " SELECT * FROM unnest(%b::text[], %b::text[], %b::timestamptz[], %b::text[])"
+    " ON CONFLICT (robot_name, name) DO UPDATE SET time = EXCLUDED.time, record_id = EXCLUDED.record_id"
+    " WHERE l.time <= EXCLUDED.time"
+)
+# (part, columns, indexes, options): options among "partitioned", "into partition", "sorted", "trigger",
+# "upsert", "upsert small", "one robot", "generated"
+PARTS: tuple[tuple[str, str, list[str], set[str]], ...] = (
+    ("original's shape + UNIQUE (record_id)", _ORIGINAL, [_RECORD_ID], set()),
+    ("original's shape, no index", _ORIGINAL, [], set()),
+    ("typed, no index", _TYPED, [], set()),
+    ("original's shape + UNIQUE (record_id), text COPY", _ORIGINAL, [_RECORD_ID], {"text"}),
+    ("typed, no index, text COPY", _TYPED, [], {"text"}),
+    ("typed, no index, batches of 5,000", _TYPED, [], {"batch 5000"}),
+    ("typed, generated name/robot/run, no index", _GENERATED, [], {"generated"}),
+    ("typed, partitioned, no index, into the parent", _TYPED, [], {"partitioned"}),
+    ("typed, partitioned, no index, into the partition", _TYPED, [], {"partitioned", "into partition"}),
+    ("typed + UNIQUE (record_id)", _TYPED, [_RECORD_ID], set()),
+    ("typed + UNIQUE (record_id, time)", _TYPED, [_RECORD_ID_TIME], set()),
+    ("typed + BRIN (time)", _TYPED, [_BRIN], set()),
+    ("typed + (robot_name, name, time)", _TYPED, [_TEAM_BARE], set()),
+    ("typed + (robot_name, name, time) INCLUDE (value)", _TYPED, [_TEAM], set()),
+    ("typed + the same, deduplicate_items off", _TYPED, [_TEAM_NODEDUP], set()),
+    ("typed + the same, batch sorted by robot, name", _TYPED, [_TEAM], {"sorted"}),
+    ("typed + UNIQUE (robot_name, name, time, record_id) INCLUDE (value)", _TYPED, [_UNIQUE], set()),
+    ("typed + (robot_name, run_id, name, time)", _TYPED, [_RUN], set()),
+    ("typed + (robot_name, run_id)", _TYPED, [_RUN_NARROW], set()),
+    ("typed + the latest-row trigger", _TYPED, [], {"trigger"}),
+    ("typed + the latest row upserted by the client (with data)", _TYPED, [], {"upsert"}),
+    ("typed + the latest row upserted by the client (no data)", _TYPED, [], {"upsert small"}),
+    ("typed, no index, batches of 10 (one robot's)", _TYPED, [], {"batch 10", "one robot"}),
+    ("typed + the latest-row trigger, batches of 10 (one robot's)", _TYPED, [], {"trigger", "batch 10", "one robot"}),
+    (
+        "typed + the latest row upserted by the client, batches of 10 (one robot's)",
+        _TYPED,
+        [],
+        {"upsert", "batch 10", "one robot"},
+    ),
+    ("typed + UNIQUE (robot_name, name, time, record_id) + run index + BRIN", _TYPED, [_UNIQUE, _RUN, _BRIN], set()),
+    ("DC's plain table now (4 indexes + trigger)", _TYPED, [_RECORD_ID, _TEAM, _RUN, _BRIN], {"trigger"}),
+    ("DC's partitioned table now (3 indexes + trigger)", _TYPED, [_UNIQUE, _RUN, _BRIN], {"partitioned", "trigger"}),
+    ("the same, batch sorted by robot, name", _TYPED, [_UNIQUE, _RUN, _BRIN], {"partitioned", "trigger", "sorted"}),
+    ("UNIQUE (record_id) + team + BRIN", _TYPED, [_RECORD_ID, _TEAM, _BRIN], set()),
+    ("the same, batch sorted", _TYPED, [_RECORD_ID, _TEAM, _BRIN], {"sorted"}),
+    ("the same, sorted, + (robot_name, run_id)", _TYPED, [_RECORD_ID, _TEAM, _BRIN, _RUN_NARROW], {"sorted"}),
+    (
+        "the same, sorted, + (robot_name, run_id) + upsert",
+        _TYPED,
+        [_RECORD_ID, _TEAM, _BRIN, _RUN_NARROW],
+        {"sorted", "upsert"},
+    ),
+    (
+        "original's shape + UNIQUE (record_id), batches of 10 (one robot's)",
+        _ORIGINAL,
+        [_RECORD_ID],
+        {"batch 10", "one robot"},
+    ),
+    (
+        "DC's plain table now, batches of 10 (one robot's)",
+        _TYPED,
+        [_RECORD_ID, _TEAM, _RUN, _BRIN],
+        {"trigger", "batch 10", "one robot"},
+    ),
+    (
+        "UNIQUE (record_id) + team + BRIN + (robot_name, run_id) + upsert, batches of 10 (one robot's)",
+        _TYPED,
+        [_RECORD_ID, _TEAM, _BRIN, _RUN_NARROW],
+        {"upsert", "batch 10", "one robot"},
+    ),
+    ("original's shape + UNIQUE (record_id), one robot a batch", _ORIGINAL, [_RECORD_ID], {"one robot"}),
+    ("DC's plain table now, one robot a batch", _TYPED, [_RECORD_ID, _TEAM, _RUN, _BRIN], {"trigger", "one robot"}),
+    (
+        "UNIQUE (record_id) + team + BRIN + (robot_name, run_id) + upsert, one robot a batch",
+        _TYPED,
+        [_RECORD_ID, _TEAM, _BRIN, _RUN_NARROW],
+        {"upsert", "one robot"},
+    ),
+)
+
+
+def shared_buffers_used(connection: Any) -> int:
+    """The database's shared buffer accesses so far (hits and reads), this session's flushed first: what the
+    machine's load does not change, unlike CPU time (a btree insert's descent is a few of them per row)."""
+    connection.execute("SELECT pg_stat_force_next_flush()")
+    (used,) = connection.execute(
+        "SELECT blks_hit + blks_read FROM pg_stat_database WHERE datname = current_database()"
+    ).fetchone()
+    return int(used)
+
+
+def _latest_batch(batch: list[tuple[Any, ...]], small: bool) -> list[list[Any]]:
+    """The batch's latest row of each (robot, name), as the arrays of the client's upsert."""
+    latest: dict[tuple[str, str], tuple[Any, ...]] = {}
+    for row in batch:
+        key = (row[5], row[4])
+        if key[0] is None or key[1] is None:
+            continue
+        found = latest.get(key)
+        if found is None or found[1] <= row[1]:
+            latest[key] = row
+    rows = [latest[k] for k in sorted(latest)]
+    arrays = [[r[5] for r in rows], [r[4] for r in rows], [r[1] for r in rows]]
+    if not small:
+        arrays.append([r[2] for r in rows])
+    arrays.append([r[3] for r in rows])
+    return arrays
+
+
+def time_parts(server: PostgresServer, n: int, rounds: int, only: list[str]) -> dict[str, Any]:
+    """Server CPU (the backend's, and the whole server's), WAL bytes, client CPU and wall time per row of
+    each part in PARTS, ``rounds`` rounds in turns."""
+    import psutil
+
+    typed, original = copy_rows(insert_records(n))
+    by_robot, original_by_robot = copy_rows(insert_records(n, one_robot=True))
+    day = typed[0][1].date()
+    pid = server_pid(server)
+    names = [p[0] for p in PARTS if not only or any(word in p[0] for word in only)]
+    figures: dict[str, dict[str, list[float]]] = {
+        name: {"backend": [], "server": [], "wal": [], "buffers": [], "client": [], "wall": []} for name in names
+    }
+    with copy_connection(server) as connection:
+        (backend_pid,) = connection.execute("SELECT pg_backend_pid()").fetchone()
+        backend = psutil.Process(backend_pid)
+
+        def backend_cpu() -> float:
+            used = backend.cpu_times()
+            return float(used.user + used.system)
+
+        for k in range(rounds):
+            for j, name in enumerate(names[k % len(names) :] + names[: k % len(names)]):
+                _, columns, indexes, options = next(p for p in PARTS if p[0] == name)
+                table, target = f"part_{k}_{j}", f"part_{k}_{j}"
+                legacy = columns == _ORIGINAL
+                if "partitioned" in options:
+                    connection.execute(f"CREATE TABLE {table} ({columns}) PARTITION BY RANGE (time)")
+                    connection.execute(
+                        f"CREATE TABLE {table}_p PARTITION OF {table} FOR VALUES FROM ('{day} 00:00Z')"
+                        f" TO ('{day + dt.timedelta(days=1)} 00:00Z') WITH (autovacuum_enabled = off)"
+                    )
+                    if "into partition" in options:
+                        target = f"{table}_p"
+                else:
+                    connection.execute(f"CREATE TABLE {table} ({columns}) WITH (autovacuum_enabled = off)")
+                for statement in indexes:
+                    connection.execute(statement.format(t=table))
+                if "trigger" in options:
+                    connection.execute(block("latest-ddl").replace("dc", table).encode())
+                if "upsert" in options:  # the page's latest-row table without its trigger
+                    connection.execute(
+                        block("latest-ddl").split("CREATE OR REPLACE FUNCTION")[0].replace("dc", table).encode()
+                    )
+                if "upsert small" in options:
+                    connection.execute(_LATEST_SMALL.format(t=table))
+                one_robot = "one robot" in options
+                if legacy:
+                    rows = original_by_robot if one_robot else original
+                    types, written = ["varchar", "timestamp", "jsonb", "text"], "tag, time, data, record_id"
+                elif "generated" in options:
+                    rows = [r[:4] for r in (by_robot if one_robot else typed)]
+                    types, written = ["text", "timestamptz", "jsonb", "text"], "tag, time, data, record_id"
+                else:
+                    rows, types, written = by_robot if one_robot else typed, TYPED_COPY_TYPES, _TYPED_COLUMNS
+                upsert = _UPSERT_SMALL if "upsert small" in options else _UPSERT if "upsert" in options else ""
+                (wal_before,) = connection.execute("SELECT pg_current_wal_insert_lsn()").fetchone()
+                buffers_before = shared_buffers_used(connection)
+                before, server_before = backend_cpu(), _tree_cpu(pid)
+                client_before, started = time.process_time(), time.perf_counter()
+                size = 5000 if "batch 5000" in options else 10 if "batch 10" in options else BATCH
+                binary = "" if "text" in options else " (FORMAT BINARY)"
+                for i in range(0, n, size):
+                    batch = rows[i : i + size]
+                    if "sorted" in options:
+                        batch = sorted(batch, key=lambda r: (r[5] or "", r[4] or "", r[1]))
+                    with (
+                        connection.cursor() as cursor,
+                        cursor.copy(f"COPY {target} ({written}) FROM STDIN{binary}") as copy,
+                    ):
+                        if binary:
+                            copy.set_types(types)
+                        for row in batch:
+                            copy.write_row(row)
+                    if upsert:
+                        connection.execute(upsert.format(t=table), _latest_batch(batch, "upsert small" in options))
+                wall = (time.perf_counter() - started) / n * 1e6
+                client = (time.process_time() - client_before) / n * 1e6
+                server_cpu, cpu = (_tree_cpu(pid) - server_before) / n * 1e6, (backend_cpu() - before) / n * 1e6
+                (wal,) = connection.execute(
+                    "SELECT pg_current_wal_insert_lsn() - %s::pg_lsn", (str(wal_before),)
+                ).fetchone()
+                buffers = (shared_buffers_used(connection) - buffers_before) / n
+                measured = {
+                    "backend": cpu,
+                    "server": server_cpu,
+                    "wal": float(wal) / n,
+                    "buffers": buffers,
+                    "client": client,
+                    "wall": wall,
+                }
+                for key, value in measured.items():
+                    figures[name][key].append(value)
+                connection.execute(f"DROP TABLE {table}")
+                connection.execute(f"DROP TABLE IF EXISTS {table}_latest")
+                connection.execute(f"DROP FUNCTION IF EXISTS {table}_keep_latest")
+            print(f"parts: round {k + 1} of {rounds} done, load {os.getloadavg()[0]:.1f}", flush=True)
+    base = figures[names[0]]
+    result: dict[str, Any] = {}
+    for name in names:
+        f = figures[name]
+        result[name] = {
+            "backend_cpu_us_per_row": statistics.median(f["backend"]),
+            "backend_cpu_ratio_to_original": statistics.median(
+                [a / b for a, b in zip(f["backend"], base["backend"], strict=True)]
+            ),
+            "server_cpu_us_per_row": statistics.median(f["server"]),
+            "wal_bytes_per_row": statistics.median(f["wal"]),
+            "shared_buffer_accesses_per_row": statistics.median(f["buffers"]),
+            "client_cpu_us_per_row": statistics.median(f["client"]),
+            "wall_us_per_row": statistics.median(f["wall"]),
+            "runs": {key: [round(x, 2) for x in values] for key, values in f.items()},
+        }
+        r = result[name]
+        print(f"backend {r['backend_cpu_us_per_row']:5.1f} µs/row x{r['backend_cpu_ratio_to_original']:.2f}"
+              f"  server {r['server_cpu_us_per_row']:5.1f}  WAL {r['wal_bytes_per_row']:5.0f} B/row"
+              f"  buffers {r['shared_buffer_accesses_per_row']:4.1f}/row"
+              f"  client {r['client_cpu_us_per_row']:4.1f}  wall {r['wall_us_per_row']:5.1f}  {name}",
+              flush=True)  # fmt: skip
+    return result
+
+
+def client_parts(n: int, rounds: int) -> dict[str, float]:
+    """The client's CPU per row of the PgSQL destination's own work before the COPY, without a server: the
+    JSON text of each record, then the row of each shape (a typed one reads three keys of the JSON)."""
+    from dc_destinations.pgsql.table import LEGACY_COLUMNS, TYPED_COLUMNS, TableShape
+
+    params = parse_params(PgSQLParams, {"table": "dc", "value_keys": {"cpu": "average"}}, "destination_server.pg")
+    dest = PgSQL(FakeContext(name="pg", logger=RecordingLogger()), params)
+    legacy_types = ["character varying", "timestamp without time zone", "jsonb", "text"]
+    typed_types = ["text", "timestamp with time zone", "jsonb", "text", "text", "text", "bigint", "double precision"]
+    shapes = {
+        "original's shape": TableShape(False, dict(zip(LEGACY_COLUMNS, legacy_types, strict=True)), frozenset()),
+        "typed": TableShape(
+            False, dict(zip((*TYPED_COLUMNS, "value"), typed_types, strict=True)), frozenset({"{record_id}"})
+        ),
+    }
+    times: dict[str, list[float]] = {"JSON text": [], **{f"row, {s}": [] for s in shapes}}
+    for _ in range(rounds):
+        records = insert_records(n)
+        started = time.process_time()
+        pending = [(i, r, r.to_json()) for i, r in enumerate(records)]
+        times["JSON text"].append((time.process_time() - started) / n * 1e6)
+        for name, shape in shapes.items():
+            dest._shape = shape
+            started = time.process_time()
+            dest._rows(pending)
+            times[f"row, {name}"].append((time.process_time() - started) / n * 1e6)
+    result = {name: statistics.median(runs) for name, runs in times.items()}
+    for name, value in result.items():
+        print(f"client CPU {value:5.2f} µs/row  {name}", flush=True)
+    return result
+
+
 def load() -> list[float]:
     """The 1, 5 and 15-minute load averages (the machine is shared: every figure is read with them)."""
     return [round(x, 2) for x in os.getloadavg()]
@@ -563,12 +869,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=100, help="0: the insert rate only")
     parser.add_argument("--hours", type=int, default=24)
+    parser.add_argument("--partition-by", default="day", help="of the queries' table: day, week or none")
     parser.add_argument("--runs", type=int, default=15, help="warm runs of each query")
     parser.add_argument("--cold-runs", type=int, default=3, help="runs of each query right after a server restart")
     parser.add_argument("--insert-records", type=int, default=50_000)
     parser.add_argument("--insert-runs", type=int, default=7)
     parser.add_argument("--index-runs", type=int, default=0, help="rounds of the server's CPU per row per index set")
     parser.add_argument("--ways-runs", type=int, default=0, help="rounds of the insert's ways (COPY, ON CONFLICT, …)")
+    parser.add_argument("--parts-runs", type=int, default=0, help="rounds of the insert's cost part by part")
+    parser.add_argument("--parts", action="append", default=[], help="only the parts whose name holds this text")
     parser.add_argument("--label", default="")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="dc-bench-model-"))
@@ -588,9 +897,20 @@ def main() -> None:
             result["load_before_ways"] = load()
             result["insert_ways"] = time_insert_ways(server, args.insert_records, args.ways_runs)
             result["load_after_ways"] = load()
+        if args.parts_runs:
+            result["load_before_parts"] = load()
+            result["insert_parts"] = time_parts(server, args.insert_records, args.parts_runs, args.parts)
+            result["client_parts"] = client_parts(args.insert_records, args.parts_runs)
+            result["load_after_parts"] = load()
         if args.robots:
-            rows, seconds = generate(server, args.robots, args.hours)
-            result.update(hours=args.hours, rows=rows, generate_s=seconds, load_before_queries=load())
+            rows, seconds = generate(server, args.robots, args.hours, args.partition_by)
+            result.update(
+                hours=args.hours,
+                partition_by=args.partition_by,
+                rows=rows,
+                generate_s=seconds,
+                load_before_queries=load(),
+            )
             result["queries"] = time_queries(server, args.runs)
             result["load_after_warm_queries"] = load()
             if args.cold_runs:

@@ -32,6 +32,10 @@ def RUN_OF(alias: str) -> sql.SQL:
     return _expression("run_id", alias)
 
 
+def ROBOT_OF(alias: str) -> sql.SQL:
+    return _expression("robot_name", alias)
+
+
 @dataclass(frozen=True)
 class Index:
     suffix: str

@@ -173,16 +173,15 @@ class Store:
         return [row[0] for row in connection.execute(query).fetchall()]
 
     def runs(self, connection: Any, robot: str) -> list[str]:
-        """The robot's runs (every robot's without one), newest run number first, at most 200."""
+        """The robot's runs (without one, those of each destination's newest 5,000 rows), newest run number
+        first, at most 200."""
         from psycopg import sql
 
         if robot:
             query = sql.SQL(_DISTINCT_RUNS).format(t=self.table, robot=indexes.ROBOT, run=indexes.RUN)
             runs = [row[0] for row in connection.execute(query, {"robot": robot}).fetchall()]
         else:
-            query = sql.SQL(
-                "SELECT DISTINCT {run} FROM (SELECT data FROM {t} ORDER BY time DESC LIMIT 5000) AS newest"
-            ).format(t=self.table, run=indexes.RUN)
+            query = sql.SQL(_NEWEST_RUNS).format(t=self.table, run=indexes.RUN)
             runs = [row[0] for row in connection.execute(query).fetchall() if row[0] is not None]
         return sorted(runs, key=lambda r: (len(r), r), reverse=True)[:200]
 
@@ -338,10 +337,7 @@ class Store:
             filters,
             robot_column=sql.SQL("robot_name"),
             time_column=sql.SQL("timestamp"),
-            # files_metrics has no run: the record that brought the file has (unique index on record_id).
-            run_condition=sql.SQL(
-                "EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s)"
-            ).format(t=self.table, run=indexes.RUN_OF("r")),
+            run_condition=self.files_run_condition(filters),
         )
         scope = sql.SQL(" AND ").join([sql.SQL("true"), *conditions])
         counts_query = sql.SQL(
@@ -368,6 +364,20 @@ class Store:
         rows = [dict(zip(columns, row, strict=True)) for row in cursor.fetchall()]
         counts = {"all": total, "uploaded": uploaded, "verified": verified, "deleted": deleted, "pending": pending}
         return FilesPage(rows[:FILES_PAGE], counts, int(size), len(rows) > FILES_PAGE)
+
+    def files_run_condition(self, filters: Filters) -> Any:
+        """The run filter of files_metrics ``f``, on ``%(run)s`` (and ``%(robot)s`` with the robot filter)."""
+        from psycopg import sql
+
+        # files_metrics has no run: the record that brought the file has. With a robot, that record is
+        # the robot's (a file's robot_name is its record's): the run's rows of the robot are read through
+        # the (robot, run, name, time) index and matched by record_id, without an index on record_id
+        # (a partitioned table DC makes has none: docs/data-model.md). Without a robot, each file's record is
+        # looked up by record_id.
+        robot = sql.SQL(" AND {} = %(robot)s").format(indexes.ROBOT_OF("r")) if filters.robot else sql.SQL("")
+        return sql.SQL(
+            "EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s{robot})"
+        ).format(t=self.table, run=indexes.RUN_OF("r"), robot=robot)
 
     def last_stored(self, connection: Any) -> dict[str, dt.datetime | None]:
         """Per destination (the ``tag`` column): the time of its newest row."""
@@ -534,6 +544,17 @@ WITH RECURSIVE runs(run) AS (
     FROM runs WHERE runs.run IS NOT NULL
 )
 SELECT run FROM runs WHERE run IS NOT NULL LIMIT 1000"""
+
+# The newest rows of each destination (tag) through the (tag, time) index: no index orders the whole
+# table by time (BRIN cannot), and a sort of every row took 20 s on 7.6 M rows.
+_NEWEST_RUNS = """
+WITH RECURSIVE tags(tag) AS (
+    (SELECT tag FROM {t} WHERE tag IS NOT NULL ORDER BY tag LIMIT 1)
+    UNION ALL
+    SELECT (SELECT tag FROM {t} WHERE tag > tags.tag ORDER BY tag LIMIT 1) FROM tags WHERE tags.tag IS NOT NULL
+)
+SELECT DISTINCT {run} FROM (SELECT tag FROM tags WHERE tag IS NOT NULL LIMIT 50) AS found
+CROSS JOIN LATERAL (SELECT data FROM {t} WHERE tag = found.tag ORDER BY time DESC LIMIT 5000) AS newest"""
 
 _LAST_PER_TAG = """
 WITH RECURSIVE tags(tag) AS (

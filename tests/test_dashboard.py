@@ -324,6 +324,49 @@ def test_the_queries_use_the_indexes_it_creates(database: PostgresSettings) -> N
     assert "dc_dash_robot_run_name_time" in str(plan), plan
 
 
+def test_the_runs_without_a_robot_come_from_the_newest_rows_through_the_tag_index(database: PostgresSettings) -> None:
+    import psycopg
+    from psycopg import sql
+
+    from dc_dashboard.queries import _NEWEST_RUNS
+
+    assert indexes.create(database, say=lambda text: None) == 0
+    store = Store(database)
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("SET enable_seqscan = off")  # a tiny table: would a large one be sorted whole?
+        assert store.runs(connection, "") == ["2", "1"]
+        query = sql.SQL("EXPLAIN " + _NEWEST_RUNS).format(t=store.table, run=indexes.RUN)
+        plan = "\n".join(row[0] for row in connection.execute(query).fetchall())
+    assert "Index Scan Backward using dc_dash_tag_time" in plan and 'Sort Key: dc."time"' not in plan, plan
+
+
+def test_the_files_of_a_robots_run_are_found_without_an_index_on_record_id(database: PostgresSettings) -> None:
+    import psycopg
+    from psycopg import sql
+
+    from dc_dashboard.queries import _filtered
+
+    # A partitioned records table DC makes has no index on record_id alone (its unique btree begins with the robot).
+    assert indexes.create(database, say=lambda text: None) == 0
+    store, filters = Store(database), Filters(robot="C3PO", run="2")
+    with psycopg.connect(**database.connect_kwargs()) as connection:  # one transaction, rolled back
+        connection.execute("DROP INDEX dc_record_id")
+        connection.execute("SET LOCAL enable_seqscan = off")
+        assert store.files(connection, filters).counts["all"] == 2
+        conditions, params = _filtered(
+            filters,
+            robot_column=sql.SQL("robot_name"),
+            time_column=sql.SQL("timestamp"),
+            run_condition=store.files_run_condition(filters),
+        )
+        query = sql.SQL("EXPLAIN SELECT 1 FROM files_metrics f WHERE {}").format(sql.SQL(" AND ").join(conditions))
+        plan = "\n".join(row[0] for row in connection.execute(query, params).fetchall())
+        connection.rollback()
+    # The run's rows of the robot, sought in the dashboard's (robot, run, name, time) index: not every row read.
+    assert "dc_dash_robot_run_name_time" in plan and "'C3PO'::text" in plan.split("dc_dash_robot_run_name_time")[1]
+    assert "Seq Scan on dc" not in plan, plan
+
+
 def test_its_indexes_are_built_on_a_partitioned_table_too(database: PostgresSettings) -> None:
     import dataclasses
 

@@ -69,11 +69,8 @@ def server() -> Iterator[PostgresServer]:
 
 
 def destination(server: PostgresServer, table: str, logger: RecordingLogger, partition_by: str = "day") -> PgSQL:
-    params = parse_params(
-        PgSQLParams,
-        {**server.settings(), "table": table, "partition_by": partition_by, "value_keys": {"cpu": "average"}},
-        "destination_server.pg",
-    )
+    settings = {"table": table, "partition_by": partition_by, "value_keys": {"cpu": "average"}, "latest_table": True}
+    params = parse_params(PgSQLParams, {**server.settings(), **settings}, "destination_server.pg")
     dest = PgSQL(FakeContext(name="pg", logger=logger), params)
     dest.on_configure()
     return dest
@@ -215,6 +212,44 @@ def test_the_documented_migration_makes_a_table_dc_writes_to_without_a_hint(serv
     finally:
         dest.on_deactivate()
     assert not [m for m in logger.at("warning") if "original's shape" in m]
+
+
+def test_the_documented_index_migration_of_a_plain_table_made_before(server: PostgresServer) -> None:
+    with server.connect() as connection:
+        connection.execute("CREATE SCHEMA before")
+        connection.execute("SET search_path TO before")
+        connection.execute(
+            "CREATE TABLE dc (tag text, time timestamptz NOT NULL, data jsonb, record_id text NOT NULL,"
+            " name text, robot_name text, run_id bigint, value double precision)"
+        )
+        for index in (
+            "UNIQUE INDEX dc_record_id ON dc (record_id)",  # the indexes DC makes for a plain table
+            "INDEX dc_robot_name_time ON dc (robot_name, name, time) INCLUDE (value)",
+            "INDEX dc_robot_run_time ON dc (robot_name, run_id, name, time)",
+        ):
+            connection.execute(f"CREATE {index}".encode())
+        connection.commit()
+    batch = [record(at(h), **robot("robot-1", 1, "cpu", average=float(h))) for h in (1, 2, 3)]
+    dest = destination(server, "before.dc", RecordingLogger(), partition_by="none")
+    try:
+        assert dest.send(batch[:2]) is None
+        with server.connect() as connection:
+            connection.autocommit = True  # CONCURRENTLY: outside a transaction block, a statement at a time
+            connection.execute("SET search_path TO before")
+            for statement in block("index-migration").split(";"):
+                if statement.strip():
+                    connection.execute(statement.encode())
+        dest.on_deactivate()  # DC's next connection
+        assert dest.send(batch) is None, "two sent again, met on the new key, and a new one"
+        with server.connect() as connection:
+            got = connection.execute("SELECT record_id FROM before.dc ORDER BY time").fetchall()
+            indexes = connection.execute(
+                "SELECT indexrelid::regclass::text FROM pg_index WHERE indrelid = 'before.dc'::regclass ORDER BY 1"
+            ).fetchall()
+    finally:
+        dest.on_deactivate()
+    assert [r for (r,) in got] == [r.record_id for r in batch]
+    assert indexes == [("before.dc_robot_name_time",), ("before.dc_robot_run_time",)]
 
 
 def test_the_documented_fill_of_a_latest_table_added_to_an_existing_table(server: PostgresServer) -> None:

@@ -160,3 +160,35 @@ def test_a_time_that_is_not_iso_8601_is_refused_before_any_store_is_read(capsys:
         main(["reconcile", "--robot", "c3po", "--since", "yesterday"])
     assert exited.value.code == 2
     assert "argument --since: invalid ISO 8601 time value: 'yesterday'" in capsys.readouterr().err
+
+
+def test_a_table_dc_made_is_read_through_its_robot_index_with_the_same_records(pg: PostgresServer) -> None:
+    from psycopg import sql
+
+    from dc_bringup.reconcile import _records_query
+    from dc_destinations.pgsql.table import create_typed
+
+    now = dt.datetime.now(dt.UTC)
+    window = {"robot": "c3po", "since": now - dt.timedelta(minutes=5), "until": now}
+    with connect(pg) as connection:
+        create_typed(connection, sql.Identifier("typed_dc"), "typed_dc", "none", latest=False)
+        rows = [  # (robot, name, seconds before now)
+            ("c3po", "map", 60), ("c3po", "cpu", 30), ("c3po", None, 10),  # in the range
+            ("c3po", "map", 600), ("c3po", "cpu", 0), ("r2d2", "map", 60),  # before it, at its end, another robot
+        ]  # fmt: skip
+        for robot, name, ago in rows:
+            data = {"name": name, "robot_name": robot}
+            connection.execute(
+                "INSERT INTO typed_dc (time, data, record_id, name, robot_name) VALUES (%s, %s, %s, %s, %s)",
+                (now - dt.timedelta(seconds=ago), Jsonb(data), new_record_id(), name, robot),
+            )
+        connection.execute("SET enable_seqscan = off")  # a tiny table: see whether the index serves the query
+        typed = _records_query(connection, "typed_dc")
+        found = sorted(rid for rid, _ in connection.execute(typed, window).fetchall())
+        plan = str(connection.execute(sql.SQL("EXPLAIN ") + typed, window).fetchall())
+        original_shape = sql.SQL(
+            "SELECT record_id FROM typed_dc WHERE time >= %(since)s AND time < %(until)s AND data->>'robot_name' = %(robot)s"
+        )
+        expected = sorted(rid for (rid,) in connection.execute(original_shape, window).fetchall())
+    assert len(found) == 3 and found == expected
+    assert "typed_dc_robot_name_time" in plan and "Seq Scan" not in plan, plan

@@ -4,10 +4,10 @@ A table DC creates has typed columns (``time timestamptz``, ``name``, ``robot_na
 bigint`` beside the original's ``tag`` and ``data jsonb``), the indexes a data team's queries need,
 and optionally time partitions (table.py). A table that exists is used as it is: one of the
 original's shape (Fluent Bit's ``pgsql`` output: ``tag``, ``time``, ``data``) gets only the
-``record_id`` column and its unique index, the rest being a documented migration. The unique index
-on ``record_id`` makes a batch inserted again after a failure whose outcome was unknown (the
-connection died during COMMIT) add nothing twice (``ON CONFLICT DO NOTHING``), so the buffer's
-at-least-once delivery becomes exactly one row per record.
+``record_id`` column and its unique index, the rest being a documented migration. A unique index
+holding ``record_id`` (with robot, name and time in a partitioned table DC makes) makes a batch inserted again
+after a failure whose outcome was unknown (the connection died during COMMIT) add nothing twice
+(``ON CONFLICT DO NOTHING``), so the buffer's at-least-once delivery becomes exactly one row per record.
 
 A batch is one ``COPY`` of its rows straight into the table, outside any transaction block: the
 statement is its own transaction, committed before the server answers it, so a batch is all in
@@ -103,9 +103,10 @@ class PgSQLParams(PostgresServerParams):
         " run's rows only; false: none (inserts cost the server less, a query by run reads the robot's rows)",
     )
     latest_table: bool = param(
-        True,
+        False,
         doc="A table DC creates gets <table>_latest, each robot's latest record of each measurement, kept by a"
-        " trigger of the table (PostgreSQL 14+); false: not made",
+        " trigger of the table (PostgreSQL 14+): worth it with partition_by, whose skip scan probes each partition;"
+        " false: not made (the trigger costs every insert; a plain table's skip scan answers)",
     )
     async_: bool = compat_param(
         False, "each batch is written by the destination's own sender thread", aliases=("async",)

@@ -456,6 +456,11 @@ def test_a_new_table_has_typed_columns_and_the_team_indexes(server: PostgresServ
     assert any("UNIQUE" in i and "(record_id)" in i for i in indexes), indexes
     assert partitions == []
     with admin(server) as connection:
+        found = connection.execute(
+            "SELECT to_regclass('typed_latest'), (SELECT count(*) FROM pg_trigger WHERE tgrelid = 'typed'::regclass)"
+        ).fetchone()
+    assert found == (None, 0), "no latest-row table by default: its trigger would cost every insert"
+    with admin(server) as connection:
         connection.execute("SET TIME ZONE 'America/Los_Angeles'")  # a session in another zone sees the same rows
         got = connection.execute(
             "SELECT name, robot_name, run_id, value FROM typed WHERE time >= '2023-11-14 22:13:20Z' ORDER BY run_id"
@@ -548,7 +553,7 @@ def test_the_latest_table_holds_each_pairs_latest_record_whatever_the_order(
         keys = {"robot_name": robot, "name": name} if robot else {"name": name}
         return OutgoingRecord(rid, "/dc/measurement/t", today_ns + seconds * 10**9, {**keys, **data, "record_id": rid})
 
-    dest = make(server, destinations, table="latest", partition_by="day", retention_days=30)
+    dest = make(server, destinations, table="latest", partition_by="day", retention_days=30, latest_table=True)
     first = [
         at(5, "r1", "cpu", v=5),
         at(3, "r1", "cpu", v=3),
