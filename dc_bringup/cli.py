@@ -354,6 +354,13 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
                 f"{buffer['commit_error']}"
             )
     _print_saved_files(metrics.get("saved_files"))
+    account = metrics.get("disk_budget")
+    if isinstance(account, dict):
+        over = f", left over it by {account.get('checks_left_over')} checks" if account.get("checks_left_over") else ""
+        print(
+            f"disk budget: {_cell(account.get('held'))} of {_cell(account.get('budget'))} bytes held "
+            f"(records waiting + saved files; at most {_cell(account.get('most_held'))}{over})"
+        )
     for section, values in sorted(metrics.items()):
         if section not in ("destinations", "buffer", "threads", "saved_files") and isinstance(values, dict):
             flat = ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict))

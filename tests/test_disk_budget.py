@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 
+from dc_bringup.cli import _print_delivery
 from dc_bringup.local_servers.postgres import PostgresServer
 from dc_bringup.local_servers.postgres import missing_reason as postgres_missing
 from dc_bringup.local_servers.seaweedfs import SeaweedS3Server
@@ -715,7 +716,9 @@ def health_record(n: int) -> OutgoingRecord:
     return OutgoingRecord(rid, "/dc/measurement/health", n, {"n": n, "pad": "x" * 20 * KB, "record_id": rid})
 
 
-def test_the_budget_holds_after_every_group_commit_not_only_at_the_next_tick(tmp_path: Path) -> None:
+def test_the_budget_holds_after_every_group_commit_not_only_at_the_next_tick(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """A clock that stands still: the twice-a-second tick never comes, only admissions keep the budget.
     Images of 100 kB (retention priority 0) and health records of 20 kB (the queue's priority 5) into a
     1 MB budget, a commit at a time: after each, what is on disk of the images plus the records waiting
@@ -756,9 +759,12 @@ def test_the_budget_holds_after_every_group_commit_not_only_at_the_next_tick(tmp
             assert pipeline.flush_intake(10)
             assert on_disk() <= budget, f"over the budget after the commit of record {n}"
         document = pipeline.status_document()
+        _print_delivery(document, wide=False)
     finally:
         pipeline.stop(0.5)
     account = document["disk_budget"]
+    said = f"disk budget: {account['held']} of {budget} bytes held (records waiting + saved files; at most "
+    assert f"{said}{account['most_held']})" in capsys.readouterr().out
     assert account["budget"] == budget and account["most_held"] <= budget and account["checks_left_over"] == 0
     camera = document["saved_files"]["measurements"]["camera"]
     assert camera["produced"] == 40 and camera["evicted"] == 40 and not any(p.exists() for p in images)
