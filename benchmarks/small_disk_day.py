@@ -14,7 +14,9 @@ run of --calibrate simulated seconds without a cap); the records go to a JSON-li
 
 Retention priorities: incidents 10, map 5, front_camera 0; the first and last 2 files of each run are
 evicted last. Every 2 s the metrics are read: the most the budget ever held (saved files + records
-waiting) is reported against the budget. At the end, per measurement: files produced, sent
+waiting, summed from two readings) is reported against the budget, with DC's own account
+(``disk_budget`` in the metrics: the most it held after a check, and how many checks left it over).
+At the end, per measurement: files produced, sent
 (delivered and verified), kept on disk, evicted (and of those, never sent), with their bytes; and
 whether anything was evicted unsent while a lower priority still had a file it could give. The last
 metrics document is written to ``metrics.json`` in the run's work folder.
@@ -268,6 +270,12 @@ def table(document: dict[str, Any], budget: int) -> str:
             f"{d['buffered']} | {d['evicted']} | {d['evicted']} | {d['dead_lettered']} |"
         )
     lines.append(f"\nmost held at once: {document['most_held'] / 1e6:.1f} MB of a {budget / 1e6:.1f} MB budget")
+    account = document.get("disk_budget")
+    if account:  # DC's own account after each check (an admission, the tick): one reading, not two summed
+        lines.append(
+            f"DC's account: most held {account['most_held']:,} of {account['budget']:,} bytes; "
+            f"checks that left it over: {account['checks_left_over']}"
+        )
     # An unsent file evicted of a priority while a lower one kept more than its run ends would break the rule.
     broken = [
         (high, low)

@@ -318,6 +318,14 @@ def _print_saved_files(saved: Any) -> None:
         )
 
 
+def _of_measurements(values: dict[str, Any], counter: str) -> str:
+    """`` (records of camera 100, robot 20)``: ``counter`` per measurement, as the metrics give it."""
+    of = values.get(f"{counter}_by_measurement")
+    if not isinstance(of, dict) or not of:
+        return ""
+    return " (records of " + ", ".join(f"{m} {_cell(n)}" for m, n in sorted(of.items())) + ")"
+
+
 def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
     destinations = metrics.get("destinations", {})
     now = time.time()
@@ -336,15 +344,14 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
         elif isinstance(values, dict) and values.get("held"):
             print(f"destination {name} {values['held']} (only_when; docs/constrained_links.md)")
         if isinstance(values, dict) and (values.get("evicted") or values.get("files_evicted")):
-            of = values.get("evicted_by_measurement")
-            measurements = (
-                " (records of " + ", ".join(f"{m} {_cell(n)}" for m, n in sorted(of.items())) + ")"
-                if isinstance(of, dict) and of
-                else ""
-            )
             print(
                 f"destination {name}: {values.get('evicted') or 0} records and {values.get('files_evicted') or 0} "
-                f"saved files evicted unsent by the disk budget{measurements}"
+                f"saved files evicted unsent by the disk budget{_of_measurements(values, 'evicted')}"
+            )
+        if isinstance(values, dict) and values.get("dropped"):
+            print(
+                f"destination {name}: {values['dropped']} records dropped by its size limit "
+                f"(storage_total_limit_size) or a full intake{_of_measurements(values, 'dropped')}"
             )
     for name, values in sorted(destinations.items()):
         own = values.get("plugin") if isinstance(values, dict) else None
@@ -371,6 +378,13 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
                 f"{buffer['commit_error']}"
             )
     _print_saved_files(metrics.get("saved_files"))
+    account = metrics.get("disk_budget")
+    if isinstance(account, dict):
+        over = f", left over it by {account.get('checks_left_over')} checks" if account.get("checks_left_over") else ""
+        print(
+            f"disk budget: {_cell(account.get('held'))} of {_cell(account.get('budget'))} bytes held "
+            f"(records waiting + saved files; at most {_cell(account.get('most_held'))}{over})"
+        )
     for section, values in sorted(metrics.items()):
         if section not in ("destinations", "buffer", "threads", "saved_files") and isinstance(values, dict):
             flat = ", ".join(f"{k} {_cell(v)}" for k, v in values.items() if not isinstance(v, dict))

@@ -527,7 +527,7 @@ def health(
             "<tr><th>destination</th><th>health</th><th class=num>received</th><th class=num>sent</th>"
             "<th class=num>pending</th>"
             "<th class=num>oldest pending</th><th class=num>retried</th><th class=num>failed</th>"
-            "<th class=num>dead letters</th><th class=num>evicted</th><th>held</th>"
+            "<th class=num>dead letters</th><th class=num>dropped</th><th class=num>evicted</th><th>held</th>"
             "<th>last delivery</th><th>newest row's record time</th>"
             "<th>last error</th></tr>"
             f"{rows}</table></div>"
@@ -556,13 +556,23 @@ def health(
 
 
 def _budget_cells(destination: dict[str, Any]) -> str:
-    """Evicted by the disk budget (records, and the saved files it carries), and why it is held."""
+    """Dropped by the size limit, evicted by the disk budget (records, and the saved files it carries),
+    each with its records per measurement, and why it is held."""
     files = destination.get("files_evicted")
     evicted = _int(destination.get("evicted")) + (f" + {_int(files)} files" if files else "")
-    of = destination.get("evicted_by_measurement")
-    if isinstance(of, dict) and of:  # whose records: the measurements have retention priorities of their own
-        evicted += " (" + ", ".join(f"{escape(str(m))} {_int(n)}" for m, n in sorted(of.items())) + ")"
-    return f"<td class=num>{evicted}</td><td class=held>{escape(str(destination.get('held') or ''))}</td>"
+    return (
+        f"<td class=num>{_int(destination.get('dropped'))}{_per_measurement(destination, 'dropped')}</td>"
+        f"<td class=num>{evicted}{_per_measurement(destination, 'evicted')}</td>"
+        f"<td class=held>{escape(str(destination.get('held') or ''))}</td>"
+    )
+
+
+def _per_measurement(destination: dict[str, Any], counter: str) -> str:
+    """`` (camera 55, health 3)``: whose records, as the measurements have retention priorities of their own."""
+    of = destination.get(f"{counter}_by_measurement")
+    if not isinstance(of, dict) or not of:
+        return ""
+    return " (" + ", ".join(f"{escape(str(m))} {_int(n)}" for m, n in sorted(of.items())) + ")"
 
 
 def _saved_files_panel(server: ServerHealth) -> str:

@@ -201,6 +201,8 @@ class AppendResult:
     # Whoever must know that a record left its queue undelivered (``dc ingest`` hands its message
     # back to the stream) needs which ones; filled only when some were dropped.
     dropped_ids: dict[str, list[str]] = field(default_factory=dict)
+    # How many of each input topic were dropped (counted per measurement); filled only when some were.
+    dropped_topics: dict[str, Counter[str]] = field(default_factory=dict)
 
 
 class Evicted(NamedTuple):
@@ -263,6 +265,10 @@ class Buffer(Protocol):
     @property
     def closed(self) -> bool: ...
     def close(self) -> None: ...
+    def exclusive(self) -> AbstractContextManager[None]:
+        """Within it, the calling thread's operations are the only ones: what they change is seen by
+        the others all at once (the group commit and the disk budget's eviction after it)."""
+
     def ensure_queues(self, destinations: Sequence[str]) -> None:
         """Create the queues that do not exist yet."""
 
@@ -291,11 +297,16 @@ class Buffer(Protocol):
         """Forget confirmed rows (``sent`` False: evicted unsent); returns how many were there."""
 
     def record_failure(
-        self, destination: str, row_ids: Sequence[int], *, dropped_ids: list[str] | None = None
+        self,
+        destination: str,
+        row_ids: Sequence[int],
+        *,
+        dropped_ids: list[str] | None = None,
+        dropped_topics: Counter[str] | None = None,
     ) -> dict[int, int]:
         """One more failed attempt for each row; returns their attempt counts. Those the size limit
         dropped while they were held (:meth:`hold`) are deleted now, their record_ids added to
-        ``dropped_ids`` (counted in the queue's ``dropped``)."""
+        ``dropped_ids`` and their input topics to ``dropped_topics`` (counted in the queue's ``dropped``)."""
 
     def hold(self, destination: str, row_ids: Sequence[int]) -> None:
         """These rows are in a ``send()``: the size limit drops none of them before the destination
@@ -754,6 +765,11 @@ class SqliteBuffer:
         self._set_aside(reason)
 
     @contextmanager
+    def exclusive(self) -> Iterator[None]:
+        with self._lock:  # reentrant: the operations inside take it again
+            yield
+
+    @contextmanager
     def _transaction(self) -> Iterator[sqlite3.Connection]:
         with self._locked() as conn:
             conn.execute("BEGIN IMMEDIATE")
@@ -872,11 +888,13 @@ class SqliteBuffer:
                 counts = self._by_topic.get(destination)
                 if limit.max_bytes is not None:
                     dropped: list[str] = []
+                    topics: Counter[str] = Counter()
                     rows, dropped_newest, dropped_oldest = self._apply_limit(
-                        conn, destination, qid, rows, limit, dropped
+                        conn, destination, qid, rows, limit, dropped, topics
                     )
                     if dropped:
                         result.dropped_ids[destination] = dropped
+                        result.dropped_topics[destination] = topics
                 insert = (
                     f"INSERT INTO q_{qid} (record_id, topic, stamp_ns, enqueued_ns, size, payload, payload_crc) "
                     "VALUES (?, ?, ?, ?, ?, ?, ?)"
@@ -947,14 +965,22 @@ class SqliteBuffer:
         rows: list[_QueueRow],
         limit: QueueLimit,
         dropped: list[str],
+        topics: Counter[str],
     ) -> tuple[list[_QueueRow], int, int]:
         """Rows that fit, records dropped from the batch, rows deleted from the queue head; the
-        record_ids of both added to ``dropped``."""
+        record_ids of both added to ``dropped``, their input topics to ``topics``."""
         assert limit.max_bytes is not None
         max_bytes = limit.max_bytes
+
+        def drop(row: _QueueRow) -> None:
+            dropped.append(str(row[0]))
+            topics[str(row[1])] += 1
+
         # A record bigger than the whole limit can never fit: it is dropped whatever the policy.
         fitting = [row for row in rows if row[4] <= max_bytes]
-        dropped.extend(str(row[0]) for row in rows if row[4] > max_bytes)
+        for row in rows:
+            if row[4] > max_bytes:
+                drop(row)
         dropped_newest = len(rows) - len(fitting)
         used = conn.execute("SELECT bytes FROM queues WHERE qid=?", (qid,)).fetchone()[0]
         if not limit.drop_oldest:
@@ -965,7 +991,7 @@ class SqliteBuffer:
                     used += row[4]
                 else:
                     dropped_newest += 1
-                    dropped.append(str(row[0]))
+                    drop(row)
             return kept, dropped_newest, 0
         incoming = sum(row[4] for row in fitting)
         # Within one batch, newer records win over older ones of the same batch too.
@@ -973,18 +999,19 @@ class SqliteBuffer:
             gone = fitting.pop(0)
             incoming -= gone[4]
             dropped_newest += 1
-            dropped.append(str(gone[0]))
+            drop(gone)
         need = used + incoming - max_bytes
         dropped_oldest = 0
         if need > 0:
             head = self._drop_head(conn, destination, qid, need)
-            dropped.extend(head)
+            dropped.extend(record_id for record_id, _topic in head)
+            topics.update(topic for _record_id, topic in head)
             dropped_oldest = len(head)
         return fitting, dropped_newest, dropped_oldest
 
-    def _drop_head(self, conn: sqlite3.Connection, destination: str, qid: int, need: int) -> list[str]:
+    def _drop_head(self, conn: sqlite3.Connection, destination: str, qid: int, need: int) -> list[tuple[str, str]]:
         """Delete a queue's oldest rows, at least ``need`` bytes of them (all there are, if fewer); their
-        record_ids. Not counted here.
+        (record_id, input topic). Not counted here.
 
         A row held in a send() is only marked: the destination may confirm it, and a record must never
         be counted both dropped and sent. It goes, counted dropped, if its send fails
@@ -1002,9 +1029,9 @@ class SqliteBuffer:
 
     def _delete_head_rows(
         self, conn: sqlite3.Connection, destination: str, qid: int, row_ids: list[int] | None, last_id: int = 0
-    ) -> list[str]:
+    ) -> list[tuple[str, str]]:
         """Delete rows of the queue's head, ``row_ids`` (None: every row up to ``last_id``), kept out of
-        the counts per topic; their record_ids."""
+        the counts per topic; their (record_id, input topic)."""
         args: tuple[object, ...]
         if row_ids is None:
             where, args = "id <= ?", (last_id,)
@@ -1025,7 +1052,7 @@ class SqliteBuffer:
             # their ids to the new rows, and that sender's delete of its confirmed rows would then
             # delete new records unsent.
             self._id_floor[destination] = max(self._id_floor.get(destination, 0), self._max_read[destination])
-        return [str(record_id) for record_id, _topic, _size in deleted]
+        return [(str(record_id), str(topic)) for record_id, topic, _size in deleted]
 
     def read_batch(self, destination: str, limit: int, *, after_id: int = 0) -> list[BufferedRow]:
         """The oldest ``limit`` rows of a queue after ``after_id`` (memory bounded by ``limit``, whatever the
@@ -1066,11 +1093,16 @@ class SqliteBuffer:
         return len(sizes)
 
     def record_failure(
-        self, destination: str, row_ids: Sequence[int], *, dropped_ids: list[str] | None = None
+        self,
+        destination: str,
+        row_ids: Sequence[int],
+        *,
+        dropped_ids: list[str] | None = None,
+        dropped_topics: Counter[str] | None = None,
     ) -> dict[int, int]:
         """Count one more failed attempt for each row; returns the rows' attempt counts. Those the size
         limit chose while their send ran (:meth:`hold`) are deleted now, counted dropped, their
-        record_ids added to ``dropped_ids``."""
+        record_ids added to ``dropped_ids``, their input topics to ``dropped_topics``."""
         if not row_ids:
             return {}
         with self._transaction() as conn:
@@ -1085,7 +1117,9 @@ class SqliteBuffer:
                 gone = self._delete_head_rows(conn, destination, qid, sorted(doomed.intersection(row_ids)))
                 conn.execute("UPDATE queues SET dropped = dropped + ? WHERE qid = ?", (len(gone), qid))
                 if dropped_ids is not None:
-                    dropped_ids.extend(gone)
+                    dropped_ids.extend(record_id for record_id, _topic in gone)
+                if dropped_topics is not None:
+                    dropped_topics.update(topic for _record_id, topic in gone)
             self.release(destination, row_ids)
         return {int(row_id): int(attempts) for row_id, attempts in rows}
 

@@ -25,6 +25,8 @@ import queue
 import sqlite3
 import threading
 import time
+import traceback
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -165,6 +167,9 @@ class GroupCommitter:
         self._listeners: list[CommitListener] = []
         # Called with the hop keys of each group commit once it succeeded (destination_server's acks).
         self.on_seen_committed: Callable[[list[HopKey]], None] | None = None
+        # Called on the writer thread right after each group commit, within Buffer.exclusive (the
+        # pipeline keeps the disk budget there): must not wait for another thread.
+        self.after_append: Callable[[], None] = lambda: None
         self.intake_drop_log = BurstLog(logger.error, "delivery intake: records dropped")
         self.commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
         # (since, error) while group commits fail for a reason that may pass (disk full, I/O error).
@@ -333,15 +338,18 @@ class GroupCommitter:
         listeners told ``why``; how many were."""
         dropped = 0
         ids: dict[str, list[str]] = {}
+        topics: dict[str, Counter[str]] = {}
         for copies, _ in received:
             for name, record in copies:
                 route = self._routes.get(name)
                 if route is not None:
                     route.metrics.add("received")
-                    route.metrics.add("dropped")
+                    topics.setdefault(name, Counter())[record.topic] += 1
                     dropped += 1
                     if self._drop_listeners:
                         ids.setdefault(name, []).append(record.record_id)
+        for name, counts in topics.items():
+            self._routes[name].metrics.add_by_topic("dropped", counts)
         for name, record_ids in ids.items():
             tell_dropped(self._drop_listeners, self.logger, name, record_ids, why)
         return dropped
@@ -423,9 +431,7 @@ class GroupCommitter:
         batch = self._storable(handoffs)
         while True:
             try:
-                result = self._buffer.append(
-                    batch.by_destination, batch.limits, seen=batch.seen, seen_window=self._seen_window
-                )
+                result = self._append(batch)
                 break
             except BufferCorrupted:
                 continue  # the buffer was replaced by an empty one: write the batch there
@@ -442,7 +448,7 @@ class GroupCommitter:
                     # Stopping: counted here, logged once with the total by stop().
                     for name, records in batch.by_destination.items():
                         self._routes[name].metrics.add("received", len(records))
-                        self._routes[name].metrics.add("dropped", len(records))
+                        self._routes[name].metrics.add_by_topic("dropped", Counter(r.topic for r in records))
                         tell_dropped(
                             self._drop_listeners, self.logger, name, [r.record_id for r in records], DROP_NOT_COMMITTED
                         )
@@ -450,6 +456,26 @@ class GroupCommitter:
                     return
         self.failing = None
         self._account(batch, result)
+
+    def _append(self, batch: _CommitBatch) -> AppendResult:
+        """The group commit, counted, and what must follow it before anyone reads the buffer again:
+        the disk budget (``after_append``), so that no reader ever sees the records of a commit
+        without the evictions they made necessary."""
+        with self._buffer.exclusive():
+            result = self._buffer.append(
+                batch.by_destination, batch.limits, seen=batch.seen, seen_window=self._seen_window
+            )
+            # Counted before anything they made necessary: received = sent + evicted + dropped + buffered
+            # holds at every reading, even for records evicted by the commit that brought them.
+            for name, records in batch.by_destination.items():
+                metrics = self._routes[name].metrics
+                metrics.add("received", len(records))
+                metrics.add_by_topic("dropped", result.dropped_topics.get(name, {}))
+            try:
+                self.after_append()
+            except Exception:  # never taken for a failure of the commit: that would commit its records again
+                self.logger.error(f"delivery: the disk budget after a group commit failed\n{traceback.format_exc()}")
+        return result
 
     def _storable(self, handoffs: list[Received]) -> _CommitBatch:
         """What of ``handoffs`` the buffer can hold; a record that is not valid UTF-8 JSON is counted apart."""
@@ -511,14 +537,12 @@ class GroupCommitter:
         self.commit_log.event(batch.count, f"{type(exc).__name__}: {exc}")
 
     def _account(self, batch: _CommitBatch, result: AppendResult) -> None:
-        """Counters, drop logs and sender wake-ups after a group commit."""
-        for name, records in batch.by_destination.items():
+        """Drop logs, listeners and sender wake-ups after a group commit (counted by :meth:`_append`)."""
+        for name in batch.by_destination:
             route = self._routes[name]
-            route.metrics.add("received", len(records))
             dropped_newest = result.dropped_newest.get(name, 0)
             dropped_oldest = result.dropped_oldest.get(name, 0)
             if dropped_newest or dropped_oldest:
-                route.metrics.add("dropped", dropped_newest + dropped_oldest)
                 route.drop_log.event(
                     dropped_newest + dropped_oldest,
                     f"storage_total_limit_size {route.params.storage_total_limit_size} reached, "

@@ -158,6 +158,11 @@ class DeliveryPipeline:
         self._last_check: tuple[float, str] | None = None
         self._damaged = False
         self._last_log_tick = 0.0
+        # The size of the buffer's filesystem as last read (a budget in percent of it), and the budget
+        # as DC accounts it (records waiting + saved files) after each admission and the evictions it
+        # made necessary: the last total, the most, and how many checks left it over the budget.
+        self._filesystem_bytes: int | None = None
+        self._budget_held = self._budget_most = self._budget_left_over = 0
         self._status: StatusServer | None = None
         # (server, ROS domain id, namespace) under which the server writes its metrics address down.
         self.metrics_announce_as: tuple[str, int, str] | None = None
@@ -276,6 +281,7 @@ class DeliveryPipeline:
         for listener in self._listeners:
             self._committer.add_listener(listener)
         self._committer.on_seen_committed = self.on_seen_committed
+        self._committer.after_append = lambda: self._keep_budget(tick=False)
         self._committer.start()
         for name, sender in senders.items():
             route = self._routes[name]
@@ -371,7 +377,7 @@ class DeliveryPipeline:
             for deliveries, _ in received:
                 for name, record in deliveries:
                     self._routes[name].metrics.add("received")
-                    self._routes[name].metrics.add("dropped")
+                    self._routes[name].metrics.add_by_topic("dropped", {record.topic: 1})
                     tell_dropped(self._drop_listeners, self.logger, name, [record.record_id], DROP_INTAKE)
             return False
         saved = self._saved
@@ -522,26 +528,40 @@ class DeliveryPipeline:
         for route in self._routes.values():
             route.tick_logs()
 
-    def _keep_budget(self) -> None:
-        """On the writer thread, twice a second: keep the buffer's records and the saved files within
-        flb.disk_budget and the free space above disk_free_floor (dc_destinations.disk_budget), each
-        eviction counted and logged once per burst."""
+    def _keep_budget(self, *, tick: bool = True) -> None:
+        """Keep the buffer's records and the saved files within flb.disk_budget and the free space above
+        disk_free_floor (dc_destinations.disk_budget), each eviction counted and logged once per burst.
+
+        On the writer thread, at each admission: after each group commit, within Buffer.exclusive
+        (``tick`` False: the files its records name taken in with it; the budget only, on the
+        filesystem's size as last read), and twice a second (the ledger written, the filesystem and
+        the free-space floor read)."""
         buffer, saved = self._buffer, self._saved
         if not self._limits.active or buffer is None or buffer.closed or self.storage_file is None:
             return
         try:
-            if saved is not None:
-                saved.tick()
-                saved.tick_logs()
-            if self._budget_log is not None:
-                self._budget_log.tick()
-            disk = os.statvfs(self.storage_file.parent)
-            size = disk.f_blocks * disk.f_frsize
+            if tick:
+                if saved is not None:
+                    saved.tick()
+                    saved.tick_logs()
+                if self._budget_log is not None:
+                    self._budget_log.tick()
+                disk = os.statvfs(self.storage_file.parent)
+                self._filesystem_bytes = disk.f_blocks * disk.f_frsize
+            elif self._filesystem_bytes is None and self._limits.budget_fraction is not None:
+                return  # before the first tick: a budget in percent of the filesystem is not known yet
+            elif saved is not None:
+                saved.take_in()
+            budget = self._limits.budget(self._filesystem_bytes or 0)
+            short = self._under_floor() if tick else []
+            if budget is None and not short:
+                return
+            # One SELECT of the queues' own totals: cheap enough for every group commit.
             queued = {name: n for name, n in buffer.queued_bytes().items() if name in self._routes}
-            budget = self._limits.budget(size)
-            over = sum(queued.values()) + (saved.total_bytes if saved is not None else 0) - (budget or 0)
-            short = self._under_floor()
+            total = sum(queued.values()) + (saved.total_bytes if saved is not None else 0)
+            over = total - (budget or 0)
             if (budget is None or over <= 0) and not short:
+                self._budget_kept(total, budget)
                 return
             # Only when something must go: the list of files is walked (tens of thousands on a long run).
             files = saved.candidates() if saved is not None else []
@@ -559,7 +579,7 @@ class DeliveryPipeline:
                     )
                     for name, gone in given.items():
                         route = self._routes[name]
-                        route.metrics.add_evicted(gone.by_topic)
+                        route.metrics.add_by_topic("evicted", gone.by_topic)
                         of = ", ".join(f"{measurement} {n}" for measurement, n in by_measurement(gone.by_topic).items())
                         route.evict_log.event(gone.records, f"{gone.bytes} bytes: {of}; see `dc status`")
                         tell_dropped(self._drop_listeners, self.logger, name, gone.record_ids, DROP_DISK_BUDGET)
@@ -570,10 +590,24 @@ class DeliveryPipeline:
                         saved.evict_log.event(
                             1, f"{step.name} ({evicted.freed} bytes, measurement {evicted.measurement}) {unsent}"
                         )
+            if budget is not None:
+                total = sum(n for name, n in buffer.queued_bytes().items() if name in self._routes)
+                self._budget_kept(total + (saved.total_bytes if saved is not None else 0), budget)
         except (BufferClosed, BufferCorrupted):
             return
         except (sqlite3.Error, OSError) as exc:  # a full disk: tried again at the next tick, said by the commit failing
             self.logger.warning(f"delivery buffer: keeping the disk budget failed: {exc}")
+
+    def _budget_kept(self, held: int, budget: int | None) -> None:
+        """The total the budget holds after a check (each admission's, the tick's) and its evictions, for
+        the metrics: over it only while what the order would give up next is records in a send() (left
+        alone: the destination may confirm them) or a file that could not be deleted."""
+        if budget is None:
+            return
+        self._budget_held = held
+        self._budget_most = max(self._budget_most, held)
+        if held > budget:
+            self._budget_left_over += 1
 
     def _record_classes(self, buffer: SqliteBuffer, queued: Mapping[str, int]) -> list[RecordClass]:
         """What waits in the queues, by destination and retention priority: a destination with
@@ -709,6 +743,14 @@ class DeliveryPipeline:
         }
         if self._saved is not None:
             document["saved_files"] = self._saved.snapshot()
+        budget = self._limits.budget(self._filesystem_bytes or 0)
+        if budget is not None and (self._filesystem_bytes is not None or self._limits.budget_fraction is None):
+            document["disk_budget"] = {
+                "budget": budget,
+                "held": self._budget_held,
+                "most_held": self._budget_most,
+                "checks_left_over": self._budget_left_over,
+            }
         for name, supplier in self._sections.items():
             document[name] = supplier()
         return document

@@ -33,6 +33,14 @@ DELIVERY_COUNTERS = (
 )
 # The counters of one destination, in their order in metrics() and the Prometheus text.
 COUNTERS = tuple(key for key, _kind, _doc in DELIVERY_COUNTERS)
+# Counters also kept per measurement (`<counter>_by_measurement`, dc_delivery_<counter>_by_measurement_total):
+# a measurement's records may be worth more than another's in the same queue (retention_priorities),
+# and which of them a budget or a size limit gave up is what a user asks first. The help texts.
+PER_MEASUREMENT = {
+    "evicted": "Records evicted unsent by the disk budget, per measurement (the last part of their input topic)",
+    "dropped": "Records dropped by the size limit or a full intake queue, per measurement (the last part of "
+    "their input topic)",
+}
 
 
 class DestinationMetrics:
@@ -46,7 +54,8 @@ class DestinationMetrics:
         self._lock = threading.Lock()
         self._clock = clock
         self._counts = dict.fromkeys(COUNTERS, 0)
-        self._evicted_by_measurement: dict[str, int] = {}
+        # Of the counters in PER_MEASUREMENT: records per measurement (the last part of their input topic).
+        self._by_measurement: dict[str, dict[str, int]] = {counter: {} for counter in PER_MEASUREMENT}
         self.last_error = ""
         self.last_error_time: float | None = None
         self.last_delivery: float | None = None
@@ -60,14 +69,16 @@ class DestinationMetrics:
                 if counter == "sent":
                     self.last_delivery = self._clock()
 
-    def add_evicted(self, by_topic: Mapping[str, int]) -> None:
-        """Records evicted unsent, per input topic: counted in ``evicted`` and per measurement."""
+    def add_by_topic(self, counter: str, by_topic: Mapping[str, int]) -> None:
+        """Records per input topic added to ``counter`` (one of PER_MEASUREMENT) and to its counts per
+        measurement (``<counter>_by_measurement``)."""
         if not by_topic:
             return
         with self._lock:
-            self._counts["evicted"] += sum(by_topic.values())
+            self._counts[counter] += sum(by_topic.values())
+            counts = self._by_measurement[counter]
             for name, n in by_measurement(by_topic).items():
-                self._evicted_by_measurement[name] = self._evicted_by_measurement.get(name, 0) + n
+                counts[name] = counts.get(name, 0) + n
 
     def set_error(self, error: str) -> None:
         with self._lock:
@@ -81,7 +92,8 @@ class DestinationMetrics:
     def snapshot(self) -> dict[str, Any]:
         with self._lock:
             out: dict[str, Any] = dict(self._counts)
-            out["evicted_by_measurement"] = dict(sorted(self._evicted_by_measurement.items()))
+            for counter, counts in self._by_measurement.items():
+                out[f"{counter}_by_measurement"] = dict(sorted(counts.items()))
             out["last_error"] = self.last_error
             out["last_error_time"] = self.last_error_time
             out["last_delivery"] = self.last_delivery
@@ -149,16 +161,17 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
             f"1 while the destination is {state} (dc_destinations.health), else 0",
             samples,
         )
-    text.family(
-        "dc_delivery_evicted_by_measurement_total",
-        "counter",
-        "Records evicted unsent by the disk budget, per measurement (the last part of their input topic)",
-        [
-            (prometheus_labels(destination=d, measurement=m), n)
-            for d, values in sorted(destinations.items())
-            for m, n in sorted((values.get("evicted_by_measurement") or {}).items())
-        ],
-    )
+    for counter, doc in PER_MEASUREMENT.items():
+        text.family(
+            f"dc_delivery_{counter}_by_measurement_total",
+            "counter",
+            doc,
+            [
+                (prometheus_labels(destination=d, measurement=m), n)
+                for d, values in sorted(destinations.items())
+                for m, n in sorted((values.get(f"{counter}_by_measurement") or {}).items())
+            ],
+        )
     text.family(
         "dc_delivery_held",
         "gauge",

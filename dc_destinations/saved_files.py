@@ -387,6 +387,13 @@ class SavedFiles:
             self._take_in()
             self._persist()
 
+    def take_in(self) -> None:
+        """Weigh the files noted since (after each group commit, with the records naming them), without
+        writing them down or looking again for those not written yet: the next :meth:`tick` does both."""
+        with self._lock:
+            while self._inbox:
+                self._register(self._inbox.popleft())
+
     def _take_in(self) -> None:
         noted, self._waiting = self._waiting, []
         while self._inbox:

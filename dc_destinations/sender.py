@@ -608,9 +608,12 @@ class Sender:
         retried = 0
         if again:
             dropped: list[str] = []
-            attempts = buffer.record_failure(route.name, [sent_rows[i].row_id for i in again], dropped_ids=dropped)
+            topics: Counter[str] = Counter()
+            attempts = buffer.record_failure(
+                route.name, [sent_rows[i].row_id for i in again], dropped_ids=dropped, dropped_topics=topics
+            )
             if dropped:  # what commits during the send could not drop
-                route.metrics.add("dropped", len(dropped))
+                route.metrics.add_by_topic("dropped", topics)
                 route.drop_log.event(
                     len(dropped),
                     f"storage_total_limit_size {route.params.storage_total_limit_size} reached, "
@@ -669,7 +672,7 @@ class Sender:
         route = self.route
         taken = self.buffer.delete(route.name, [row.row_id for row in rows], sent=False)
         if taken == len(rows):
-            route.metrics.add_evicted(Counter(row.topic for row in rows))
+            route.metrics.add_by_topic("evicted", Counter(row.topic for row in rows))
         else:  # some left the queue meanwhile (a buffer set aside): which ones is not known
             route.metrics.add("evicted", taken)
         route.evict_log.event(taken, "records naming saved files evicted before this destination had them")

@@ -18,6 +18,7 @@ import re
 import sqlite3
 import time
 import tracemalloc
+from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -223,6 +224,7 @@ def test_size_limit_drop_newest_keeps_the_oldest(buffer: Buffer) -> None:
     result = buffer.append({"a": [pending(i) for i in range(7, 14)]}, limit)
     assert result.appended == {"a": 3} and result.dropped_newest == {"a": 4}
     assert result.dropped_ids == {"a": [f"id-{i:08d}" for i in range(10, 14)]}
+    assert result.dropped_topics == {"a": {"/dc/measurement/t": 4}}  # counted per measurement
     kept = [r.record_id for r in buffer.read_batch("a", 100)]
     assert kept == [f"id-{i:08d}" for i in range(10)]
     stats = buffer.stats("a")
@@ -236,6 +238,7 @@ def test_size_limit_drop_oldest_keeps_the_newest(buffer: Buffer) -> None:
     result = buffer.append({"a": [pending(i) for i in range(7, 14)]}, limit)
     assert result.appended == {"a": 7} and result.dropped_oldest == {"a": 4}
     assert result.dropped_ids == {"a": [f"id-{i:08d}" for i in range(4)]}
+    assert result.dropped_topics == {"a": {"/dc/measurement/t": 4}}
     kept = [r.record_id for r in buffer.read_batch("a", 100)]
     assert kept == [f"id-{i:08d}" for i in range(4, 14)]
     # A batch bigger than the whole limit keeps its newest records.
@@ -644,11 +647,14 @@ def test_the_size_limit_drops_no_record_in_a_send_before_its_outcome(buffer: Buf
     assert buffer.stats("a").rows == 14  # above the limit by the rows in the send
     assert buffer.delete("a", [row.row_id for row in in_send[:2]]) == 2  # confirmed: sent, not dropped
     dropped: list[str] = []
-    assert buffer.record_failure("a", [row.row_id for row in in_send[2:]], dropped_ids=dropped) == {
+    topics: Counter[str] = Counter()
+    failed = [row.row_id for row in in_send[2:]]
+    assert buffer.record_failure("a", failed, dropped_ids=dropped, dropped_topics=topics) == {
         in_send[2].row_id: 1,
         in_send[3].row_id: 1,
     }
     assert dropped == ["id-00000002", "id-00000003"]  # failed: they go now
+    assert topics == {"/dc/measurement/t": 2}
     stats = buffer.stats("a")
     assert (stats.rows, stats.bytes) == (10, 10 * size)
     assert stats.received_total == stats.sent_total + stats.dropped_total + stats.rows == 16

@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 
+from dc_bringup.cli import _print_delivery
 from dc_bringup.local_servers.postgres import PostgresServer
 from dc_bringup.local_servers.postgres import missing_reason as postgres_missing
 from dc_bringup.local_servers.seaweedfs import SeaweedS3Server
@@ -708,3 +709,65 @@ def test_a_record_naming_a_file_outside_the_save_folders_never_has_it_weighed_or
     assert document["refused"] == 2
     camera = document["measurements"]["camera"]
     assert camera["produced"] == 5 and camera["evicted"] >= 1
+
+
+def health_record(n: int) -> OutgoingRecord:
+    rid = new_record_id()
+    return OutgoingRecord(rid, "/dc/measurement/health", n, {"n": n, "pad": "x" * 20 * KB, "record_id": rid})
+
+
+def test_the_budget_holds_after_every_group_commit_not_only_at_the_next_tick(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A clock that stands still: the twice-a-second tick never comes, only admissions keep the budget.
+    Images of 100 kB (retention priority 0) and health records of 20 kB (the queue's priority 5) into a
+    1 MB budget, a commit at a time: after each, what is on disk of the images plus the records waiting
+    is within the budget (the images go, oldest first), and DC's own account says so; then health
+    records alone, until every image is gone and the oldest health records go. Every image and record
+    is kept or counted evicted."""
+    budget = 1024 * KB
+    settings = DeliveryParams(
+        storage_path=str(tmp_path / "buffer"), flush=0.05, http_server=False, disk_budget="1M", commit_interval=0.0
+    )
+    held = OnlyWhenParams(conditions=["docked"])
+    health = Collecting()
+    pipeline = DeliveryPipeline(
+        settings,
+        {"health": (health, DestinationDeliveryParams(only_when=held, retention_priority=5))},
+        LOG,
+        clock=lambda: 0.0,
+        saved_files_roots=[str(tmp_path / "save")],
+    )
+    images: list[Path] = []
+
+    def on_disk() -> int:
+        waiting = pipeline.metrics()["health"]["buffered_bytes"]
+        return int(waiting) + sum(p.stat().st_size for p in images if p.exists())
+
+    pipeline.start()
+    try:
+        for n in range(40):
+            images.append(save(tmp_path / "save", "camera", n, 100 * KB))
+            pipeline.submit("health", saved_record(images[-1], "camera"))
+            pipeline.submit("health", health_record(n))
+            assert pipeline.flush_intake(10)
+            assert on_disk() <= budget, f"over the budget after the commit of record {n}"
+        camera = pipeline.status_document()["saved_files"]["measurements"]["camera"]
+        assert camera["evicted"] > 0 and pipeline.metrics()["health"]["evicted"] == 0
+        for n in range(40, 90):
+            pipeline.submit("health", health_record(n))
+            assert pipeline.flush_intake(10)
+            assert on_disk() <= budget, f"over the budget after the commit of record {n}"
+        document = pipeline.status_document()
+        _print_delivery(document, wide=False)
+    finally:
+        pipeline.stop(0.5)
+    account = document["disk_budget"]
+    said = f"disk budget: {account['held']} of {budget} bytes held (records waiting + saved files; at most "
+    assert f"{said}{account['most_held']})" in capsys.readouterr().out
+    assert account["budget"] == budget and account["most_held"] <= budget and account["checks_left_over"] == 0
+    camera = document["saved_files"]["measurements"]["camera"]
+    assert camera["produced"] == 40 and camera["evicted"] == 40 and not any(p.exists() for p in images)
+    records = document["destinations"]["health"]
+    assert records["evicted_by_measurement"]["health"] > 0
+    assert records["received"] == records["evicted"] + records["buffered"] == 130 and records["sent"] == 0

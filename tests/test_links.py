@@ -563,6 +563,43 @@ def test_disk_budget_evicts_the_records_of_one_destination_by_their_measurements
     )
 
 
+def test_size_limit_drops_are_counted_per_measurement(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A File destination held off the dock with a 100 kB size limit (drop_oldest): 20 camera records,
+    then 15 health records, of 10 kB. The oldest go: every camera record, then the oldest health
+    records; counted per measurement in the metrics, the Prometheus text, `dc status` and the Health
+    page. At the dock the rest reach the file: delivered + dropped = sent, per measurement."""
+    robot = make(File, "robot", path=str(tmp_path / "out"))
+    robot.on_activate()
+    params = DestinationDeliveryParams(only_when=OnlyWhenParams(conditions=["docked"]), storage_total_limit_size="100k")
+    pipeline = DeliveryPipeline(fast(tmp_path / "buffer"), {"robot": (robot, params)}, LOG)
+    pipeline.start()
+    try:
+        for n in range(20):
+            pipeline.submit("robot", measured(CAMERA, n))
+        for n in range(15):
+            pipeline.submit("robot", measured(HEALTH, n))
+        assert pipeline.flush_intake(10)
+        held = pipeline.metrics()["robot"]
+        _print_delivery(pipeline.status_document(), wide=False)
+        prometheus = pipeline.prometheus()
+        pipeline.set_condition("docked", True)
+        poll(lambda: pipeline.metrics()["robot"]["buffered"] == 0, 30, "the rest delivered")
+        last = pipeline.metrics()["robot"]
+    finally:
+        pipeline.stop(0.2)
+    lines = [json.loads(line) for line in (tmp_path / "out" / "robot").read_text().splitlines()]
+    delivered = {name: [r["n"] for r in lines if r["m"] == name] for name in ("camera", "health")}
+    dropped = held["dropped_by_measurement"]
+    assert dropped["camera"] == 20 and delivered["camera"] == [], "every camera record went before a health record"
+    assert 0 < dropped["health"] < 15 and delivered["health"] == list(range(dropped["health"], 15))
+    assert held["dropped"] == sum(dropped.values()) and last["dropped_by_measurement"] == dropped
+    assert last["received"] == last["sent"] + last["dropped"] == 35 and last["sent"] == len(lines)
+    said = f"destination robot: {held['dropped']} records dropped by its size limit (storage_total_limit_size) or "
+    assert f"{said}a full intake (records of camera 20, health {dropped['health']})" in capsys.readouterr().out
+    assert f"<td class=num>{held['dropped']} (camera 20, health {dropped['health']})</td>" in _budget_cells(held)
+    assert 'dc_delivery_dropped_by_measurement_total{destination="robot",measurement="camera"} 20' in prometheus
+
+
 def test_an_earlier_buffer_is_delivered_under_priorities_per_topic(tmp_path: Path) -> None:
     """Records an earlier DC left in the buffer (its queues have no index by topic) are delivered by
     a destination that now has retention_priorities."""
