@@ -381,6 +381,8 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
     account = metrics.get("disk_budget")
     if isinstance(account, dict):
         over = f", left over it by {account.get('checks_left_over')} checks" if account.get("checks_left_over") else ""
+        if account.get("checks_failed"):
+            over += f"; {account['checks_failed']} checks FAILED, see the log"
         print(
             f"disk budget: {_cell(account.get('held'))} of {_cell(account.get('budget'))} bytes held "
             f"(records waiting + saved files; at most {_cell(account.get('most_held'))}{over})"

@@ -172,6 +172,10 @@ class GroupCommitter:
         self.after_append: Callable[[], None] = lambda: None
         self.intake_drop_log = BurstLog(logger.error, "delivery intake: records dropped")
         self.commit_log = BurstLog(logger.error, "delivery buffer: group commit failed, retrying")
+        # What follows a commit (the disk budget) failing for a reason it does not handle itself: a bug,
+        # logged with its traceback once per burst and counted, never taken for a failure of the commit.
+        self.after_append_log = BurstLog(logger.error, "delivery: the disk budget after a group commit failed")
+        self.after_append_failed = 0
         # (since, error) while group commits fail for a reason that may pass (disk full, I/O error).
         self.failing: tuple[float, str] | None = None
         # The records of the commit being written (the writer's), and those a dead writer held then.
@@ -474,7 +478,8 @@ class GroupCommitter:
             try:
                 self.after_append()
             except Exception:  # never taken for a failure of the commit: that would commit its records again
-                self.logger.error(f"delivery: the disk budget after a group commit failed\n{traceback.format_exc()}")
+                self.after_append_failed += 1
+                self.after_append_log.event(1, traceback.format_exc())
         return result
 
     def _storable(self, handoffs: list[Received]) -> _CommitBatch:

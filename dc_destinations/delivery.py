@@ -162,7 +162,8 @@ class DeliveryPipeline:
         # as DC accounts it (records waiting + saved files) after each admission and the evictions it
         # made necessary: the last total, the most, and how many checks left it over the budget.
         self._filesystem_bytes: int | None = None
-        self._budget_held = self._budget_most = self._budget_left_over = 0
+        self._budget_held = self._budget_most = self._budget_left_over = self._budget_failed = 0
+        self._budget_failed_log: BurstLog | None = None
         self._status: StatusServer | None = None
         # (server, ROS domain id, namespace) under which the server writes its metrics address down.
         self.metrics_announce_as: tuple[str, int, str] | None = None
@@ -239,6 +240,9 @@ class DeliveryPipeline:
             saved.open()
             self._saved = saved
             self._budget_log = BurstLog(self.logger.warning, "disk budget")
+            self._budget_failed_log = BurstLog(
+                self.logger.error, "delivery buffer: keeping the disk budget failed, tried again at the next check"
+            )
             for route in self._routes.values():
                 route.saved = saved
                 route.destination.__dict__["_dc_evicted"] = saved.is_evicted
@@ -336,6 +340,9 @@ class DeliveryPipeline:
             self._saved.tick_logs()
         self._committer.intake_drop_log.tick()
         self._committer.commit_log.tick()
+        self._committer.after_append_log.tick()
+        if self._budget_failed_log is not None:
+            self._budget_failed_log.tick()
         for route in self._routes.values():
             route.tick_logs()
         pending = {name: rows for name, rows in left.items() if rows}
@@ -525,6 +532,7 @@ class DeliveryPipeline:
         if self._committer is not None:
             self._committer.intake_drop_log.tick()
             self._committer.commit_log.tick()
+            self._committer.after_append_log.tick()
         for route in self._routes.values():
             route.tick_logs()
 
@@ -546,6 +554,8 @@ class DeliveryPipeline:
                     saved.tick_logs()
                 if self._budget_log is not None:
                     self._budget_log.tick()
+                if self._budget_failed_log is not None:
+                    self._budget_failed_log.tick()
                 disk = os.statvfs(self.storage_file.parent)
                 self._filesystem_bytes = disk.f_blocks * disk.f_frsize
             elif self._filesystem_bytes is None and self._limits.budget_fraction is not None:
@@ -595,8 +605,12 @@ class DeliveryPipeline:
                 self._budget_kept(total + (saved.total_bytes if saved is not None else 0), budget)
         except (BufferClosed, BufferCorrupted):
             return
-        except (sqlite3.Error, OSError) as exc:  # a full disk: tried again at the next tick, said by the commit failing
-            self.logger.warning(f"delivery buffer: keeping the disk budget failed: {exc}")
+        except (sqlite3.Error, OSError) as exc:  # a full disk: tried at the next check; the commit says it too
+            # Counted and logged once per burst: this runs after every group commit, and a fault that lasts
+            # would otherwise write a line per commit.
+            self._budget_failed += 1
+            if self._budget_failed_log is not None:
+                self._budget_failed_log.event(1, f"{type(exc).__name__}: {exc}")
 
     def _budget_kept(self, held: int, budget: int | None) -> None:
         """The total the budget holds after a check (each admission's, the tick's) and its evictions, for
@@ -750,6 +764,7 @@ class DeliveryPipeline:
                 "held": self._budget_held,
                 "most_held": self._budget_most,
                 "checks_left_over": self._budget_left_over,
+                "checks_failed": self._budget_failed + (self._committer.after_append_failed if self._committer else 0),
             }
         for name, supplier in self._sections.items():
             document[name] = supplier()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -28,6 +29,7 @@ from dc_core.destination import Destination, OutgoingRecord, SendOutcome
 from dc_core.errors import ConfigError
 from dc_core.params import parse_params
 from dc_core.testing import FakeContext, RecordingLogger
+from dc_destinations.buffer import SqliteBuffer
 from dc_destinations.config import parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.disk_budget import FileCandidate, Step, budget_plan, queue_classes
@@ -771,3 +773,47 @@ def test_the_budget_holds_after_every_group_commit_not_only_at_the_next_tick(
     records = document["destinations"]["health"]
     assert records["evicted_by_measurement"]["health"] > 0
     assert records["received"] == records["evicted"] + records["buffered"] == 130 and records["sent"] == 0
+
+
+def test_a_budget_check_that_keeps_failing_is_counted_and_logged_once_per_burst(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The check after every group commit reads the queues' sizes; here that read fails at every
+    check (an I/O error injected at the buffer's boundary: a failing disk cannot be made on demand
+    as root). Every record is still committed and delivered, each failed check is counted in the
+    metrics and `dc status`, and the log says it once for the burst, not once per commit."""
+
+    def failing(self: SqliteBuffer) -> dict[str, int]:
+        raise sqlite3.OperationalError("disk I/O error")
+
+    monkeypatch.setattr(SqliteBuffer, "queued_bytes", failing)
+    settings = DeliveryParams(
+        storage_path=str(tmp_path / "buffer"), flush=0.05, http_server=False, disk_budget="1M", commit_interval=0.0
+    )
+    records = Collecting()
+    logger = RecordingLogger("tests.test_disk_budget.failing")
+    pipeline = DeliveryPipeline(
+        settings, {"records": (records, DestinationDeliveryParams())}, logger, clock=lambda: 0.0
+    )
+    sent = 30
+    pipeline.start()
+    try:
+        for n in range(sent):
+            pipeline.submit("records", health_record(n))
+            assert pipeline.flush_intake(10)
+        poll(lambda: len(records.received) == sent, 30, "every record delivered")
+        document = pipeline.status_document()
+        _print_delivery(document, wide=False)
+    finally:
+        pipeline.stop(0.5)
+    failed = document["disk_budget"]["checks_failed"]
+    assert f"{failed} checks FAILED, see the log" in capsys.readouterr().out
+    destination = document["destinations"]["records"]
+    assert len({r.record_id for r in records.received}) == destination["sent"] == sent
+    assert destination["dropped"] == destination["evicted"] == 0
+    assert failed >= sent  # one a commit at least, none uncounted
+    said = [m for m in logger.at("error") if "keeping the disk budget failed" in m]
+    # The first failure, then the burst's summary at the stop (a new burst only after 5 s without a failure,
+    # which a very slow machine may give once or twice): not a line per commit.
+    assert 1 <= len(said) <= 4, said
+    assert "disk I/O error" in said[0]
