@@ -28,8 +28,8 @@ SHELL := /bin/bash
 PYTHON ?= python3
 VENV := $(CURDIR)/.venv
 VPY := $(VENV)/bin/python
-DC_SOURCES := dc_bringup dc_conditions dc_core dc_dashboard dc_destinations dc_group dc_measurements dc_sim \
-	examples tests conftest.py
+DC_PACKAGES := dc_bringup dc_conditions dc_core dc_dashboard dc_destinations dc_group dc_measurements dc_sim
+DC_SOURCES := $(DC_PACKAGES) examples tests conftest.py
 # Packages are installed with uv (from PyPI, like pip, with the same constraints file): with its cache warm it
 # installs the ~130 wheels in seconds, where pip took 35-60 s (and this machine's pip kept no HTTP cache).
 # uv itself comes from PyPI too, installed once per machine into the cache below by the Python given.
@@ -195,6 +195,9 @@ servers-deps:
 # Quiet recipe: stdout carries only the records (dc-bringup logs to stderr).
 run: install
 	@mkdir -p $(ROS_LOG_DIR)
+	@# Bytecode of DC's modules (installed editable: where PYTHONDONTWRITEBYTECODE is set, every start
+	@# compiled them from source again).
+	@$(VPY) -m compileall -q -j 0 $(DC_PACKAGES)
 	@ROS_AUTOMATIC_DISCOVERY_RANGE=$(RUN_DISCOVERY_RANGE) ROS_LOG_DIR=$(ROS_LOG_DIR) \
 		$(VENV)/bin/dc-bringup $(PARAMS)
 
