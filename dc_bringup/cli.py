@@ -891,8 +891,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# The commands that start a ROS node: their output (records, JSON, answers scripts read) on standard output,
+# Fast DDS's own lines on standard error (dc_core.native_stdout).
+ROS_COMMANDS = frozenset({"pub", "tap", "top", "lifecycle", "trigger", "replay", "sim"})
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] and argv[0] in ROS_COMMANDS:
+        from dc_core.native_stdout import python_only_stdout
+
+        python_only_stdout()
     if argv[:1] == ["sim"]:
         # Every option after "sim" is the simulator's (argparse's REMAINDER drops leading options).
         from dc_sim.node import main as sim_main

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dc_bringup.validate import SERVER_MODULES, check
+from dc_core.native_stdout import python_only_stdout
 from dc_core.private_files import use_private_umask
 from dc_core.signals import StopRequest, wake_on_signals
 
@@ -135,6 +136,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
     # Before anything is written: the servers, ffmpeg and rclpy's log files inherit it (dc_core.private_files).
     use_private_umask()
+    # Before rclpy starts: standard output carries the servers' records, not Fast DDS's own lines.
+    python_only_stdout()
     params_file = str(Path(args.params_file).resolve())
     if args.single_process and not args.validate_only:
         # The servers' process checks the file: parsing it imports every configured plugin's module,

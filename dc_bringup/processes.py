@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 from typing import Protocol
 
+from dc_core.native_stdout import original_stdout
 from dc_core.ros_args import ROS_ARGS_END, ROS_ARGS_FLAG
 
 _PR_SET_PDEATHSIG = 1
@@ -72,7 +73,10 @@ class ServerProcess:
         if self.ros_args:
             cmd += [ROS_ARGS_FLAG, *self.ros_args, ROS_ARGS_END]
         # Own process group: a terminal's Ctrl-C reaches dc-bringup only, which stops servers in order.
-        self.process = subprocess.Popen(cmd, preexec_fn=die_with_parent, process_group=0, env=os.environ.copy())
+        # Its records on dc-bringup's own standard output, whatever native code of this process writes.
+        self.process = subprocess.Popen(
+            cmd, preexec_fn=die_with_parent, process_group=0, env=os.environ.copy(), stdout=original_stdout()
+        )
         self.starts += 1
 
     @property

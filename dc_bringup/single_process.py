@@ -29,6 +29,7 @@ from typing import Any
 
 from dc_bringup.processes import die_with_parent
 from dc_bringup.validate import SERVER_MODULES, check
+from dc_core.native_stdout import original_stdout
 from dc_core.ros_args import ROS_ARGS_END, ROS_ARGS_FLAG, namespace_remap, split_ros_args
 from dc_core.signals import StopRequest
 
@@ -300,6 +301,7 @@ def supervise(args: argparse.Namespace, params_file: str) -> int:
             pass_fds=(write_end,),
             preexec_fn=die_with_parent,
             process_group=0,
+            stdout=original_stdout(),  # the records, on dc-bringup's own standard output
         )
         os.close(write_end)
         try:

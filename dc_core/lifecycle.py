@@ -54,6 +54,7 @@ from dc_core.errors import ConfigError, DcError
 from dc_core.http_status import StatusServer, start_status_server
 from dc_core.intake import Intake
 from dc_core.logs import Logger, SeverityLogger
+from dc_core.native_stdout import python_only_stdout
 from dc_core.node_params import (
     DEFAULT_DIAGNOSTICS_PERIOD_S,
     DEFAULT_HEARTBEAT_PERIOD_S,
@@ -442,6 +443,7 @@ def init_server_process(log_level: str, namespace: str = "", more_ros_args: Sequ
     """rclpy for a process of servers, and the stop SIGINT and SIGTERM ask: its loop stops, its servers shut
     down. Give it to :func:`dc_core.signals.wake_on_signals` too, so that waiting threads see it at once."""
     use_private_umask()  # records, buffers and logs are this user's alone (dc_core.private_files)
+    python_only_stdout()  # Fast DDS's own lines to stderr, not among the records (dc_core.native_stdout)
     ros_args = ["--ros-args", "--log-level", log_level]
     if namespace.strip("/"):
         ros_args += ["-r", f"__ns:={ros_namespace(namespace)}"]

@@ -177,18 +177,18 @@ class Bringup:
 
 # A line Fast DDS itself prints (coloured, dated, a RTPS_ category): e.g. "[RTPS_TRANSPORT_SHM Error] Failed
 # init_port ...: open_and_lock_file failed" when a killed process left a shared-memory port locked. It is the
-# middleware's, not DC's output: a test reading what `dc` answers reads it without them.
+# middleware's, not DC's output: DC's processes send it to stderr, which a test reads without them.
 FAST_DDS_LOG_LINE = re.compile(r"^(\x1b\[[0-9;]*m)?\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d+ .*RTPS_[A-Z_]+.*(\n|$)", re.M)
 
 
 def dc(
     *args: str, env: dict[str, str] | None = None, timeout: float = 60.0, stdin: str | None = None
 ) -> subprocess.CompletedProcess[str]:
-    """Run the `dc` command-line tool; its stdout and stderr without Fast DDS's own log lines."""
+    """Run the `dc` command-line tool; its stderr without Fast DDS's own log lines (which DC's commands
+    send there, never to stdout: dc_core.native_stdout)."""
     result = subprocess.run(
         [str(BIN / "dc"), *args], capture_output=True, text=True, env=env, timeout=timeout, input=stdin
     )
-    result.stdout = FAST_DDS_LOG_LINE.sub("", result.stdout)
     result.stderr = FAST_DDS_LOG_LINE.sub("", result.stderr)
     return result
 

@@ -451,6 +451,21 @@ def test_pub_of_stdin_publishes_one_record_a_line_in_order(ros_env: dict[str, st
     assert "published 3 record(s) on /acks" in pub.stdout
 
 
+def test_pub_answers_on_stdout_and_fast_dds_own_lines_go_to_stderr(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """A Fast DDS profile file it cannot parse makes the middleware print its errors from C++ on
+    descriptor 1; a script reading `dc pub`'s answer reads that answer alone."""
+    profile = tmp_path / "broken_profile.xml"
+    profile.write_text("<dds><profiles><unclosed>")
+    result = subprocess.run(
+        [str(BIN / "dc"), "pub", "/x", '{"n": 1}', "--no-wait"],
+        env={**ros_env, "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile)},
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == ["published 1 record(s) on /x"]
+    assert "XMLPARSER" in result.stderr and str(profile) in result.stderr
+
+
 @pytest.mark.parametrize(
     ("stdin", "args", "said"),
     [

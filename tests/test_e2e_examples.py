@@ -40,6 +40,20 @@ def test_example_1_uptime_every_second(tmp_path: Path) -> None:
     assert run.returncode == 0
 
 
+@pytest.mark.usefixtures("bringup_mode")
+def test_stdout_carries_the_records_alone_when_fast_dds_prints_errors(tmp_path: Path) -> None:
+    """Fast DDS prints its own errors from C++ on descriptor 1 (here: a profile file it cannot parse,
+    read by dc-bringup and every server); `dc-bringup params.yaml | jq` reads records only, and the
+    errors are on stderr."""
+    profile = tmp_path / "broken_profile.xml"
+    profile.write_text("<dds><profiles><unclosed>")
+    with Bringup(EXAMPLES / "example_1.yaml", tmp_path, env={"FASTRTPS_DEFAULT_PROFILES_FILE": str(profile)}) as run:
+        run.wait_records(2, timeout=60)
+    lines = [line for line in run.stdout if line.strip()]
+    assert lines and all(json.loads(line)["name"] == "uptime" for line in lines), lines
+    assert any("XMLPARSER" in line for line in run.stderr)
+
+
 def test_example_2_flush_every_three_seconds_delivers_in_batches(tmp_path: Path) -> None:
     with Bringup(EXAMPLES / "example_2.yaml", tmp_path) as run:
         records = run.wait_records(6, timeout=60)
