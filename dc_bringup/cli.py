@@ -693,6 +693,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from dc_bringup.live import (
+        add_metrics_target_arguments,
+        add_namespace_argument,
+        add_tap_arguments,
+        add_top_arguments,
+    )
+
     parser = argparse.ArgumentParser(prog="dc", description="DC robot data collection: tools")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -735,7 +742,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
     p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
     p.add_argument("json", help="the record, a JSON object; - reads records from stdin, a JSON object a line")
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    add_namespace_argument(p)
     p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
     p.add_argument("--group-key", default="")
@@ -749,19 +756,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_pub)
 
     p = sub.add_parser("status", help="counters of the running DC servers")
-    p.add_argument("--host", default="127.0.0.1", help="with --port: the host of one server")
-    p.add_argument("--port", type=int, default=None, help="one server's metrics port, instead of finding them")
-    p.add_argument(
-        "--params",
-        default="",
-        help="only the servers of this parameter file (at the ports it configures when not found running)",
-    )
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup runs the servers in (--namespace)")
+    add_metrics_target_arguments(p)
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.add_argument("--wide", action="store_true", help="every counter, wider than 100 columns")
     p.set_defaults(func=cmd_status)
-
-    from dc_bringup.live import add_tap_arguments, add_top_arguments
 
     add_top_arguments(sub.add_parser("top", help="records/s, pending and failures of the running servers, refreshed"))
     add_tap_arguments(
@@ -803,14 +801,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("lifecycle", help="start, pause, resume, reset or shut down the servers of a dc-bringup")
     p.add_argument("command_name", metavar="command", choices=LIFECYCLE_COMMANDS, help=", ".join(LIFECYCLE_COMMANDS))
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    add_namespace_argument(p)
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the manager and its answer")
     p.set_defaults(func=cmd_lifecycle)
 
     p = sub.add_parser("trigger", help="trigger a Recorder measurement: the raw data around now, as an MCAP file")
     p.add_argument("name", help="the Recorder measurement's name in the parameter file")
     p.add_argument("--reason", help="the reason kept in the incident's record (default: service)")
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    add_namespace_argument(p)
     p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the recorder and its answer")
     p.set_defaults(func=cmd_trigger)
 
