@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from typing import Any, cast
 
 from dc_core.errors import DcError
+from dc_core.metrics_document import per_measurement
 from dc_core.params import describe_params, url_host
 from dc_core.plugins import GROUPS, describe, list_plugins, load_plugin
 
@@ -320,10 +321,8 @@ def _print_saved_files(saved: Any) -> None:
 
 def _of_measurements(values: dict[str, Any], counter: str) -> str:
     """`` (records of camera 100, robot 20)``: ``counter`` per measurement, as the metrics give it."""
-    of = values.get(f"{counter}_by_measurement")
-    if not isinstance(of, dict) or not of:
-        return ""
-    return " (records of " + ", ".join(f"{m} {_cell(n)}" for m, n in sorted(of.items())) + ")"
+    of = per_measurement(values, counter)
+    return " (records of " + ", ".join(f"{m} {_cell(n)}" for m, n in of) + ")" if of else ""
 
 
 def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
