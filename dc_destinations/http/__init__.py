@@ -20,7 +20,7 @@ from urllib.parse import parse_qsl
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import host_problem, param, port_problem, url_host
+from dc_core.params import host_param, param, port_problem, url_host
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
 from dc_destinations.probes import connect_probe
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
@@ -58,7 +58,7 @@ def _latin1(text: str) -> bool:
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class HttpParams(TlsParams):
-    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the HTTP server")
+    host: str = host_param("the HTTP server")
     port: int = param(80, check=port_problem, doc="TCP port of the HTTP server (443 is usual with `tls`)")
     uri: str = param("/", check=_uri_problem, doc="Path (and query) the batches are POSTed to")
     format: str = param(

@@ -17,7 +17,7 @@ from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import compat_param, host_problem, param, port_problem, url_host
+from dc_core.params import compat_param, host_param, param, port_problem, url_host
 from dc_destinations.connection import Connection
 from dc_destinations.tls import TlsParams, client_context, ssl_reason
 
@@ -29,7 +29,7 @@ _PEEK_READS = 64
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class TcpParams(TlsParams):
-    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the TCP server")
+    host: str = host_param("the TCP server")
     port: int = param(5432, check=port_problem, doc="TCP port of the server (the original's default: 5432)")
     format: str = param(
         "json_lines",
