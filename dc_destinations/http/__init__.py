@@ -22,6 +22,7 @@ from dc_core.destination import Destination, OutgoingRecord, ProbeResult, Reject
 from dc_core.errors import ConfigError
 from dc_core.params import host_param, param, port_problem, url_host
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
+from dc_destinations.msgpack_format import msgpack_packer
 from dc_destinations.probes import connect_probe
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
@@ -275,17 +276,9 @@ def _json_encoder(fmt: str) -> Callable[[Sequence[OutgoingRecord]], bytes]:
 
 
 def _msgpack_encoder(path: str) -> Callable[[Sequence[OutgoingRecord]], bytes]:
-    try:
-        import msgpack  # an optional dependency: `pip install ros2-dc[msgpack]`
-    except ImportError as exc:
-        raise ConfigError(path, 'msgpack needs the msgpack package (pip install "ros2-dc[msgpack]")') from exc
-
-    def encode(batch: Sequence[OutgoingRecord]) -> bytes:
-        # One msgpack array of the record maps: the same shape as format json, decoded in one call.
-        packed: bytes = msgpack.packb([record.data for record in batch], use_bin_type=True)
-        return packed
-
-    return encode
+    pack = msgpack_packer(path)
+    # One msgpack array of the record maps: the same shape as format json, decoded in one call.
+    return lambda batch: pack([record.data for record in batch])
 
 
 def _header_value(value: Any) -> str:
