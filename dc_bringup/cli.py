@@ -494,6 +494,31 @@ EXIT_DEGRADED = 3
 LIFECYCLE_COMMANDS = ("startup", "pause", "resume", "reset", "shutdown", "is-active")
 
 
+def _in_namespace(namespace: str, name: str) -> str:
+    """The relative ``name`` in the namespace dc-bringup was started with (--namespace): ``/robot1/name``,
+    or ``/name`` in none."""
+    from dc_core.topics import ros_namespace
+
+    return f"{ros_namespace(namespace).rstrip('/')}/{name}"
+
+
+def _call_service(node: Any, client: Any, request: Any, timeout: float, asked: str, missing: str) -> Any | None:
+    """The answer of ``client``'s service, waited for at most ``timeout`` seconds to appear and as long to
+    answer; None once stderr said why not: ``missing`` when no one offers the service, else "``asked`` did
+    not answer" (``asked``: ``dc trigger: /dc/recorder/x/trigger``)."""
+    import rclpy
+
+    if not client.wait_for_service(timeout_sec=timeout):
+        print(missing, file=sys.stderr)
+        return None
+    future = client.call_async(request)
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if not future.done():
+        print(f"{asked} did not answer in {timeout:g} s", file=sys.stderr)
+        return None
+    return future.result()
+
+
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     """Ask dc-bringup's lifecycle manager (its manage_nodes and is_active services)."""
     import rclpy
@@ -502,8 +527,7 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
 
     from dc_bringup.manager import DEGRADED_PREFIX, NODE_NAME
 
-    namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
-    manager = f"{namespace}/{NODE_NAME}"
+    manager = _in_namespace(args.namespace, NODE_NAME)
     rclpy.init()
     node = rclpy.create_node("dc_lifecycle")
     try:
@@ -513,15 +537,16 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
             client = node.create_client(ManageLifecycleNodes, f"{manager}/manage_nodes")
             request = ManageLifecycleNodes.Request()
             request.command = getattr(ManageLifecycleNodes.Request, args.command_name.upper())
-        if not client.wait_for_service(timeout_sec=args.timeout):
-            print(f"dc lifecycle: no lifecycle manager at {manager} (is dc-bringup running?)", file=sys.stderr)
+        response = _call_service(
+            node,
+            client,
+            request,
+            args.timeout,
+            f"dc lifecycle: {manager}",
+            f"dc lifecycle: no lifecycle manager at {manager} (is dc-bringup running?)",
+        )
+        if response is None:
             return 2
-        future = client.call_async(request)
-        rclpy.spin_until_future_complete(node, future, timeout_sec=args.timeout)
-        if not future.done():
-            print(f"dc lifecycle: {manager} did not answer in {args.timeout:g} s", file=sys.stderr)
-            return 2
-        response = future.result()
         failure = ""
         if args.command_name != "is-active" and not response.success:
             failure = _last_failure(node, manager, args.timeout)
@@ -551,22 +576,22 @@ def cmd_trigger(args: argparse.Namespace) -> int:
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-    namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
-    name = f"{namespace}/dc/recorder/{args.name}/trigger"
+    name = _in_namespace(args.namespace, f"dc/recorder/{args.name}/trigger")
     rclpy.init()
     node = rclpy.create_node("dc_trigger")
     try:
         if args.reason is None:
             client = node.create_client(Trigger, name)
-            if not client.wait_for_service(timeout_sec=args.timeout):
-                print(f"dc trigger: no recorder answers at {name} (is dc-bringup running it?)", file=sys.stderr)
+            response = _call_service(
+                node,
+                client,
+                Trigger.Request(),
+                args.timeout,
+                f"dc trigger: {name}",
+                f"dc trigger: no recorder answers at {name} (is dc-bringup running it?)",
+            )
+            if response is None:
                 return 2
-            future = client.call_async(Trigger.Request())
-            rclpy.spin_until_future_complete(node, future, timeout_sec=args.timeout)
-            if not future.done():
-                print(f"dc trigger: {name} did not answer in {args.timeout:g} s", file=sys.stderr)
-                return 2
-            response = future.result()
             print(f"{args.name}: {response.message}")
             return 0 if response.success else 1
         publisher = node.create_publisher(String, name, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
