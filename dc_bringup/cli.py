@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from typing import Any, cast
 
 from dc_core.errors import DcError
+from dc_core.metrics_document import per_measurement
 from dc_core.params import describe_params, url_host
 from dc_core.plugins import GROUPS, describe, list_plugins, load_plugin
 
@@ -320,10 +321,8 @@ def _print_saved_files(saved: Any) -> None:
 
 def _of_measurements(values: dict[str, Any], counter: str) -> str:
     """`` (records of camera 100, robot 20)``: ``counter`` per measurement, as the metrics give it."""
-    of = values.get(f"{counter}_by_measurement")
-    if not isinstance(of, dict) or not of:
-        return ""
-    return " (records of " + ", ".join(f"{m} {_cell(n)}" for m, n in sorted(of.items())) + ")"
+    of = per_measurement(values, counter)
+    return " (records of " + ", ".join(f"{m} {_cell(n)}" for m, n in of) + ")" if of else ""
 
 
 def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
@@ -497,6 +496,31 @@ EXIT_DEGRADED = 3
 LIFECYCLE_COMMANDS = ("startup", "pause", "resume", "reset", "shutdown", "is-active")
 
 
+def _in_namespace(namespace: str, name: str) -> str:
+    """The relative ``name`` in the namespace dc-bringup was started with (--namespace): ``/robot1/name``,
+    or ``/name`` in none."""
+    from dc_core.topics import ros_namespace
+
+    return f"{ros_namespace(namespace).rstrip('/')}/{name}"
+
+
+def _call_service(node: Any, client: Any, request: Any, timeout: float, asked: str, missing: str) -> Any | None:
+    """The answer of ``client``'s service, waited for at most ``timeout`` seconds to appear and as long to
+    answer; None once stderr said why not: ``missing`` when no one offers the service, else "``asked`` did
+    not answer" (``asked``: ``dc trigger: /dc/recorder/x/trigger``)."""
+    import rclpy
+
+    if not client.wait_for_service(timeout_sec=timeout):
+        print(missing, file=sys.stderr)
+        return None
+    future = client.call_async(request)
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if not future.done():
+        print(f"{asked} did not answer in {timeout:g} s", file=sys.stderr)
+        return None
+    return future.result()
+
+
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     """Ask dc-bringup's lifecycle manager (its manage_nodes and is_active services)."""
     import rclpy
@@ -505,8 +529,7 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
 
     from dc_bringup.manager import DEGRADED_PREFIX, NODE_NAME
 
-    namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
-    manager = f"{namespace}/{NODE_NAME}"
+    manager = _in_namespace(args.namespace, NODE_NAME)
     rclpy.init()
     node = rclpy.create_node("dc_lifecycle")
     try:
@@ -516,15 +539,16 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
             client = node.create_client(ManageLifecycleNodes, f"{manager}/manage_nodes")
             request = ManageLifecycleNodes.Request()
             request.command = getattr(ManageLifecycleNodes.Request, args.command_name.upper())
-        if not client.wait_for_service(timeout_sec=args.timeout):
-            print(f"dc lifecycle: no lifecycle manager at {manager} (is dc-bringup running?)", file=sys.stderr)
+        response = _call_service(
+            node,
+            client,
+            request,
+            args.timeout,
+            f"dc lifecycle: {manager}",
+            f"dc lifecycle: no lifecycle manager at {manager} (is dc-bringup running?)",
+        )
+        if response is None:
             return 2
-        future = client.call_async(request)
-        rclpy.spin_until_future_complete(node, future, timeout_sec=args.timeout)
-        if not future.done():
-            print(f"dc lifecycle: {manager} did not answer in {args.timeout:g} s", file=sys.stderr)
-            return 2
-        response = future.result()
         failure = ""
         if args.command_name != "is-active" and not response.success:
             failure = _last_failure(node, manager, args.timeout)
@@ -554,22 +578,22 @@ def cmd_trigger(args: argparse.Namespace) -> int:
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-    namespace = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
-    name = f"{namespace}/dc/recorder/{args.name}/trigger"
+    name = _in_namespace(args.namespace, f"dc/recorder/{args.name}/trigger")
     rclpy.init()
     node = rclpy.create_node("dc_trigger")
     try:
         if args.reason is None:
             client = node.create_client(Trigger, name)
-            if not client.wait_for_service(timeout_sec=args.timeout):
-                print(f"dc trigger: no recorder answers at {name} (is dc-bringup running it?)", file=sys.stderr)
+            response = _call_service(
+                node,
+                client,
+                Trigger.Request(),
+                args.timeout,
+                f"dc trigger: {name}",
+                f"dc trigger: no recorder answers at {name} (is dc-bringup running it?)",
+            )
+            if response is None:
                 return 2
-            future = client.call_async(Trigger.Request())
-            rclpy.spin_until_future_complete(node, future, timeout_sec=args.timeout)
-            if not future.done():
-                print(f"dc trigger: {name} did not answer in {args.timeout:g} s", file=sys.stderr)
-                return 2
-            response = future.result()
             print(f"{args.name}: {response.message}")
             return 0 if response.success else 1
         publisher = node.create_publisher(String, name, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
@@ -695,6 +719,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from dc_bringup.live import (
+        add_metrics_target_arguments,
+        add_namespace_argument,
+        add_tap_arguments,
+        add_top_arguments,
+    )
+
     parser = argparse.ArgumentParser(prog="dc", description="DC robot data collection: tools")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -737,7 +768,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("pub", help="publish a dc_interfaces/StringStamped record")
     p.add_argument("topic", help="a relative name (dc/measurement/x) is in --namespace")
     p.add_argument("json", help="the record, a JSON object; - reads records from stdin, a JSON object a line")
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    add_namespace_argument(p)
     p.add_argument("--count", type=int, default=1, help="records to publish (0 = until Ctrl-C)")
     p.add_argument("--rate", type=float, default=1.0, help="records per second when count > 1")
     p.add_argument("--group-key", default="")
@@ -751,19 +782,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_pub)
 
     p = sub.add_parser("status", help="counters of the running DC servers")
-    p.add_argument("--host", default="127.0.0.1", help="with --port: the host of one server")
-    p.add_argument("--port", type=int, default=None, help="one server's metrics port, instead of finding them")
-    p.add_argument(
-        "--params",
-        default="",
-        help="only the servers of this parameter file (at the ports it configures when not found running)",
-    )
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup runs the servers in (--namespace)")
+    add_metrics_target_arguments(p)
     p.add_argument("--json", action="store_true", help="print the raw JSON")
     p.add_argument("--wide", action="store_true", help="every counter, wider than 100 columns")
     p.set_defaults(func=cmd_status)
-
-    from dc_bringup.live import add_tap_arguments, add_top_arguments
 
     add_top_arguments(sub.add_parser("top", help="records/s, pending and failures of the running servers, refreshed"))
     add_tap_arguments(
@@ -805,14 +827,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("lifecycle", help="start, pause, resume, reset or shut down the servers of a dc-bringup")
     p.add_argument("command_name", metavar="command", choices=LIFECYCLE_COMMANDS, help=", ".join(LIFECYCLE_COMMANDS))
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    add_namespace_argument(p)
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the manager and its answer")
     p.set_defaults(func=cmd_lifecycle)
 
     p = sub.add_parser("trigger", help="trigger a Recorder measurement: the raw data around now, as an MCAP file")
     p.add_argument("name", help="the Recorder measurement's name in the parameter file")
     p.add_argument("--reason", help="the reason kept in the incident's record (default: service)")
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    add_namespace_argument(p)
     p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the recorder and its answer")
     p.set_defaults(func=cmd_trigger)
 

@@ -39,6 +39,19 @@ class Target:
         return f"http://{url_host(self.host)}:{self.port}/api/v1/metrics"
 
 
+def add_namespace_argument(p: argparse.ArgumentParser) -> None:
+    """``--namespace`` of a command that talks to the servers of a running dc-bringup."""
+    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+
+
+def add_metrics_target_arguments(p: argparse.ArgumentParser) -> None:
+    """The options :func:`metrics_targets` reads: which servers `dc status` and `dc top` ask."""
+    p.add_argument("--params", default="", help="only the servers of this parameter file (their ports if not running)")
+    add_namespace_argument(p)
+    p.add_argument("--host", default="127.0.0.1", help="with --port: the host of one server")
+    p.add_argument("--port", type=int, default=None, help="one server's metrics port, instead of finding them")
+
+
 def metrics_targets(
     params: str, namespace: str, host: str, port: int | None, command: str = "dc status"
 ) -> list[Target]:
@@ -309,10 +322,7 @@ def cmd_top(args: argparse.Namespace) -> int:
 
 
 def add_top_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--params", default="", help="only the servers of this parameter file (their ports if not running)")
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
-    p.add_argument("--host", default="127.0.0.1", help="with --port: the host of one server")
-    p.add_argument("--port", type=int, default=None, help="one server's metrics port, instead of finding them")
+    add_metrics_target_arguments(p)
     p.add_argument("--interval", type=float, default=2.0, help="seconds between views (the rates' interval)")
     p.add_argument("--once", action="store_true", help="one view after one interval, then exit (for scripts)")
     p.set_defaults(func=cmd_top)
@@ -464,7 +474,7 @@ def add_tap_arguments(p: argparse.ArgumentParser) -> None:
         "or a topic",
     )
     p.add_argument("--params", default="", help="find the target in this parameter file")
-    p.add_argument("--namespace", default="", help="the namespace dc-bringup was started with (--namespace)")
+    add_namespace_argument(p)
     p.add_argument(
         "--filter",
         type=_filter,

@@ -8,12 +8,22 @@ condition accept only one of them. Here an integral value is an integer whatever
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from dc_core.jsonpath import get_path
+from dc_core.params import param
 
 # The doc of a condition's `key` parameter: the path value_at reads.
 KEY_DOC = "Key path, `/`-separated, array items by index"
+
+
+@dataclass(frozen=True, kw_only=True)
+class KeyParams:
+    """The parameter of a condition that judges the value at one key path (:func:`value_at`); its own
+    parameters follow it."""
+
+    key: str = param(doc=KEY_DOC)
 
 
 def value_at(sample: Mapping[str, Any] | None, key: str) -> Any:

@@ -92,6 +92,11 @@ def host_problem(host: str) -> str | None:
     return None if host and not any(c.isspace() or c in "/?#" for c in host) else "a host name or IP address"
 
 
+def host_param(server: str) -> Any:
+    """The ``host`` parameter of a client of ``server`` (``"the MQTT broker"``): this machine unless told otherwise."""
+    return param("127.0.0.1", check=host_problem, doc=f"Host name or IP address of {server}")
+
+
 def url_host(host: str) -> str:
     """``host`` as a URL writes it: an IPv6 address in brackets (RFC 3986)."""
     return f"[{host}]" if ":" in host else host

@@ -9,6 +9,7 @@ from html import escape
 from typing import Any
 from urllib.parse import quote
 
+from dc_core.metrics_document import per_measurement
 from dc_dashboard.charts import time_chart, trajectory_chart
 from dc_dashboard.filters import FILE_STATES, REFRESH_S, Filters, format_time
 from dc_dashboard.health import ServerHealth
@@ -569,10 +570,8 @@ def _budget_cells(destination: dict[str, Any]) -> str:
 
 def _per_measurement(destination: dict[str, Any], counter: str) -> str:
     """`` (camera 55, health 3)``: whose records, as the measurements have retention priorities of their own."""
-    of = destination.get(f"{counter}_by_measurement")
-    if not isinstance(of, dict) or not of:
-        return ""
-    return " (" + ", ".join(f"{escape(str(m))} {_int(n)}" for m, n in sorted(of.items())) + ")"
+    of = per_measurement(destination, counter)
+    return " (" + ", ".join(f"{escape(str(m))} {_int(n)}" for m, n in of) + ")" if of else ""
 
 
 def _saved_files_panel(server: ServerHealth) -> str:

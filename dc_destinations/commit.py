@@ -137,16 +137,17 @@ class GroupCommitter:
         closing: Closing,
         logger: Logger,
         *,
+        supervisor: Supervisor,
         seen_window: int | None = None,
         clock: Callable[[], float] = time.monotonic,
         tick_logs: Callable[[], None] = lambda: None,
-        supervisor: Supervisor | None = None,
         drop_listeners: Sequence[DropListener] = (),
     ) -> None:
         self._routes = routes
         # Told of each record dropped for a destination (dc_destinations.sender.DropListener).
         self._drop_listeners = drop_listeners
-        self._supervisor = supervisor if supervisor is not None else Supervisor(logger)
+        # The pipeline's: the writer thread runs under the same rule as the senders (dc_core.supervision).
+        self._supervisor = supervisor
         self._buffer = buffer
         self.settings = settings
         self._closing = closing

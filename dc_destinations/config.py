@@ -28,6 +28,7 @@ from dc_destinations.settings import (
     check_destination_params,
     link_rates,
     record_priorities,
+    time_key_param,
 )
 
 # Keys of the original's Fluent Bit input plumbing: meaningless without Fluent Bit, harmless to accept.
@@ -70,9 +71,7 @@ class DestinationCommonParams:
     time_format: str = param(
         "double", choices=TIME_FORMATS, aliases=("json_date_format",), doc="Format of the time key"
     )
-    time_key: str = param(
-        "date", aliases=("json_date_key",), doc="Key receiving the record's header stamp (empty: no time key)"
-    )
+    time_key: str = time_key_param("Key receiving the record's header stamp (empty: no time key)")
 
 
 @dataclass(frozen=True)

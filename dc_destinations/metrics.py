@@ -14,6 +14,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from dc_core.http_status import PrometheusText, prometheus_labels
+from dc_core.metrics_document import by_measurement_key, per_measurement
 from dc_destinations.settings import by_measurement
 
 # (key in DeliveryPipeline.metrics(), Prometheus kind, help text)
@@ -93,7 +94,7 @@ class DestinationMetrics:
         with self._lock:
             out: dict[str, Any] = dict(self._counts)
             for counter, counts in self._by_measurement.items():
-                out[f"{counter}_by_measurement"] = dict(sorted(counts.items()))
+                out[by_measurement_key(counter)] = dict(sorted(counts.items()))
             out["last_error"] = self.last_error
             out["last_error_time"] = self.last_error_time
             out["last_delivery"] = self.last_delivery
@@ -169,7 +170,7 @@ def prometheus_text(destinations: dict[str, dict[str, Any]], buffer: dict[str, A
             [
                 (prometheus_labels(destination=d, measurement=m), n)
                 for d, values in sorted(destinations.items())
-                for m, n in sorted((values.get(f"{counter}_by_measurement") or {}).items())
+                for m, n in per_measurement(values, counter)
             ],
         )
     text.family(

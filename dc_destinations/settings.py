@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from dc_core.errors import ConfigError
 from dc_core.node_params import MetricsHttpParams, http_port_param
@@ -20,6 +21,12 @@ WHEN_FULL_POLICIES = ("drop_oldest", "drop_newest")
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)\s*$", re.IGNORECASE)
 _UNITS = {"": 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4}
+
+
+def time_key_param(doc: str) -> Any:
+    """A destination's ``time_key``: declared by the common parameters, and again by a plugin that reads
+    it too (Kinesis' time_key_format), with one default and the original's spelling for both."""
+    return param("date", aliases=("json_date_key",), doc=doc)
 
 
 def _size_problem(text: str) -> str | None:

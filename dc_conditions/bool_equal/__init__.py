@@ -6,14 +6,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from dc_conditions.compare import KEY_DOC, as_bool, value_at
+from dc_conditions.compare import KeyParams, as_bool, value_at
 from dc_core.condition import Condition
 from dc_core.params import param
 
 
 @dataclass(frozen=True, kw_only=True)
-class BoolEqualParams:
-    key: str = param(doc=KEY_DOC)
+class BoolEqualParams(KeyParams):
     value: bool = param(doc="Expected bool")
 
 

@@ -22,29 +22,30 @@ _ORDER_DOC = "Compare item by item (true) or as multisets, in any order (false)"
 
 
 @dataclass(frozen=True, kw_only=True)
-class ListBoolEqualParams:
+class _ArrayKeyParams:
     key: str = param(doc=_KEY_DOC)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ListBoolEqualParams(_ArrayKeyParams):
     value: list[bool] = param(doc="Expected bools")
     order_matters: bool = param(True, doc=_ORDER_DOC)
 
 
 @dataclass(frozen=True, kw_only=True)
-class ListDoubleEqualParams:
-    key: str = param(doc=_KEY_DOC)
+class ListDoubleEqualParams(_ArrayKeyParams):
     value: list[float] = param(doc="Expected numbers (exact comparison)")
     order_matters: bool = param(True, doc=_ORDER_DOC)
 
 
 @dataclass(frozen=True, kw_only=True)
-class ListIntegerEqualParams:
-    key: str = param(doc=_KEY_DOC)
+class ListIntegerEqualParams(_ArrayKeyParams):
     value: list[int] = param(doc="Expected integers")
     order_matters: bool = param(True, doc=_ORDER_DOC)
 
 
 @dataclass(frozen=True, kw_only=True)
-class ListStringEqualParams:
-    key: str = param(doc=_KEY_DOC)
+class ListStringEqualParams(_ArrayKeyParams):
     value: list[str] = param(doc="Expected strings")
     order_matters: bool = param(True, doc=_ORDER_DOC)
 

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
-from dc_conditions.compare import KEY_DOC, as_integer, as_number, value_at
+from dc_conditions.compare import KeyParams, as_integer, as_number, value_at
 from dc_core.condition import Condition
 from dc_core.params import param
 
@@ -22,27 +22,23 @@ Relation = Literal["equal", "below", "above"]
 
 
 @dataclass(frozen=True, kw_only=True)
-class DoubleEqualParams:
-    key: str = param(doc=KEY_DOC)
+class DoubleEqualParams(KeyParams):
     value: float = param(doc="Number the value must equal (exact comparison)")
 
 
 @dataclass(frozen=True, kw_only=True)
-class DoubleBoundParams:
-    key: str = param(doc=KEY_DOC)
+class DoubleBoundParams(KeyParams):
     value: float = param(doc="Bound the value is compared with")
     include_value: bool = param(True, doc=_INCLUDE_DOC)
 
 
 @dataclass(frozen=True, kw_only=True)
-class IntegerEqualParams:
-    key: str = param(doc=KEY_DOC)
+class IntegerEqualParams(KeyParams):
     value: int = param(doc="Integer the value must equal")
 
 
 @dataclass(frozen=True, kw_only=True)
-class IntegerBoundParams:
-    key: str = param(doc=KEY_DOC)
+class IntegerBoundParams(KeyParams):
     value: int = param(doc="Bound the value is compared with")
     include_value: bool = param(True, doc=_INCLUDE_DOC)
 

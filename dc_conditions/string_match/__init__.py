@@ -7,15 +7,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from dc_conditions.compare import KEY_DOC, as_string, value_at
+from dc_conditions.compare import KeyParams, as_string, value_at
 from dc_core.condition import Condition, ConditionContext
 from dc_core.errors import PluginError
 from dc_core.params import param
 
 
 @dataclass(frozen=True, kw_only=True)
-class StringMatchParams:
-    key: str = param(doc=KEY_DOC)
+class StringMatchParams(KeyParams):
     regex: str = param(doc="Python regular expression the whole string must match")
 
 

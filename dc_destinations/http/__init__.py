@@ -20,8 +20,9 @@ from urllib.parse import parse_qsl
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RejectedError, RetryableError, SendOutcome
 from dc_core.errors import ConfigError
-from dc_core.params import host_problem, param, port_problem, url_host
+from dc_core.params import host_param, param, port_problem, url_host
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
+from dc_destinations.msgpack_format import msgpack_packer
 from dc_destinations.probes import connect_probe
 from dc_destinations.tls import TlsParams, client_context, is_credential_name, warn_if_credentials_in_clear
 
@@ -58,7 +59,7 @@ def _latin1(text: str) -> bool:
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class HttpParams(TlsParams):
-    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the HTTP server")
+    host: str = host_param("the HTTP server")
     port: int = param(80, check=port_problem, doc="TCP port of the HTTP server (443 is usual with `tls`)")
     uri: str = param("/", check=_uri_problem, doc="Path (and query) the batches are POSTed to")
     format: str = param(
@@ -275,17 +276,9 @@ def _json_encoder(fmt: str) -> Callable[[Sequence[OutgoingRecord]], bytes]:
 
 
 def _msgpack_encoder(path: str) -> Callable[[Sequence[OutgoingRecord]], bytes]:
-    try:
-        import msgpack  # an optional dependency: `pip install ros2-dc[msgpack]`
-    except ImportError as exc:
-        raise ConfigError(path, 'msgpack needs the msgpack package (pip install "ros2-dc[msgpack]")') from exc
-
-    def encode(batch: Sequence[OutgoingRecord]) -> bytes:
-        # One msgpack array of the record maps: the same shape as format json, decoded in one call.
-        packed: bytes = msgpack.packb([record.data for record in batch], use_bin_type=True)
-        return packed
-
-    return encode
+    pack = msgpack_packer(path)
+    # One msgpack array of the record maps: the same shape as format json, decoded in one call.
+    return lambda batch: pack([record.data for record in batch])
 
 
 def _header_value(value: Any) -> str:

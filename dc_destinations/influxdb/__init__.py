@@ -42,7 +42,7 @@ from dc_core.destination import (
     SendOutcome,
 )
 from dc_core.errors import ConfigError
-from dc_core.params import host_problem, param, port_problem, url_host
+from dc_core.params import host_param, param, port_problem, url_host
 from dc_core.records import measurement_of
 from dc_destinations.http_client import HttpConnection, is_retryable_status, one_line, retry_after_seconds
 from dc_destinations.tls import TlsParams, client_context, warn_if_credentials_in_clear
@@ -70,7 +70,7 @@ _NEVER_AUTO_TAGGED = frozenset({"run_id"})
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class InfluxDBParams(TlsParams):
-    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the InfluxDB server")
+    host: str = host_param("the InfluxDB server")
     port: int = param(8086, check=port_problem, doc="TCP port of the InfluxDB HTTP API")
     api: str = param(
         "auto", choices=APIS, doc="v1: /write with a database; v2: /api/v2/write with org and bucket; auto: v2 when "

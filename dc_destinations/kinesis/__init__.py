@@ -26,6 +26,7 @@ from dc_core.destination import OutgoingRecord, ProbeResult, RejectedError, Retr
 from dc_core.params import param
 from dc_core.records import MalformedRecord, dump_record
 from dc_destinations.aws import CREDENTIAL_CODES, AwsClientParams, AwsDestination, BotoCoreError, ClientError
+from dc_destinations.settings import time_key_param
 
 # The service's limits (Kinesis Data Streams quotas): a record's data plus its partition key, and a
 # PutRecords request's records and bytes (data plus partition keys).
@@ -75,11 +76,7 @@ class KinesisParams(AwsClientParams):
         check=_template_problem,
         doc="Partition key template over the record's top-level keys; the record_id when a key is missing",
     )
-    time_key: str = param(
-        "date",
-        aliases=("json_date_key",),
-        doc="The common time_key, read here for time_key_format (one value for both)",
-    )
+    time_key: str = time_key_param("The common time_key, read here for time_key_format (one value for both)")
     time_key_format: str = param(
         "", doc="strftime format (UTC; %3N, %6N, %9N, %L for fractions) of the time key; empty: time_format"
     )

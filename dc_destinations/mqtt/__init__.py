@@ -34,7 +34,7 @@ from dc_core.destination import (
     SendOutcome,
 )
 from dc_core.errors import ConfigError
-from dc_core.params import host_problem, param, port_problem, url_host
+from dc_core.params import host_param, param, port_problem, url_host
 from dc_core.records import MalformedRecord
 from dc_destinations.connection import Connection
 from dc_destinations.templates import fill_template
@@ -69,7 +69,7 @@ def _topic_problem(template: str) -> str | None:
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class MqttParams(TlsParams):
-    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the MQTT broker")
+    host: str = host_param("the MQTT broker")
     port: int = param(1883, check=port_problem, doc="TCP port of the broker (8883 is usual with `tls`)")
     topic: str = param(
         "dc/{name}", check=_topic_problem, doc="Topic of each record; {key} is replaced by the record's value of key"

@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 from dc_core.destination import ConfigurationProblem, Destination, ProbeResult, RetryableError
 from dc_core.errors import ConfigError
 from dc_core.logs import Logger
-from dc_core.params import host_problem, param, port_problem, url_host
+from dc_core.params import host_param, param, port_problem, url_host
 from dc_destinations.tls import warn_if_credentials_in_clear
 
 T = TypeVar("T")
@@ -112,7 +112,7 @@ def warn_if_password_in_clear(logger: Logger, destination: str, settings: Server
 class PostgresServerParams:
     """Where and how a destination logs in to PostgreSQL (PgSQL, FilesMetrics' ``pgsql``), checked together."""
 
-    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the PostgreSQL server")
+    host: str = host_param("the PostgreSQL server")
     port: int | str = param(5432, check=port_problem, doc='TCP port of the server (the original wrote "5432")')
     user: str = param("", doc="Role to log in as; empty: the system user running DC (libpq's default)")
     password: str = param("", secret=True, doc="Password of `user` (never logged)")

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from dc_core.destination import Destination, OutgoingRecord, ProbeResult, RetryableError, SendOutcome
-from dc_core.errors import ConfigError
-from dc_core.params import compat_param, host_problem, param, port_problem, url_host
+from dc_core.params import compat_param, host_param, param, port_problem, url_host
 from dc_destinations.connection import Connection
+from dc_destinations.msgpack_format import msgpack_packer
 from dc_destinations.tls import TlsParams, client_context, ssl_reason
 
 # "json" is the original's name for the same JSON lines.
@@ -29,7 +29,7 @@ _PEEK_READS = 64
 
 @dataclass(frozen=True, kw_only=True, repr=False)
 class TcpParams(TlsParams):
-    host: str = param("127.0.0.1", check=host_problem, doc="Host name or IP address of the TCP server")
+    host: str = host_param("the TCP server")
     port: int = param(5432, check=port_problem, doc="TCP port of the server (the original's default: 5432)")
     format: str = param(
         "json_lines",
@@ -177,13 +177,5 @@ def _json_line(record: OutgoingRecord) -> bytes:
 
 
 def _msgpack_encoder(path: str) -> Callable[[OutgoingRecord], bytes]:
-    try:
-        import msgpack  # an optional dependency: `pip install ros2-dc[msgpack]`
-    except ImportError as exc:
-        raise ConfigError(path, 'msgpack needs the msgpack package (pip install "ros2-dc[msgpack]")') from exc
-
-    def encode(record: OutgoingRecord) -> bytes:
-        packed: bytes = msgpack.packb(record.data, use_bin_type=True)
-        return packed
-
-    return encode
+    pack = msgpack_packer(path)
+    return lambda record: pack(record.data)
