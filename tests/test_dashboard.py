@@ -367,6 +367,58 @@ def test_the_files_of_a_robots_run_are_found_without_an_index_on_record_id(datab
     assert "Seq Scan on dc" not in plan, plan
 
 
+def test_the_files_of_a_run_without_a_robot_are_those_its_records_brought_found_by_each_robots_span(
+    database: PostgresSettings,
+) -> None:
+    import dataclasses
+
+    import psycopg
+    from psycopg import sql
+
+    from dc_destinations.files_metrics.table import FilesTable
+
+    # Two robots, two runs each, interleaved in time; each run's camera record brought a file (robot named)
+    # and so did its system group record (the robot one level down: files_metrics has no robot name).
+    runs = [("C3PO", "1", T0), ("R2D2", "1", T0 + dt.timedelta(seconds=5)), ("R2D2", "2", T0 + dt.timedelta(minutes=20)),
+            ("C3PO", "2", T0 + dt.timedelta(hours=1))]  # fmt: skip
+    settings = dataclasses.replace(database, table="dc_runs", files_table="files_runs")
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("CREATE TABLE dc_runs (tag varchar, time timestamp, data jsonb, record_id text)")
+        FilesTable("files_runs").prepare(connection)
+        for robot, run, start in runs:
+            rows = _run_rows(robot, run, start, 10, cpu=1.0)
+            with connection.cursor() as cursor:
+                cursor.executemany("INSERT INTO dc_runs VALUES (%s, %s, %s::jsonb, %s)", rows)
+            camera, system = rows[-2], rows[1]
+            for name, file_robot, (_, when, _, record_id) in (("front_camera", robot, camera), ("system", "", system)):
+                connection.execute(
+                    "INSERT INTO files_runs (timestamp, robot_name, robot_id, group_name, local_path, remote_path,"
+                    " uploaded, on_filesystem, deleted, storage_type, content_type, size, updated_at, record_id,"
+                    " bucket) VALUES (%s, %s, '', %s, %s, %s, true, true, false, 'minio', 'image/jpeg', 100, now(),"
+                    " %s, 'b')",
+                    (when, file_robot, name, f"/d/{record_id}", f"s3://b/{record_id}", record_id),
+                )
+    assert indexes.create(settings, say=lambda text: None) == 0
+    bounded, by_record = Store(settings), Store(settings)
+    # Each file's record looked up by record_id, as before: what the page must still show.
+    by_record.files_run_condition = lambda filters, connection=None: Store.files_run_condition(  # type: ignore[method-assign]
+        by_record, filters
+    )
+    with psycopg.connect(**settings.connect_kwargs(), autocommit=True) as connection:
+        for filters in (Filters(run="1"), Filters(run="2"), Filters(run="2", start=T0 + dt.timedelta(minutes=30)),
+                        Filters(run="3")):  # fmt: skip
+            found, expected = bounded.files(connection, filters), by_record.files(connection, filters)
+            assert (found.rows, found.counts) == (expected.rows, expected.counts), filters
+        assert [r["local_path"] for r in bounded.files(connection, Filters(run="1")).rows] == [
+            "/d/R2D2-1-30", "/d/R2D2-1-1", "/d/C3PO-1-30", "/d/C3PO-1-1"
+        ]  # fmt: skip
+        condition = bounded.files_run_condition(Filters(run="2"), connection)
+        connection.execute("SET enable_seqscan = off")  # a tiny table: would a large one be read whole?
+        query = sql.SQL("EXPLAIN SELECT count(*) FROM files_runs f WHERE {}").format(condition)
+        plan = "\n".join(row[0] for row in connection.execute(query, {"run": "2"}).fetchall())
+    assert "Seq Scan" not in plan, plan  # each robot's span of files_metrics, not every file
+
+
 def test_its_indexes_are_built_on_a_partitioned_table_too(database: PostgresSettings) -> None:
     import dataclasses
 
