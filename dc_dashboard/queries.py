@@ -21,6 +21,9 @@ from dc_dashboard.filters import Filters
 from dc_dashboard.settings import PostgresSettings
 
 POINTS = 600  # per series of a chart: more than an SVG of 900 px wide can show apart
+# Points of a chart in all: above POINTS x 20 series (a fleet's hour without a robot: 100), each series
+# gets fewer, wider buckets, so every robot is drawn and the page stays bounded (rows, SVG, Python).
+CHART_POINTS = 12_000
 CAMERA_PAGE = 12
 EXPLORE_PAGE = 50
 FILES_PAGE = 200
@@ -31,6 +34,22 @@ CATALOG_TTL_S = 30.0
 class Series:
     label: str
     points: list[tuple[float, float]]  # (seconds since the epoch, value) or (x, y) for a trajectory
+
+
+@dataclass
+class Bucket:
+    """A series' rows in one bucket of time: their mean time and values, and what the pages sum up."""
+
+    robot: str
+    run: str
+    label: str
+    when: float  # mean epoch seconds
+    a: float | None  # mean of the first value (None: no row had it)
+    b: float | None
+    rows: int
+    a_rows: int  # rows with a first value
+    a_max: float | None
+    a_min: float | None
 
 
 @dataclass
@@ -191,52 +210,48 @@ class Store:
         series: dict[str, list[tuple[float, float, float]]] = {}
         positions = 0
         for name, path in catalog.sources["position"]:
-            for label, _, x, y, count in self._bucketed(
-                connection, filters, name, [(*path, "x"), (*path, "y")], series_by_run=True
-            ):
-                series.setdefault(label, []).append((_, x, y))
-                positions += count
+            for bucket in self._bucketed(connection, filters, name, [(*path, "x"), (*path, "y")]):
+                if bucket.a is not None:
+                    positions += bucket.rows
+                    series.setdefault(bucket.label, []).append((bucket.when, bucket.a, bucket.b or 0.0))
         lines = [Series(label, [(x, y) for _, x, y in sorted(points)]) for label, points in sorted(series.items())]
         last = max((max(t for t, _, _ in points) for points in series.values()), default=None)
         return Trajectory(lines, self._map(connection, filters, catalog, last), positions)
 
     def distance(self, connection: Any, filters: Filters) -> Distance:
-        from psycopg import sql
 
         catalog = self.catalog(connection)
         per_run: list[tuple[str, str, float]] = []
         series: list[Series] = []
         for name, path in catalog.sources["distance_traveled"]:
-            where, params = self._where(filters, name)
-            params["d"] = [*path, "distance_traveled"]
-            value = sql.SQL("(data #>> %(d)s)::float8")
-            query = sql.SQL(
-                "SELECT {robot}, {run}, max({v}) - min({v}) FROM {t} WHERE {where} GROUP BY 1, 2"
-                " ORDER BY max(time) DESC LIMIT 500"
-            ).format(robot=indexes.ROBOT, run=indexes.RUN, v=value, t=self.table, where=where)
-            per_run += [(r or "", u or "", float(m or 0)) for r, u, m in connection.execute(query, params).fetchall()]
-            for label, t, d, _, _ in self._bucketed(connection, filters, name, [(*path, "distance_traveled")]):
-                _append(series, label, (t, d))
+            # A run's metres, its counter's rise: from the plot's buckets (their max and min), one read of the rows.
+            runs: dict[tuple[str, str], list[float]] = {}  # (robot, run) -> [max, min, newest time]
+            buckets = self._bucketed(connection, filters, name, [(*path, "distance_traveled")])
+            for bucket in buckets:
+                if bucket.a_max is None or bucket.a_min is None:
+                    continue
+                run = runs.setdefault((bucket.robot, bucket.run), [bucket.a_max, bucket.a_min, bucket.when])
+                run[0], run[1], run[2] = max(run[0], bucket.a_max), min(run[1], bucket.a_min), max(run[2], bucket.when)
+            newest = sorted(runs.items(), key=lambda item: item[1][2], reverse=True)[:500]
+            per_run += [(robot, run, top - low) for (robot, run), (top, low, _) in newest]
+            series += _series(buckets, "a")
         return Distance(sum(m for _, _, m in per_run), per_run, series)
 
     def system(self, connection: Any, filters: Filters) -> SystemStats:
-        from psycopg import sql
 
         catalog = self.catalog(connection)
         stats: dict[str, list[Series]] = {"cpu": [], "memory": []}
         summary: dict[str, list[tuple[float, float, int]]] = {"cpu": [], "memory": []}
         for kind, field_name in (("cpu", "average"), ("memory", "used")):
             for name, path in catalog.sources[kind]:
-                where, params = self._where(filters, name)
-                params["v"] = [*path, field_name]
-                query = sql.SQL(
-                    "SELECT avg((data #>> %(v)s)::float8), max((data #>> %(v)s)::float8), count(*) FROM {t} WHERE {w}"
-                ).format(t=self.table, w=where)
-                average, top, count = connection.execute(query, params).fetchone()
-                if count:
-                    summary[kind].append((float(average), float(top), int(count)))
-                for label, t, v, _, _ in self._bucketed(connection, filters, name, [(*path, field_name)]):
-                    _append(stats[kind], label, (t, v))
+                # The figures from the plot's buckets: one read of the rows, not two.
+                buckets = self._bucketed(connection, filters, name, [(*path, field_name)])
+                valued = sum(b.a_rows for b in buckets)
+                if valued:
+                    average = sum((b.a or 0.0) * b.a_rows for b in buckets) / valued
+                    top = max(b.a_max for b in buckets if b.a_max is not None)
+                    summary[kind].append((average, top, sum(b.rows for b in buckets)))
+                stats[kind] += _series(buckets, "a")
 
         def weighted(kind: str) -> tuple[float | None, float | None, int]:
             rows = summary[kind]
@@ -323,10 +338,10 @@ class Store:
         for first in range(0, len(paths), 2):  # two fields per query
             pair = paths[first : first + 2]
             series: list[list[Series]] = [[] for _ in pair]
-            for label, t, a, b, _ in self._bucketed(connection, filters, filters.name, pair):
-                _append(series[0], label, (t, a))
-                if len(pair) == 2:
-                    _append(series[1], label, (t, b))
+            buckets = self._bucketed(connection, filters, filters.name, pair)
+            series[0] = _series(buckets, "a")
+            if len(pair) == 2:
+                series[1] = _series(buckets, "b")
             charts += [(".".join(path), lines) for path, lines in zip(pair, series, strict=True)]
         return Exploration(names, records[:EXPLORE_PAGE], len(records) > EXPLORE_PAGE, charts)
 
@@ -460,15 +475,10 @@ class Store:
         )
         return sql.SQL(" AND ").join([sql.SQL("(data->>'name') = %(name)s"), *parts]), {"name": name, **params}
 
-    def _bucketed(
-        self,
-        connection: Any,
-        filters: Filters,
-        name: str,
-        paths: list[tuple[str, ...]],
-        series_by_run: bool = True,
-    ) -> list[tuple[str, float, float, float, int]]:
-        """(series label, epoch seconds, value, second value, rows) averaged over at most POINTS buckets of time."""
+    def _bucketed(self, connection: Any, filters: Filters, name: str, paths: list[tuple[str, ...]]) -> list[Bucket]:
+        """The rows of record ``name`` (two values at ``paths``) averaged per robot and run over at most
+        POINTS buckets of time, wider ones when the series are many (CHART_POINTS in all): PostgreSQL
+        reduces them, a few thousand rows come back whatever the rows read."""
         from psycopg import sql
 
         where, params = self._where(filters, name)
@@ -480,22 +490,34 @@ class Store:
         low, high = (_epoch(t) for t in span)
         values: list[sql.Composable] = []
         for i, path in enumerate(paths[:2]):
-            values.append(sql.SQL("avg((data #>> {})::float8)").format(sql.Placeholder(f"p{i}")))
+            values.append(sql.SQL("(data #>> {})::float8").format(sql.Placeholder(f"p{i}")))
             params[f"p{i}"] = list(path)
         while len(values) < 2:
             values.append(sql.SQL("NULL::float8"))
-        params.update(low=low, high=high + 0.001, buckets=POINTS)
+        params.update(low=low, high=high + 0.001, buckets=POINTS, budget=CHART_POINTS)
+        # Sums and counts per fine bucket, then merged ``factor`` buckets at a time: the same means as
+        # averaging the rows of the wider bucket (factor 1 up to CHART_POINTS / POINTS series).
         query = sql.SQL(
-            "SELECT {robot}, {run}, width_bucket(extract(epoch FROM time)::float8, %(low)s, %(high)s, %(buckets)s),"
-            " avg(extract(epoch FROM time))::float8, {a}, {b}, count(*)"
-            " FROM {t} WHERE {w} GROUP BY 1, 2, 3 ORDER BY 1, 2, 3 LIMIT 20000"
+            "WITH fine AS (SELECT {robot} AS robot, {run} AS run,"
+            "   width_bucket(extract(epoch FROM time)::float8, %(low)s, %(high)s, %(buckets)s) AS bucket,"
+            "   sum(extract(epoch FROM time)::float8) AS t, count(*) AS n, sum({a}) AS sa, count({a}) AS na,"
+            "   max({a}) AS top, min({a}) AS bottom, sum({b}) AS sb, count({b}) AS nb"
+            "   FROM {t} WHERE {w} GROUP BY 1, 2, 3),"
+            " sized AS (SELECT greatest(1, ceil(count(*) * %(buckets)s / %(budget)s::float8))::int AS factor"
+            "   FROM (SELECT DISTINCT robot, run FROM fine) AS series)"
+            " SELECT robot, run, sum(t) / sum(n), sum(sa) / nullif(sum(na), 0), sum(sb) / nullif(sum(nb), 0),"
+            "   sum(n), sum(na), max(top), min(bottom)"
+            " FROM fine, sized GROUP BY robot, run, (bucket - 1) / factor ORDER BY robot, run, 3 LIMIT 20000"
         ).format(robot=indexes.ROBOT, run=indexes.RUN, a=values[0], b=values[1], t=self.table, w=where)
         out = []
-        for robot, run, _, when, a, b, count in connection.execute(query, params).fetchall():
-            if a is None:
-                continue
-            label = f"{robot or '?'} run {run or '?'}" if series_by_run else (robot or "?")
-            out.append((label, float(when), float(a), float(b) if b is not None else 0.0, int(count)))
+        for robot, run, when, a, b, rows, a_rows, top, bottom in connection.execute(query, params).fetchall():
+            robot, run = robot or "", run or ""
+            out.append(
+                Bucket(
+                    robot, run, f"{robot or '?'} run {run or '?'}", float(when), _float(a), _float(b),
+                    int(rows), int(a_rows), _float(top), _float(bottom),
+                )
+            )  # fmt: skip
         return out
 
     def _map(self, connection: Any, filters: Filters, catalog: Catalog, last: float | None) -> dict[str, Any] | None:
@@ -527,12 +549,18 @@ class Store:
         return None
 
 
-def _append(series: list[Series], label: str, point: tuple[float, float]) -> None:
-    for s in series:
-        if s.label == label:
-            s.points.append(point)
-            return
-    series.append(Series(label, [point]))
+def _series(buckets: list[Bucket], value: str) -> list[Series]:
+    """A series per label of the buckets holding ``value`` ("a" or "b"), in the buckets' order."""
+    found: dict[str, Series] = {}
+    for bucket in buckets:
+        if bucket.a is not None:  # a bucket is drawn when its first value is there (the second: 0 without)
+            point = (bucket.when, float(getattr(bucket, value) or 0.0))
+            found.setdefault(bucket.label, Series(bucket.label, [])).points.append(point)
+    return list(found.values())
+
+
+def _float(value: Any) -> float | None:
+    return float(value) if value is not None else None
 
 
 def _inspection(when: dt.datetime, robot: str, run: str, record: dict[str, Any]) -> Inspection:

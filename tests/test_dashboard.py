@@ -419,6 +419,72 @@ def test_the_files_of_a_run_without_a_robot_are_those_its_records_brought_found_
     assert "Seq Scan" not in plan, plan  # each robot's span of files_metrics, not every file
 
 
+def test_a_fleets_plots_are_averaged_by_postgresql_every_robot_drawn_in_wider_buckets_when_many(
+    database: PostgresSettings,
+) -> None:
+    import dataclasses
+
+    import psycopg
+
+    from dc_dashboard import queries
+
+    # 40 robots x 700 s of a position and a cpu record a second: 40 x 600 buckets would be 24,000 points.
+    settings = dataclasses.replace(database, table="dc_fleet")
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("CREATE TABLE dc_fleet (tag varchar, time timestamp, data jsonb, record_id text)")
+        connection.execute(
+            "INSERT INTO dc_fleet SELECT 'pg', %(t0)s + s * interval '1 s' + r * interval '10 ms',"
+            " jsonb_build_object('name', m, 'robot_name', 'r' || lpad(r::text, 2, '0'), 'run_id', '1')"
+            "   || CASE m WHEN 'position' THEN jsonb_build_object('x', r + sin(s / 50.0), 'y', cos(s / 7.0), 'yaw', 0)"
+            "      ELSE jsonb_build_object('average', (r * 7 + s) %% 100, 'processes', 1) END, m || r || '-' || s"
+            " FROM generate_series(1, 40) AS r, generate_series(0, 699) AS s, unnest(ARRAY['position', 'cpu']) AS m",
+            {"t0": T0},
+        )
+        raw = connection.execute(
+            "SELECT extract(epoch FROM time)::float8, (data->>'x')::float8, (data->>'y')::float8 FROM dc_fleet"
+            " WHERE data->>'robot_name' = 'r07' AND data->>'name' = 'position' ORDER BY time"
+        ).fetchall()
+        span = connection.execute(
+            "SELECT extract(epoch FROM min(time))::float8, extract(epoch FROM max(time))::float8 FROM dc_fleet"
+            " WHERE data->>'name' = 'position'"
+        ).fetchone()
+        cpu = connection.execute(
+            "SELECT avg((data->>'average')::float8), max((data->>'average')::float8), count(*) FROM dc_fleet"
+            " WHERE data->>'name' = 'cpu'"
+        ).fetchone()
+    assert span is not None and cpu is not None
+    assert indexes.create(settings, say=lambda text: None) == 0
+    store = Store(settings)
+
+    def averaged(factor: int, low: float, high: float) -> list[tuple[float, float]]:
+        """r07's positions averaged in Python over the page's buckets of the time from ``low`` to ``high``
+        (the filters' rows' first and last), ``factor`` of them merged."""
+        high += 0.001
+        buckets: dict[int, list[tuple[float, float]]] = {}
+        for t, x, y in raw:
+            fine = int((t - low) / (high - low) * queries.POINTS) + 1  # width_bucket
+            buckets.setdefault((fine - 1) // factor, []).append((x, y))
+        return [(sum(x for x, _ in b) / len(b), sum(y for _, y in b) / len(b)) for _, b in sorted(buckets.items())]
+
+    def same(points: list[tuple[float, float]], expected: list[tuple[float, float]]) -> bool:
+        flat = [v for point in points for v in point]
+        return flat == pytest.approx([v for point in expected for v in point], abs=1e-9)
+
+    with psycopg.connect(**settings.connect_kwargs(), autocommit=True) as connection:
+        alone = store.trajectory(connection, Filters(robot="r07"))
+        fleet = store.trajectory(connection, Filters())
+        system = store.system(connection, Filters())
+    assert [s.label for s in alone.series] == ["r07 run 1"] and alone.positions == 700
+    assert same(alone.series[0].points, averaged(1, raw[0][0], raw[-1][0]))  # as before: 600 buckets, a robot alone
+    # Every robot drawn (the 20,000-row cut left robots 34 to 40 out), each in buckets of twice the time.
+    assert [s.label for s in fleet.series] == [f"r{n:02d} run 1" for n in range(1, 41)] and fleet.positions == 28_000
+    factor = -(-40 * queries.POINTS // queries.CHART_POINTS)
+    assert factor == 2 and sum(len(s.points) for s in fleet.series) <= queries.CHART_POINTS + 40
+    assert same(fleet.series[6].points, averaged(factor, span[0], span[1]))
+    assert system.cpu_average == pytest.approx(cpu[0]) and (system.cpu_max, system.samples) == (cpu[1], cpu[2])
+    assert len(system.cpu) == 40
+
+
 def test_its_indexes_are_built_on_a_partitioned_table_too(database: PostgresSettings) -> None:
     import dataclasses
 
