@@ -456,14 +456,13 @@ def test_a_fleets_plots_are_averaged_by_postgresql_every_robot_drawn_in_wider_bu
     assert indexes.create(settings, say=lambda text: None) == 0
     store = Store(settings)
 
-    def averaged(factor: int, low: float, high: float) -> list[tuple[float, float]]:
-        """r07's positions averaged in Python over the page's buckets of the time from ``low`` to ``high``
-        (the filters' rows' first and last), ``factor`` of them merged."""
+    def averaged(count: int, low: float, high: float) -> list[tuple[float, float]]:
+        """r07's positions averaged in Python over ``count`` buckets of the time from ``low`` to ``high``
+        (the filters' rows' first and last), as width_bucket makes them."""
         high += 0.001
         buckets: dict[int, list[tuple[float, float]]] = {}
         for t, x, y in raw:
-            fine = int((t - low) / (high - low) * queries.POINTS) + 1  # width_bucket
-            buckets.setdefault((fine - 1) // factor, []).append((x, y))
+            buckets.setdefault(int((t - low) / (high - low) * count), []).append((x, y))
         return [(sum(x for x, _ in b) / len(b), sum(y for _, y in b) / len(b)) for _, b in sorted(buckets.items())]
 
     def same(points: list[tuple[float, float]], expected: list[tuple[float, float]]) -> bool:
@@ -475,12 +474,12 @@ def test_a_fleets_plots_are_averaged_by_postgresql_every_robot_drawn_in_wider_bu
         fleet = store.trajectory(connection, Filters())
         system = store.system(connection, Filters())
     assert [s.label for s in alone.series] == ["r07 run 1"] and alone.positions == 700
-    assert same(alone.series[0].points, averaged(1, raw[0][0], raw[-1][0]))  # as before: 600 buckets, a robot alone
+    # As before: 600 buckets, a robot alone.
+    assert same(alone.series[0].points, averaged(queries.POINTS, raw[0][0], raw[-1][0]))
     # Every robot drawn (the 20,000-row cut left robots 34 to 40 out), each in buckets of twice the time.
     assert [s.label for s in fleet.series] == [f"r{n:02d} run 1" for n in range(1, 41)] and fleet.positions == 28_000
-    factor = -(-40 * queries.POINTS // queries.CHART_POINTS)
-    assert factor == 2 and sum(len(s.points) for s in fleet.series) <= queries.CHART_POINTS + 40
-    assert same(fleet.series[6].points, averaged(factor, span[0], span[1]))
+    assert queries.CHART_POINTS // 40 == 300 and sum(len(s.points) for s in fleet.series) == 40 * 300
+    assert same(fleet.series[6].points, averaged(300, span[0], span[1]))
     assert system.cpu_average == pytest.approx(cpu[0]) and (system.cpu_max, system.samples) == (cpu[1], cpu[2])
     assert len(system.cpu) == 40
 
