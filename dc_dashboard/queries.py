@@ -431,7 +431,11 @@ class Store:
             r_low=sql.Literal(low),  # as the records table holds it (timestamptz: with its zone)
             r_high=sql.Literal(high),
         )
-        return sql.SQL("({})").format(sql.SQL(" OR ").join([*ranges, unnamed]))
+        # The whole span too: the newest files first through the (timestamp) index then stop at the
+        # run's end, not at the newest file of the table (1.6 s, the OR tried on every file since).
+        return sql.SQL("(f.timestamp BETWEEN {} AND {} AND ({}))").format(
+            sql.Literal(_utc(low)), sql.Literal(_utc(high)), sql.SQL(" OR ").join([*ranges, unnamed])
+        )
 
     def run_spans(self, connection: Any, run: str) -> dict[str, tuple[dt.datetime, dt.datetime]]:
         """Each robot's first and last row of run ``run``: a seek per robot and record name at each end
