@@ -367,10 +367,25 @@ def test_the_files_of_a_robots_run_are_found_without_an_index_on_record_id(datab
     assert "Seq Scan on dc" not in plan, plan
 
 
+def _records_table(database: PostgresSettings, table: str, files_table: str = "files_metrics") -> PostgresSettings:
+    """The settings of a new, empty records table ``table`` (DC's columns) in the module's server."""
+    import dataclasses
+
+    import psycopg
+    from psycopg import sql
+
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute(
+            sql.SQL("CREATE TABLE {} (tag varchar, time timestamp, data jsonb, record_id text)").format(
+                sql.Identifier(table)
+            )
+        )
+    return dataclasses.replace(database, table=table, files_table=files_table)
+
+
 def test_the_files_of_a_run_without_a_robot_are_those_its_records_brought_found_by_each_robots_span(
     database: PostgresSettings,
 ) -> None:
-    import dataclasses
 
     import psycopg
     from psycopg import sql
@@ -381,9 +396,8 @@ def test_the_files_of_a_run_without_a_robot_are_those_its_records_brought_found_
     # and so did its system group record (the robot one level down: files_metrics has no robot name).
     runs = [("C3PO", "1", T0), ("R2D2", "1", T0 + dt.timedelta(seconds=5)), ("R2D2", "2", T0 + dt.timedelta(minutes=20)),
             ("C3PO", "2", T0 + dt.timedelta(hours=1))]  # fmt: skip
-    settings = dataclasses.replace(database, table="dc_runs", files_table="files_runs")
+    settings = _records_table(database, "dc_runs", files_table="files_runs")
     with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
-        connection.execute("CREATE TABLE dc_runs (tag varchar, time timestamp, data jsonb, record_id text)")
         FilesTable("files_runs").prepare(connection)
         for robot, run, start in runs:
             rows = _run_rows(robot, run, start, 10, cpu=1.0)
@@ -422,16 +436,14 @@ def test_the_files_of_a_run_without_a_robot_are_those_its_records_brought_found_
 def test_a_fleets_plots_are_averaged_by_postgresql_every_robot_drawn_in_wider_buckets_when_many(
     database: PostgresSettings,
 ) -> None:
-    import dataclasses
 
     import psycopg
 
     from dc_dashboard import queries
 
     # 40 robots x 700 s of a position and a cpu record a second: 40 x 600 buckets would be 24,000 points.
-    settings = dataclasses.replace(database, table="dc_fleet")
+    settings = _records_table(database, "dc_fleet")
     with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
-        connection.execute("CREATE TABLE dc_fleet (tag varchar, time timestamp, data jsonb, record_id text)")
         connection.execute(
             "INSERT INTO dc_fleet SELECT 'pg', %(t0)s + s * interval '1 s' + r * interval '10 ms',"
             " jsonb_build_object('name', m, 'robot_name', 'r' || lpad(r::text, 2, '0'), 'run_id', '1')"
