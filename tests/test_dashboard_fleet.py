@@ -57,6 +57,14 @@ ROWS: list[tuple[dt.timedelta, dict[str, Any]]] = [
 ]
 
 
+def rows_today(connection: Any, table: str) -> dict[str, int]:
+    """Each robot's rows of ``table`` since midnight (of NOW), counted."""
+    from psycopg import sql
+
+    query = sql.SQL("SELECT data->>'robot_name', count(*) FROM {} WHERE time >= %s GROUP BY 1")
+    return dict(connection.execute(query.format(sql.Identifier(table)), (NOW.replace(hour=0, tzinfo=dt.UTC),)))
+
+
 @pytest.fixture(scope="module")
 def database() -> Iterator[PostgresSettings]:
     import psycopg
@@ -171,12 +179,7 @@ def test_above_the_bound_the_records_today_are_the_planners_estimates_and_said_s
             "                 %(now)s, every * interval '1 s') AS t",
             {"now": NOW.replace(tzinfo=dt.UTC)},
         )
-        counted = dict(
-            connection.execute(
-                "SELECT data->>'robot_name', count(*) FROM dc_big WHERE time >= %s GROUP BY 1",
-                (NOW.replace(hour=0, tzinfo=dt.UTC),),
-            ).fetchall()
-        )
+        counted = rows_today(connection, "dc_big")
     assert indexes.create(big, say=lambda text: None) == 0  # the robot expression's statistics come with its index
     with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
         connection.execute("ANALYZE dc_big")
@@ -218,11 +221,7 @@ def test_on_day_partitions_every_robots_estimate_is_one_read_of_the_statistics_n
             "                 %(now)s, interval '20 s') AS t",
             {"now": NOW.replace(tzinfo=dt.UTC)},
         )
-        counted = dict(
-            connection.execute(
-                "SELECT data->>'robot_name', count(*) FROM dc_days WHERE time >= %s GROUP BY 1", (day,)
-            ).fetchall()
-        )
+        counted = rows_today(connection, "dc_days")
     assert indexes.create(parted, say=lambda text: None) == 0
     with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
         connection.execute("ANALYZE dc_days")
