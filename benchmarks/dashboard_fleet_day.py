@@ -323,7 +323,7 @@ def files_plan(store: Any, connection: Any, filters: Filters) -> list[str]:
         filters,
         robot_column=sql.SQL("robot_name"),
         time_column=sql.SQL("timestamp"),
-        run_condition=store.files_run_condition(filters),
+        run_condition=store.files_run_condition(filters, connection),
     )
     scope = sql.SQL(" AND ").join([sql.SQL("true"), *conditions])
     query = sql.SQL("EXPLAIN (COSTS OFF) SELECT count(*) FROM {f} f WHERE {s}").format(f=store.files_table, s=scope)

@@ -15,13 +15,15 @@ most ``EXACT_UP_TO`` rows today; a count reads every row it counts, so above tha
 robot's rows per second over its history (the planner's count of its rows from ANALYZE's
 statistics, over the time from its first row to its last) times its time active today (its first
 row today to its last) — seeks again; exact for a robot without a row today, off by what its rate
-today differs from its average, or by its pauses today.
+today differs from its average, or by its pauses today. Every robot's count of rows comes from one
+read of the statistics (``robot_rows``), not a plan per robot.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from html import escape
 from typing import Any
@@ -85,11 +87,15 @@ def overview(
             ("first_today", "min(time) AS time", "time >= %(today)s"),
         )
         params["robots"] = list(rows)
+        totals = robot_rows(connection, store)
         for robot, first, first_today in connection.execute(spans, params).fetchall():
             row, first, first_today = rows[robot], _naive(first), _naive(first_today)
             if first is None or first_today is None or row.last_seen is None:
                 continue  # no row today: 0, known
-            total = _estimate(connection, store, sql.SQL("{} = {}").format(indexes.ROBOT, sql.Literal(robot)))
+            if totals is not None:
+                total = round(totals(robot))
+            else:
+                total = _estimate(connection, store, sql.SQL("{} = {}").format(indexes.ROBOT, sql.Literal(robot)))
             lived = (row.last_seen - first).total_seconds()
             active = (row.last_seen - first_today).total_seconds()
             row.records_today = round(total * active / lived) if lived > 0 else total
@@ -134,6 +140,44 @@ def _per_robot(store: Store, columns: str, *seeks: tuple[str, str, str]) -> Any:
         " FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
         f"{laterals} GROUP BY r.robot"
     ).format(t=store.table, robot=indexes.ROBOT)
+
+
+def robot_rows(connection: Any, store: Store) -> Callable[[str], float] | None:
+    """The rows of a robot in the table as the planner would estimate ``ROBOT = robot``, for every robot
+    from one read of the statistics: ANALYZE's most common values of the robot expression (kept with
+    the dashboard's (robot, name, time) index, of each partition on a partitioned table) times the
+    rows of the table or partition. An ``EXPLAIN`` per robot plans over every partition: 100 robots on
+    30 day partitions took 1.6 s. None when a table with rows has no such statistics readable here
+    (the index missing, not analysed yet, or a role that does not own the table: pg_stats shows an
+    index's statistics to its owner only): the caller plans per robot then."""
+    from psycopg import sql
+
+    table, name = indexes.table_and_name(store.settings, indexes.ROBOT_INDEX)
+    index = sql.Identifier(*table.split(".")[:-1], name).as_string(connection)
+    found = connection.execute(
+        "SELECT greatest(c.reltuples, 0), s.most_common_vals::text::text[], s.most_common_freqs, s.null_frac,"
+        " s.n_distinct"
+        " FROM pg_partition_tree(to_regclass(%s)) AS p JOIN pg_index i ON i.indexrelid = p.relid"
+        " JOIN pg_class c ON c.oid = i.indrelid JOIN pg_class ic ON ic.oid = i.indexrelid"
+        " JOIN pg_namespace n ON n.oid = ic.relnamespace JOIN pg_attribute a ON a.attrelid = ic.oid AND a.attnum = 1"
+        " LEFT JOIN pg_stats s ON s.schemaname = n.nspname AND s.tablename = ic.relname AND s.attname = a.attname"
+        " WHERE p.isleaf",
+        (index,),
+    ).fetchall()
+    parts: list[tuple[float, dict[str, float], float]] = []  # rows, robot -> share, share of another robot
+    for rows, values, freqs, null_frac, n_distinct in found:
+        if not rows:
+            continue
+        if null_frac is None:
+            return None
+        common = dict(zip(values or [], freqs or [], strict=True))
+        distinct = n_distinct if n_distinct >= 0 else -n_distinct * rows
+        # As the planner's equality estimate: what the common values leave, shared by the other values.
+        other = max(1.0 - null_frac - sum(common.values()), 0.0) / max(distinct - len(common), 1.0)
+        parts.append((float(rows), common, other))
+    if not parts:
+        return None  # no statistics at all (never analysed): the planner's guesses, per robot
+    return lambda robot: sum(rows * common.get(robot, other) for rows, common, other in parts)
 
 
 def _estimate(connection: Any, store: Store, where: Any) -> int:

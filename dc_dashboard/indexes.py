@@ -66,7 +66,10 @@ INDEXES = (
 )
 
 
-def _table_and_name(settings: PostgresSettings, index: Index) -> tuple[str, str]:
+ROBOT_INDEX = INDEXES[1]  # its first column's statistics say each robot's share of the rows (dc_dashboard.fleet)
+
+
+def table_and_name(settings: PostgresSettings, index: Index) -> tuple[str, str]:
     table = settings.files_table if index.on_files else settings.table
     return table, f"{table.rsplit('.', 1)[-1]}_{index.suffix}"[:_MAX_IDENTIFIER]
 
@@ -77,7 +80,7 @@ def statements(settings: PostgresSettings, partitioned: frozenset[str] = frozens
     against writes while its part is built (the records wait in DC's buffer meanwhile)."""
     out = []
     for index in INDEXES:
-        table, name = _table_and_name(settings, index)
+        table, name = table_and_name(settings, index)
         how = "CREATE INDEX IF NOT EXISTS" if table in partitioned else "CREATE INDEX CONCURRENTLY IF NOT EXISTS"
         out.append(
             sql.SQL(how + " {} ON {} {}").format(sql.Identifier(name), sql.Identifier(*table.split(".")), index.columns)
@@ -98,7 +101,7 @@ def missing(connection: Any, settings: PostgresSettings) -> list[str]:
     """Names of the dashboard's indexes not (validly) built on the existing tables."""
     wanted = []
     for index in INDEXES:
-        table, name = _table_and_name(settings, index)
+        table, name = table_and_name(settings, index)
         wanted.append((table, name))
     rows = connection.execute(
         "SELECT c.relname, i.indisvalid FROM pg_index i JOIN pg_class c ON c.oid = i.indexrelid"
@@ -126,7 +129,7 @@ def create(settings: PostgresSettings, say: Any = print) -> int:
             todo = set(missing(connection, settings))
             partitioned = _partitioned(connection, settings)
             for index, statement in zip(INDEXES, statements(settings, partitioned), strict=True):
-                table, name = _table_and_name(settings, index)
+                table, name = table_and_name(settings, index)
                 if name not in todo:
                     continue
                 # An earlier, interrupted CONCURRENTLY build leaves an invalid index that IF NOT EXISTS would keep.

@@ -21,6 +21,9 @@ from dc_dashboard.filters import Filters
 from dc_dashboard.settings import PostgresSettings
 
 POINTS = 600  # per series of a chart: more than an SVG of 900 px wide can show apart
+# Points of a chart in all: without a robot filter and more than 20 robots in the table (a fleet's
+# hour: 100), each robot gets fewer, wider buckets, so every robot is drawn and the page stays bounded.
+CHART_POINTS = 12_000
 CAMERA_PAGE = 12
 EXPLORE_PAGE = 50
 FILES_PAGE = 200
@@ -31,6 +34,22 @@ CATALOG_TTL_S = 30.0
 class Series:
     label: str
     points: list[tuple[float, float]]  # (seconds since the epoch, value) or (x, y) for a trajectory
+
+
+@dataclass
+class Bucket:
+    """A series' rows in one bucket of time: their mean time and values, and what the pages sum up."""
+
+    robot: str
+    run: str
+    label: str
+    when: float  # mean epoch seconds
+    a: float | None  # mean of the first value (None: no row had it)
+    b: float | None
+    rows: int
+    a_rows: int  # rows with a first value
+    a_max: float | None
+    a_min: float | None
 
 
 @dataclass
@@ -111,6 +130,7 @@ class Store:
         self.table = sql.Identifier(*settings.table.split("."))
         self.files_table = sql.Identifier(*settings.files_table.split("."))
         self._catalog: Catalog | None = None
+        self._robots: tuple[Any, list[str]] | None = None  # the page's connection, its robots
 
     @contextmanager
     def connection(self) -> Iterator[Any]:
@@ -167,10 +187,16 @@ class Store:
         return catalog
 
     def robots(self, connection: Any) -> list[str]:
+        """Read once per connection (a page): on day partitions a seek per robot is one per partition."""
         from psycopg import sql
 
+        cached = self._robots  # pages run in threads: one read of the pair
+        if cached is not None and cached[0] is connection:
+            return list(cached[1])
         query = sql.SQL(_DISTINCT_ROBOTS).format(t=self.table, robot=indexes.ROBOT)
-        return [row[0] for row in connection.execute(query).fetchall()]
+        robots = [row[0] for row in connection.execute(query).fetchall()]
+        self._robots = (connection, robots)
+        return list(robots)
 
     def runs(self, connection: Any, robot: str) -> list[str]:
         """The robot's runs (without one, those of each destination's newest 5,000 rows), newest run number
@@ -191,52 +217,48 @@ class Store:
         series: dict[str, list[tuple[float, float, float]]] = {}
         positions = 0
         for name, path in catalog.sources["position"]:
-            for label, _, x, y, count in self._bucketed(
-                connection, filters, name, [(*path, "x"), (*path, "y")], series_by_run=True
-            ):
-                series.setdefault(label, []).append((_, x, y))
-                positions += count
+            for bucket in self._bucketed(connection, filters, name, [(*path, "x"), (*path, "y")]):
+                if bucket.a is not None:
+                    positions += bucket.rows
+                    series.setdefault(bucket.label, []).append((bucket.when, bucket.a, bucket.b or 0.0))
         lines = [Series(label, [(x, y) for _, x, y in sorted(points)]) for label, points in sorted(series.items())]
         last = max((max(t for t, _, _ in points) for points in series.values()), default=None)
         return Trajectory(lines, self._map(connection, filters, catalog, last), positions)
 
     def distance(self, connection: Any, filters: Filters) -> Distance:
-        from psycopg import sql
 
         catalog = self.catalog(connection)
         per_run: list[tuple[str, str, float]] = []
         series: list[Series] = []
         for name, path in catalog.sources["distance_traveled"]:
-            where, params = self._where(filters, name)
-            params["d"] = [*path, "distance_traveled"]
-            value = sql.SQL("(data #>> %(d)s)::float8")
-            query = sql.SQL(
-                "SELECT {robot}, {run}, max({v}) - min({v}) FROM {t} WHERE {where} GROUP BY 1, 2"
-                " ORDER BY max(time) DESC LIMIT 500"
-            ).format(robot=indexes.ROBOT, run=indexes.RUN, v=value, t=self.table, where=where)
-            per_run += [(r or "", u or "", float(m or 0)) for r, u, m in connection.execute(query, params).fetchall()]
-            for label, t, d, _, _ in self._bucketed(connection, filters, name, [(*path, "distance_traveled")]):
-                _append(series, label, (t, d))
+            # A run's metres, its counter's rise: from the plot's buckets (their max and min), one read of the rows.
+            runs: dict[tuple[str, str], list[float]] = {}  # (robot, run) -> [max, min, newest time]
+            buckets = self._bucketed(connection, filters, name, [(*path, "distance_traveled")])
+            for bucket in buckets:
+                if bucket.a_max is None or bucket.a_min is None:
+                    continue
+                run = runs.setdefault((bucket.robot, bucket.run), [bucket.a_max, bucket.a_min, bucket.when])
+                run[0], run[1], run[2] = max(run[0], bucket.a_max), min(run[1], bucket.a_min), max(run[2], bucket.when)
+            newest = sorted(runs.items(), key=lambda item: item[1][2], reverse=True)[:500]
+            per_run += [(robot, run, top - low) for (robot, run), (top, low, _) in newest]
+            series += _series(buckets, "a")
         return Distance(sum(m for _, _, m in per_run), per_run, series)
 
     def system(self, connection: Any, filters: Filters) -> SystemStats:
-        from psycopg import sql
 
         catalog = self.catalog(connection)
         stats: dict[str, list[Series]] = {"cpu": [], "memory": []}
         summary: dict[str, list[tuple[float, float, int]]] = {"cpu": [], "memory": []}
         for kind, field_name in (("cpu", "average"), ("memory", "used")):
             for name, path in catalog.sources[kind]:
-                where, params = self._where(filters, name)
-                params["v"] = [*path, field_name]
-                query = sql.SQL(
-                    "SELECT avg((data #>> %(v)s)::float8), max((data #>> %(v)s)::float8), count(*) FROM {t} WHERE {w}"
-                ).format(t=self.table, w=where)
-                average, top, count = connection.execute(query, params).fetchone()
-                if count:
-                    summary[kind].append((float(average), float(top), int(count)))
-                for label, t, v, _, _ in self._bucketed(connection, filters, name, [(*path, field_name)]):
-                    _append(stats[kind], label, (t, v))
+                # The figures from the plot's buckets: one read of the rows, not two.
+                buckets = self._bucketed(connection, filters, name, [(*path, field_name)])
+                valued = sum(b.a_rows for b in buckets)
+                if valued:
+                    average = sum((b.a or 0.0) * b.a_rows for b in buckets) / valued
+                    top = max(b.a_max for b in buckets if b.a_max is not None)
+                    summary[kind].append((average, top, sum(b.rows for b in buckets)))
+                stats[kind] += _series(buckets, "a")
 
         def weighted(kind: str) -> tuple[float | None, float | None, int]:
             rows = summary[kind]
@@ -323,10 +345,10 @@ class Store:
         for first in range(0, len(paths), 2):  # two fields per query
             pair = paths[first : first + 2]
             series: list[list[Series]] = [[] for _ in pair]
-            for label, t, a, b, _ in self._bucketed(connection, filters, filters.name, pair):
-                _append(series[0], label, (t, a))
-                if len(pair) == 2:
-                    _append(series[1], label, (t, b))
+            buckets = self._bucketed(connection, filters, filters.name, pair)
+            series[0] = _series(buckets, "a")
+            if len(pair) == 2:
+                series[1] = _series(buckets, "b")
             charts += [(".".join(path), lines) for path, lines in zip(pair, series, strict=True)]
         return Exploration(names, records[:EXPLORE_PAGE], len(records) > EXPLORE_PAGE, charts)
 
@@ -337,7 +359,7 @@ class Store:
             filters,
             robot_column=sql.SQL("robot_name"),
             time_column=sql.SQL("timestamp"),
-            run_condition=self.files_run_condition(filters),
+            run_condition=self.files_run_condition(filters, connection),
         )
         scope = sql.SQL(" AND ").join([sql.SQL("true"), *conditions])
         counts_query = sql.SQL(
@@ -365,19 +387,73 @@ class Store:
         counts = {"all": total, "uploaded": uploaded, "verified": verified, "deleted": deleted, "pending": pending}
         return FilesPage(rows[:FILES_PAGE], counts, int(size), len(rows) > FILES_PAGE)
 
-    def files_run_condition(self, filters: Filters) -> Any:
-        """The run filter of files_metrics ``f``, on ``%(run)s`` (and ``%(robot)s`` with the robot filter)."""
+    def files_run_condition(self, filters: Filters, connection: Any = None) -> Any:
+        """The run filter of files_metrics ``f``, on ``%(run)s`` (and ``%(robot)s`` with the robot filter).
+        Without a robot and with a ``connection``: bounded by the run's robots and their time spans."""
         from psycopg import sql
 
         # files_metrics has no run: the record that brought the file has. With a robot, that record is
         # the robot's (a file's robot_name is its record's): the run's rows of the robot are read through
         # the (robot, run, name, time) index and matched by record_id, without an index on record_id
-        # (a partitioned table DC makes has none: docs/data-model.md). Without a robot, each file's record is
-        # looked up by record_id.
+        # (a partitioned table DC makes has none: docs/data-model.md).
         robot = sql.SQL(" AND {} = %(robot)s").format(indexes.ROBOT_OF("r")) if filters.robot else sql.SQL("")
-        return sql.SQL(
+        by_record = sql.SQL(
             "EXISTS (SELECT 1 FROM {t} r WHERE r.record_id = f.record_id AND {run} = %(run)s{robot})"
         ).format(t=self.table, run=indexes.RUN_OF("r"), robot=robot)
+        if filters.robot or not filters.run or connection is None:
+            return by_record
+        # Without a robot, a lookup of each file's record read the files of every run (9.3 s for a
+        # fleet's run of 2 hours on 25 M rows; a partitioned table, without an index on record_id, hashed
+        # the whole table). A robot runs one run at a time, and a file's timestamp is its record's time
+        # (files_metrics and the records table take it from the record): the run's files are each robot's
+        # files between its first and last row of the run — ranges of files_metrics' (robot, timestamp)
+        # index. A file without a robot name (a group record's: the robot is one level down) is still
+        # matched by its record, within the run's whole span.
+        spans = self.run_spans(connection, filters.run)
+        if not spans:
+            return sql.SQL("false")
+        ranges = [
+            sql.SQL("(f.robot_name = {} AND f.timestamp BETWEEN {} AND {})").format(
+                sql.Literal(robot_name), sql.Literal(_utc(low)), sql.Literal(_utc(high))
+            )
+            for robot_name, (low, high) in sorted(spans.items())
+        ]
+        low = min(low for low, _ in spans.values())
+        high = max(high for _, high in spans.values())
+        unnamed = sql.SQL(
+            "(f.robot_name = '' AND f.timestamp BETWEEN {low} AND {high} AND EXISTS (SELECT 1 FROM {t} r"
+            " WHERE r.record_id = f.record_id AND {run} = %(run)s AND r.time BETWEEN {r_low} AND {r_high}))"
+        ).format(
+            t=self.table,
+            run=indexes.RUN_OF("r"),
+            low=sql.Literal(_utc(low)),
+            high=sql.Literal(_utc(high)),
+            r_low=sql.Literal(low),  # as the records table holds it (timestamptz: with its zone)
+            r_high=sql.Literal(high),
+        )
+        # The whole span too: the newest files first through the (timestamp) index then stop at the
+        # run's end, not at the newest file of the table (1.6 s, the OR tried on every file since).
+        return sql.SQL("(f.timestamp BETWEEN {} AND {} AND ({}))").format(
+            sql.Literal(_utc(low)), sql.Literal(_utc(high)), sql.SQL(" OR ").join([*ranges, unnamed])
+        )
+
+    def run_spans(self, connection: Any, run: str) -> dict[str, tuple[dt.datetime, dt.datetime]]:
+        """Each robot's first and last row of run ``run``: a seek per robot and record name at each end
+        in the (robot, run, name, time) index (the robots themselves by skipping through it)."""
+        from psycopg import sql
+
+        names = sorted(self.catalog(connection).fields)
+        if not names:
+            return {}
+        query = sql.SQL(
+            "SELECT r.robot, min(s.low), max(s.high) FROM unnest(%(robots)s::text[]) AS r(robot)"
+            " CROSS JOIN unnest(%(names)s::text[]) AS n(name)"
+            " CROSS JOIN LATERAL (SELECT min(time) AS low, max(time) AS high FROM {t}"
+            "   WHERE {robot} = r.robot AND {run} = %(run)s AND (data->>'name') = n.name) AS s"
+            " GROUP BY r.robot HAVING min(s.low) IS NOT NULL"
+        ).format(t=self.table, robot=indexes.ROBOT, run=indexes.RUN)
+        params = {"robots": self.robots(connection), "names": names, "run": run}
+        return {robot: (low, high) for robot, low, high in connection.execute(query, params).fetchall()}
 
     def last_stored(self, connection: Any) -> dict[str, dt.datetime | None]:
         """Per destination (the ``tag`` column): the time of its newest row."""
@@ -410,15 +486,10 @@ class Store:
         )
         return sql.SQL(" AND ").join([sql.SQL("(data->>'name') = %(name)s"), *parts]), {"name": name, **params}
 
-    def _bucketed(
-        self,
-        connection: Any,
-        filters: Filters,
-        name: str,
-        paths: list[tuple[str, ...]],
-        series_by_run: bool = True,
-    ) -> list[tuple[str, float, float, float, int]]:
-        """(series label, epoch seconds, value, second value, rows) averaged over at most POINTS buckets of time."""
+    def _bucketed(self, connection: Any, filters: Filters, name: str, paths: list[tuple[str, ...]]) -> list[Bucket]:
+        """The rows of record ``name`` (two values at ``paths``) averaged per robot and run over at most
+        POINTS buckets of time, fewer when the robots are many (CHART_POINTS in all): PostgreSQL reduces
+        them, a few thousand rows come back whatever the rows read."""
         from psycopg import sql
 
         where, params = self._where(filters, name)
@@ -430,22 +501,35 @@ class Store:
         low, high = (_epoch(t) for t in span)
         values: list[sql.Composable] = []
         for i, path in enumerate(paths[:2]):
-            values.append(sql.SQL("avg((data #>> {})::float8)").format(sql.Placeholder(f"p{i}")))
+            values.append(sql.SQL("(data #>> {})::float8").format(sql.Placeholder(f"p{i}")))
             params[f"p{i}"] = list(path)
         while len(values) < 2:
             values.append(sql.SQL("NULL::float8"))
-        params.update(low=low, high=high + 0.001, buckets=POINTS)
+        # A robot's runs share the time axis, so a chart holds about (robots x buckets) points: without a
+        # robot filter, every robot of the table in CHART_POINTS, a robot alone POINTS.
+        robots = 1 if filters.robot else max(len(self.robots(connection)), 1)
+        params.update(low=low, high=high + 0.001, buckets=max(1, min(POINTS, CHART_POINTS // robots)))
+        # Each row's values once (OFFSET 0 keeps the subquery, else each aggregate extracts them again).
         query = sql.SQL(
-            "SELECT {robot}, {run}, width_bucket(extract(epoch FROM time)::float8, %(low)s, %(high)s, %(buckets)s),"
-            " avg(extract(epoch FROM time))::float8, {a}, {b}, count(*)"
-            " FROM {t} WHERE {w} GROUP BY 1, 2, 3 ORDER BY 1, 2, 3 LIMIT 20000"
+            "SELECT robot, run, sum(t) / count(*), avg(a), avg(b), count(*), count(a), max(a), min(a)"
+            " FROM (SELECT {robot} AS robot, {run} AS run, extract(epoch FROM time)::float8 AS t, {a} AS a, {b} AS b"
+            "   FROM {t} WHERE {w} OFFSET 0) AS row_values"
+            " GROUP BY robot, run, width_bucket(t, %(low)s, %(high)s, %(buckets)s) LIMIT 20000"
         ).format(robot=indexes.ROBOT, run=indexes.RUN, a=values[0], b=values[1], t=self.table, w=where)
         out = []
-        for robot, run, _, when, a, b, count in connection.execute(query, params).fetchall():
-            if a is None:
-                continue
-            label = f"{robot or '?'} run {run or '?'}" if series_by_run else (robot or "?")
-            out.append((label, float(when), float(a), float(b) if b is not None else 0.0, int(count)))
+        # Sorted here: an ORDER BY made PostgreSQL sort every row (360,000: 0.8 s, on disk) to aggregate
+        # in order, where a hash of the buckets needs no sort.
+        found = sorted(
+            connection.execute(query, params).fetchall(), key=lambda row: (row[0] or "", row[1] or "", row[2])
+        )
+        for robot, run, when, a, b, rows, a_rows, top, bottom in found:
+            robot, run = robot or "", run or ""
+            out.append(
+                Bucket(
+                    robot, run, f"{robot or '?'} run {run or '?'}", float(when), _float(a), _float(b),
+                    int(rows), int(a_rows), _float(top), _float(bottom),
+                )
+            )  # fmt: skip
         return out
 
     def _map(self, connection: Any, filters: Filters, catalog: Catalog, last: float | None) -> dict[str, Any] | None:
@@ -477,12 +561,18 @@ class Store:
         return None
 
 
-def _append(series: list[Series], label: str, point: tuple[float, float]) -> None:
-    for s in series:
-        if s.label == label:
-            s.points.append(point)
-            return
-    series.append(Series(label, [point]))
+def _series(buckets: list[Bucket], value: str) -> list[Series]:
+    """A series per label of the buckets holding ``value`` ("a" or "b"), in the buckets' order."""
+    found: dict[str, Series] = {}
+    for bucket in buckets:
+        if bucket.a is not None:  # a bucket is drawn when its first value is there (the second: 0 without)
+            point = (bucket.when, float(getattr(bucket, value) or 0.0))
+            found.setdefault(bucket.label, Series(bucket.label, [])).points.append(point)
+    return list(found.values())
+
+
+def _float(value: Any) -> float | None:
+    return float(value) if value is not None else None
 
 
 def _inspection(when: dt.datetime, robot: str, run: str, record: dict[str, Any]) -> Inspection:
@@ -511,6 +601,11 @@ def _remote_key(record: dict[str, Any], file_key: str) -> str:
 def _like_escaped(text: str) -> str:
     """``text`` matched literally inside an ILIKE pattern (ESCAPE '\\')."""
     return text.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+
+
+def _utc(value: dt.datetime) -> dt.datetime:
+    """UTC without a zone, as files_metrics' timestamp column holds it."""
+    return value.astimezone(dt.UTC).replace(tzinfo=None) if value.tzinfo is not None else value
 
 
 def _epoch(value: dt.datetime) -> float:

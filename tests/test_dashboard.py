@@ -367,6 +367,135 @@ def test_the_files_of_a_robots_run_are_found_without_an_index_on_record_id(datab
     assert "Seq Scan on dc" not in plan, plan
 
 
+def _records_table(database: PostgresSettings, table: str, files_table: str = "files_metrics") -> PostgresSettings:
+    """The settings of a new, empty records table ``table`` (DC's columns) in the module's server."""
+    import dataclasses
+
+    import psycopg
+    from psycopg import sql
+
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute(
+            sql.SQL("CREATE TABLE {} (tag varchar, time timestamp, data jsonb, record_id text)").format(
+                sql.Identifier(table)
+            )
+        )
+    return dataclasses.replace(database, table=table, files_table=files_table)
+
+
+def test_the_files_of_a_run_without_a_robot_are_those_its_records_brought_found_by_each_robots_span(
+    database: PostgresSettings,
+) -> None:
+
+    import psycopg
+    from psycopg import sql
+
+    from dc_destinations.files_metrics.table import FilesTable
+
+    # Two robots, two runs each, interleaved in time; each run's camera record brought a file (robot named)
+    # and so did its system group record (the robot one level down: files_metrics has no robot name).
+    runs = [("C3PO", "1", T0), ("R2D2", "1", T0 + dt.timedelta(seconds=5)), ("R2D2", "2", T0 + dt.timedelta(minutes=20)),
+            ("C3PO", "2", T0 + dt.timedelta(hours=1))]  # fmt: skip
+    settings = _records_table(database, "dc_runs", files_table="files_runs")
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        FilesTable("files_runs").prepare(connection)
+        for robot, run, start in runs:
+            rows = _run_rows(robot, run, start, 10, cpu=1.0)
+            with connection.cursor() as cursor:
+                cursor.executemany("INSERT INTO dc_runs VALUES (%s, %s, %s::jsonb, %s)", rows)
+            camera, system = rows[-2], rows[1]
+            for name, file_robot, (_, when, _, record_id) in (("front_camera", robot, camera), ("system", "", system)):
+                connection.execute(
+                    "INSERT INTO files_runs (timestamp, robot_name, robot_id, group_name, local_path, remote_path,"
+                    " uploaded, on_filesystem, deleted, storage_type, content_type, size, updated_at, record_id,"
+                    " bucket) VALUES (%s, %s, '', %s, %s, %s, true, true, false, 'minio', 'image/jpeg', 100, now(),"
+                    " %s, 'b')",
+                    (when, file_robot, name, f"/d/{record_id}", f"s3://b/{record_id}", record_id),
+                )
+    assert indexes.create(settings, say=lambda text: None) == 0
+    bounded, by_record = Store(settings), Store(settings)
+    # Each file's record looked up by record_id, as before: what the page must still show.
+    by_record.files_run_condition = lambda filters, connection=None: Store.files_run_condition(  # type: ignore[method-assign]
+        by_record, filters
+    )
+    with psycopg.connect(**settings.connect_kwargs(), autocommit=True) as connection:
+        for filters in (Filters(run="1"), Filters(run="2"), Filters(run="2", start=T0 + dt.timedelta(minutes=30)),
+                        Filters(run="3")):  # fmt: skip
+            found, expected = bounded.files(connection, filters), by_record.files(connection, filters)
+            assert (found.rows, found.counts) == (expected.rows, expected.counts), filters
+        assert [r["local_path"] for r in bounded.files(connection, Filters(run="1")).rows] == [
+            "/d/R2D2-1-30", "/d/R2D2-1-1", "/d/C3PO-1-30", "/d/C3PO-1-1"
+        ]  # fmt: skip
+        condition = bounded.files_run_condition(Filters(run="2"), connection)
+        connection.execute("SET enable_seqscan = off")  # a tiny table: would a large one be read whole?
+        query = sql.SQL("EXPLAIN SELECT count(*) FROM files_runs f WHERE {}").format(condition)
+        plan = "\n".join(row[0] for row in connection.execute(query, {"run": "2"}).fetchall())
+    assert "Seq Scan" not in plan, plan  # each robot's span of files_metrics, not every file
+
+
+def test_a_fleets_plots_are_averaged_by_postgresql_every_robot_drawn_in_wider_buckets_when_many(
+    database: PostgresSettings,
+) -> None:
+
+    import psycopg
+
+    from dc_dashboard import queries
+
+    # 40 robots x 700 s of a position and a cpu record a second: 40 x 600 buckets would be 24,000 points.
+    settings = _records_table(database, "dc_fleet")
+    with psycopg.connect(**database.connect_kwargs(), autocommit=True) as connection:
+        connection.execute(
+            "INSERT INTO dc_fleet SELECT 'pg', %(t0)s + s * interval '1 s' + r * interval '10 ms',"
+            " jsonb_build_object('name', m, 'robot_name', 'r' || lpad(r::text, 2, '0'), 'run_id', '1')"
+            "   || CASE m WHEN 'position' THEN jsonb_build_object('x', r + sin(s / 50.0), 'y', cos(s / 7.0), 'yaw', 0)"
+            "      ELSE jsonb_build_object('average', (r * 7 + s) %% 100, 'processes', 1) END, m || r || '-' || s"
+            " FROM generate_series(1, 40) AS r, generate_series(0, 699) AS s, unnest(ARRAY['position', 'cpu']) AS m",
+            {"t0": T0},
+        )
+        raw = connection.execute(
+            "SELECT extract(epoch FROM time)::float8, (data->>'x')::float8, (data->>'y')::float8 FROM dc_fleet"
+            " WHERE data->>'robot_name' = 'r07' AND data->>'name' = 'position' ORDER BY time"
+        ).fetchall()
+        span = connection.execute(
+            "SELECT extract(epoch FROM min(time))::float8, extract(epoch FROM max(time))::float8 FROM dc_fleet"
+            " WHERE data->>'name' = 'position'"
+        ).fetchone()
+        cpu = connection.execute(
+            "SELECT avg((data->>'average')::float8), max((data->>'average')::float8), count(*) FROM dc_fleet"
+            " WHERE data->>'name' = 'cpu'"
+        ).fetchone()
+    assert span is not None and cpu is not None
+    assert indexes.create(settings, say=lambda text: None) == 0
+    store = Store(settings)
+
+    def averaged(count: int, low: float, high: float) -> list[tuple[float, float]]:
+        """r07's positions averaged in Python over ``count`` buckets of the time from ``low`` to ``high``
+        (the filters' rows' first and last), as width_bucket makes them."""
+        high += 0.001
+        buckets: dict[int, list[tuple[float, float]]] = {}
+        for t, x, y in raw:
+            buckets.setdefault(int((t - low) / (high - low) * count), []).append((x, y))
+        return [(sum(x for x, _ in b) / len(b), sum(y for _, y in b) / len(b)) for _, b in sorted(buckets.items())]
+
+    def same(points: list[tuple[float, float]], expected: list[tuple[float, float]]) -> bool:
+        flat = [v for point in points for v in point]
+        return flat == pytest.approx([v for point in expected for v in point], abs=1e-9)
+
+    with psycopg.connect(**settings.connect_kwargs(), autocommit=True) as connection:
+        alone = store.trajectory(connection, Filters(robot="r07"))
+        fleet = store.trajectory(connection, Filters())
+        system = store.system(connection, Filters())
+    assert [s.label for s in alone.series] == ["r07 run 1"] and alone.positions == 700
+    # As before: 600 buckets, a robot alone.
+    assert same(alone.series[0].points, averaged(queries.POINTS, raw[0][0], raw[-1][0]))
+    # Every robot drawn (the 20,000-row cut left robots 34 to 40 out), each in buckets of twice the time.
+    assert [s.label for s in fleet.series] == [f"r{n:02d} run 1" for n in range(1, 41)] and fleet.positions == 28_000
+    assert queries.CHART_POINTS // 40 == 300 and sum(len(s.points) for s in fleet.series) == 40 * 300
+    assert same(fleet.series[6].points, averaged(300, span[0], span[1]))
+    assert system.cpu_average == pytest.approx(cpu[0]) and (system.cpu_max, system.samples) == (cpu[1], cpu[2])
+    assert len(system.cpu) == 40
+
+
 def test_its_indexes_are_built_on_a_partitioned_table_too(database: PostgresSettings) -> None:
     import dataclasses
 
