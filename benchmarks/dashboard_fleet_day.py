@@ -1,7 +1,7 @@
 """Every dashboard page filtered by robot, run or hour on a fleet's day of the robot job, and `dc reconcile`'s queries.
 
-    .venv/bin/python benchmarks/dashboard_fleet_day.py --folder DIR [--robots 100] [--days 1] [--fraction 1]
-        [--partition-by none|day] [--layout dm4|main] [--runs 5] [--only PAGES] [--label NAME] [--drop]
+    .venv/bin/python benchmarks/dashboard_fleet_day.py --folder DIR [--robots 100] [--days 1] [--hours 24]
+        [--fraction 1] [--partition-by none|day] [--layout dm4|main] [--runs 5] [--only PAGES] [--label NAME] [--drop]
 
 Keeps a PostgreSQL in --folder (made and filled at the first call, reused by the next ones: a
 25-million-row table takes most of an hour to generate on a shared 2-core machine; --drop removes it
@@ -14,7 +14,11 @@ fleet inserts them), its indexes dropped meanwhile and built again after (the sa
 distance_traveled every 5 s, uptime and network every 10 s, storage every 30 s) plus a camera
 inspection with an image every 12 s (issue 29's file rate; the robot job's own files are its map's,
 saved only when the map changes) and a map every 10 min, in runs of 2 hours; 2.92 records/s per
-robot, 25.2 million rows for 100 robots x 1 day. --fraction thins every measurement (0.1: a record
+robot, 25.2 million rows for 100 robots x 1 day. --hours N (fewer than 24, one day) generates only
+the N hours from 10:00 of the day (the measured hour first, run 6 whole with 2 or more): the fleet's
+rows of those hours are the day's, the table and its indexes smaller (2.1 million rows for 2 hours: an
+index one level shallower, the whole table cached); the pages of a robot's day then read 2 hours,
+not 24. --fraction thins every measurement (0.1: a record
 where ten were). files_metrics gets a row per inspection (its record id, robot, name and time; 1 in
 20 not uploaded), every robot a ``destination_health`` record an hour (a robot in ten failing),
 then the dashboard's indexes (``dc dashboard --create-indexes``' statements) and ``VACUUM ANALYZE``.
@@ -63,6 +67,7 @@ LAST_DAY = dt.date(2026, 11, 25)
 RUN_HOURS = 2
 ROBOT = "robot-007"
 RUN = 6  # hours 10-12 of a day
+FIRST_HOUR = 10  # --hours below 24 generates from here: the measured hour 10:00-11:00 and run 6
 PASSWORD = "bench-fleet-day-1"
 SLOW_S = 5.0  # a page slower than this once is not run again (a statement stops at the timeout below)
 # The camera's image key, as DC's default paths name it (robot first).
@@ -105,9 +110,13 @@ def first_day(days: int) -> dt.date:
     return LAST_DAY - dt.timedelta(days=days - 1)
 
 
-def generate(server: PostgresServer, robots: int, days: int, fraction: float, partition_by: str) -> dict[str, Any]:
-    """The fleet's days in table dc (made by the destination, with its defaults), files_metrics, health records."""
+def generate(
+    server: PostgresServer, robots: int, days: int, fraction: float, partition_by: str, hours: int = 24
+) -> dict[str, Any]:
+    """The fleet's days (or ``hours`` of its one day from FIRST_HOUR) in table dc (made by the destination,
+    with its defaults), files_metrics, health records."""
     start = first_day(days)
+    from_s, seconds = (0, days * 86_400) if hours >= 24 else (FIRST_HOUR * 3600, hours * 3600)
     start_ns = int(dt.datetime(start.year, start.month, start.day, tzinfo=dt.UTC).timestamp() * 1e9)
     from dc_core.destination import OutgoingRecord
     from dc_destinations.files_metrics.table import FilesTable
@@ -138,7 +147,7 @@ def generate(server: PostgresServer, robots: int, days: int, fraction: float, pa
         order = sorted(MEASUREMENTS, key=lambda m: m[0] != "front_camera")
         for name, every, fields in order:
             connection.execute(
-                fill(name, every / fraction, fields, str(start), days * 86_400, robots, RUN_HOURS * 3600)
+                fill(name, every / fraction, fields, str(start), seconds, robots, RUN_HOURS * 3600, from_s)
             )
             print(f"  {name}: {time.monotonic() - began:.0f} s  load {os.getloadavg()[0]:.1f}", flush=True)
             if name == "front_camera":
@@ -162,7 +171,9 @@ def generate(server: PostgresServer, robots: int, days: int, fraction: float, pa
                        'robot_name', robot, 'run_id', run::text, 'record_id', rid),
                    rid, 'destination_health', robot, run
             FROM generate_series(1, {robots}) AS r,
-                 generate_series(timestamptz '{start} 00:30Z', timestamptz '{LAST_DAY} 23:30Z', interval '1 hour') AS t,
+                 generate_series(timestamptz '{start} 00:30Z' + interval '{from_s} s',
+                                 timestamptz '{start} 00:30Z' + interval '{from_s + seconds - 3600} s',
+                                 interval '1 hour') AS t,
                  LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
                                  1 + floor(extract(epoch FROM t - timestamptz '{start} 00:00Z')
                                            / {RUN_HOURS * 3600})::bigint AS run) AS k"""
@@ -335,6 +346,7 @@ def main() -> None:
     parser.add_argument("--folder", type=Path, required=True, help="the PostgreSQL's folder, kept between calls")
     parser.add_argument("--robots", type=int, default=100)
     parser.add_argument("--days", type=int, default=1)
+    parser.add_argument("--hours", type=int, default=24, help="fewer than 24: those hours of one day from 10:00")
     parser.add_argument("--fraction", type=float, default=1.0, help="records kept of each measurement's rate")
     parser.add_argument("--partition-by", choices=("none", "day"), default="none")
     parser.add_argument("--layout", choices=("dm4", "main"), default="dm4")
@@ -344,11 +356,14 @@ def main() -> None:
     parser.add_argument("--no-measure", action="store_true", help="generate (if needed) and stop")
     parser.add_argument("--drop", action="store_true", help="remove the folder at the end")
     args = parser.parse_args()
+    if args.hours < 24 and (args.days != 1 or not 1 <= args.hours <= 24 - FIRST_HOUR):
+        parser.error(f"--hours below 24: one day (--days 1) and 1 to {24 - FIRST_HOUR} hours")
     server = PostgresServer(args.folder, password=PASSWORD)
     result: dict[str, Any] = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "robots": args.robots,
         "days": args.days,
+        "hours": args.hours,
         "fraction": args.fraction,
         "partition_by": args.partition_by,
         "layout": args.layout,
@@ -357,7 +372,7 @@ def main() -> None:
         fresh = not (args.folder / "data" / "PG_VERSION").is_file()
         server.start(timeout=120)
         if fresh:
-            result["generated"] = generate(server, args.robots, args.days, args.fraction, args.partition_by)
+            result["generated"] = generate(server, args.robots, args.days, args.fraction, args.partition_by, args.hours)
             print(json.dumps(result["generated"]), flush=True)
         result.update(sizes(server))
         result["layout_s"] = set_layout(server, args.layout)

@@ -148,18 +148,21 @@ def generate(server: PostgresServer, robots: int, hours: int, partition_by: str 
     return int(rows), time.monotonic() - started
 
 
-def fill(name: str, every: float, fields: str, day: str, seconds: int, robots: int, run_s: int = 7200) -> str:
-    """The INSERT … SELECT of a measurement's rows into dc: ``robots`` robots from ``day`` 00:00Z for
-    ``seconds``, a record every ``every`` s, in time order with the robots side by side (10 ms apart),
-    ``fields`` the record's own as SQL over r (robot number), robot and t; runs of ``run_s``."""
+def fill(
+    name: str, every: float, fields: str, day: str, seconds: int, robots: int, run_s: int = 7200, from_s: int = 0
+) -> str:
+    """The INSERT … SELECT of a measurement's rows into dc: ``robots`` robots from ``day`` 00:00Z plus
+    ``from_s`` for ``seconds``, a record every ``every`` s, in time order with the robots side by side
+    (10 ms apart), ``fields`` the record's own as SQL over r (robot number), robot and t; runs of
+    ``run_s`` counted from ``day`` 00:00Z (the same run numbers whatever ``from_s``)."""
     return f"""INSERT INTO dc (tag, time, data, record_id, name, robot_name, run_id, value)
         SELECT 'pg', t, data || jsonb_build_object('record_id', rid), rid, '{name}', robot, run,
                {"(data->>'average')::float8" if name == "cpu" else "NULL"}
         FROM (SELECT t, rid, robot, run, jsonb_build_object({fields}) || jsonb_build_object(
                   'name', '{name}', 'robot_name', robot, 'run_id', run::text, 'schema_version', 1,
                   'tags', jsonb_build_array('pg')) AS data
-              FROM generate_series(timestamptz '{day} 00:00Z',
-                                   timestamptz '{day} 00:00Z' + interval '{seconds} s' - interval '1 s',
+              FROM generate_series(timestamptz '{day} 00:00Z' + interval '{from_s} s',
+                                   timestamptz '{day} 00:00Z' + interval '{from_s + seconds} s' - interval '1 s',
                                    interval '{every} s') AS t0,
                    LATERAL (SELECT r, t0 + r * interval '10 ms' AS t FROM generate_series(1, {robots}) AS r) AS rt,
                    LATERAL (SELECT gen_random_uuid()::text AS rid, 'robot-' || lpad(r::text, 3, '0') AS robot,
