@@ -619,16 +619,17 @@ def test_damaged_pages_and_a_sender_raising_at_the_next_start(tmp_path: Path, wh
     buffer_file = tmp_path / "buffer" / "delivery.sqlite3"
     first = params
     if when == "live":
-        # A long backoff: after its first attempt the sender leaves the file alone while it is damaged
-        # (as in test_e2e_delivery_failures.py::test_damage_of_the_file_in_use_shows_in_health_and_dc_status).
+        # A day's backoff: after its first attempt the sender leaves the file alone while it is damaged (the
+        # first wait is drawn from [0, base]: see
+        # test_e2e_delivery_failures.py::test_damage_of_the_file_in_use_shows_in_health_and_dc_status).
         first = tmp_path / "first.yaml"
         first.write_text(
             params.read_text()
             .replace("      flush: 0.2\n", "      flush: 0.2\n      buffer_check_interval: 0.5\n")
-            .replace("scheduler_base: 0.2", "scheduler_base: 120")
-            .replace("scheduler_cap: 2.0", "scheduler_cap: 120")
+            .replace("scheduler_base: 0.2", "scheduler_base: 86400")
+            .replace("scheduler_cap: 2.0", "scheduler_cap: 86400")
         )
-        assert "scheduler_base: 120" in first.read_text() and "scheduler_cap: 120" in first.read_text()
+        assert "scheduler_base: 86400" in first.read_text() and "scheduler_cap: 86400" in first.read_text()
     with Bringup(first, tmp_path / "home") as run:
         run.wait_ready()
         finish(publish(run, DAMAGE_TOTAL, rate=500, padding=300))
