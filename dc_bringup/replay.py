@@ -23,6 +23,10 @@ from dc_core.logs import Logger
 # Bag time on /clock at least this often (wall time), so sim-time timers between messages fire on time.
 CLOCK_PERIOD_S = 0.01
 QUEUE_DEPTH = 100
+# At the bag's end, before the player returns (and its node goes): how long the last messages may take
+# to be acknowledged, and how long the bag's last /clock is repeated (wall time).
+END_ACK_TIMEOUT_S = 5.0
+END_CLOCK_HOLD_S = 0.5
 
 
 class ReplayError(DcError):
@@ -167,10 +171,30 @@ class BagPlayer:
         if self.options.delay_s and stop.wait(self.options.delay_s):  # discovery: let subscribers match first
             return self.report
         while True:
-            if not self._play_once(stop) or not self.options.loop or stop.is_set():
+            if not self._play_once(stop) or stop.is_set():
+                return self.report
+            if not self.options.loop:
+                self._deliver_the_end(stop)
                 return self.report
             self.report.loops += 1
             self._last_clock_ns = 0  # time starts over: /clock jumps back, as ros2 bag play --loop does
+
+    def _deliver_the_end(self, stop: threading.Event) -> None:
+        """The bag's last messages and its last /clock reach the subscribers before the node goes.
+
+        Publishing is asynchronous: a player that returned at once could take the bag's last messages
+        down with its node on a loaded machine (DC's last polls then see the robot short of its end).
+        rclpy's /clock subscription is best-effort, so the last /clock is repeated for a moment."""
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + END_ACK_TIMEOUT_S  # for all of them: a reader that died acks nothing
+        for publisher in self._publishers.values():
+            publisher.wait_for_all_acked(Duration(seconds=max(deadline - time.monotonic(), 0.0)))
+        if self._clock_publisher is None:
+            return
+        end = time.monotonic() + END_CLOCK_HOLD_S
+        while time.monotonic() < end and not stop.wait(CLOCK_PERIOD_S * 10):
+            self._publish_clock(self._last_clock_ns)
 
     def _play_once(self, stop: threading.Event) -> bool:
         """One pass over the bag; False when stopped before its end."""
