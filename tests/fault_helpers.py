@@ -1,11 +1,13 @@
 """What the fault tests share: the fault hook's environment and a small real file system to fill.
 
-Used by tests/test_e2e_never_silent.py and tests/test_fault_matrix.py.
+Used by the tests of faults and of a full disk (tests/test_e2e_never_silent.py, test_fault_matrix.py,
+test_delivery.py, test_supervision.py, test_logging_clash.py).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import subprocess
 from collections.abc import Iterator
@@ -77,3 +79,18 @@ def tmpfs(mount_point: Path, size: str = "4m") -> Iterator[Path]:
         yield mount_point
     finally:
         subprocess.run(["umount", "--lazy", str(mount_point)], check=False)
+
+
+def fill(path: Path) -> None:
+    """Write zeros into ``path`` until its file system has no space left.
+
+    Unbuffered: a buffered file would keep the bytes of the write that met ENOSPC and raise again
+    when closed."""
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT)
+    try:
+        while True:
+            os.write(descriptor, b"\0" * 65536)
+    except OSError as exc:
+        assert exc.errno == errno.ENOSPC, exc
+    finally:
+        os.close(descriptor)

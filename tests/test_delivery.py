@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import errno
 import json
 import os
 import signal
@@ -30,7 +29,7 @@ from dc_destinations.record_ids import new_record_id, uuid7
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
 from dc_destinations.storage import BufferInUse, default_storage_dir
 from tests.buffer_damage import damage_pages
-from tests.fault_helpers import tmpfs
+from tests.fault_helpers import fill, tmpfs
 
 LOG = RecordingLogger("test_delivery")
 
@@ -1280,18 +1279,6 @@ def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A real file system of 2 MB (tmpfs), so that the buffer meets a real ENOSPC."""
     with tmpfs(tmp_path / "disk", "2m") as disk:
         yield disk
-
-
-def fill(path: Path) -> None:
-    """Write zeros into ``path`` until its file system has no space left."""
-    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT)
-    try:
-        while True:
-            os.write(descriptor, b"\0" * 65536)
-    except OSError as exc:
-        assert exc.errno == errno.ENOSPC, exc
-    finally:
-        os.close(descriptor)
 
 
 def test_a_full_disk_under_the_buffer_keeps_records_in_memory_until_space_returns(small_disk: Path) -> None:

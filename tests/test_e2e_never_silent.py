@@ -19,9 +19,8 @@ from typing import Any
 import pytest
 
 from tests.bringup_util import Bringup, dc
-from tests.fault_helpers import fault_env, fault_gate, tmpfs
+from tests.fault_helpers import fault_env, fault_gate, fill, tmpfs
 from tests.http_receiver import Receiver, Request
-from tests.test_delivery import fill
 from tests.test_e2e_delivery_failures import finish, publish, status, wait_metric, write_params
 
 pytestmark = pytest.mark.e2e

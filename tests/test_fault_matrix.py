@@ -53,9 +53,8 @@ import pytest
 
 from tests.bringup_util import FAST_DDS_LOG_LINE, Bringup, dc
 from tests.buffer_damage import damage_pages
-from tests.fault_helpers import fault_env, tmpfs
+from tests.fault_helpers import fault_env, fill, tmpfs
 from tests.http_receiver import Receiver, free_port
-from tests.test_delivery import fill
 from tests.test_e2e_delivery_failures import (
     buffer_cli,
     finish,

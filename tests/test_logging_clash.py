@@ -22,7 +22,7 @@ import rclpy.logging
 
 from dc_core.logs import BurstLog, SeverityLogger
 from tests.bringup_util import Bringup
-from tests.fault_helpers import tmpfs
+from tests.fault_helpers import fill, tmpfs
 from tests.http_receiver import Receiver, Request
 from tests.test_e2e_delivery_failures import finish, publish, wait_metric, write_params
 
@@ -129,17 +129,6 @@ def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A real file system of 4 MB (tmpfs): the buffer meets a real ENOSPC."""
     with tmpfs(tmp_path / "disk") as disk:
         yield disk
-
-
-def fill(path: Path) -> None:
-    """Write zeros into ``path`` until its file system has no space left."""
-    with path.open("wb") as out:
-        try:
-            while True:
-                out.write(b"\0" * 65536)
-                out.flush()
-        except OSError:
-            pass
 
 
 def test_a_full_disk_under_the_buffer_and_back_delivers_everything(tmp_path: Path, small_disk: Path) -> None:

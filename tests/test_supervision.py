@@ -30,8 +30,8 @@ from dc_destinations.commit import GroupCommitter
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.sender import Sender
 from dc_destinations.settings import DestinationDeliveryParams
-from tests.fault_helpers import tmpfs
-from tests.test_delivery import Recorder, fill, record, settings, wait_until
+from tests.fault_helpers import fill, tmpfs
+from tests.test_delivery import Recorder, record, settings, wait_until
 
 
 def _failure_lines(logger: RecordingLogger, thread: str) -> list[str]:
