@@ -55,8 +55,12 @@ class _ListEqual(Condition[Any]):
 
     @staticmethod
     @abc.abstractmethod
-    def read_item(item: Any) -> Any:
-        """The item as its Python value; raises TypeError when it has the wrong JSON type."""
+    def read_item(item: Any, /) -> Any:
+        """The item as its Python value; raises TypeError when it has the wrong JSON type.
+
+        Each list condition sets it to one of dc_conditions.compare's readers (positional-only, as
+        they name their argument ``value``), so that its items are typed as the scalar conditions'
+        values are."""
 
     def evaluate(self, sample: Mapping[str, Any] | None) -> bool:
         actual = as_list(value_at(sample, self.params.key), self.read_item)
@@ -70,37 +74,25 @@ class ListBoolEqual(_ListEqual):
     """Array of bools at the key path equals `value`, in order or as a multiset."""
 
     Params = ListBoolEqualParams
-
-    @staticmethod
-    def read_item(item: Any) -> Any:
-        return as_bool(item)
+    read_item = staticmethod(as_bool)
 
 
 class ListDoubleEqual(_ListEqual):
     """Array of numbers at the key path equals `value`, in order or as a multiset."""
 
     Params = ListDoubleEqualParams
-
-    @staticmethod
-    def read_item(item: Any) -> Any:
-        return as_number(item)
+    read_item = staticmethod(as_number)
 
 
 class ListIntegerEqual(_ListEqual):
     """Array of integers at the key path equals `value`, in order or as a multiset."""
 
     Params = ListIntegerEqualParams
-
-    @staticmethod
-    def read_item(item: Any) -> Any:
-        return as_integer(item)
+    read_item = staticmethod(as_integer)
 
 
 class ListStringEqual(_ListEqual):
     """Array of strings at the key path equals `value`, in order or as a multiset."""
 
     Params = ListStringEqualParams
-
-    @staticmethod
-    def read_item(item: Any) -> Any:
-        return as_string(item)
+    read_item = staticmethod(as_string)
