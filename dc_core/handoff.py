@@ -51,11 +51,14 @@ SOURCE_SUFFIX = " <- source"
 ENDED_SUFFIX = " <- ended"
 """Hop keys of this pseudo-topic keep, per publisher that ended, the number it ended at, once counted
 (dc_core.handoff_marks)."""
+SETTLED_SUFFIX = " <- settled"
+"""Hop keys of this pseudo-topic keep, per publisher, the number up to which destination_server counted
+what it dropped unacknowledged: the next run of destination_server does not count it again."""
 
 
 def position_topic(topic: str) -> bool:
     """Whether a hop key of ``topic`` keeps a publisher's position rather than a record's key."""
-    return topic.endswith((SOURCE_SUFFIX, ENDED_SUFFIX))
+    return topic.endswith((SOURCE_SUFFIX, ENDED_SUFFIX, SETTLED_SUFFIX))
 
 
 ACK_PERIOD_S = 1.0
@@ -633,7 +636,7 @@ class AckTracker:
                     state = self._writer(topic[: -len(ENDED_SUFFIX)], -source_ns)
                     state.low = max(state.low, seq + 1)
                     touched.add((topic[: -len(ENDED_SUFFIX)], -source_ns))
-                elif source_ns < 0 and not topic.endswith(SOURCE_SUFFIX):
+                elif source_ns < 0 and not position_topic(topic):
                     state = self._writer(topic, -source_ns)
                     assert state.committed is not None
                     if seq > state.floor:

@@ -27,7 +27,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from dc_core.handoff import ENDED_SUFFIX, SOURCE_SUFFIX, parse_frame_key, position_topic
+from dc_core.handoff import ENDED_SUFFIX, SETTLED_SUFFIX, SOURCE_SUFFIX, parse_frame_key, position_topic
 from dc_core.sequence_numbers import MAX_WRITERS_PER_TOPIC, TopicWriters
 
 
@@ -143,6 +143,8 @@ class HopIntake:
         self._max_writers = max_writers
         self._clock = 0
         self._topics: dict[str, _TopicState] = {}
+        # Per (topic, publisher): up to where a loss was counted since take_settled_marks last ran.
+        self._settled_marks: dict[tuple[str, int], int] = {}
 
     def _topic(self, topic: str) -> _TopicState:
         state = self._topics.get(topic)
@@ -161,9 +163,10 @@ class HopIntake:
                 writer_id = -key.source_ns
                 state.source_max[writer_id] = max(key.seq, state.source_max.get(writer_id, 0))
                 continue
-            if key.topic.endswith(ENDED_SUFFIX):
-                # Counted by the run that committed this: settled up to where the publisher ended.
-                state = self._topic(key.topic[: -len(ENDED_SUFFIX)])
+            if key.topic.endswith((ENDED_SUFFIX, SETTLED_SUFFIX)):
+                # Counted by the run that committed this: settled up to where the publisher ended, or
+                # up to below the oldest record it still held.
+                state = self._topic(key.topic.rsplit(" <- ", 1)[0])
                 ended = state.keyed.setdefault(-key.source_ns, _Keyed(key.seq + 1))
                 if ended.settled <= key.seq:
                     ended.above = {s for s in ended.above if s > key.seq}
@@ -193,7 +196,7 @@ class HopIntake:
             stats.duplicates += 1
             return _DUPLICATE
         if key.source_ns < 0:
-            return self._check_keyed(state, -key.source_ns, key.seq, low, source)
+            return self._check_keyed(topic, state, -key.source_ns, key.seq, low, source)
         skipped = state.writers.observe(key.seq)
         if skipped is None:
             stats.writers += 1
@@ -204,7 +207,7 @@ class HopIntake:
         stats.gaps += 1
         return Verdict(skipped=skipped, first_skipped=key.seq - skipped)
 
-    def _check_keyed(self, state: _TopicState, writer_id: int, seq: int, low: int, source: int) -> Verdict:
+    def _check_keyed(self, topic: str, state: _TopicState, writer_id: int, seq: int, low: int, source: int) -> Verdict:
         stats = state.stats
         self._clock += 1
         writer = state.keyed.get(writer_id)
@@ -244,6 +247,7 @@ class HopIntake:
                 stats.missing += skipped
                 stats.gaps += 1
                 verdict = Verdict(skipped=skipped, first_skipped=first)
+                self._settled_marks[(topic, writer_id)] = low - 1
                 counted = writer.counted
                 if counted and counted[-1][1] + 1 >= first:
                     # A publisher dropping one record per record it publishes makes a gap per
@@ -255,6 +259,14 @@ class HopIntake:
                     del counted[:-COUNTED_RANGES]
         self._keyed_handled(writer, seq)
         return verdict
+
+    def take_settled_marks(self) -> list[HopKey]:
+        """The positions to commit with the records just checked: per publisher, the number up to which a
+        loss was counted. Without them the next run, loading the keys, would find the lost numbers
+        missing among them and count them again once the publisher's ``low`` passed them."""
+        marks = [HopKey(topic + SETTLED_SUFFIX, -writer, seq) for (topic, writer), seq in self._settled_marks.items()]
+        self._settled_marks.clear()
+        return marks
 
     def _new_keyed(self, state: _TopicState, writer_id: int, settled: int) -> _Keyed:
         if len(state.keyed) >= self._max_writers:

@@ -469,6 +469,8 @@ class DestinationServer(ManagedServer):
         # Committed with the records: where the source of each publisher was, for the count after
         # a restart of that publisher (dc_destinations.hop, "source").
         received.extend(([], position._replace(seq=seq)) for position, seq in sources.items())
+        # And up to where a publisher's drops were counted, so that the next run does not count them again.
+        received.extend(([], mark) for mark in self.hop.take_settled_marks())
         if lows and self.acks is not None:
             for source_ns, low in lows.items():
                 self.acks.tracker.saw(topic, -source_ns, low)

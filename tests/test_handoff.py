@@ -124,6 +124,40 @@ def test_a_restarted_publisher_s_first_record_counts_the_source_records_in_betwe
     assert hop.check(TOPIC, *keyed).skipped == 0
 
 
+def test_a_loss_counted_before_a_restart_of_destination_server_is_not_counted_again_after_it() -> None:
+    """What one run counted is committed with its records (a settled mark): the next run, loading the
+    keys, takes the hole in them for what it is and counts only what is lost since."""
+    first = HopIntake(window=100)
+    committed: list[HopKey] = []
+
+    def receive(hop: HopIntake, seq: int, low: int) -> int:
+        keyed = keyed_hop_key(TOPIC, frame_key(7, seq, low))
+        assert keyed is not None
+        verdict = hop.check(TOPIC, keyed[0], keyed[1])
+        hop.handled(keyed[0])
+        committed.append(keyed[0])
+        committed.extend(hop.take_settled_marks())  # handed over with the batch that counted
+        return verdict.skipped
+
+    for seq in range(1, 11):
+        assert receive(first, seq, 1) == 0
+    assert receive(first, 20, 15) == 4, "11..14 dropped by the publisher, unacknowledged"
+    assert first.stats()[TOPIC]["missing"] == 4
+    # destination_server restarts (killed, or stopped and started): the next run loads what was committed.
+    second = HopIntake(window=100)
+    second.load(committed)
+    assert receive(second, 21, 16) == 1, "only 15 is new: 11..14 were counted by the first run"
+    assert second.stats()[TOPIC]["missing"] == 1
+    assert receive(second, 16, 16) == 0 and receive(second, 17, 16) == 0
+    third = HopIntake(window=100)
+    third.load(committed)
+    assert receive(third, 30, 25) == 5, "18, 19 and 22..24: 16, 17, 20 and 21 arrived"
+    # The marks are no publisher's records: the acks ignore them.
+    tracker = AckTracker()
+    tracker.saw(TOPIC, 7, 25)
+    assert not [a for a in (tracker.committed(committed) and tracker.acks()) if a[0] != TOPIC]
+
+
 def test_only_topics_destination_server_reads_are_kept() -> None:
     servers = {
         "destination_server": {
