@@ -401,13 +401,17 @@ def _print_delivery(metrics: dict[str, Any], wide: bool = True) -> None:
             print(f"untrusted tags: {count} on {topic} kept from {name} (a publisher there is not DC's)")
     hop = metrics.get("hop", {})
     for topic, counts in sorted(hop.items()) if isinstance(hop, dict) else []:
-        if isinstance(counts, dict) and counts.get("missing"):
-            ended = counts.get("writers_ended")
-            print(
-                f"lost before destination_server: {counts['missing']} on {topic} (missing, {counts.get('gaps')} gaps"
-                + (f"; {ended} publisher(s) ended holding records" if ended else "")
-                + ")"
-            )
+        if not isinstance(counts, dict) or not (counts.get("missing") or counts.get("missing_lifetime")):
+            continue
+        ended = counts.get("writers_ended")
+        missing = counts.get("missing") or 0
+        earlier = (counts.get("missing_lifetime") or 0) - missing
+        print(
+            f"lost before destination_server: {missing} on {topic} (missing, {counts.get('gaps')} gaps"
+            + (f"; {ended} publisher(s) ended holding records" if ended else "")
+            + ")"
+            + (f"; {earlier} more counted by earlier runs on this buffer" if earlier else "")
+        )
 
 
 def _print_threads(metrics: dict[str, Any]) -> None:

@@ -12,6 +12,8 @@ processes (``dc buffer``) open their own connection; WAL lets them work while th
 ``hop_seen`` keeps the keys (topic, source timestamp, sequence number) of the newest records that
 arrived over DDS, written in the same transaction as the records: a record replayed from a
 publisher's history after a restart is recognised as already buffered (dc_destinations.hop).
+``hop_losses`` keeps, per topic, the records every run counted lost before destination_server,
+added in the group commit after the count: a run killed later does not take its count with it.
 
 A database that SQLite reports as corrupt or not a database is moved aside (renamed with a
 ``.corrupt-<UTC time>`` suffix) and replaced by a new one, at start-up or whenever an operation
@@ -83,6 +85,11 @@ CREATE TABLE IF NOT EXISTS hop_seen (
     seq INTEGER NOT NULL
 );
 CREATE INDEX IF NOT EXISTS hop_seen_by_topic ON hop_seen (topic, id);
+CREATE TABLE IF NOT EXISTS hop_losses (
+    topic TEXT PRIMARY KEY,
+    missing INTEGER NOT NULL DEFAULT 0,
+    gaps INTEGER NOT NULL DEFAULT 0
+);
 """
 
 # queues.dead_bytes is the size of a destination's dead letters, kept by triggers so that every
@@ -280,8 +287,10 @@ class Buffer(Protocol):
         now_ns: int | None = None,
         seen: Sequence[tuple[str, int, int]] = (),
         seen_window: int | None = None,
+        hop_losses: Sequence[tuple[str, int, int]] = (),
     ) -> AppendResult:
-        """Write records of several queues and their hop keys at once (one group commit).
+        """Write records of several queues, their hop keys and the hop's losses (topic, records, gaps:
+        added to its lifetime totals) at once (one group commit).
 
         A payload given as ``checked`` is sent, as long as it is unchanged, without being parsed
         again (:meth:`BufferedRow.as_appended`).
@@ -289,6 +298,9 @@ class Buffer(Protocol):
 
     def seen_keys(self) -> list[tuple[str, int, int]]:
         """The hop keys kept, oldest first."""
+
+    def hop_loss_totals(self) -> dict[str, tuple[int, int]]:
+        """Per topic, the records counted lost before destination_server and in how many gaps, by every run."""
 
     def read_batch(self, destination: str, limit: int, *, after_id: int = 0) -> list[BufferedRow]:
         """The oldest ``limit`` rows of a queue; with ``after_id``, of those whose ``row_id`` is greater."""
@@ -600,8 +612,15 @@ class SqliteBuffer:
             if "hop_seen" not in reader.tables():
                 return
             keys = [row[1:] for row in reader.rows("hop_seen", "topic, source_ns, seq") if _is_hop_key(row[1:])]
+            # The lifetime totals of losses go with them (a help, as the keys: what cannot be read is not counted).
+            losses = (
+                [row[1:] for row in reader.rows("hop_losses", "topic, missing, gaps") if _is_hop_key(row[1:])]
+                if "hop_losses" in reader.tables()
+                else []
+            )
         with writing() as conn:
             conn.executemany("INSERT INTO hop_seen (topic, source_ns, seq) VALUES (?, ?, ?)", keys)
+            conn.executemany("INSERT OR REPLACE INTO hop_losses (topic, missing, gaps) VALUES (?, ?, ?)", losses)
 
     def _salvage_into(
         self,
@@ -866,18 +885,26 @@ class SqliteBuffer:
         now_ns: int | None = None,
         seen: Sequence[tuple[str, int, int]] = (),
         seen_window: int | None = None,
+        hop_losses: Sequence[tuple[str, int, int]] = (),
     ) -> AppendResult:
         """Write the records of several destinations in one transaction (a group commit).
 
         ``seen`` are the hop keys (topic, source_ns, seq) of the records handled by this commit,
         kept with them so that a record is never known as seen without being buffered; each topic
-        keeps about its newest ``seen_window`` keys (all of them with ``None``).
+        keeps about its newest ``seen_window`` keys (all of them with ``None``). ``hop_losses``
+        (topic, records, gaps) are added to the topics' lifetime totals.
         """
         enqueued = _now_ns() if now_ns is None else now_ns
         result = AppendResult()
         with self._transaction() as conn:
             if seen:
                 self._remember_seen(conn, seen, seen_window)
+            if hop_losses:
+                conn.executemany(
+                    "INSERT INTO hop_losses (topic, missing, gaps) VALUES (?, ?, ?) ON CONFLICT (topic) "
+                    "DO UPDATE SET missing = missing + excluded.missing, gaps = gaps + excluded.gaps",
+                    hop_losses,
+                )
             for destination, batch in records.items():
                 if not batch:
                     continue
@@ -956,6 +983,12 @@ class SqliteBuffer:
         with self._locked() as conn:
             rows = conn.execute("SELECT topic, source_ns, seq FROM hop_seen ORDER BY id").fetchall()
         return [(str(topic), int(source_ns), int(seq)) for topic, source_ns, seq in rows]
+
+    def hop_loss_totals(self) -> dict[str, tuple[int, int]]:
+        """Per topic, the records counted lost before destination_server and in how many gaps, by every run."""
+        with self._locked() as conn:
+            rows = conn.execute("SELECT topic, missing, gaps FROM hop_losses ORDER BY topic").fetchall()
+        return {str(topic): (int(missing), int(gaps)) for topic, missing, gaps in rows}
 
     def _apply_limit(
         self,

@@ -65,6 +65,12 @@ def queue_stats(path: Path) -> list[QueueStats]:
         return [buffer.stats(name) for name in buffer.destinations()]
 
 
+def hop_loss_totals(path: Path) -> dict[str, tuple[int, int]]:
+    """Per input topic, the records every run counted lost before destination_server, and in how many gaps."""
+    with contextlib.closing(open_buffer(path)) as buffer:
+        return buffer.hop_loss_totals()
+
+
 def list_dead_letters(path: Path, destination: str | None = None, limit: int = 1000) -> list[DeadLetter]:
     with contextlib.closing(open_buffer(path)) as buffer:
         return buffer.list_dead_letters(destination, limit=limit)
@@ -120,6 +126,9 @@ def run_cli(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         ids = [int(i) for i in args.ids] if args.ids else None
         if args.action == "stats":
             _print_stats(path, queue_stats(path), out)
+            for topic, (missing, gaps) in hop_loss_totals(path).items():
+                if missing:
+                    print(f"lost before destination_server, all runs: {missing} on {topic} ({gaps} gaps)", file=out)
         elif args.action == "list":
             letters = list_dead_letters(path, destination)
             if getattr(args, "json", False):

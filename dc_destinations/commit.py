@@ -36,6 +36,7 @@ from dc_core.logs import BurstLog, Logger
 from dc_core.records import MalformedRecord
 from dc_core.supervision import Supervisor
 from dc_destinations.buffer import AppendResult, Buffer, BufferClosed, BufferCorrupted, PendingRecord, QueueLimit
+from dc_destinations.hop import HopLosses
 from dc_destinations.sender import (
     DROP_INTAKE,
     DROP_NOT_COMMITTED,
@@ -49,6 +50,8 @@ from dc_destinations.sender import (
 from dc_destinations.settings import DeliveryParams
 
 HopKey = tuple[str, int, int]
+
+
 CommitListener = Callable[[Sequence[tuple[str, str]]], None]
 
 _STOP = object()
@@ -56,8 +59,9 @@ _STOP = object()
 # than fails): what is still not committed then is counted as dropped and logged.
 STOP_COMMIT_WAIT_S = 10.0
 
-Received = tuple[Sequence[tuple[str, OutgoingRecord]], HopKey | None]
-"""One received record as routing gave it: its copies by destination name, and its hop key."""
+Received = tuple[Sequence[tuple[str, OutgoingRecord]], HopKey | HopLosses | None]
+"""One received record as routing gave it: its copies by destination name, and its hop key (or, with
+no copies, the hop's losses since the last hand-over)."""
 
 
 @dataclass
@@ -67,6 +71,7 @@ class _CommitBatch:
     by_destination: dict[str, list[PendingRecord]] = field(default_factory=dict)
     limits: dict[str, QueueLimit] = field(default_factory=dict)
     seen: list[HopKey] = field(default_factory=list)
+    hop_losses: list[HopLosses] = field(default_factory=list)
     # (destination, record_id) as they came, for commit listeners: None (not built) when none listens.
     committed: list[tuple[str, str]] | None = None
     count: int = 0
@@ -468,7 +473,11 @@ class GroupCommitter:
         without the evictions they made necessary."""
         with self._buffer.exclusive():
             result = self._buffer.append(
-                batch.by_destination, batch.limits, seen=batch.seen, seen_window=self._seen_window
+                batch.by_destination,
+                batch.limits,
+                seen=batch.seen,
+                seen_window=self._seen_window,
+                hop_losses=batch.hop_losses,
             )
             # Counted before anything they made necessary: received = sent + evicted + dropped + buffered
             # holds at every reading, even for records evicted by the commit that brought them.
@@ -488,7 +497,9 @@ class GroupCommitter:
         batch = _CommitBatch(committed=[] if self._listeners else None)
         routes = self._routes
         for copies, seen in handoffs:
-            if seen is not None:
+            if isinstance(seen, HopLosses):
+                batch.hop_losses.append(seen)
+            elif seen is not None:
                 batch.seen.append(seen)
             for name, record in copies:
                 route = routes.get(name)

@@ -412,6 +412,16 @@ class DeliveryPipeline:
         except (BufferClosed, BufferCorrupted):
             return []
 
+    def hop_loss_totals(self) -> dict[str, tuple[int, int]]:
+        """Per topic, the records every run counted lost before destination_server, and in how many
+        gaps (empty before :meth:`start`)."""
+        if self._buffer is None or self._buffer.closed:
+            return {}
+        try:
+            return self._buffer.hop_loss_totals()
+        except (BufferClosed, BufferCorrupted):
+            return {}
+
     def flush_intake(self, timeout: float | None = None) -> bool:
         """Wait until every record submitted before this call is committed; False on timeout."""
         return self._committer is not None and self._committer.flush(timeout)

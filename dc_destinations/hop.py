@@ -42,6 +42,15 @@ class HopKey(NamedTuple):
     seq: int
 
 
+class HopLosses(NamedTuple):
+    """Records of ``topic`` counted lost (``missing``; negative: some arrived after all) in ``gaps``
+    jumps since the last hand-over, for the buffer's lifetime totals (added by the group commit)."""
+
+    topic: str
+    missing: int
+    gaps: int
+
+
 def hop_key(topic: str, info: Mapping[str, Any] | None) -> HopKey | None:
     """The key of a received record from rclpy's MessageInfo; ``None`` when the middleware gave none.
 
@@ -145,6 +154,29 @@ class HopIntake:
         self._topics: dict[str, _TopicState] = {}
         # Per (topic, publisher): up to where a loss was counted since take_settled_marks last ran.
         self._settled_marks: dict[tuple[str, int], int] = {}
+        # Per topic, (missing, gaps) of the earlier runs (the buffer's totals at the start) and of this
+        # run handed over for the buffer's totals.
+        self._before: dict[str, tuple[int, int]] = {}
+        self._handed_over: dict[str, tuple[int, int]] = {}
+
+    def load_loss_totals(self, totals: Mapping[str, tuple[int, int]]) -> None:
+        """The buffer's lifetime totals of losses, per topic (missing, gaps), as this run starts."""
+        self._before = dict(totals)
+
+    def losses_not_handed_over(self) -> list[HopLosses]:
+        """Per topic, what was counted (or taken back) since :meth:`losses_handed_over` last took it."""
+        out = []
+        for topic, state in self._topics.items():
+            missing, gaps = self._handed_over.get(topic, (0, 0))
+            if state.stats.missing != missing or state.stats.gaps != gaps:
+                out.append(HopLosses(topic, state.stats.missing - missing, state.stats.gaps - gaps))
+        return out
+
+    def losses_handed_over(self, losses: Iterable[HopLosses]) -> None:
+        """``losses`` are on their way into the buffer (submitted with records)."""
+        for one in losses:
+            missing, gaps = self._handed_over.get(one.topic, (0, 0))
+            self._handed_over[one.topic] = (missing + one.missing, gaps + one.gaps)
 
     def _topic(self, topic: str) -> _TopicState:
         state = self._topics.get(topic)
@@ -344,8 +376,18 @@ class HopIntake:
             state.seen.discard(state.order.popleft())
 
     def stats(self) -> dict[str, dict[str, int]]:
-        """Per topic counters since the server started (the ``hop`` section of the metrics)."""
-        return {topic: vars(state.stats).copy() for topic, state in sorted(self._topics.items())}
+        """Per topic counters since the server started (the ``hop`` section of the metrics), and
+        ``missing_lifetime`` / ``gaps_lifetime``: those of every run of this buffer, this one's included."""
+        out: dict[str, dict[str, int]] = {}
+        topics = dict(self._topics)  # read by the metrics' thread: a copy (one step under the GIL)
+        for topic in sorted({*topics, *self._before}):
+            state = topics.get(topic)
+            counts = vars(state.stats if state is not None else TopicHopStats()).copy()
+            missing, gaps = self._before.get(topic, (0, 0))
+            counts["missing_lifetime"] = missing + counts["missing"]
+            counts["gaps_lifetime"] = gaps + counts["gaps"]
+            out[topic] = counts
+        return out
 
     def totals(self) -> TopicHopStats:
         total = TopicHopStats()

@@ -53,6 +53,7 @@ from dc_core.topics import (
     resolve_topic,
 )
 from dc_core.worker import Outcome
+from dc_destinations.commit import Received
 from dc_destinations.config import NODE_NAME, DestinationServerConfig, parse_destination_server
 from dc_destinations.delivery import DeliveryPipeline
 from dc_destinations.health import FAILING, HEALTH_QOS, HEALTH_TOPIC, RETRYING
@@ -286,6 +287,7 @@ class DestinationServer(ManagedServer):
         hop = HopIntake(self._hop_window)
         loaded = [HopKey(*key) for key in self.pipeline.hop_keys()]
         hop.load(loaded)
+        hop.load_loss_totals(self.pipeline.hop_loss_totals())
         acks.tracker.committed(loaded)
         self.hop = hop
         self._hop_loss_log = BurstLog(self.get_logger().error, "records lost before destination_server")
@@ -747,7 +749,11 @@ class DestinationServer(ManagedServer):
         """
         assert self.pipeline is not None and self.hop is not None
         received = [(copies, key) for copies, key in received if copies or key is not None]
-        if received and self.pipeline.submit_records(received):
+        # What the hop counted lost goes into the buffer's totals with these records' keys.
+        losses = self.hop.losses_not_handed_over()
+        submitted: list[Received] = [*received, *(([], one) for one in losses)]
+        if submitted and self.pipeline.submit_records(submitted):
+            self.hop.losses_handed_over(losses)
             for _, key in received:
                 self.hop.handled(key)
 

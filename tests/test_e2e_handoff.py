@@ -8,10 +8,12 @@ committed it, and sends again what was not acknowledged.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -52,8 +54,8 @@ def handoff_metrics(lines: list[str]) -> dict[str, Any]:
     return dict(document["handoff"]["/dc/measurement/numbers"])
 
 
-def hop_missing(lines: list[str]) -> dict[str, int]:
-    """Per input topic, `missing` in the hop section of the destination_server that logged last."""
+def hop_section(lines: list[str]) -> dict[str, dict[str, int]]:
+    """Per input topic, the hop counters of the destination_server that logged last."""
     address = [
         m.group(1)
         for line in lines
@@ -61,7 +63,12 @@ def hop_missing(lines: list[str]) -> dict[str, int]:
     ]
     with urllib.request.urlopen(address[-1] + "metrics", timeout=5) as response:
         document: dict[str, Any] = json.load(response)
-    return {topic: int(counts["missing"]) for topic, counts in document["hop"].items()}
+    return dict(document["hop"])
+
+
+def hop_missing(lines: list[str], counter: str = "missing") -> dict[str, int]:
+    """Per input topic, `missing` (or ``counter``) in the hop section of the destination_server that logged last."""
+    return {topic: int(counts[counter]) for topic, counts in hop_section(lines).items()}
 
 
 def active_pid(run: Bringup, server: str) -> int:
@@ -75,17 +82,24 @@ def single_process_pid(run: Bringup) -> int:
     return int(line.split("(pid ", 1)[1].split(")", 1)[0])
 
 
-def delivered_or_counted(output: Path, lines: list[str]) -> int:
-    """Records in the File output plus those destination_server counts missing: what a loss must add up to.
+def delivered_or_counted(output: Path, lines: list[str], counter: str = "missing") -> int:
+    """Records in the File output plus those destination_server counts missing (``counter``: or those
+    every run on its buffer counted, ``missing_lifetime``): what a loss must add up to.
 
     -1 while the destination_server that logged last does not answer: the one killed, until its successor
     says where its metrics are (a fresh-clone run read the dead one's address in between).
     """
     try:
-        missing = hop_missing(lines)
+        missing = hop_missing(lines, counter)
     except OSError:  # urllib's URLError included
         return -1
     return len(numbers_in(output)) + sum(missing.values())
+
+
+def committed_losses(buffer: Path) -> dict[str, int]:
+    """Per input topic, the records lost before destination_server as its buffer file holds them."""
+    with contextlib.closing(sqlite3.connect(f"file:{buffer}?mode=ro", uri=True, timeout=5)) as db:
+        return {str(topic): int(missing) for topic, missing in db.execute("SELECT topic, missing FROM hop_losses")}
 
 
 def with_metrics(params: Path) -> None:
@@ -256,16 +270,18 @@ def test_beyond_the_publishers_limit_the_oldest_are_dropped_and_every_one_is_cou
         published, _ = publisher.communicate(timeout=TOTAL / RATE + 60)
         assert publisher.returncode == 0, published
 
+        # By every run on the buffer: a destination_server restarted once more (by the bond, on a loaded
+        # machine) takes this run's own counters with it, not the buffer's totals.
         try:
             run.wait_until(
-                lambda: delivered_or_counted(output, run.stderr) >= TOTAL, 60, "every record delivered or counted"
+                lambda: delivered_or_counted(output, run.stderr, "missing_lifetime") >= TOTAL,
+                60,
+                "every record delivered or counted",
             )
         finally:
             counts = numbers_in(output)
-            missing = hop_missing(run.stderr)
+            missing = hop_missing(run.stderr, "missing_lifetime")
             handoff = handoff_metrics(run.stderr)
-            # What to read when the sum falls short: a destination_server restarted once more (by the
-            # bond, on a loaded machine) counted in metrics of its own, now gone; its log lines stay.
             starts = sum("destination_server active (pid " in s for s in run.stderr)
             losses = [s for s in run.stderr if "never arrived" in s or "missing" in s]
             print(
@@ -273,7 +289,19 @@ def test_beyond_the_publishers_limit_the_oldest_are_dropped_and_every_one_is_cou
                 f"destination_server started {starts} times; its loss lines: {losses}"
             )
         dropped_lines = [s for s in run.stderr if "records dropped before destination_server acknowledged them" in s]
-    absent = [n for n in range(TOTAL) if n not in counts]
-    assert absent and handoff["dropped"] > 0, "the limit was reached: what this test is about"
-    assert sum(missing.values()) == len(absent), f"lost {ranges(absent)}, counted {missing}"
-    assert dropped_lines, "the publisher logs its drops"
+        absent = [n for n in range(TOTAL) if n not in counts]
+        assert absent and handoff["dropped"] > 0, "the limit was reached: what this test is about"
+        assert sum(missing.values()) == len(absent), f"lost {ranges(absent)}, counted {missing}"
+        assert dropped_lines, "the publisher logs its drops"
+
+        # The count outlives the process that made it: committed to the buffer, then that server killed too.
+        buffer = tmp_path / "buffer" / "delivery.sqlite3"
+        wait_for(lambda: committed_losses(buffer) == missing, 15, f"the buffer's totals at {missing}")
+        os.kill(active_pid(run, "destination_server"), signal.SIGKILL)
+        run.wait_until(
+            lambda: sum("destination_server active (pid " in s for s in run.stderr) > starts, 60, "a third start"
+        )
+        run.wait_until(lambda: delivered_or_counted(output, run.stderr) >= 0, 30, "its metrics")
+        after = hop_section(run.stderr)
+        assert {t: c["missing_lifetime"] for t, c in after.items()} == missing, after
+        assert all(c["missing"] == 0 for c in after.values()), f"counted again by the next run: {after}"

@@ -13,14 +13,16 @@ from typing import Any
 
 import pytest
 
+from dc_bringup.cli import _print_delivery
 from dc_core.destination import Destination, OutgoingRecord
 from dc_core.sequence_numbers import TopicWriters
 from dc_core.testing import FakeContext, RecordingLogger
 from dc_destinations.buffer import FILE_NAME, PendingRecord, SqliteBuffer
 from dc_destinations.delivery import DeliveryPipeline
-from dc_destinations.hop import HopIntake, HopKey, hop_key
+from dc_destinations.hop import HopIntake, HopKey, HopLosses, hop_key
 from dc_destinations.record_ids import new_record_id
 from dc_destinations.settings import DeliveryParams, DestinationDeliveryParams
+from tests.test_buffer import _cli
 
 TOPIC = "/dc/measurement/numbers"
 
@@ -111,6 +113,8 @@ def test_a_handled_record_arriving_again_is_a_duplicate() -> None:
         "writers": 1,
         "unkeyed": 0,
         "writers_ended": 0,
+        "missing_lifetime": 0,
+        "gaps_lifetime": 0,
     }
 
 
@@ -273,3 +277,76 @@ def test_a_record_the_pipeline_cannot_take_leaves_no_key(tmp_path: Path) -> None
         assert delivery.hop_keys() == []
     finally:
         delivery.stop(0.1)
+
+
+# -- losses counted, kept in the buffer beyond the run that counted them ------------------------------
+
+
+def test_a_run_s_losses_go_into_the_buffer_with_its_records_and_the_next_run_starts_from_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A destination_server killed after it counted a loss took its counters with it: the buffer keeps
+    the count, committed with the records that came after the gap, and the next run adds to it."""
+    hop = HopIntake(window=100)
+    delivery = pipeline(tmp_path)
+    delivery.start()
+    try:
+        for seq in (1, 2, 6, 7):  # 3..5 never arrived
+            verdict = hop.check(TOPIC, key(seq))
+            assert not verdict.duplicate
+            losses = hop.losses_not_handed_over()
+            assert delivery.submit_records([([("a", outgoing(seq))], key(seq)), *(([], one) for one in losses)])
+            hop.losses_handed_over(losses)
+        assert hop.losses_not_handed_over() == [], "each loss handed over once"
+        assert delivery.flush_intake(10)
+        assert delivery.hop_loss_totals() == {TOPIC: (3, 1)}
+    finally:
+        delivery.stop(0.1)  # or a kill -9: what was committed stays
+    # The next run: its own counters start at 0, the lifetime ones at the buffer's totals.
+    again = pipeline(tmp_path)
+    again.start()
+    try:
+        second = HopIntake(window=100)
+        second.load(HopKey(*k) for k in again.hop_keys())
+        second.load_loss_totals(again.hop_loss_totals())
+        assert second.stats()[TOPIC]["missing"] == 0 and second.stats()[TOPIC]["missing_lifetime"] == 3
+        second.check(TOPIC, key(10))  # 8 and 9
+        losses = second.losses_not_handed_over()
+        assert losses == [HopLosses(TOPIC, 2, 1)]
+        assert again.submit_records([([], one) for one in losses])
+        second.losses_handed_over(losses)
+        assert again.flush_intake(10)
+        assert again.hop_loss_totals() == {TOPIC: (5, 2)}
+        assert second.stats()[TOPIC]["missing_lifetime"] == 5 and second.stats()[TOPIC]["gaps_lifetime"] == 2
+    finally:
+        again.stop(0.1)
+    _print_delivery({"hop": second.stats()}, wide=False)  # what `dc status` prints of it
+    assert (
+        f"lost before destination_server: 2 on {TOPIC} (missing, 1 gaps); 3 more counted by earlier runs on this buffer"
+        in capsys.readouterr().out
+    )
+
+
+def test_a_loss_taken_back_and_a_failed_commit_keep_the_totals_right(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    buffer = SqliteBuffer(tmp_path / FILE_NAME)
+    buffer.append({}, hop_losses=[HopLosses(TOPIC, 4, 1), HopLosses("/other", 1, 1)])
+    buffer.append({}, hop_losses=[HopLosses(TOPIC, -1, 0)])  # one of them arrived after all
+
+    def fail(*args: Any, **kwargs: Any) -> Any:
+        raise sqlite3.OperationalError("database or disk is full")
+
+    from dc_destinations.buffer import QueueLimit
+
+    monkeypatch.setattr(buffer, "_apply_limit", fail)
+    with pytest.raises(sqlite3.OperationalError):
+        buffer.append({"file": [pending(1)]}, {"file": QueueLimit(1000, True)}, hop_losses=[HopLosses(TOPIC, 7, 1)])
+    buffer.close()
+    reopened = SqliteBuffer(tmp_path / FILE_NAME)
+    assert reopened.hop_loss_totals() == {TOPIC: (3, 1), "/other": (1, 1)}, "the failed commit added nothing"
+    reopened.close()
+    code, text = _cli(tmp_path, "stats")  # `dc buffer stats`, with no server running
+    assert code == 0
+    assert f"lost before destination_server, all runs: 3 on {TOPIC} (1 gaps)" in text
+    assert "lost before destination_server, all runs: 1 on /other (1 gaps)" in text
