@@ -221,3 +221,28 @@ def test_the_charts_of_every_robot_from_the_rollup_show_the_rows_means_late_rows
 
 def _flat(points: list[tuple[float, float]]) -> list[float]:
     return [v for point in points for v in point]
+
+
+def test_a_value_that_is_no_float_does_not_fail_the_insert_its_row_is_counted_without_it(
+    server: PostgresSettings,
+) -> None:
+    import psycopg
+
+    settings = dataclasses.replace(server, table="dc_odd", files_table="dc_odd_files")
+    system = {"name": "system", "cpu": {"average": 12.5, "processes": 3, "robot_name": "r1", "run_id": "1"}}
+    with psycopg.connect(**server.connect_kwargs(), autocommit=True) as connection:
+        connection.execute("CREATE TABLE dc_odd (tag text, time timestamptz NOT NULL, data jsonb, record_id text)")
+        connection.execute("INSERT INTO dc_odd VALUES ('pg', %s, %s, 'first')", (T0, json.dumps(system)))
+        assert rollups.create(settings, say=lambda text: None) == 0
+        # A number beyond float8 (JSON has no bound: 1e400 fails a float8 cast) and a string, in one
+        # statement with a good row; then each alone.
+        member = '"processes": 3, "robot_name": "r1", "run_id": "1"'
+        rows = [f'{{"name": "system", "cpu": {{"average": {v}, {member}}}}}' for v in ("1e400", '"n/a"', "7.5")]
+        connection.execute(
+            "INSERT INTO dc_odd SELECT 'pg', %s, d::jsonb, 'odd' || n FROM unnest(%s::text[]) WITH ORDINALITY AS r(d, n)",
+            (T0 + dt.timedelta(seconds=1), rows),
+        )
+        for n, data in enumerate(rows[:2]):
+            connection.execute("INSERT INTO dc_odd VALUES ('pg', %s, %s::jsonb, %s)", (T0, data, f"alone{n}"))
+        counted = connection.execute("SELECT sum(rows), sum(a_rows), sum(a_sum) FROM dc_odd_rollup").fetchone()
+    assert counted == (6, 2, 20.0)
