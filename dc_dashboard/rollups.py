@@ -63,9 +63,14 @@ Found = dict[tuple[str, tuple[str, ...], tuple[str, ...]], Series]  # (name, a p
 
 
 def found(connection: Any, table: str) -> Found:
-    """The series rolled up for records table ``table`` (none when ``--create-rollups`` was not run)."""
+    """The series rolled up for records table ``table``: none when ``--create-rollups`` was not run, or
+    when its trigger is gone or disabled (the rollup would miss the rows since)."""
     series = names(table)["_rollup_series"]
-    exists = connection.execute("SELECT to_regclass(%s) IS NOT NULL", (series,)).fetchone()
+    exists = connection.execute(
+        "SELECT to_regclass(%s) IS NOT NULL AND EXISTS (SELECT 1 FROM pg_trigger WHERE tgrelid = to_regclass(%s)"
+        " AND tgname = 'dc_roll_up' AND tgenabled <> 'D')",
+        (series, table),
+    ).fetchone()
     if not exists or not exists[0]:
         return {}
     rows = connection.execute(sql.SQL("SELECT id, name, a, b, seconds FROM {}").format(_identifier(series)))

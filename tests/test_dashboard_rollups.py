@@ -217,6 +217,11 @@ def test_the_charts_of_every_robot_from_the_rollup_show_the_rows_means_late_rows
         # A run's metres, its counter's rise, from the rollup's max and min: 179, 179, 359 and 359 rows of 1.5 m.
         assert store.distance(connection, Filters()).total_m == pytest.approx((179 + 179 + 359 + 359) * 1.5)
         assert store.trajectory(connection, Filters(robot="r2")).positions == MINUTES + 1  # from the rows
+        # Its trigger disabled, the rollup would miss the rows inserted since: the pages read the rows.
+        connection.execute(f"ALTER TABLE {settings.table} DISABLE TRIGGER dc_roll_up")
+        assert rollups.found(connection, settings.table) == {}
+        connection.execute(f"ALTER TABLE {settings.table} ENABLE TRIGGER dc_roll_up")
+        assert len(rollups.found(connection, settings.table)) == 4
 
 
 def _flat(points: list[tuple[float, float]]) -> list[float]:
