@@ -385,7 +385,12 @@ def main() -> None:
         if args.drop:
             shutil.rmtree(args.folder, ignore_errors=True)
     print(json.dumps({k: v for k, v in result.items() if k != "figures"}, indent=2))
-    stem = f"dashboard_fleet_day_{dt.date.today()}" + (f"_{args.label}" if args.label else "")
+    write_result("dashboard_fleet_day", args.label, result)
+
+
+def write_result(name: str, label: str, result: dict[str, Any]) -> None:
+    """benchmarks/results/<name>_<date>[_<label>].json, never overwritten (``_2``, ``_3``…)."""
+    stem = f"{name}_{dt.date.today()}" + (f"_{label}" if label else "")
     out = REPO / "benchmarks" / "results" / f"{stem}.json"
     n = 2
     while out.exists():

@@ -1,4 +1,4 @@
-"""``dc dashboard``'s options and what it runs: the web server, or the index builder."""
+"""``dc dashboard``'s options and what it runs: the web server, or the index and rollup builders."""
 
 from __future__ import annotations
 
@@ -43,6 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="create the indexes the dashboard needs (CREATE INDEX CONCURRENTLY) and exit",
     )
+    p.add_argument(
+        "--create-rollups",
+        action="store_true",
+        help="keep pre-averaged 30 s buckets of the charted measurements (a table and an insert trigger, filled "
+        "from the rows there) so the pages of every robot read those, and exit (docs/dashboard.md)",
+    )
     p.add_argument("--print-index-sql", action="store_true", help="print those CREATE INDEX statements and exit")
 
 
@@ -73,7 +79,7 @@ def run(args: argparse.Namespace, params_metrics: ParamsMetrics | None = None) -
     except ImportError:
         print('dc dashboard: psycopg is not installed (pip install "ros2-dc[pgsql,aws]")', file=sys.stderr)
         return 2
-    from dc_dashboard import indexes, server
+    from dc_dashboard import indexes, rollups, server
     from dc_dashboard.settings import from_sources
 
     try:
@@ -85,8 +91,9 @@ def run(args: argparse.Namespace, params_metrics: ParamsMetrics | None = None) -
         for statement in indexes.statements(settings.postgres):
             print(statement.as_string(None) + ";")
         return 0
-    if args.create_indexes:
-        return indexes.create(settings.postgres)
+    if args.create_indexes or args.create_rollups:
+        done = indexes.create(settings.postgres) if args.create_indexes else 0
+        return done or (rollups.create(settings.postgres) if args.create_rollups else 0)
     if args.max_connections < 1 or args.request_timeout <= 0:
         print("dc dashboard: --max-connections must be >= 1 and --request-timeout > 0", file=sys.stderr)
         return 2

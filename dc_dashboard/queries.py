@@ -8,13 +8,14 @@ read by skipping through an index rather than by scanning the table.
 from __future__ import annotations
 
 import datetime as dt
+import math
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
-from dc_dashboard import indexes
+from dc_dashboard import indexes, rollups
 from dc_dashboard.catalog import Sources, numeric_fields, sources_of
 from dc_dashboard.errors import DashboardError, first_line
 from dc_dashboard.filters import Filters
@@ -112,6 +113,7 @@ class Catalog:
     row_estimate: int
     # Record name -> the JSON paths of the numbers its newest records hold (the explorer plots them).
     fields: dict[str, list[tuple[str, ...]]] = field(default_factory=dict)
+    rollup_series: rollups.Found = field(default_factory=dict)  # those dc dashboard --create-rollups keeps
     read_at: float = field(default_factory=time.monotonic)
 
     @property
@@ -182,6 +184,7 @@ class Store:
             missing_indexes=indexes.missing(connection, self.settings),
             row_estimate=rows,
             fields={name: numeric_fields(records) for name, records in latest.items()},
+            rollup_series=rollups.found(connection, self.settings.table),
         )
         self._catalog = catalog
         return catalog
@@ -217,7 +220,7 @@ class Store:
         series: dict[str, list[tuple[float, float, float]]] = {}
         positions = 0
         for name, path in catalog.sources["position"]:
-            for bucket in self._bucketed(connection, filters, name, [(*path, "x"), (*path, "y")]):
+            for bucket in self._bucketed(connection, filters, name, rollups.charted("position", path)):
                 if bucket.a is not None:
                     positions += bucket.rows
                     series.setdefault(bucket.label, []).append((bucket.when, bucket.a, bucket.b or 0.0))
@@ -233,7 +236,7 @@ class Store:
         for name, path in catalog.sources["distance_traveled"]:
             # A run's metres, its counter's rise: from the plot's buckets (their max and min), one read of the rows.
             runs: dict[tuple[str, str], list[float]] = {}  # (robot, run) -> [max, min, newest time]
-            buckets = self._bucketed(connection, filters, name, [(*path, "distance_traveled")])
+            buckets = self._bucketed(connection, filters, name, rollups.charted("distance_traveled", path))
             for bucket in buckets:
                 if bucket.a_max is None or bucket.a_min is None:
                     continue
@@ -249,10 +252,10 @@ class Store:
         catalog = self.catalog(connection)
         stats: dict[str, list[Series]] = {"cpu": [], "memory": []}
         summary: dict[str, list[tuple[float, float, int]]] = {"cpu": [], "memory": []}
-        for kind, field_name in (("cpu", "average"), ("memory", "used")):
+        for kind in ("cpu", "memory"):
             for name, path in catalog.sources[kind]:
                 # The figures from the plot's buckets: one read of the rows, not two.
-                buckets = self._bucketed(connection, filters, name, [(*path, field_name)])
+                buckets = self._bucketed(connection, filters, name, rollups.charted(kind, path))
                 valued = sum(b.a_rows for b in buckets)
                 if valued:
                     average = sum((b.a or 0.0) * b.a_rows for b in buckets) / valued
@@ -512,7 +515,13 @@ class Store:
         # A robot's runs share the time axis, so a chart holds about (robots x buckets) points: without a
         # robot filter, every robot of the table in CHART_POINTS, a robot alone POINTS.
         robots = 1 if filters.robot else max(len(self.robots(connection)), 1)
-        params.update(low=low, high=high + 0.001, buckets=max(1, min(POINTS, CHART_POINTS // robots)))
+        buckets = max(1, min(POINTS, CHART_POINTS // robots))
+        series = None if filters.robot else self.catalog(connection).rollup_series.get(_series_key(name, paths))
+        if series is not None and (high + 0.001 - low) / buckets >= 0.95 * series.seconds:
+            rolled = self._rolled_up(connection, filters, series, (low, high), buckets, where, params, values)
+            if rolled is not None:
+                return rolled
+        params.update(low=low, high=high + 0.001, buckets=buckets)
         # Each row's values once (OFFSET 0 keeps the subquery, else each aggregate extracts them again).
         query = sql.SQL(
             "SELECT robot, run, sum(t) / count(*), avg(a), avg(b), count(*), count(a), max(a), min(a)"
@@ -520,21 +529,60 @@ class Store:
             "   FROM {t} WHERE {w} OFFSET 0) AS row_values"
             " GROUP BY robot, run, width_bucket(t, %(low)s, %(high)s, %(buckets)s) LIMIT 20000"
         ).format(robot=indexes.ROBOT, run=indexes.RUN, a=values[0], b=values[1], t=self.table, w=where)
-        out = []
-        # Sorted here: an ORDER BY made PostgreSQL sort every row (360,000: 0.8 s, on disk) to aggregate
-        # in order, where a hash of the buckets needs no sort.
-        found = sorted(
-            connection.execute(query, params).fetchall(), key=lambda row: (row[0] or "", row[1] or "", row[2])
-        )
-        for robot, run, when, a, b, rows, a_rows, top, bottom in found:
-            robot, run = robot or "", run or ""
-            out.append(
-                Bucket(
-                    robot, run, f"{robot or '?'} run {run or '?'}", float(when), _float(a), _float(b),
-                    int(rows), int(a_rows), _float(top), _float(bottom),
-                )
-            )  # fmt: skip
-        return out
+        return _buckets(connection.execute(query, params).fetchall())
+
+    def _rolled_up(
+        self,
+        connection: Any,
+        filters: Filters,
+        series: rollups.Series,
+        span: tuple[float, float],
+        buckets: int,
+        where: Any,
+        params: dict[str, Any],
+        values: list[Any],
+    ) -> list[Bucket] | None:
+        """The buckets of _bucketed from the rollup (no robot filter): each chart bucket a whole number of
+        rollup buckets on their grid (multiples of its width since the epoch, about the width asked), the
+        rows of the range's partial rollup buckets at its ends read from the table. None: the range holds
+        no whole rollup bucket."""
+        from psycopg import sql
+
+        low, high = span
+        width = series.seconds
+        # A chart bucket up to 5 % narrower than asked: a fleet's hour is 120 rollup buckets, not 60.
+        chart = width * max(1, math.ceil((high + 0.001 - low) / buckets / width - 0.05))
+        # Whole rollup buckets within the filters' range and the rows' span ([first, last) in epoch s).
+        first = math.floor(low / width) * width
+        if filters.start is not None:
+            first = max(first, math.ceil(_epoch(filters.start) / width) * width)
+        last = math.floor(high / width) * width + width
+        if filters.end is not None:
+            last = min(last, math.floor(_epoch(filters.end) / width) * width)
+        if first >= last:
+            return None
+        rollup = sql.Identifier(*rollups.names(self.settings.table)["_rollup"].split("."))
+        run = sql.SQL(" AND run = %(run)s") if filters.run else sql.SQL("")
+        params.update(series=series.id, first=first, last=last, chart=chart)
+        params.update(first_time=_naive_utc(first), last_time=_naive_utc(last))
+        query = sql.SQL(
+            "SELECT robot, run, sum(time_sum) / sum(rows), sum(a_sum) / nullif(sum(a_rows), 0),"
+            " sum(b_sum) / nullif(sum(b_rows), 0), sum(rows), sum(a_rows), max(a_max), min(a_min) FROM ("
+            "  SELECT robot, run, floor(bucket / %(chart)s::float8) AS k, rows, time_sum, a_rows, a_sum, a_min,"
+            "   a_max, b_rows, b_sum FROM {rollup}"
+            "  WHERE series = %(series)s AND bucket >= %(first)s AND bucket < %(last)s{run}"
+            "  UNION ALL"
+            "  SELECT robot, run, floor(t / %(chart)s), 1, t, (a IS NOT NULL)::int, coalesce(a, 0), a, a,"
+            "   (b IS NOT NULL)::int, coalesce(b, 0)"
+            "  FROM (SELECT coalesce({robot}, '') AS robot, coalesce({run_of}, '') AS run,"
+            "    extract(epoch FROM time)::float8 AS t, {a} AS a, {b} AS b"
+            "   FROM {t} WHERE {w} AND (time < %(first_time)s OR time >= %(last_time)s) OFFSET 0) AS ends"
+            " ) AS parts GROUP BY robot, run, k LIMIT 20000"
+        ).format(
+            rollup=rollup, run=run, robot=indexes.ROBOT, run_of=indexes.RUN, a=values[0], b=values[1],
+            t=self.table, w=where,
+        )  # fmt: skip
+        return _buckets(connection.execute(query, params).fetchall())
 
     def _map(self, connection: Any, filters: Filters, catalog: Catalog, last: float | None) -> dict[str, Any] | None:
         """The newest map of the robot saved before the last point drawn (or before the range's end)."""
@@ -563,6 +611,23 @@ class Store:
                 record["key"] = _remote_key(record, "png")
                 return record
         return None
+
+
+def _buckets(found: list[tuple[Any, ...]]) -> list[Bucket]:
+    """Bucket rows (robot, run, mean time, mean a, mean b, rows, rows with a, max a, min a) as the pages use them."""
+    out = []
+    # Sorted here: an ORDER BY made PostgreSQL sort every row (360,000: 0.8 s, on disk) to aggregate
+    # in order, where a hash of the buckets needs no sort.
+    found = sorted(found, key=lambda row: (row[0] or "", row[1] or "", row[2]))
+    for robot, run, when, a, b, rows, a_rows, top, bottom in found:
+        robot, run = robot or "", run or ""
+        out.append(
+            Bucket(
+                robot, run, f"{robot or '?'} run {run or '?'}", float(when), _float(a), _float(b),
+                int(rows), int(a_rows), _float(top), _float(bottom),
+            )
+        )  # fmt: skip
+    return out
 
 
 def _series(buckets: list[Bucket], value: str) -> list[Series]:
@@ -610,6 +675,16 @@ def _like_escaped(text: str) -> str:
 def _utc(value: dt.datetime) -> dt.datetime:
     """UTC without a zone, as files_metrics' timestamp column holds it."""
     return value.astimezone(dt.UTC).replace(tzinfo=None) if value.tzinfo is not None else value
+
+
+def _naive_utc(epoch: float) -> dt.datetime:
+    """As the filters' times are: UTC without a zone (the dashboard's sessions are in UTC)."""
+    return dt.datetime.fromtimestamp(epoch, dt.UTC).replace(tzinfo=None)
+
+
+def _series_key(name: str, paths: list[tuple[str, ...]]) -> tuple[str, tuple[str, ...], tuple[str, ...]]:
+    """The rollup's key of a chart of record ``name`` drawing the values at ``paths`` (one or two)."""
+    return name, tuple(paths[0]), tuple(paths[1]) if len(paths) > 1 else ()
 
 
 def _epoch(value: dt.datetime) -> float:
