@@ -188,12 +188,18 @@ def test_unknown_interface_is_a_warning_and_holds(
 
 
 def test_token_bucket_keeps_its_rate_and_serves_records_before_files() -> None:
+    # The burst is served with no time passing (a clock that stands still), and then nothing more.
+    still = TokenBucket(20_000, 4_000, clock=lambda: 0.0)
+    assert still.take(4_000, threading.Event())
+    given_up = threading.Event()
+    threading.Timer(0.2, given_up.set).start()
+    assert not still.take(1, given_up)
+
     bucket = TokenBucket(20_000, 4_000)
     stop = threading.Event()
     order: list[str] = []
     start = time.monotonic()
-    assert bucket.take(4_000, stop)  # the burst, at once
-    assert time.monotonic() - start < 0.05
+    assert bucket.take(4_000, stop)  # the burst
 
     # Files ask first for less; records asking while they wait still go first.
     def upload() -> None:
@@ -207,8 +213,8 @@ def test_token_bucket_keeps_its_rate_and_serves_records_before_files() -> None:
     order.append("records")
     files.join(2)
     assert order == ["records", "files"]
-    elapsed = time.monotonic() - start
-    assert 0.28 <= elapsed < 0.6  # 10,000 bytes at 20,000/s, 4,000 of them saved up: 0.3 s
+    # 10,000 bytes at 20,000/s, 4,000 of them saved up: 0.3 s at least (a loaded machine only adds).
+    assert time.monotonic() - start >= 0.28
     stop.set()
     assert not bucket.take(10_000, stop)
 

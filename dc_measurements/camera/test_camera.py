@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import base64
 import stat
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -132,10 +131,8 @@ def test_a_frame_larger_than_max_decoded_pixels_is_refused_without_being_decoded
         raise AssertionError("the frame was decoded")
 
     monkeypatch.setattr(cv2, "imdecode", decoded)
-    started = time.monotonic()
     with pytest.raises(FrameTooLarge, match=r"60000x50000 \(3000.0 MP\) is larger than max_decoded_pixels \(50 MP\)"):
         compressed_to_array(hostile, 50_000_000)
-    assert time.monotonic() - started < 0.1
     _, png = cv2.imencode(".png", BGR)
     with pytest.raises(FrameTooLarge):
         compressed_to_array(CompressedImage(format="png", data=png.tobytes()), 3)
