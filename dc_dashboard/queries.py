@@ -496,11 +496,25 @@ class Store:
         from psycopg import sql
 
         where, params = self._where(filters, name)
-        span = connection.execute(
-            sql.SQL("SELECT min(time), max(time) FROM {t} WHERE {w}").format(t=self.table, w=where), params
-        ).fetchone()
+        if filters.run and not filters.robot:
+            # Every robot's run N: its rows' span by a seek per robot at each end of the (robot, run, name,
+            # time) index. Through the (name, time) index PostgreSQL walked in from the table's ends to
+            # the run (9.6 s for the positions of a fleet's run on 25 M rows).
+            span_query = sql.SQL(
+                "SELECT min(s.low), max(s.high) FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN LATERAL"
+                " (SELECT min(time) AS low, max(time) AS high FROM {t} WHERE {w} AND {robot} = r.robot) AS s"
+            ).format(t=self.table, w=where, robot=indexes.ROBOT)
+            span = connection.execute(span_query, {**params, "robots": self.robots(connection)}).fetchone()
+        else:
+            span = connection.execute(
+                sql.SQL("SELECT min(time), max(time) FROM {t} WHERE {w}").format(t=self.table, w=where), params
+            ).fetchone()
         if not span or span[0] is None:
             return []
+        if filters.run and not filters.robot:
+            # The rows read next within that span: a range of the (name, time) index.
+            where = sql.SQL("{} AND time BETWEEN %(span_low)s AND %(span_high)s").format(where)
+            params.update(span_low=span[0], span_high=span[1])
         low, high = (_epoch(t) for t in span)
         values: list[sql.Composable] = []
         for i, path in enumerate(paths[:2]):
