@@ -2,17 +2,21 @@
 what its trigger costs a COPY into the records table.
 
     .venv/bin/python benchmarks/dashboard_rollup.py --folder DIR [--hours 2] [--runs 7] [--rounds 4] [--label NAME]
+        [--only pages|copy] [--filters hour,run,robot,robot+run,robot+hour,robot+run+hour|all]
 
 The PostgreSQL in --folder is dashboard_fleet_day.py's (made and filled there at the first call with
-``--hours`` hours of 100 robots, ``--layout main``: 2 h are 2.1 M rows, ~1 min). Any rollup there is
-dropped first. Then:
+``--hours`` hours of 100 robots, ``--layout main``: 2 h are 2.1 M rows, ~1 min; a folder made by
+``dashboard_fleet_day.py --layout main`` is used as it is, give --hours as it was made, 24 for its
+default day). Any rollup there is dropped first. Then:
 
 1. the rollup built (``rollups.create``: the series the charts draw, the trigger, filled from the rows),
    its time, rows and size;
-2. the hour 10:00-11:00 of every robot (no robot filter) on the overview, the system page and the
-   explorer of cpu, whole pages as ``Dashboard.render`` serves them: one warm-up each, then --runs
-   pairs, each page once from the rows (a Store that does not see the rollup) and once from the
-   rollup, alternately; median and max of each;
+2. the overview, the system page and the explorer of cpu for each of --filters (``hour``, the
+   default: 10:00-11:00 of every robot, no robot filter; ``run``: every robot's run 6, hours 10-12;
+   and robot-007 alone, with that run, that hour, or both), whole pages as ``Dashboard.render``
+   serves them: one warm-up each, then --runs pairs, each page once from the rows (a Store that does
+   not see the rollup) and once from the rollup, alternately; median and max of each, the load, and
+   whether the two pages' HTML is the same (it must be where both read the rows: with a robot);
 3. COPY into ``dc`` (all its indexes, as generated) with the trigger and without it (``ALTER TABLE …
    DISABLE TRIGGER``), alternately, --rounds of each: the fleet's 10 minutes 10:00-10:10 (175,098
    rows, those of the table a day later with new record ids, robot after robot as each robot's
@@ -43,6 +47,8 @@ sys.path.insert(0, str(REPO))
 from benchmarks.dashboard_fleet_day import (  # noqa: E402
     LAST_DAY,
     PASSWORD,
+    ROBOT,
+    RUN,
     generate,
     pg_settings,
     set_layout,
@@ -56,6 +62,7 @@ from dc_dashboard.server import Dashboard  # noqa: E402
 from dc_dashboard.settings import DashboardSettings, S3Settings  # noqa: E402
 
 BATCH = 100  # rows per COPY of the batched rounds
+HOUR = f"start={LAST_DAY}T10:00:00&end={LAST_DAY}T11:00:00"
 
 
 class RawStore(Store):
@@ -85,28 +92,46 @@ def build(server: PostgresServer) -> dict[str, Any]:
     return {"create_s": built_s, "rollup_rows": int(rows), "rollup_mb": round(int(size) / 1e6, 1)}
 
 
-def pages(server: PostgresServer, runs: int) -> dict[str, Any]:
+# The filters the pages are timed with (label: query): every robot's hour (the rollup's case), every
+# robot's run 6 (hours 10-12: 60 s buckets, the rollup too), and a robot's (the rows, rollup or not).
+FILTERS = {
+    "hour": HOUR,
+    "run": f"run={RUN}",
+    "robot": f"robot={ROBOT}",
+    "robot+run": f"robot={ROBOT}&run={RUN}",
+    "robot+hour": f"robot={ROBOT}&{HOUR}",
+    "robot+run+hour": f"robot={ROBOT}&run={RUN}&{HOUR}",
+}
+
+
+def pages(server: PostgresServer, runs: int, chosen: list[str]) -> dict[str, Any]:
     settings = pg_settings(server)
     rolled = Dashboard(DashboardSettings(settings, S3Settings()))
     raw = Dashboard(DashboardSettings(settings, S3Settings()))
     raw.store = RawStore(settings)
-    hour = f"start={LAST_DAY}T10:00:00&end={LAST_DAY}T11:00:00"
     figures: dict[str, Any] = {}
-    for page, query in (("/", hour), ("/system", hour), ("/explore", hour + "&name=cpu")):
-        times: dict[str, list[float]] = {"rows": [], "rollup": []}
-        for dashboard in (raw, rolled):
-            status, _ = dashboard.render(page, query)  # warm-up: plans, caches, the catalog
-            assert status == 200, (page, status)
-        for _ in range(runs):
-            for label, dashboard in (("rows", raw), ("rollup", rolled)):
-                started = time.perf_counter()
-                dashboard.render(page, query)
-                times[label].append(time.perf_counter() - started)
-        figures[page] = {
-            label: {"median_s": statistics.median(t), "max_s": max(t), "all_s": t} for label, t in times.items()
-        }
-        print(f"{page:9} {json.dumps({k: v['median_s'] for k, v in figures[page].items()})}"
-              f"  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
+    for label in chosen:
+        for page in ("/", "/system", "/explore"):
+            query = FILTERS[label] + ("&name=cpu" if page == "/explore" else "")
+            times: dict[str, list[float]] = {"rows": [], "rollup": []}
+            html = {}
+            for name, dashboard in (("rows", raw), ("rollup", rolled)):
+                status, html[name] = dashboard.render(page, query)  # warm-up: plans, caches, the catalog
+                assert status == 200, (page, query, status)
+            for _ in range(runs):
+                for name, dashboard in (("rows", raw), ("rollup", rolled)):
+                    started = time.perf_counter()
+                    dashboard.render(page, query)
+                    times[name].append(time.perf_counter() - started)
+            key = f"{page} {label}"
+            figures[key] = {
+                name: {"median_s": statistics.median(t), "max_s": max(t), "all_s": t} for name, t in times.items()
+            }
+            # With a robot both read the rows, so the two pages should be the same to the byte: checked, not assumed.
+            figures[key]["same_html"] = html["rows"] == html["rollup"]
+            figures[key]["load_average_1min"] = os.getloadavg()[0]
+            print(f"{key:26} {json.dumps({k: round(figures[key][k]['median_s'], 3) for k in times})}"
+                  f" same_html={figures[key]['same_html']}  load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
     return figures
 
 
@@ -167,7 +192,13 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--label", default="")
     parser.add_argument("--only", choices=("pages", "copy"), help="that part alone (the rollup built all the same)")
+    parser.add_argument(
+        "--filters", default="hour", help=f"comma-separated, of {', '.join(FILTERS)} (all: all of them)"
+    )
     args = parser.parse_args()
+    chosen = list(FILTERS) if args.filters == "all" else args.filters.split(",")
+    if unknown := set(chosen) - set(FILTERS):
+        parser.error(f"--filters: no {', '.join(sorted(unknown))}")
     server = PostgresServer(args.folder, password=PASSWORD)
     result: dict[str, Any] = {"date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "hours": args.hours}
     try:
@@ -182,7 +213,7 @@ def main() -> None:
         result["rollup"] = build(server)
         print(json.dumps(result["rollup"]), flush=True)
         if args.only != "copy":
-            result["pages"] = pages(server, args.runs)
+            result["pages"] = pages(server, args.runs, chosen)
         if args.only != "pages":
             result["copy"] = copies(server, args.rounds)
         result["load_average_1min"] = [load, os.getloadavg()[0]]
