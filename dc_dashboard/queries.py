@@ -317,6 +317,8 @@ class Store:
                 where = sql.SQL("{} AND {}").format(where, text_condition)
                 for key, value in {"text": text, **(texts or {})}.items():
                     params[key] = "%" + _like_escaped(value) + "%"
+            if filters.run and not filters.robot:
+                where, params, _ = self._within_run_span(connection, where, params)
             params["p"] = list(path)
             query = sql.SQL(
                 "SELECT time, {robot}, {run}, data #> %(p)s FROM {t} WHERE {w} ORDER BY time DESC LIMIT %(n)s"
@@ -338,6 +340,8 @@ class Store:
         if filters.before:
             where = sql.SQL("{} AND time < %(before)s").format(where)
             params["before"] = filters.before
+        if filters.run and not filters.robot:
+            where, params, _ = self._within_run_span(connection, where, params)
         query = sql.SQL("SELECT time, {robot}, {run}, data FROM {t} WHERE {w} ORDER BY time DESC LIMIT %(n)s").format(
             robot=indexes.ROBOT, run=indexes.RUN, t=self.table, w=where
         )
@@ -489,6 +493,26 @@ class Store:
         )
         return sql.SQL(" AND ").join([sql.SQL("(data->>'name') = %(name)s"), *parts]), {"name": name, **params}
 
+    def _within_run_span(
+        self, connection: Any, where: Any, params: dict[str, Any]
+    ) -> tuple[Any, dict[str, Any], tuple[Any, ...] | None]:
+        """For every robot's run N (a run filter without a robot): ``where`` bounded by the span of the rows
+        it matches, and that span (first, last time; None or (None, None) when no row). The span takes a seek
+        per robot at each end of the (robot, run, name, time) index; the bound makes what is read next a range
+        of the (name, time) index. Without them PostgreSQL walked that index in from the table's ends to
+        the run (9.6 s for the positions of a fleet's run on 25 M rows)."""
+        from psycopg import sql
+
+        span_query = sql.SQL(
+            "SELECT min(s.low), max(s.high) FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN LATERAL"
+            " (SELECT min(time) AS low, max(time) AS high FROM {t} WHERE {w} AND {robot} = r.robot) AS s"
+        ).format(t=self.table, w=where, robot=indexes.ROBOT)
+        span = connection.execute(span_query, {**params, "robots": self.robots(connection)}).fetchone()
+        if not span or span[0] is None:
+            return where, params, span
+        bounded = sql.SQL("{} AND time BETWEEN %(span_low)s AND %(span_high)s").format(where)
+        return bounded, {**params, "span_low": span[0], "span_high": span[1]}, span
+
     def _bucketed(self, connection: Any, filters: Filters, name: str, paths: list[tuple[str, ...]]) -> list[Bucket]:
         """The rows of record ``name`` (two values at ``paths``) averaged per robot and run over at most
         POINTS buckets of time, fewer when the robots are many (CHART_POINTS in all): PostgreSQL reduces
@@ -496,25 +520,15 @@ class Store:
         from psycopg import sql
 
         where, params = self._where(filters, name)
+        span: tuple[Any, ...] | None
         if filters.run and not filters.robot:
-            # Every robot's run N: its rows' span by a seek per robot at each end of the (robot, run, name,
-            # time) index. Through the (name, time) index PostgreSQL walked in from the table's ends to
-            # the run (9.6 s for the positions of a fleet's run on 25 M rows).
-            span_query = sql.SQL(
-                "SELECT min(s.low), max(s.high) FROM unnest(%(robots)s::text[]) AS r(robot) CROSS JOIN LATERAL"
-                " (SELECT min(time) AS low, max(time) AS high FROM {t} WHERE {w} AND {robot} = r.robot) AS s"
-            ).format(t=self.table, w=where, robot=indexes.ROBOT)
-            span = connection.execute(span_query, {**params, "robots": self.robots(connection)}).fetchone()
+            where, params, span = self._within_run_span(connection, where, params)
         else:
             span = connection.execute(
                 sql.SQL("SELECT min(time), max(time) FROM {t} WHERE {w}").format(t=self.table, w=where), params
             ).fetchone()
         if not span or span[0] is None:
             return []
-        if filters.run and not filters.robot:
-            # The rows read next within that span: a range of the (name, time) index.
-            where = sql.SQL("{} AND time BETWEEN %(span_low)s AND %(span_high)s").format(where)
-            params.update(span_low=span[0], span_high=span[1])
         low, high = (_epoch(t) for t in span)
         values: list[sql.Composable] = []
         for i, path in enumerate(paths[:2]):

@@ -286,6 +286,26 @@ def test_the_numbers_follow_the_robot_run_and_time_filters(database: PostgresSet
         assert cpu(robot="C3PO", run="1") == 10.0 and cpu(robot="C3PO", run="2") == 50.0
         assert cpu(robot="C3PO") == pytest.approx((10 * 10 + 50 * 5) / 15)
 
+        # Every robot's run N (no robot): read within the run's span (a seek per robot), the same as the
+        # robots' own pages put together.
+        for run in ("1", "2", "3"):
+            assert metres(run=run) == sum(metres(robot=r, run=run) for r in ("C3PO", "R2D2")), run
+            explored = store.explore(connection, Filters(name="system", run=run)).records
+            each = [
+                r
+                for robot in ("C3PO", "R2D2")
+                for r in store.explore(connection, Filters(name="system", robot=robot, run=run)).records
+            ]
+            assert sorted(explored, key=lambda r: (r[0], r[1])) == sorted(each, key=lambda r: (r[0], r[1])), run
+            found = [i.key for i in store.inspections(connection, Filters(run=run))[0]]
+            assert sorted(found) == sorted(
+                i.key
+                for robot in ("C3PO", "R2D2")
+                for i in store.inspections(connection, Filters(robot=robot, run=run))[0]
+            ), run
+        assert store.explore(connection, Filters(name="system", run="2")).records, "run 2 has system records"
+        assert metres(run="9") == 0.0 and not store.explore(connection, Filters(name="system", run="9")).records
+
         trajectory = store.trajectory(connection, Filters(robot="R2D2"))
         assert trajectory.positions == 20 and [len(s.points) for s in trajectory.series] == [20]
         assert trajectory.map is not None and trajectory.map["key"] == "R2D2/map.png"
