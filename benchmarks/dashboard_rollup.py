@@ -9,7 +9,7 @@ The PostgreSQL in --folder is dashboard_fleet_day.py's (made and filled there at
 ``dashboard_fleet_day.py --layout main`` is used as it is, give --hours as it was made, 24 for its
 default day). Any rollup there is dropped first. Then:
 
-1. the rollup built (``rollups.create``: the series the charts draw, the trigger, filled from the rows),
+1. the rollup built (``rollup_setup.create``: the series the charts draw, the trigger, filled from the rows),
    its time, rows and size;
 2. the overview, the system page and the explorer of cpu for each of --filters (``hour``, the
    default: 10:00-11:00 of every robot, no robot filter; ``run``: every robot's run 6, hours 10-12;
@@ -56,7 +56,7 @@ from benchmarks.dashboard_fleet_day import (  # noqa: E402
     write_result,
 )
 from dc_bringup.local_servers.postgres import PostgresServer  # noqa: E402
-from dc_dashboard import rollups  # noqa: E402
+from dc_dashboard import rollup_setup, rollups  # noqa: E402
 from dc_dashboard.queries import Catalog, Store  # noqa: E402
 from dc_dashboard.server import Dashboard  # noqa: E402
 from dc_dashboard.settings import DashboardSettings, S3Settings  # noqa: E402
@@ -83,7 +83,7 @@ def drop(server: PostgresServer) -> None:
 def build(server: PostgresServer) -> dict[str, Any]:
     settings = pg_settings(server)
     began = time.monotonic()
-    assert rollups.create(settings, say=lambda text: None) == 0
+    assert rollup_setup.create(settings, say=lambda text: None) == 0
     built_s = time.monotonic() - began
     with server.connect() as connection:
         connection.execute("ANALYZE dc_rollup")

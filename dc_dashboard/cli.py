@@ -79,7 +79,7 @@ def run(args: argparse.Namespace, params_metrics: ParamsMetrics | None = None) -
     except ImportError:
         print('dc dashboard: psycopg is not installed (pip install "ros2-dc[pgsql,aws]")', file=sys.stderr)
         return 2
-    from dc_dashboard import indexes, rollups, server
+    from dc_dashboard import indexes, rollup_setup, server
     from dc_dashboard.settings import from_sources
 
     try:
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace, params_metrics: ParamsMetrics | None = None) -
         return 0
     if args.create_indexes or args.create_rollups:
         done = indexes.create(settings.postgres) if args.create_indexes else 0
-        return done or (rollups.create(settings.postgres) if args.create_rollups else 0)
+        return done or (rollup_setup.create(settings.postgres) if args.create_rollups else 0)
     if args.max_connections < 1 or args.request_timeout <= 0:
         print("dc dashboard: --max-connections must be >= 1 and --request-timeout > 0", file=sys.stderr)
         return 2

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from dc_bringup.local_servers import postgres
-from dc_dashboard import indexes, rollups
+from dc_dashboard import indexes, rollup_setup, rollups
 from dc_dashboard.filters import Filters
 from dc_dashboard.queries import Store
 from dc_dashboard.settings import PostgresSettings
@@ -97,7 +97,7 @@ def _table(server: PostgresSettings, table: str, partitioned: bool) -> PostgresS
                 [(when, data, record_id) for when, record_id, data in rows],
             )
     assert indexes.create(settings, say=lambda text: None) == 0
-    assert rollups.create(settings, say=lambda text: None) == 0
+    assert rollup_setup.create(settings, say=lambda text: None) == 0
     return settings
 
 
@@ -238,7 +238,7 @@ def test_a_value_that_is_no_float_does_not_fail_the_insert_its_row_is_counted_wi
     with psycopg.connect(**server.connect_kwargs(), autocommit=True) as connection:
         connection.execute("CREATE TABLE dc_odd (tag text, time timestamptz NOT NULL, data jsonb, record_id text)")
         connection.execute("INSERT INTO dc_odd VALUES ('pg', %s, %s, 'first')", (T0, json.dumps(system)))
-        assert rollups.create(settings, say=lambda text: None) == 0
+        assert rollup_setup.create(settings, say=lambda text: None) == 0
         # A number beyond float8 (JSON has no bound: 1e400 fails a float8 cast) and a string, in one
         # statement with a good row; then each alone.
         member = '"processes": 3, "robot_name": "r1", "run_id": "1"'
