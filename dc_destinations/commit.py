@@ -50,8 +50,6 @@ from dc_destinations.sender import (
 from dc_destinations.settings import DeliveryParams
 
 HopKey = tuple[str, int, int]
-
-
 CommitListener = Callable[[Sequence[tuple[str, str]]], None]
 
 _STOP = object()

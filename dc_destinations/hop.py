@@ -195,10 +195,11 @@ class HopIntake:
                 writer_id = -key.source_ns
                 state.source_max[writer_id] = max(key.seq, state.source_max.get(writer_id, 0))
                 continue
-            if key.topic.endswith((ENDED_SUFFIX, SETTLED_SUFFIX)):
+            suffix = next((s for s in (ENDED_SUFFIX, SETTLED_SUFFIX) if key.topic.endswith(s)), "")
+            if suffix:
                 # Counted by the run that committed this: settled up to where the publisher ended, or
                 # up to below the oldest record it still held.
-                state = self._topic(key.topic.rsplit(" <- ", 1)[0])
+                state = self._topic(key.topic[: -len(suffix)])
                 ended = state.keyed.setdefault(-key.source_ns, _Keyed(key.seq + 1))
                 if ended.settled <= key.seq:
                     ended.above = {s for s in ended.above if s > key.seq}
